@@ -10,3 +10,22 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip_gpu)
+
+
+@pytest.fixture(scope="session")
+def ray_cluster():
+    """One local Ray instance for the whole session (starting Ray costs seconds on 2 cores)."""
+    from infinirl.runtime import Cluster
+
+    cluster = Cluster(num_cpus=2, log_to_driver=False).start()
+    yield cluster
+    cluster.shutdown()
+
+
+def ship_by_value(module_name: str) -> None:
+    """Let Ray workers unpickle classes defined in a test module (not importable from workers)."""
+    import sys
+
+    import ray.cloudpickle
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[module_name])

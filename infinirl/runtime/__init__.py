@@ -1,0 +1,19 @@
+"""Distributed core: knows nothing about RL. See DESIGN.md §3 for the contracts."""
+
+from infinirl.runtime.channel import Channel
+from infinirl.runtime.cluster import Cluster, ClusterConfig
+from infinirl.runtime.errors import ChannelClosed, ChannelError, ClusterError, InfiniRLError, WorkerError
+from infinirl.runtime.inventory import Accelerator, ClusterInventory, NodeInventory, Robot
+from infinirl.runtime.memory import device_turn
+from infinirl.runtime.placement import PlacementError, PlacementPlan, RankPlacement, place
+from infinirl.runtime.tracing import Tracer
+from infinirl.runtime.weights import WeightSink, WeightSource, WeightSyncGroup, sync_weights
+from infinirl.runtime.worker import GroupHandle, RankContext, RestartPolicy, Worker, WorkerGroup
+
+__all__ = [
+    "Accelerator", "Channel", "ChannelClosed", "ChannelError", "Cluster", "ClusterConfig",
+    "ClusterError", "ClusterInventory", "GroupHandle", "InfiniRLError", "NodeInventory",
+    "PlacementError", "PlacementPlan", "RankContext", "RankPlacement", "RestartPolicy", "Robot",
+    "Tracer", "WeightSink", "WeightSource", "WeightSyncGroup", "Worker", "WorkerError",
+    "WorkerGroup", "device_turn", "place", "sync_weights",
+]

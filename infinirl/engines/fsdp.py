@@ -1,0 +1,603 @@
+"""Training engine on FSDP2 (``torch.distributed.fsdp.fully_shard``) over any HF causal LM.
+
+Why FSDP2: parameters are per-parameter ``DTensor`` shards, so frozen and trainable weights (LoRA)
+live in the same group, state dicts need no flat-parameter translation, and the same code runs on
+one CPU process (gloo, world size 1) and on many GPUs (NCCL).
+
+Data parallelism and the loss contract
+--------------------------------------
+Every rank gets its own share of a mini-batch. The caller's ``loss_fn`` is normalised by a *global*
+denominator (e.g. the number of response tokens in the whole mini-batch over all ranks), so the
+gradient of the mini-batch loss is the **sum** of the per-micro-batch, per-rank gradients. FSDP2
+averages over ranks by default; we set ``gradient_divide_factor=1`` and force plain ``SUM``
+collectives on every FSDP module (``set_force_sum_reduction_for_comms``), so the reduce-scatter
+sums and nothing divides. (``SUM`` rather than NCCL's ``PREMUL_SUM(1.0)`` because gloo has no
+``PREMUL_SUM``; the result is the same.) Micro-batch gradients simply accumulate, undivided.
+
+All collectives must match across ranks, so ranks with fewer micro-batches than the busiest rank
+run zero-loss filler passes (see :meth:`FSDPTrainEngine._micro_batch_plan`).
+
+Process groups
+--------------
+:func:`init_distributed` joins the default group from ``RANK/WORLD_SIZE/MASTER_ADDR/MASTER_PORT``
+(gloo on CPU; ``cuda:nccl,cpu:gloo`` on GPU), or, without those variables, makes a one-rank group
+in-process. The engine never destroys a group: the worker that owns the process does.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import shutil
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.distributed.checkpoint as dcp
+from tensordict import TensorDict
+from torch import nn
+from torch.distributed.checkpoint.state_dict import (
+    get_model_state_dict,
+    get_optimizer_state_dict,
+    set_model_state_dict,
+    set_optimizer_state_dict,
+)
+from torch.distributed.device_mesh import init_device_mesh
+from torch.distributed.fsdp import FSDPModule, MixedPrecisionPolicy, fully_shard
+from torch.distributed.tensor import DTensor
+
+from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS
+from infinirl.engines.logprobs import aligned_logprobs
+from infinirl.engines.train_base import LoraSettings, LossFn, LrSchedule, TrainEngineConfig
+
+ModelOrFactory = nn.Module | Callable[[], nn.Module]
+
+_DCP_DIR = "model_optim"  # DCP shards of model + optimizer (resharding-capable)
+_ENGINE_STATE = "engine_rank{rank}.pt"  # per-rank: scheduler, step, RNG (RNG differs per rank)
+_PEFT_PREFIX = "base_model.model."
+_ADAPTER = "default"
+
+
+# ----------------------------------------------------------------------------- process group
+
+
+def init_distributed() -> bool:
+    """Make sure the default process group exists; return True if this call created it.
+
+    With ``WORLD_SIZE``/``MASTER_ADDR`` set (a launched worker) it uses ``env://``; otherwise it
+    creates a one-rank group on an in-memory store, so a plain script or test needs no setup.
+    """
+    if dist.is_initialized():
+        return False
+    backend = "cuda:nccl,cpu:gloo" if torch.cuda.is_available() else "gloo"
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    if "MASTER_ADDR" in os.environ:
+        dist.init_process_group(backend, rank=int(os.environ.get("RANK", "0")), world_size=world_size)
+    elif world_size == 1:
+        dist.init_process_group(backend, store=dist.HashStore(), rank=0, world_size=1)
+    else:
+        raise RuntimeError(
+            f"init_distributed: WORLD_SIZE={world_size} but MASTER_ADDR/MASTER_PORT are not set; "
+            "the launcher must export them so ranks can meet."
+        )
+    return True
+
+
+def _select_device(choice: str) -> torch.device:
+    if choice == "cpu" or (choice == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise RuntimeError("TrainEngineConfig.device='cuda' but CUDA is not available")
+    # A Ray worker usually sees exactly one GPU; torchrun-style launches see all and use LOCAL_RANK.
+    local_rank = int(os.environ.get("LOCAL_RANK", dist.get_rank() % torch.cuda.device_count()))
+    torch.cuda.set_device(local_rank)
+    return torch.device("cuda", local_rank)
+
+
+def _compute_dtype(choice: str, device: torch.device) -> torch.dtype:
+    if choice == "float32":
+        return torch.float32
+    if choice == "bfloat16":
+        return torch.bfloat16
+    if device.type == "cuda" and torch.cuda.is_bf16_supported():
+        return torch.bfloat16
+    return torch.float32
+
+
+# ----------------------------------------------------------------------------- model preparation
+
+
+def _enable_activation_checkpointing(model: nn.Module) -> None:
+    if not getattr(model, "supports_gradient_checkpointing", False):
+        raise ValueError(
+            f"activation_checkpointing=True but {type(model).__name__} does not support HF gradient "
+            "checkpointing (supports_gradient_checkpointing is False)"
+        )
+    # Non-reentrant: works with frozen inputs (LoRA) and with FSDP2's hooks; keeps parameter names.
+    model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+
+
+def _apply_lora(model: nn.Module, settings: LoraSettings) -> nn.Module:
+    from peft import LoraConfig, get_peft_model
+    from peft.tuners.lora import Linear as LoraLinear
+    from peft.tuners.lora import LoraLayer
+
+    config = LoraConfig(
+        r=settings.r,
+        lora_alpha=settings.alpha,
+        target_modules=settings.target_modules,
+        lora_dropout=settings.dropout,
+        bias="none",
+    )
+    peft_model = get_peft_model(model, config)
+    for name, module in peft_model.named_modules():
+        if isinstance(module, LoraLayer) and not isinstance(module, LoraLinear):
+            raise ValueError(
+                f"LoRA target {name!r} is a {type(module).__name__}; only nn.Linear targets are "
+                "supported (their merge for weight sync is implemented). Narrow target_modules."
+            )
+    return peft_model
+
+
+def _decoder_layers(model: nn.Module) -> list[nn.Module]:
+    """Modules to shard as separate FSDP groups: HF's ``_no_split_modules`` (the decoder layers).
+
+    One group per layer lets FSDP all-gather one layer at a time (peak memory ~ one layer) and
+    overlap communication with the previous layer's compute.
+    """
+    class_names: set[str] = set()
+    for module in model.modules():
+        class_names.update(getattr(module, "_no_split_modules", None) or [])
+    return [m for m in model.modules() if type(m).__name__ in class_names]
+
+
+def _shard(model: nn.Module, mesh, compute_dtype: torch.dtype) -> nn.Module:
+    mp_policy = MixedPrecisionPolicy(param_dtype=compute_dtype, reduce_dtype=torch.float32)
+    for layer in _decoder_layers(model):
+        fully_shard(layer, mesh=mesh, mp_policy=mp_policy)
+    fully_shard(model, mesh=mesh, mp_policy=mp_policy)
+    for module in model.modules():
+        if isinstance(module, FSDPModule):
+            # SUM across ranks instead of FSDP's default mean: see the module docstring.
+            module.set_gradient_divide_factor(1.0)
+            module.set_force_sum_reduction_for_comms(True)
+    return model
+
+
+def _lora_merge_plan(model: nn.Module) -> dict[str, tuple[float, bool]]:
+    """``{module FQN: (scaling, fan_in_fan_out)}`` for every LoRA-wrapped linear layer."""
+    from peft.tuners.lora import LoraLayer
+
+    return {
+        name: (float(module.scaling[_ADAPTER]), bool(getattr(module, "fan_in_fan_out", False)))
+        for name, module in model.named_modules()
+        if isinstance(module, LoraLayer)
+    }
+
+
+def _full_tensor(tensor: torch.Tensor) -> torch.Tensor:
+    """Unshard a DTensor (a collective: every rank must call it in the same order)."""
+    return tensor.full_tensor() if isinstance(tensor, DTensor) else tensor
+
+
+def _as_tensordict(batch: TensorDict | Mapping[str, torch.Tensor]) -> TensorDict:
+    if isinstance(batch, TensorDict):
+        return batch
+    if INPUT_IDS not in batch:
+        raise KeyError(f"batch needs {INPUT_IDS!r}; got keys {sorted(batch)}")
+    return TensorDict(dict(batch), batch_size=[batch[INPUT_IDS].shape[0]])
+
+
+def _used_width(attention_mask: torch.Tensor) -> int:
+    """Columns up to the last attended token of any row: trailing all-pad columns are skipped."""
+    positions = torch.arange(1, attention_mask.shape[1] + 1, device=attention_mask.device)
+    return max(1, int((positions * (attention_mask != 0)).max()))
+
+
+def _pad_columns(scores: torch.Tensor, width: int) -> torch.Tensor:
+    if scores.shape[1] == width:
+        return scores
+    return torch.nn.functional.pad(scores, (0, width - scores.shape[1]))
+
+
+# ----------------------------------------------------------------------------- the engine
+
+
+class FSDPTrainEngine:
+    """Train a causal LM with FSDP2 across the ranks of the default process group.
+
+    Args:
+        model: an HF causal LM or a zero-argument factory building one. A factory runs on every
+            rank after ``torch.manual_seed(cfg.seed)``, so random initialisations agree across
+            ranks; it must be deterministic (pretrained weights are). Weights become float32
+            master weights; ``cfg.param_dtype`` only sets the compute dtype.
+        cfg: optimiser, schedule, batching, precision, LoRA (see :class:`TrainEngineConfig`).
+    """
+
+    def __init__(self, model: ModelOrFactory, cfg: TrainEngineConfig):
+        self.cfg = cfg
+        init_distributed()
+        self.rank = dist.get_rank()
+        self.world_size = dist.get_world_size()
+        self.device = _select_device(cfg.device)
+        self.compute_dtype = _compute_dtype(cfg.param_dtype, self.device)
+
+        _seed_all(cfg.seed)  # identical init on every rank
+        if not isinstance(model, nn.Module):
+            model = model()
+        model = model.to(device=self.device, dtype=torch.float32)
+        if cfg.activation_checkpointing:
+            _enable_activation_checkpointing(model)
+        self._lora_plan: dict[str, tuple[float, bool]] = {}
+        if cfg.lora is not None:
+            model = _apply_lora(model, cfg.lora)
+            self._lora_plan = _lora_merge_plan(model)
+        self.mesh = init_device_mesh(self.device.type, (self.world_size,))
+        self.model = _shard(model, self.mesh, self.compute_dtype)
+
+        trainable = [p for p in self.model.parameters() if p.requires_grad]
+        if not trainable:
+            raise ValueError("FSDPTrainEngine: the model has no trainable parameters")
+        self.optimizer = torch.optim.AdamW(
+            trainable, lr=cfg.lr, betas=cfg.betas, eps=cfg.eps, weight_decay=cfg.weight_decay
+        )
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, LrSchedule(cfg))
+        self.global_step = 0
+        self._offloaded = False
+        _seed_all(cfg.seed + self.rank)  # runtime randomness (dropout) differs per rank
+
+    @classmethod
+    def from_pretrained(cls, name_or_path: str, cfg: TrainEngineConfig, **hf_kwargs) -> FSDPTrainEngine:
+        """Build from an HF checkpoint directory (loaded in float32 on every rank)."""
+        from transformers import AutoModelForCausalLM
+
+        def factory() -> nn.Module:
+            return AutoModelForCausalLM.from_pretrained(name_or_path, dtype=torch.float32, **hf_kwargs)
+
+        return cls(factory, cfg)
+
+    # ------------------------------------------------------------------ forward
+
+    @torch.no_grad()
+    def compute_logprobs(
+        self, batch: TensorDict | Mapping[str, torch.Tensor], with_entropy: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Aligned ``[B, L]`` float32 log-probs (and entropies) of this rank's batch, no grad.
+
+        Collective: every rank must call it (with its own, possibly differently sized, batch).
+        """
+        self._require_on_device("compute_logprobs")
+        batch = _as_tensordict(batch).to(self.device)
+        self.model.eval()
+        micro_batches, passes = self._micro_batch_plan(batch)
+        logprobs, entropies = [], []
+        for index in range(passes):
+            if index < len(micro_batches):
+                lp, ent = self._forward(micro_batches[index], with_entropy)
+                logprobs.append(lp)
+                entropies.append(ent)
+            else:
+                self._forward(self._filler_batch(), with_entropy=False)
+        # The root module keeps its parameters unsharded after a forward that no backward follows;
+        # reshard so that the next optimizer step is what the next forward sees.
+        self.model.reshard()
+        width = batch[INPUT_IDS].shape[1]
+        if not logprobs:
+            empty = torch.zeros(0, width, device=self.device)
+            return empty, (empty.clone() if with_entropy else None)
+        return torch.cat(logprobs), (torch.cat(entropies) if with_entropy else None)
+
+    def _forward(self, micro_batch: TensorDict, with_entropy: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        input_ids = micro_batch[INPUT_IDS]
+        full_width = input_ids.shape[1]
+        attention_mask = micro_batch.get(ATTENTION_MASK, None)
+        if attention_mask is None:
+            attention_mask = torch.ones_like(input_ids)
+        position_ids = micro_batch.get(POSITION_IDS, None)
+        width = _used_width(attention_mask)
+        input_ids, attention_mask = input_ids[:, :width], attention_mask[:, :width]
+        if position_ids is not None:
+            position_ids = position_ids[:, :width]
+        output = self.model(
+            input_ids=input_ids, attention_mask=attention_mask, position_ids=position_ids, use_cache=False
+        )
+        logprobs, entropy = aligned_logprobs(
+            output.logits,
+            input_ids,
+            attention_mask,
+            temperature=self.cfg.temperature,
+            chunk_tokens=self.cfg.logprob_chunk_tokens,
+            with_entropy=with_entropy,
+        )
+        logprobs = _pad_columns(logprobs, full_width)
+        return logprobs, (_pad_columns(entropy, full_width) if entropy is not None else None)
+
+    def _micro_batch_plan(self, batch: TensorDict) -> tuple[list[TensorDict], int]:
+        """This rank's micro-batches, and how many passes every rank must make (the global max).
+
+        FSDP all-gathers parameters in every forward and reduce-scatters gradients in every
+        backward; a rank that stopped early would leave the others waiting forever.
+        """
+        size = batch.batch_size[0]
+        micro_batches = list(batch.split(self.cfg.micro_batch_size)) if size else []
+        count = torch.tensor([len(micro_batches)], device=self.device)
+        dist.all_reduce(count, op=dist.ReduceOp.MAX)
+        return micro_batches, int(count.item())
+
+    def _filler_batch(self) -> TensorDict:
+        one = torch.ones(1, 1, dtype=torch.long, device=self.device)
+        return TensorDict(
+            {INPUT_IDS: one * 0, ATTENTION_MASK: one, POSITION_IDS: one * 0}, batch_size=[1], device=self.device
+        )
+
+    # ------------------------------------------------------------------ training
+
+    def train_step(
+        self, batch: TensorDict | Mapping[str, torch.Tensor], loss_fn: LossFn, with_entropy: bool = False
+    ) -> dict[str, float]:
+        """One optimizer step on this rank's share of a mini-batch.
+
+        ``loss_fn(micro_batch, logprobs, entropy)`` runs per micro-batch; gradients are summed over
+        micro-batches and ranks (the loss carries the global normaliser). Collective.
+
+        Returns the loss function's metrics averaged over all micro-batches of all ranks, plus
+        ``train/loss`` (the mini-batch loss: summed, like the gradients), ``train/grad_norm``
+        (global, before clipping), ``train/lr`` (used by this step), ``train/skipped_step``
+        (1 when the gradient was not finite and the update was skipped) and ``time/train_step``.
+        """
+        start = time.perf_counter()
+        self._require_on_device("train_step")
+        batch = _as_tensordict(batch).to(self.device)
+        self.model.train()
+        micro_batches, passes = self._micro_batch_plan(batch)
+        if passes == 0:
+            raise ValueError("train_step: the mini-batch is empty on every rank")
+        self.optimizer.zero_grad(set_to_none=True)
+        loss_sum = torch.zeros((), device=self.device)
+        metric_sums: dict[str, float] = {}
+        for index in range(passes):
+            if index < len(micro_batches):
+                micro_batch = micro_batches[index]
+                logprobs, entropy = self._forward(micro_batch, with_entropy)
+                loss, metrics = loss_fn(micro_batch, logprobs, entropy)
+                _check_loss(loss)
+                for key, value in metrics.items():
+                    metric_sums[key] = metric_sums.get(key, 0.0) + float(value)
+                loss_sum += loss.detach().float()
+            else:  # filler: joins the collectives, contributes zero gradient
+                logprobs, _ = self._forward(self._filler_batch(), with_entropy=False)
+                loss = logprobs.sum() * 0.0
+            loss.backward()
+
+        grad_norm = self._clip_grad_norm()
+        finite = bool(torch.isfinite(grad_norm))
+        lr = self.scheduler.get_last_lr()[0]
+        if finite:
+            self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.scheduler.step()
+        self.global_step += 1
+
+        dist.all_reduce(loss_sum)
+        out = self._average_metrics(metric_sums, len(micro_batches))
+        out.update(
+            {
+                "train/loss": float(loss_sum),
+                "train/grad_norm": float(grad_norm),
+                "train/lr": lr,
+                "train/skipped_step": 0.0 if finite else 1.0,
+                "time/train_step": time.perf_counter() - start,
+            }
+        )
+        return out
+
+    def _clip_grad_norm(self) -> torch.Tensor:
+        """Global L2 norm of all gradients (sharded ones included); clip to ``cfg.grad_clip``."""
+        params = [p for p in self.model.parameters() if p.grad is not None]
+        if not params:
+            return torch.zeros((), device=self.device)
+        total = torch.nn.utils.get_total_norm([p.grad for p in params], norm_type=2.0)
+        total = _full_tensor(total)  # partial per-shard norms -> the global norm
+        if self.cfg.grad_clip and torch.isfinite(total):
+            torch.nn.utils.clip_grads_with_norm_(params, self.cfg.grad_clip, total)
+        return total
+
+    def _average_metrics(self, sums: dict[str, float], count: int) -> dict[str, float]:
+        """Mean over every real micro-batch of every rank (each micro-batch weighs the same)."""
+        gathered: list[tuple[dict[str, float], int]] = [None] * self.world_size  # type: ignore[list-item]
+        dist.all_gather_object(gathered, (sums, count))
+        totals: dict[str, float] = {}
+        counts: dict[str, int] = {}
+        for rank_sums, rank_count in gathered:
+            for key, value in rank_sums.items():
+                totals[key] = totals.get(key, 0.0) + value
+                counts[key] = counts.get(key, 0) + rank_count
+        return {key: totals[key] / counts[key] for key in totals}
+
+    # ------------------------------------------------------------------ weight export
+
+    def state_dict_for_sync(self, dtype: torch.dtype | None = None) -> Iterator[tuple[str, torch.Tensor]]:
+        """Yield ``(name, full tensor)`` one parameter at a time, names as the HF model's ``state_dict()``.
+
+        Gathered on **every** rank (each ``DTensor.full_tensor()`` is an all-gather), one tensor
+        at a time so peak memory is one full parameter, which suits bucketed sync. Every rank must
+        consume the iterator to the end. LoRA adapters are merged into their base weights and
+        their own entries are not yielded. Tensors stay on the engine's device; ``dtype`` casts.
+        """
+        self._require_on_device("state_dict_for_sync")
+        sharded = self.model.state_dict()
+        for name, tensor in sharded.items():
+            if self._lora_plan and (".lora_A." in name or ".lora_B." in name):
+                continue
+            full = _full_tensor(tensor.detach())
+            module_name, _, leaf = name.rpartition(".base_layer.")
+            if leaf == "weight" and module_name in self._lora_plan:
+                full = full + self._lora_delta(sharded, module_name)
+            yield _hf_name(name), (full.to(dtype) if dtype is not None else full)
+
+    def _lora_delta(self, sharded: Mapping[str, torch.Tensor], module_name: str) -> torch.Tensor:
+        scaling, fan_in_fan_out = self._lora_plan[module_name]
+        lora_a = _full_tensor(sharded[f"{module_name}.lora_A.{_ADAPTER}.weight"].detach())
+        lora_b = _full_tensor(sharded[f"{module_name}.lora_B.{_ADAPTER}.weight"].detach())
+        delta = (lora_b @ lora_a) * scaling
+        return delta.T if fan_in_fan_out else delta
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def save_checkpoint(self, path: str | os.PathLike) -> None:
+        """Write model + optimizer (DCP shards), scheduler, step and per-rank RNG to ``path``.
+
+        Atomic: everything goes to ``<path>.tmp`` and rank 0 renames it into place only after all
+        ranks finished, so ``path`` is either the old checkpoint or the complete new one. On an
+        error the temporary directory is removed. With several nodes ``path`` must be on a shared
+        filesystem (every rank writes its own shards). Collective.
+        """
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        with self._temporarily_on_device():
+            if self.rank == 0:
+                shutil.rmtree(tmp, ignore_errors=True)
+                tmp.mkdir(parents=True)
+            dist.barrier()
+            try:
+                has_optimizer_state = bool(self.optimizer.state)
+                state = {"model": get_model_state_dict(self.model)}
+                if has_optimizer_state:  # reading an empty optimizer's state would initialise it
+                    state["optimizer"] = get_optimizer_state_dict(self.model, self.optimizer)
+                dcp.save(state, checkpoint_id=str(tmp / _DCP_DIR))
+                _write_engine_state(self._engine_state(has_optimizer_state), tmp / _ENGINE_STATE.format(rank=self.rank))
+                dist.barrier()
+                if self.rank == 0:
+                    _replace_directory(tmp, path)
+                dist.barrier()
+            except BaseException:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
+
+    def load_checkpoint(self, path: str | os.PathLike) -> None:
+        """Restore a :meth:`save_checkpoint` directory (any world size for model/optimizer). Collective."""
+        path = Path(path)
+        if not (path / _DCP_DIR).is_dir():
+            raise FileNotFoundError(f"load_checkpoint: {path} is not an engine checkpoint (no {_DCP_DIR}/)")
+        engine_file = path / _ENGINE_STATE.format(rank=self.rank)
+        if not engine_file.exists():  # saved with fewer ranks: take rank 0's (its RNG is reused)
+            engine_file = path / _ENGINE_STATE.format(rank=0)
+        engine_state = torch.load(engine_file, weights_only=False)  # our own file: RNG tuples
+        with self._temporarily_on_device():
+            state = {"model": get_model_state_dict(self.model)}
+            if engine_state["has_optimizer_state"]:
+                state["optimizer"] = get_optimizer_state_dict(self.model, self.optimizer)
+            dcp.load(state, checkpoint_id=str(path / _DCP_DIR))
+            set_model_state_dict(self.model, state["model"])
+            if engine_state["has_optimizer_state"]:
+                set_optimizer_state_dict(self.model, self.optimizer, state["optimizer"])
+        self.scheduler.load_state_dict(engine_state["scheduler"])
+        self.global_step = engine_state["global_step"]
+        _set_rng_state(engine_state["rng"])
+
+    def _engine_state(self, has_optimizer_state: bool) -> dict:
+        return {
+            "global_step": self.global_step,
+            "scheduler": self.scheduler.state_dict(),
+            "has_optimizer_state": has_optimizer_state,
+            "rng": _get_rng_state(),
+            "world_size": self.world_size,
+        }
+
+    # ------------------------------------------------------------------ device time-sharing
+
+    def offload(self) -> None:
+        """Move parameter shards, gradients and optimizer state to CPU (no-op on a CPU engine)."""
+        if self._offloaded:
+            return
+        self._move_to(torch.device("cpu"))
+        self._offloaded = True
+
+    def reload(self) -> None:
+        """Bring everything :meth:`offload` moved back onto the engine's device."""
+        if not self._offloaded:
+            return
+        self._move_to(self.device)
+        self._offloaded = False
+
+    def _move_to(self, device: torch.device) -> None:
+        if self.device.type == "cpu":
+            return
+        self.model.to(device)  # FSDPModule._apply reshards first and re-registers the DTensor shards
+        for state in self.optimizer.state.values():
+            for key, value in state.items():
+                if isinstance(value, torch.Tensor) and value.device != device and key != "step":
+                    state[key] = value.to(device, non_blocking=True)
+        torch.cuda.synchronize(self.device)
+        if device.type == "cpu":
+            torch.cuda.empty_cache()
+
+    @contextmanager
+    def _temporarily_on_device(self):
+        was_offloaded = self._offloaded
+        self.reload()
+        try:
+            yield
+        finally:
+            if was_offloaded:
+                self.offload()
+
+    def _require_on_device(self, what: str) -> None:
+        if self._offloaded:
+            raise RuntimeError(f"{what}: the engine is offloaded; call reload() first")
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _check_loss(loss: torch.Tensor) -> None:
+    if not isinstance(loss, torch.Tensor) or loss.numel() != 1:
+        raise TypeError(f"loss_fn must return a scalar tensor as its loss, got {type(loss).__name__} {getattr(loss, 'shape', '')}")
+    if not loss.requires_grad:
+        raise ValueError("loss_fn returned a loss that does not depend on the log-probs (no grad)")
+
+
+def _hf_name(name: str) -> str:
+    """peft's wrapped name -> the plain HF model's state_dict key."""
+    if name.startswith(_PEFT_PREFIX):
+        name = name[len(_PEFT_PREFIX) :]
+    return name.replace(".base_layer.", ".")
+
+
+def _replace_directory(new: Path, target: Path) -> None:
+    """Move ``new`` to ``target``, replacing an existing ``target`` (kept as ``.old`` until done)."""
+    old = target.with_name(target.name + ".old")
+    if target.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(target, old)
+    os.replace(new, target)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _write_engine_state(state: dict, file: Path) -> None:
+    torch.save(state, file)
+
+
+def _seed_all(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)  # also seeds every CUDA device
+
+
+def _get_rng_state() -> dict:
+    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: dict) -> None:
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])

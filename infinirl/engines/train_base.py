@@ -1,0 +1,163 @@
+"""What every training engine offers the actor/critic components, and how it is configured.
+
+Components talk to an engine only through :class:`TrainEngine`, so the FSDP2 engine here and any
+later backend (Megatron, a plain single-device engine) are swappable by configuration. The config
+is a typed dataclass (DESIGN.md §4.1): each field says what it controls and why its default is what
+it is, so a YAML file never needs a comment to be understood.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import torch
+from tensordict import TensorDict
+
+#: ``loss_fn(micro_batch, logprobs, entropy) -> (loss, metrics)``. ``logprobs``/``entropy`` are
+#: ``[b, L]`` in the aligned layout of :mod:`infinirl.data.batch` (``entropy`` is ``None`` unless
+#: requested). The engine *sums* gradients of ``loss`` over micro-batches and data-parallel ranks,
+#: so the loss must already be normalised by a global (whole mini-batch, all ranks) denominator.
+LossFn = Callable[
+    [TensorDict, torch.Tensor, "torch.Tensor | None"],
+    "tuple[torch.Tensor, Mapping[str, float | torch.Tensor]]",
+]
+
+
+@dataclass
+class LoraSettings:
+    """Low-rank adapters (peft ``LoraConfig``). When set, only adapter weights train.
+
+    The exported weights (:meth:`TrainEngine.state_dict_for_sync`) have the adapters merged, so the
+    rollout engine loads a plain model with the original parameter names.
+    """
+
+    r: int = 8
+    """Adapter rank. Larger learns more, costs more memory for optimizer state."""
+    alpha: float = 16.0
+    """Adapter scaling numerator: the update is ``(alpha / r) * B @ A``."""
+    target_modules: list[str] | str = "all-linear"
+    """Module names (or peft's ``"all-linear"``) that get adapters; the LM head is never adapted."""
+    dropout: float = 0.0
+    """Dropout on the adapter input. Non-zero makes training log-probs stochastic, which PPO
+    ratios then see as noise; keep 0 unless you know you want it."""
+
+
+@dataclass
+class TrainEngineConfig:
+    """Optimiser, schedule, batching and precision of a training engine."""
+
+    lr: float = 1e-6
+    """Peak learning rate (AdamW). RL fine-tuning of LLMs typically uses 1e-6 .. 1e-5 (LoRA: ~1e-5..1e-4)."""
+    weight_decay: float = 0.0
+    """Decoupled weight decay (AdamW). 0 by default: RL steps are few and decay pulls weights
+    away from the pretrained model that the reference policy also uses."""
+    betas: tuple[float, float] = (0.9, 0.999)
+    """Adam moment decay rates."""
+    eps: float = 1e-8
+    """Adam denominator epsilon."""
+    grad_clip: float | None = 1.0
+    """Clip the global gradient L2 norm to this value; ``None`` or 0 disables clipping (the norm
+    is still computed and reported as ``train/grad_norm``)."""
+    warmup_steps: int = 0
+    """Linear warmup: step ``s`` (0-based) uses ``lr * min(1, (s + 1) / warmup_steps)``, so the
+    first step already moves (an lr of 0 would waste a rollout)."""
+    lr_schedule: Literal["constant", "cosine"] = "constant"
+    """After warmup: keep ``lr`` (constant) or decay it to ``min_lr_ratio * lr`` by ``total_steps``."""
+    total_steps: int | None = None
+    """Optimizer steps of the whole run; required by the cosine schedule."""
+    min_lr_ratio: float = 0.0
+    """Cosine floor, as a fraction of ``lr``."""
+    micro_batch_size: int = 4
+    """Sequences per forward/backward. Bounds activation memory; results do not depend on it
+    (gradients are summed over micro-batches)."""
+    logprob_chunk_tokens: int = 1024
+    """Tokens per chunk when turning logits into log-probs: the float32 ``[chunk, vocab]`` block
+    is the only full-vocab float32 tensor alive (a 150k vocab at 1024 tokens is ~600 MB)."""
+    param_dtype: Literal["auto", "float32", "bfloat16"] = "auto"
+    """Compute dtype of forward/backward. Master weights, optimizer state and gradient reduction
+    stay float32. ``auto``: bfloat16 on CUDA devices that support it, float32 on CPU (bf16 autocast
+    is slower than fp32 on typical CPUs without AMX, and less accurate)."""
+    lora: LoraSettings | None = None
+    """Train low-rank adapters instead of the full model (see :class:`LoraSettings`)."""
+    activation_checkpointing: bool = False
+    """Recompute each decoder layer's activations in backward: less memory, ~30% more compute."""
+    temperature: float = 1.0
+    """Log-probs are computed from ``logits / temperature``, to match the sampling distribution
+    of the rollout engine (otherwise the PPO ratio is off even at the same weights)."""
+    seed: int = 0
+    """Seeds model init (identical on every rank, so shards agree) and later per-rank randomness."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """``auto``: the rank's CUDA device when CUDA is available, else CPU."""
+
+    def __post_init__(self) -> None:
+        if self.micro_batch_size < 1:
+            raise ValueError(f"TrainEngineConfig.micro_batch_size must be >= 1, got {self.micro_batch_size}")
+        if self.temperature <= 0:
+            raise ValueError(f"TrainEngineConfig.temperature must be > 0, got {self.temperature}")
+        if self.logprob_chunk_tokens < 1:
+            raise ValueError("TrainEngineConfig.logprob_chunk_tokens must be >= 1")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"TrainEngineConfig.lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+        if self.lr_schedule == "cosine" and not self.total_steps:
+            raise ValueError("TrainEngineConfig: lr_schedule='cosine' needs total_steps (the decay horizon)")
+        if self.param_dtype not in ("auto", "float32", "bfloat16"):
+            raise ValueError(f"TrainEngineConfig.param_dtype must be auto/float32/bfloat16, got {self.param_dtype!r}")
+        if isinstance(self.lora, Mapping):  # built from YAML/dict
+            self.lora = LoraSettings(**self.lora)
+        self.betas = tuple(self.betas)  # YAML gives lists
+
+
+class LrSchedule:
+    """Multiplier on the peak lr for optimizer step ``step`` (0-based): warmup, then constant/cosine.
+
+    A class, not a lambda, so ``LambdaLR.state_dict()`` stays picklable and inspectable.
+    """
+
+    def __init__(self, cfg: TrainEngineConfig):
+        self.warmup_steps = cfg.warmup_steps
+        self.kind = cfg.lr_schedule
+        self.total_steps = cfg.total_steps
+        self.min_lr_ratio = cfg.min_lr_ratio
+
+    def __call__(self, step: int) -> float:
+        if self.warmup_steps > 0 and step < self.warmup_steps:
+            return (step + 1) / self.warmup_steps
+        if self.kind == "constant":
+            return 1.0
+        decay_steps = max(1, self.total_steps - self.warmup_steps)
+        progress = min(1.0, (step - self.warmup_steps) / decay_steps)
+        cosine = 0.5 * (1.0 + math.cos(math.pi * progress))
+        return self.min_lr_ratio + (1.0 - self.min_lr_ratio) * cosine
+
+
+class TrainEngine(Protocol):
+    """The operations an actor or critic component needs from a training backend."""
+
+    def compute_logprobs(
+        self, batch: TensorDict, with_entropy: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Aligned ``[B, L]`` log-probs (and entropies) of ``batch['input_ids']``, without grad."""
+
+    def train_step(self, batch: TensorDict, loss_fn: LossFn, with_entropy: bool = False) -> dict[str, float]:
+        """One optimizer step over this rank's share of a mini-batch; returns metrics."""
+
+    def state_dict_for_sync(self, dtype: torch.dtype | None = None) -> Iterator[tuple[str, torch.Tensor]]:
+        """Full (unsharded) weights under the HF model's ``state_dict()`` names, for the rollout."""
+
+    def save_checkpoint(self, path: str) -> None:
+        """Write model, optimizer, scheduler, step and RNG atomically to directory ``path``."""
+
+    def load_checkpoint(self, path: str) -> None:
+        """Restore everything :meth:`save_checkpoint` wrote, so training continues exactly."""
+
+    def offload(self) -> None:
+        """Move weights, gradients and optimizer state off the accelerator (time-sharing)."""
+
+    def reload(self) -> None:
+        """Undo :meth:`offload`."""
+
+
+__all__ = ["LoraSettings", "LossFn", "LrSchedule", "TrainEngine", "TrainEngineConfig"]

@@ -1,0 +1,287 @@
+"""Channel: a named, keyed, weighted, bounded queue between worker groups.
+
+The queue lives in a small async Ray actor and holds *metadata only* (an ``Envelope``: path,
+producer, weight, and a ref or a small inline payload). Payloads move from producer to consumer by
+the cheapest path (see ``transport``): never twice through a channel actor, as RLinf's do.
+
+- ``put(item, key=, weight=)`` blocks while the channel is full (``maxsize`` is a capacity in
+  *weight* units; weight defaults to 1, so by default it counts items): back-pressure.
+- ``get(key=)`` takes the oldest item of a key (per-key FIFO).
+- ``get_batch(target_weight, key=)`` takes items until their weights reach the target: consumers
+  asking for equal weight get balanced work even when items differ in size (e.g. token counts).
+- ``close()``: producers are done. Getters drain what is left, then get ``ChannelClosed``.
+- Every call has an ``*_async`` twin for use inside ``async def`` worker methods.
+
+A ``Channel`` object is picklable: pass it to worker methods, or ``Channel.connect(name)`` anywhere.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+from collections import deque
+from typing import Any
+
+import ray
+
+from infinirl.runtime.cluster import NAMESPACE
+from infinirl.runtime.errors import ChannelClosed, ChannelError
+from infinirl.runtime.transport import Envelope, pack, unpack
+
+DEFAULT_KEY = "default"
+_ACTOR_PREFIX = "infinirl.channel."
+
+
+class _Item:
+    __slots__ = ("envelope", "weight", "pinned_pid")
+
+    def __init__(self, envelope: Envelope, weight: float, pinned_pid: int | None):
+        self.envelope = envelope
+        self.weight = weight
+        self.pinned_pid = pinned_pid
+
+
+class _ChannelActor:
+    """Holds per-key deques of envelopes; all waiting happens here, on asyncio conditions."""
+
+    def __init__(self, name: str, maxsize: float):
+        self.name = name
+        self.maxsize = maxsize
+        self.queues: dict[Any, deque[_Item]] = {}
+        self.weight_in_queue = 0.0
+        self.closed = False
+        self.cond = asyncio.Condition()
+        self.consumer_pids: set[int] = set()
+        self.stats = {"put": 0, "get": 0}
+
+    async def put(self, envelope: Envelope, key, weight: float, timeout: float | None):
+        if self.closed:
+            raise ChannelClosed(f"put on closed channel '{self.name}'")
+        if self.maxsize and weight > self.maxsize:
+            raise ChannelError(
+                f"channel '{self.name}': an item of weight {weight} can never fit maxsize={self.maxsize}; "
+                "raise maxsize or split the item"
+            )
+        pinned = envelope.producer_pid if envelope.path == "local" else None
+        async with self.cond:
+            if self.maxsize:
+                await self._wait_for(lambda: self.weight_in_queue + weight <= self.maxsize or self.closed, timeout, "put")
+                if self.closed:
+                    raise ChannelClosed(f"channel '{self.name}' closed while a put waited for space")
+            self.queues.setdefault(key, deque()).append(_Item(envelope, weight, pinned))
+            self.weight_in_queue += weight
+            self.stats["put"] += 1
+            self.cond.notify_all()
+        return sorted(self.consumer_pids)
+
+    async def put_many(self, envelopes: list[Envelope], key, weights: list[float], timeout):
+        for envelope, weight in zip(envelopes, weights):
+            await self.put(envelope, key, weight, timeout)
+        return sorted(self.consumer_pids)
+
+    def _eligible(self, key, pid: int) -> int | None:
+        queue = self.queues.get(key)
+        if not queue:
+            return None
+        for index, item in enumerate(queue):
+            if item.pinned_pid is None or item.pinned_pid == pid:
+                return index
+        return None
+
+    def _take(self, key, index: int) -> _Item:
+        queue = self.queues[key]
+        if index == 0:
+            item = queue.popleft()
+        else:
+            item = queue[index]
+            del queue[index]
+        self.weight_in_queue -= item.weight
+        self.stats["get"] += 1
+        return item
+
+    async def get(self, key, pid: int, timeout: float | None):
+        self.consumer_pids.add(pid)
+        async with self.cond:
+            await self._wait_for(lambda: self._eligible(key, pid) is not None or self.closed, timeout, "get")
+            index = self._eligible(key, pid)
+            if index is None:
+                raise ChannelClosed(f"channel '{self.name}' is closed and has no more items for key {key!r}")
+            item = self._take(key, index)
+            self.cond.notify_all()
+            return item.envelope, item.weight
+
+    async def get_batch(self, target_weight: float, key, pid: int, timeout: float | None):
+        self.consumer_pids.add(pid)
+        taken: list[tuple[Envelope, float]] = []
+        total = 0.0
+        async with self.cond:
+            while total < target_weight:
+                try:
+                    await self._wait_for(
+                        lambda: self._eligible(key, pid) is not None or self.closed, timeout, "get_batch"
+                    )
+                except TimeoutError:
+                    if taken:
+                        break
+                    raise
+                index = self._eligible(key, pid)
+                if index is None:  # closed and drained
+                    if taken:
+                        break
+                    raise ChannelClosed(f"channel '{self.name}' is closed and has no more items for key {key!r}")
+                item = self._take(key, index)
+                taken.append((item.envelope, item.weight))
+                total += item.weight
+                self.cond.notify_all()
+        return taken
+
+    async def register_consumer(self, pid: int) -> None:
+        self.consumer_pids.add(pid)
+
+    async def close(self) -> None:
+        async with self.cond:
+            self.closed = True
+            self.cond.notify_all()
+
+    async def qsize(self, key=None) -> int:
+        if key is None:
+            return sum(len(q) for q in self.queues.values())
+        return len(self.queues.get(key, ()))
+
+    async def info(self) -> dict:
+        return {"name": self.name, "maxsize": self.maxsize, "closed": self.closed,
+                "weight_in_queue": self.weight_in_queue, **self.stats}
+
+    async def _wait_for(self, predicate, timeout: float | None, op: str) -> None:
+        try:
+            await asyncio.wait_for(self.cond.wait_for(predicate), timeout)
+        except asyncio.TimeoutError:
+            raise TimeoutError(f"channel '{self.name}': {op} timed out after {timeout}s") from None
+
+
+class Channel:
+    """Client handle on a named channel; cheap to pickle and send to workers."""
+
+    def __init__(self, name: str, actor):
+        self.name = name
+        self._actor = actor
+        self._consumers_here_only = False
+
+    # ------------------------------------------------------------------ create / connect
+    @classmethod
+    def create(cls, name: str, maxsize: float = 0, exist_ok: bool = False) -> "Channel":
+        """Create the channel ``name`` (``maxsize`` 0 = unbounded). Call from the driver or a worker."""
+        if maxsize < 0:
+            raise ChannelError(f"channel '{name}': maxsize must be >= 0 (0 = unbounded), got {maxsize}")
+        actor_cls = ray.remote(_ChannelActor).options(
+            name=_ACTOR_PREFIX + name,
+            namespace=NAMESPACE,
+            num_cpus=0,
+            max_concurrency=10_000,
+            get_if_exists=exist_ok,
+        )
+        try:
+            actor = actor_cls.remote(name, maxsize)
+        except ValueError as exc:
+            raise ChannelError(
+                f"a channel named '{name}' already exists; use Channel.connect('{name}') or exist_ok=True"
+            ) from exc
+        return cls(name, actor)
+
+    @classmethod
+    def connect(cls, name: str, timeout_s: float = 30.0) -> "Channel":
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                return cls(name, ray.get_actor(_ACTOR_PREFIX + name, namespace=NAMESPACE))
+            except ValueError:
+                if time.monotonic() > deadline:
+                    raise ChannelError(
+                        f"no channel named '{name}' after {timeout_s}s; create it with Channel.create('{name}')"
+                    ) from None
+                time.sleep(0.1)
+
+    def __reduce__(self):
+        return (Channel, (self.name, self._actor))
+
+    # ------------------------------------------------------------------ sync API
+    def put(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout: float | None = None) -> None:
+        consumers = self._call(self._actor.put.remote(self._pack(item), key, float(weight), timeout))
+        self._note_consumers(consumers)
+
+    def put_many(self, items: list, key=DEFAULT_KEY, weights: list[float] | None = None, timeout=None) -> None:
+        """Put several items with one round trip (they stay in order)."""
+        weights = [1.0] * len(items) if weights is None else [float(w) for w in weights]
+        consumers = self._call(self._actor.put_many.remote([self._pack(i) for i in items], key, weights, timeout))
+        self._note_consumers(consumers)
+
+    def get(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
+        envelope, _ = self._call(self._actor.get.remote(key, os.getpid(), timeout))
+        return unpack(envelope)
+
+    def get_with_weight(self, key=DEFAULT_KEY, timeout: float | None = None) -> tuple[Any, float]:
+        envelope, weight = self._call(self._actor.get.remote(key, os.getpid(), timeout))
+        return unpack(envelope), weight
+
+    def get_batch(self, target_weight: float, key=DEFAULT_KEY, timeout: float | None = None) -> list:
+        """Items until their total weight reaches ``target_weight`` (fewer if the channel closes)."""
+        taken = self._call(self._actor.get_batch.remote(float(target_weight), key, os.getpid(), timeout))
+        return [unpack(envelope) for envelope, _ in taken]
+
+    def close(self) -> None:
+        ray.get(self._actor.close.remote())
+
+    def qsize(self, key=None) -> int:
+        return ray.get(self._actor.qsize.remote(key))
+
+    def info(self) -> dict:
+        return ray.get(self._actor.info.remote())
+
+    def register_consumer(self) -> None:
+        """Declare this process a consumer (lets same-process producers hand items by reference)."""
+        ray.get(self._actor.register_consumer.remote(os.getpid()))
+
+    def destroy(self) -> None:
+        ray.kill(self._actor)
+
+    # ------------------------------------------------------------------ async API
+    async def put_async(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout=None) -> None:
+        self._note_consumers(await self._acall(self._actor.put.remote(self._pack(item), key, float(weight), timeout)))
+
+    async def get_async(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
+        envelope, _ = await self._acall(self._actor.get.remote(key, os.getpid(), timeout))
+        return unpack(envelope)
+
+    async def get_batch_async(self, target_weight: float, key=DEFAULT_KEY, timeout=None) -> list:
+        taken = await self._acall(self._actor.get_batch.remote(float(target_weight), key, os.getpid(), timeout))
+        return [unpack(envelope) for envelope, _ in taken]
+
+    # ------------------------------------------------------------------ internals
+    def _pack(self, item: Any) -> Envelope:
+        return pack(item, same_process=self._consumers_here_only)
+
+    def _note_consumers(self, consumer_pids: list[int]) -> None:
+        # By-reference hand-over is only safe when every consumer seen so far is this process.
+        self._consumers_here_only = bool(consumer_pids) and set(consumer_pids) == {os.getpid()}
+
+    @staticmethod
+    def _call(ref):
+        try:
+            return ray.get(ref)
+        except ray.exceptions.RayTaskError as exc:
+            raise _unwrap(exc) from None
+
+    @staticmethod
+    async def _acall(ref):
+        try:
+            return await ref
+        except ray.exceptions.RayTaskError as exc:
+            raise _unwrap(exc) from None
+
+
+def _unwrap(exc: ray.exceptions.RayTaskError) -> BaseException:
+    cause = getattr(exc, "cause", None)
+    if isinstance(cause, (ChannelClosed, ChannelError, TimeoutError)):
+        return cause
+    return exc

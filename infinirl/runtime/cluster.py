@@ -1,0 +1,198 @@
+"""Connect to or start Ray, wait for nodes, and take an inventory of every node.
+
+A ``Cluster`` is created explicitly by the driver: parsing or validating configuration never starts
+Ray. Ray's token authentication is left as Ray sets it up (on by default since Ray 2.5x); we never
+disable it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import time
+from dataclasses import dataclass, field
+
+import ray
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+from infinirl.runtime.errors import ClusterError
+from infinirl.runtime.hardware import discover_node
+from infinirl.runtime.inventory import ClusterInventory, NodeInventory
+
+logger = logging.getLogger(__name__)
+
+NAMESPACE = "infinirl"
+# Ray would otherwise blank CUDA_VISIBLE_DEVICES for tasks/actors that reserve no Ray GPU; we place
+# devices ourselves (collocated components share a GPU), so we keep control of that variable.
+KEEP_CUDA_VISIBLE_DEVICES = {"RAY_EXPERIMENTAL_NOSET_CUDA_VISIBLE_DEVICES": "1"}
+
+
+@dataclass
+class ClusterConfig:
+    """How to reach compute. Every field is optional; the default starts a local Ray instance."""
+
+    address: str | None = None
+    """None or "local": start a local Ray instance; "auto": join the running one; "host:port": join it."""
+    num_cpus: int | None = None
+    """CPUs of a *local* instance (default: all). Ignored when joining."""
+    num_gpus: int | None = None
+    """GPUs of a *local* instance (default: all visible). Ignored when joining."""
+    wait_for_nodes: int = 1
+    """Block in ``start()`` until this many nodes are alive (multi-node jobs)."""
+    wait_timeout_s: float = 120.0
+    """How long to wait for ``wait_for_nodes`` before failing with a clear error."""
+    connect_timeout_s: float = 10.0
+    """TCP probe timeout for ``address=host:port``: an unreachable head fails fast instead of hanging."""
+    robot_plugins: dict[str, dict] = field(default_factory=dict)
+    """Robot discovery plugins to run on every node, e.g. ``{"simulated": {"count": 1}}``. None by default."""
+    log_to_driver: bool = True
+    """Stream worker stdout/stderr to the driver (progress of remote components)."""
+
+
+class Cluster:
+    """The driver's handle on Ray: start/join, inventory, shutdown. Use as a context manager."""
+
+    def __init__(self, config: ClusterConfig | None = None, **overrides):
+        if config is None:
+            config = ClusterConfig(**overrides)
+        elif overrides:
+            raise TypeError("pass either a ClusterConfig or keyword overrides, not both")
+        self.config = config
+        self._started_here = False
+        self._inventory: ClusterInventory | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> "Cluster":
+        cfg = self.config
+        if ray.is_initialized():
+            logger.info("Ray already initialised in this process; reusing it")
+        elif cfg.address in (None, "", "local"):
+            ray.init(
+                num_cpus=cfg.num_cpus,
+                num_gpus=cfg.num_gpus,
+                namespace=NAMESPACE,
+                include_dashboard=False,
+                log_to_driver=cfg.log_to_driver,
+                configure_logging=False,
+            )
+            self._started_here = True
+        else:
+            if cfg.address != "auto":
+                _probe_address(cfg.address, cfg.connect_timeout_s)
+            try:
+                ray.init(
+                    address=cfg.address,
+                    namespace=NAMESPACE,
+                    log_to_driver=cfg.log_to_driver,
+                    configure_logging=False,
+                )
+            except (ConnectionError, RuntimeError) as exc:
+                raise ClusterError(
+                    f"could not join Ray at address={cfg.address!r}: {exc}. Start the head with "
+                    "`ray start --head` there, or set cluster.address=local to start one here."
+                ) from exc
+        self._wait_for_nodes()
+        self._inventory = self._take_inventory()
+        return self
+
+    def shutdown(self) -> None:
+        """Disconnect; stop Ray too when this Cluster started it. Leaves no process of ours behind."""
+        if ray.is_initialized():
+            ray.shutdown()
+        self._inventory = None
+
+    def __enter__(self) -> "Cluster":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.shutdown()
+
+    # ------------------------------------------------------------------ inventory
+    @property
+    def inventory(self) -> ClusterInventory:
+        if self._inventory is None:
+            raise ClusterError("Cluster not started: call start() (or use `with Cluster(...)`).")
+        return self._inventory
+
+    def refresh(self) -> ClusterInventory:
+        self._inventory = self._take_inventory()
+        return self._inventory
+
+    def _alive_nodes(self) -> list[dict]:
+        return [n for n in ray.nodes() if n.get("Alive")]
+
+    def _wait_for_nodes(self) -> None:
+        want = self.config.wait_for_nodes
+        deadline = time.monotonic() + self.config.wait_timeout_s
+        while True:
+            alive = len(self._alive_nodes())
+            if alive >= want:
+                return
+            if time.monotonic() > deadline:
+                raise ClusterError(
+                    f"cluster has {alive} alive node(s) after {self.config.wait_timeout_s:.0f}s but "
+                    f"cluster.wait_for_nodes={want}; start more nodes with `ray start --address=...` "
+                    "or lower cluster.wait_for_nodes."
+                )
+            time.sleep(0.5)
+
+    def _take_inventory(self) -> ClusterInventory:
+        nodes = sorted(self._alive_nodes(), key=_node_sort_key)
+        probes = []
+        for node in nodes:
+            task = ray.remote(num_cpus=0)(discover_node).options(
+                scheduling_strategy=NodeAffinitySchedulingStrategy(node["NodeID"], soft=False),
+                runtime_env={"env_vars": dict(KEEP_CUDA_VISIBLE_DEVICES)},
+            )
+            probes.append(task.remote(self.config.robot_plugins))
+        found = ray.get(probes)
+        inventory_nodes = []
+        for index, (node, info) in enumerate(zip(nodes, found)):
+            resources = node.get("Resources", {})
+            inventory_nodes.append(
+                NodeInventory(
+                    node_index=index,
+                    node_id=node["NodeID"],
+                    ip=node["NodeManagerAddress"],
+                    num_cpus=int(resources.get("CPU", 0)),
+                    memory_bytes=int(resources.get("memory", 0)),
+                    accelerators=tuple(info["accelerators"]),
+                    robots=tuple(info["robots"]),
+                )
+            )
+        return ClusterInventory(nodes=tuple(inventory_nodes))
+
+
+def _node_sort_key(node: dict) -> tuple:
+    """Head node first, then by address: node indices stay stable across inventories."""
+    is_head = node.get("Resources", {}).get("node:__internal_head__", 0) > 0
+    return (not is_head, node["NodeManagerAddress"], node["NodeID"])
+
+
+def _probe_address(address: str, timeout_s: float) -> None:
+    """Fail within ``timeout_s`` when the Ray head is unreachable (ray.init would retry for minutes)."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit():
+        raise ClusterError(
+            f"cluster.address={address!r} is not 'host:port', 'auto' or 'local'; e.g. 10.0.0.5:6379"
+        )
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise ClusterError(
+            f"cannot reach the Ray head at {address} within {timeout_s:.0f}s ({exc}). Check the address "
+            "and that `ray start --head --port=...` runs there, or use cluster.address=local."
+        ) from None
+
+
+def current_node_ip() -> str:
+    try:
+        return ray.util.get_node_ip_address()
+    except Exception:  # outside Ray
+        return socket.gethostbyname(socket.gethostname())
+
+
+def this_process_env() -> dict[str, str]:
+    return dict(os.environ)

@@ -1,0 +1,233 @@
+"""Trainer -> rollout weight sync: bucketed by dtype, stamped with a version.
+
+The trainer group's ranks mix in ``WeightSource`` and implement ``weights_for_sync()`` (every rank
+is called, so a sharded trainer can gather; rank 0's tensors are the ones sent). The rollout
+group's ranks mix in ``WeightSink`` and implement ``load_weights(named_tensors, version)``.
+``sync_weights(trainer, rollout, version)`` moves them and returns per-sync statistics.
+
+Paths (``method=``):
+- ``object_store`` (CPU default): each bucket is one flat byte buffer ``ray.put`` once and mapped
+  zero-copy by every receiver on the node.
+- ``cuda_ipc``: trainer and receiver share a GPU (collocated): buckets go as CUDA IPC handles.
+- ``collective``: a dedicated process group spanning trainer rank 0 and every receiver (NCCL on
+  GPU, gloo on CPU) broadcasts each bucket; set up once with ``WeightSyncGroup``.
+Every sync carries a version number that receivers stamp on the samples they generate, so the
+staleness of each sample is measurable and boundable.
+"""
+
+from __future__ import annotations
+
+import datetime
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import ray
+import torch
+
+from infinirl.runtime.transport import unbox, box
+
+DEFAULT_BUCKET_BYTES = 256 * 1024 * 1024
+
+
+@dataclass
+class TensorMeta:
+    name: str
+    dtype: str
+    shape: tuple[int, ...]
+    offset: int
+    nbytes: int
+
+
+def make_buckets(named_tensors: Iterable[tuple[str, torch.Tensor]], bucket_bytes: int) -> Iterator[tuple[torch.Tensor, list[TensorMeta]]]:
+    """Group tensors by dtype into flat uint8 buffers of at most ``bucket_bytes`` (one big tensor alone)."""
+    open_buckets: dict[torch.dtype, tuple[list[torch.Tensor], list[TensorMeta], int]] = {}
+
+    def flush(dtype):
+        parts, metas, _ = open_buckets.pop(dtype)
+        return torch.cat(parts) if len(parts) > 1 else parts[0], metas
+
+    for name, tensor in named_tensors:
+        tensor = tensor.detach().contiguous()
+        raw = tensor.reshape(-1).view(torch.uint8)
+        nbytes = raw.numel()
+        parts, metas, size = open_buckets.get(tensor.dtype, ([], [], 0))
+        if parts and size + nbytes > bucket_bytes:
+            yield flush(tensor.dtype)
+            parts, metas, size = [], [], 0
+        metas.append(TensorMeta(name, str(tensor.dtype), tuple(tensor.shape), size, nbytes))
+        parts.append(raw)
+        open_buckets[tensor.dtype] = (parts, metas, size + nbytes)
+    for dtype in list(open_buckets):
+        yield flush(dtype)
+
+
+def split_bucket(flat: torch.Tensor, metas: list[TensorMeta]) -> list[tuple[str, torch.Tensor]]:
+    """Views into one received bucket, one per original tensor (no copies)."""
+    from infinirl.runtime.transport import _DTYPE_BY_NAME
+
+    out = []
+    for meta in metas:
+        piece = flat[meta.offset : meta.offset + meta.nbytes]
+        out.append((meta.name, piece.view(_DTYPE_BY_NAME[meta.dtype]).reshape(meta.shape)))
+    return out
+
+
+class WeightSource:
+    """Mixin for the trainer's Worker. Implement ``weights_for_sync``."""
+
+    def weights_for_sync(self) -> Iterable[tuple[str, torch.Tensor]]:
+        raise NotImplementedError(f"{type(self).__name__} must implement weights_for_sync()")
+
+    def _infinirl_publish_weights(self, bucket_bytes: int, cuda_ipc: bool) -> list | None:
+        named = self.weights_for_sync()  # every rank runs this (a sharded gather needs all ranks)
+        if self.rank != 0:
+            for _ in named:  # drain generators so collective gathers complete on every rank
+                pass
+            return None
+        published = []
+        for flat, metas in make_buckets(named, bucket_bytes):
+            if cuda_ipc and flat.is_cuda:
+                published.append(("cuda_ipc", box(flat, cuda_ipc=True), metas))
+            else:
+                published.append(("object_store", [ray.put(box(flat.cpu()))], metas))
+        return published
+
+    def _infinirl_broadcast_weights(self, bucket_bytes: int) -> list[list[TensorMeta]] | None:
+        """Collective path, step 1 on rank 0: bucket metadata; step 2 (below) the broadcasts."""
+        named = self.weights_for_sync()
+        if self.rank != 0:
+            for _ in named:
+                pass
+            return None
+        self._pending_buckets = list(make_buckets(named, bucket_bytes))
+        return [metas for _, metas in self._pending_buckets]
+
+    def _infinirl_send_buckets(self) -> int:
+        sent = 0
+        for flat, _ in self._pending_buckets:
+            _broadcast(self._sync_group, flat)
+            sent += flat.numel()
+        self._pending_buckets = []
+        return sent
+
+
+class WeightSink:
+    """Mixin for the rollout's Worker. Implement ``load_weights``; read ``weight_version``."""
+
+    weight_version: int = -1
+
+    def load_weights(self, named_tensors: list[tuple[str, torch.Tensor]], version: int) -> None:
+        raise NotImplementedError(f"{type(self).__name__} must implement load_weights()")
+
+    def _infinirl_receive_weights(self, published: list, version: int) -> int:
+        received = 0
+        for path, body, metas in published:
+            flat = unbox(ray.get(body[0])) if path == "object_store" else unbox(body)
+            self.load_weights(split_bucket(flat, metas), version)
+            received += flat.numel()
+        self.weight_version = version
+        return received
+
+    def _infinirl_receive_broadcast(self, bucket_metas: list[list[TensorMeta]], version: int) -> int:
+        received = 0
+        device = "cuda" if self._sync_backend == "nccl" else "cpu"
+        for metas in bucket_metas:
+            size = sum(m.nbytes for m in metas)
+            flat = torch.empty(size, dtype=torch.uint8, device=device)
+            _broadcast(self._sync_group, flat)
+            self.load_weights(split_bucket(flat, metas), version)
+            received += size
+        self.weight_version = version
+        return received
+
+
+def _join_sync_group(self, addr: str, port: int, rank: int, world: int, backend: str, timeout_s: float):
+    import torch.distributed as dist
+
+    timeout = datetime.timedelta(seconds=timeout_s)
+    store = dist.TCPStore(addr, port, world, is_master=(rank == 0), timeout=timeout)
+    if backend == "nccl":
+        from torch.distributed import ProcessGroupNCCL  # only exists in CUDA builds
+
+        self._sync_group = ProcessGroupNCCL(store, rank, world)
+    else:
+        self._sync_group = dist.ProcessGroupGloo(store, rank, world, timeout)
+    self._sync_backend = backend
+    return rank
+
+
+WeightSource._infinirl_join_sync_group = _join_sync_group
+WeightSink._infinirl_join_sync_group = _join_sync_group
+
+
+def _broadcast(group, tensor: torch.Tensor) -> None:
+    import torch.distributed as dist
+
+    opts = dist.BroadcastOptions()
+    opts.rootRank = 0
+    group.broadcast([tensor], opts).wait()
+
+
+class WeightSyncGroup:
+    """A process group over trainer rank 0 + all rollout ranks, for the ``collective`` path."""
+
+    def __init__(self, source, sink, backend: str | None = None, timeout_s: float = 300.0):
+        from infinirl.runtime.worker import _pick_master
+
+        if backend is None:
+            backend = "nccl" if torch.cuda.is_available() and source.contexts[0].local_devices else "gloo"
+        addr, port = _pick_master(source.contexts[0])
+        world = 1 + sink.world_size
+        handles = [source.call("_infinirl_join_sync_group", addr, port, 0, world, backend, timeout_s, ranks=[0])]
+        handles += [
+            sink.call("_infinirl_join_sync_group", addr, port, 1 + r, world, backend, timeout_s, ranks=[r])
+            for r in range(sink.world_size)
+        ]
+        for handle in handles:
+            handle.wait()
+        self.source, self.sink, self.backend = source, sink, backend
+
+
+@dataclass
+class SyncStats:
+    version: int
+    method: str
+    bytes: int
+    buckets: int
+    seconds: float
+
+
+def sync_weights(
+    source,
+    sink,
+    version: int,
+    method: str = "auto",
+    bucket_bytes: int = DEFAULT_BUCKET_BYTES,
+    group: WeightSyncGroup | None = None,
+) -> SyncStats:
+    """Copy the trainer's weights into every rollout rank and stamp them with ``version``."""
+    start = time.perf_counter()
+    if method == "auto":
+        method = "collective" if group is not None else ("cuda_ipc" if _share_a_gpu(source, sink) else "object_store")
+    if method == "collective":
+        if group is None:
+            raise ValueError("sync_weights(method='collective') needs group=WeightSyncGroup(trainer, rollout)")
+        metas = source.call("_infinirl_broadcast_weights", bucket_bytes).wait()[0]
+        send = source.call("_infinirl_send_buckets", ranks=[0])
+        received = sink.call("_infinirl_receive_broadcast", metas, version)
+        nbytes = send.wait()[0]
+        received.wait()
+        return SyncStats(version, method, nbytes, len(metas), time.perf_counter() - start)
+    if method not in ("object_store", "cuda_ipc"):
+        raise ValueError(f"unknown weight-sync method {method!r}; use auto, object_store, cuda_ipc or collective")
+    published = source.call("_infinirl_publish_weights", bucket_bytes, method == "cuda_ipc").wait()[0]
+    nbytes = sink.call("_infinirl_receive_weights", published, version).wait()[0]
+    return SyncStats(version, method, nbytes, len(published), time.perf_counter() - start)
+
+
+def _share_a_gpu(source, sink) -> bool:
+    src = source.contexts[0]
+    if not src.local_devices:
+        return False
+    return all(ctx.node_id == src.node_id and ctx.local_devices == src.local_devices for ctx in sink.contexts)

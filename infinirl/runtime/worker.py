@@ -1,0 +1,533 @@
+"""Worker and WorkerGroup: a component's ranks as Ray actors, with fan-out calls and clear failures.
+
+A ``Worker`` subclass holds the logic of one component rank (an actor trainer, a rollout engine,
+an env server...). ``WorkerGroup.launch`` starts one Ray actor per rank, each with
+RANK/WORLD_SIZE/MASTER_ADDR/MASTER_PORT set so a torch.distributed group can form on demand
+(``Worker.init_process_group``). ``group.method(...)`` fans a call out to all (or chosen) ranks and
+returns a ``GroupHandle`` at once: ``wait()``, ``await``, ``done()``.
+
+Execution inside a rank: synchronous methods run one at a time, in call order, on one dedicated
+thread (so torch state and CUDA's per-thread device stay consistent); ``async def`` methods run
+concurrently on the actor's event loop (e.g. a server loop next to a status query).
+
+Failure reporting is the point of this module. An exception in any rank reaches the driver as one
+``WorkerError`` naming component, rank, node, host, method and the original traceback, raised as
+soon as the *first* rank fails (other ranks blocked in a collective would otherwise hang or fail
+with a secondary error). A rank whose process died is reported with its crash log, not as an
+opaque "actor died".
+"""
+
+from __future__ import annotations
+
+import asyncio
+import difflib
+import faulthandler
+import inspect
+import os
+import socket
+import tempfile
+import time
+import traceback
+import uuid
+from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import ray
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+from infinirl.runtime.cluster import KEEP_CUDA_VISIBLE_DEVICES, NAMESPACE
+from infinirl.runtime.errors import WorkerError
+
+CRASH_LOG_DIR = Path(tempfile.gettempdir()) / "infinirl-crash-logs"
+
+
+@dataclass(frozen=True)
+class RestartPolicy:
+    """For stateless components (env, reward): restart a dead rank up to ``max_restarts`` times.
+
+    With ``retry_calls`` the call that was running when the process died is re-sent to the new
+    process, so the driver sees a result instead of an error.
+    """
+
+    max_restarts: int = 3
+    retry_calls: bool = True
+
+
+@dataclass
+class RankContext:
+    """Everything a rank knows about where it runs; built by the group, read by the Worker."""
+
+    component: str
+    rank: int
+    world_size: int
+    node_id: str | None = None
+    node_ip: str = ""
+    local_devices: tuple[int, ...] = ()
+    cpu_slots: tuple[int, ...] = ()
+    robot: Any = None
+    env_vars: dict[str, str] = field(default_factory=dict)
+
+
+class Worker:
+    """Base class of every component rank. Subclass it; its methods become remotely callable.
+
+    The runtime sets ``self.ctx`` (a ``RankContext``) *before* your ``__init__`` runs, so
+    ``self.rank`` / ``self.world_size`` are usable there.
+    """
+
+    ctx: RankContext
+
+    # -- identity ---------------------------------------------------------------------------
+    @property
+    def rank(self) -> int:
+        return self.ctx.rank
+
+    @property
+    def world_size(self) -> int:
+        return self.ctx.world_size
+
+    @property
+    def component(self) -> str:
+        return self.ctx.component
+
+    @property
+    def device(self) -> str:
+        """``"cuda"`` (the first visible device) when this rank was given a GPU, else ``"cpu"``."""
+        if self.ctx.local_devices:
+            import torch
+
+            if torch.cuda.is_available():
+                return "cuda"
+        return "cpu"
+
+    # -- collectives ------------------------------------------------------------------------
+    def init_process_group(self, backend: str | None = None, timeout_s: float = 600.0) -> None:
+        """Form this component's torch.distributed group (gloo on CPU, NCCL on GPU) on demand."""
+        import datetime
+
+        import torch
+        import torch.distributed as dist
+
+        if dist.is_initialized():
+            return
+        if backend is None:
+            backend = "nccl" if self.device == "cuda" else "gloo"
+        if backend == "nccl":
+            torch.cuda.set_device(0)
+        dist.init_process_group(
+            backend=backend,
+            rank=self.rank,
+            world_size=self.world_size,
+            timeout=datetime.timedelta(seconds=timeout_s),
+        )
+
+    # -- time-sharing hooks (collocated mode) -------------------------------------------------
+    def offload(self) -> None:
+        """Free device memory so a collocated component can use the device. Default: nothing."""
+
+    def reload(self) -> None:
+        """Bring state back to the device after ``offload``. Default: nothing."""
+
+    # -- introspection used by the runtime ----------------------------------------------------
+    def _infinirl_where(self) -> dict:
+        return {
+            "component": self.component,
+            "rank": self.rank,
+            "node_ip": self.ctx.node_ip,
+            "hostname": socket.gethostname(),
+            "pid": os.getpid(),
+        }
+
+
+class _WorkerHost:
+    """The Ray actor that hosts one ``Worker`` rank; turns every failure into a ``WorkerError``."""
+
+    def __init__(self, worker_cls: type, ctx: RankContext, args: tuple, kwargs: dict):
+        os.environ.update(ctx.env_vars)
+        self._ctx = ctx
+        self._spans: list[tuple] = []
+        self._sync_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="infinirl-sync")
+        self._init_error: WorkerError | None = None
+        self._next_seq: dict[str, int] = defaultdict(int)
+        self._turn = asyncio.Condition()
+        self._node_ip = ray.util.get_node_ip_address()
+        ctx.node_ip = ctx.node_ip or self._node_ip
+        self._crash_log = self._enable_crash_log(ctx)
+        try:
+            worker = worker_cls.__new__(worker_cls)
+            worker.ctx = ctx
+            worker.__init__(*args, **kwargs)
+            self._worker = worker
+        except BaseException:  # reported on the first call (see ready())
+            self._worker = None
+            self._init_error = self._error("__init__", traceback.format_exc())
+
+    @staticmethod
+    def _enable_crash_log(ctx: RankContext) -> str:
+        """Hard crashes (segfault, abort) write their Python stacks here; the driver quotes it."""
+        CRASH_LOG_DIR.mkdir(parents=True, exist_ok=True)
+        path = CRASH_LOG_DIR / f"{ctx.component}-rank{ctx.rank}-pid{os.getpid()}.log"
+        handle = open(path, "w")  # kept open for the life of the process, as faulthandler needs
+        faulthandler.enable(file=handle, all_threads=True)
+        return str(path)
+
+    def _error(self, method: str, text: str, cause: str = "raised") -> WorkerError:
+        return WorkerError(
+            component=self._ctx.component,
+            rank=self._ctx.rank,
+            method=method,
+            node_ip=self._node_ip,
+            hostname=socket.gethostname(),
+            pid=os.getpid(),
+            traceback_text=text,
+            cause=cause,
+        )
+
+    async def ready(self) -> dict:
+        if self._init_error is not None:
+            raise self._init_error
+        return {
+            "node_ip": self._node_ip,
+            "node_id": ray.get_runtime_context().get_node_id(),
+            "pid": os.getpid(),
+            "hostname": socket.gethostname(),
+            "crash_log": self._crash_log,
+            "restarted": ray.get_runtime_context().was_current_actor_reconstructed,
+        }
+
+    async def execute(self, method: str, args: tuple, kwargs: dict, caller: str = "", seq: int = -1) -> Any:
+        """Run one call. Calls from one caller *start* in the order they were made (Ray's async
+        actors do not guarantee it); sync ones then run FIFO on the single executor thread."""
+        if self._init_error is not None:
+            raise self._init_error
+        fn = getattr(self._worker, method)
+        if seq >= 0:
+            async with self._turn:
+                if caller not in self._next_seq and ray.get_runtime_context().was_current_actor_reconstructed:
+                    self._next_seq[caller] = seq  # a restarted rank resumes the caller's numbering
+                await self._turn.wait_for(lambda: self._next_seq[caller] == seq)
+        start = time.time()
+        ok = False
+        try:
+            if inspect.iscoroutinefunction(fn):
+                pending = asyncio.ensure_future(fn(*args, **kwargs))
+            else:
+                loop = asyncio.get_running_loop()
+                pending = loop.run_in_executor(self._sync_executor, lambda: fn(*args, **kwargs))
+        finally:
+            if seq >= 0:
+                async with self._turn:
+                    self._next_seq[caller] = seq + 1
+                    self._turn.notify_all()
+        try:
+            result = await pending
+            ok = True
+            return result
+        except BaseException:
+            raise self._error(method, traceback.format_exc()) from None
+        finally:
+            self._spans.append((self._ctx.component, self._ctx.rank, method, start, time.time(), ok))
+
+    async def pop_spans(self) -> list[tuple]:
+        spans, self._spans = self._spans, []
+        return spans
+
+    async def free_port(self) -> int:
+        with socket.socket() as sock:
+            sock.bind(("", 0))
+            return sock.getsockname()[1]
+
+
+class GroupHandle:
+    """The pending result of one fan-out call: ``wait()``, ``await handle``, ``done()``.
+
+    ``wait`` returns the per-rank results in rank order. It raises the first failure as soon as it
+    happens (not after the other ranks finish), so one broken rank never looks like a hang.
+    """
+
+    def __init__(self, group: "WorkerGroup", method: str, ranks: list[int], refs: list):
+        self._group = group
+        self.method = method
+        self.ranks = ranks
+        self._refs = refs
+        self._results: list | None = None
+
+    def done(self) -> bool:
+        if self._results is not None:
+            return True
+        ready, _ = ray.wait(self._refs, num_returns=len(self._refs), timeout=0)
+        return len(ready) == len(self._refs)
+
+    def wait(self, timeout: float | None = None) -> list:
+        if self._results is not None:
+            return self._results
+        deadline = None if timeout is None else time.monotonic() + timeout
+        pending = list(self._refs)
+        while pending:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            ready, pending = ray.wait(pending, num_returns=1, timeout=remaining)
+            if not ready:
+                waiting = [self.ranks[self._refs.index(r)] for r in pending]
+                raise TimeoutError(
+                    f"{self._group.component}.{self.method}() not finished after {timeout}s on "
+                    f"rank(s) {waiting}"
+                )
+            self._get(ready[0])  # raises the first failure right away
+        self._results = [self._get(ref) for ref in self._refs]
+        return self._results
+
+    def _get(self, ref):
+        rank = self.ranks[self._refs.index(ref)]
+        return self._group._get_or_explain(ref, rank, self.method)
+
+    def __await__(self):
+        return self._await().__await__()
+
+    async def _await(self) -> list:
+        futures = {asyncio.ensure_future(_settle(ref)): ref for ref in self._refs}
+        remaining = set(futures)
+        while remaining:
+            done, remaining = await asyncio.wait(remaining, return_when=asyncio.FIRST_COMPLETED)
+            for fut in done:
+                self._get(futures[fut])  # raises the first failure right away
+        return self.wait()
+
+
+async def _settle(ref) -> None:
+    """Await a ref without raising: the failure is re-read (and explained) by ``_get``."""
+    try:
+        await ref
+    except BaseException:
+        pass
+
+
+class WorkerGroup:
+    """N ranks of one ``Worker`` class, launched as Ray actors; call methods on all of them at once."""
+
+    def __init__(self, worker_cls: type, component: str, actors: list, contexts: list[RankContext]):
+        self.worker_cls = worker_cls
+        self.component = component
+        self._actors = actors
+        self.contexts = contexts
+        self.rank_info: list[dict] = []
+        self._caller = uuid.uuid4().hex
+        self._seq = [0] * len(actors)
+
+    # ------------------------------------------------------------------ launch
+    @classmethod
+    def launch(
+        cls,
+        worker_cls: type,
+        component: str | None = None,
+        num_ranks: int | None = None,
+        placement: list | tuple | None = None,
+        args: tuple = (),
+        kwargs: dict | None = None,
+        restart: RestartPolicy | None = None,
+        env_vars: dict[str, str] | None = None,
+        ready_timeout_s: float = 300.0,
+    ) -> "WorkerGroup":
+        """Start the ranks and wait until every one has constructed its Worker.
+
+        ``placement`` is the tuple of ``RankPlacement`` that ``placement.place`` gives for this
+        component; without it, ``num_ranks`` CPU ranks go wherever Ray puts them.
+        """
+        if not (isinstance(worker_cls, type) and issubclass(worker_cls, Worker)):
+            raise TypeError(f"WorkerGroup.launch needs a Worker subclass, got {worker_cls!r}")
+        component = component or worker_cls.__name__
+        kwargs = kwargs or {}
+        contexts = _contexts_for(component, num_ranks, placement, env_vars or {})
+        master_addr, master_port = _pick_master(contexts[0])
+        options = {"num_cpus": 0, "namespace": NAMESPACE, "max_concurrency": 1000}
+        if restart is not None:
+            options["max_restarts"] = restart.max_restarts
+            options["max_task_retries"] = restart.max_restarts if restart.retry_calls else 0
+        host_cls = ray.remote(_WorkerHost)
+        actors = []
+        for ctx in contexts:
+            ctx.env_vars.update(
+                {
+                    "MASTER_ADDR": master_addr,
+                    "MASTER_PORT": str(master_port),
+                    "RANK": str(ctx.rank),
+                    "WORLD_SIZE": str(ctx.world_size),
+                }
+            )
+            ctx.env_vars.setdefault("LOCAL_RANK", "0")
+            opts = dict(options, runtime_env={"env_vars": dict(KEEP_CUDA_VISIBLE_DEVICES)})
+            if ctx.node_id:
+                opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(ctx.node_id, soft=False)
+            actors.append(host_cls.options(**opts).remote(worker_cls, ctx, args, kwargs))
+        group = cls(worker_cls, component, actors, contexts)
+        handle = GroupHandle(group, "__init__", list(range(len(actors))), [a.ready.remote() for a in actors])
+        try:
+            group.rank_info = handle.wait(timeout=ready_timeout_s)
+        except BaseException:
+            group.shutdown()
+            raise
+        return group
+
+    # ------------------------------------------------------------------ calls
+    @property
+    def world_size(self) -> int:
+        return len(self._actors)
+
+    def call(self, method: str, *args, ranks: list[int] | None = None, **kwargs) -> GroupHandle:
+        """Call ``method(*args, **kwargs)`` on the chosen ranks (default all); returns at once."""
+        self._check_method(method)
+        ranks = list(range(self.world_size)) if ranks is None else list(ranks)
+        for rank in ranks:
+            if not 0 <= rank < self.world_size:
+                raise IndexError(
+                    f"{self.component} has ranks 0-{self.world_size - 1}; rank {rank} does not exist"
+                )
+        refs = [self._submit(r, method, args, kwargs) for r in ranks]
+        return GroupHandle(self, method, ranks, refs)
+
+    def _submit(self, rank: int, method: str, args: tuple, kwargs: dict):
+        seq = self._seq[rank]
+        self._seq[rank] += 1
+        return self._actors[rank].execute.remote(method, args, kwargs, self._caller, seq)
+
+    def __getstate__(self):
+        raise TypeError(
+            "a WorkerGroup stays in the process that launched it; pass Channels to workers instead"
+        )
+
+    def call_each(self, method: str, per_rank_args: list[tuple], **kwargs) -> GroupHandle:
+        """Call ``method`` on every rank with its own positional args (scatter)."""
+        self._check_method(method)
+        if len(per_rank_args) != self.world_size:
+            raise ValueError(
+                f"{self.component}.call_each: got {len(per_rank_args)} argument tuples for "
+                f"{self.world_size} ranks"
+            )
+        refs = [self._submit(r, method, tuple(args), kwargs) for r, args in enumerate(per_rank_args)]
+        return GroupHandle(self, method, list(range(self.world_size)), refs)
+
+    def __getattr__(self, name: str):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        self._check_method(name)
+        return lambda *args, **kwargs: self.call(name, *args, **kwargs)
+
+    def _check_method(self, method: str) -> None:
+        if callable(getattr(self.worker_cls, method, None)):
+            return
+        public = sorted(
+            n for n, v in inspect.getmembers(self.worker_cls, callable)
+            if not n.startswith("_") and not isinstance(getattr(Worker, n, None), property)
+        )
+        near = difflib.get_close_matches(method, public, n=1)
+        hint = f" Did you mean '{near[0]}'?" if near else ""
+        raise AttributeError(
+            f"component '{self.component}' ({self.worker_cls.__name__}) has no method '{method}'.{hint} "
+            f"Its methods: {', '.join(public)}"
+        )
+
+    def _get_or_explain(self, ref, rank: int, method: str):
+        try:
+            return ray.get(ref)
+        except ray.exceptions.RayTaskError as exc:
+            cause = exc.cause if isinstance(getattr(exc, "cause", None), WorkerError) else None
+            if cause is not None:
+                raise cause from None
+            raise self._died(rank, method, str(exc)) from None
+        except ray.exceptions.RayActorError as exc:
+            raise self._died(rank, method, str(exc)) from None
+
+    def _died(self, rank: int, method: str, ray_message: str) -> WorkerError:
+        info = self.rank_info[rank] if rank < len(self.rank_info) else {}
+        crash = _read_tail(info.get("crash_log"))
+        text = (crash + "\n" if crash else "") + _first_line_block(ray_message)
+        return WorkerError(
+            component=self.component,
+            rank=rank,
+            method=method,
+            node_ip=info.get("node_ip", self.contexts[rank].node_ip or "?"),
+            hostname=info.get("hostname", "?"),
+            pid=info.get("pid"),
+            traceback_text=text,
+            cause="died (process exited)",
+        )
+
+    # ------------------------------------------------------------------ tracing / lifecycle
+    def pop_spans(self) -> list[tuple]:
+        """Per-call spans (component, rank, method, start, end, ok) recorded since the last pop."""
+        spans = []
+        for actor in self._actors:
+            try:
+                spans.extend(ray.get(actor.pop_spans.remote(), timeout=30))
+            except Exception:
+                pass  # a dead rank has no spans to give; its failure was already reported
+        return spans
+
+    def shutdown(self) -> None:
+        """Kill every rank's process. Idempotent."""
+        for actor in self._actors:
+            try:
+                ray.kill(actor, no_restart=True)
+            except Exception:
+                pass
+        self._actors = []
+
+    def pids(self) -> list[int]:
+        return [info.get("pid") for info in self.rank_info]
+
+
+def _contexts_for(component, num_ranks, placement, extra_env) -> list[RankContext]:
+    if placement:
+        if num_ranks is not None and num_ranks != len(placement):
+            raise ValueError(
+                f"{component}: num_ranks={num_ranks} but the placement has {len(placement)} ranks"
+            )
+        return [
+            RankContext(
+                component=component,
+                rank=p.rank,
+                world_size=p.world_size,
+                node_id=p.node_id,
+                node_ip=p.node_ip,
+                local_devices=tuple(p.local_devices),
+                cpu_slots=tuple(p.cpu_slots),
+                robot=p.robot,
+                env_vars={**p.env_vars, **extra_env},
+            )
+            for p in placement
+        ]
+    n = 1 if num_ranks is None else int(num_ranks)
+    if n < 1:
+        raise ValueError(f"{component}: num_ranks must be >= 1, got {num_ranks}")
+    return [RankContext(component=component, rank=r, world_size=n, env_vars=dict(extra_env)) for r in range(n)]
+
+
+def _pick_master(rank0: RankContext) -> tuple[str, int]:
+    """A free TCP port on rank 0's node, found *on that node*, for torch.distributed rendezvous."""
+
+    def probe():
+        with socket.socket() as sock:
+            sock.bind(("", 0))
+            return ray.util.get_node_ip_address(), sock.getsockname()[1]
+
+    task = ray.remote(num_cpus=0)(probe)
+    if rank0.node_id:
+        task = task.options(scheduling_strategy=NodeAffinitySchedulingStrategy(rank0.node_id, soft=False))
+    return ray.get(task.remote())
+
+
+def _read_tail(path: str | None, max_chars: int = 4000) -> str:
+    if not path:
+        return ""
+    try:
+        text = Path(path).read_text(errors="replace").strip()
+    except OSError:
+        return ""
+    return text[-max_chars:]
+
+
+def _first_line_block(message: str, max_lines: int = 12) -> str:
+    lines = [ln for ln in message.splitlines() if ln.strip()]
+    return "\n".join(lines[:max_lines])

@@ -1,0 +1,194 @@
+"""WorkerGroup: launch, fan-out, handles, failures reported at their root, restarts, shutdown."""
+
+import asyncio
+import os
+import time
+
+import psutil
+import pytest
+import torch
+
+from infinirl.runtime import RestartPolicy, Worker, WorkerError, WorkerGroup
+from tests.conftest import ship_by_value
+
+ship_by_value(__name__)
+
+
+class Echo(Worker):
+    def __init__(self, offset: int = 0):
+        self.offset = offset
+        self.calls = []
+
+    def whoami(self):
+        return {"rank": self.rank, "world": self.world_size, "env_rank": os.environ["RANK"],
+                "master": (os.environ["MASTER_ADDR"], os.environ["MASTER_PORT"]), "pid": os.getpid()}
+
+    def add(self, x):
+        self.calls.append(x)
+        return x + self.offset + self.rank
+
+    def order(self):
+        return list(self.calls)
+
+    def slow(self, seconds):
+        time.sleep(seconds)
+        return self.rank
+
+    async def async_double(self, x):
+        await asyncio.sleep(0.01)
+        return 2 * x
+
+    def fail_on(self, bad_rank):
+        if self.rank == bad_rank:
+            raise ValueError(f"boom from rank {self.rank}")
+        time.sleep(30)  # a healthy rank stuck in a "collective": the error must not wait for it
+        return "ok"
+
+    def allreduce(self):
+        import torch.distributed as dist
+
+        self.init_process_group()
+        t = torch.tensor([float(self.rank + 1)])
+        dist.all_reduce(t)
+        return float(t.item())
+
+
+class BadInit(Worker):
+    def __init__(self):
+        if self.rank == 1:
+            raise RuntimeError("cannot open device")
+
+
+def test_launch_fanout_and_chosen_ranks(ray_cluster):
+    group = WorkerGroup.launch(Echo, "echo", num_ranks=3, kwargs={"offset": 10})
+    try:
+        info = group.whoami().wait()
+        assert [i["rank"] for i in info] == [0, 1, 2]
+        assert {i["world"] for i in info} == {3}
+        assert [i["env_rank"] for i in info] == ["0", "1", "2"]
+        assert len({i["master"] for i in info}) == 1
+        assert group.add(5).wait() == [15, 16, 17]
+        assert group.call("add", 1, ranks=[2]).wait() == [13]
+        assert group.call_each("add", [(0,), (100,), (200,)]).wait() == [10, 111, 212]
+        assert asyncio.run(_await(group.async_double(21))) == [42, 42, 42]
+    finally:
+        group.shutdown()
+
+
+async def _await(handle):
+    return await handle
+
+
+def test_sync_calls_run_in_call_order(ray_cluster):
+    group = WorkerGroup.launch(Echo, "ordered", num_ranks=1)
+    try:
+        handles = [group.add(i) for i in range(50)]
+        [h.wait() for h in handles]
+        assert group.order().wait()[0] == list(range(50))
+    finally:
+        group.shutdown()
+
+
+def test_handle_done_and_timeout(ray_cluster):
+    group = WorkerGroup.launch(Echo, "timing", num_ranks=2)
+    try:
+        handle = group.slow(1.0)
+        assert not handle.done()
+        with pytest.raises(TimeoutError, match=r"slow\(\) not finished"):
+            handle.wait(timeout=0.05)
+        assert handle.wait(timeout=30) == [0, 1]
+        assert handle.done()
+    finally:
+        group.shutdown()
+
+
+def test_torch_distributed_group_forms(ray_cluster):
+    group = WorkerGroup.launch(Echo, "dist", num_ranks=2)
+    try:
+        assert group.allreduce().wait(timeout=120) == [3.0, 3.0]
+    finally:
+        group.shutdown()
+
+
+def test_exception_names_component_rank_node_and_traceback(ray_cluster):
+    group = WorkerGroup.launch(Echo, "trainer", num_ranks=2)
+    try:
+        start = time.monotonic()
+        with pytest.raises(WorkerError) as info:
+            group.fail_on(1).wait()
+        assert time.monotonic() - start < 20, "the failure must surface before healthy ranks finish"
+        err = info.value
+        assert err.component == "trainer" and err.rank == 1 and err.method == "fail_on"
+        text = str(err)
+        assert "trainer[rank 1].fail_on()" in text
+        assert "boom from rank 1" in text and "ValueError" in text
+        assert "Traceback" in text and "in fail_on" in text
+        assert err.node_ip and "actor died" not in text.lower()
+    finally:
+        group.shutdown()
+
+
+def test_init_failure_is_reported_with_rank(ray_cluster):
+    with pytest.raises(WorkerError) as info:
+        WorkerGroup.launch(BadInit, "env", num_ranks=2)
+    assert info.value.rank == 1 and info.value.method == "__init__"
+    assert "cannot open device" in str(info.value)
+
+
+def test_unknown_method_is_rejected_before_dispatch(ray_cluster):
+    group = WorkerGroup.launch(Echo, "actor", num_ranks=1)
+    try:
+        with pytest.raises(AttributeError, match=r"no method 'ad'.*Did you mean 'add'"):
+            group.ad(1)
+        with pytest.raises(AttributeError, match="has no method 'nope'"):
+            group.call("nope")
+        with pytest.raises(IndexError, match="rank 5 does not exist"):
+            group.call("add", 1, ranks=[5])
+    finally:
+        group.shutdown()
+
+
+class Crashy(Worker):
+    """Dies hard (no Python exception) the first time; a marker file survives the restart."""
+
+    def __init__(self, marker: str):
+        self.marker = marker
+
+    def work(self, x):
+        if not os.path.exists(self.marker):
+            open(self.marker, "w").close()
+            os._exit(3)
+        return x * 2
+
+    def crash_always(self):
+        os._exit(4)
+
+
+def test_restart_policy_restarts_and_retries(ray_cluster, tmp_path):
+    group = WorkerGroup.launch(Crashy, "env", num_ranks=1, args=(str(tmp_path / "m"),),
+                               restart=RestartPolicy(max_restarts=2))
+    try:
+        assert group.work(21).wait(timeout=120) == [42]
+    finally:
+        group.shutdown()
+
+
+def test_dead_process_reported_as_root_cause(ray_cluster, tmp_path):
+    group = WorkerGroup.launch(Crashy, "robot", num_ranks=1, args=(str(tmp_path / "m"),))
+    try:
+        with pytest.raises(WorkerError) as info:
+            group.crash_always().wait(timeout=120)
+        assert info.value.component == "robot" and info.value.rank == 0
+        assert "died" in str(info.value) and "crash_always" in str(info.value)
+    finally:
+        group.shutdown()
+
+
+def test_shutdown_leaves_no_worker_process(ray_cluster):
+    group = WorkerGroup.launch(Echo, "gone", num_ranks=2)
+    pids = [i["pid"] for i in group.whoami().wait()]
+    group.shutdown()
+    deadline = time.monotonic() + 20
+    while any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE for p in pids):
+        assert time.monotonic() < deadline, f"worker processes {pids} still alive after shutdown"
+        time.sleep(0.2)
