@@ -7,7 +7,7 @@ Modules, one job each:
 * ``embodied``     env-rollout estimators (embodied_gae at chunk/action level, embodied_grpo);
 * ``losses``       PPO clip (clip-higher, dual clip, TIS / decoupled PPO), value and entropy losses;
 * ``kl``           k1/k2/k3 KL estimators as a loss term or a per-token reward penalty;
-* ``aggregation``  loss-matrix -> scalar with a mini-batch-global normaliser (micro-batch invariant);
+* ``aggregation``  loss matrix -> scalar with a mini-batch-global normaliser (split-invariant);
 * ``filters``      DAPO dynamic sampling and overlong reward shaping;
 * ``sac``, ``imitation``  off-policy (SAC) and imitation (BC / DAgger) losses;
 * ``masking``, ``groups``  masked statistics and prompt-group bookkeeping shared by the above.

@@ -2,7 +2,7 @@
 
 Calling convention (the same for every entry of ``ADVANTAGES``, token or embodied)::
 
-    out = ADVANTAGES.get(name)(inputs, **hyperparameters)   # or compute_advantages(name, inputs, ...)
+    out = ADVANTAGES.get(name)(inputs, **hyperparameters)  # = compute_advantages(name, inputs, ...)
     out.advantages, out.returns, out.mask
 
 ``inputs`` is a frozen dataclass holding the *data* (``TokenAdvantageInputs`` here,
@@ -103,7 +103,7 @@ class AdvantageOutput:
     """What every estimator returns.
 
     Attributes:
-        advantages: the policy-gradient weights, shaped like the input layout, 0 where ``mask`` is 0.
+        advantages: the policy-gradient weights, shaped like the inputs, 0 where ``mask`` is 0.
         returns: the return estimate the advantage was derived from: the lambda-return (critic
             target) for GAE, the discounted reward-to-go for REINFORCE++, the sequence (or episode)
             reward broadcast over its steps for group estimators.
@@ -156,12 +156,14 @@ def gae(inputs: TokenAdvantageInputs, *, gamma: float = 1.0, lam: float = 0.95) 
     """PPO with a critic: GAE over generated tokens (Schulman et al. 2016, eq. 16).
 
     ``returns = advantages + values`` are the critic's regression targets (lambda-returns). The
-    LLM defaults ``gamma=1`` (the reward is terminal and sequences are short relative to any horizon)
+    LLM defaults ``gamma=1`` (the reward is terminal; sequences are short relative to any horizon)
     and ``lam=0.95`` follow Ouyang et al. 2022 / OpenRLHF.
     """
     inputs = _require_token_inputs(inputs, "gae")
     if inputs.values is None:
-        raise ValueError("advantage estimator 'gae' needs critic values (TokenAdvantageInputs.values)")
+        raise ValueError(
+            "advantage estimator 'gae' needs critic values (TokenAdvantageInputs.values)"
+        )
     rewards = _dense_rewards(inputs, _float_rewards(inputs).to(inputs.values.dtype))
     weight = as_weight(inputs.response_mask, rewards)
     advantages = reverse_discounted_scan(rewards, inputs.values, weight, gamma, lam)
@@ -209,9 +211,9 @@ def rloo(inputs: TokenAdvantageInputs) -> AdvantageOutput:
     rewards = _float_rewards(inputs)
     index, num_groups = inputs.group_index()
     stats = group_stats(rewards, index, num_groups)
+    # r_i - (n mean - r_i) / (n - 1) = n / (n - 1) * (r_i - mean): exactly 0 for a constant group
     others = stats.count - 1
-    leave_one_out_mean = (stats.total - rewards) / others.clamp(min=1.0)
-    scores = torch.where(others > 0, rewards - leave_one_out_mean, torch.zeros_like(rewards))
+    scores = stats.count / others.clamp(min=1.0) * (rewards - stats.mean)
     return AdvantageOutput(
         advantages=_broadcast(scores, inputs.response_mask),
         returns=_broadcast(rewards, inputs.response_mask),
@@ -245,8 +247,8 @@ def reinforce_pp(
 def reinforce_pp_baseline(
     inputs: TokenAdvantageInputs, *, gamma: float = 1.0, eps: float = 1e-8
 ) -> AdvantageOutput:
-    """REINFORCE++-baseline (Hu 2025, section 3.2): subtract the group mean from each sequence reward
-    first (a per-prompt baseline, robust to reward scale across prompts), then proceed as
+    """REINFORCE++-baseline (Hu 2025, section 3.2): subtract the group mean from each sequence
+    reward first (a per-prompt baseline, robust to reward scale across prompts), then proceed as
     ``reinforce_pp``: discounted token returns and global whitening."""
     inputs = _require_token_inputs(inputs, "reinforce_pp_baseline")
     index, num_groups = inputs.group_index()

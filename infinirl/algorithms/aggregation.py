@@ -94,7 +94,7 @@ for _mode in (
 
 
 def aggregation_normaliser(response_mask: torch.Tensor, mode: str, **mode_kwargs: int) -> float:
-    """The normaliser of ``mode`` for the mini-batch (or this rank's share of it) whose mask this is.
+    """The normaliser of ``mode`` for the mini-batch (or this rank's share) with this mask.
 
     Call it on the *whole* mini-batch, never per micro-batch. It is additive over disjoint shards,
     so with DP each rank computes its own and the trainer all-reduces with SUM.
@@ -108,12 +108,16 @@ def aggregation_normaliser(response_mask: torch.Tensor, mode: str, **mode_kwargs
 
 
 def aggregate(
-    loss_mat: torch.Tensor, response_mask: torch.Tensor, mode: str, normaliser: float
+    loss_mat: torch.Tensor,
+    response_mask: torch.Tensor,
+    mode: str,
+    normaliser: float | torch.Tensor,
 ) -> torch.Tensor:
     """``sum(contributions of this micro-batch) / normaliser``, a differentiable scalar.
 
     ``loss_mat`` and ``response_mask`` are ``[b, L]`` (any ``[b, ...]`` works: trailing dims are
-    flattened). ``normaliser`` comes from :func:`aggregation_normaliser` over the whole mini-batch.
+    flattened). ``normaliser`` comes from :func:`aggregation_normaliser` over the whole mini-batch
+    (a float, or a 0-dim tensor after an all-reduce).
     A normaliser of 0 means the mini-batch has nothing to train on: the loss is 0, still attached to
     the graph so that every rank runs the same backward (collectives must not deadlock).
     """

@@ -63,7 +63,9 @@ class EnvAdvantageInputs:
 
     def __post_init__(self) -> None:
         if self.rewards.dim() not in (2, 3):
-            raise ValueError(f"rewards must be [T, N] or [T, N, C], got {tuple(self.rewards.shape)}")
+            raise ValueError(
+                f"rewards must be [T, N] or [T, N, C], got {tuple(self.rewards.shape)}"
+            )
         steps_envs = tuple(self.rewards.shape[:2])
         for name in ("dones", "truncations", "final_values", "values"):
             tensor = getattr(self, name)
@@ -93,7 +95,7 @@ class EnvAdvantageInputs:
         return self.rewards.shape[2] if self.rewards.dim() == 3 else None
 
 
-# --- flattening the chunk dimension -------------------------------------------------------------
+# --- flattening the chunk dimension ------------------------------------------------------------
 
 
 def _flatten_actions(tensor: torch.Tensor, chunk: int, *, end_of_chunk: bool) -> torch.Tensor:
@@ -145,7 +147,7 @@ def _chunk_level(inputs: EnvAdvantageInputs) -> _TimeSeries:
         raise ValueError("chunk-level GAE needs final_values [T, N]: one V(final obs) per chunk")
     dones = _reduce_chunk(inputs.dones.bool(), lambda t: t.any(dim=-1))
     truncations = _reduce_chunk(_truncations(inputs), lambda t: t.any(dim=-1))
-    final_values = _final_values(inputs)
+    final_values = _final_values(inputs, like=inputs.values)
     rewards = _reduce_chunk(inputs.rewards, lambda t: t.sum(dim=-1))
     return _TimeSeries(rewards, inputs.values, dones, truncations, final_values, _identity)
 
@@ -164,7 +166,11 @@ def _action_level(inputs: EnvAdvantageInputs) -> _TimeSeries:
         values=_flatten_actions(inputs.values, chunk, end_of_chunk=False),
         dones=_flatten_actions(inputs.dones.bool(), chunk, end_of_chunk=True),
         truncations=_flatten_actions(_truncations(inputs), chunk, end_of_chunk=True),
-        final_values=_flatten_actions(_final_values(inputs), chunk, end_of_chunk=True),
+        final_values=_flatten_actions(
+            _final_values(inputs, like=inputs.dones.to(inputs.values.dtype)),
+            chunk,
+            end_of_chunk=True,
+        ),
         restore=partial(_unflatten_actions, chunk=chunk),
     )
 
@@ -181,7 +187,8 @@ def _truncations(inputs: EnvAdvantageInputs) -> torch.Tensor:
     return inputs.truncations.bool()
 
 
-def _final_values(inputs: EnvAdvantageInputs) -> torch.Tensor:
+def _final_values(inputs: EnvAdvantageInputs, like: torch.Tensor) -> torch.Tensor:
+    """``final_values``, or zeros shaped ``like`` when no episode was truncated."""
     if inputs.final_values is not None:
         return inputs.final_values
     if inputs.truncations is not None and inputs.truncations.bool().any():
@@ -189,7 +196,7 @@ def _final_values(inputs: EnvAdvantageInputs) -> torch.Tensor:
             "truncated episodes must bootstrap from V(final observation): pass "
             "EnvAdvantageInputs.final_values (or drop truncations to treat them as terminations)"
         )
-    return torch.zeros(inputs.dones.shape, dtype=inputs.rewards.dtype, device=inputs.rewards.device)
+    return torch.zeros_like(like)
 
 
 @ADVANTAGES.register("embodied_gae")
@@ -209,7 +216,7 @@ def embodied_gae(
     if not isinstance(inputs, EnvAdvantageInputs):
         raise TypeError(f"embodied_gae needs EnvAdvantageInputs, got {type(inputs).__name__}")
     if inputs.values is None or inputs.bootstrap_values is None:
-        raise ValueError("embodied_gae needs critic values and bootstrap_values (V of the last obs)")
+        raise ValueError("embodied_gae needs values and bootstrap_values (V of the last obs)")
     if level not in _GAE_LEVELS:
         raise ValueError(f"unknown GAE level {level!r}; choose one of {sorted(_GAE_LEVELS)}")
     series = _GAE_LEVELS[level](inputs)

@@ -7,7 +7,7 @@ dilutes the batch. DAPO keeps generating until the batch holds ``target_groups``
 non-identical rewards. :class:`DynamicSamplingBuffer` is the bookkeeping for that loop; it never
 generates: the runner drives it::
 
-    buffer = DynamicSamplingBuffer(target_groups=32, group_size=8, max_extra_rounds=4)
+    buffer = DynamicSamplingBuffer(target_groups=32, max_extra_rounds=4, group_size=8)
     while buffer.needs_more():
         samples, rewards = generate_and_score(next_prompts())      # one generation round
         buffer.add(samples, rewards)
@@ -32,7 +32,9 @@ __all__ = [
 ]
 
 
-def group_is_informative(rewards: torch.Tensor, group_size: int, atol: float = 1e-6) -> torch.Tensor:
+def group_is_informative(
+    rewards: torch.Tensor, group_size: int, atol: float = 1e-6
+) -> torch.Tensor:
     """``[B // group_size]`` bool: does the group's reward spread (max - min) exceed ``atol``?
 
     Groups are consecutive runs of ``group_size`` samples. ``atol`` absorbs float noise from
@@ -69,16 +71,16 @@ class DynamicSamplingBuffer:
 
     Args:
         target_groups: informative groups per training batch.
-        group_size: samples per group; samples arrive grouped consecutively.
         max_extra_rounds: generation rounds allowed beyond the first. When they are used up the
             buffer stops asking for more and :meth:`take` returns what it has with
             ``cap_reached=True`` (training on a smaller batch beats stalling on a task the
             policy has saturated).
+        group_size: samples per group; samples arrive grouped consecutively.
         atol: reward spread at or below which a group counts as uninformative.
     """
 
     def __init__(
-        self, target_groups: int, group_size: int, max_extra_rounds: int, atol: float = 1e-6
+        self, target_groups: int, max_extra_rounds: int, *, group_size: int, atol: float = 1e-6
     ) -> None:
         if target_groups <= 0 or group_size <= 0 or max_extra_rounds < 0:
             raise ValueError(

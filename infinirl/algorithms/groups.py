@@ -22,9 +22,9 @@ def group_index(
     group_ids: torch.Tensor | None = None,
     device: torch.device | str | None = None,
 ) -> tuple[torch.Tensor, int]:
-    """Dense group number ``0..G-1`` of every sample, and ``G``. Exactly one of the two is needed."""
+    """Dense group number ``0..G-1`` of every sample, and ``G``. Give exactly one of the two."""
     if (group_size is None) == (group_ids is None):
-        raise ValueError("give exactly one of group_size (consecutive groups) or group_ids (labels)")
+        raise ValueError("give exactly one of group_size (consecutive groups) or group_ids")
     if group_ids is not None:
         if group_ids.shape != (batch_size,):
             raise ValueError(
@@ -47,19 +47,31 @@ class GroupStats:
     """Per-sample statistics of the sample's own group (each a ``[B]`` tensor)."""
 
     count: torch.Tensor
-    total: torch.Tensor
     mean: torch.Tensor
     std: torch.Tensor  # unbiased (Bessel) std as in DeepSeekMath's GRPO; 0 for a group of one
 
 
 def group_stats(scores: torch.Tensor, index: torch.Tensor, num_groups: int) -> GroupStats:
-    """Count, sum, mean and unbiased std of ``scores`` ([B]) within each sample's group."""
+    """Count, mean and unbiased std of ``scores`` ([B]) within each sample's group.
+
+    A group whose scores are all equal gets exactly its common value as mean and exactly 0 as std.
+    Summing then dividing does not guarantee that (seven float32 rewards of 0.1 average to
+    0.1 - 7e-9), and ``/ (std + eps)`` would blow the rounding error up into a spurious advantage
+    of ~0.01 for a group that carries no signal at all.
+    """
     if scores.dim() != 1:
         raise ValueError(f"group scores must be [B], got shape {tuple(scores.shape)}")
     index = index.to(scores.device)
     count = scores.new_zeros(num_groups).index_add_(0, index, torch.ones_like(scores))
-    total = scores.new_zeros(num_groups).index_add_(0, index, scores)
-    mean = total / count.clamp(min=1.0)
+    mean = scores.new_zeros(num_groups).index_add_(0, index, scores) / count.clamp(min=1.0)
+    empty = scores.new_zeros(num_groups)
+    highest = empty.scatter_reduce(0, index, scores, "amax", include_self=False)
+    lowest = empty.scatter_reduce(0, index, scores, "amin", include_self=False)
+    constant = (highest == lowest)[index]
     squared = scores.new_zeros(num_groups).index_add_(0, index, (scores - mean[index]) ** 2)
-    std = torch.sqrt(squared / (count - 1).clamp(min=1.0))
-    return GroupStats(count=count[index], total=total[index], mean=mean[index], std=std[index])
+    std = torch.sqrt(squared / (count - 1).clamp(min=1.0))[index]
+    return GroupStats(
+        count=count[index],
+        mean=torch.where(constant, scores, mean[index]),
+        std=torch.where(constant, torch.zeros_like(std), std),
+    )

@@ -60,16 +60,16 @@ class LossOutput:
     metrics: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
-# --- importance weights between the behaviour (rollout) and the old/proximal policy -------------
+# --- importance weights between the behaviour (rollout) and the old/proximal policy ------------
 
 
-def truncated_importance_weight(
-    old_logprobs: torch.Tensor, behaviour_logprobs: torch.Tensor, cap: float
-) -> torch.Tensor:
-    """TIS weight ``min(exp(old - behaviour), cap)``, detached: it corrects the sampling
-    distribution, it is not something to optimise. Multiply it into any per-token loss."""
-    log_ratio = (old_logprobs - behaviour_logprobs).detach().clamp(max=_MAX_LOG_RATIO)
-    return torch.exp(log_ratio).clamp(max=cap)
+def _importance_ratio(old_logprobs: torch.Tensor, behaviour_logprobs: torch.Tensor) -> torch.Tensor:
+    log_ratio = (old_logprobs - behaviour_logprobs).detach()
+    return torch.exp(log_ratio.clamp(max=_MAX_LOG_RATIO))
+
+
+def _truncate_above_cap(weight: torch.Tensor, cap: float) -> torch.Tensor:
+    return weight.clamp(max=cap)
 
 
 def _mask_above_cap(weight: torch.Tensor, cap: float) -> torch.Tensor:
@@ -77,9 +77,18 @@ def _mask_above_cap(weight: torch.Tensor, cap: float) -> torch.Tensor:
 
 
 _CAP_MODES: dict[str, Callable[[torch.Tensor, float], torch.Tensor]] = {
-    "truncate": lambda weight, cap: weight.clamp(max=cap),  # TIS
-    "mask": _mask_above_cap,  # AReaL: a token that off-policy is dropped, not down-weighted
+    "truncate": _truncate_above_cap,  # TIS: down-weight a far off-policy token
+    # AReaL: drop it. It still counts in the aggregation normaliser, which is fixed beforehand.
+    "mask": _mask_above_cap,
 }
+
+
+def truncated_importance_weight(
+    old_logprobs: torch.Tensor, behaviour_logprobs: torch.Tensor, cap: float
+) -> torch.Tensor:
+    """TIS weight ``min(exp(old - behaviour), cap)``, detached: it corrects the sampling
+    distribution, it is not something to optimise. Multiply it into any per-token loss."""
+    return _truncate_above_cap(_importance_ratio(old_logprobs, behaviour_logprobs), cap)
 
 
 def behaviour_importance_weight(
@@ -98,20 +107,21 @@ def behaviour_importance_weight(
         raise ValueError(f"unknown is_cap_mode {cap_mode!r}; choose one of {sorted(_CAP_MODES)}")
     if cap is not None and cap <= 0:
         raise ValueError(f"is_cap must be positive, got {cap}")
-    log_ratio = (old_logprobs - behaviour_logprobs).detach().clamp(max=_MAX_LOG_RATIO)
-    raw = torch.exp(log_ratio)
+    raw = _importance_ratio(old_logprobs, behaviour_logprobs)
     weight = raw if cap is None else _CAP_MODES[cap_mode](raw, cap)
     capped = raw > cap if cap is not None else torch.zeros_like(raw, dtype=torch.bool)
     metrics = {
         "is_weight_mean": masked_mean(weight, response_mask),
         "is_weight_max": masked_max(raw, response_mask),
         "is_capped_fraction": masked_mean(capped.to(raw.dtype), response_mask),
-        "behaviour_logprob_abs_diff": masked_mean(log_ratio.abs(), response_mask),
+        "behaviour_logprob_abs_diff": masked_mean(
+            (old_logprobs - behaviour_logprobs).detach().abs(), response_mask
+        ),
     }
     return weight, metrics
 
 
-# --- policy losses ------------------------------------------------------------------------------
+# --- policy losses -----------------------------------------------------------------------------
 
 
 def _ratio(logprobs: torch.Tensor, old_logprobs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -238,7 +248,7 @@ def _detached(metrics: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {name: value.detach() for name, value in metrics.items()}
 
 
-# --- entropy ------------------------------------------------------------------------------------
+# --- entropy -----------------------------------------------------------------------------------
 
 
 def entropy_from_logits(logits: torch.Tensor) -> torch.Tensor:
@@ -255,7 +265,7 @@ def entropy_loss(
     logits: torch.Tensor | None = None,
 ) -> LossOutput:
     """Entropy bonus as a loss matrix ``-H`` (add ``entropy_coef * loss_mat`` to the objective to
-    reward exploration). Pass per-token ``entropy`` ([B, L]) or the aligned ``logits`` ([B, L, V])."""
+    reward exploration). Pass per-token ``entropy`` ([B, L]) or aligned ``logits`` ([B, L, V])."""
     if (entropy is None) == (logits is None):
         raise ValueError("entropy_loss needs exactly one of entropy= or logits=")
     if entropy is None:
@@ -265,7 +275,7 @@ def entropy_loss(
     return LossOutput(zero_outside(-entropy, response_mask), _detached(metrics))
 
 
-# --- critic -------------------------------------------------------------------------------------
+# --- critic ------------------------------------------------------------------------------------
 
 
 def value_loss(
@@ -298,6 +308,6 @@ def value_loss(
     metrics = {
         "value_clip_fraction": masked_mean(clip_fraction, response_mask),
         "value_mean": masked_mean(values, response_mask),
-        "value_error_mean": masked_mean(unclipped, response_mask),
+        "value_mse": masked_mean(unclipped, response_mask),
     }
     return LossOutput(zero_outside(0.5 * squared, response_mask), _detached(metrics))

@@ -14,7 +14,6 @@ __all__ = [
     "masked_max",
     "masked_mean",
     "masked_min",
-    "masked_sum",
     "masked_whiten",
     "reverse_discounted_scan",
     "zero_outside",
@@ -24,7 +23,7 @@ __all__ = [
 def as_weight(mask: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     """``mask`` as 0/1 values of ``like``'s dtype and device, checked to have ``like``'s shape."""
     if mask.shape != like.shape:
-        raise ValueError(f"mask shape {tuple(mask.shape)} does not match values {tuple(like.shape)}")
+        raise ValueError(f"mask shape {tuple(mask.shape)} differs from values {tuple(like.shape)}")
     return mask.to(dtype=like.dtype, device=like.device)
 
 
@@ -35,16 +34,10 @@ def zero_outside(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.where(weight != 0, values * weight, torch.zeros_like(values))
 
 
-def masked_sum(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Sum of ``values`` where ``mask`` is 1 (a 0-dim tensor)."""
-    return (values * as_weight(mask, values)).sum()
-
-
 def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean of ``values`` where ``mask`` is 1; 0 when nothing is valid (an empty micro-batch must not
-    turn metrics into NaN)."""
-    weight = as_weight(mask, values)
-    return (values * weight).sum() / weight.sum().clamp(min=1.0)
+    """Mean of ``values`` where ``mask`` is 1; 0 when nothing is valid (an empty micro-batch must
+    not turn metrics into NaN)."""
+    return zero_outside(values, mask).sum() / as_weight(mask, values).sum().clamp(min=1.0)
 
 
 def masked_max(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -60,17 +53,15 @@ def masked_min(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def masked_whiten(values: torch.Tensor, mask: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
-    """``(x - mean) / sqrt(var + eps)`` over the valid entries of the whole tensor; invalid entries 0.
+    """``(x - mean) / sqrt(var + eps)`` over the valid entries of the whole tensor; others 0.
 
     The variance is the population variance (divide by the count), as in OpenRLHF's REINFORCE++
     whitening; with thousands of tokens the Bessel correction is irrelevant and this keeps a single
     valid entry finite (it whitens to 0).
     """
-    weight = as_weight(mask, values)
-    count = weight.sum().clamp(min=1.0)
-    mean = (values * weight).sum() / count
-    var = (((values - mean) * weight) ** 2).sum() / count
-    return (values - mean) * torch.rsqrt(var + eps) * weight
+    mean = masked_mean(values, mask)
+    var = masked_mean((values - mean) ** 2, mask)
+    return zero_outside((values - mean) * torch.rsqrt(var + eps), mask)
 
 
 def last_valid_index(mask: torch.Tensor) -> torch.Tensor:

@@ -1,9 +1,9 @@
 """A small name -> object registry, shared by every pluggable family in InfiniRL.
 
-RLinf picks advantages, losses, models and envs through if/elif chains over config strings, so adding
-one means editing a dispatcher far from the new code. Here a new entry is one decorated definition in
-one file (DESIGN.md section 4, point 2). The class is generic on purpose: ``envs``, ``models`` and
-``robots`` reuse it, and out-of-tree plugins can register through Python entry points.
+RLinf picks advantages, losses, models and envs through if/elif chains over config strings, so
+adding one means editing a dispatcher far from the new code. Here a new entry is one decorated
+definition in one file (DESIGN.md section 4, point 2). The class is generic on purpose: ``envs``,
+``models`` and ``robots`` reuse it, and out-of-tree plugins can register through entry points.
 
 A misspelt name fails with every registered name listed (and the closest match suggested), because
 the person reading that error is usually editing a YAML file and needs the valid spellings.
@@ -32,8 +32,8 @@ __all__ = [
 class UnknownNameError(KeyError, ValueError):
     """A name that no entry of the registry answers to.
 
-    Subclasses both ``KeyError`` (a failed lookup) and ``ValueError`` (a bad config value), so callers
-    may catch whichever matches how they think about it.
+    Subclasses both ``KeyError`` (a failed lookup) and ``ValueError`` (a bad config value), so
+    callers may catch whichever matches how they think about it.
     """
 
     def __str__(self) -> str:  # KeyError would print the message wrapped in quotes
@@ -72,11 +72,13 @@ class Registry(Generic[T]):
         if not isinstance(name, str) or not name:
             raise ValueError(f"{self.kind} names must be non-empty strings, got {name!r}")
         if name in self._entries and self._entries[name] is not obj:
-            raise ValueError(f"{self.kind} {name!r} is already registered ({self._entries[name]!r})")
+            raise ValueError(
+                f"{self.kind} {name!r} is already registered ({self._entries[name]!r})"
+            )
         self._entries[name] = obj
 
     def get(self, name: str) -> T:
-        """The entry registered as ``name``; :class:`UnknownNameError` listing all names otherwise."""
+        """The entry registered as ``name``; :class:`UnknownNameError` listing all names if none."""
         if name not in self._entries:
             self._load_entry_points()
         try:

@@ -48,8 +48,9 @@ def soft_q_target(
     alpha: float | torch.Tensor,
     gamma: float,
 ) -> torch.Tensor:
-    """Soft Bellman target ``r + gamma * (1 - terminated) * (min_k Q'_k(s', a') - alpha * log pi(a'|s'))``
-    with ``a' ~ pi(.|s')`` and ``Q'`` the target critics (paper eq. 3 with the clipped double-Q min).
+    """Soft Bellman target ``y = r + gamma * (1 - terminated) * (min_k Q'_k(s', a') - alpha *
+    log pi(a'|s'))`` with ``a' ~ pi(.|s')`` and ``Q'`` the target critics (paper eq. 3, with the
+    clipped double-Q min).
 
     Pass *terminations* only: a transition cut by a time limit must still bootstrap (Pardo et al.
     2018), so its flag is 0 here.
@@ -72,7 +73,7 @@ def sac_critic_loss(
     gamma: float = 0.99,
 ) -> SACLoss:
     """``sum_k mean_B 0.5 * (Q_k(s, a) - y)^2`` with ``y`` = :func:`soft_q_target` (paper eq. 5;
-    the 0.5 makes the gradient the TD error). Summing over critics trains each on the same target."""
+    the 0.5 makes the gradient the TD error). Summing over critics trains each on one target."""
     q_values = _stacked(q_values, "q_values")
     target = soft_q_target(
         rewards=rewards, terminated=terminated, next_target_q_values=next_target_q_values,

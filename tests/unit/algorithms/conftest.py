@@ -13,13 +13,14 @@ def make_response_mask(
     for row in range(batch):
         prompt = int(torch.randint(1, 4, (1,), generator=generator))
         longest = width - prompt
-        response = 0 if row < empty_rows else int(torch.randint(1, longest + 1, (1,), generator=generator))
+        drawn = int(torch.randint(1, longest + 1, (1,), generator=generator))
+        response = 0 if row < empty_rows else drawn
         mask[row, prompt : prompt + response] = 1.0
     permutation = torch.randperm(batch, generator=generator)
     return mask[permutation]
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def response_mask_factory():
     return make_response_mask
 

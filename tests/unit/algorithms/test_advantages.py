@@ -18,7 +18,7 @@ from infinirl.algorithms import (
 SEEDS = [0, 1, 2, 3]
 
 
-# --- slow references: python loops over python floats ---------------------------------------------
+# --- slow references: python loops over python floats ------------------------------------------
 
 
 def valid_positions(mask_row):
@@ -26,7 +26,7 @@ def valid_positions(mask_row):
 
 
 def ref_token_rewards(rewards, mask, token_rewards):
-    """Per row: a list of (position, reward) for each valid token, sequence reward on the last one."""
+    """Per row: (position, reward) for each valid token; the sequence reward on the last one."""
     rows = []
     for i in range(mask.shape[0]):
         positions = valid_positions(mask[i])
@@ -106,7 +106,7 @@ def ref_reinforce_pp(rewards, mask, token_rewards, gamma, eps):
     return advantages, returns
 
 
-# --- random inputs ---------------------------------------------------------------------------------
+# --- random inputs -----------------------------------------------------------------------------
 
 
 def random_inputs(factory, seed, *, batch=8, width=10, group_size=4, with_token_rewards=True):
@@ -125,7 +125,7 @@ def random_inputs(factory, seed, *, batch=8, width=10, group_size=4, with_token_
     )
 
 
-# --- GAE -------------------------------------------------------------------------------------------
+# --- GAE ---------------------------------------------------------------------------------------
 
 
 def test_gae_hand_computed_example():
@@ -175,7 +175,7 @@ def test_gae_requires_values():
         gae(inputs)
 
 
-# --- GRPO / Dr.GRPO / RLOO -------------------------------------------------------------------------
+# --- GRPO / Dr.GRPO / RLOO ---------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -210,6 +210,22 @@ def test_grpo_all_equal_rewards_give_zero_advantage():
     torch.testing.assert_close(out.advantages[3:, 0], expected)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("estimator", ["grpo", "rloo", "reinforce_pp_baseline"])
+def test_constant_groups_are_exactly_zero_despite_rounding(dtype, estimator):
+    """7 x 0.1 sums to 0.7000000x in float32; a naive mean would leave ~1e-8 / eps = 0.01."""
+    rewards = torch.tensor([0.1] * 7 + [0.3, 0.7] * 7 + [0.7] * 7, dtype=dtype)
+    mask = torch.ones(28, 2, dtype=dtype)
+    out = compute_advantages(estimator, TokenAdvantageInputs(rewards, mask, group_size=7))
+    if estimator == "reinforce_pp_baseline":  # whitening shifts zeros; compare the returns
+        assert torch.equal(out.returns[:7], torch.zeros(7, 2, dtype=dtype))
+        assert torch.equal(out.returns[21:], torch.zeros(7, 2, dtype=dtype))
+    else:
+        assert torch.equal(out.advantages[:7], torch.zeros(7, 2, dtype=dtype))
+        assert torch.equal(out.advantages[21:], torch.zeros(7, 2, dtype=dtype))
+    assert out.advantages[7:21].abs().sum() > 0
+
+
 def test_grpo_integer_rewards_are_accepted():
     out = grpo(TokenAdvantageInputs(torch.tensor([1, 0, 1, 1]), torch.ones(4, 2), group_size=2))
     assert out.advantages.is_floating_point()
@@ -230,7 +246,8 @@ def test_explicit_group_ids_equal_consecutive_groups_after_shuffling(
         rewards=inputs.rewards[perm], response_mask=inputs.response_mask[perm],
         token_rewards=inputs.token_rewards[perm], group_ids=labels,
     )
-    torch.testing.assert_close(compute_advantages(estimator, shuffled).advantages, consecutive[perm])
+    got = compute_advantages(estimator, shuffled).advantages
+    torch.testing.assert_close(got, consecutive[perm])
 
 
 def test_uneven_explicit_groups_including_a_singleton():
@@ -262,14 +279,16 @@ def test_rloo_hand_computed():
     )
 
 
-@pytest.mark.parametrize("bad", [dict(), dict(group_size=3), dict(group_size=2, group_ids=torch.zeros(4))])
+@pytest.mark.parametrize(
+    "bad", [dict(), dict(group_size=3), dict(group_size=2, group_ids=torch.zeros(4))]
+)
 def test_group_estimators_reject_bad_grouping(bad):
     inputs = TokenAdvantageInputs(torch.zeros(4), torch.ones(4, 2), **bad)
     with pytest.raises(ValueError, match="group"):
         grpo(inputs)
 
 
-# --- REINFORCE++ -----------------------------------------------------------------------------------
+# --- REINFORCE++ -------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -302,12 +321,12 @@ def test_reinforce_pp_hand_computed_returns():
     token_rewards = torch.tensor([[5.0, -0.1, -0.2, -0.3]], dtype=torch.float64)
     out = reinforce_pp(TokenAdvantageInputs(torch.tensor([1.0], dtype=torch.float64), mask,
                                             token_rewards=token_rewards), gamma=0.5)
-    # G3 = 1 - 0.3 = 0.7; G2 = -0.2 + 0.35 = 0.15; G1 = -0.1 + 0.075 = -0.025 (prompt reward ignored)
+    # G3 = 1 - 0.3 = 0.7; G2 = -0.2 + 0.35 = 0.15; G1 = -0.1 + 0.075 = -0.025 (prompt ignored)
     torch.testing.assert_close(out.returns, torch.tensor([[0.0, -0.025, 0.15, 0.7]],
                                                          dtype=torch.float64))
 
 
-# --- calling convention ----------------------------------------------------------------------------
+# --- calling convention ------------------------------------------------------------------------
 
 
 def test_all_token_estimators_registered_and_zero_outside_mask(response_mask_factory):

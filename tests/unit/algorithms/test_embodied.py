@@ -1,0 +1,253 @@
+"""Embodied (env rollout) estimators against float64 loop references, plus hand-made cases."""
+
+import math
+
+import pytest
+import torch
+
+from infinirl.algorithms import (
+    ADVANTAGES,
+    EnvAdvantageInputs,
+    TokenAdvantageInputs,
+    embodied_gae,
+    embodied_grpo,
+)
+
+SEEDS = [0, 1, 2]
+
+
+def ref_gae_series(rewards, values, dones, truncs, final_values, bootstrap, gamma, lam):
+    """rewards etc. as nested lists [S][N]; returns advantages [S][N]."""
+    steps, envs = len(rewards), len(rewards[0])
+    out = [[0.0] * envs for _ in range(steps)]
+    for n in range(envs):
+        next_adv = 0.0
+        for s in reversed(range(steps)):
+            if truncs[s][n]:
+                next_value, cont = final_values[s][n], 0.0
+            elif dones[s][n]:
+                next_value, cont = 0.0, 0.0
+            else:
+                next_value = values[s + 1][n] if s + 1 < steps else bootstrap[n]
+                cont = 1.0
+            delta = rewards[s][n] + gamma * next_value - values[s][n]
+            next_adv = delta + gamma * lam * cont * next_adv
+            out[s][n] = next_adv
+    return out
+
+
+def random_env_inputs(seed, *, steps=6, envs=4, chunk=None, per_action_dones=False):
+    gen = torch.Generator().manual_seed(seed)
+    shape = (steps, envs) if chunk is None else (steps, envs, chunk)
+    done_shape = shape if per_action_dones else (steps, envs)
+    dones = torch.rand(done_shape, generator=gen) < 0.25
+    truncations = dones & (torch.rand(done_shape, generator=gen) < 0.5)
+    return EnvAdvantageInputs(
+        rewards=torch.randn(shape, generator=gen, dtype=torch.float64),
+        dones=dones,
+        values=torch.randn(shape if chunk is not None else (steps, envs), generator=gen,
+                           dtype=torch.float64),
+        bootstrap_values=torch.randn(envs, generator=gen, dtype=torch.float64),
+        truncations=truncations,
+        final_values=torch.randn(done_shape, generator=gen, dtype=torch.float64),
+        group_size=2,
+    )
+
+
+def test_truncation_bootstraps_and_termination_does_not():
+    ones = torch.ones(3, 2, dtype=torch.float64)
+    dones = torch.tensor([[False, False], [True, True], [False, False]])
+    truncations = torch.tensor([[False, False], [False, True], [False, False]])
+    final_values = torch.zeros(3, 2, dtype=torch.float64)
+    final_values[1, 1] = 10.0
+    inputs = EnvAdvantageInputs(
+        rewards=ones, dones=dones, values=2 * ones,
+        bootstrap_values=torch.tensor([4.0, 4.0], dtype=torch.float64),
+        truncations=truncations, final_values=final_values,
+    )
+    out = embodied_gae(inputs, gamma=0.5, lam=1.0)
+    # env 0 terminated at step 1:  A = [-0.5, -1, 1];  env 1 truncated (V(final)=10): A = [2, 4, 1]
+    expected = torch.tensor([[-0.5, 2.0], [-1.0, 4.0], [1.0, 1.0]], dtype=torch.float64)
+    torch.testing.assert_close(out.advantages, expected)
+    torch.testing.assert_close(out.returns, expected + 2.0)
+
+
+def test_truncation_without_final_values_is_an_error():
+    inputs = EnvAdvantageInputs(
+        rewards=torch.zeros(2, 1), dones=torch.tensor([[True], [False]]), values=torch.zeros(2, 1),
+        bootstrap_values=torch.zeros(1), truncations=torch.tensor([[True], [False]]),
+    )
+    with pytest.raises(ValueError, match="final"):
+        embodied_gae(inputs)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("gamma,lam", [(0.99, 0.95), (0.8, 1.0)])
+def test_step_level_gae_matches_reference(seed, gamma, lam):
+    inputs = random_env_inputs(seed)
+    out = ADVANTAGES.get("embodied_gae")(inputs, gamma=gamma, lam=lam)
+    expected = ref_gae_series(
+        inputs.rewards.tolist(), inputs.values.tolist(), inputs.dones.tolist(),
+        inputs.truncations.tolist(), inputs.final_values.tolist(),
+        inputs.bootstrap_values.tolist(), gamma, lam,
+    )
+    torch.testing.assert_close(out.advantages, torch.tensor(expected, dtype=torch.float64))
+    torch.testing.assert_close(out.returns, out.advantages + inputs.values)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_chunk_level_gae_sums_rewards_over_the_chunk(seed):
+    inputs = random_env_inputs(seed, chunk=3)
+    chunk_values = inputs.values.sum(dim=-1)  # any [T, N] critic output
+    inputs = EnvAdvantageInputs(
+        rewards=inputs.rewards, dones=inputs.dones, values=chunk_values,
+        bootstrap_values=inputs.bootstrap_values, truncations=inputs.truncations,
+        final_values=inputs.final_values,
+    )
+    out = embodied_gae(inputs, gamma=0.9, lam=0.9, level="chunk")
+    summed = [[sum(chunk) for chunk in row] for row in inputs.rewards.tolist()]
+    expected = ref_gae_series(
+        summed, chunk_values.tolist(), inputs.dones.tolist(), inputs.truncations.tolist(),
+        inputs.final_values.tolist(), inputs.bootstrap_values.tolist(), 0.9, 0.9,
+    )
+    assert out.advantages.shape == (6, 4)
+    torch.testing.assert_close(out.advantages, torch.tensor(expected, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("per_action_dones", [False, True])
+def test_action_level_gae_unrolls_the_chunk(seed, per_action_dones):
+    chunk = 3
+    inputs = random_env_inputs(seed, chunk=chunk, per_action_dones=per_action_dones)
+    out = embodied_gae(inputs, gamma=0.9, lam=0.8, level="action")
+    steps, envs = 6, 4
+
+    def flat(tensor, end_of_chunk):
+        rows = []
+        for t in range(steps):
+            for c in range(chunk):
+                row = []
+                for n in range(envs):
+                    if tensor.dim() == 3:
+                        row.append(tensor[t, n, c].item())
+                    else:
+                        on_this_action = c == chunk - 1 or not end_of_chunk
+                        row.append(tensor[t, n].item() if on_this_action else 0)
+                rows.append(row)
+        return rows
+
+    flat_adv = ref_gae_series(
+        flat(inputs.rewards, False), flat(inputs.values, False), flat(inputs.dones, True),
+        flat(inputs.truncations, True), flat(inputs.final_values, True),
+        inputs.bootstrap_values.tolist(), 0.9, 0.8,
+    )
+    expected = torch.zeros(steps, envs, chunk, dtype=torch.float64)
+    for t in range(steps):
+        for c in range(chunk):
+            for n in range(envs):
+                expected[t, n, c] = flat_adv[t * chunk + c][n]
+    torch.testing.assert_close(out.advantages, expected)
+    torch.testing.assert_close(out.returns, expected + inputs.values)
+
+
+def test_chunk_level_with_per_action_dones_and_no_truncations():
+    rewards = torch.ones(2, 1, 3, dtype=torch.float64)
+    dones = torch.tensor([[[False, True, False]], [[False, False, False]]])
+    inputs = EnvAdvantageInputs(
+        rewards=rewards, dones=dones, values=torch.zeros(2, 1, dtype=torch.float64),
+        bootstrap_values=torch.tensor([10.0], dtype=torch.float64),
+    )
+    out = embodied_gae(inputs, gamma=0.5, lam=1.0)
+    # chunk 0 ends the episode (terminated): A0 = 3; chunk 1 bootstraps: A1 = 3 + 0.5 * 10 = 8
+    torch.testing.assert_close(out.advantages, torch.tensor([[3.0], [8.0]], dtype=torch.float64))
+
+
+def test_gae_level_errors():
+    inputs = random_env_inputs(0)
+    with pytest.raises(ValueError, match="level"):
+        embodied_gae(inputs, level="token")
+    with pytest.raises(ValueError, match="action-level GAE needs"):
+        embodied_gae(inputs, level="action")
+    with pytest.raises(ValueError, match="bootstrap_values"):
+        embodied_gae(EnvAdvantageInputs(rewards=torch.zeros(2, 1), dones=torch.zeros(2, 1),
+                                        values=torch.zeros(2, 1)))
+    with pytest.raises(TypeError, match="EnvAdvantageInputs"):
+        embodied_gae(TokenAdvantageInputs(torch.zeros(2), torch.ones(2, 2)))
+
+
+def test_env_inputs_validate_shapes():
+    with pytest.raises(ValueError, match="dones must be"):
+        EnvAdvantageInputs(rewards=torch.zeros(3, 2), dones=torch.zeros(3, 4))
+    with pytest.raises(ValueError, match="bootstrap_values"):
+        EnvAdvantageInputs(rewards=torch.zeros(3, 2), dones=torch.zeros(3, 2),
+                           bootstrap_values=torch.zeros(3))
+    with pytest.raises(ValueError, match="truncations must be shaped like dones"):
+        EnvAdvantageInputs(rewards=torch.zeros(3, 2, 2), dones=torch.zeros(3, 2),
+                           truncations=torch.zeros(3, 2, 2))
+
+
+# --- embodied GRPO -----------------------------------------------------------------------------
+
+
+def ref_embodied_grpo(rewards, dones, group_of_env, eps, norm_by_std):
+    """rewards/dones [S][N] lists (already per action if chunked)."""
+    steps, envs = len(rewards), len(rewards[0])
+    returns, first = [0.0] * envs, [[False] * envs for _ in range(steps)]
+    for n in range(envs):
+        for s in range(steps):
+            first[s][n] = True
+            returns[n] += rewards[s][n]
+            if dones[s][n]:
+                break
+    scores = [0.0] * envs
+    groups = {}
+    for n, g in enumerate(group_of_env):
+        groups.setdefault(g, []).append(n)
+    for members in groups.values():
+        vals = [returns[n] for n in members]
+        mean = sum(vals) / len(vals)
+        var = sum((v - mean) ** 2 for v in vals) / (len(vals) - 1) if len(vals) > 1 else 0.0
+        std = math.sqrt(var)
+        for n in members:
+            scores[n] = (returns[n] - mean) / (std + eps) if norm_by_std else returns[n] - mean
+    adv = [[scores[n] if first[s][n] else 0.0 for n in range(envs)] for s in range(steps)]
+    ret = [[returns[n] if first[s][n] else 0.0 for n in range(envs)] for s in range(steps)]
+    return adv, ret, first
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("norm_by_std", [True, False])
+def test_embodied_grpo_matches_reference(seed, norm_by_std):
+    inputs = random_env_inputs(seed, envs=6)
+    out = embodied_grpo(inputs, eps=1e-6, norm_by_std=norm_by_std)
+    ends = (inputs.dones | inputs.truncations).tolist()
+    adv, ret, first = ref_embodied_grpo(inputs.rewards.tolist(), ends, [n // 2 for n in range(6)],
+                                        1e-6, norm_by_std)
+    torch.testing.assert_close(out.advantages, torch.tensor(adv, dtype=torch.float64))
+    torch.testing.assert_close(out.returns, torch.tensor(ret, dtype=torch.float64))
+    assert torch.equal(out.mask, torch.tensor(first))
+
+
+def test_embodied_grpo_hand_computed_with_group_ids_and_chunks():
+    # 2 steps x 4 envs x chunk 2; envs 0 and 2 share a reset state, envs 1 and 3 share another.
+    rewards = torch.zeros(2, 4, 2, dtype=torch.float64)
+    rewards[0, 0, 1] = 1.0  # env 0 succeeds in the first chunk and terminates...
+    rewards[1, 0, 0] = 5.0  # ...so this reward belongs to its next episode and is ignored
+    rewards[1, 1, 1] = 1.0
+    rewards[1, 3, 1] = 1.0
+    dones = torch.tensor([[True, False, False, False], [False, True, True, True]])
+    out = embodied_grpo(EnvAdvantageInputs(rewards=rewards, dones=dones,
+                                           group_ids=torch.tensor([7, 3, 7, 3])))
+    # returns: env0 1, env1 1, env2 0, env3 1. Group {0,2}: +-1/(sqrt(0.5)+eps); group {1,3}: 0.
+    a = 0.5 / (math.sqrt(0.5) + 1e-6)
+    assert out.advantages.shape == (2, 4, 2)
+    torch.testing.assert_close(out.advantages[0, :, 0], torch.tensor([a, 0.0, -a, 0.0],
+                                                                     dtype=torch.float64))
+    assert torch.equal(out.advantages[1, 0], torch.zeros(2, dtype=torch.float64))
+    assert torch.equal(out.mask[:, 0], torch.tensor([[True, True], [False, False]]))
+    assert bool(out.mask[:, 1:].all())
+
+
+def test_embodied_grpo_all_equal_returns_give_zero():
+    inputs = EnvAdvantageInputs(rewards=torch.ones(4, 4), dones=torch.zeros(4, 4), group_size=4)
+    assert torch.equal(embodied_grpo(inputs).advantages, torch.zeros(4, 4))
