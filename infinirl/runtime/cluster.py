@@ -18,7 +18,7 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from infinirl.runtime.errors import ClusterError
 from infinirl.runtime.hardware import discover_node
-from infinirl.runtime.inventory import ClusterInventory, NodeInventory
+from infinirl.runtime.inventory import ClusterInventory, NodeInventory, Robot
 
 logger = logging.getLogger(__name__)
 
@@ -65,10 +65,14 @@ class Cluster:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "Cluster":
         cfg = self.config
+        joining = cfg.address not in (None, "", "local", "auto")
+        if joining:
+            _probe_address(cfg.address, cfg.connect_timeout_s)
         if ray.is_initialized():
             logger.info("Ray already initialised in this process; reusing it")
         elif cfg.address in (None, "", "local"):
             ray.init(
+                address="local",  # always a new instance: never silently join a stray `ray start`
                 num_cpus=cfg.num_cpus,
                 num_gpus=cfg.num_gpus,
                 namespace=NAMESPACE,
@@ -78,8 +82,6 @@ class Cluster:
             )
             self._started_here = True
         else:
-            if cfg.address != "auto":
-                _probe_address(cfg.address, cfg.connect_timeout_s)
             try:
                 ray.init(
                     address=cfg.address,
@@ -148,7 +150,14 @@ class Cluster:
             probes.append(task.remote(self.config.robot_plugins))
         found = ray.get(probes)
         inventory_nodes = []
+        seen_robot_names: set[str] = set()
         for index, (node, info) in enumerate(zip(nodes, found)):
+            robots = []
+            for robot in info["robots"]:  # names identify robots cluster-wide: qualify collisions
+                name = robot.name if robot.name not in seen_robot_names else f"{robot.name}@node{index}"
+                seen_robot_names.add(name)
+                robots.append(Robot(name=name, kind=robot.kind, local_index=robot.local_index,
+                                    properties=robot.properties))
             resources = node.get("Resources", {})
             inventory_nodes.append(
                 NodeInventory(
@@ -158,7 +167,7 @@ class Cluster:
                     num_cpus=int(resources.get("CPU", 0)),
                     memory_bytes=int(resources.get("memory", 0)),
                     accelerators=tuple(info["accelerators"]),
-                    robots=tuple(info["robots"]),
+                    robots=tuple(robots),
                 )
             )
         return ClusterInventory(nodes=tuple(inventory_nodes))
@@ -193,6 +202,3 @@ def current_node_ip() -> str:
     except Exception:  # outside Ray
         return socket.gethostbyname(socket.gethostname())
 
-
-def this_process_env() -> dict[str, str]:
-    return dict(os.environ)

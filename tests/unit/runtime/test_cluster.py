@@ -1,0 +1,75 @@
+"""Cluster: local start, inventory, multi-node placement (simulated), clean shutdown, bad addresses."""
+
+import json
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+
+from infinirl.runtime import Cluster, ClusterError
+
+SCENARIOS = Path(__file__).parent / "scenarios"
+REPO = Path(__file__).resolve().parents[3]
+
+
+def run_scenario(name: str, timeout: float = 300) -> dict:
+    proc = subprocess.run([sys.executable, str(SCENARIOS / name)], capture_output=True, text=True,
+                          timeout=timeout, cwd=REPO, env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
+    return json.loads(line.removeprefix("RESULT "))
+
+
+def test_local_inventory(ray_cluster):
+    inv = ray_cluster.inventory
+    assert inv.num_nodes == 1
+    assert inv.nodes[0].num_cpus == 2
+    assert inv.num_robots == 0  # none unless a robot plugin is configured
+    assert inv.nodes[0].ip
+
+
+def test_multinode_placement_on_simulated_cluster():
+    out = run_scenario("multinode.py")
+    assert out["num_nodes"] == 3 and out["cpus"] == [1, 2, 2]
+    assert out["robots"] == 3  # one simulated robot per node
+    assert out["actual"] == out["expected"]
+    assert len(set(out["expected"]["actor"])) == 1 and out["expected"]["actor"][0] != out["expected"]["env"][0]
+
+
+def test_shutdown_leaves_no_process():
+    out = run_scenario("lifecycle.py")
+    pids = out["workers"] + out["ray"]
+    assert out["workers"] and out["ray"]
+    deadline = time.monotonic() + 30
+    alive = pids
+    while alive and time.monotonic() < deadline:
+        alive = [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
+        time.sleep(0.5)
+    assert not alive, f"processes left after shutdown: {[psutil.Process(p).cmdline()[:3] for p in alive]}"
+
+
+def _closed_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def test_unreachable_address_fails_fast_with_clear_message():
+    start = time.monotonic()
+    with pytest.raises(ClusterError, match="cannot reach the Ray head at 127.0.0.1"):
+        Cluster(address=f"127.0.0.1:{_closed_port()}", connect_timeout_s=2).start()
+    assert time.monotonic() - start < 10
+
+
+def test_malformed_address():
+    with pytest.raises(ClusterError, match="is not 'host:port'"):
+        Cluster(address="not-an-address").start()
+
+
+def test_inventory_before_start_is_an_error():
+    with pytest.raises(ClusterError, match="not started"):
+        Cluster().inventory
