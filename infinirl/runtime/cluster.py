@@ -96,10 +96,15 @@ class Cluster:
                 ) from exc
         self._wait_for_nodes()
         self._inventory = self._take_inventory()
+        from infinirl.runtime.memory import device_lock_actor
+
+        # The driver owns the cluster-wide device lock, so it lives exactly as long as the job.
+        self._device_lock = device_lock_actor()
         return self
 
     def shutdown(self) -> None:
         """Disconnect; stop Ray too when this Cluster started it. Leaves no process of ours behind."""
+        self._device_lock = None
         if ray.is_initialized():
             ray.shutdown()
         self._inventory = None
