@@ -27,7 +27,7 @@ import math
 import os
 import platform
 import statistics
-from typing import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 KIB = 1024
 MIB = 1024 * 1024
@@ -113,8 +113,12 @@ def latency_stats(latencies_s: Iterable[float]) -> dict[str, float]:
 def throughput_stats(nbytes: int, n_items: int, wall_s: float) -> dict[str, float]:
     """-> {items_per_s, mb_per_s (MiB/s), stream_n, stream_wall_s}."""
     if wall_s <= 0:
-        return {"items_per_s": math.nan, "mb_per_s": math.nan, "stream_n": n_items,
-                "stream_wall_s": wall_s}
+        return {
+            "items_per_s": math.nan,
+            "mb_per_s": math.nan,
+            "stream_n": n_items,
+            "stream_wall_s": wall_s,
+        }
     return {
         "items_per_s": n_items / wall_s,
         "mb_per_s": n_items * nbytes / wall_s / MIB,
@@ -123,12 +127,14 @@ def throughput_stats(nbytes: int, n_items: int, wall_s: float) -> dict[str, floa
     }
 
 
-def size_result(nbytes: int, n_items: int, wall_s: float,
-                latencies_s: Iterable[float]) -> dict[str, float]:
+def size_result(
+    nbytes: int, n_items: int, wall_s: float, latencies_s: Iterable[float]
+) -> dict[str, float]:
     """One size's entry: throughput_stats | latency_stats, rounded for printing."""
     out = {**throughput_stats(nbytes, n_items, wall_s), **latency_stats(latencies_s)}
-    return {k: (round(v, 4) if isinstance(v, float) and math.isfinite(v) else v)
-            for k, v in out.items()}
+    return {
+        k: (round(v, 4) if isinstance(v, float) and math.isfinite(v) else v) for k, v in out.items()
+    }
 
 
 def make_payload(nbytes: int):
@@ -157,15 +163,17 @@ def device_description() -> str:
 
         if torch.cuda.is_available():
             desc += f"; GPU {torch.cuda.get_device_name(0)}"
-    except Exception:  # noqa: BLE001 - torch missing or CUDA misconfigured: CPU description only
-        pass
+    except Exception as e:  # noqa: BLE001 - torch missing or CUDA broken: CPU description only
+        desc += f"; GPU query failed: {type(e).__name__}"
     return desc
 
 
 def format_table(results: Mapping[str, Mapping]) -> str:
     """{impl: {"sizes": {label: stats}}} -> a fixed-width text table."""
-    header = (f"{'impl':<10}{'size':>6}{'items/s':>12}{'MiB/s':>11}"
-              f"{'p50 ms':>10}{'p99 ms':>10}{'stream n':>10}{'ping n':>8}")
+    header = (
+        f"{'impl':<10}{'size':>6}{'items/s':>12}{'MiB/s':>11}"
+        f"{'p50 ms':>10}{'p99 ms':>10}{'stream n':>10}{'ping n':>8}"
+    )
     lines = [header, "-" * len(header)]
     for impl, res in results.items():
         if not res or "sizes" not in res:
@@ -176,7 +184,8 @@ def format_table(results: Mapping[str, Mapping]) -> str:
                 f"{impl:<10}{label:>6}{st.get('items_per_s', math.nan):>12.1f}"
                 f"{st.get('mb_per_s', math.nan):>11.1f}{st.get('p50_ms', math.nan):>10.3f}"
                 f"{st.get('p99_ms', math.nan):>10.3f}{st.get('stream_n', 0):>10}"
-                f"{st.get('ping_n', 0):>8}")
+                f"{st.get('ping_n', 0):>8}"
+            )
     return "\n".join(lines)
 
 

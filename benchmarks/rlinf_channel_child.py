@@ -30,7 +30,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-import _bench_common as bc  # noqa: E402
+import _bench_common as bc
 
 
 def _force_private_ray() -> None:
@@ -55,7 +55,6 @@ def _force_private_ray() -> None:
 
 def _define_workers():
     """Worker classes (defined lazily so that `--help` works without rlinf installed)."""
-    import torch  # noqa: F401 - imported in the workers through make_payload
     from rlinf.scheduler import Worker
 
     def payload(nbytes: int):
@@ -126,9 +125,11 @@ def run(sizes: list[str], quick: bool) -> dict:
     t_setup = time.perf_counter()
     cluster = Cluster(num_nodes=1)
     producer = BenchProducer.create_group().launch(
-        cluster, placement_strategy=NodePlacementStrategy([0]), name="bench_producer")
+        cluster, placement_strategy=NodePlacementStrategy([0]), name="bench_producer"
+    )
     consumer = BenchConsumer.create_group().launch(
-        cluster, placement_strategy=NodePlacementStrategy([0]), name="bench_consumer")
+        cluster, placement_strategy=NodePlacementStrategy([0]), name="bench_consumer"
+    )
     print(f"[rlinf] cluster + workers up in {time.perf_counter() - t_setup:.1f}s", file=sys.stderr)
 
     out: dict = {"impl": "rlinf", "sizes": {}}
@@ -162,13 +163,19 @@ def run(sizes: list[str], quick: bool) -> dict:
 
             out["sizes"][label] = bc.size_result(nbytes, p["stream_n"], wall, lat)
             st = out["sizes"][label]
-            print(f"[rlinf] {label}: {st['items_per_s']:.1f} items/s {st['mb_per_s']:.1f} MiB/s "
-                  f"p50 {st['p50_ms']:.3f} ms p99 {st['p99_ms']:.3f} ms "
-                  f"({time.perf_counter() - t_size:.1f}s)", file=sys.stderr)
+            print(
+                f"[rlinf] {label}: {st['items_per_s']:.1f} items/s {st['mb_per_s']:.1f} MiB/s "
+                f"p50 {st['p50_ms']:.3f} ms p99 {st['p99_ms']:.3f} ms "
+                f"({time.perf_counter() - t_size:.1f}s)",
+                file=sys.stderr,
+            )
     finally:
         ray.shutdown()
-    out["versions"] = {"rlinf": md.version("rlinf"), "ray": ray.__version__,
-                       "torch": torch.__version__}
+    out["versions"] = {
+        "rlinf": md.version("rlinf"),
+        "ray": ray.__version__,
+        "torch": torch.__version__,
+    }
     return out
 
 

@@ -59,13 +59,21 @@ printf '%s\n' "$TORCH_SPEC" > "$CONS"
 # Where does torch 2.13.0+cpu come from? A local wheel via find-links if there is one, else the
 # PyTorch CPU index.
 EXTRA=()
-if ! ls "${PIP_FIND_LINKS:-/opt/wheels}"/torch-2.13.0+cpu-*.whl >/dev/null 2>&1; then
+have_local_torch=0
+for d in ${PIP_FIND_LINKS:-} /opt/wheels; do
+    if ls "${d#file://}"/torch-2.13.0+cpu-*.whl >/dev/null 2>&1; then have_local_torch=1; fi
+done
+if [[ "$have_local_torch" == "0" ]]; then
     EXTRA+=(--extra-index-url https://download.pytorch.org/whl/cpu)
 fi
 
+# pip on the project machines warns once per package about a configured local index that lacks
+# it; drop that noise, keep everything else.
+quiet_pip() { "${VPIP[@]}" "$@" 2>&1 | { grep -v "is ignored: it is neither a file nor a directory" || true; }; }
+
 REPORT="$VENV/infinirl-dry-run.json"
 echo "setup_rlinf_venv: dry-run resolution of $RLINF_SPEC with $TORCH_SPEC"
-"${VPIP[@]}" install --quiet --dry-run --ignore-installed --report "$REPORT" \
+quiet_pip install --quiet --dry-run --ignore-installed --report "$REPORT" \
     -c "$CONS" "${EXTRA[@]}" "$RLINF_SPEC" "$TORCH_SPEC"
 "$VENV/bin/python" - "$REPORT" <<'EOF'
 import json, re, sys
@@ -80,7 +88,7 @@ if bad:
 EOF
 
 echo "setup_rlinf_venv: installing"
-"${VPIP[@]}" install --quiet -c "$CONS" "${EXTRA[@]}" "$RLINF_SPEC" "$TORCH_SPEC"
+quiet_pip install --quiet -c "$CONS" "${EXTRA[@]}" "$RLINF_SPEC" "$TORCH_SPEC"
 
 "$VENV/bin/python" - <<'EOF'
 import importlib.metadata as md

@@ -1,0 +1,41 @@
+"""The macro flows. Each runner registers its name, its typed config and its entry point.
+
+``infinirl train <config>`` reads the config's ``runner:`` key and dispatches through this
+registry, so a new flow is one new module with one ``@register_runner`` and no edit elsewhere.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from infinirl.algorithms.registry import Registry
+
+
+@dataclass(frozen=True)
+class RunnerSpec:
+    name: str
+    config_cls: type
+    run: Callable
+    summary: str
+
+
+RUNNERS: Registry[RunnerSpec] = Registry("runner", entry_point_group="infinirl.runners")
+
+# Modules that define runners; imported lazily so `infinirl --help` stays fast.
+_RUNNER_MODULES = ("infinirl.runners.runtime_demo",)
+
+
+def register_runner(name: str, config_cls: type, summary: str):
+    def wrap(fn: Callable) -> Callable:
+        RUNNERS.add(name, RunnerSpec(name, config_cls, fn, summary))
+        return fn
+
+    return wrap
+
+
+def load_runners() -> Registry[RunnerSpec]:
+    for module in _RUNNER_MODULES:
+        importlib.import_module(module)
+    return RUNNERS

@@ -25,7 +25,7 @@ class Tracer:
         for group in groups:
             self.spans.extend(group.pop_spans())
             for ctx in group.contexts:
-                node = ctx.node_id or "local"
+                node = ctx.node_ip or ctx.node_id or "local"
                 if ctx.local_devices:
                     keys = [f"{node}:gpu{d}" for d in ctx.local_devices]
                 else:

@@ -142,11 +142,32 @@ class Worker:
         }
 
 
+def _quiet_ray_async_warnings() -> None:
+    """Sync methods run on their own thread, where a blocking ``ray.get`` cannot stall the event
+    loop; Ray cannot tell and warns on the first one, so mark that warning as already given."""
+    try:
+        import ray._private.worker as ray_worker
+
+        ray_worker.blocking_get_inside_async_warned = True
+    except Exception:
+        pass
+
+
+def _was_reconstructed() -> bool:
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the property is deprecated in favour of nothing equivalent
+        return bool(ray.get_runtime_context().was_current_actor_reconstructed)
+
+
 class _WorkerHost:
     """The Ray actor that hosts one ``Worker`` rank; turns every failure into a ``WorkerError``."""
 
     def __init__(self, worker_cls: type, ctx: RankContext, args: tuple, kwargs: dict):
         os.environ.update(ctx.env_vars)
+        _quiet_ray_async_warnings()
+        self._restarted = _was_reconstructed()
         self._ctx = ctx
         self._spans: list[tuple] = []
         self._sync_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="infinirl-sync")
@@ -195,7 +216,7 @@ class _WorkerHost:
             "pid": os.getpid(),
             "hostname": socket.gethostname(),
             "crash_log": self._crash_log,
-            "restarted": ray.get_runtime_context().was_current_actor_reconstructed,
+            "restarted": self._restarted,
         }
 
     async def execute(self, method: str, args: tuple, kwargs: dict, caller: str = "", seq: int = -1) -> Any:
@@ -206,7 +227,7 @@ class _WorkerHost:
         fn = getattr(self._worker, method)
         if seq >= 0:
             async with self._turn:
-                if caller not in self._next_seq and ray.get_runtime_context().was_current_actor_reconstructed:
+                if caller not in self._next_seq and self._restarted:
                     self._next_seq[caller] = seq  # a restarted rank resumes the caller's numbering
                 await self._turn.wait_for(lambda: self._next_seq[caller] == seq)
         start = time.time()

@@ -1,0 +1,81 @@
+"""Config composition and strict validation; the CLI rejects bad input before anything starts."""
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import pytest
+
+from infinirl.cli import main
+from infinirl.config import ConfigError, available_configs, check_override_keys, compose, to_dataclass
+from infinirl.runners import load_runners
+
+
+@dataclass
+class Inner:
+    lr: float = 1e-3
+    mode: Literal["a", "b"] = "a"
+
+
+@dataclass
+class Outer:
+    steps: int = 3
+    name: str = "x"
+    inner: Inner = field(default_factory=Inner)
+    tags: list[str] = field(default_factory=list)
+
+
+def test_to_dataclass_converts_and_checks_types():
+    cfg = to_dataclass(Outer, {"steps": 5, "inner": {"lr": 1, "mode": "b"}, "tags": ["t"]})
+    assert cfg.steps == 5 and cfg.inner.lr == 1.0 and isinstance(cfg.inner.lr, float) and cfg.tags == ["t"]
+    with pytest.raises(ConfigError, match=r"unknown config key 'inner.lrr'. Did you mean 'inner.lr'"):
+        to_dataclass(Outer, {"inner": {"lrr": 1}})
+    with pytest.raises(ConfigError, match=r"steps: expected an integer, got 'many'"):
+        to_dataclass(Outer, {"steps": "many"})
+    with pytest.raises(ConfigError, match=r"inner.mode='c' is not allowed.*Choose one of: a, b"):
+        to_dataclass(Outer, {"inner": {"mode": "c"}})
+
+
+def test_override_keys_checked_with_suggestion():
+    check_override_keys(Outer, ["steps=3", "inner.lr=0.1"])
+    with pytest.raises(ConfigError, match=r"'inner.mod'.*Did you mean 'inner.mode'"):
+        check_override_keys(Outer, ["inner.mod=b"])
+
+
+def test_every_shipped_config_loads_and_validates():
+    runners = load_runners()
+    for name in available_configs():
+        raw = compose(name)
+        spec = runners.get(raw["runner"])
+        to_dataclass(spec.config_cls, raw)
+
+
+def test_cli_rejects_bad_key_value_and_config(capsys):
+    assert main(["validate", "default"]) == 0
+    assert main(["validate", "default", "stepz=1"]) == 2
+    assert "Did you mean 'steps'" in capsys.readouterr().err
+    assert main(["validate", "default", "steps=-1"]) == 2
+    assert "steps=-1 must be > 0" in capsys.readouterr().err
+    assert main(["validate", "default", "placement.learner=1-x"]) == 2
+    assert "placement.learner" in capsys.readouterr().err
+    assert main(["validate", "no_such_config"]) == 2
+    assert "no config named 'no_such_config'" in capsys.readouterr().err
+
+
+def test_main_job_cli_trains_end_to_end(tmp_path):
+    """`infinirl train` as a user runs it (own process, own Ray): the loss falls, trace is written."""
+    import json
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "infinirl.cli", "train", "default", "steps=8", f"output_dir={tmp_path}",
+         "cluster.log_to_driver=false"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == 8
+    assert rows[-1]["rollout/policy_loss"] < 0.5 * rows[0]["rollout/policy_loss"]
+    assert max(r["rollout/max_staleness"] for r in rows) <= 1
+    trace = json.loads((tmp_path / "trace.json").read_text())
+    assert {e["name"] for e in trace["traceEvents"] if e["ph"] == "X"} >= {"produce", "train"}

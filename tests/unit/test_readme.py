@@ -1,0 +1,26 @@
+"""The README's Concepts example runs exactly as written, and its two set-up commands exist."""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+README = (REPO / "README.md").read_text()
+
+
+def test_concepts_example_runs_as_written():
+    section = README.split("## Concepts", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "sum of all observations: 360.0" in proc.stdout
+
+
+def test_setup_commands_are_the_first_block_and_ci_runs_the_test_command():
+    first_block = re.search(r"```bash\n(.*?)```", README, re.S).group(1).strip().splitlines()
+    assert len(first_block) == 2
+    install_and_run, test_command = (line.split("#")[0].strip() for line in first_block)
+    assert install_and_run.endswith("infinirl train")
+    ci = (REPO / ".ci" / "run").read_text()
+    assert test_command in ci
