@@ -19,7 +19,10 @@ def _build_config(name: str, overrides: list[str]):
     except KeyError as exc:
         raise ConfigError(f"runner: {exc}") from None
     check_override_keys(spec.config_cls, overrides)
-    return spec, to_dataclass(spec.config_cls, compose(name, overrides))
+    # Keys were checked against the typed config above, so a valid key the YAML leaves at its
+    # default may be set too (Hydra's `++` = add or override).
+    upserts = [o if o[:1] in "+~" else "++" + o for o in overrides]
+    return spec, to_dataclass(spec.config_cls, compose(name, upserts))
 
 
 def main(argv: list[str] | None = None) -> int:
