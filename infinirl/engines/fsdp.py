@@ -10,8 +10,9 @@ Every rank gets its own share of a mini-batch. The caller's ``loss_fn`` is norma
 denominator (e.g. the number of response tokens in the whole mini-batch over all ranks), so the
 gradient of the mini-batch loss is the **sum** of the per-micro-batch, per-rank gradients. FSDP2
 averages over ranks by default; we set ``gradient_divide_factor=1`` and force plain ``SUM``
-collectives on every FSDP module (``set_force_sum_reduction_for_comms``), so the reduce-scatter
-sums and nothing divides. (``SUM`` rather than NCCL's ``PREMUL_SUM(1.0)`` because gloo has no
+collectives on *every* FSDP module (``set_force_sum_reduction_for_comms``; neither setter recurses
+into sub-modules, and setting only the root silently leaves the layers averaging), so the
+reduce-scatter sums and nothing divides. (``SUM`` rather than NCCL's ``PREMUL_SUM(1.0)`` because gloo has no
 ``PREMUL_SUM``; the result is the same.) Micro-batch gradients simply accumulate, undivided.
 
 All collectives must match across ranks, so ranks with fewer micro-batches than the busiest rank
@@ -20,8 +21,9 @@ run zero-loss filler passes (see :meth:`FSDPTrainEngine._micro_batch_plan`).
 Process groups
 --------------
 :func:`init_distributed` joins the default group from ``RANK/WORLD_SIZE/MASTER_ADDR/MASTER_PORT``
-(gloo on CPU; ``cuda:nccl,cpu:gloo`` on GPU), or, without those variables, makes a one-rank group
-in-process. The engine never destroys a group: the worker that owns the process does.
+(gloo for CPU engines; ``cuda:nccl,cpu:gloo`` for GPU engines), or, without those variables,
+makes a one-rank group in-process. The engine never destroys a group: the worker that owns the
+process does.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import os
 import random
 import shutil
 import time
+import warnings
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -65,18 +68,25 @@ _ADAPTER = "default"
 # ----------------------------------------------------------------------------- process group
 
 
-def init_distributed() -> bool:
+def init_distributed(device_type: str = "cpu") -> bool:
     """Make sure the default process group exists; return True if this call created it.
 
-    With ``WORLD_SIZE``/``MASTER_ADDR`` set (a launched worker) it uses ``env://``; otherwise it
-    creates a one-rank group on an in-memory store, so a plain script or test needs no setup.
+    With ``MASTER_ADDR`` set (a launched worker) it joins via ``env://`` using ``RANK`` and
+    ``WORLD_SIZE``; otherwise it creates a one-rank group on an in-memory store, so a plain script
+    or test needs no setup. ``device_type`` picks the backend: gloo for CPU engines, and
+    ``cuda:nccl,cpu:gloo`` for CUDA engines (NCCL for tensors on GPU, gloo for CPU-side objects).
+    An existing group is checked against ``device_type``, since the wrong backend would only fail
+    later, deep inside FSDP.
     """
     if dist.is_initialized():
+        _check_backend(device_type)
         return False
-    backend = "cuda:nccl,cpu:gloo" if torch.cuda.is_available() else "gloo"
+    backend = "cuda:nccl,cpu:gloo" if device_type == "cuda" else "gloo"
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     if "MASTER_ADDR" in os.environ:
-        dist.init_process_group(backend, rank=int(os.environ.get("RANK", "0")), world_size=world_size)
+        dist.init_process_group(
+            backend, rank=int(os.environ.get("RANK", "0")), world_size=world_size
+        )
     elif world_size == 1:
         dist.init_process_group(backend, store=dist.HashStore(), rank=0, world_size=1)
     else:
@@ -87,11 +97,28 @@ def init_distributed() -> bool:
     return True
 
 
-def _select_device(choice: str) -> torch.device:
-    if choice == "cpu" or (choice == "auto" and not torch.cuda.is_available()):
-        return torch.device("cpu")
-    if not torch.cuda.is_available():
+def _check_backend(device_type: str) -> None:
+    backend = str(dist.get_backend())
+    needed = "nccl" if device_type == "cuda" else "gloo"
+    if needed not in backend:
+        raise RuntimeError(
+            f"the default process group uses backend {backend!r}, but a {device_type} engine needs "
+            f"{needed} (init with 'cuda:nccl,cpu:gloo' on GPU, 'gloo' on CPU, or let "
+            "init_distributed() create the group)"
+        )
+
+
+def _device_type(choice: str) -> str:
+    if choice == "cuda" and not torch.cuda.is_available():
         raise RuntimeError("TrainEngineConfig.device='cuda' but CUDA is not available")
+    if choice == "cpu" or (choice == "auto" and not torch.cuda.is_available()):
+        return "cpu"
+    return "cuda"
+
+
+def _select_device(device_type: str) -> torch.device:
+    if device_type == "cpu":
+        return torch.device("cpu")
     # A Ray worker usually sees exactly one GPU; torchrun-style launches see all and use LOCAL_RANK.
     local_rank = int(os.environ.get("LOCAL_RANK", dist.get_rank() % torch.cuda.device_count()))
     torch.cuda.set_device(local_rank)
@@ -114,11 +141,15 @@ def _compute_dtype(choice: str, device: torch.device) -> torch.dtype:
 def _enable_activation_checkpointing(model: nn.Module) -> None:
     if not getattr(model, "supports_gradient_checkpointing", False):
         raise ValueError(
-            f"activation_checkpointing=True but {type(model).__name__} does not support HF gradient "
-            "checkpointing (supports_gradient_checkpointing is False)"
+            f"activation_checkpointing=True but {type(model).__name__} does not support HF "
+            "gradient checkpointing (supports_gradient_checkpointing is False)"
         )
     # Non-reentrant: works with frozen inputs (LoRA) and with FSDP2's hooks; keeps parameter names.
-    model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+    kwargs = {"use_reentrant": False}
+    if hasattr(model, "activation_checkpointing_enable"):  # transformers >= 5 name
+        model.activation_checkpointing_enable(activation_checkpointing_kwargs=kwargs)
+    else:
+        model.gradient_checkpointing_enable(gradient_checkpointing_kwargs=kwargs)
 
 
 def _apply_lora(model: nn.Module, settings: LoraSettings) -> nn.Module:
@@ -220,10 +251,11 @@ class FSDPTrainEngine:
 
     def __init__(self, model: ModelOrFactory, cfg: TrainEngineConfig):
         self.cfg = cfg
-        init_distributed()
+        device_type = _device_type(cfg.device)
+        init_distributed(device_type)
         self.rank = dist.get_rank()
         self.world_size = dist.get_world_size()
-        self.device = _select_device(cfg.device)
+        self.device = _select_device(device_type)
         self.compute_dtype = _compute_dtype(cfg.param_dtype, self.device)
 
         _seed_all(cfg.seed)  # identical init on every rank
@@ -251,12 +283,16 @@ class FSDPTrainEngine:
         _seed_all(cfg.seed + self.rank)  # runtime randomness (dropout) differs per rank
 
     @classmethod
-    def from_pretrained(cls, name_or_path: str, cfg: TrainEngineConfig, **hf_kwargs) -> FSDPTrainEngine:
+    def from_pretrained(
+        cls, name_or_path: str, cfg: TrainEngineConfig, **hf_kwargs
+    ) -> FSDPTrainEngine:
         """Build from an HF checkpoint directory (loaded in float32 on every rank)."""
         from transformers import AutoModelForCausalLM
 
         def factory() -> nn.Module:
-            return AutoModelForCausalLM.from_pretrained(name_or_path, dtype=torch.float32, **hf_kwargs)
+            return AutoModelForCausalLM.from_pretrained(
+                name_or_path, dtype=torch.float32, **hf_kwargs
+            )
 
         return cls(factory, cfg)
 
@@ -282,8 +318,8 @@ class FSDPTrainEngine:
                 entropies.append(ent)
             else:
                 self._forward(self._filler_batch(), with_entropy=False)
-        # The root module keeps its parameters unsharded after a forward that no backward follows;
-        # reshard so that the next optimizer step is what the next forward sees.
+        # FSDP2 reshards the root group (embeddings, LM head: the largest matrices) only after a
+        # backward, so after no-grad forwards it would keep them unsharded: free that memory now.
         self.model.reshard()
         width = batch[INPUT_IDS].shape[1]
         if not logprobs:
@@ -291,7 +327,9 @@ class FSDPTrainEngine:
             return empty, (empty.clone() if with_entropy else None)
         return torch.cat(logprobs), (torch.cat(entropies) if with_entropy else None)
 
-    def _forward(self, micro_batch: TensorDict, with_entropy: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def _forward(
+        self, micro_batch: TensorDict, with_entropy: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         input_ids = micro_batch[INPUT_IDS]
         full_width = input_ids.shape[1]
         attention_mask = micro_batch.get(ATTENTION_MASK, None)
@@ -303,7 +341,10 @@ class FSDPTrainEngine:
         if position_ids is not None:
             position_ids = position_ids[:, :width]
         output = self.model(
-            input_ids=input_ids, attention_mask=attention_mask, position_ids=position_ids, use_cache=False
+            input_ids=input_ids,
+            attention_mask=attention_mask,
+            position_ids=position_ids,
+            use_cache=False,
         )
         logprobs, entropy = aligned_logprobs(
             output.logits,
@@ -331,13 +372,18 @@ class FSDPTrainEngine:
     def _filler_batch(self) -> TensorDict:
         one = torch.ones(1, 1, dtype=torch.long, device=self.device)
         return TensorDict(
-            {INPUT_IDS: one * 0, ATTENTION_MASK: one, POSITION_IDS: one * 0}, batch_size=[1], device=self.device
+            {INPUT_IDS: one * 0, ATTENTION_MASK: one, POSITION_IDS: one * 0},
+            batch_size=[1],
+            device=self.device,
         )
 
     # ------------------------------------------------------------------ training
 
     def train_step(
-        self, batch: TensorDict | Mapping[str, torch.Tensor], loss_fn: LossFn, with_entropy: bool = False
+        self,
+        batch: TensorDict | Mapping[str, torch.Tensor],
+        loss_fn: LossFn,
+        with_entropy: bool = False,
     ) -> dict[str, float]:
         """One optimizer step on this rank's share of a mini-batch.
 
@@ -357,21 +403,17 @@ class FSDPTrainEngine:
         if passes == 0:
             raise ValueError("train_step: the mini-batch is empty on every rank")
         self.optimizer.zero_grad(set_to_none=True)
-        loss_sum = torch.zeros((), device=self.device)
-        metric_sums: dict[str, float] = {}
-        for index in range(passes):
-            if index < len(micro_batches):
-                micro_batch = micro_batches[index]
-                logprobs, entropy = self._forward(micro_batch, with_entropy)
-                loss, metrics = loss_fn(micro_batch, logprobs, entropy)
-                _check_loss(loss)
-                for key, value in metrics.items():
-                    metric_sums[key] = metric_sums.get(key, 0.0) + float(value)
-                loss_sum += loss.detach().float()
-            else:  # filler: joins the collectives, contributes zero gradient
-                logprobs, _ = self._forward(self._filler_batch(), with_entropy=False)
-                loss = logprobs.sum() * 0.0
-            loss.backward()
+        try:
+            loss_sum, metric_sums = self._accumulate_gradients(
+                micro_batches, passes, loss_fn, with_entropy
+            )
+        except BaseException:
+            # FSDP's per-iteration state is undefined after a failed forward/backward; reset it and
+            # drop partial gradients so the engine stays usable (the step is simply not taken).
+            if hasattr(self.model, "reset_iter_state"):  # torch >= 2.13
+                self.model.reset_iter_state()
+            self.optimizer.zero_grad(set_to_none=True)
+            raise
 
         grad_norm = self._clip_grad_norm()
         finite = bool(torch.isfinite(grad_norm))
@@ -379,7 +421,13 @@ class FSDPTrainEngine:
         if finite:
             self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        self.scheduler.step()
+        with warnings.catch_warnings():
+            # A skipped update still advances the schedule (it counts train steps); torch warns
+            # about stepping the scheduler without the optimizer, which is intended here.
+            warnings.filterwarnings(
+                "ignore", message="Detected call of `lr_scheduler.step", category=UserWarning
+            )
+            self.scheduler.step()
         self.global_step += 1
 
         dist.all_reduce(loss_sum)
@@ -395,6 +443,33 @@ class FSDPTrainEngine:
         )
         return out
 
+    def _accumulate_gradients(
+        self, micro_batches: list[TensorDict], passes: int, loss_fn: LossFn, with_entropy: bool
+    ) -> tuple[torch.Tensor, dict[str, float]]:
+        """Forward/backward every micro-batch (plus fillers); FSDP sums their gradients."""
+        loss_sum = torch.zeros((), device=self.device)
+        metric_sums: dict[str, torch.Tensor | float] = {}
+        for index in range(passes):
+            if index < len(micro_batches):
+                micro_batch = micro_batches[index]
+                logprobs, entropy = self._forward(micro_batch, with_entropy)
+                loss, metrics = loss_fn(micro_batch, logprobs, entropy)
+                _check_loss(loss)
+                for (
+                    key,
+                    value,
+                ) in metrics.items():  # tensors stay on device: no sync per micro-batch
+                    value = (
+                        value.detach().float() if isinstance(value, torch.Tensor) else float(value)
+                    )
+                    metric_sums[key] = metric_sums.get(key, 0.0) + value
+                loss_sum += loss.detach().float()
+            else:  # filler: joins the collectives, contributes zero gradient
+                logprobs, _ = self._forward(self._filler_batch(), with_entropy=False)
+                loss = logprobs.sum() * 0.0
+            loss.backward()
+        return loss_sum, {key: float(value) for key, value in metric_sums.items()}
+
     def _clip_grad_norm(self) -> torch.Tensor:
         """Global L2 norm of all gradients (sharded ones included); clip to ``cfg.grad_clip``."""
         params = [p for p in self.model.parameters() if p.grad is not None]
@@ -408,7 +483,7 @@ class FSDPTrainEngine:
 
     def _average_metrics(self, sums: dict[str, float], count: int) -> dict[str, float]:
         """Mean over every real micro-batch of every rank (each micro-batch weighs the same)."""
-        gathered: list[tuple[dict[str, float], int]] = [None] * self.world_size  # type: ignore[list-item]
+        gathered: list = [None] * self.world_size
         dist.all_gather_object(gathered, (sums, count))
         totals: dict[str, float] = {}
         counts: dict[str, int] = {}
@@ -420,8 +495,10 @@ class FSDPTrainEngine:
 
     # ------------------------------------------------------------------ weight export
 
-    def state_dict_for_sync(self, dtype: torch.dtype | None = None) -> Iterator[tuple[str, torch.Tensor]]:
-        """Yield ``(name, full tensor)`` one parameter at a time, names as the HF model's ``state_dict()``.
+    def state_dict_for_sync(
+        self, dtype: torch.dtype | None = None
+    ) -> Iterator[tuple[str, torch.Tensor]]:
+        """Yield ``(name, full tensor)`` per parameter, named like the HF model's ``state_dict()``.
 
         Gathered on **every** rank (each ``DTensor.full_tensor()`` is an all-gather), one tensor
         at a time so peak memory is one full parameter, which suits bucketed sync. Every rank must
@@ -462,27 +539,37 @@ class FSDPTrainEngine:
             if self.rank == 0:
                 shutil.rmtree(tmp, ignore_errors=True)
                 tmp.mkdir(parents=True)
-            dist.barrier()
+            self._barrier()
             try:
                 has_optimizer_state = bool(self.optimizer.state)
                 state = {"model": get_model_state_dict(self.model)}
                 if has_optimizer_state:  # reading an empty optimizer's state would initialise it
                     state["optimizer"] = get_optimizer_state_dict(self.model, self.optimizer)
                 dcp.save(state, checkpoint_id=str(tmp / _DCP_DIR))
-                _write_engine_state(self._engine_state(has_optimizer_state), tmp / _ENGINE_STATE.format(rank=self.rank))
-                dist.barrier()
+                _write_engine_state(
+                    self._engine_state(has_optimizer_state),
+                    tmp / _ENGINE_STATE.format(rank=self.rank),
+                )
+                self._barrier()
                 if self.rank == 0:
                     _replace_directory(tmp, path)
-                dist.barrier()
+                self._barrier()
             except BaseException:
                 shutil.rmtree(tmp, ignore_errors=True)
                 raise
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
-        """Restore a :meth:`save_checkpoint` directory (any world size for model/optimizer). Collective."""
+        """Restore a :meth:`save_checkpoint` directory. Collective.
+
+        Model and optimizer reshard to any world size (DCP); each rank restores its own RNG, or
+        rank 0's when the checkpoint came from fewer ranks. The lr schedule's position *and* its
+        parameters (warmup, horizon) come from the checkpoint, as ``LambdaLR`` stores them.
+        """
         path = Path(path)
         if not (path / _DCP_DIR).is_dir():
-            raise FileNotFoundError(f"load_checkpoint: {path} is not an engine checkpoint (no {_DCP_DIR}/)")
+            raise FileNotFoundError(
+                f"load_checkpoint: {path} is not an engine checkpoint (no {_DCP_DIR}/)"
+            )
         engine_file = path / _ENGINE_STATE.format(rank=self.rank)
         if not engine_file.exists():  # saved with fewer ranks: take rank 0's (its RNG is reused)
             engine_file = path / _ENGINE_STATE.format(rank=0)
@@ -499,6 +586,12 @@ class FSDPTrainEngine:
         self.global_step = engine_state["global_step"]
         _set_rng_state(engine_state["rng"])
 
+    def _barrier(self) -> None:
+        if self.device.type == "cuda":
+            dist.barrier(device_ids=[self.device.index])
+        else:
+            dist.barrier()
+
     def _engine_state(self, has_optimizer_state: bool) -> dict:
         return {
             "global_step": self.global_step,
@@ -509,6 +602,11 @@ class FSDPTrainEngine:
         }
 
     # ------------------------------------------------------------------ device time-sharing
+
+    @property
+    def is_offloaded(self) -> bool:
+        """True between :meth:`offload` and :meth:`reload`; compute methods refuse to run then."""
+        return self._offloaded
 
     def offload(self) -> None:
         """Move parameter shards, gradients and optimizer state to CPU (no-op on a CPU engine)."""
@@ -527,7 +625,9 @@ class FSDPTrainEngine:
     def _move_to(self, device: torch.device) -> None:
         if self.device.type == "cpu":
             return
-        self.model.to(device)  # FSDPModule._apply reshards first and re-registers the DTensor shards
+        self.model.to(
+            device
+        )  # FSDPModule._apply reshards first and re-registers the DTensor shards
         for state in self.optimizer.state.values():
             for key, value in state.items():
                 if isinstance(value, torch.Tensor) and value.device != device and key != "step":
@@ -556,7 +656,10 @@ class FSDPTrainEngine:
 
 def _check_loss(loss: torch.Tensor) -> None:
     if not isinstance(loss, torch.Tensor) or loss.numel() != 1:
-        raise TypeError(f"loss_fn must return a scalar tensor as its loss, got {type(loss).__name__} {getattr(loss, 'shape', '')}")
+        raise TypeError(
+            "loss_fn must return a scalar tensor as its loss, got "
+            f"{type(loss).__name__} {tuple(getattr(loss, 'shape', ()))}"
+        )
     if not loss.requires_grad:
         raise ValueError("loss_fn returned a loss that does not depend on the log-probs (no grad)")
 
@@ -569,7 +672,7 @@ def _hf_name(name: str) -> str:
 
 
 def _replace_directory(new: Path, target: Path) -> None:
-    """Move ``new`` to ``target``, replacing an existing ``target`` (kept as ``.old`` until done)."""
+    """Move ``new`` to ``target``, replacing an existing ``target`` (kept as ``.old`` meanwhile)."""
     old = target.with_name(target.name + ".old")
     if target.exists():
         shutil.rmtree(old, ignore_errors=True)
@@ -589,7 +692,11 @@ def _seed_all(seed: int) -> None:
 
 
 def _get_rng_state() -> dict:
-    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    state = {
+        "python": random.getstate(),
+        "numpy": np.random.get_state(),
+        "torch": torch.get_rng_state(),
+    }
     if torch.cuda.is_available():
         state["cuda"] = torch.cuda.get_rng_state_all()
     return state

@@ -5,11 +5,11 @@ A causal LM's logits at position ``t`` predict token ``t + 1``. The batch layout
 once: ``logprobs[:, t] = log softmax(logits[:, t - 1] / T)[input_ids[:, t]]`` and position 0 (no
 context) is 0.
 
-Memory: the vocabulary is large (32k..256k) and logits often come in bf16. Upcasting all of them to
-float32 for ``log_softmax`` doubles the largest tensor of the step. Instead we walk over chunks of
-tokens: upcast a ``[chunk, V]`` block, take its ``logsumexp``, gather the target logit, and keep only
-``[chunk]`` results. With grad enabled each chunk is checkpointed, so backward recomputes the float32
-block instead of every chunk's block staying alive until backward.
+Memory: the vocabulary is large (32k..256k) and logits often come in bf16. Upcasting all of them
+to float32 for ``log_softmax`` doubles the largest tensor of the step. Instead we walk over chunks
+of tokens: upcast a ``[chunk, V]`` block, take its ``logsumexp``, gather the target logit, and keep
+only ``[chunk]`` results. With grad enabled each chunk is checkpointed, so backward recomputes the
+float32 block instead of every chunk's block staying alive until backward.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def token_logprobs(
     chunk_tokens: int = 1024,
     with_entropy: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Log-prob of ``targets[i]`` under ``softmax(logits[i] / temperature)``, for ``[..., V]`` logits.
+    """Log-prob of ``targets[i]`` under ``softmax(logits[i] / temperature)``; logits ``[..., V]``.
 
     Returns float32 tensors shaped like ``targets``; the entropy is ``None`` unless requested.
     """
@@ -50,7 +50,8 @@ def token_logprobs(
         raise ValueError(f"token_logprobs: temperature must be > 0, got {temperature}")
     if logits.shape[:-1] != targets.shape:
         raise ValueError(
-            f"token_logprobs: logits {tuple(logits.shape)} do not match targets {tuple(targets.shape)}"
+            f"token_logprobs: logits {tuple(logits.shape)} do not match "
+            f"targets {tuple(targets.shape)}"
         )
     vocab = logits.shape[-1]
     flat_logits = logits.reshape(-1, vocab)  # a view for contiguous logits: no copy
@@ -90,12 +91,15 @@ def aligned_logprobs(
     """
     if logits.shape[:2] != input_ids.shape:
         raise ValueError(
-            f"aligned_logprobs: logits {tuple(logits.shape)} do not match input_ids {tuple(input_ids.shape)}"
+            f"aligned_logprobs: logits {tuple(logits.shape)} do not match "
+            f"input_ids {tuple(input_ids.shape)}"
         )
     # Score every position against the *next* id. Using the full (contiguous) logits and a dummy
     # target for the last position avoids copying logits[:, :-1] into a new tensor.
     next_ids = torch.roll(input_ids, shifts=-1, dims=1)
-    shifted_lp, shifted_ent = token_logprobs(logits, next_ids, temperature, chunk_tokens, with_entropy)
+    shifted_lp, shifted_ent = token_logprobs(
+        logits, next_ids, temperature, chunk_tokens, with_entropy
+    )
     logprobs = _shift_right(shifted_lp)
     entropy = _shift_right(shifted_ent) if shifted_ent is not None else None
     if attention_mask is not None:
@@ -107,5 +111,5 @@ def aligned_logprobs(
 
 
 def _shift_right(scores: torch.Tensor) -> torch.Tensor:
-    """``[B, L]`` scores of position ``t + 1`` stored at ``t`` -> stored at ``t + 1``, 0 at ``t = 0``."""
+    """Move scores of token ``t + 1`` from column ``t`` to column ``t + 1``; column 0 becomes 0."""
     return torch.cat([scores.new_zeros(scores.shape[0], 1), scores[:, :-1]], dim=1)

@@ -56,7 +56,9 @@ def test_entropy_is_skipped_unless_requested():
 
 def test_uniform_logits_give_log_vocab():
     vocab = 16
-    logprobs, entropy = token_logprobs(torch.zeros(3, vocab), torch.tensor([0, 5, 15]), with_entropy=True)
+    logprobs, entropy = token_logprobs(
+        torch.zeros(3, vocab), torch.tensor([0, 5, 15]), with_entropy=True
+    )
     torch.testing.assert_close(logprobs, torch.full((3,), -math.log(vocab)))
     torch.testing.assert_close(entropy, torch.full((3,), math.log(vocab)))
 
@@ -75,7 +77,9 @@ def test_chunked_checkpointed_gradient_matches_plain_log_softmax():
     weights = torch.randn(input_ids.shape, generator=torch.Generator().manual_seed(3))
 
     chunked = logits.clone().requires_grad_(True)
-    lp, ent = aligned_logprobs(chunked, input_ids, attention_mask, 0.9, chunk_tokens=4, with_entropy=True)
+    lp, ent = aligned_logprobs(
+        chunked, input_ids, attention_mask, 0.9, chunk_tokens=4, with_entropy=True
+    )
     ((lp + 0.1 * ent) * weights).sum().backward()
 
     plain = logits.double().clone().requires_grad_(True)
