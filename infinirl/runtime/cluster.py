@@ -82,6 +82,7 @@ class Cluster:
             )
             self._started_here = True
         else:
+            self._started_here = True  # we joined: disconnect on shutdown (the cluster stays up)
             try:
                 ray.init(
                     address=cfg.address,
@@ -105,7 +106,7 @@ class Cluster:
     def shutdown(self) -> None:
         """Disconnect; stop Ray too when this Cluster started it. Leaves no process of ours behind."""
         self._device_lock = None
-        if ray.is_initialized():
+        if self._started_here and ray.is_initialized():
             ray.shutdown()
         self._inventory = None
 

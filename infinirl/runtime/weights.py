@@ -121,25 +121,36 @@ class WeightSink:
         raise NotImplementedError(f"{type(self).__name__} must implement load_weights()")
 
     def _infinirl_receive_weights(self, published: list, version: int) -> int:
-        received = 0
-        for path, body, metas in published:
-            flat = unbox(ray.get(body[0])) if path == "object_store" else unbox(body)
-            self.load_weights(split_bucket(flat, metas), version)
-            received += flat.numel()
+        received = [0]
+
+        def tensors():  # one pass over every bucket: engines may require the full state at once
+            for path, body, metas in published:
+                flat = unbox(ray.get(body[0])) if path == "object_store" else unbox(body)
+                received[0] += flat.numel()
+                yield from split_bucket(flat, metas)
+
+        self.load_weights(tensors(), version)
         self.weight_version = version
-        return received
+        return received[0]
 
     def _infinirl_receive_broadcast(self, bucket_metas: list[list[TensorMeta]], version: int) -> int:
-        received = 0
         device = "cuda" if self._sync_backend == "nccl" else "cpu"
-        for metas in bucket_metas:
-            size = sum(m.nbytes for m in metas)
-            flat = torch.empty(size, dtype=torch.uint8, device=device)
-            _broadcast(self._sync_group, flat)
-            self.load_weights(split_bucket(flat, metas), version)
-            received += size
+        received = [0]
+
+        def tensors():  # buckets arrive in the sender's order; receive each as it is needed
+            for metas in bucket_metas:
+                size = sum(m.nbytes for m in metas)
+                flat = torch.empty(size, dtype=torch.uint8, device=device)
+                _broadcast(self._sync_group, flat)
+                received[0] += size
+                yield from split_bucket(flat, metas)
+
+        named = tensors()
+        self.load_weights(named, version)
+        for _ in named:  # a sink that stopped early must still take part in every broadcast
+            pass
         self.weight_version = version
-        return received
+        return received[0]
 
 
 def _join_sync_group(self, addr: str, port: int, rank: int, world: int, backend: str, timeout_s: float):

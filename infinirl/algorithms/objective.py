@@ -1,0 +1,67 @@
+"""The actor's per-micro-batch objective: policy loss + KL + entropy, one global normaliser.
+
+Every term is aggregated with the same mode and the same mini-batch-global normaliser, so the
+gradient of a mini-batch does not depend on how it is split into micro-batches or ranks (see
+``aggregation``). When ``old_logprobs`` are absent the batch is on-policy for a single update and
+the current log-probs (detached) serve as the old ones: that saves a whole forward pass per step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from infinirl.algorithms.aggregation import aggregate
+from infinirl.algorithms.kl import kl_loss
+from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss
+from infinirl.algorithms.masking import masked_mean
+
+
+@dataclass
+class PolicyObjectiveConfig:
+    """Hyperparameters of the policy objective (every field is a config key under `algorithm.`)."""
+
+    clip_low: float = 0.2
+    """PPO ratio clip below 1."""
+    clip_high: float = 0.2
+    """PPO ratio clip above 1; > clip_low is DAPO's clip-higher."""
+    clip_c: float | None = None
+    """Dual-clip bound for negative advantages (> 1), or None."""
+    aggregation: str = "token-mean"
+    """token-mean | seq-mean-token-sum | seq-mean-token-mean | seq-mean-token-sum-norm."""
+    kl_coef: float = 0.0
+    """Weight of the KL-to-reference loss term (needs a reference policy); 0 disables it."""
+    kl_estimator: str = "k3"
+    entropy_coef: float = 0.0
+    """Entropy bonus weight (adds -coef * H)."""
+    tis_cap: float | None = None
+    """Truncated importance sampling cap between rollout and trainer log-probs, or None."""
+
+
+def policy_objective(micro_batch, logprobs: torch.Tensor, entropy: torch.Tensor | None,
+                     cfg: PolicyObjectiveConfig, normaliser: float) -> tuple[torch.Tensor, dict]:
+    mask = micro_batch["response_mask"]
+    old = micro_batch["old_logprobs"] if "old_logprobs" in micro_batch.keys() else logprobs.detach()
+    behaviour = micro_batch["rollout_logprobs"] if cfg.tis_cap is not None else None
+    out = ppo_clip_loss(
+        logprobs=logprobs, old_logprobs=old, advantages=micro_batch["advantages"], response_mask=mask,
+        clip_low=cfg.clip_low, clip_high=cfg.clip_high, clip_c=cfg.clip_c,
+        behaviour_logprobs=behaviour, is_cap=cfg.tis_cap,
+    )
+    loss = aggregate(out.loss_mat, mask, cfg.aggregation, normaliser)
+    metrics = {f"train/{k}": float(v) for k, v in out.metrics.items()}
+    if cfg.kl_coef > 0:
+        kl = kl_loss(logprobs, micro_batch["ref_logprobs"], mask, cfg.kl_estimator)
+        loss = loss + cfg.kl_coef * aggregate(kl, mask, cfg.aggregation, normaliser)
+        metrics["train/kl"] = float(masked_mean(kl.detach(), mask))
+    if entropy is not None:
+        ent = entropy_loss(mask, entropy=entropy)
+        metrics["train/entropy"] = float(ent.metrics["entropy"])
+        if cfg.entropy_coef > 0:
+            loss = loss + cfg.entropy_coef * aggregate(ent.loss_mat, mask, cfg.aggregation, normaliser)
+    if "rollout_logprobs" in micro_batch.keys():
+        gap = (logprobs.detach() - micro_batch["rollout_logprobs"]).abs() * mask
+        metrics["train/logprob_mismatch_mean"] = float(gap.sum() / mask.sum().clamp(min=1))
+        metrics["train/logprob_mismatch_max"] = float(gap.max())
+    return loss, metrics

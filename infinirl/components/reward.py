@@ -1,0 +1,32 @@
+"""Reward component: decodes responses (for scoring only) and runs verifiers in a thread pool.
+
+Running in its own worker lets scoring overlap generation. A verifier that raises gives that
+sample reward 0 and an error flag; the run goes on and the count is reported.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+from infinirl.engines.base import GenerationResult
+from infinirl.runtime import Worker
+from infinirl.tasks.problem import Problem
+from infinirl.tasks.verifiers import RewardResult, build_verifier, safe_score
+
+
+class RewardWorker(Worker):
+    def __init__(self, tokenizer_source: str, verifier: str, format_bonus: float = 0.0, threads: int = 4):
+        from transformers import AutoTokenizer
+
+        from infinirl.models.hf_causal_lm import resolve_model_source
+
+        self.tokenizer = AutoTokenizer.from_pretrained(resolve_model_source(tokenizer_source))
+        self.verifier = build_verifier(verifier, format_bonus=format_bonus)
+        self.pool = ThreadPoolExecutor(max_workers=threads)
+
+    def score(self, results: list[GenerationResult], problems: list[Problem]) -> list[RewardResult]:
+        """``problems[i]`` is the problem of ``results[i]`` (the caller repeats per sample)."""
+        if len(results) != len(problems):
+            raise ValueError(f"score: {len(results)} results but {len(problems)} problems")
+        texts = self.tokenizer.batch_decode([r.response_ids for r in results], skip_special_tokens=True)
+        return list(self.pool.map(lambda tp: safe_score(tp[0], tp[1], self.verifier), zip(texts, problems)))

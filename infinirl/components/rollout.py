@@ -1,0 +1,34 @@
+"""Rollout component: generates token ids + log-probs with versioned weights from the trainer."""
+
+from __future__ import annotations
+
+import torch
+
+from infinirl.engines.base import GenerationResult, SamplingParams
+from infinirl.runtime import WeightSink, Worker
+
+
+class RolloutWorker(Worker, WeightSink):
+    """One rank of the inference engine. Rollout ranks are data-parallel over prompts."""
+
+    def __init__(self, model: str, dtype: str = "float32", max_batch_size: int = 64, num_threads: int = 0):
+        from infinirl.engines.hf_generate import HFGenerateEngine
+        from infinirl.models.hf_causal_lm import load_causal_lm
+
+        if num_threads:
+            torch.set_num_threads(num_threads)
+        device = "cuda" if self.device == "cuda" else "cpu"
+        self.model, self.tokenizer = load_causal_lm(model, dtype=dtype, device=device)
+        self.engine = HFGenerateEngine(self.model, self.tokenizer, max_batch_size=max_batch_size)
+
+    def generate(self, prompt_ids: list[list[int]], sampling: SamplingParams) -> list[GenerationResult]:
+        return self.engine.generate(prompt_ids, sampling)
+
+    def load_weights(self, named_tensors, version: int) -> None:
+        self.engine.load_weights(named_tensors, version)
+
+    def offload(self) -> None:
+        self.engine.offload()
+
+    def reload(self) -> None:
+        self.engine.reload()

@@ -1,0 +1,294 @@
+"""Reasoning RL (GRPO / Dr.GRPO / RLOO / REINFORCE++ / DAPO) on a Hugging Face model: the macro flow.
+
+Read top to bottom: each step samples prompts, generates a group of responses per prompt, scores
+them, turns rewards into advantages, updates the actor, and syncs its weights into the rollout
+engine with a new version. Where components run (collocated or not) is placement, not code.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+import time
+
+import numpy as np
+import torch
+
+from infinirl.algorithms import TokenAdvantageInputs, aggregation_normaliser, compute_advantages, overlong_penalty
+from infinirl.algorithms.filters import group_is_informative
+from infinirl.components.actor import ActorWorker
+from infinirl.components.reward import RewardWorker
+from infinirl.components.rollout import RolloutWorker
+from infinirl.config import to_plain
+from infinirl.data.batch import ROLLOUT_LOGPROBS, pack_sequences
+from infinirl.engines.base import SamplingParams
+from infinirl.runners import register_runner
+from infinirl.runners.metrics_log import MetricsLogger, plot_curves, read_metrics
+from infinirl.runners.reasoning_config import ReasoningConfig
+from infinirl.runners.reasoning_data import build_problem_sources
+from infinirl.runtime import Cluster, Tracer, WorkerGroup, place, sync_weights
+
+
+@register_runner("reasoning", ReasoningConfig, "GRPO/PPO-family RL with verifiable rewards on an HF causal LM")
+def run(cfg: ReasoningConfig) -> dict:
+    os.makedirs(cfg.output_dir, exist_ok=True)
+    _seed_everything(cfg.seed)
+    train_stream, eval_problems, tokenizer = build_problem_sources(cfg)
+    with Cluster(cfg.cluster) as cluster:
+        plan = place(cluster.inventory, cfg.placement, components=["actor", "rollout", "reward"])
+        print(plan.describe(), flush=True)
+        actor = WorkerGroup.launch(ActorWorker, "actor", placement=plan.ranks("actor"),
+                                   args=(cfg.model.path, cfg.actor, cfg.algorithm.objective, cfg.num_threads))
+        rollout = WorkerGroup.launch(RolloutWorker, "rollout", placement=plan.ranks("rollout"),
+                                     args=(cfg.model.path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
+                                           cfg.rollout.num_threads or cfg.num_threads))
+        reward = WorkerGroup.launch(RewardWorker, "reward", placement=plan.ranks("reward"),
+                                    args=(cfg.model.path, cfg.task.verifier, cfg.task.format_bonus))
+        flow = ReasoningFlow(cfg, actor, rollout, reward, tokenizer)
+        try:
+            return flow.train(train_stream, eval_problems)
+        finally:
+            flow.close()
+            for group in (actor, rollout, reward):
+                group.shutdown()
+
+
+class ReasoningFlow:
+    """The step logic, separated from process start-up so tests can drive it directly."""
+
+    def __init__(self, cfg: ReasoningConfig, actor, rollout, reward, tokenizer):
+        self.cfg, self.actor, self.rollout, self.reward, self.tokenizer = cfg, actor, rollout, reward, tokenizer
+        self.tracer = Tracer()
+        self.pad_id = tokenizer.pad_token_id if tokenizer.pad_token_id is not None else 0
+
+    # ------------------------------------------------------------------ the loop
+    def train(self, train_stream, eval_problems) -> dict:
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        start_step = self._maybe_resume(train_stream)
+        self.logger = MetricsLogger(cfg.output_dir, cfg.loggers, to_plain(cfg), start_step=start_step)
+        if start_step == 0:
+            self.logger.log({"eval/greedy_accuracy": self.evaluate(eval_problems)}, step=0)
+        progress = tqdm(range(start_step, cfg.steps), initial=start_step, total=cfg.steps, desc="train", unit="step")
+        for step in progress:
+            metrics = self.step(step, train_stream)
+            if (step + 1) % cfg.eval_every == 0 or step + 1 == cfg.steps:
+                metrics["eval/greedy_accuracy"] = self.evaluate(eval_problems)
+            self.logger.log(metrics, step=step + 1)
+            progress.set_postfix(reward=f"{metrics['rollout/reward_mean']:.2f}",
+                                 acc=f"{metrics.get('eval/greedy_accuracy', float('nan')):.2f}")
+            if (cfg.save_every and (step + 1) % cfg.save_every == 0) or step + 1 == cfg.steps:
+                self.save(step + 1, train_stream)
+        return self.finish()
+
+    def step(self, step: int, train_stream) -> dict:
+        cfg, t0 = self.cfg, time.perf_counter()
+        problems, results, rewards, gen_metrics = self.generate_batch(step, train_stream)
+        t_gen = time.perf_counter()
+        batch, adv_metrics = self.build_batch(problems, results, rewards)
+        train_metrics = self.update(batch)
+        t_train = time.perf_counter()
+        sync = sync_weights(self.actor, self.rollout, version=step + 1)
+        lengths = [len(r.response_ids) for r in results]
+        return {
+            **gen_metrics, **adv_metrics, **train_metrics,
+            "rollout/response_length_mean": float(np.mean(lengths)),
+            "rollout/truncated_fraction": float(np.mean([r.finish_reason == "length" for r in results])),
+            "rollout/tokens_per_s": sum(lengths) / max(t_gen - t0, 1e-9),
+            "rollout/max_staleness": float(step - min(r.weight_version for r in results)),
+            "time/generate_and_score_s": t_gen - t0,
+            "time/train_s": t_train - t_gen,
+            "time/weight_sync_s": sync.seconds,
+            "time/step_s": time.perf_counter() - t0,
+        }
+
+    # ------------------------------------------------------------------ stages
+    def generate_batch(self, step: int, train_stream):
+        """Prompts -> groups of responses -> rewards; with DAPO dynamic sampling, keep only
+        informative groups and generate more rounds (capped) until the batch is full."""
+        cfg = self.cfg
+        want, group = cfg.prompts_per_step, cfg.rollout.group_size
+        kept_problems, kept_results, kept_rewards = [], [], []
+        rounds, dropped, errors = 0, 0, 0
+        all_rewards = []
+        while len(kept_problems) < want:
+            problems = train_stream.next_batch(want - len(kept_problems) if rounds else want)
+            results, scored = self.generate_and_score(problems, self._sampling(step, rounds))
+            rewards = torch.tensor([s.reward for s in scored], dtype=torch.float32)
+            all_rewards.extend(rewards.tolist())
+            errors += sum(s.error is not None for s in scored)
+            for i, problem in enumerate(problems):
+                block = slice(i * group, (i + 1) * group)
+                informative = bool(group_is_informative(rewards[block], group)[0])
+                if cfg.algorithm.dynamic_sampling and not informative and rounds < cfg.algorithm.max_extra_rounds:
+                    dropped += 1
+                    continue
+                kept_problems.append(problem)
+                kept_results.extend(results[block])
+                kept_rewards.extend(rewards[block].tolist())
+            rounds += 1
+            if not cfg.algorithm.dynamic_sampling:
+                break
+        metrics = {
+            "rollout/reward_mean": float(np.mean(all_rewards)),
+            "rollout/accuracy": float(np.mean([r > 0.5 for r in all_rewards])),
+            "rollout/reward_errors": float(errors),
+            "rollout/generation_rounds": float(rounds),
+            "rollout/dropped_groups": float(dropped),
+        }
+        return kept_problems, kept_results, torch.tensor(kept_rewards), metrics
+
+    def generate_and_score(self, problems, sampling: SamplingParams):
+        """Spread prompts over rollout ranks; score each rank's results as soon as they land."""
+        from infinirl.tasks.prompts import encode_prompts
+
+        prompt_ids = encode_prompts(problems, self.tokenizer, self.cfg.task.system_prompt)
+        shards = _split(list(range(len(problems))), self.rollout.world_size)
+        handles = [self.rollout.call("generate", [prompt_ids[i] for i in shard], sampling, ranks=[r])
+                   for r, shard in enumerate(shards) if shard]
+        scoring = []
+        for handle, shard in zip(handles, [s for s in shards if s]):
+            results = handle.wait()[0]
+            per_sample = [problems[i] for i in shard for _ in range(sampling.n)]
+            scoring.append((results, self.reward.call("score", results, per_sample, ranks=[len(scoring) % self.reward.world_size])))
+        results, scored = [], []
+        for shard_results, handle in scoring:
+            results.extend(shard_results)
+            scored.extend(handle.wait()[0])
+        return results, scored
+
+    def build_batch(self, problems, results, rewards: torch.Tensor):
+        cfg = self.cfg
+        batch = pack_sequences([r.prompt_ids for r in results], [r.response_ids for r in results],
+                               self.pad_id, [r.response_logprobs for r in results])
+        if cfg.algorithm.overlong_buffer:
+            lengths = batch["response_lengths"]
+            rewards = rewards + overlong_penalty(lengths, cfg.rollout.max_new_tokens,
+                                                 cfg.algorithm.overlong_buffer, cfg.algorithm.overlong_penalty)
+        inputs = TokenAdvantageInputs(rewards=rewards, response_mask=batch["response_mask"],
+                                      group_size=cfg.rollout.group_size)
+        out = compute_advantages(cfg.algorithm.advantage, inputs, **cfg.algorithm.advantage_kwargs)
+        batch["advantages"] = out.advantages.float()
+        mask = batch["response_mask"]
+        metrics = {"train/advantage_abs_mean": float((out.advantages.abs() * mask).sum() / mask.sum().clamp(min=1))}
+        return batch, metrics
+
+    def update(self, batch) -> dict:
+        """Epochs x mini-batches optimizer steps; each mini-batch split over the actor's ranks."""
+        cfg, world = self.cfg, self.actor.world_size
+        needs_old = cfg.algorithm.mini_batches > 1 or cfg.algorithm.epochs > 1
+        if needs_old:  # several updates per batch: freeze pi_old once, up front
+            shards = [batch[s] for s in _slices(batch.batch_size[0], world)]
+            olds = self.actor.call_each("compute_logprobs", [(s,) for s in shards]).wait()
+            batch["old_logprobs"] = torch.cat(olds)
+        size = batch.batch_size[0]
+        per_mini = size // cfg.algorithm.mini_batches
+        totals: dict[str, float] = {}
+        count = 0
+        for _ in range(cfg.algorithm.epochs):
+            order = torch.randperm(size) if needs_old else torch.arange(size)
+            for start in range(0, size, per_mini):
+                mini = batch[order[start : start + per_mini]]
+                normaliser = aggregation_normaliser(
+                    mini["response_mask"], cfg.algorithm.objective.aggregation,
+                    **({"max_response_length": cfg.rollout.max_new_tokens}
+                       if cfg.algorithm.objective.aggregation == "seq-mean-token-sum-norm" else {}))
+                shards = [(mini[s], normaliser) for s in _slices(per_mini, world)]
+                for metrics in self.actor.call_each("train_step", shards).wait()[:1]:
+                    for key, value in metrics.items():
+                        totals[key] = totals.get(key, 0.0) + value
+                count += 1
+        return {k: v / count for k, v in totals.items()}
+
+    def evaluate(self, problems) -> float:
+        if not problems:
+            return float("nan")
+        greedy = SamplingParams(n=1, max_new_tokens=self.cfg.rollout.max_new_tokens, greedy=True,
+                                stop_strings=tuple(self.cfg.rollout.stop_strings))
+        _, scored = self.generate_and_score(problems, greedy)
+        return float(np.mean([s.correct for s in scored]))
+
+    def _sampling(self, step: int, round_: int) -> SamplingParams:
+        r = self.cfg.rollout
+        return SamplingParams(n=r.group_size, max_new_tokens=r.max_new_tokens, temperature=r.temperature,
+                              top_p=r.top_p, top_k=r.top_k, stop_strings=tuple(r.stop_strings),
+                              seed=(self.cfg.seed * 1_000_003 + step * 101 + round_) % (2**31))
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, step: int, train_stream) -> str:
+        root = os.path.join(self.cfg.output_dir, "checkpoints")
+        final = os.path.join(root, f"step_{step:06d}")
+        tmp = final + ".tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        os.makedirs(tmp)
+        self.actor.save_checkpoint(os.path.join(tmp, "actor")).wait()
+        state = {"step": step, "data": train_stream.state_dict(), "rng": _rng_state()}
+        with open(os.path.join(tmp, "runner_state.json"), "w") as handle:
+            json.dump(state, handle)
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
+        return final
+
+    def _maybe_resume(self, train_stream) -> int:
+        root = os.path.join(self.cfg.output_dir, "checkpoints")
+        done = sorted(d for d in os.listdir(root) if not d.endswith(".tmp")) if os.path.isdir(root) else []
+        if not (self.cfg.resume and done):
+            return 0
+        latest = os.path.join(root, done[-1])
+        with open(os.path.join(latest, "runner_state.json")) as handle:
+            state = json.load(handle)
+        self.actor.load_checkpoint(os.path.join(latest, "actor")).wait()
+        train_stream.load_state_dict(state["data"])
+        _set_rng_state(state["rng"])
+        sync_weights(self.actor, self.rollout, version=state["step"])
+        print(f"resumed from {latest} at step {state['step']}", flush=True)
+        return int(state["step"])
+
+    def finish(self) -> dict:
+        self.logger.close()
+        rows = read_metrics(self.logger.path)
+        plot = plot_curves(rows, ["rollout/reward_mean", "eval/greedy_accuracy", "rollout/response_length_mean"],
+                           os.path.join(self.cfg.output_dir, "curves.png"), "reasoning RL")
+        evals = [r["eval/greedy_accuracy"] for r in rows if "eval/greedy_accuracy" in r]
+        summary = {"eval_before": evals[0] if evals else None, "eval_after": evals[-1] if evals else None,
+                   "steps": self.cfg.steps, "curves": plot, "metrics": self.logger.path,
+                   "actor_weights_sha256": self.actor.weights_digest().wait()[0]}
+        print(json.dumps(summary), flush=True)
+        return summary
+
+    def close(self) -> None:
+        pass
+
+
+def _split(items: list, parts: int) -> list[list]:
+    """Contiguous shards, so concatenated shard results keep the prompt order."""
+    return [items[s] for s in _slices(len(items), parts)]
+
+
+def _slices(size: int, parts: int) -> list[slice]:
+    per = -(-size // parts)
+    return [slice(i * per, min(size, (i + 1) * per)) for i in range(parts)]
+
+
+def _seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def _rng_state() -> dict:
+    kind, keys, pos, has_gauss, gauss = np.random.get_state()
+    return {"python": repr(random.getstate()), "numpy": [kind, keys.tolist(), pos, has_gauss, gauss],
+            "torch": torch.get_rng_state().tolist()}
+
+
+def _set_rng_state(state: dict) -> None:
+    import ast
+
+    random.setstate(ast.literal_eval(state["python"]))
+    kind, keys, pos, has_gauss, gauss = state["numpy"]
+    np.random.set_state((kind, np.array(keys, dtype=np.uint32), pos, has_gauss, gauss))
+    torch.set_rng_state(torch.tensor(state["torch"], dtype=torch.uint8))

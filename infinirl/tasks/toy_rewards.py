@@ -1,0 +1,18 @@
+"""Toy reward functions for smoke tests and debugging a pipeline (not for real training).
+
+A random tiny model almost never solves a task, so verifiable rewards are all zero and GRPO has
+no signal: a pipeline test would pass whether or not training works. These rewards vary with any
+output, so advantages are non-zero and weights must move.
+"""
+
+from __future__ import annotations
+
+
+def digit_fraction(response: str, problem) -> float:
+    """Fraction of characters that are digits (a smooth, always-defined signal)."""
+    return sum(ch.isdigit() for ch in response) / max(1, len(response))
+
+
+def response_length(response: str, problem) -> float:
+    """Length in characters / 100 (for checking overlong shaping and length trends)."""
+    return len(response) / 100.0
