@@ -45,8 +45,9 @@ class _Item:
 class _ChannelActor:
     """Holds per-key deques of envelopes; all waiting happens here, on asyncio conditions."""
 
-    def __init__(self, name: str, maxsize: float):
+    def __init__(self, name: str, maxsize: float, transport: str = "auto"):
         self.name = name
+        self.transport = transport
         self.maxsize = maxsize
         self.queues: dict[Any, deque[_Item]] = {}
         self.weight_in_queue = 0.0
@@ -150,7 +151,7 @@ class _ChannelActor:
         return len(self.queues.get(key, ()))
 
     async def info(self) -> dict:
-        return {"name": self.name, "maxsize": self.maxsize, "closed": self.closed,
+        return {"name": self.name, "maxsize": self.maxsize, "closed": self.closed, "transport": self.transport,
                 "weight_in_queue": self.weight_in_queue, **self.stats}
 
     async def _wait_for(self, predicate, timeout: float | None, op: str) -> None:
@@ -163,15 +164,23 @@ class _ChannelActor:
 class Channel:
     """Client handle on a named channel; cheap to pickle and send to workers."""
 
-    def __init__(self, name: str, actor):
+    def __init__(self, name: str, actor, transport: str = "auto"):
         self.name = name
         self._actor = actor
+        self.transport = transport
         self._consumers_here_only = False
 
     # ------------------------------------------------------------------ create / connect
     @classmethod
-    def create(cls, name: str, maxsize: float = 0, exist_ok: bool = False) -> "Channel":
-        """Create the channel ``name`` (``maxsize`` 0 = unbounded). Call from the driver or a worker."""
+    def create(cls, name: str, maxsize: float = 0, exist_ok: bool = False, transport: str = "auto") -> "Channel":
+        """Create the channel ``name`` (``maxsize`` 0 = unbounded). Call from the driver or a worker.
+
+        ``transport``: ``"auto"`` picks the cheapest path per item (see ``transport``); ``"p2p"``
+        sends tensors producer -> consumer over a pairwise gloo/NCCL group (useful across nodes
+        or GPUs; producers must be Workers, the driver falls back to the object store).
+        """
+        if transport not in ("auto", "p2p"):
+            raise ChannelError(f"channel '{name}': transport={transport!r}; use 'auto' or 'p2p'")
         if maxsize < 0:
             raise ChannelError(f"channel '{name}': maxsize must be >= 0 (0 = unbounded), got {maxsize}")
         actor_cls = ray.remote(_ChannelActor).options(
@@ -182,19 +191,20 @@ class Channel:
             get_if_exists=exist_ok,
         )
         try:
-            actor = actor_cls.remote(name, maxsize)
+            actor = actor_cls.remote(name, maxsize, transport)
         except ValueError as exc:
             raise ChannelError(
                 f"a channel named '{name}' already exists; use Channel.connect('{name}') or exist_ok=True"
             ) from exc
-        return cls(name, actor)
+        return cls(name, actor, transport)
 
     @classmethod
     def connect(cls, name: str, timeout_s: float = 30.0) -> "Channel":
         deadline = time.monotonic() + timeout_s
         while True:
             try:
-                return cls(name, ray.get_actor(_ACTOR_PREFIX + name, namespace=NAMESPACE))
+                actor = ray.get_actor(_ACTOR_PREFIX + name, namespace=NAMESPACE)
+                return cls(name, actor, ray.get(actor.info.remote())["transport"])
             except ValueError:
                 if time.monotonic() > deadline:
                     raise ChannelError(
@@ -203,7 +213,7 @@ class Channel:
                 time.sleep(0.1)
 
     def __reduce__(self):
-        return (Channel, (self.name, self._actor))
+        return (Channel, (self.name, self._actor, self.transport))
 
     # ------------------------------------------------------------------ sync API
     def put(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout: float | None = None) -> None:
@@ -259,7 +269,7 @@ class Channel:
 
     # ------------------------------------------------------------------ internals
     def _pack(self, item: Any) -> Envelope:
-        return pack(item, same_process=self._consumers_here_only)
+        return pack(item, same_process=self._consumers_here_only, force_p2p=self.transport == "p2p")
 
     def _note_consumers(self, consumer_pids: list[int]) -> None:
         # By-reference hand-over is only safe when every consumer seen so far is this process.

@@ -82,35 +82,42 @@ class Envelope:
     nbytes: int = 0
 
 
+def walk(payload: Any, leaf: Any) -> Any:
+    """Rebuild ``payload`` with every tensor replaced by ``leaf(tensor)``; containers are kept.
+
+    The one traversal every path uses (dicts, lists, tuples, dataclasses, TensorDicts), so a new
+    container type is supported everywhere at once.
+    """
+    if isinstance(payload, torch.Tensor):
+        return leaf(payload)
+    if _is_tensordict(payload):
+        return _TensorDictBox({k: walk(v, leaf) for k, v in payload.items()}, tuple(payload.batch_size))
+    if isinstance(payload, dict):
+        return {k: walk(v, leaf) for k, v in payload.items()}
+    if isinstance(payload, list):
+        return [walk(v, leaf) for v in payload]
+    if isinstance(payload, tuple) and not hasattr(payload, "_fields"):
+        return tuple(walk(v, leaf) for v in payload)
+    if dataclasses.is_dataclass(payload) and not isinstance(payload, type):
+        return _DataclassBox(type(payload), {f.name: walk(getattr(payload, f.name), leaf) for f in dataclasses.fields(payload)})
+    return payload
+
+
+def tensors_in(payload: Any) -> list[torch.Tensor]:
+    found: list[torch.Tensor] = []
+    walk(payload, lambda t: found.append(t))
+    return found
+
+
 def tensor_bytes(payload: Any) -> int:
     """Bytes of tensor data in a payload (walks containers); used to pick the path."""
-    if isinstance(payload, torch.Tensor):
-        return payload.numel() * payload.element_size()
     if isinstance(payload, np.ndarray):
         return payload.nbytes
-    if _is_tensordict(payload):
-        return sum(tensor_bytes(v) for v in payload.values(include_nested=True, leaves_only=True))
-    if isinstance(payload, dict):
-        return sum(tensor_bytes(v) for v in payload.values())
-    if isinstance(payload, (list, tuple)):
-        return sum(tensor_bytes(v) for v in payload)
-    if dataclasses.is_dataclass(payload) and not isinstance(payload, type):
-        return sum(tensor_bytes(getattr(payload, f.name)) for f in dataclasses.fields(payload))
-    return 0
+    return sum(t.numel() * t.element_size() for t in tensors_in(payload))
 
 
 def _has_cuda(payload: Any) -> bool:
-    if isinstance(payload, torch.Tensor):
-        return payload.is_cuda
-    if _is_tensordict(payload):
-        return any(_has_cuda(v) for v in payload.values(include_nested=True, leaves_only=True))
-    if isinstance(payload, dict):
-        return any(_has_cuda(v) for v in payload.values())
-    if isinstance(payload, (list, tuple)):
-        return any(_has_cuda(v) for v in payload)
-    if dataclasses.is_dataclass(payload) and not isinstance(payload, type):
-        return any(_has_cuda(getattr(payload, f.name)) for f in dataclasses.fields(payload))
-    return False
+    return any(t.is_cuda for t in tensors_in(payload))
 
 
 def _node_id() -> str:
@@ -120,8 +127,11 @@ def _node_id() -> str:
         return "local"
 
 
-def pack(payload: Any, same_process: bool = False) -> Envelope:
-    """Wrap ``payload`` for a queue. ``same_process``: every consumer is this process."""
+def pack(payload: Any, same_process: bool = False, force_p2p: bool = False) -> Envelope:
+    """Wrap ``payload`` for a queue. ``same_process``: every consumer is this process.
+    ``force_p2p``: send tensors point-to-point (a channel created with ``transport="p2p"``)."""
+    from infinirl.runtime import p2p
+
     pid, node = os.getpid(), _node_id()
     if same_process:
         local_id = next(_ids)
@@ -129,7 +139,11 @@ def pack(payload: Any, same_process: bool = False) -> Envelope:
             _local_items[local_id] = payload
         return Envelope("local", pid, node, local_id=local_id)
     nbytes = tensor_bytes(payload)
+    if force_p2p and p2p.available() and nbytes:
+        return Envelope("p2p", pid, node, body=p2p.offer(payload), nbytes=nbytes)
     if _has_cuda(payload):
+        if p2p.available():  # consumer decides: CUDA IPC on our GPU, NCCL from any other
+            return Envelope("p2p", pid, node, body=p2p.offer(payload, with_ipc=True), nbytes=nbytes)
         return Envelope("cuda_ipc", pid, node, body=box(payload, cuda_ipc=True), nbytes=nbytes)
     if nbytes < INLINE_LIMIT_BYTES:
         return Envelope("inline", pid, node, body=payload, nbytes=nbytes)
@@ -149,39 +163,34 @@ def unpack(envelope: Envelope) -> Any:
         return unbox(ray.get(envelope.body[0]))
     if envelope.path == "cuda_ipc":
         return unbox(envelope.body)
+    if envelope.path == "p2p":
+        from infinirl.runtime import p2p
+
+        return p2p.take(envelope.body)
     raise ValueError(f"unknown transport path {envelope.path!r}")
 
 
 def box(payload: Any, cuda_ipc: bool = False) -> Any:
     """Replace tensors by zero-copy-serialisable boxes, keeping the container structure."""
-    if isinstance(payload, torch.Tensor):
-        if payload.is_cuda:
+
+    def leaf(tensor: torch.Tensor):
+        if tensor.is_cuda:
             if cuda_ipc:
                 from torch.multiprocessing.reductions import reduce_tensor
 
-                rebuild, args = reduce_tensor(payload)
+                rebuild, args = reduce_tensor(tensor)
                 return _CudaBox(rebuild, args)
-            payload = payload.cpu()
-        tensor = payload.detach().contiguous()
+            tensor = tensor.cpu()
+        tensor = tensor.detach().contiguous()
         view_as = _NUMPY_UNSUPPORTED.get(tensor.dtype)
         array = (tensor.view(view_as) if view_as is not None else tensor).numpy()
         return _TensorBox(array, str(tensor.dtype))
-    if _is_tensordict(payload):
-        data = {k: box(v, cuda_ipc) for k, v in payload.items()}
-        return _TensorDictBox(data, tuple(payload.batch_size))
-    if isinstance(payload, dict):
-        return {k: box(v, cuda_ipc) for k, v in payload.items()}
-    if isinstance(payload, list):
-        return [box(v, cuda_ipc) for v in payload]
-    if isinstance(payload, tuple) and not hasattr(payload, "_fields"):
-        return tuple(box(v, cuda_ipc) for v in payload)
-    if dataclasses.is_dataclass(payload) and not isinstance(payload, type):
-        fields = {f.name: box(getattr(payload, f.name), cuda_ipc) for f in dataclasses.fields(payload)}
-        return _DataclassBox(type(payload), fields)
-    return payload
+
+    return walk(payload, leaf)
 
 
-def unbox(payload: Any) -> Any:
+def unbox(payload: Any, leaf: Any = None) -> Any:
+    """Inverse of ``box`` (and of ``walk``'s container boxes); ``leaf`` maps custom placeholders."""
     if isinstance(payload, _TensorBox):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # shared-memory arrays are flagged read-only
@@ -190,19 +199,28 @@ def unbox(payload: Any) -> Any:
         return tensor.view(dtype) if tensor.dtype != dtype else tensor
     if isinstance(payload, _CudaBox):
         return payload.rebuild(*payload.args)
+    if leaf is not None and isinstance(payload, _Placeholder):
+        return leaf(payload)
     if isinstance(payload, _TensorDictBox):
         from tensordict import TensorDict
 
-        return TensorDict({k: unbox(v) for k, v in payload.data.items()}, batch_size=payload.batch_size)
+        return TensorDict({k: unbox(v, leaf) for k, v in payload.data.items()}, batch_size=payload.batch_size)
     if isinstance(payload, _DataclassBox):
-        return payload.cls(**{k: unbox(v) for k, v in payload.fields.items()})
+        return payload.cls(**{k: unbox(v, leaf) for k, v in payload.fields.items()})
     if isinstance(payload, dict):
-        return {k: unbox(v) for k, v in payload.items()}
+        return {k: unbox(v, leaf) for k, v in payload.items()}
     if isinstance(payload, list):
-        return [unbox(v) for v in payload]
+        return [unbox(v, leaf) for v in payload]
     if isinstance(payload, tuple) and not hasattr(payload, "_fields"):
-        return tuple(unbox(v) for v in payload)
+        return tuple(unbox(v, leaf) for v in payload)
     return payload
+
+
+@dataclass
+class _Placeholder:
+    """Stands for the ``index``-th tensor of a payload whose data travels separately (p2p)."""
+
+    index: int
 
 
 def _is_tensordict(obj: Any) -> bool:

@@ -177,6 +177,9 @@ class _WorkerHost:
         self._node_ip = ray.util.get_node_ip_address()
         ctx.node_ip = ctx.node_ip or self._node_ip
         self._crash_log = self._enable_crash_log(ctx)
+        from infinirl.runtime import p2p
+
+        p2p.register_host(ray.get_runtime_context().current_actor)
         try:
             worker = worker_cls.__new__(worker_cls)
             worker.ctx = ctx
@@ -251,6 +254,18 @@ class _WorkerHost:
             raise self._error(method, traceback.format_exc()) from None
         finally:
             self._spans.append((self._ctx.component, self._ctx.rank, method, start, time.time(), ok))
+
+    async def _infinirl_p2p_serve(self, item: int, key: tuple, addr: str, port: int, backend: str) -> int:
+        """Send a p2p channel item to the consumer that pulls it (runs beside the worker's method)."""
+        from infinirl.runtime import p2p
+
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(p2p._comm, p2p.serve, item, key, addr, port, backend)
+
+    async def _infinirl_p2p_release(self, item: int) -> None:
+        from infinirl.runtime import p2p
+
+        p2p.release(item)
 
     async def pop_spans(self) -> list[tuple]:
         spans, self._spans = self._spans, []

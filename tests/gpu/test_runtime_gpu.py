@@ -42,7 +42,11 @@ class GpuWorker(Worker, WeightSource, WeightSink):
 
     def put_cuda(self, ch: Channel):
         t = torch.arange(1 << 20, device="cuda", dtype=torch.float32)
-        assert pack(t).path == "cuda_ipc"
+        envelope = pack(t)  # in a Worker: an offer the consumer takes by IPC (same GPU) or NCCL
+        assert envelope.path == "p2p" and envelope.body.ipc is not None
+        from infinirl.runtime import p2p
+
+        p2p.release(envelope.body.item)
         ch.put({"t": t})
         torch.cuda.synchronize()
         return float(t.sum().item())

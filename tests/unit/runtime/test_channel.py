@@ -230,3 +230,43 @@ def test_same_process_consumer_gets_reference(ray_cluster):
     tensor = torch.ones(1 << 20)
     ch.put(tensor)
     assert ch.get() is tensor
+
+
+class P2PProducer(Worker):
+    def produce(self, ch: Channel, n: int):
+        from infinirl.runtime import p2p
+
+        assert p2p.available(), "a Worker process must be able to serve p2p pulls"
+        sent = []
+        for i in range(n):
+            item = {"x": torch.full((1000, 257), float(i)), "ids": torch.arange(i, i + 5), "meta": i}
+            ch.put(item)
+            sent.append(float(item["x"].sum()))
+        return sent
+
+
+class P2PConsumer(Worker):
+    def consume(self, ch: Channel, n: int):
+        got = []
+        for _ in range(n):
+            item = ch.get(timeout=120)
+            assert item["ids"].tolist() == list(range(item["meta"], item["meta"] + 5))
+            got.append(float(item["x"].sum()))
+        return got
+
+
+def test_p2p_transport_between_workers(ray_cluster):
+    """Tensors go producer -> consumer over a pairwise gloo group (NCCL on GPU), not the store."""
+    ch = Channel.create(f"p2p-{time.time_ns()}", transport="p2p")
+    assert Channel.connect(ch.name).transport == "p2p"
+    producer = WorkerGroup.launch(P2PProducer, "p2p-producer", num_ranks=1)
+    consumer = WorkerGroup.launch(P2PConsumer, "p2p-consumer", num_ranks=1)
+    try:
+        got = consumer.consume(ch, 6)
+        sent = producer.produce(ch, 6).wait(timeout=120)[0]
+        assert got.wait(timeout=120)[0] == sent
+    finally:
+        producer.shutdown()
+        consumer.shutdown()
+    with pytest.raises(ChannelError, match="transport='nccl'"):
+        Channel.create("bad-transport", transport="nccl")

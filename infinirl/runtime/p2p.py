@@ -1,0 +1,154 @@
+"""Point-to-point tensor transfer between two worker processes: NCCL across GPUs, gloo on CPU.
+
+Used when a payload cannot take a cheaper path: CUDA tensors whose consumer is on another GPU
+(CUDA IPC needs the same device) or another node, or channels created with ``transport="p2p"``.
+
+Pull protocol. ``offer(payload)`` keeps the producer's tensors alive in a process-local outbox
+and returns a small description (placeholders + shapes). The consumer that takes the item calls
+the producer's host (``_infinirl_p2p_serve``, served on a dedicated thread, so it runs while the
+producer's own method keeps working) and both sides join a *pairwise* process group, created once
+per (producer, consumer, backend) through a TCPStore the consumer hosts. The producer sends each
+tensor, the consumer receives into fresh buffers on its device. Nothing passes through a third
+process.
+"""
+
+from __future__ import annotations
+
+import datetime
+import itertools
+import os
+import socket
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import ray
+import torch
+
+from infinirl.runtime.transport import _DTYPE_BY_NAME, _Placeholder, tensors_in, unbox, walk
+
+_outbox: dict[int, list[torch.Tensor]] = {}
+_groups: dict[tuple, Any] = {}
+_lock = threading.Lock()
+_ids = itertools.count()
+_comm = ThreadPoolExecutor(max_workers=1, thread_name_prefix="infinirl-p2p")
+_host = None  # this process's _WorkerHost actor handle, set by the host at start-up
+TIMEOUT = datetime.timedelta(seconds=300)
+
+
+def register_host(handle) -> None:
+    global _host
+    _host = handle
+
+
+def available() -> bool:
+    """P2P needs a producer that can serve pulls: a Worker process (not the driver)."""
+    return _host is not None
+
+
+@dataclass
+class Offer:
+    host: Any
+    item: int
+    producer_pid: int
+    skeleton: Any
+    shapes: list[tuple[int, ...]]
+    dtypes: list[str]
+    device: str
+    gpu_uuid: str | None = None
+    ipc: Any = None
+
+
+def offer(payload: Any, with_ipc: bool = False) -> Offer:
+    tensors = [t.detach().contiguous() for t in tensors_in(payload)]
+    devices = {t.device.type for t in tensors}
+    if len(devices) > 1:
+        raise ValueError("a p2p payload must keep all its tensors on one device type")
+    counter = itertools.count()
+    skeleton = walk(payload, lambda t: _Placeholder(next(counter)))
+    item = next(_ids)
+    with _lock:
+        _outbox[item] = tensors
+    device = devices.pop() if devices else "cpu"
+    uuid = str(torch.cuda.get_device_properties(tensors[0].device).uuid) if device == "cuda" else None
+    ipc = None
+    if with_ipc and device == "cuda":
+        from torch.multiprocessing.reductions import reduce_tensor
+
+        ipc = [reduce_tensor(t) for t in tensors]
+    return Offer(_host, item, os.getpid(), skeleton, [tuple(t.shape) for t in tensors],
+                 [str(t.dtype) for t in tensors], device, uuid, ipc)
+
+
+def _visible_gpu_uuids() -> set[str]:
+    if not torch.cuda.is_available():
+        return set()
+    return {str(torch.cuda.get_device_properties(i).uuid) for i in range(torch.cuda.device_count())}
+
+
+def take(body: Offer) -> Any:
+    """Consumer side: rebuild the payload (CUDA IPC when we see the producer's GPU, else pull)."""
+    if body.ipc is not None and body.gpu_uuid in _visible_gpu_uuids():
+        tensors = [rebuild(*args) for rebuild, args in body.ipc]
+        body.host._infinirl_p2p_release.remote(body.item)
+    else:
+        tensors = _pull(body)
+    return unbox(body.skeleton, leaf=lambda placeholder: tensors[placeholder.index])
+
+
+def _pull(body: Offer) -> list[torch.Tensor]:
+    backend = "nccl" if body.device == "cuda" else "gloo"
+    device = "cuda" if backend == "nccl" else "cpu"
+    key = (body.producer_pid, os.getpid(), backend)
+    addr, port, store = ray.util.get_node_ip_address(), 0, None
+    if key not in _groups:
+        with socket.socket() as sock:
+            sock.bind(("", 0))
+            port = sock.getsockname()[1]
+        import torch.distributed as dist
+
+        store = dist.TCPStore(addr, port, 2, is_master=True, timeout=TIMEOUT, wait_for_workers=False)
+    serving = body.host._infinirl_p2p_serve.remote(body.item, key, addr, port, backend)
+    group = _groups.get(key) or _join(key, store, rank=1, backend=backend)
+    buffers = [torch.empty(shape, dtype=_DTYPE_BY_NAME[dtype], device=device)
+               for shape, dtype in zip(body.shapes, body.dtypes)]
+    for buffer in buffers:
+        group.recv([buffer], 0, 0).wait()
+    ray.get(serving)  # surfaces a producer-side failure
+    return buffers
+
+
+def _join(key: tuple, store, rank: int, backend: str):
+    import torch.distributed as dist
+
+    if backend == "nccl":
+        from torch.distributed import ProcessGroupNCCL
+
+        group = ProcessGroupNCCL(dist.PrefixStore("p2p", store), rank, 2)
+    else:
+        group = dist.ProcessGroupGloo(dist.PrefixStore("p2p", store), rank, 2, TIMEOUT)
+    _groups[key] = group
+    return group
+
+
+def serve(item: int, key: tuple, addr: str, port: int, backend: str) -> int:
+    """Producer side (on the p2p thread): send the item's tensors to the consumer, then forget them."""
+    import torch.distributed as dist
+
+    with _lock:
+        tensors = _outbox.pop(item)
+    group = _groups.get(key)
+    if group is None:
+        store = dist.TCPStore(addr, port, 2, is_master=False, timeout=TIMEOUT)
+        group = _join(key, store, rank=0, backend=backend)
+    sent = 0
+    for tensor in tensors:
+        group.send([tensor], 1, 0).wait()
+        sent += tensor.numel() * tensor.element_size()
+    return sent
+
+
+def release(item: int) -> None:
+    with _lock:
+        _outbox.pop(item, None)
