@@ -1,0 +1,224 @@
+"""MetaWorld (Sawyer arm manipulation, MuJoCo) as a :class:`SubEnv`.
+
+``make_env("metaworld:reach-v3", 8)``; any of the 50 v3 task names, or ``MT10`` / ``MT25`` /
+``MT50``, which give env ``i`` task ``i mod T`` of that benchmark (multi-task training with one
+vector env). Requires ``metaworld`` and ``mujoco==3.3.0`` (MuJoCo 4 breaks metaworld).
+
+What this adapter fixes on top of the raw MetaWorld class:
+
+* **Seeded tasks.** MetaWorld's own MT1 API draws 50 goals once and picks among them with the
+  global numpy RNG. Here every reset draws the object/goal layout from the sub-env's generator,
+  seeded per episode, so the same seed gives the same first observation, and a fixed
+  ``state_id`` (= that seed) gives a group of envs one identical task, as embodied GRPO needs.
+  The goal is observable (MT1 convention), in the last three ``state`` entries.
+* **Episode length.** 200 steps (truncation), not the class default of 500.
+* **Upright camera images.** Several MetaWorld cameras (``corner``, ``corner2``..``corner4``) are
+  mounted rolled by 180°, so their frames come out upside down. :func:`camera_is_upside_down`
+  detects that from the camera's pose (its image-up axis points below the horizon) and frames are
+  rotated back by 180° (a rotation, not a vertical flip, which would mirror the scene).
+* **Affordable pixels on CPU.** ``fast_render`` (default) turns off shadows and reflections in
+  the model's visual settings (physics untouched): software GL then renders a 96x96 frame in
+  ~17 ms of CPU instead of ~90 ms.
+
+Observations: ``state`` (39 floats: hand xyz, gripper opening, object poses, the previous frame of
+those, goal xyz), ``proprio`` (hand xyz + gripper opening), ``rgb`` (uint8 HxWx3, when
+``obs_mode`` asks), ``instruction`` (the task in words, e.g. ``"pick place"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from infinirl.envs.base import ActionSpace, ArraySpec, Obs, SubStep
+from infinirl.envs.gymnasium_env import check_obs_mode, use_headless_gl
+
+__all__ = [
+    "DEFAULT_MAX_EPISODE_STEPS",
+    "MetaWorldFactory",
+    "MetaWorldSubEnv",
+    "camera_is_upside_down",
+    "metaworld_factory",
+    "metaworld_task_names",
+]
+
+DEFAULT_MAX_EPISODE_STEPS = 200
+_PROPRIO_DIMS = 4  # hand xyz + normalised gripper opening: the first entries of the state
+
+
+def metaworld_task_names() -> dict[str, list[str]]:
+    """Every accepted ``task``: each v3 task maps to itself, each benchmark to its task list."""
+    from metaworld import env_dict
+
+    names = {name: [name] for name in env_dict.ALL_V3_ENVIRONMENTS}
+    names["MT10"] = list(env_dict.MT10_V3)
+    names["MT25"] = list(env_dict.MT25_V3)
+    names["MT50"] = list(env_dict.MT50_V3)
+    return names
+
+
+def task_instruction(task: str) -> str:
+    """``"pick-place-v3"`` -> ``"pick place"``: MetaWorld has no language annotations, but
+    language-conditioned policies need a string, and the task name is the honest one."""
+    return task.rsplit("-v", 1)[0].replace("-", " ")
+
+
+def camera_is_upside_down(model: Any, data: Any, camera: str) -> bool:
+    """True if the named MuJoCo camera is rolled so that image-up points downwards in the world.
+
+    A MuJoCo camera looks along its -z axis with image-up along +y; ``cam_xmat`` holds those axes
+    in world coordinates. A +y axis with a negative world-z component means the picture's top
+    shows what lies below: the frame must be rotated 180° to look natural.
+    """
+    import mujoco
+
+    camera_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+    if camera_id < 0:
+        names = [model.camera(i).name for i in range(model.ncam)]
+        raise ValueError(f"unknown MetaWorld camera {camera!r}; cameras: {names}")
+    image_up_in_world = np.asarray(data.cam_xmat[camera_id]).reshape(3, 3)[:, 1]
+    return bool(image_up_in_world[2] < 0.0)
+
+
+class MetaWorldSubEnv:
+    """One MetaWorld task instance; see the module docstring for what it adds."""
+
+    def __init__(
+        self,
+        task: str,
+        *,
+        obs_mode: str = "state",
+        camera: str = "corner",
+        image_size: int | tuple[int, int] = 128,
+        max_episode_steps: int = DEFAULT_MAX_EPISODE_STEPS,
+        terminate_on_success: bool = False,
+        reward_function_version: str = "v2",
+        fast_render: bool = True,
+    ) -> None:
+        check_obs_mode(obs_mode)
+        if "rgb" in obs_mode:
+            use_headless_gl()  # before MuJoCo is imported, so it loads the same GL library
+        from metaworld import env_dict
+
+        height, width = (image_size, image_size) if isinstance(image_size, int) else image_size
+        self.task = task
+        self._sim = env_dict.ALL_V3_ENVIRONMENTS[task](
+            render_mode="rgb_array",  # the renderer itself is created lazily, on first render
+            camera_name=camera,
+            width=width,
+            height=height,
+            reward_function_version=reward_function_version,
+        )
+        _make_goal_observable_and_seedable(self._sim, env_dict.ML1_ARGS_KWARGS[task]["kwargs"])
+        self._sim.max_path_length = max_episode_steps
+        if fast_render:
+            _disable_shadows_and_reflections(self._sim.model)
+        self._camera = camera
+        self._obs_mode = obs_mode
+        self._terminate_on_success = terminate_on_success
+        self._instruction = task_instruction(task)
+        self._rotate_frames: bool | None = None  # decided on the first render
+        self.action_space = ActionSpace.box(self._sim.action_space.low, self._sim.action_space.high)
+        self.observation_spec = self._observation_spec((height, width))
+
+    def reset(self, seed: int | None = None, state_id: int | None = None) -> Obs:
+        """A new episode whose object and goal placement is drawn with ``seed`` (a ``state_id``
+        is used as that seed: the fixed states are the seeded layouts)."""
+        seed = state_id if state_id is not None else seed
+        if seed is not None:
+            self._sim.seed(int(seed))
+        state, _ = self._sim.reset()
+        return self._observe(state)
+
+    def step(self, action: np.ndarray) -> SubStep:
+        state, reward, terminated, truncated, info = self._sim.step(np.asarray(action, np.float32))
+        success = bool(info["success"])
+        terminated = bool(terminated) or (self._terminate_on_success and success)
+        return SubStep(self._observe(state), float(reward), terminated, bool(truncated), success)
+
+    def render(self) -> np.ndarray:
+        """The camera frame, upright, uint8 HxWx3."""
+        use_headless_gl()
+        frame = self._sim.render()
+        if self._rotate_frames is None:
+            self._rotate_frames = camera_is_upside_down(self._sim.model, self._sim.data, self._camera)
+        if self._rotate_frames:
+            frame = frame[::-1, ::-1]
+        return np.ascontiguousarray(frame, dtype=np.uint8)
+
+    def close(self) -> None:
+        self._sim.close()
+
+    def _observe(self, state: np.ndarray) -> Obs:
+        state = state.astype(np.float32)
+        obs: Obs = {"state": state, "proprio": state[:_PROPRIO_DIMS].copy()}
+        if "rgb" in self._obs_mode:
+            obs["rgb"] = self.render()
+        obs["instruction"] = self._instruction
+        return obs
+
+    def _observation_spec(self, image_hw: tuple[int, int]) -> dict[str, ArraySpec]:
+        spec = {
+            "state": ArraySpec(self._sim.sawyer_observation_space.shape, "float32"),
+            "proprio": ArraySpec((_PROPRIO_DIMS,), "float32"),
+        }
+        if "rgb" in self._obs_mode:
+            spec["rgb"] = ArraySpec((*image_hw, 3), "uint8")
+        spec["instruction"] = ArraySpec((), "str")
+        return spec
+
+
+def _make_goal_observable_and_seedable(sim: Any, task_kwargs: dict) -> None:
+    """Put a raw MetaWorld env in the state MT1 tasks use, but drawing each episode's layout from
+    ``sim.np_random`` (seeded per reset) instead of a frozen, pre-drawn task vector."""
+    sim._partially_observable = False
+    vars(sim).pop("sawyer_observation_space", None)  # cached for the old observability: recompute
+    sim._set_task_inner(**{k: v for k, v in task_kwargs.items() if k != "task_id"})
+    sim._set_task_called = True
+    sim._freeze_rand_vec = False
+    sim.seeded_rand_vec = True
+
+
+def _disable_shadows_and_reflections(model: Any) -> None:
+    """Visual-only model settings: the shadow and reflection passes dominate software rendering."""
+    model.light_castshadow[:] = 0
+    model.mat_reflectance[:] = 0.0
+
+
+@dataclass(frozen=True)
+class MetaWorldFactory:
+    """Picklable ``index -> MetaWorldSubEnv``; env ``i`` runs ``tasks[i % len(tasks)]``."""
+
+    tasks: tuple[str, ...]
+    obs_mode: str = "state"
+    camera: str = "corner"
+    image_size: int | tuple[int, int] = 128
+    max_episode_steps: int = DEFAULT_MAX_EPISODE_STEPS
+    terminate_on_success: bool = False
+    reward_function_version: str = "v2"
+    fast_render: bool = True
+
+    def __call__(self, index: int) -> MetaWorldSubEnv:
+        return MetaWorldSubEnv(
+            self.tasks[index % len(self.tasks)],
+            obs_mode=self.obs_mode,
+            camera=self.camera,
+            image_size=self.image_size,
+            max_episode_steps=self.max_episode_steps,
+            terminate_on_success=self.terminate_on_success,
+            reward_function_version=self.reward_function_version,
+            fast_render=self.fast_render,
+        )
+
+
+def metaworld_factory(task: str | None, **kwargs: Any) -> MetaWorldFactory:
+    """Registry entry: ``metaworld:<task>`` with a v3 task name or MT10/MT25/MT50."""
+    names = metaworld_task_names()
+    if task not in names:
+        raise ValueError(
+            f"unknown MetaWorld task {task!r}; tasks: {', '.join(sorted(names))}"
+        )
+    check_obs_mode(kwargs.get("obs_mode", "state"))
+    return MetaWorldFactory(tuple(names[task]), **kwargs)

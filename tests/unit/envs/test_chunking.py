@@ -1,0 +1,49 @@
+"""Action chunks: K actions per call, chunk-level reward/done, envs stop at their episode end."""
+
+import numpy as np
+import pytest
+
+from infinirl.envs import ActionChunkEnv, VectorEnv
+from tests.unit.envs.toy_envs import CounterFactory
+
+
+def _chunk_env(num_envs=2, chunk_size=4, episode_length=6):
+    factory = CounterFactory(episode_length=episode_length, success_at=2)
+    return ActionChunkEnv(VectorEnv(factory, num_envs, num_workers=0), chunk_size)
+
+
+def test_chunk_sums_rewards_and_runs_all_steps_when_no_episode_ends():
+    with _chunk_env() as env:
+        env.reset(seeds=0)
+        actions = np.zeros((2, 4, 2), np.float32)
+        actions[:, :, 0] = [[0.1, 0.2, 0.3, 0.4], [1.0, 1.0, 1.0, -1.0]]
+        result = env.step(actions)
+        np.testing.assert_allclose(result.reward, [1.0, 2.0], rtol=1e-6)
+        np.testing.assert_allclose(result.info["step_rewards"], actions[:, :, 0])
+        assert result.info["step_mask"].all() and not result.done.any()
+        np.testing.assert_array_equal(result.obs["state"][:, 1], [4, 4])
+        assert result.info["success"].all()  # success (t >= 2) at some step of the chunk
+
+
+def test_env_whose_episode_ends_mid_chunk_ignores_the_rest_of_its_chunk():
+    with _chunk_env(episode_length=6) as env:
+        env.reset(seeds=0)
+        env.step(np.ones((2, 4, 2), np.float32))  # t = 4 for both
+        env.env.step(np.ones((2, 2), np.float32), env_mask=np.array([True, False]))  # env 0: t = 5
+        result = env.step(np.ones((2, 4, 2), np.float32))
+        # env 0 ends after 1 step of the chunk, env 1 after 2; neither runs the rest
+        np.testing.assert_array_equal(result.info["step_mask"], [[1, 0, 0, 0], [1, 1, 0, 0]])
+        np.testing.assert_array_equal(result.reward, [1, 2])
+        assert result.terminated.all()
+        np.testing.assert_array_equal(result.info["final_obs"]["state"][:, 1], [6, 6])
+        np.testing.assert_array_equal(result.info["episode_return"], [6, 6])
+        # the new episodes have not been stepped by leftover actions
+        np.testing.assert_array_equal(result.obs["state"][:, 1], [0, 0])
+
+
+def test_chunk_action_shape_is_checked():
+    with _chunk_env(chunk_size=3) as env:
+        env.reset()
+        assert env.action_space.shape == (3, 2)
+        with pytest.raises(ValueError, match=r"expected actions of shape \(2, 3, 2\)"):
+            env.step(np.zeros((2, 4, 2)))
