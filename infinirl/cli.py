@@ -26,6 +26,9 @@ def _build_config(name: str, overrides: list[str]):
 
 
 def main(argv: list[str] | None = None) -> int:
+    import os
+
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads: see runtime.cluster
     parser = argparse.ArgumentParser(
         prog="infinirl",
         description="InfiniRL: RL post-training for LLMs, VLAs and robot policies, from a laptop CPU to a cluster.",

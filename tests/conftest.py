@@ -1,6 +1,10 @@
 """Shared pytest setup: skip `gpu` tests without CUDA so the CPU suite stays green and honest."""
-import pytest
-import torch
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see infinirl.runtime.cluster)
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 
 def pytest_collection_modifyitems(config, items):

@@ -39,7 +39,7 @@ class SamplingParams:
     """Logits are divided by this before sampling *and* before computing returned log-probs.
     ``0`` means greedy."""
     top_p: float = 1.0
-    """Nucleus sampling: sample only from the smallest set of tokens whose mass reaches ``top_p``."""
+    """Nucleus sampling: sample only from the fewest top tokens whose mass reaches ``top_p``."""
     top_k: int = 0
     """Sample only from the ``top_k`` most likely tokens; ``0`` disables the filter."""
     stop_strings: tuple[str, ...] = ()
@@ -48,7 +48,7 @@ class SamplingParams:
     stop_token_ids: tuple[int, ...] = ()
     """Extra stop tokens on top of the model's EOS ids (kept in the response)."""
     ignore_eos: bool = False
-    """Keep generating past EOS (benchmarks that need a fixed length); explicit stops still apply."""
+    """Generate past EOS (benchmarks needing a fixed length); explicit stops still apply."""
     seed: int | None = None
     """Same seed + same requests + same engine settings => same samples. ``None`` draws from
     torch's global RNG, so ``torch.manual_seed`` still makes a run reproducible."""

@@ -38,7 +38,7 @@ from typing import Any
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from infinirl.runtime.cluster import KEEP_CUDA_VISIBLE_DEVICES, NAMESPACE
+from infinirl.runtime.cluster import NAMESPACE, worker_env
 from infinirl.runtime.errors import WorkerError
 
 CRASH_LOG_DIR = Path(tempfile.gettempdir()) / "infinirl-crash-logs"
@@ -393,7 +393,7 @@ class WorkerGroup:
                 }
             )
             ctx.env_vars.setdefault("LOCAL_RANK", "0")
-            opts = dict(options, runtime_env={"env_vars": dict(KEEP_CUDA_VISIBLE_DEVICES)})
+            opts = dict(options, runtime_env={"env_vars": worker_env()})
             if ctx.node_id:
                 opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(ctx.node_id, soft=False)
             actors.append(host_cls.options(**opts).remote(worker_cls, ctx, args, kwargs))
