@@ -29,7 +29,7 @@ ANSWER_EXTRACTORS: Registry[AnswerExtractor] = Registry("answer extractor")
 
 
 def parse_number(text: str | None) -> Fraction | None:
-    """Exact value of a number written as ``"1,234"``, ``"$18.00"``, ``"-3."``, ``"+07"``; else None.
+    """Exact value of ``"1,234"``, ``"$18.00"``, ``"-3."``, ``"+07"`` and the like; else None.
 
     Exact (Fraction, via Decimal) so ``"0.1"`` equals ``"0.10"`` without float rounding surprises.
     Currency signs, percent signs and surrounding punctuation are ignored because GSM8K answers
@@ -37,7 +37,7 @@ def parse_number(text: str | None) -> Fraction | None:
     """
     if text is None:
         return None
-    cleaned = text.strip().strip("$%.,;:!?()[]{} \t\n").replace(",", "").replace("$", "")
+    cleaned = text.strip().strip("$%,;:!?()[]{} \t\n").rstrip(".").replace(",", "").replace("$", "")
     if not cleaned:
         return None
     try:
@@ -115,7 +115,3 @@ def get_answer_extractor(name: str) -> AnswerExtractor:
     """Look an extractor up by name; the error lists the valid names."""
     return ANSWER_EXTRACTORS.get(name)
 
-
-def follows_answer_format(text: str) -> bool:
-    """Whether the response uses the instructed format: ``####`` followed by something."""
-    return extract_after_marker(text) is not None

@@ -136,7 +136,11 @@ def load_problems(
     """
     path = Path(path)
     rows = read_rows(path)[:limit]
-    extract = GOLD_EXTRACTORS.get(answer_extractor) if isinstance(answer_extractor, str) else answer_extractor
+    extract = (
+        GOLD_EXTRACTORS.get(answer_extractor)
+        if isinstance(answer_extractor, str)
+        else answer_extractor
+    )
     prefix = uid_prefix if uid_prefix is not None else path.stem
     problems = []
     for index, row in enumerate(rows):
@@ -204,7 +208,9 @@ def preset_path(name: str, split: str, root: str | Path | None = None) -> Path:
     """File a preset reads for ``split``; raises if the split does not exist for that preset."""
     preset = DATASET_PRESETS.get(name)
     if split not in preset.splits:
-        raise ValueError(f"dataset preset {name!r} has no split {split!r}; available: {list(preset.splits)}")
+        raise ValueError(
+            f"dataset preset {name!r} has no split {split!r}; available: {list(preset.splits)}"
+        )
     return Path(root if root is not None else data_dir()) / preset.folder / f"{split}.jsonl"
 
 
@@ -276,14 +282,19 @@ class EpochBatchIterator(Generic[T]):
         return batch
 
     def state_dict(self) -> dict[str, Any]:
-        return {"epoch": self.epoch, "offset": self.offset, "seed": self.seed, "size": len(self.items)}
+        return {
+            "epoch": self.epoch,
+            "offset": self.offset,
+            "seed": self.seed,
+            "size": len(self.items),
+        }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["seed"] != self.seed or state["size"] != len(self.items):
             raise ValueError(
                 f"cannot resume: checkpoint was taken with seed={state['seed']} over "
-                f"{state['size']} items, this iterator has seed={self.seed} over {len(self.items)}; "
-                "resume with the same dataset and seed."
+                f"{state['size']} items, this iterator has seed={self.seed} over "
+                f"{len(self.items)}; resume with the same dataset and seed."
             )
         self.epoch = state["epoch"]
         self.offset = state["offset"]

@@ -16,3 +16,10 @@ def digit_fraction(response: str, problem) -> float:
 def response_length(response: str, problem) -> float:
     """Length in characters / 100 (for checking overlong shaping and length trends)."""
     return len(response) / 100.0
+
+
+def uppercase_fraction(response: str, problem) -> float:
+    """Fraction of letters that are upper-case: varies a lot across a random model's samples, so
+    a GRPO run on a tiny random model has signal from step one (used by the fast learning test)."""
+    letters = [ch for ch in response if ch.isalpha()]
+    return sum(ch.isupper() for ch in letters) / max(1, len(letters))

@@ -23,7 +23,6 @@ from infinirl.tasks.answers import (
     extract_after_marker,
     extract_first_number,
     extract_last_number,
-    follows_answer_format,
     get_answer_extractor,
     parse_number,
 )
@@ -72,11 +71,14 @@ class Gsm8kVerifier:
     def __call__(self, response: str, problem: Problem) -> RewardResult:
         gold = parse_number(problem.answer)
         if gold is None:
-            raise ValueError(f"gsm8k verifier: ground truth {problem.answer!r} of {problem.uid} is not a number")
+            raise ValueError(
+                f"gsm8k verifier: ground truth {problem.answer!r} of {problem.uid} is not a number"
+            )
         segment = get_answer_extractor(self.extraction)(response)
         predicted = parse_number(extract_first_number(segment))
         correct = predicted is not None and predicted == gold
-        return RewardResult(float(correct), correct, metrics={"answer_found": float(predicted is not None)})
+        found = float(predicted is not None)
+        return RewardResult(float(correct), correct, metrics={"answer_found": found})
 
 
 # --- math (math-verify) ------------------------------------------------------------------------
@@ -128,7 +130,9 @@ class MathVerifier:
     def __call__(self, response: str, problem: Problem) -> RewardResult:
         gold = _parse_gold(problem.answer)
         if not gold:
-            raise ValueError(f"math verifier: cannot parse ground truth {problem.answer!r} of {problem.uid}")
+            raise ValueError(
+                f"math verifier: cannot parse ground truth {problem.answer!r} of {problem.uid}"
+            )
         predicted = _math_parse(self._answer_text(response))
         correct = bool(predicted) and _math_equal(gold, predicted)
         return RewardResult(float(correct), correct, metrics={"answer_found": float(bool(predicted))})
@@ -176,7 +180,8 @@ class ReasoningGymVerifier:
         except KeyError as missing:
             raise ValueError(
                 f"reasoning_gym verifier: problem {problem.uid} lacks metadata {missing}; build "
-                "reasoning-gym problems with reasoning_gym_tasks (build_eval_set / ReasoningGymStream)."
+                "reasoning-gym problems with reasoning_gym_tasks "
+                "(build_eval_set / ReasoningGymStream)."
             ) from None
         candidate = get_answer_extractor(self.extraction)(response)
         candidates = [candidate]
@@ -215,7 +220,9 @@ def load_function(dotted_path: str) -> Callable[..., Any]:
             )
         target = getattr(target, part)
     if not callable(target):
-        raise TypeError(f"{dotted_path!r} is a {type(target).__name__}, not a callable reward function")
+        raise TypeError(
+            f"{dotted_path!r} is a {type(target).__name__}, not a callable reward function"
+        )
     return target
 
 
@@ -244,7 +251,9 @@ def _to_reward_result(value: Any, source: str) -> RewardResult:
         )
     if isinstance(value, dict):
         if "reward" not in value:
-            raise KeyError(f"reward function {source} returned a dict without 'reward'; keys: {sorted(value)}")
+            raise KeyError(
+                f"reward function {source} returned a dict without 'reward'; keys: {sorted(value)}"
+            )
         reward = float(value["reward"])
         correct = bool(value.get("correct", reward > 0))
         metrics = {k: float(v) for k, v in value.items() if k not in ("reward", "correct")}
@@ -257,19 +266,25 @@ def _to_reward_result(value: Any, source: str) -> RewardResult:
 
 @dataclass(frozen=True)
 class WithFormatBonus:
-    """Adds ``bonus`` to the reward when the response uses the ``####`` answer format.
+    """Adds ``bonus`` to the reward when the response uses the instructed answer format.
 
-    Off by default (see `build_verifier`): with a verifiable reward the format is learnt anyway
-    because unformatted answers score 0; a bonus only helps a model that almost never uses the
-    format. ``correct`` is untouched so accuracy stays comparable.
+    ``answer_format`` names an answer extractor (``"marker"`` for ``####``, ``"boxed"`` for
+    ``\\boxed{}``); the format counts as followed when that extractor finds something. Off by
+    default (see `build_verifier`): with a verifiable reward the format is learnt anyway once it
+    is what gets answers read; a bonus only helps a model that almost never uses it.
+    ``correct`` is untouched so accuracy stays comparable across runs with and without it.
     """
 
     inner: Verifier
     bonus: float
+    answer_format: str = "marker"
+
+    def __post_init__(self) -> None:
+        get_answer_extractor(self.answer_format)
 
     def __call__(self, response: str, problem: Problem) -> RewardResult:
         result = self.inner(response, problem)
-        formatted = follows_answer_format(response)
+        formatted = get_answer_extractor(self.answer_format)(response) is not None
         return replace(
             result,
             reward=result.reward + self.bonus * formatted,
@@ -280,8 +295,13 @@ class WithFormatBonus:
 # --- construction, safe scoring, summaries -----------------------------------------------------
 
 
-def build_verifier(name: str, format_bonus: float = 0.0, **options: Any) -> Verifier:
-    """A verifier by registry name or ``"package.module:function"`` path, with its options."""
+def build_verifier(
+    name: str, format_bonus: float = 0.0, answer_format: str = "marker", **options: Any
+) -> Verifier:
+    """A verifier by registry name or ``"package.module:function"`` path, with its options.
+
+    ``format_bonus > 0`` wraps it in `WithFormatBonus` checking ``answer_format``.
+    """
     if ":" in name:
         if options:
             raise TypeError(f"reward function {name!r} takes no options, got {sorted(options)}")
@@ -291,7 +311,7 @@ def build_verifier(name: str, format_bonus: float = 0.0, **options: Any) -> Veri
             verifier = VERIFIERS.get(name)(**options)
         except TypeError as error:
             raise TypeError(f"bad options {options} for verifier {name!r}: {error}") from None
-    return WithFormatBonus(verifier, format_bonus) if format_bonus else verifier
+    return WithFormatBonus(verifier, format_bonus, answer_format) if format_bonus else verifier
 
 
 @lru_cache(maxsize=128)
@@ -314,7 +334,9 @@ def score_responses(
 ) -> list[RewardResult]:
     """`safe_score` for aligned lists (one problem per response; repeat problems for n samples)."""
     if len(responses) != len(problems):
-        raise ValueError(f"score_responses: {len(responses)} responses but {len(problems)} problems")
+        raise ValueError(
+            f"score_responses: {len(responses)} responses but {len(problems)} problems"
+        )
     return [safe_score(r, p, verifier) for r, p in zip(responses, problems)]
 
 
