@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from infinirl.algorithms.registry import Registry
+from infinirl.registry import Registry
 from infinirl.envs.base import Env
 from infinirl.envs.chunking import ActionChunkEnv
 from infinirl.envs.vector import SubEnvFactory, VectorEnv

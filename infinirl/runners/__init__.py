@@ -10,7 +10,7 @@ import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from infinirl.algorithms.registry import Registry
+from infinirl.registry import Registry
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from decimal import Decimal, InvalidOperation
 from fractions import Fraction
 
-from infinirl.tasks.registry import Registry
+from infinirl.registry import Registry
 
 ANSWER_MARKER = "####"
 

@@ -27,7 +27,7 @@ from infinirl.tasks.answers import (
     parse_number,
 )
 from infinirl.tasks.problem import Problem
-from infinirl.tasks.registry import Registry
+from infinirl.registry import Registry
 
 
 @dataclass
