@@ -17,8 +17,11 @@ REPO = Path(__file__).resolve().parents[3]
 
 
 def run_scenario(name: str, timeout: float = 300) -> dict:
+    import os
+
+    pythonpath = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)
     proc = subprocess.run([sys.executable, str(SCENARIOS / name)], capture_output=True, text=True,
-                          timeout=timeout, cwd=REPO, env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+                          timeout=timeout, cwd=REPO, env={**os.environ, "PYTHONPATH": pythonpath})
     assert proc.returncode == 0, proc.stderr[-4000:]
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
     return json.loads(line.removeprefix("RESULT "))

@@ -1,0 +1,144 @@
+"""Benchmark: seconds per GRPO step, InfiniRL vs TRL's GRPOTrainer, same settings, one machine.
+
+Both train SmolLM2-135M-Instruct on reasoning-gym chain_sum (two 1-digit terms) with 8 prompts x 8
+completions, <= 48 new tokens, lr 1e-5, no KL, one policy update per batch, for ``--steps`` steps,
+each in its own subprocess (so neither sees the other's memory or threads). Reported per impl:
+median seconds per step (first step excluded as warm-up when there are >= 3), generated tokens/s
+and the final training reward. ``--precision`` applies to both (fp32 = TRL's CPU default).
+
+    pip install trl            # the baseline (not a dependency of infinirl)
+    python benchmarks/grpo_vs_trl.py --steps 4
+
+Last stdout line: {"benchmark": "grpo_vs_trl", "ratios": {"step_speed_vs_trl": TRL s/step / ours},
+"targets": {"step_speed_vs_trl": 1.5}, "device": ..., "results": {...}}
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+TASK = {"min_terms": 2, "max_terms": 2, "min_digits": 1, "max_digits": 1}
+PROMPTS, GROUP, MAX_NEW, LR = 8, 8, 48, 1e-5
+
+
+def run_infinirl(steps: int, precision: str, out: str) -> dict:
+    from infinirl.config import to_dataclass
+    from infinirl.runners.reasoning import run
+    from infinirl.runners.reasoning_config import ReasoningConfig
+
+    cfg = to_dataclass(ReasoningConfig, {
+        "steps": steps, "prompts_per_step": PROMPTS, "eval_every": 10_000, "output_dir": out,
+        "resume": False, "loggers": [], "num_threads": os.cpu_count(),
+        "model": {"rollout_dtype": precision},
+        "task": {"config": TASK, "eval_size": 1},
+        "rollout": {"group_size": GROUP, "max_new_tokens": MAX_NEW, "max_batch_size": PROMPTS * GROUP},
+        "actor": {"lr": LR, "micro_batch_size": 16, "param_dtype": precision},
+        "cluster": {"log_to_driver": False},
+    })
+    run(cfg)
+    rows = [json.loads(line) for line in open(os.path.join(out, "metrics.jsonl"))]
+    steps_rows = [r for r in rows if "time/step_s" in r]
+    return {
+        "step_s": [r["time/step_s"] for r in steps_rows],
+        "tokens_per_s": [r["rollout/tokens_per_s"] for r in steps_rows],
+        "final_reward": steps_rows[-1]["rollout/reward_mean"],
+    }
+
+
+def run_trl(steps: int, precision: str, out: str) -> dict:
+    import torch
+    from datasets import Dataset
+    from transformers import AutoModelForCausalLM, AutoTokenizer, TrainerCallback
+    from trl import GRPOConfig, GRPOTrainer
+
+    from infinirl.models.smollm2 import ensure_converted
+    from infinirl.tasks.reasoning_gym_tasks import ReasoningGymStream, ReasoningGymTask
+    from infinirl.tasks.verifiers import build_verifier, safe_score
+
+    torch.set_num_threads(os.cpu_count())
+    folder = ensure_converted()
+    stream = ReasoningGymStream(ReasoningGymTask("chain_sum", TASK), seed=0)
+    problems = stream.next_batch(PROMPTS * (steps + 1))
+    by_prompt = {p.prompt: p for p in problems}
+    dataset = Dataset.from_list([{"prompt": [{"role": "user", "content": p.prompt}]} for p in problems])
+    verifier = build_verifier("reasoning_gym")
+
+    def reward(prompts, completions, **_):
+        return [safe_score(c[0]["content"], by_prompt[p[-1]["content"]], verifier).reward
+                for p, c in zip(prompts, completions)]
+
+    times, tokens = [], []
+
+    class Timer(TrainerCallback):
+        def on_step_begin(self, args, state, control, **kw):
+            self.start = time.perf_counter()
+
+        def on_step_end(self, args, state, control, **kw):
+            times.append(time.perf_counter() - self.start)
+
+        def on_log(self, args, state, control, logs=None, **kw):
+            if logs and "completions/mean_length" in logs:
+                tokens.append(logs["completions/mean_length"])
+
+    config = GRPOConfig(
+        output_dir=out, max_steps=steps, learning_rate=LR, per_device_train_batch_size=PROMPTS * GROUP,
+        num_generations=GROUP, max_completion_length=MAX_NEW, beta=0.0, num_iterations=1,
+        use_cpu=True, bf16=precision == "bfloat16", logging_steps=1, report_to=[], save_strategy="no",
+        temperature=1.0, shuffle_dataset=False, dataloader_num_workers=0,
+    )
+    model = AutoModelForCausalLM.from_pretrained(folder, dtype=torch.float32)
+    trainer = GRPOTrainer(model=model, reward_funcs=reward, args=config, train_dataset=dataset,
+                          processing_class=AutoTokenizer.from_pretrained(folder), callbacks=[Timer()])
+    trainer.train()
+    rewards = [h["reward"] for h in trainer.state.log_history if "reward" in h]
+    return {"step_s": times, "mean_completion_tokens": tokens, "final_reward": rewards[-1] if rewards else None}
+
+
+def _median_step(step_s: list[float]) -> float:
+    body = step_s[1:] if len(step_s) >= 3 else step_s
+    return statistics.median(body)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=4)
+    parser.add_argument("--precision", choices=["float32", "bfloat16"], default="float32")
+    parser.add_argument("--only", choices=["infinirl", "trl"], help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.only:
+        out = tempfile.mkdtemp(prefix=f"bench-{args.only}-")
+        result = (run_infinirl if args.only == "infinirl" else run_trl)(args.steps, args.precision, out)
+        print("RESULT " + json.dumps(result), flush=True)
+        return 0
+    results = {}
+    for impl in ("infinirl", "trl"):
+        start = time.perf_counter()
+        proc = subprocess.run([sys.executable, __file__, "--only", impl, "--steps", str(args.steps),
+                               "--precision", args.precision], capture_output=True, text=True)
+        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+        if proc.returncode or not lines:
+            results[impl] = {"skipped": f"exit {proc.returncode}: {proc.stderr[-1500:]}"}
+        else:
+            results[impl] = json.loads(lines[-1][7:])
+            results[impl]["median_step_s"] = _median_step(results[impl]["step_s"])
+        results[impl]["wall_s"] = round(time.perf_counter() - start, 1)
+        print(f"[{impl}] {json.dumps(results[impl])[:400]}", file=sys.stderr, flush=True)
+    ours, theirs = (results[i].get("median_step_s") for i in ("infinirl", "trl"))
+    ratio = round(theirs / ours, 3) if ours and theirs else None
+    print(json.dumps({"benchmark": "grpo_vs_trl", "ratios": {"step_speed_vs_trl": ratio},
+                      "targets": {"step_speed_vs_trl": 1.5},
+                      "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
+                      "precision": args.precision, "results": results}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
