@@ -103,6 +103,7 @@ def bench_infinirl_channel(plan: dict[str, dict[str, int]]) -> dict:
             t_start = time.perf_counter()
             for _ in range(n):
                 ch.put(x)
+            ch.flush()
             return t_start
 
         def ping(self, ch, ack, nbytes, n):
@@ -111,6 +112,7 @@ def bench_infinirl_channel(plan: dict[str, dict[str, int]]) -> dict:
             for _ in range(n):
                 starts.append(time.perf_counter())
                 ch.put(x)
+                ch.flush()
                 ack.get()
             return starts
 
@@ -142,7 +144,10 @@ def bench_infinirl_channel(plan: dict[str, dict[str, int]]) -> dict:
         for label, p in plan.items():
             t_size = time.perf_counter()
             nbytes = p["nbytes"]
-            ch = Channel.create(f"bench-{label}", maxsize=p["max_inflight"])
+            # A streaming producer keeps puts in flight, like (b) keeps calls in flight; queue +
+            # in-flight puts together stay within the same bound (max_inflight) as (b).
+            depth = max(1, p["max_inflight"] // 2)
+            ch = Channel.create(f"bench-{label}", maxsize=p["max_inflight"] - depth, pipeline_depth=depth)
             ack = Channel.create(f"bench-{label}-ack", maxsize=1)
 
             def stream(n):

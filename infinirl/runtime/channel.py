@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import os
 import time
+import uuid
 from collections import deque
 from typing import Any
 
@@ -45,9 +46,11 @@ class _Item:
 class _ChannelActor:
     """Holds per-key deques of envelopes; all waiting happens here, on asyncio conditions."""
 
-    def __init__(self, name: str, maxsize: float, transport: str = "auto"):
+    def __init__(self, name: str, maxsize: float, transport: str = "auto", pipeline_depth: int = 0):
         self.name = name
         self.transport = transport
+        self.pipeline_depth = pipeline_depth
+        self.next_seq: dict[str, int] = {}
         self.maxsize = maxsize
         self.queues: dict[Any, deque[_Item]] = {}
         self.weight_in_queue = 0.0
@@ -56,7 +59,22 @@ class _ChannelActor:
         self.consumer_pids: set[int] = set()
         self.stats = {"put": 0, "get": 0}
 
-    async def put(self, envelope: Envelope, key, weight: float, timeout: float | None):
+    async def put(self, envelope: Envelope, key, weight: float, timeout: float | None,
+                  producer: str | None = None, seq: int = -1):
+        if seq < 0:
+            return await self._put(envelope, key, weight, timeout)
+        # Pipelined producers number their puts: Ray does not promise that an async actor starts
+        # calls in submission order, and per-producer FIFO must hold.
+        async with self.cond:
+            await self.cond.wait_for(lambda: self.next_seq.get(producer, 0) == seq)
+        try:
+            return await self._put(envelope, key, weight, timeout)
+        finally:
+            async with self.cond:
+                self.next_seq[producer] = seq + 1
+                self.cond.notify_all()
+
+    async def _put(self, envelope: Envelope, key, weight: float, timeout: float | None):
         if self.closed:
             raise ChannelClosed(f"put on closed channel '{self.name}'")
         if self.maxsize and weight > self.maxsize:
@@ -152,6 +170,7 @@ class _ChannelActor:
 
     async def info(self) -> dict:
         return {"name": self.name, "maxsize": self.maxsize, "closed": self.closed, "transport": self.transport,
+                "pipeline_depth": self.pipeline_depth,
                 "weight_in_queue": self.weight_in_queue, **self.stats}
 
     async def _wait_for(self, predicate, timeout: float | None, op: str) -> None:
@@ -164,21 +183,33 @@ class _ChannelActor:
 class Channel:
     """Client handle on a named channel; cheap to pickle and send to workers."""
 
-    def __init__(self, name: str, actor, transport: str = "auto"):
+    def __init__(self, name: str, actor, transport: str = "auto", pipeline_depth: int = 0):
         self.name = name
         self._actor = actor
         self.transport = transport
+        self.pipeline_depth = pipeline_depth
         self._consumers_here_only = False
+        self._producer = uuid.uuid4().hex  # per client: a pickled copy in a worker is a new producer
+        self._seq = 0
+        self._inflight: deque = deque()
 
     # ------------------------------------------------------------------ create / connect
     @classmethod
-    def create(cls, name: str, maxsize: float = 0, exist_ok: bool = False, transport: str = "auto") -> "Channel":
+    def create(cls, name: str, maxsize: float = 0, exist_ok: bool = False, transport: str = "auto",
+               pipeline_depth: int = 0) -> "Channel":
         """Create the channel ``name`` (``maxsize`` 0 = unbounded). Call from the driver or a worker.
 
         ``transport``: ``"auto"`` picks the cheapest path per item (see ``transport``); ``"p2p"``
         sends tensors producer -> consumer over a pairwise gloo/NCCL group (useful across nodes
         or GPUs; producers must be Workers, the driver falls back to the object store).
+
+        ``pipeline_depth`` > 0 lets a streaming producer keep that many ``put`` calls in flight
+        instead of waiting for each acknowledgement: per-producer order is kept, back-pressure
+        still holds (a producer runs at most ``pipeline_depth`` items ahead of ``maxsize``), and
+        errors such as a closed channel surface on a later ``put``, ``flush()`` or ``close()``.
         """
+        if pipeline_depth < 0:
+            raise ChannelError(f"channel '{name}': pipeline_depth must be >= 0, got {pipeline_depth}")
         if transport not in ("auto", "p2p"):
             raise ChannelError(f"channel '{name}': transport={transport!r}; use 'auto' or 'p2p'")
         if maxsize < 0:
@@ -191,12 +222,12 @@ class Channel:
             get_if_exists=exist_ok,
         )
         try:
-            actor = actor_cls.remote(name, maxsize, transport)
+            actor = actor_cls.remote(name, maxsize, transport, pipeline_depth)
         except ValueError as exc:
             raise ChannelError(
                 f"a channel named '{name}' already exists; use Channel.connect('{name}') or exist_ok=True"
             ) from exc
-        return cls(name, actor, transport)
+        return cls(name, actor, transport, pipeline_depth)
 
     @classmethod
     def connect(cls, name: str, timeout_s: float = 30.0) -> "Channel":
@@ -204,7 +235,8 @@ class Channel:
         while True:
             try:
                 actor = ray.get_actor(_ACTOR_PREFIX + name, namespace=NAMESPACE)
-                return cls(name, actor, ray.get(actor.info.remote())["transport"])
+                info = ray.get(actor.info.remote())
+                return cls(name, actor, info["transport"], info["pipeline_depth"])
             except ValueError:
                 if time.monotonic() > deadline:
                     raise ChannelError(
@@ -213,12 +245,24 @@ class Channel:
                 time.sleep(0.1)
 
     def __reduce__(self):
-        return (Channel, (self.name, self._actor, self.transport))
+        return (Channel, (self.name, self._actor, self.transport, self.pipeline_depth))
 
     # ------------------------------------------------------------------ sync API
     def put(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout: float | None = None) -> None:
-        consumers = self._call(self._actor.put.remote(self._pack(item), key, float(weight), timeout))
-        self._note_consumers(consumers)
+        if not self.pipeline_depth:
+            self._note_consumers(self._call(self._actor.put.remote(self._pack(item), key, float(weight), timeout)))
+            return
+        self._inflight.append(
+            self._actor.put.remote(self._pack(item), key, float(weight), timeout, self._producer, self._seq)
+        )
+        self._seq += 1
+        while len(self._inflight) > self.pipeline_depth:
+            self._note_consumers(self._call(self._inflight.popleft()))
+
+    def flush(self) -> None:
+        """Wait until every pipelined ``put`` of this client has been accepted (raises its error)."""
+        while self._inflight:
+            self._note_consumers(self._call(self._inflight.popleft()))
 
     def put_many(self, items: list, key=DEFAULT_KEY, weights: list[float] | None = None, timeout=None) -> None:
         """Put several items with one round trip (they stay in order)."""
@@ -240,6 +284,7 @@ class Channel:
         return [unpack(envelope) for envelope, _ in taken]
 
     def close(self) -> None:
+        self.flush()
         ray.get(self._actor.close.remote())
 
     def qsize(self, key=None) -> int:

@@ -270,3 +270,31 @@ def test_p2p_transport_between_workers(ray_cluster):
         consumer.shutdown()
     with pytest.raises(ChannelError, match="transport='nccl'"):
         Channel.create("bad-transport", transport="nccl")
+
+
+class PipelinedProducer(Worker):
+    def produce(self, ch: Channel, start: int, count: int):
+        for i in range(start, start + count):
+            ch.put(i, key="k")
+        ch.flush()
+        return count
+
+
+def test_pipelined_puts_keep_order_and_backpressure(ray_cluster):
+    ch = Channel.create(f"pipe-{time.time_ns()}", maxsize=5, pipeline_depth=4)
+    assert Channel.connect(ch.name).pipeline_depth == 4
+    producers = WorkerGroup.launch(PipelinedProducer, "pipe-producer", num_ranks=2)
+    try:
+        done = producers.call_each("produce", [(ch, 0, 300), (ch, 1000, 300)])
+        time.sleep(1.0)
+        assert ch.qsize(key="k") <= 5, "maxsize still bounds the queue"
+        assert not done.done(), "producers must be held back while the channel is full"
+        got = [ch.get(key="k") for _ in range(600)]
+        assert done.wait(timeout=120) == [300, 300]
+        for lo in (0, 1000):
+            mine = [x for x in got if lo <= x < lo + 300]
+            assert mine == list(range(lo, lo + 300)), "per-producer FIFO must survive pipelining"
+    finally:
+        producers.shutdown()
+    with pytest.raises(ChannelError, match="pipeline_depth must be >= 0"):
+        Channel.create("bad-depth", pipeline_depth=-1)
