@@ -144,10 +144,12 @@ def bench_infinirl_channel(plan: dict[str, dict[str, int]]) -> dict:
         for label, p in plan.items():
             t_size = time.perf_counter()
             nbytes = p["nbytes"]
-            # A streaming producer keeps puts in flight, like (b) keeps calls in flight; queue +
-            # in-flight puts together stay within the same bound (max_inflight) as (b).
-            depth = max(1, p["max_inflight"] // 2)
-            ch = Channel.create(f"bench-{label}", maxsize=p["max_inflight"] - depth, pipeline_depth=depth)
+            # A streaming producer keeps puts in flight and the consumer prefetches, like (b) keeps
+            # calls in flight; queue + in-flight puts + prefetched items together stay within the
+            # same bound (max_inflight) as (b).
+            depth = max(1, p["max_inflight"] // 4)
+            ch = Channel.create(f"bench-{label}", maxsize=p["max_inflight"] - 2 * depth,
+                                pipeline_depth=depth, prefetch=depth)
             ack = Channel.create(f"bench-{label}-ack", maxsize=1)
 
             def stream(n):

@@ -46,10 +46,12 @@ class _Item:
 class _ChannelActor:
     """Holds per-key deques of envelopes; all waiting happens here, on asyncio conditions."""
 
-    def __init__(self, name: str, maxsize: float, transport: str = "auto", pipeline_depth: int = 0):
+    def __init__(self, name: str, maxsize: float, transport: str = "auto", pipeline_depth: int = 0,
+                 prefetch: int = 1):
         self.name = name
         self.transport = transport
         self.pipeline_depth = pipeline_depth
+        self.prefetch = prefetch
         self.next_seq: dict[str, int] = {}
         self.maxsize = maxsize
         self.queues: dict[Any, deque[_Item]] = {}
@@ -130,6 +132,23 @@ class _ChannelActor:
             self.cond.notify_all()
             return item.envelope, item.weight
 
+    async def get_many(self, key, pid: int, max_items: int, timeout: float | None):
+        """Wait for one item, then also take up to ``max_items - 1`` more already waiting (prefetch)."""
+        self.consumer_pids.add(pid)
+        async with self.cond:
+            await self._wait_for(lambda: self._eligible(key, pid) is not None or self.closed, timeout, "get")
+            taken = []
+            while len(taken) < max_items:
+                index = self._eligible(key, pid)
+                if index is None:
+                    break
+                item = self._take(key, index)
+                taken.append((item.envelope, item.weight))
+            if not taken:
+                raise ChannelClosed(f"channel '{self.name}' is closed and has no more items for key {key!r}")
+            self.cond.notify_all()
+            return taken
+
     async def get_batch(self, target_weight: float, key, pid: int, timeout: float | None):
         self.consumer_pids.add(pid)
         taken: list[tuple[Envelope, float]] = []
@@ -170,7 +189,7 @@ class _ChannelActor:
 
     async def info(self) -> dict:
         return {"name": self.name, "maxsize": self.maxsize, "closed": self.closed, "transport": self.transport,
-                "pipeline_depth": self.pipeline_depth,
+                "pipeline_depth": self.pipeline_depth, "prefetch": self.prefetch,
                 "weight_in_queue": self.weight_in_queue, **self.stats}
 
     async def _wait_for(self, predicate, timeout: float | None, op: str) -> None:
@@ -183,11 +202,13 @@ class _ChannelActor:
 class Channel:
     """Client handle on a named channel; cheap to pickle and send to workers."""
 
-    def __init__(self, name: str, actor, transport: str = "auto", pipeline_depth: int = 0):
+    def __init__(self, name: str, actor, transport: str = "auto", pipeline_depth: int = 0, prefetch: int = 1):
         self.name = name
         self._actor = actor
         self.transport = transport
         self.pipeline_depth = pipeline_depth
+        self.prefetch = prefetch
+        self._prefetched: dict[Any, deque] = {}
         self._consumers_here_only = False
         self._producer = uuid.uuid4().hex  # per client: a pickled copy in a worker is a new producer
         self._seq = 0
@@ -196,7 +217,7 @@ class Channel:
     # ------------------------------------------------------------------ create / connect
     @classmethod
     def create(cls, name: str, maxsize: float = 0, exist_ok: bool = False, transport: str = "auto",
-               pipeline_depth: int = 0) -> "Channel":
+               pipeline_depth: int = 0, prefetch: int = 1) -> "Channel":
         """Create the channel ``name`` (``maxsize`` 0 = unbounded). Call from the driver or a worker.
 
         ``transport``: ``"auto"`` picks the cheapest path per item (see ``transport``); ``"p2p"``
@@ -207,7 +228,13 @@ class Channel:
         instead of waiting for each acknowledgement: per-producer order is kept, back-pressure
         still holds (a producer runs at most ``pipeline_depth`` items ahead of ``maxsize``), and
         errors such as a closed channel surface on a later ``put``, ``flush()`` or ``close()``.
+
+        ``prefetch`` > 1 lets ``get`` take up to that many waiting items in one round trip and hand
+        them out one by one (a consumer then holds at most ``prefetch - 1`` items others cannot
+        take). Both options trade a little strictness for throughput on streaming stages.
         """
+        if prefetch < 1:
+            raise ChannelError(f"channel '{name}': prefetch must be >= 1, got {prefetch}")
         if pipeline_depth < 0:
             raise ChannelError(f"channel '{name}': pipeline_depth must be >= 0, got {pipeline_depth}")
         if transport not in ("auto", "p2p"):
@@ -222,12 +249,12 @@ class Channel:
             get_if_exists=exist_ok,
         )
         try:
-            actor = actor_cls.remote(name, maxsize, transport, pipeline_depth)
+            actor = actor_cls.remote(name, maxsize, transport, pipeline_depth, prefetch)
         except ValueError as exc:
             raise ChannelError(
                 f"a channel named '{name}' already exists; use Channel.connect('{name}') or exist_ok=True"
             ) from exc
-        return cls(name, actor, transport, pipeline_depth)
+        return cls(name, actor, transport, pipeline_depth, prefetch)
 
     @classmethod
     def connect(cls, name: str, timeout_s: float = 30.0) -> "Channel":
@@ -236,7 +263,7 @@ class Channel:
             try:
                 actor = ray.get_actor(_ACTOR_PREFIX + name, namespace=NAMESPACE)
                 info = ray.get(actor.info.remote())
-                return cls(name, actor, info["transport"], info["pipeline_depth"])
+                return cls(name, actor, info["transport"], info["pipeline_depth"], info["prefetch"])
             except ValueError:
                 if time.monotonic() > deadline:
                     raise ChannelError(
@@ -245,7 +272,7 @@ class Channel:
                 time.sleep(0.1)
 
     def __reduce__(self):
-        return (Channel, (self.name, self._actor, self.transport, self.pipeline_depth))
+        return (Channel, (self.name, self._actor, self.transport, self.pipeline_depth, self.prefetch))
 
     # ------------------------------------------------------------------ sync API
     def put(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout: float | None = None) -> None:
@@ -271,6 +298,12 @@ class Channel:
         self._note_consumers(consumers)
 
     def get(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
+        if self.prefetch > 1:
+            buffered = self._prefetched.setdefault(key, deque())
+            if not buffered:
+                buffered.extend(self._call(self._actor.get_many.remote(key, os.getpid(), self.prefetch, timeout)))
+            envelope, _ = buffered.popleft()
+            return unpack(envelope)
         envelope, _ = self._call(self._actor.get.remote(key, os.getpid(), timeout))
         return unpack(envelope)
 

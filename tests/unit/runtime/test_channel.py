@@ -283,6 +283,7 @@ class PipelinedProducer(Worker):
 def test_pipelined_puts_keep_order_and_backpressure(ray_cluster):
     ch = Channel.create(f"pipe-{time.time_ns()}", maxsize=5, pipeline_depth=4)
     assert Channel.connect(ch.name).pipeline_depth == 4
+    reader = Channel.create(f"pipe-read-{time.time_ns()}", prefetch=8)
     producers = WorkerGroup.launch(PipelinedProducer, "pipe-producer", num_ranks=2)
     try:
         done = producers.call_each("produce", [(ch, 0, 300), (ch, 1000, 300)])
@@ -291,6 +292,13 @@ def test_pipelined_puts_keep_order_and_backpressure(ray_cluster):
         assert not done.done(), "producers must be held back while the channel is full"
         got = [ch.get(key="k") for _ in range(600)]
         assert done.wait(timeout=120) == [300, 300]
+        for i in range(20):
+            reader.put(i)
+        assert [reader.get() for _ in range(20)] == list(range(20))  # prefetched, in order
+        assert Channel.connect(reader.name).prefetch == 8
+        reader.close()
+        with pytest.raises(ChannelClosed):
+            reader.get()
         for lo in (0, 1000):
             mine = [x for x in got if lo <= x < lo + 300]
             assert mine == list(range(lo, lo + 300)), "per-producer FIFO must survive pipelining"
@@ -298,3 +306,5 @@ def test_pipelined_puts_keep_order_and_backpressure(ray_cluster):
         producers.shutdown()
     with pytest.raises(ChannelError, match="pipeline_depth must be >= 0"):
         Channel.create("bad-depth", pipeline_depth=-1)
+    with pytest.raises(ChannelError, match="prefetch must be >= 1"):
+        Channel.create("bad-prefetch", prefetch=0)
