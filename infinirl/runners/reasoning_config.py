@@ -97,6 +97,7 @@ class ReasoningConfig:
         from infinirl.runners.metrics_log import KNOWN_LOGGERS
         from infinirl.runtime.placement import PlacementError, parse_spec
 
+        _check_model_path(self.model.path)
         for key in ("steps", "prompts_per_step"):
             if getattr(self, key) <= 0:
                 raise ConfigError(f"{key}={getattr(self, key)} must be > 0")
@@ -130,3 +131,17 @@ class ReasoningConfig:
                 parse_spec(spec, component)
             except PlacementError as exc:
                 raise ConfigError(f"placement.{component}: {exc}") from None
+
+
+def _check_model_path(path: str) -> None:
+    """Fail at validation (not inside a worker) for a model folder that does not exist."""
+    from pathlib import Path
+
+    from infinirl.models.smollm2 import MODEL_NAME
+
+    looks_like_hub_id = path.count("/") == 1 and not path.startswith((".", "/", "~"))
+    if path != MODEL_NAME and not looks_like_hub_id and not Path(path).expanduser().is_dir():
+        raise ConfigError(
+            f"model.path={path!r} is not a folder; pass a local Hugging Face model folder or the "
+            f"embedded default '{MODEL_NAME}'"
+        )

@@ -27,6 +27,7 @@ def test_defaults_validate():
     ({"placement": {"actor": "0", "rollout": "0", "reward": "x"}}, r"placement.reward"),
     ({"task": {"source": "hub"}}, r"task.source='hub' is not allowed.*reasoning_gym, dataset"),
     ({"rollout": {"max_new_token": 5}}, r"Did you mean 'rollout.max_new_tokens'"),
+    ({"model": {"path": "/no/such/model"}}, r"model.path='/no/such/model' is not a folder"),
 ])
 def test_bad_values_are_named(raw, message):
     with pytest.raises(ConfigError, match=message):
