@@ -11,15 +11,14 @@ from infinirl.runtime import WeightSink, Worker
 class RolloutWorker(Worker, WeightSink):
     """One rank of the inference engine. Rollout ranks are data-parallel over prompts."""
 
-    def __init__(self, model: str, dtype: str = "float32", max_batch_size: int = 64, num_threads: int = 0):
-        from infinirl.engines.hf_generate import HFGenerateEngine
-        from infinirl.models.hf_causal_lm import load_causal_lm
+    def __init__(self, model: str, dtype: str = "float32", max_batch_size: int = 64, num_threads: int = 0,
+                 engine: str = "hf", engine_options: dict | None = None):
+        from infinirl.engines.registry import build_rollout_engine
 
         if num_threads:
             torch.set_num_threads(num_threads)
         device = "cuda" if self.device == "cuda" else "cpu"
-        self.model, self.tokenizer = load_causal_lm(model, dtype=dtype, device=device)
-        self.engine = HFGenerateEngine(self.model, self.tokenizer, max_batch_size=max_batch_size)
+        self.engine = build_rollout_engine(engine, model, dtype, device, max_batch_size, engine_options)
 
     def generate(self, prompt_ids: list[list[int]], sampling: SamplingParams) -> list[GenerationResult]:
         return self.engine.generate(prompt_ids, sampling)

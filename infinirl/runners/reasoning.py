@@ -43,7 +43,8 @@ def run(cfg: ReasoningConfig) -> dict:
                                    args=(cfg.model.path, cfg.actor, cfg.algorithm.objective, cfg.num_threads))
         rollout = WorkerGroup.launch(RolloutWorker, "rollout", placement=plan.ranks("rollout"),
                                      args=(cfg.model.path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
-                                           cfg.rollout.num_threads or cfg.num_threads))
+                                           cfg.rollout.num_threads or cfg.num_threads, cfg.rollout.engine,
+                                           cfg.rollout.engine_options))
         reward = WorkerGroup.launch(RewardWorker, "reward", placement=plan.ranks("reward"),
                                     args=(cfg.model.path, cfg.task.verifier, cfg.task.format_bonus))
         flow = ReasoningFlow(cfg, actor, rollout, reward, tokenizer)

@@ -50,6 +50,10 @@ class RolloutConfig:
     """Sequences decoded together per rollout rank (bounds KV-cache memory)."""
     num_threads: int = 0
     """torch threads per rollout rank (0 = torch default)."""
+    engine: str = "hf"
+    """Inference engine by registered name: hf (transformers, runs anywhere) | vllm (optional extra)."""
+    engine_options: dict[str, Any] = field(default_factory=dict)
+    """Extra keyword options passed to the engine's constructor."""
 
 
 @dataclass
@@ -94,6 +98,7 @@ class ReasoningConfig:
 
     def validate(self) -> None:
         from infinirl.algorithms import ADVANTAGES, AGGREGATIONS, KL_ESTIMATORS
+        from infinirl.engines.registry import ROLLOUT_ENGINES
         from infinirl.runners.metrics_log import KNOWN_LOGGERS
         from infinirl.runtime.placement import PlacementError, parse_spec
 
@@ -113,6 +118,7 @@ class ReasoningConfig:
             ("algorithm.advantage", ADVANTAGES, self.algorithm.advantage),
             ("algorithm.objective.aggregation", AGGREGATIONS, self.algorithm.objective.aggregation),
             ("algorithm.objective.kl_estimator", KL_ESTIMATORS, self.algorithm.objective.kl_estimator),
+            ("rollout.engine", ROLLOUT_ENGINES, self.rollout.engine),
         ):
             if value not in registry:
                 raise ConfigError(f"{key}={value!r} is not registered; registered: {', '.join(registry.names())}")

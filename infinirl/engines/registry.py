@@ -1,0 +1,33 @@
+"""Rollout (inference) engines by name, so ``rollout.engine: vllm`` is configuration, not code.
+
+Each entry is a factory ``(model, dtype, device, max_batch_size, options) -> InferenceEngine``.
+Factories import their engine lazily: the vLLM entry must not import vLLM in a process that only
+ever uses the transformers engine (vLLM is an optional extra with its own pins).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from infinirl.engines.base import InferenceEngine
+from infinirl.registry import Registry
+
+EngineFactory = Callable[[str, str, str, int, dict[str, Any]], InferenceEngine]
+
+ROLLOUT_ENGINES: Registry[EngineFactory] = Registry("rollout engine", entry_point_group="infinirl.rollout_engines")
+
+
+@ROLLOUT_ENGINES.register("hf")
+def _hf_generate(model: str, dtype: str, device: str, max_batch_size: int, options: dict[str, Any]) -> InferenceEngine:
+    """The transformers engine: runs anywhere torch does (the CPU default)."""
+    from infinirl.engines.hf_generate import HFGenerateEngine
+    from infinirl.models.hf_causal_lm import load_causal_lm
+
+    hf_model, tokenizer = load_causal_lm(model, dtype=dtype, device=device)
+    return HFGenerateEngine(hf_model, tokenizer, max_batch_size=max_batch_size, **options)
+
+
+def build_rollout_engine(name: str, model: str, dtype: str, device: str, max_batch_size: int,
+                         options: dict[str, Any] | None = None) -> InferenceEngine:
+    return ROLLOUT_ENGINES.get(name)(model, dtype, device, max_batch_size, dict(options or {}))
