@@ -1,0 +1,99 @@
+"""The one interface every embodied policy implements (MLP, CNN, flow-matching, later VLAs).
+
+Runners and the PPO/GRPO/SAC code only ever call :meth:`Policy.act` (rollout side) and
+:meth:`Policy.evaluate` (trainer side), so a new policy family is a new module plus one
+``@POLICIES.register`` line, never an edit of a runner.
+
+Shapes (``B`` = batch of envs, ``K`` = action-chunk length, ``A`` = action dims):
+
+* ``actions``: ``[B, K, A]`` float for continuous spaces, ``[B, K]`` long for discrete ones.
+* ``logprobs`` / ``entropy``: ``[B, K]``: one number per action of the chunk (summed over the
+  action dims), so advantages can be credited per action *or* per chunk (sum over ``K``).
+* ``values``: ``[B]``: one value per observation (the chunk is one decision).
+* ``extras``: tensors the rollout must hand back to :meth:`evaluate` to recompute the same
+  log-probabilities (a flow policy's denoising trajectory; empty for Gaussian heads). They travel
+  with the batch, so the trainer never re-samples.
+
+Observations arrive as a dict of tensors with a leading batch dim (``state``, ``proprio``,
+``rgb`` uint8 ``[B, H, W, 3]``); ``prepare_obs`` turns the env's numpy dict into that.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from infinirl.registry import Registry
+
+POLICIES: Registry[type] = Registry("policy", entry_point_group="infinirl.policies")
+
+
+@dataclass
+class PolicyStep:
+    """What :meth:`Policy.act` returns for a batch of observations."""
+
+    actions: torch.Tensor
+    logprobs: torch.Tensor
+    values: torch.Tensor | None = None
+    extras: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+@dataclass
+class PolicyEval:
+    """What :meth:`Policy.evaluate` returns: differentiable log-probs (and entropy, values)."""
+
+    logprobs: torch.Tensor
+    entropy: torch.Tensor | None = None
+    values: torch.Tensor | None = None
+
+
+class Policy(nn.Module):
+    """Base class: subclasses set ``action_dim``/``chunk`` and implement ``act``/``evaluate``."""
+
+    action_dim: int
+    chunk: int = 1
+    has_value_head: bool = False
+
+    def act(self, obs: dict[str, torch.Tensor], deterministic: bool = False) -> PolicyStep:
+        raise NotImplementedError
+
+    def evaluate(self, obs: dict[str, torch.Tensor], actions: torch.Tensor,
+                 extras: dict[str, torch.Tensor] | None = None, with_entropy: bool = True) -> PolicyEval:
+        raise NotImplementedError
+
+    def value(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        raise NotImplementedError(f"{type(self).__name__} has no value head")
+
+
+def prepare_obs(obs: dict[str, Any], device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+    """Env numpy observations -> tensors (text fields such as ``instruction`` are left as lists)."""
+    out: dict[str, Any] = {}
+    for key, value in obs.items():
+        if isinstance(value, np.ndarray):
+            out[key] = torch.as_tensor(value, device=device)
+        elif isinstance(value, torch.Tensor):
+            out[key] = value.to(device)
+        else:
+            out[key] = value
+    return out
+
+
+def build_policy(name: str, **kwargs) -> Policy:
+    """Instantiate a registered policy (``mlp_gaussian``, ...) with its keyword options."""
+    _import_builtin_policies()
+    return POLICIES.get(name)(**kwargs)
+
+
+def _import_builtin_policies() -> None:
+    import importlib
+    import pkgutil
+
+    import infinirl.models.policies as package
+
+    for module in pkgutil.iter_modules(package.__path__):
+        if module.name != "base":
+            importlib.import_module(f"{package.__name__}.{module.name}")
