@@ -1,4 +1,4 @@
-"""`infinirl` command line: train / validate / list, on Hydra configs validated before anything starts."""
+"""`infinirl` command line: train / eval / validate / list, on Hydra configs validated before anything starts."""
 
 from __future__ import annotations
 
@@ -8,14 +8,23 @@ import sys
 from infinirl.config import ConfigError, available_configs, check_override_keys, compose, to_dataclass
 
 
-def _build_config(name: str, overrides: list[str]):
+def _runners():
     from infinirl.runners import load_runners
 
+    import infinirl.evaluation.runner  # noqa: F401  (registers runner `eval`)
+
+    return load_runners()
+
+
+def _build_config(name: str, overrides: list[str], command: str = "train"):
     runner_name = compose(name).get("runner")
     if not runner_name:
-        raise ConfigError(f"config '{name}' has no 'runner:' key; set one of: {', '.join(load_runners().names())}")
+        raise ConfigError(f"config '{name}' has no 'runner:' key; set one of: {', '.join(_runners().names())}")
+    if command == "eval" and runner_name != "eval":
+        raise ConfigError(f"config '{name}' is a training config (runner {runner_name}); `infinirl eval` takes an "
+                          f"eval config (default: eval) and run_dir=<the run's output_dir> for its checkpoint")
     try:
-        spec = load_runners().get(runner_name)
+        spec = _runners().get(runner_name)
     except KeyError as exc:
         raise ConfigError(f"runner: {exc}") from None
     check_override_keys(spec.config_cls, overrides)
@@ -34,29 +43,41 @@ def main(argv: list[str] | None = None) -> int:
         description="InfiniRL: RL post-training for LLMs, VLAs and robot policies, from a laptop CPU to a cluster.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for command, text in (("train", "run a job"), ("validate", "check a config without running it")):
+    default_config = {"train": "default", "eval": "eval", "validate": "default"}
+    for command, text, example in (
+        ("train", "run a job", "steps=10 placement.learner=0"),
+        ("eval", "greedy accuracy, pass@1 and pass@k of a model or a training run's checkpoint",
+         "run_dir=runs/grpo_chain_sum samples=8 k=[1,8]"),
+        ("validate", "check a config without running it", "steps=10"),
+    ):
+        default = default_config[command]
         p = sub.add_parser(command, help=text)
-        p.add_argument("config", nargs="?", default="default",
-                       help=f"config name (default: default). Available: {', '.join(available_configs())}")
-        p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. steps=10 placement.learner=0")
+        p.add_argument("config", nargs="?", default=default,
+                       help=f"config name (default: {default}). Available: {', '.join(available_configs())}")
+        p.add_argument("overrides", nargs="*", help=f"key=value overrides, e.g. {example}")
     sub.add_parser("list", help="list configs and runners")
     args = parser.parse_args(argv)
+    if "=" in (getattr(args, "config", None) or ""):  # `infinirl eval run_dir=...`: no config name given
+        args.overrides.insert(0, args.config)
+        args.config = default_config[args.command]
 
     if args.command == "list":
-        from infinirl.runners import load_runners
-
+        runners = _runners()
         print("configs:", ", ".join(available_configs()))
-        for name in load_runners().names():
-            print(f"runner {name}: {load_runners().get(name).summary}")
+        for name in runners.names():
+            print(f"runner {name}: {runners.get(name).summary}")
         return 0
     try:
-        spec, cfg = _build_config(args.config, args.overrides)
+        spec, cfg = _build_config(args.config, args.overrides, args.command)
+        if args.command == "validate":
+            print(f"config '{args.config}' is valid (runner {spec.name})")
+            return 0
+        if args.command == "eval":  # its data is read before any worker starts: bad input is a config error
+            spec.run(cfg)
+            return 0
     except ConfigError as exc:
         print(f"infinirl: config error: {exc}", file=sys.stderr)
         return 2
-    if args.command == "validate":
-        print(f"config '{args.config}' is valid (runner {spec.name})")
-        return 0
     spec.run(cfg)
     return 0
 

@@ -24,7 +24,7 @@ class RunnerSpec:
 RUNNERS: Registry[RunnerSpec] = Registry("runner", entry_point_group="infinirl.runners")
 
 # Modules that define runners; imported lazily so `infinirl --help` stays fast.
-_RUNNER_MODULES = ("infinirl.runners.runtime_demo", "infinirl.runners.reasoning")
+_RUNNER_MODULES = ("infinirl.runners.runtime_demo", "infinirl.runners.reasoning", "infinirl.evaluation.runner")
 
 
 def register_runner(name: str, config_cls: type, summary: str):
