@@ -47,8 +47,12 @@ class MLPGaussianPolicy(Policy):
         self.has_value_head = value_head
         self.critic = mlp([obs_dim, *hidden, 1], out_gain=1.0) if value_head else None
 
+    def _obs(self, obs) -> torch.Tensor:
+        # Cast to the parameters' dtype (not a fixed float32), so .double()/bf16 policies work.
+        return obs[self.obs_key].to(self.log_std.dtype)
+
     def _mean(self, obs) -> torch.Tensor:
-        return self.actor(obs[self.obs_key].float())
+        return self.actor(self._obs(obs))
 
     def act(self, obs, deterministic: bool = False) -> PolicyStep:
         mean = self._mean(obs)
@@ -66,7 +70,9 @@ class MLPGaussianPolicy(Policy):
         mean = self._mean(obs)
         batch = mean.shape[0]
         log_std = self.log_std.expand_as(mean)
-        logprobs = gaussian_logprob(actions.reshape(batch, -1), mean, log_std)
+        # Actions are data here (detached): scored as given, never differentiated through (act's
+        # reparameterised samples would otherwise cancel the mean's and log-std's gradients).
+        logprobs = gaussian_logprob(actions.detach().reshape(batch, -1), mean, log_std)
         entropy = None
         if with_entropy:
             entropy = (0.5 + 0.5 * math.log(2 * math.pi) + log_std).view(batch, self.chunk, self.action_dim).sum(-1)
@@ -79,4 +85,4 @@ class MLPGaussianPolicy(Policy):
     def value(self, obs) -> torch.Tensor:
         if self.critic is None:
             raise NotImplementedError("MLPGaussianPolicy was built with value_head=False")
-        return self.critic(obs[self.obs_key].float()).squeeze(-1)
+        return self.critic(self._obs(obs)).squeeze(-1)
