@@ -52,7 +52,7 @@ from infinirl.algorithms.losses import (
     truncated_importance_weight,
     value_loss,
 )
-from infinirl.algorithms.masking import masked_mean, masked_whiten, zero_outside
+from infinirl.algorithms.masking import explained_variance, masked_mean, masked_whiten, zero_outside
 from infinirl.algorithms.registry import (
     ADVANTAGES,
     AGGREGATIONS,
@@ -96,6 +96,7 @@ __all__ = [
     "embodied_grpo",
     "entropy_from_logits",
     "entropy_loss",
+    "explained_variance",
     "gae",
     "group_index",
     "group_is_informative",

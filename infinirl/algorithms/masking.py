@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 __all__ = [
+    "explained_variance",
     "last_valid_index",
     "masked_max",
     "masked_mean",
@@ -62,6 +63,21 @@ def masked_whiten(values: torch.Tensor, mask: torch.Tensor, eps: float = 1e-8) -
     mean = masked_mean(values, mask)
     var = masked_mean((values - mean) ** 2, mask)
     return zero_outside((values - mean) * torch.rsqrt(var + eps), mask)
+
+
+def explained_variance(values: torch.Tensor, returns: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``1 - Var(returns - values) / Var(returns)`` over the valid entries: how much of the return's
+    variance the critic explains (1 perfect, 0 no better than a constant, < 0 worse than one).
+
+    Population variances over all valid tokens of the batch; 0 (not NaN) when the returns do not
+    vary, as there is nothing to explain.
+    """
+    var_returns = masked_mean((returns - masked_mean(returns, mask)) ** 2, mask)
+    residual = returns - values
+    var_residual = masked_mean((residual - masked_mean(residual, mask)) ** 2, mask)
+    if var_returns <= 0:
+        return var_returns.new_zeros(())
+    return 1.0 - var_residual / var_returns
 
 
 def last_valid_index(mask: torch.Tensor) -> torch.Tensor:

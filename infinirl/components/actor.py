@@ -1,4 +1,4 @@
-"""Actor component: the FSDP2 trainer of the policy (and, with frozen weights, the reference).
+"""Actor component: the FSDP2 trainer of the policy (and, for a LoRA actor, the reference).
 
 Each rank gets its data-parallel share of the mini-batch plus the *global* aggregation
 normaliser, so the update equals the single-process update whatever the number of ranks.
@@ -32,6 +32,11 @@ class ActorWorker(Worker, WeightSource):
         logprobs, _ = self.engine.compute_logprobs(batch)
         return logprobs
 
+    def compute_ref_logprobs(self, batch: TensorDict) -> torch.Tensor:
+        """Log-probs of the initial policy: a LoRA actor's frozen base with the adapter off."""
+        logprobs, _ = self.engine.compute_logprobs(batch, adapter=False)
+        return logprobs
+
     def train_step(self, shard: TensorDict, normaliser: float) -> dict:
         """One optimizer step on this rank's share of a mini-batch.
 
@@ -46,14 +51,7 @@ class ActorWorker(Worker, WeightSource):
         return self.engine.train_step(shard, loss_fn, with_entropy=self.objective.entropy_coef > 0)
 
     def weights_digest(self) -> str:
-        """SHA-256 over the full weights (all ranks take part): resume tests compare these."""
-        import hashlib
-
-        digest = hashlib.sha256()
-        for name, tensor in self.engine.state_dict_for_sync():
-            digest.update(name.encode())
-            digest.update(tensor.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
-        return digest.hexdigest()
+        return engine_digest(self.engine)
 
     def weights_for_sync(self):
         return self.engine.state_dict_for_sync(dtype=self.sync_dtype)
@@ -69,3 +67,14 @@ class ActorWorker(Worker, WeightSource):
 
     def reload(self) -> None:
         self.engine.reload()
+
+
+def engine_digest(engine) -> str:
+    """SHA-256 over an engine's full weights (all ranks take part): resume tests compare these."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for name, tensor in engine.state_dict_for_sync():
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()

@@ -18,6 +18,14 @@ reduce-scatter sums and nothing divides. (``SUM`` rather than NCCL's ``PREMUL_SU
 All collectives must match across ranks, so ranks with fewer micro-batches than the busiest rank
 run zero-loss filler passes (see :meth:`FSDPTrainEngine._micro_batch_plan`).
 
+Policies, critics and references
+--------------------------------
+One engine serves the three model roles of PPO. ``output="logprobs"`` (a causal LM: the actor, or
+with ``trainable=False`` a frozen reference) gives per-token log-probs; ``output="values"`` (a
+token-classification model with one label: backbone + scalar value head, the critic) gives
+per-token values. Both come in the aligned layout of :mod:`infinirl.data.batch`, and the loss
+contract, sharding, micro-batching and checkpoints are the same code for all three.
+
 Process groups
 --------------
 :func:`init_distributed` joins the default group from ``RANK/WORLD_SIZE/MASTER_ADDR/MASTER_PORT``
@@ -54,8 +62,8 @@ from torch.distributed.fsdp import FSDPModule, MixedPrecisionPolicy, fully_shard
 from torch.distributed.tensor import DTensor
 
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS
-from infinirl.engines.logprobs import aligned_logprobs
-from infinirl.engines.train_base import LoraSettings, LossFn, LrSchedule, TrainEngineConfig
+from infinirl.engines.logprobs import aligned_logprobs, aligned_values
+from infinirl.engines.train_base import LoraSettings, LossFn, LrSchedule, TrainEngineConfig, TrainOutput
 
 ModelOrFactory = nn.Module | Callable[[], nn.Module]
 
@@ -152,17 +160,35 @@ def _enable_activation_checkpointing(model: nn.Module) -> None:
         model.gradient_checkpointing_enable(gradient_checkpointing_kwargs=kwargs)
 
 
-def _apply_lora(model: nn.Module, settings: LoraSettings) -> nn.Module:
+def _apply_lora(
+    model: nn.Module, settings: LoraSettings, fully_trained: list[str] | None = None
+) -> nn.Module:
+    """Wrap ``model`` with LoRA adapters; modules named in ``fully_trained`` (a critic's freshly
+    initialised value head) get no adapter and train in full (peft's ``modules_to_save``)."""
     from peft import LoraConfig, get_peft_model
     from peft.tuners.lora import Linear as LoraLinear
     from peft.tuners.lora import LoraLayer
 
+    layers = None
+    if settings.top_layers:
+        total = int(model.config.num_hidden_layers)
+        if not 0 < settings.top_layers <= total:
+            raise ValueError(f"lora.top_layers={settings.top_layers}: the model has {total} decoder layers; "
+                             f"use 1..{total}, or 0 for all")
+        layers = list(range(total - settings.top_layers, total))
+    targets = settings.target_modules
+    if layers is not None and targets == "all-linear":  # peft wants explicit names with a layer filter
+        skip = {"lm_head", *(fully_trained or [])}
+        targets = sorted({name.rsplit(".", 1)[-1] for name, module in model.named_modules()
+                          if isinstance(module, nn.Linear) and name.rsplit(".", 1)[-1] not in skip})
     config = LoraConfig(
         r=settings.r,
         lora_alpha=settings.alpha,
-        target_modules=settings.target_modules,
+        target_modules=targets,
         lora_dropout=settings.dropout,
         bias="none",
+        modules_to_save=fully_trained,
+        layers_to_transform=layers,
     )
     peft_model = get_peft_model(model, config)
     for name, module in peft_model.named_modules():
@@ -172,6 +198,18 @@ def _apply_lora(model: nn.Module, settings: LoraSettings) -> nn.Module:
                 "supported (their merge for weight sync is implemented). Narrow target_modules."
             )
     return peft_model
+
+
+def _value_head_name(model: nn.Module) -> str:
+    """The attribute holding a token-classification model's output layer (``score`` in
+    transformers' generic heads, ``classifier`` in some older families)."""
+    for name in ("score", "classifier"):
+        if isinstance(getattr(model, name, None), nn.Linear):
+            return name
+    raise ValueError(
+        f"{type(model).__name__} has no 'score'/'classifier' linear head; a critic needs a "
+        "token-classification model with one output (backbone + scalar value head)"
+    )
 
 
 def _decoder_layers(model: nn.Module) -> list[nn.Module]:
@@ -247,10 +285,29 @@ class FSDPTrainEngine:
             ranks; it must be deterministic (pretrained weights are). Weights become float32
             master weights; ``cfg.param_dtype`` only sets the compute dtype.
         cfg: optimiser, schedule, batching, precision, LoRA (see :class:`TrainEngineConfig`).
+        output: what the model's per-token output means. ``"logprobs"``: an HF causal LM whose
+            logits become aligned token log-probs (policy, reference). ``"values"``: an HF
+            token-classification model with one label whose outputs become aligned values
+            (critic): ``values[:, t]`` is read from the hidden state *before* token ``t``, the
+            state in which token ``t`` is chosen, as GAE expects.
+        trainable: ``False`` freezes every weight and builds no optimizer (a reference policy):
+            only the forward methods work, and no gradient memory is ever allocated.
     """
 
-    def __init__(self, model: ModelOrFactory, cfg: TrainEngineConfig):
+    def __init__(
+        self,
+        model: ModelOrFactory,
+        cfg: TrainEngineConfig,
+        output: TrainOutput = "logprobs",
+        trainable: bool = True,
+    ):
+        if output not in ("logprobs", "values"):
+            raise ValueError(f"FSDPTrainEngine: output must be 'logprobs' or 'values', got {output!r}")
+        if not trainable and cfg.lora is not None:
+            raise ValueError("FSDPTrainEngine: a frozen engine (trainable=False) takes no LoRA adapters")
         self.cfg = cfg
+        self.output = output
+        self.trainable = trainable
         device_type = _device_type(cfg.device)
         init_distributed(device_type)
         self.rank = dist.get_rank()
@@ -266,47 +323,106 @@ class FSDPTrainEngine:
             _enable_activation_checkpointing(model)
         self._lora_plan: dict[str, tuple[float, bool]] = {}
         if cfg.lora is not None:
-            model = _apply_lora(model, cfg.lora)
+            heads = [_value_head_name(model)] if output == "values" else None
+            model = _apply_lora(model, cfg.lora, fully_trained=heads)
             self._lora_plan = _lora_merge_plan(model)
+        if not trainable:
+            model.requires_grad_(False)
         self.mesh = init_device_mesh(self.device.type, (self.world_size,))
         self.model = _shard(model, self.mesh, self.compute_dtype)
 
-        trainable = [p for p in self.model.parameters() if p.requires_grad]
-        if not trainable:
-            raise ValueError("FSDPTrainEngine: the model has no trainable parameters")
-        self.optimizer = torch.optim.AdamW(
-            trainable, lr=cfg.lr, betas=cfg.betas, eps=cfg.eps, weight_decay=cfg.weight_decay
-        )
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, LrSchedule(cfg))
+        self.optimizer: torch.optim.Optimizer | None = None
+        self.scheduler: torch.optim.lr_scheduler.LambdaLR | None = None
+        if trainable:
+            params = [p for p in self.model.parameters() if p.requires_grad]
+            if not params:
+                raise ValueError("FSDPTrainEngine: the model has no trainable parameters")
+            self.optimizer = torch.optim.AdamW(
+                params, lr=cfg.lr, betas=cfg.betas, eps=cfg.eps, weight_decay=cfg.weight_decay
+            )
+            self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, LrSchedule(cfg))
         self.global_step = 0
         self._offloaded = False
         _seed_all(cfg.seed + self.rank)  # runtime randomness (dropout) differs per rank
 
     @classmethod
     def from_pretrained(
-        cls, name_or_path: str, cfg: TrainEngineConfig, **hf_kwargs
+        cls,
+        name_or_path: str,
+        cfg: TrainEngineConfig,
+        output: TrainOutput = "logprobs",
+        trainable: bool = True,
+        **hf_kwargs,
     ) -> FSDPTrainEngine:
-        """Build from an HF checkpoint directory (loaded in float32 on every rank)."""
-        from transformers import AutoModelForCausalLM
+        """Build from an HF checkpoint directory (loaded in float32 on every rank).
+
+        With ``output="values"`` the checkpoint (usually the policy's own causal LM) becomes a
+        critic: its backbone under a new scalar value head (``AutoModelForTokenClassification``
+        with one label, as verl does), without dropout, and with the head initialised to zero so
+        every value starts at 0 (GAE then starts as the plain reward-to-go, not from noise).
+        """
+        from transformers import AutoConfig, AutoModelForCausalLM, AutoModelForTokenClassification
 
         def factory() -> nn.Module:
-            return AutoModelForCausalLM.from_pretrained(
-                name_or_path, dtype=torch.float32, **hf_kwargs
-            )
+            if output == "logprobs":
+                return AutoModelForCausalLM.from_pretrained(
+                    name_or_path, dtype=torch.float32, **hf_kwargs
+                )
+            config = AutoConfig.from_pretrained(name_or_path, num_labels=1)
+            config.classifier_dropout = 0.0  # noise in the regression target's fit: none
+            try:
+                model = AutoModelForTokenClassification.from_pretrained(
+                    name_or_path, config=config, dtype=torch.float32, **hf_kwargs
+                )
+            except ValueError as exc:  # transformers: "Unrecognized configuration class ..."
+                raise ValueError(
+                    f"cannot build a critic from {name_or_path}: transformers has no "
+                    f"token-classification head for this architecture ({exc})"
+                ) from None
+            head = getattr(model, _value_head_name(model))
+            with torch.no_grad():
+                head.weight.zero_()
+                if head.bias is not None:
+                    head.bias.zero_()
+            return model
 
-        return cls(factory, cfg)
+        return cls(factory, cfg, output=output, trainable=trainable)
 
     # ------------------------------------------------------------------ forward
 
     @torch.no_grad()
     def compute_logprobs(
-        self, batch: TensorDict | Mapping[str, torch.Tensor], with_entropy: bool = False
+        self,
+        batch: TensorDict | Mapping[str, torch.Tensor],
+        with_entropy: bool = False,
+        adapter: bool = True,
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Aligned ``[B, L]`` float32 log-probs (and entropies) of this rank's batch, no grad.
 
+        ``adapter=False`` scores with the LoRA adapters switched off: the frozen base model, which
+        is the initial policy, i.e. the reference of a LoRA actor at no extra memory.
         Collective: every rank must call it (with its own, possibly differently sized, batch).
         """
-        self._require_on_device("compute_logprobs")
+        self._require_output("logprobs", "compute_logprobs")
+        if adapter:
+            return self._forward_only(batch, with_entropy)
+        if not self._lora_plan:
+            raise ValueError("compute_logprobs(adapter=False) needs a LoRA engine (cfg.lora is None)")
+        with self.model.disable_adapter():
+            return self._forward_only(batch, with_entropy)
+
+    @torch.no_grad()
+    def compute_values(self, batch: TensorDict | Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """Aligned ``[B, L]`` float32 values of this rank's batch (0 at position 0 and on padding),
+        no grad. Collective, like :meth:`compute_logprobs`."""
+        self._require_output("values", "compute_values")
+        values, _ = self._forward_only(batch, with_entropy=False)
+        return values
+
+    def _forward_only(
+        self, batch: TensorDict | Mapping[str, torch.Tensor], with_entropy: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        self._require_on_device("compute_logprobs" if self.output == "logprobs" else "compute_values")
         batch = _as_tensordict(batch).to(self.device)
         self.model.eval()
         micro_batches, passes = self._micro_batch_plan(batch)
@@ -346,6 +462,9 @@ class FSDPTrainEngine:
             position_ids=position_ids,
             use_cache=False,
         )
+        if self.output == "values":
+            values = aligned_values(output.logits.squeeze(-1), attention_mask)
+            return _pad_columns(values, full_width), None
         logprobs, entropy = aligned_logprobs(
             output.logits,
             input_ids,
@@ -388,7 +507,8 @@ class FSDPTrainEngine:
         """One optimizer step on this rank's share of a mini-batch.
 
         ``loss_fn(micro_batch, logprobs, entropy)`` runs per micro-batch; gradients are summed over
-        micro-batches and ranks (the loss carries the global normaliser). Collective.
+        micro-batches and ranks (the loss carries the global normaliser). Collective. For a value
+        engine the second argument holds the values (and the entropy is ``None``).
 
         Returns the loss function's metrics averaged over all micro-batches of all ranks, plus
         ``train/loss`` (the mini-batch loss: summed, like the gradients), ``train/grad_norm``
@@ -396,6 +516,7 @@ class FSDPTrainEngine:
         (1 when the gradient was not finite and the update was skipped) and ``time/train_step``.
         """
         start = time.perf_counter()
+        self._require_trainable("train_step")
         self._require_on_device("train_step")
         batch = _as_tensordict(batch).to(self.device)
         self.model.train()
@@ -533,6 +654,7 @@ class FSDPTrainEngine:
         error the temporary directory is removed. With several nodes ``path`` must be on a shared
         filesystem (every rank writes its own shards). Collective.
         """
+        self._require_trainable("save_checkpoint")
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
         with self._temporarily_on_device():
@@ -565,6 +687,7 @@ class FSDPTrainEngine:
         rank 0's when the checkpoint came from fewer ranks. The lr schedule's position *and* its
         parameters (warmup, horizon) come from the checkpoint, as ``LambdaLR`` stores them.
         """
+        self._require_trainable("load_checkpoint")
         path = Path(path)
         if not (path / _DCP_DIR).is_dir():
             raise FileNotFoundError(
@@ -628,7 +751,7 @@ class FSDPTrainEngine:
         self.model.to(
             device
         )  # FSDPModule._apply reshards first and re-registers the DTensor shards
-        for state in self.optimizer.state.values():
+        for state in (self.optimizer.state.values() if self.optimizer is not None else ()):
             for key, value in state.items():
                 if isinstance(value, torch.Tensor) and value.device != device and key != "step":
                     state[key] = value.to(device, non_blocking=True)
@@ -649,6 +772,17 @@ class FSDPTrainEngine:
     def _require_on_device(self, what: str) -> None:
         if self._offloaded:
             raise RuntimeError(f"{what}: the engine is offloaded; call reload() first")
+
+    def _require_trainable(self, what: str) -> None:
+        if not self.trainable:
+            raise RuntimeError(
+                f"{what}: this engine is frozen (trainable=False, a reference): it has no optimizer "
+                "state to train or checkpoint; rebuild it from the initial weights instead"
+            )
+
+    def _require_output(self, output: str, what: str) -> None:
+        if self.output != output:
+            raise RuntimeError(f"{what}: this engine outputs {self.output}, not {output}")
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -110,6 +110,23 @@ def aligned_logprobs(
     return logprobs, entropy
 
 
+def aligned_values(
+    values: torch.Tensor, attention_mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Per-position value-head outputs ``[B, L]`` -> aligned float32 ``[B, L]`` values.
+
+    The head at position ``t - 1`` has read ``input_ids[:, :t]``: the state in which token ``t`` is
+    chosen, whose value GAE pairs with token ``t``. So ``out[:, t] = values[:, t - 1]``, the same
+    shift as :func:`aligned_logprobs`; ``out[:, 0]`` and padded positions are 0.
+    """
+    if values.dim() != 2:
+        raise ValueError(f"aligned_values: expected [B, L] values, got {tuple(values.shape)}")
+    out = _shift_right(values.float())
+    if attention_mask is not None:
+        out = out.masked_fill(~attention_mask.to(torch.bool), 0.0)
+    return out
+
+
 def _shift_right(scores: torch.Tensor) -> torch.Tensor:
     """Move scores of token ``t + 1`` from column ``t`` to column ``t + 1``; column 0 becomes 0."""
     return torch.cat([scores.new_zeros(scores.shape[0], 1), scores[:, :-1]], dim=1)

@@ -18,12 +18,17 @@ from tensordict import TensorDict
 
 #: ``loss_fn(micro_batch, logprobs, entropy) -> (loss, metrics)``. ``logprobs``/``entropy`` are
 #: ``[b, L]`` in the aligned layout of :mod:`infinirl.data.batch` (``entropy`` is ``None`` unless
-#: requested). The engine *sums* gradients of ``loss`` over micro-batches and data-parallel ranks,
+#: requested; for a value engine the second argument holds the values, see :data:`TrainOutput`). The engine *sums* gradients of ``loss`` over micro-batches and data-parallel ranks,
 #: so the loss must already be normalised by a global (whole mini-batch, all ranks) denominator.
 LossFn = Callable[
     [TensorDict, torch.Tensor, "torch.Tensor | None"],
     "tuple[torch.Tensor, Mapping[str, float | torch.Tensor]]",
 ]
+
+
+#: What a training engine's model outputs per token: log-probs (a policy or a reference policy)
+#: or values (a critic: a backbone with a scalar value head).
+TrainOutput = Literal["logprobs", "values"]
 
 
 @dataclass
@@ -43,6 +48,10 @@ class LoraSettings:
     dropout: float = 0.0
     """Dropout on the adapter input. Non-zero makes training log-probs stochastic, which PPO
     ratios then see as noise; keep 0 unless you know you want it."""
+    top_layers: int = 0
+    """Adapt only the last N decoder layers (0 = all). Backpropagation then stops below the lowest
+    adapted layer, so a step costs roughly a forward pass plus N/num_layers of a backward pass:
+    the cheapest way to cut trainer time on a CPU when the task needs little capacity."""
 
 
 @dataclass
@@ -154,6 +163,9 @@ class TrainEngine(Protocol):
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Aligned ``[B, L]`` log-probs (and entropies) of ``batch['input_ids']``, without grad."""
 
+    def compute_values(self, batch: TensorDict) -> torch.Tensor:
+        """Aligned ``[B, L]`` values of ``batch['input_ids']`` (value engines), without grad."""
+
     def train_step(
         self, batch: TensorDict, loss_fn: LossFn, with_entropy: bool = False
     ) -> dict[str, float]:
@@ -177,4 +189,4 @@ class TrainEngine(Protocol):
         """Undo :meth:`offload`."""
 
 
-__all__ = ["LoraSettings", "LossFn", "LrSchedule", "TrainEngine", "TrainEngineConfig"]
+__all__ = ["LoraSettings", "LossFn", "LrSchedule", "TrainEngine", "TrainEngineConfig", "TrainOutput"]

@@ -1,8 +1,10 @@
-"""Reasoning RL (GRPO / Dr.GRPO / RLOO / REINFORCE++ / DAPO) on a Hugging Face model: the macro flow.
+"""Reasoning RL (GRPO / Dr.GRPO / RLOO / REINFORCE++ / DAPO / PPO) on a Hugging Face model: the macro flow.
 
 Read top to bottom: each step samples prompts, generates a group of responses per prompt, scores
-them, turns rewards into advantages, updates the actor, and syncs its weights into the rollout
-engine with a new version. Where components run (collocated or not) is placement, not code.
+them, runs the forward passes the update needs (reference log-probs for KL, critic values for
+PPO), turns rewards into advantages, updates the actor (and the critic), and syncs the actor's
+weights into the rollout engine with a new version. Where components run (collocated or not) is
+placement, not code.
 """
 
 from __future__ import annotations
@@ -12,23 +14,41 @@ import os
 import random
 import shutil
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
 
-from infinirl.algorithms import TokenAdvantageInputs, aggregation_normaliser, compute_advantages, overlong_penalty
+from infinirl.algorithms import (
+    TokenAdvantageInputs,
+    aggregation_normaliser,
+    compute_advantages,
+    explained_variance,
+    kl_penalty,
+    masked_mean,
+    masked_whiten,
+    overlong_penalty,
+)
 from infinirl.algorithms.filters import group_is_informative
 from infinirl.components.actor import ActorWorker
+from infinirl.components.critic import CriticWorker
+from infinirl.components.reference import ReferenceWorker
 from infinirl.components.reward import RewardWorker
 from infinirl.components.rollout import RolloutWorker
 from infinirl.config import to_plain
-from infinirl.data.batch import ROLLOUT_LOGPROBS, pack_sequences
+from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.runners import register_runner
 from infinirl.runners.metrics_log import MetricsLogger, plot_curves, read_metrics
 from infinirl.runners.reasoning_config import ReasoningConfig
-from infinirl.runners.reasoning_data import build_problem_sources
+from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
 from infinirl.runtime import Cluster, Tracer, WorkerGroup, place, sync_weights
+
+# Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
+# reference (KL), and the critic's values and regression targets.
+OLD_LOGPROBS, REF_LOGPROBS, VALUES, RETURNS = "old_logprobs", "ref_logprobs", "values", "returns"
+# What a forward-only pass needs of a batch (the rest stays in the driver).
+_FORWARD_KEYS = (INPUT_IDS, ATTENTION_MASK, POSITION_IDS)
 
 
 @register_runner("reasoning", ReasoningConfig, "GRPO/PPO-family RL with verifiable rewards on an HF causal LM")
@@ -36,31 +56,73 @@ def run(cfg: ReasoningConfig) -> dict:
     os.makedirs(cfg.output_dir, exist_ok=True)
     _seed_everything(cfg.seed)
     train_stream, eval_problems, tokenizer = build_problem_sources(cfg)
+    # Bad input fails before any worker starts: every eval prompt must fit (train prompts are
+    # checked as they are drawn).
+    encode_checked(eval_problems, tokenizer, cfg.task.system_prompt, cfg.rollout.max_prompt_length, "eval")
     with Cluster(cfg.cluster) as cluster:
-        plan = place(cluster.inventory, cfg.placement, components=["actor", "rollout", "reward"])
+        plan = place(cluster.inventory, cfg.placement_spec(), components=cfg.components())
         print(plan.describe(), flush=True)
-        actor = WorkerGroup.launch(ActorWorker, "actor", placement=plan.ranks("actor"),
-                                   args=(cfg.model.path, cfg.actor, cfg.algorithm.objective, cfg.num_threads))
-        rollout = WorkerGroup.launch(RolloutWorker, "rollout", placement=plan.ranks("rollout"),
-                                     args=(cfg.model.path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
-                                           cfg.rollout.num_threads or cfg.num_threads, cfg.rollout.engine,
-                                           cfg.rollout.engine_options))
-        reward = WorkerGroup.launch(RewardWorker, "reward", placement=plan.ranks("reward"),
-                                    args=(cfg.model.path, cfg.task.verifier, cfg.task.format_bonus))
-        flow = ReasoningFlow(cfg, actor, rollout, reward, tokenizer)
+        groups: dict[str, WorkerGroup] = {}
         try:
-            return flow.train(train_stream, eval_problems)
+            groups.update(_launch_components(cfg, plan))
+            flow = ReasoningFlow(cfg, groups["actor"], groups["rollout"], groups["reward"], tokenizer,
+                                 critic=groups.get("critic"), reference=groups.get("reference"))
+            try:
+                return flow.train(train_stream, eval_problems)
+            finally:
+                flow.close()
         finally:
-            flow.close()
-            for group in (actor, rollout, reward):
+            for group in groups.values():
                 group.shutdown()
+
+
+def _launch_components(cfg: ReasoningConfig, plan) -> dict[str, WorkerGroup]:
+    """Start every component's ranks at once (model loading overlaps), in a fixed order of names.
+    If one fails to start, the others are shut down and its error is raised."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    specs = {
+        "actor": (ActorWorker, (cfg.model.path, cfg.actor, cfg.algorithm.objective, cfg.num_threads)),
+        "rollout": (RolloutWorker, (cfg.model.path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
+                                    cfg.rollout.num_threads or cfg.num_threads, cfg.rollout.engine,
+                                    cfg.rollout.engine_options)),
+        "reward": (RewardWorker, (cfg.model.path, cfg.task.verifier, cfg.task.format_bonus)),
+        "critic": (CriticWorker, (cfg.critic_model_path, cfg.critic, cfg.critic.value_clip, cfg.num_threads)),
+        "reference": (ReferenceWorker, (cfg.model.path, _reference_engine(cfg), cfg.num_threads)),
+    }
+    names = cfg.components()
+    with ThreadPoolExecutor(max_workers=len(names)) as pool:
+        futures = {name: pool.submit(WorkerGroup.launch, specs[name][0], name, placement=plan.ranks(name),
+                                     args=specs[name][1]) for name in names}
+        launched, error = {}, None
+        for name in names:
+            try:
+                launched[name] = futures[name].result()
+            except BaseException as exc:  # noqa: BLE001 - re-raised below, after cleaning up
+                error = error or exc
+    if error is not None:
+        for group in launched.values():
+            group.shutdown()
+        raise error
+    return launched
+
+
+def _reference_engine(cfg: ReasoningConfig):
+    """The reference scores exactly like the initial actor: same dtype, temperature, chunking."""
+    micro = cfg.reference.micro_batch_size or cfg.actor.micro_batch_size
+    return replace(cfg.actor, micro_batch_size=micro)
 
 
 class ReasoningFlow:
     """The step logic, separated from process start-up so tests can drive it directly."""
 
-    def __init__(self, cfg: ReasoningConfig, actor, rollout, reward, tokenizer):
+    def __init__(self, cfg: ReasoningConfig, actor, rollout, reward, tokenizer, critic=None, reference=None):
         self.cfg, self.actor, self.rollout, self.reward, self.tokenizer = cfg, actor, rollout, reward, tokenizer
+        self.critic, self.reference = critic, reference
+        if cfg.uses_critic and critic is None:
+            raise ValueError("algorithm.advantage=gae needs a critic group")
+        if cfg.reference_mode == "separate" and reference is None:
+            raise ValueError("reference.mode resolves to 'separate' but no reference group was given")
         self.tracer = Tracer()
         self.pad_id = tokenizer.pad_token_id if tokenizer.pad_token_id is not None else 0
 
@@ -89,7 +151,11 @@ class ReasoningFlow:
         cfg, t0 = self.cfg, time.perf_counter()
         problems, results, rewards, gen_metrics = self.generate_batch(step, train_stream)
         t_gen = time.perf_counter()
-        batch, adv_metrics = self.build_batch(problems, results, rewards)
+        batch = pack_sequences([r.prompt_ids for r in results], [r.response_ids for r in results],
+                               self.pad_id, [r.response_logprobs for r in results])
+        self.score_tokens(batch)
+        t_score = time.perf_counter()
+        adv_metrics = self.add_advantages(batch, rewards)
         train_metrics = self.update(batch)
         t_train = time.perf_counter()
         sync = sync_weights(self.actor, self.rollout, version=step + 1)
@@ -101,7 +167,8 @@ class ReasoningFlow:
             "rollout/tokens_per_s": sum(lengths) / max(t_gen - t0, 1e-9),
             "rollout/max_staleness": float(step - min(r.weight_version for r in results)),
             "time/generate_and_score_s": t_gen - t0,
-            "time/train_s": t_train - t_gen,
+            "time/logprobs_and_values_s": t_score - t_gen,
+            "time/train_s": t_train - t_score,
             "time/weight_sync_s": sync.seconds,
             "time/step_s": time.perf_counter() - t0,
         }
@@ -142,13 +209,12 @@ class ReasoningFlow:
         }
         return kept_problems, kept_results, torch.tensor(kept_rewards), metrics
 
-    def generate_and_score(self, problems, sampling: SamplingParams):
+    def generate_and_score(self, problems, sampling: SamplingParams, split: str = "train"):
         """Spread prompts over rollout ranks; score each rank's results as soon as they land."""
-        from infinirl.tasks.prompts import encode_prompts
-
-        prompt_ids = encode_prompts(problems, self.tokenizer, self.cfg.task.system_prompt)
+        prompt_ids = encode_checked(problems, self.tokenizer, self.cfg.task.system_prompt,
+                                    self.cfg.rollout.max_prompt_length, split)
         shards = _split(list(range(len(problems))), self.rollout.world_size)
-        handles = [self.rollout.call("generate", [prompt_ids[i] for i in shard], sampling, ranks=[r])
+        handles = [self.rollout.call("generate", [prompt_ids[i] for i in shard], _rank_sampling(sampling, r), ranks=[r])
                    for r, shard in enumerate(shards) if shard]
         scoring = []
         for handle, shard in zip(handles, [s for s in shards if s]):
@@ -161,55 +227,94 @@ class ReasoningFlow:
             scored.extend(handle.wait()[0])
         return results, scored
 
-    def build_batch(self, problems, results, rewards: torch.Tensor):
-        cfg = self.cfg
-        batch = pack_sequences([r.prompt_ids for r in results], [r.response_ids for r in results],
-                               self.pad_id, [r.response_logprobs for r in results])
-        if cfg.algorithm.overlong_buffer:
-            lengths = batch["response_lengths"]
-            rewards = rewards + overlong_penalty(lengths, cfg.rollout.max_new_tokens,
-                                                 cfg.algorithm.overlong_buffer, cfg.algorithm.overlong_penalty)
-        inputs = TokenAdvantageInputs(rewards=rewards, response_mask=batch["response_mask"],
-                                      group_size=cfg.rollout.group_size)
-        out = compute_advantages(cfg.algorithm.advantage, inputs, **cfg.algorithm.advantage_kwargs)
-        batch["advantages"] = out.advantages.float()
-        mask = batch["response_mask"]
-        metrics = {"train/advantage_abs_mean": float((out.advantages.abs() * mask).sum() / mask.sum().clamp(min=1))}
-        return batch, metrics
+    def score_tokens(self, batch) -> None:
+        """The forward passes the update needs, issued together (separate groups run at once):
+        pi_old log-probs when the batch serves several updates or a KL reward, reference
+        log-probs for KL, critic values for GAE."""
+        cfg, pending = self.cfg, {}
+        if self._needs_old_logprobs():
+            pending[OLD_LOGPROBS] = self._scatter(self.actor, "compute_logprobs", batch)
+        if cfg.reference_mode == "actor_base":
+            pending[REF_LOGPROBS] = self._scatter(self.actor, "compute_ref_logprobs", batch)
+        elif cfg.reference_mode == "separate":
+            pending[REF_LOGPROBS] = self._scatter(self.reference, "compute_logprobs", batch)
+        if self.critic is not None:
+            pending[VALUES] = self._scatter(self.critic, "compute_values", batch)
+        for key, handle in pending.items():
+            batch[key] = torch.cat(handle.wait())
+
+    def add_advantages(self, batch, rewards: torch.Tensor) -> dict:
+        cfg, algo = self.cfg, self.cfg.algorithm
+        mask = batch[RESPONSE_MASK]
+        metrics = {}
+        if algo.overlong_buffer:
+            rewards = rewards + overlong_penalty(batch["response_lengths"], cfg.rollout.max_new_tokens,
+                                                 algo.overlong_buffer, algo.overlong_penalty)
+        token_rewards = None
+        if algo.kl_reward_coef > 0:
+            token_rewards = kl_penalty(batch[OLD_LOGPROBS], batch[REF_LOGPROBS], mask, algo.kl_reward_coef,
+                                       algo.kl_reward_estimator)
+            metrics["train/kl_in_reward"] = float(masked_mean(-token_rewards / algo.kl_reward_coef, mask))
+        values = batch[VALUES] if VALUES in batch.keys() else None
+        inputs = TokenAdvantageInputs(rewards=rewards, response_mask=mask, values=values,
+                                      token_rewards=token_rewards, group_size=cfg.rollout.group_size)
+        out = compute_advantages(algo.advantage, inputs, **algo.advantage_kwargs)
+        advantages = masked_whiten(out.advantages, mask) if algo.whiten_advantages else out.advantages
+        batch["advantages"] = advantages.float()
+        metrics["train/advantage_abs_mean"] = float((advantages.abs() * mask).sum() / mask.sum().clamp(min=1))
+        if self.critic is not None:
+            batch[RETURNS] = out.returns.float()
+            metrics["train/explained_variance"] = float(explained_variance(values, out.returns, mask))
+            metrics["train/return_mean"] = float(masked_mean(out.returns, mask))
+        return metrics
 
     def update(self, batch) -> dict:
-        """Epochs x mini-batches optimizer steps; each mini-batch split over the actor's ranks."""
+        """Epochs x mini-batches optimizer steps; each mini-batch split over the actor's ranks
+        (and, with a critic, the same mini-batch over the critic's ranks, at the same time)."""
         cfg, world = self.cfg, self.actor.world_size
-        needs_old = cfg.algorithm.mini_batches > 1 or cfg.algorithm.epochs > 1
-        if needs_old:  # several updates per batch: freeze pi_old once, up front
-            shards = [batch[s] for s in _slices(batch.batch_size[0], world)]
-            olds = self.actor.call_each("compute_logprobs", [(s,) for s in shards]).wait()
-            batch["old_logprobs"] = torch.cat(olds)
+        several = cfg.algorithm.mini_batches > 1 or cfg.algorithm.epochs > 1
         size = batch.batch_size[0]
         per_mini = size // cfg.algorithm.mini_batches
+        actor_keys = [k for k in batch.keys() if k not in (VALUES, RETURNS)]
         totals: dict[str, float] = {}
         count = 0
         for _ in range(cfg.algorithm.epochs):
-            order = torch.randperm(size) if needs_old else torch.arange(size)
+            order = torch.randperm(size) if several else torch.arange(size)
             for start in range(0, size, per_mini):
                 mini = batch[order[start : start + per_mini]]
                 normaliser = aggregation_normaliser(
                     mini["response_mask"], cfg.algorithm.objective.aggregation,
                     **({"max_response_length": cfg.rollout.max_new_tokens}
                        if cfg.algorithm.objective.aggregation == "seq-mean-token-sum-norm" else {}))
-                shards = [(mini[s], normaliser) for s in _slices(per_mini, world)]
-                for metrics in self.actor.call_each("train_step", shards).wait()[:1]:
-                    for key, value in metrics.items():
+                actor_mini = mini.select(*actor_keys)
+                handles = [self.actor.call_each("train_step", [(actor_mini[s], normaliser) for s in _slices(per_mini, world)])]
+                if self.critic is not None:
+                    critic_mini = mini.select(*_FORWARD_KEYS, RESPONSE_MASK, VALUES, RETURNS)
+                    tokens = aggregation_normaliser(mini["response_mask"], "token-mean")
+                    handles.append(self.critic.call_each(
+                        "train_step", [(critic_mini[s], tokens) for s in _slices(per_mini, self.critic.world_size)]))
+                for handle in handles:
+                    for key, value in handle.wait()[0].items():  # rank 0's: already averaged over ranks
                         totals[key] = totals.get(key, 0.0) + value
                 count += 1
         return {k: v / count for k, v in totals.items()}
+
+    def _needs_old_logprobs(self) -> bool:
+        algo = self.cfg.algorithm
+        return algo.mini_batches > 1 or algo.epochs > 1 or algo.kl_reward_coef > 0
+
+    @staticmethod
+    def _scatter(group, method: str, batch):
+        """``method`` on every rank of ``group`` with its contiguous share of the batch's ids."""
+        ids = batch.select(*_FORWARD_KEYS)
+        return group.call_each(method, [(ids[s],) for s in _slices(batch.batch_size[0], group.world_size)])
 
     def evaluate(self, problems) -> float:
         if not problems:
             return float("nan")
         greedy = SamplingParams(n=1, max_new_tokens=self.cfg.rollout.max_new_tokens, greedy=True,
                                 stop_strings=tuple(self.cfg.rollout.stop_strings))
-        _, scored = self.generate_and_score(problems, greedy)
+        _, scored = self.generate_and_score(problems, greedy, split="eval")
         return float(np.mean([s.correct for s in scored]))
 
     def _sampling(self, step: int, round_: int) -> SamplingParams:
@@ -225,7 +330,11 @@ class ReasoningFlow:
         tmp = final + ".tmp"
         shutil.rmtree(tmp, ignore_errors=True)
         os.makedirs(tmp)
-        self.actor.save_checkpoint(os.path.join(tmp, "actor")).wait()
+        saving = [self.actor.save_checkpoint(os.path.join(tmp, "actor"))]
+        if self.critic is not None:
+            saving.append(self.critic.save_checkpoint(os.path.join(tmp, "critic")))
+        for handle in saving:
+            handle.wait()
         state = {"step": step, "data": train_stream.state_dict(), "rng": _rng_state()}
         with open(os.path.join(tmp, "runner_state.json"), "w") as handle:
             json.dump(state, handle)
@@ -241,7 +350,17 @@ class ReasoningFlow:
         latest = os.path.join(root, done[-1])
         with open(os.path.join(latest, "runner_state.json")) as handle:
             state = json.load(handle)
-        self.actor.load_checkpoint(os.path.join(latest, "actor")).wait()
+        loading = [self.actor.load_checkpoint(os.path.join(latest, "actor"))]
+        if self.critic is not None:
+            if not os.path.isdir(os.path.join(latest, "critic")):
+                raise RuntimeError(
+                    f"{latest} has no critic/ checkpoint (it was written by a run without a critic, i.e. not "
+                    "algorithm.advantage=gae); resume it with its own algorithm, or start over with resume=false "
+                    "or a new output_dir"
+                )
+            loading.append(self.critic.load_checkpoint(os.path.join(latest, "critic")))
+        for handle in loading:
+            handle.wait()
         train_stream.load_state_dict(state["data"])
         _set_rng_state(state["rng"])
         sync_weights(self.actor, self.rollout, version=state["step"])
@@ -257,11 +376,21 @@ class ReasoningFlow:
         summary = {"eval_before": evals[0] if evals else None, "eval_after": evals[-1] if evals else None,
                    "steps": self.cfg.steps, "curves": plot, "metrics": self.logger.path,
                    "actor_weights_sha256": self.actor.weights_digest().wait()[0]}
+        if self.critic is not None:
+            summary["critic_weights_sha256"] = self.critic.weights_digest().wait()[0]
         print(json.dumps(summary), flush=True)
         return summary
 
     def close(self) -> None:
         pass
+
+
+def _rank_sampling(sampling: SamplingParams, rank: int) -> SamplingParams:
+    """Each rollout rank its own seed: with one shared seed, row i of every rank would draw the same
+    random numbers (correlated samples). Rank 0 keeps the step's seed, so one-rank runs are as before."""
+    if sampling.seed is None or rank == 0:
+        return sampling
+    return replace(sampling, seed=(sampling.seed + 7919 * rank) % (2**31))
 
 
 def _split(items: list, parts: int) -> list[list]:

@@ -54,13 +54,29 @@ class RolloutConfig:
     """Inference engine by registered name: hf (transformers, runs anywhere) | vllm (optional extra)."""
     engine_options: dict[str, Any] = field(default_factory=dict)
     """Extra keyword options passed to the engine's constructor."""
+    max_prompt_length: int = 1024
+    """Longest prompt (tokens, chat template and system prompt included) the run accepts. A longer
+    training or eval prompt stops the run with an error naming it, rather than silently eating
+    the context window (prompt + max_new_tokens must fit the model) or the KV-cache memory."""
 
 
 @dataclass
 class AlgorithmConfig:
     advantage: str = "grpo"
-    """grpo | dr_grpo | rloo | reinforce_pp | reinforce_pp_baseline (gae needs a critic)."""
+    """grpo | dr_grpo | rloo | reinforce_pp | reinforce_pp_baseline | gae (PPO: trains a critic,
+    see `critic.*`)."""
     advantage_kwargs: dict[str, float] = field(default_factory=dict)
+    """Estimator hyperparameters, e.g. `{gamma: 1.0, lam: 0.95}` for gae."""
+    whiten_advantages: bool = False
+    """Whiten advantages over all response tokens of the batch (zero mean, unit variance) after
+    estimation, as PPO implementations usually do for GAE."""
+    kl_reward_coef: float = 0.0
+    """KL as a reward penalty (InstructGPT-style PPO): every response token gets reward
+    `-kl_reward_coef * KL(pi_old || pi_ref)`, which the estimator folds into returns. Needs a
+    reference policy (see `reference.*`) and a token-level estimator (gae, reinforce_pp*); the
+    loss-term alternative is `objective.kl_coef`. 0 disables it."""
+    kl_reward_estimator: str = "k1"
+    """KL estimator of the reward penalty: k1 (the log-ratio, as InstructGPT) | k2 | k3."""
     objective: PolicyObjectiveConfig = field(default_factory=PolicyObjectiveConfig)
     mini_batches: int = 1
     """Optimizer steps per rollout batch (1 = fully on-policy; old log-probs then need no extra pass)."""
@@ -71,6 +87,37 @@ class AlgorithmConfig:
     overlong_buffer: int = 0
     """DAPO overlong shaping: soft penalty over the last N tokens before max_new_tokens (0 = off)."""
     overlong_penalty: float = 1.0
+
+
+@dataclass
+class CriticConfig(TrainEngineConfig):
+    """The PPO critic (used when `algorithm.advantage=gae`): a value model trained alongside the
+    actor on the same mini-batches, with its own optimizer. Every engine key of `actor.*` works
+    here too (lr, micro_batch_size, lora, param_dtype, ...)."""
+
+    lr: float = 1e-5
+    """Peak learning rate of the critic (AdamW); critics usually take ~10x the actor's."""
+    model_path: str | None = None
+    """Model folder the critic starts from (backbone + a new zero-initialised value head); None:
+    the policy's `model.path`."""
+    value_clip: float | None = 0.5
+    """PPO value clipping: a value moves at most this far from its pre-update estimate per batch
+    (the loss takes the worse of clipped and unclipped); None disables it. Only bites with
+    several updates per batch (`algorithm.mini_batches`/`epochs` > 1)."""
+
+
+@dataclass
+class ReferenceConfig:
+    """The reference policy for the KL terms (`algorithm.objective.kl_coef` or
+    `algorithm.kl_reward_coef` > 0): a frozen copy of the initial policy. Unused otherwise."""
+
+    mode: Literal["auto", "actor_base", "separate"] = "auto"
+    """actor_base: the LoRA actor's own base model with the adapter switched off (no second copy
+    of the weights; needs `actor.lora`). separate: a `reference` component with its own weights and
+    placement (`placement.reference`, default: the actor's devices). auto: actor_base when the
+    actor uses LoRA, else separate."""
+    micro_batch_size: int | None = None
+    """Sequences per forward of a separate reference; None: `actor.micro_batch_size`."""
 
 
 @dataclass
@@ -93,8 +140,43 @@ class ReasoningConfig:
     rollout: RolloutConfig = field(default_factory=RolloutConfig)
     algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
     actor: TrainEngineConfig = field(default_factory=TrainEngineConfig)
+    critic: CriticConfig = field(default_factory=CriticConfig)
+    reference: ReferenceConfig = field(default_factory=ReferenceConfig)
     placement: dict[str, str] = field(default_factory=lambda: {"actor": "0", "rollout": "0", "reward": "0"})
+    """Component -> devices (or CPU slots), see infinirl.runtime.placement. actor, rollout and
+    reward are required; critic and a separate reference default to the actor's spec."""
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def uses_critic(self) -> bool:
+        return self.algorithm.advantage == "gae"
+
+    @property
+    def reference_mode(self) -> str | None:
+        """How reference log-probs are computed: 'actor_base', 'separate', or None (no KL term)."""
+        if self.algorithm.objective.kl_coef <= 0 and self.algorithm.kl_reward_coef <= 0:
+            return None
+        if self.reference.mode != "auto":
+            return self.reference.mode
+        return "actor_base" if self.actor.lora is not None else "separate"
+
+    def components(self) -> list[str]:
+        """The components this run launches, in launch order."""
+        names = ["actor", "rollout", "reward"]
+        if self.uses_critic:
+            names.append("critic")
+        if self.reference_mode == "separate":
+            names.append("reference")
+        return names
+
+    def placement_spec(self) -> dict[str, str]:
+        """One entry per launched component (keys like 'actor,rollout' expanded; critic and
+        reference fall back to the actor's spec)."""
+        entries = _placement_entries(self.placement)
+        for name in ("critic", "reference"):
+            entries.setdefault(name, entries["actor"])
+        return {name: entries[name] for name in self.components()}
 
     def validate(self) -> None:
         from infinirl.algorithms import ADVANTAGES, AGGREGATIONS, KL_ESTIMATORS
@@ -122,24 +204,94 @@ class ReasoningConfig:
         ):
             if value not in registry:
                 raise ConfigError(f"{key}={value!r} is not registered; registered: {', '.join(registry.names())}")
-        if self.algorithm.advantage == "gae":
-            raise ConfigError("algorithm.advantage=gae needs a critic, which this runner does not have yet; use grpo, rloo or reinforce_pp")
-        if self.algorithm.objective.kl_coef > 0:
-            raise ConfigError("algorithm.objective.kl_coef > 0 needs a reference component, not available yet; set it to 0")
+        if self.rollout.max_prompt_length < 1:
+            raise ConfigError(f"rollout.max_prompt_length={self.rollout.max_prompt_length} must be >= 1")
+        self._validate_ppo_parts(KL_ESTIMATORS)
         for name in self.loggers:
             if name not in KNOWN_LOGGERS:
                 raise ConfigError(f"loggers: unknown logger '{name}'; choose from {', '.join(KNOWN_LOGGERS)}")
-        missing = {"actor", "rollout", "reward"} - set(self.placement)
+        entries = _placement_entries(self.placement)
+        missing = {"actor", "rollout", "reward"} - set(entries)
         if missing:
             raise ConfigError(f"placement must place actor, rollout and reward; missing {sorted(missing)}")
-        for component, spec in self.placement.items():
+        for component, spec in entries.items():
+            if component not in KNOWN_COMPONENTS:
+                raise ConfigError(
+                    f"placement.{component}: unknown component; the reasoning runner has {', '.join(KNOWN_COMPONENTS)}"
+                )
             try:
                 parse_spec(spec, component)
             except PlacementError as exc:
                 raise ConfigError(f"placement.{component}: {exc}") from None
 
+    def _validate_ppo_parts(self, kl_estimators) -> None:
+        """Critic, reference and KL keys: values that cannot work, and combinations that would
+        silently do nothing."""
+        algo = self.algorithm
+        if algo.objective.kl_coef < 0:
+            raise ConfigError(f"algorithm.objective.kl_coef={algo.objective.kl_coef} must be >= 0 (0 = off)")
+        if algo.kl_reward_coef < 0:
+            raise ConfigError(f"algorithm.kl_reward_coef={algo.kl_reward_coef} must be >= 0 (0 = off)")
+        if algo.kl_reward_estimator not in kl_estimators:
+            raise ConfigError(
+                f"algorithm.kl_reward_estimator={algo.kl_reward_estimator!r} is not registered; "
+                f"registered: {', '.join(kl_estimators.names())}"
+            )
+        if algo.kl_reward_coef > 0 and algo.advantage in SEQUENCE_LEVEL_ESTIMATORS:
+            raise ConfigError(
+                f"algorithm.kl_reward_coef > 0 with algorithm.advantage={algo.advantage}: this estimator uses one "
+                "reward per sequence and would ignore the per-token KL penalty; use algorithm.objective.kl_coef "
+                "(KL as a loss term) instead, or a token-level estimator (gae, reinforce_pp, reinforce_pp_baseline)"
+            )
+        if self.reference.mode == "actor_base" and self.actor.lora is None:
+            raise ConfigError(
+                "reference.mode=actor_base needs actor.lora: without adapters the actor's own weights train, so "
+                "its base is not the initial policy; use reference.mode=separate (or auto)"
+            )
+        if self.reference.micro_batch_size is not None and self.reference.micro_batch_size < 1:
+            raise ConfigError(f"reference.micro_batch_size={self.reference.micro_batch_size} must be >= 1 (or null)")
+        if self.critic.value_clip is not None and self.critic.value_clip <= 0:
+            raise ConfigError(f"critic.value_clip={self.critic.value_clip} must be > 0 (or null to disable clipping)")
+        if self.critic.lr <= 0:
+            raise ConfigError(f"critic.lr={self.critic.lr} must be > 0")
+        if self.critic.model_path is not None:
+            _check_model_path(self.critic.model_path, key="critic.model_path")
+        if self.uses_critic:
+            for key in ("gamma", "lam"):
+                value = algo.advantage_kwargs.get(key, 1.0)
+                if not 0.0 <= value <= 1.0:
+                    raise ConfigError(f"algorithm.advantage_kwargs.{key}={value} must be in [0, 1]")
+            unknown = set(algo.advantage_kwargs) - {"gamma", "lam"}
+            if unknown:
+                raise ConfigError(
+                    f"algorithm.advantage_kwargs: gae takes gamma and lam, not {', '.join(sorted(unknown))}"
+                )
 
-def _check_model_path(path: str) -> None:
+    @property
+    def critic_model_path(self) -> str:
+        return self.critic.model_path or self.model.path
+
+
+#: Components the reasoning runner knows (placement keys).
+KNOWN_COMPONENTS = ("actor", "rollout", "reward", "critic", "reference")
+#: Estimators that read one reward per sequence (ignoring per-token rewards such as a KL penalty).
+SEQUENCE_LEVEL_ESTIMATORS = ("grpo", "dr_grpo", "rloo")
+
+
+def _placement_entries(placement: dict[str, str]) -> dict[str, str]:
+    """Expand keys naming several components ('actor,rollout': '0') into one entry each."""
+    entries: dict[str, str] = {}
+    for key, spec in placement.items():
+        for name in (part.strip() for part in str(key).split(",")):
+            if not name:
+                raise ConfigError(f"placement key {key!r} has an empty component name")
+            if name in entries:
+                raise ConfigError(f"placement gives {name!r} twice; give each component one entry")
+            entries[name] = spec
+    return entries
+
+
+def _check_model_path(path: str, key: str = "model.path") -> None:
     """Fail at validation (not inside a worker) for a model folder that does not exist."""
     from pathlib import Path
 
@@ -148,6 +300,6 @@ def _check_model_path(path: str) -> None:
     looks_like_hub_id = path.count("/") == 1 and not path.startswith((".", "/", "~"))
     if path != MODEL_NAME and not looks_like_hub_id and not Path(path).expanduser().is_dir():
         raise ConfigError(
-            f"model.path={path!r} is not a folder; pass a local Hugging Face model folder or the "
+            f"{key}={path!r} is not a folder; pass a local Hugging Face model folder or the "
             f"embedded default '{MODEL_NAME}'"
         )

@@ -6,8 +6,11 @@ the train stream skips any question in it (generators), or the eval split is a d
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from transformers import AutoTokenizer
 
+from infinirl.config import ConfigError
 from infinirl.models.hf_causal_lm import resolve_model_source
 from infinirl.tasks.datasets import DATASET_PRESETS, EpochBatchIterator, load_preset, load_problems
 from infinirl.tasks.reasoning_gym_tasks import ReasoningGymStream, ReasoningGymTask, build_eval_set
@@ -30,3 +33,33 @@ def build_problem_sources(cfg):
     if tokenizer.pad_token_id is None:
         tokenizer.pad_token = tokenizer.eos_token
     return train, eval_problems, tokenizer
+
+
+class PromptTooLongError(ConfigError):
+    """A training or eval prompt is longer than ``rollout.max_prompt_length``."""
+
+
+def encode_checked(problems, tokenizer, system_prompt: str | None, max_prompt_length: int,
+                   split: str) -> list[list[int]]:
+    """Prompt ids of ``problems``, refusing any longer than ``max_prompt_length`` tokens."""
+    from infinirl.tasks.prompts import encode_prompts
+
+    prompt_ids = encode_prompts(problems, tokenizer, system_prompt)
+    check_prompt_lengths(prompt_ids, problems, max_prompt_length, split)
+    return prompt_ids
+
+
+def check_prompt_lengths(prompt_ids: Sequence[Sequence[int]], problems, max_prompt_length: int,
+                         split: str) -> None:
+    """Raise :class:`PromptTooLongError` naming the first over-long prompt, its length and the fix."""
+    for ids, problem in zip(prompt_ids, problems):
+        if len(ids) > max_prompt_length:
+            longest = max(len(p) for p in prompt_ids)
+            text = problem.prompt if len(problem.prompt) <= 80 else problem.prompt[:77] + "..."
+            raise PromptTooLongError(
+                f"rollout.max_prompt_length={max_prompt_length}: {split} prompt {problem.uid!r} is {len(ids)} "
+                f"tokens long (chat template and system prompt included; the longest of its batch is {longest}): "
+                f"{text!r}. "
+                f"Raise rollout.max_prompt_length to at least {longest} (prompt plus rollout.max_new_tokens must "
+                "fit the model's context), shorten task.system_prompt, or remove such problems from the data."
+            )

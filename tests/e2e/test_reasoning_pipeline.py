@@ -1,6 +1,7 @@
 """The reasoning runner end to end on a tiny random model: it runs, logs, checkpoints, resumes exactly."""
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -28,6 +29,13 @@ def tiny_model_dir(tmp_path_factory):
     return str(folder)
 
 
+def _merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for key, value in extra.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
 def make_cfg(model_dir, output_dir, steps, **extra):
     raw = {
         "steps": steps, "prompts_per_step": 2, "eval_every": 2, "output_dir": str(output_dir),
@@ -39,9 +47,8 @@ def make_cfg(model_dir, output_dir, steps, **extra):
         "task": {"eval_size": 2, "verifier": "infinirl.tasks.toy_rewards:response_length"},
         "actor": {"lr": 1e-3, "micro_batch_size": 2},
         "cluster": {"log_to_driver": False},
-        **extra,
     }
-    return to_dataclass(ReasoningConfig, raw)
+    return to_dataclass(ReasoningConfig, _merge(raw, extra))
 
 
 def test_runs_logs_and_resumes_exactly(ray_cluster, tiny_model_dir, tmp_path):
@@ -64,3 +71,87 @@ def test_runs_logs_and_resumes_exactly(ray_cluster, tiny_model_dir, tmp_path):
         assert a["rollout/reward_mean"] == b["rollout/reward_mean"] and a["train/loss"] == pytest.approx(b["train/loss"], abs=1e-7)
     assert (tmp_path / "straight" / "curves.png").exists()
     assert list((tmp_path / "straight" / "tensorboard").iterdir())
+
+
+def read_rows(folder):
+    return [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
+
+
+PPO = {
+    # PPO: a critic and GAE; KL both as a loss term and as a reward penalty, against a separate
+    # reference (the actor trains in full, so its own weights are no reference).
+    "algorithm": {"advantage": "gae", "advantage_kwargs": {"gamma": 1.0, "lam": 0.95}, "whiten_advantages": True,
+                  "kl_reward_coef": 0.05, "objective": {"kl_coef": 0.05}},
+    "critic": {"lr": 1e-3, "micro_batch_size": 2},
+    "eval_every": 100, "save_every": 1,
+}
+
+
+@pytest.mark.slow  # two runs of five components: over a minute on 2 cores
+def test_ppo_with_critic_and_reference_resumes_exactly(ray_cluster, tiny_model_dir, tmp_path):
+    straight = run(make_cfg(tiny_model_dir, tmp_path / "straight", steps=3, **PPO))
+    # Resume from the straight run's step-2 checkpoint: the third step must come out identical.
+    resumed_dir = tmp_path / "resumed" / "checkpoints"
+    resumed_dir.mkdir(parents=True)
+    shutil.copytree(tmp_path / "straight" / "checkpoints" / "step_000002", resumed_dir / "step_000002")
+    resumed = run(make_cfg(tiny_model_dir, tmp_path / "resumed", steps=3, **PPO))
+    assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
+    assert resumed["critic_weights_sha256"] == straight["critic_weights_sha256"]
+
+    rows = read_rows(tmp_path / "straight")
+    assert [r["step"] for r in rows] == [0, 1, 2, 3]
+    # Step 1 trains the initial policy: it *is* the (separate) reference, so every KL is 0.
+    assert rows[1]["train/kl"] == pytest.approx(0.0, abs=1e-6)
+    assert rows[1]["train/kl_in_reward"] == pytest.approx(0.0, abs=1e-6)
+    assert rows[3]["train/kl"] > 1e-6 and abs(rows[3]["train/kl_in_reward"]) > 1e-6
+    resumed_row = read_rows(tmp_path / "resumed")[-1]
+    assert resumed_row["step"] == 3
+    for key in ("rollout/reward_mean", "train/loss", "train/value_loss", "train/kl"):
+        assert resumed_row[key] == pytest.approx(rows[3][key], abs=1e-7), key
+
+
+def test_ppo_with_a_lora_actor_scores_kl_against_its_base(ray_cluster, tiny_model_dir, tmp_path):
+    """PPO end to end in one short run: critic + GAE, KL as loss term and reward penalty, and
+    reference.mode=auto with a LoRA actor, i.e. the actor's base with the adapter off (no
+    reference component)."""
+    cfg = make_cfg(tiny_model_dir, tmp_path, steps=3, resume=False, **_merge(PPO, {
+        "save_every": 0, "actor": {"lr": 5e-2, "lora": {"r": 4, "alpha": 8}},
+        "critic": {"lora": {"r": 4, "alpha": 8}}}))
+    assert cfg.reference_mode == "actor_base"
+    assert cfg.components() == ["actor", "rollout", "reward", "critic"]
+    summary = run(cfg)
+    assert "critic_weights_sha256" in summary
+    rows = read_rows(tmp_path)
+    for key in ("train/value_loss", "train/explained_variance", "train/value_clip_fraction", "train/kl",
+                "train/kl_in_reward", "train/critic_grad_norm", "train/return_mean", "time/logprobs_and_values_s"):
+        assert key in rows[1], key
+    # Step 1 trains the initial policy, which the adapter-off base is: KL exactly 0 (the adapter
+    # adds B @ A = 0). After updates the policy has moved away from it.
+    assert rows[1]["train/kl"] == pytest.approx(0.0, abs=1e-7)
+    assert rows[1]["train/kl_in_reward"] == pytest.approx(0.0, abs=1e-7)
+    assert rows[3]["train/kl"] > 1e-6 and abs(rows[3]["train/kl_in_reward"]) > 1e-6
+    assert rows[1]["train/explained_variance"] == 0.0  # the value head starts at 0
+    assert all(r["train/value_loss"] > 0 for r in rows[1:])
+
+
+def test_a_prompt_over_max_prompt_length_fails_naming_the_key(tiny_model_dir, tmp_path):
+    from infinirl.engines.base import SamplingParams
+    from infinirl.runners.reasoning import ReasoningFlow
+    from infinirl.runners.reasoning_data import PromptTooLongError, build_problem_sources
+
+    # Eval prompts are checked up front, before any worker starts (no Ray cluster needed here).
+    cfg = make_cfg(tiny_model_dir, tmp_path, steps=1, rollout={"max_prompt_length": 8})
+    with pytest.raises(PromptTooLongError, match=r"rollout.max_prompt_length=8: eval prompt .* is \d+ tokens long.*"
+                                                 r"Raise rollout.max_prompt_length to at least \d+"):
+        run(cfg)
+    # Training prompts are checked as they are encoded, before anything is generated.
+    train_stream, _, tokenizer = build_problem_sources(cfg)
+    flow = ReasoningFlow(cfg, actor=None, rollout=None, reward=None, tokenizer=tokenizer)
+    with pytest.raises(PromptTooLongError, match=r"train prompt"):
+        flow.generate_and_score(train_stream.next_batch(2), SamplingParams(n=2, max_new_tokens=4))
+    # At the limit itself is fine: the check is "longer than", not "as long as".
+    from infinirl.runners.reasoning_data import encode_checked
+
+    problems = train_stream.next_batch(2)
+    longest = max(len(ids) for ids in encode_checked(problems, tokenizer, None, 10_000, "train"))
+    encode_checked(problems, tokenizer, None, longest, "train")

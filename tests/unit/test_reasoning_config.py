@@ -19,8 +19,20 @@ def test_defaults_validate():
     ({"algorithm": {"advantage": "grpoo"}}, r"algorithm.advantage='grpoo' is not registered; registered: .*grpo"),
     ({"algorithm": {"objective": {"aggregation": "mean"}}}, r"aggregation='mean' is not registered; registered: .*token-mean"),
     ({"algorithm": {"mini_batches": 3}}, r"mini_batches=3 does not divide the batch of prompts_per_step\*group_size=64"),
-    ({"algorithm": {"advantage": "gae"}}, r"gae needs a critic"),
-    ({"algorithm": {"objective": {"kl_coef": 0.1}}}, r"kl_coef > 0 needs a reference"),
+    ({"algorithm": {"objective": {"kl_coef": -0.1}}}, r"algorithm.objective.kl_coef=-0.1 must be >= 0"),
+    ({"algorithm": {"kl_reward_coef": -1}}, r"algorithm.kl_reward_coef=-1.0 must be >= 0"),
+    ({"algorithm": {"kl_reward_estimator": "k4"}}, r"kl_reward_estimator='k4' is not registered; registered: .*k1"),
+    ({"algorithm": {"kl_reward_coef": 0.1}}, r"kl_reward_coef > 0 with algorithm.advantage=grpo.*objective.kl_coef"),
+    ({"algorithm": {"advantage": "gae", "advantage_kwargs": {"lam": 1.5}}}, r"advantage_kwargs.lam=1.5 must be in \[0, 1\]"),
+    ({"algorithm": {"advantage": "gae", "advantage_kwargs": {"lambda": 0.9}}}, r"gae takes gamma and lam, not lambda"),
+    ({"reference": {"mode": "actor_base"}}, r"reference.mode=actor_base needs actor.lora"),
+    ({"reference": {"mode": "copy"}}, r"reference.mode='copy' is not allowed.*auto, actor_base, separate"),
+    ({"reference": {"micro_batch_size": 0}}, r"reference.micro_batch_size=0 must be >= 1"),
+    ({"critic": {"value_clip": 0}}, r"critic.value_clip=0.0 must be > 0"),
+    ({"critic": {"lr": 0}}, r"critic.lr=0.0 must be > 0"),
+    ({"critic": {"model_path": "/no/critic"}}, r"critic.model_path='/no/critic' is not a folder"),
+    ({"rollout": {"max_prompt_length": 0}}, r"rollout.max_prompt_length=0 must be >= 1"),
+    ({"placement": {"actor": "0", "rollout": "0", "reward": "0", "critc": "0"}}, r"placement.critc: unknown component"),
     ({"rollout": {"group_size": 0}}, r"rollout.group_size=0 must be >= 1"),
     ({"loggers": ["tensorbord"]}, r"unknown logger 'tensorbord'"),
     ({"placement": {"actor": "0", "rollout": "0"}}, r"missing \['reward'\]"),
@@ -32,3 +44,30 @@ def test_defaults_validate():
 def test_bad_values_are_named(raw, message):
     with pytest.raises(ConfigError, match=message):
         build(**raw)
+
+
+def test_ppo_launches_a_critic_placed_with_the_actor_by_default():
+    cfg = build(algorithm={"advantage": "gae", "advantage_kwargs": {"gamma": 1.0, "lam": 0.95}})
+    assert cfg.uses_critic and cfg.reference_mode is None
+    assert cfg.components() == ["actor", "rollout", "reward", "critic"]
+    assert cfg.placement_spec()["critic"] == cfg.placement["actor"]
+    assert cfg.critic_model_path == cfg.model.path and cfg.critic.lr == 1e-5
+
+
+@pytest.mark.parametrize("raw, mode, components", [
+    ({}, None, ["actor", "rollout", "reward"]),  # no KL term: no reference at all
+    ({"algorithm": {"objective": {"kl_coef": 0.05}}}, "separate", ["actor", "rollout", "reward", "reference"]),
+    ({"algorithm": {"objective": {"kl_coef": 0.05}}, "actor": {"lora": {"r": 8}}}, "actor_base",
+     ["actor", "rollout", "reward"]),
+    ({"algorithm": {"advantage": "gae", "kl_reward_coef": 0.05}, "actor": {"lora": {"r": 8}},
+      "reference": {"mode": "separate"}}, "separate", ["actor", "rollout", "reward", "critic", "reference"]),
+])
+def test_reference_mode_resolves_explicitly(raw, mode, components):
+    cfg = build(**raw)
+    assert cfg.reference_mode == mode
+    assert cfg.components() == components
+
+
+def test_placement_keys_may_name_several_components():
+    cfg = build(algorithm={"advantage": "gae"}, placement={"actor,critic": "0", "rollout,reward": "1"})
+    assert cfg.placement_spec() == {"actor": "0", "rollout": "1", "reward": "1", "critic": "0"}
