@@ -30,3 +30,13 @@ class RewardWorker(Worker):
             raise ValueError(f"score: {len(results)} results but {len(problems)} problems")
         texts = self.tokenizer.batch_decode([r.response_ids for r in results], skip_special_tokens=True)
         return list(self.pool.map(lambda tp: safe_score(tp[0], tp[1], self.verifier), zip(texts, problems)))
+
+    def score_stream(self, source, sink, problems: dict[int, list[Problem]], count: int) -> int:
+        """Take ``count`` generated chunks ``(index, results)`` from ``source`` (whichever arrive
+        first: several reward ranks share one source), score them, put ``(index, results,
+        rewards)`` into ``sink``. ``problems[index]`` lists the problem of each result of a chunk."""
+        for _ in range(count):
+            index, results = source.get()
+            sink.put((index, results, self.score(results, problems[index])), weight=len(results))
+        sink.flush()
+        return count

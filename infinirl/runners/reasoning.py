@@ -14,6 +14,7 @@ import os
 import random
 import shutil
 import time
+import uuid
 from dataclasses import replace
 
 import numpy as np
@@ -42,7 +43,7 @@ from infinirl.runners import register_runner
 from infinirl.runners.metrics_log import MetricsLogger, plot_curves, read_metrics
 from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
-from infinirl.runtime import Cluster, Tracer, WorkerGroup, place, sync_weights
+from infinirl.runtime import Channel, Cluster, Tracer, WorkerGroup, place, sync_weights
 
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
 # reference (KL), and the critic's values and regression targets.
@@ -125,6 +126,7 @@ class ReasoningFlow:
             raise ValueError("reference.mode resolves to 'separate' but no reference group was given")
         self.tracer = Tracer()
         self.pad_id = tokenizer.pad_token_id if tokenizer.pad_token_id is not None else 0
+        self._channels: dict[str, Channel] = {}
 
     # ------------------------------------------------------------------ the loop
     def train(self, train_stream, eval_problems) -> dict:
@@ -210,21 +212,35 @@ class ReasoningFlow:
         return kept_problems, kept_results, torch.tensor(kept_rewards), metrics
 
     def generate_and_score(self, problems, sampling: SamplingParams, split: str = "train"):
-        """Spread prompts over rollout ranks; score each rank's results as soon as they land."""
+        """Rollout -> reward -> driver, streamed through two channels: prompts are cut into chunks,
+        rollout ranks put each generated chunk into ``generated`` as soon as it is done, reward ranks
+        score chunks as they arrive and put them into ``scored``; the driver restores prompt order.
+        The same code serves one process or many (placement only changes who runs what)."""
         prompt_ids = encode_checked(problems, self.tokenizer, self.cfg.task.system_prompt,
                                     self.cfg.rollout.max_prompt_length, split)
-        shards = _split(list(range(len(problems))), self.rollout.world_size)
-        handles = [self.rollout.call("generate", [prompt_ids[i] for i in shard], _rank_sampling(sampling, r), ranks=[r])
-                   for r, shard in enumerate(shards) if shard]
-        scoring = []
-        for handle, shard in zip(handles, [s for s in shards if s]):
-            results = handle.wait()[0]
-            per_sample = [problems[i] for i in shard for _ in range(sampling.n)]
-            scoring.append((results, self.reward.call("score", results, per_sample, ranks=[len(scoring) % self.reward.world_size])))
-        results, scored = [], []
-        for shard_results, handle in scoring:
-            results.extend(shard_results)
-            scored.extend(handle.wait()[0])
+        per_chunk = self.cfg.rollout.stream_chunk_prompts or -(-len(problems) // self.rollout.world_size)
+        chunks = [list(range(s, min(s + per_chunk, len(problems)))) for s in range(0, len(problems), per_chunk)]
+        by_rank = _split(list(enumerate(chunks)), self.rollout.world_size)
+        handles = [self.rollout.call("generate_to", self.channels["generated"],
+                                     [(i, [prompt_ids[j] for j in chunk]) for i, chunk in work], sampling, ranks=[r])
+                   for r, work in enumerate(by_rank) if work]
+        chunk_problems = {i: [problems[j] for j in chunk for _ in range(sampling.n)] for i, chunk in enumerate(chunks)}
+        counts = [len(part) for part in _split(list(range(len(chunks))), self.reward.world_size)]
+        handles += [self.reward.call("score_stream", self.channels["generated"], self.channels["scored"],
+                                     chunk_problems, count, ranks=[r]) for r, count in enumerate(counts) if count]
+        done: dict[int, tuple] = {}
+        while len(done) < len(chunks):
+            try:
+                index, results, scored = self.channels["scored"].get(timeout=1.0)
+                done[index] = (results, scored)
+            except TimeoutError:
+                for handle in handles:  # a failed stage raises its root cause here instead of hanging
+                    if handle.done():
+                        handle.wait()
+        for handle in handles:
+            handle.wait()
+        results = [r for i in range(len(chunks)) for r in done[i][0]]
+        scored = [s for i in range(len(chunks)) for s in done[i][1]]
         return results, scored
 
     def score_tokens(self, batch) -> None:
@@ -381,16 +397,19 @@ class ReasoningFlow:
         print(json.dumps(summary), flush=True)
         return summary
 
+    @property
+    def channels(self) -> dict[str, Channel]:
+        """The stages' streams, made on first use (unique names: flows may share a Ray cluster)."""
+        if not self._channels:
+            tag = uuid.uuid4().hex[:8]
+            self._channels = {name: Channel.create(f"reasoning-{name}-{tag}", pipeline_depth=2)
+                              for name in ("generated", "scored")}
+        return self._channels
+
     def close(self) -> None:
-        pass
-
-
-def _rank_sampling(sampling: SamplingParams, rank: int) -> SamplingParams:
-    """Each rollout rank its own seed: with one shared seed, row i of every rank would draw the same
-    random numbers (correlated samples). Rank 0 keeps the step's seed, so one-rank runs are as before."""
-    if sampling.seed is None or rank == 0:
-        return sampling
-    return replace(sampling, seed=(sampling.seed + 7919 * rank) % (2**31))
+        for channel in self._channels.values():
+            channel.destroy()
+        self._channels = {}
 
 
 def _split(items: list, parts: int) -> list[list]:

@@ -50,6 +50,11 @@ class RolloutConfig:
     """Sequences decoded together per rollout rank (bounds KV-cache memory)."""
     num_threads: int = 0
     """torch threads per rollout rank (0 = torch default)."""
+    stream_chunk_prompts: int = 0
+    """Prompts per streamed chunk: a rollout rank puts each finished chunk into the reward stage's
+    channel while it generates the next (0 = one chunk per rollout rank). Small chunks overlap
+    scoring with generation; on a CPU, where decoding a batch of 64 costs little more than one of
+    32, one chunk per rank is fastest."""
     engine: str = "hf"
     """Inference engine by registered name: hf (transformers, runs anywhere) | vllm (optional extra)."""
     engine_options: dict[str, Any] = field(default_factory=dict)
@@ -188,6 +193,9 @@ class ReasoningConfig:
         for key in ("steps", "prompts_per_step"):
             if getattr(self, key) <= 0:
                 raise ConfigError(f"{key}={getattr(self, key)} must be > 0")
+        if self.rollout.stream_chunk_prompts < 0:
+            raise ConfigError(f"rollout.stream_chunk_prompts={self.rollout.stream_chunk_prompts} must be >= 0 "
+                              "(0 = one chunk per rollout rank)")
         if self.rollout.group_size < 1:
             raise ConfigError(f"rollout.group_size={self.rollout.group_size} must be >= 1")
         batch = self.prompts_per_step * self.rollout.group_size

@@ -155,3 +155,14 @@ def test_a_prompt_over_max_prompt_length_fails_naming_the_key(tiny_model_dir, tm
     problems = train_stream.next_batch(2)
     longest = max(len(ids) for ids in encode_checked(problems, tokenizer, None, 10_000, "train"))
     encode_checked(problems, tokenizer, None, longest, "train")
+
+
+def test_streamed_chunks_give_the_same_run_on_one_or_two_rollout_ranks(ray_cluster, tiny_model_dir, tmp_path):
+    """Generation streams rollout -> reward -> driver through channels in chunks; each chunk's seed
+    follows its index, so spreading chunks over two rollout and two reward ranks changes nothing."""
+    common = {"rollout": {"stream_chunk_prompts": 1}, "save_every": 0, "eval_every": 1}
+    one = run(make_cfg(tiny_model_dir, tmp_path / "one", steps=1, **common))
+    two = run(make_cfg(tiny_model_dir, tmp_path / "two", steps=1, **common,
+                       placement={"actor": "0", "rollout": "0-1", "reward": "0-1"}))
+    assert one["actor_weights_sha256"] == two["actor_weights_sha256"]
+    assert read_rows(tmp_path / "one")[1]["rollout/reward_mean"] == read_rows(tmp_path / "two")[1]["rollout/reward_mean"]
