@@ -55,20 +55,29 @@ def test_cli_rejects_bad_key_value_and_config(capsys):
     assert "Did you mean 'steps'" in capsys.readouterr().err
     assert main(["validate", "default", "steps=-1"]) == 2
     assert "steps=-1 must be > 0" in capsys.readouterr().err
-    assert main(["validate", "default", "placement.learner=1-x"]) == 2
+    assert main(["validate", "runtime_demo", "placement.learner=1-x"]) == 2
     assert "placement.learner" in capsys.readouterr().err
     assert main(["validate", "no_such_config"]) == 2
     assert "no config named 'no_such_config'" in capsys.readouterr().err
 
 
-def test_main_job_cli_trains_end_to_end(tmp_path):
-    """`infinirl train` as a user runs it (own process, own Ray): the loss falls, trace is written."""
+def test_default_config_is_the_grpo_main_job():
+    """`infinirl train` with no config name runs GRPO on the embedded model with a held-out set."""
+    from infinirl.config import compose
+
+    raw = compose("default")
+    assert raw["runner"] == "reasoning" and raw["algorithm"]["advantage"] == "grpo"
+    assert raw["model"]["path"] == "smollm2-135m-instruct" and raw["task"]["eval_size"] > 0
+
+
+def test_runtime_demo_cli_trains_end_to_end(tmp_path):
+    """`infinirl train runtime_demo` as a user runs it (own process, own Ray): the loss falls, trace is written."""
     import json
     import subprocess
     import sys
 
     proc = subprocess.run(
-        [sys.executable, "-m", "infinirl.cli", "train", "default", "steps=8", f"output_dir={tmp_path}",
+        [sys.executable, "-m", "infinirl.cli", "train", "runtime_demo", "steps=8", f"output_dir={tmp_path}",
          "cluster.log_to_driver=false"],
         capture_output=True, text=True, timeout=300,
     )
