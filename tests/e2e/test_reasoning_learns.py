@@ -1,30 +1,28 @@
-"""GRPO on the embedded SmolLM2-135M learns single-digit additions (slow: minutes on 2 cores)."""
+"""The main job learns: GRPO on the embedded SmolLM2-135M (slow: about 15-20 minutes on 2 cores).
+
+This runs the shipped `default` config itself (what `infinirl train` runs), shortened to the step
+where it first passes the issue's 80% held-out target, so a change that slows learning or breaks
+the default config fails here rather than in a user's first run.
+"""
 
 import json
 
 import pytest
 
-from infinirl.config import to_dataclass
+from infinirl.config import compose, to_dataclass
 from infinirl.runners.reasoning import run
 from infinirl.runners.reasoning_config import ReasoningConfig
 
 
 @pytest.mark.slow
-def test_grpo_raises_reward_and_heldout_accuracy(ray_cluster, tmp_path):
-    cfg = to_dataclass(ReasoningConfig, {
-        "steps": 12, "prompts_per_step": 8, "eval_every": 12, "output_dir": str(tmp_path), "resume": False,
-        "loggers": [], "num_threads": 2,
-        "model": {"rollout_dtype": "bfloat16"},
-        "task": {"config": {"min_terms": 2, "max_terms": 2, "min_digits": 1, "max_digits": 1}, "eval_size": 32,
-                 "system_prompt": "Answer with the number only."},
-        "rollout": {"group_size": 8, "max_new_tokens": 24},
-        "algorithm": {"objective": {"clip_high": 0.28}},
-        "actor": {"lr": 2e-4, "micro_batch_size": 16, "param_dtype": "bfloat16",
-                  "lora": {"r": 16, "alpha": 32, "target_modules": "all-linear"}},
-        "cluster": {"log_to_driver": False},
-    })
-    summary = run(cfg)
+def test_main_job_reaches_80_percent_heldout_greedy_accuracy(ray_cluster, tmp_path):
+    raw = compose("default")
+    raw.update({"steps": 30, "eval_every": 10, "save_every": 0, "output_dir": str(tmp_path), "resume": False})
+    raw["cluster"] = {**raw.get("cluster", {}), "log_to_driver": False}
+    summary = run(to_dataclass(ReasoningConfig, raw))
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     rewards = [r["rollout/reward_mean"] for r in rows if "rollout/reward_mean" in r]
-    assert sum(rewards[-4:]) / 4 > sum(rewards[:4]) / 4 + 0.05, rewards
-    assert summary["eval_after"] >= summary["eval_before"], summary
+    assert sum(rewards[-5:]) / 5 > sum(rewards[:5]) / 5 + 0.2, rewards
+    assert summary["eval_before"] < 0.5, summary  # the task is not solved before training
+    assert summary["eval_after"] >= 0.8, summary
+    assert all(r["train/logprob_mismatch_mean"] < 0.1 for r in rows if "train/logprob_mismatch_mean" in r)
