@@ -6,16 +6,23 @@ each in its own subprocess (so neither sees the other's memory or threads). Repo
 median seconds per step (first step excluded as warm-up when there are >= 3), generated tokens/s
 and the final training reward. ``--precision`` applies to both (fp32 = TRL's CPU default).
 
+When vLLM is installed, a third row ``infinirl_vllm`` runs InfiniRL with ``rollout.engine=vllm``.
+vLLM lives in its own venv (``bash scripts/setup_vllm_venv.sh``), so that row runs under the first
+interpreter that can import it: this one, ``$INFINIRL_VLLM_PYTHON``, or the script's default venv.
+
     pip install trl            # the baseline (not a dependency of infinirl)
     python benchmarks/grpo_vs_trl.py --steps 4
+    python benchmarks/grpo_vs_trl.py --steps 4 --impls infinirl,infinirl_vllm   # skip TRL
 
 Last stdout line: {"benchmark": "grpo_vs_trl", "ratios": {"step_speed_vs_trl": TRL s/step / ours},
-"targets": {"step_speed_vs_trl": 1.5}, "device": ..., "results": {...}}
+"targets": {"step_speed_vs_trl": 1.5}, "device": ..., "results": {...}}; with the vLLM row, ratios
+also has "step_speed_vllm_vs_trl" and "step_speed_vllm_vs_hf" (HF-engine s/step / vLLM-engine).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import platform
@@ -24,12 +31,30 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 TASK = {"min_terms": 2, "max_terms": 2, "min_digits": 1, "max_digits": 1}
 PROMPTS, GROUP, MAX_NEW, LR = 8, 8, 48, 1e-5
+IMPLS = ("infinirl", "trl", "infinirl_vllm")
+DEFAULT_VLLM_VENV = Path(os.environ.get("INFINIRL_CACHE", Path.home() / ".cache" / "infinirl")) / "vllm-venv"
 
 
-def run_infinirl(steps: int, precision: str, out: str) -> dict:
+def vllm_python() -> str | None:
+    """An interpreter that can import vllm: this one, $INFINIRL_VLLM_PYTHON, or the setup script's
+    venv; None when vLLM is not installed anywhere we look."""
+    if importlib.util.find_spec("vllm") is not None:
+        return sys.executable
+    candidates = [os.environ.get("INFINIRL_VLLM_PYTHON"), str(DEFAULT_VLLM_VENV / "bin" / "python")]
+    for python in filter(None, candidates):
+        if os.path.isfile(python):
+            probe = subprocess.run([python, "-c", "import importlib.util as u, sys; sys.exit(u.find_spec('vllm') is None)"],
+                                   capture_output=True)
+            if probe.returncode == 0:
+                return python
+    return None
+
+
+def run_infinirl(steps: int, precision: str, out: str, engine: str = "hf") -> dict:
     from infinirl.config import to_dataclass
     from infinirl.runners.reasoning import run
     from infinirl.runners.reasoning_config import ReasoningConfig
@@ -39,7 +64,8 @@ def run_infinirl(steps: int, precision: str, out: str) -> dict:
         "resume": False, "loggers": [], "num_threads": os.cpu_count(),
         "model": {"rollout_dtype": precision},
         "task": {"config": TASK, "eval_size": 1},
-        "rollout": {"group_size": GROUP, "max_new_tokens": MAX_NEW, "max_batch_size": PROMPTS * GROUP},
+        "rollout": {"group_size": GROUP, "max_new_tokens": MAX_NEW, "max_batch_size": PROMPTS * GROUP,
+                    "engine": engine},
         "actor": {"lr": LR, "micro_batch_size": 16, "param_dtype": precision},
         "cluster": {"log_to_driver": False},
     })
@@ -111,17 +137,29 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--precision", choices=["float32", "bfloat16"], default="float32")
-    parser.add_argument("--only", choices=["infinirl", "trl"], help=argparse.SUPPRESS)
+    parser.add_argument("--impls", default=",".join(IMPLS),
+                        help="comma-separated rows to run (infinirl_vllm only runs where vLLM is installed)")
+    parser.add_argument("--only", choices=IMPLS, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.only:
         out = tempfile.mkdtemp(prefix=f"bench-{args.only}-")
-        result = (run_infinirl if args.only == "infinirl" else run_trl)(args.steps, args.precision, out)
+        if args.only == "trl":
+            result = run_trl(args.steps, args.precision, out)
+        else:
+            result = run_infinirl(args.steps, args.precision, out, "vllm" if args.only == "infinirl_vllm" else "hf")
         print("RESULT " + json.dumps(result), flush=True)
         return 0
+    wanted = [impl.strip() for impl in args.impls.split(",") if impl.strip()]
+    unknown = sorted(set(wanted) - set(IMPLS))
+    if unknown:
+        parser.error(f"--impls: unknown {unknown}; choose from {', '.join(IMPLS)}")
+    pythons = {"infinirl": sys.executable, "trl": sys.executable, "infinirl_vllm": vllm_python()}
+    if pythons["infinirl_vllm"] is None and "infinirl_vllm" in wanted:
+        wanted.remove("infinirl_vllm")  # vLLM not installed: no row (see scripts/setup_vllm_venv.sh)
     results = {}
-    for impl in ("infinirl", "trl"):
+    for impl in wanted:
         start = time.perf_counter()
-        proc = subprocess.run([sys.executable, __file__, "--only", impl, "--steps", str(args.steps),
+        proc = subprocess.run([pythons[impl], __file__, "--only", impl, "--steps", str(args.steps),
                                "--precision", args.precision], capture_output=True, text=True)
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         if proc.returncode or not lines:
@@ -130,10 +168,21 @@ def main() -> int:
             results[impl] = json.loads(lines[-1][7:])
             results[impl]["median_step_s"] = _median_step(results[impl]["step_s"])
         results[impl]["wall_s"] = round(time.perf_counter() - start, 1)
+        if impl == "infinirl_vllm":
+            results[impl]["python"] = pythons[impl]
         print(f"[{impl}] {json.dumps(results[impl])[:400]}", file=sys.stderr, flush=True)
-    ours, theirs = (results[i].get("median_step_s") for i in ("infinirl", "trl"))
-    ratio = round(theirs / ours, 3) if ours and theirs else None
-    print(json.dumps({"benchmark": "grpo_vs_trl", "ratios": {"step_speed_vs_trl": ratio},
+
+    def median(impl):
+        return results.get(impl, {}).get("median_step_s")
+
+    def speedup(slow, fast):
+        return round(median(slow) / median(fast), 3) if median(slow) and median(fast) else None
+
+    ratios = {"step_speed_vs_trl": speedup("trl", "infinirl")}
+    if "infinirl_vllm" in results:
+        ratios["step_speed_vllm_vs_trl"] = speedup("trl", "infinirl_vllm")
+        ratios["step_speed_vllm_vs_hf"] = speedup("infinirl", "infinirl_vllm")
+    print(json.dumps({"benchmark": "grpo_vs_trl", "ratios": ratios,
                       "targets": {"step_speed_vs_trl": 1.5},
                       "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
                       "precision": args.precision, "results": results}))

@@ -28,6 +28,15 @@ def _hf_generate(model: str, dtype: str, device: str, max_batch_size: int, optio
     return HFGenerateEngine(hf_model, tokenizer, max_batch_size=max_batch_size, **options)
 
 
+@ROLLOUT_ENGINES.register("vllm")
+def _vllm(model: str, dtype: str, device: str, max_batch_size: int, options: dict[str, Any]) -> InferenceEngine:
+    """vLLM (optional extra, its own venv: scripts/setup_vllm_venv.sh). ``options`` are
+    ``VLLMEngine`` keyword arguments, e.g. ``kv_cache_bytes``, ``max_model_len``, ``sleep_level``."""
+    from infinirl.engines.vllm_engine import VLLMEngine
+
+    return VLLMEngine(model, dtype=dtype, device=device, max_batch_size=max_batch_size, **options)
+
+
 def build_rollout_engine(name: str, model: str, dtype: str, device: str, max_batch_size: int,
                          options: dict[str, Any] | None = None) -> InferenceEngine:
     return ROLLOUT_ENGINES.get(name)(model, dtype, device, max_batch_size, dict(options or {}))
