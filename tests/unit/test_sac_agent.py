@@ -1,0 +1,151 @@
+"""SAC's networks and one agent update, checked against straightforward references."""
+
+import copy
+import math
+
+import numpy as np
+import torch
+
+from infinirl.components.sac_learner import SACAgent, SACNetSpec, SACUpdateSpec
+from infinirl.envs.base import ActionSpace
+from infinirl.models.sac_nets import EnsembleQ, SquashedGaussianActor
+
+SPACE = ActionSpace.box([-3.0, -1.0], [3.0, 2.0])
+
+
+def make_batch(n=16, obs_dim=5, action_dim=2, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return {"obs": torch.randn(n, obs_dim, generator=g), "action": torch.rand(n, action_dim, generator=g) * 2 - 1,
+            "reward": torch.randn(n, generator=g), "next_obs": torch.randn(n, obs_dim, generator=g),
+            "terminated": (torch.rand(n, generator=g) < 0.3).float()}
+
+
+def test_squashed_gaussian_logprob_matches_change_of_variables():
+    torch.manual_seed(0)
+    actor = SquashedGaussianActor(5, 2, SPACE.low, SPACE.high, hidden=(16,))
+    obs = torch.randn(64, 5)
+    action, logprob, u = actor.sample(obs, torch.Generator().manual_seed(1))
+    mean, log_std = actor.distribution(obs)
+    reference = (torch.distributions.Normal(mean, log_std.exp()).log_prob(u)
+                 - torch.log(1 - torch.tanh(u) ** 2)).sum(-1)
+    torch.testing.assert_close(logprob, reference, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(actor.logprob_of(obs, u), logprob)
+    assert action.abs().max() < 1 and torch.equal(action, torch.tanh(u))
+    assert (log_std >= -5).all() and (log_std <= 2).all()
+    env_action = actor.to_env(torch.tensor([[-1.0, -1.0], [1.0, 1.0], [0.0, 0.0]]))
+    torch.testing.assert_close(env_action, torch.tensor([[-3.0, -1.0], [3.0, 2.0], [0.0, 0.5]]))
+    deterministic, _, u_det = actor.sample(obs, deterministic=True)
+    torch.testing.assert_close(u_det, mean)
+    # Far in the tails the stable form stays finite where the naive one is -inf.
+    assert torch.isfinite(actor.logprob_of(obs[:1], torch.full((1, 2), 30.0))).all()
+
+
+def test_ensemble_q_equals_independent_networks():
+    torch.manual_seed(0)
+    q = EnsembleQ(5, 2, hidden=(8, 8), num_critics=3)
+    obs, action = torch.randn(10, 5), torch.rand(10, 2)
+    out = q(obs, action)
+    assert out.shape == (3, 10)
+    x = torch.cat([obs, action], -1)
+    for k in range(3):
+        h = x
+        for i, layer in enumerate(q.layers):
+            h = h @ layer.weight[k] + layer.bias[k]
+            if i < len(q.layers) - 1:
+                h = torch.relu(h)
+        torch.testing.assert_close(out[k], h.squeeze(-1))
+    assert not torch.equal(q.layers[0].weight[0], q.layers[0].weight[1])  # independently initialised
+
+
+def test_update_matches_the_soft_bellman_reference_and_moves_targets_by_tau():
+    spec = SACUpdateSpec(gamma=0.9, tau=0.1, init_alpha=0.5, seed=3)
+    agent = SACAgent(SACNetSpec((16,), (16,)), spec, 5, SPACE)
+    batch = make_batch()
+    critic_before, target_before = copy.deepcopy(agent.critic), copy.deepcopy(agent.critic_target)
+    generator = torch.Generator()
+    generator.set_state(agent.generator.get_state())
+    with torch.no_grad():  # the reference target: y = r + gamma (1 - d) (min_k Q'_k(s', a') - alpha log pi(a'|s'))
+        next_action, next_logprob, _ = copy.deepcopy(agent.actor).sample(batch["next_obs"], generator)
+        next_q = target_before(batch["next_obs"], next_action).min(0).values
+        y = batch["reward"] + 0.9 * (1 - batch["terminated"]) * (next_q - 0.5 * next_logprob)
+        q = critic_before(batch["obs"], batch["action"])
+        expected_loss = sum(0.5 * ((q[k] - y) ** 2).mean() for k in range(2))
+    metrics = agent.update(batch)
+    torch.testing.assert_close(metrics["train/critic_loss"], expected_loss)
+    torch.testing.assert_close(metrics["train/q_target_mean"], y.mean())
+    assert agent.updates == 1
+    for old_target, new_critic, new_target in zip(target_before.parameters(), agent.critic.parameters(),
+                                                  agent.critic_target.parameters()):
+        torch.testing.assert_close(new_target, 0.9 * old_target + 0.1 * new_critic)
+    assert all(p.requires_grad for p in agent.critic.parameters())  # unfrozen after the actor step
+    assert not any(p.requires_grad for p in agent.critic_target.parameters())
+
+
+def test_temperature_follows_the_entropy_target():
+    for target, direction in ((-10.0, -1), (10.0, 1)):  # entropy above target: alpha falls; below: rises
+        agent = SACAgent(SACNetSpec((16,), (16,)), SACUpdateSpec(init_alpha=0.2, target_entropy=target), 5, SPACE)
+        for i in range(5):
+            agent.update(make_batch(seed=i))
+        assert direction * (float(agent.alpha) - 0.2) > 0
+    fixed = SACAgent(SACNetSpec((16,), (16,)), SACUpdateSpec(init_alpha=0.2, autotune_alpha=False), 5, SPACE)
+    fixed.update(make_batch())
+    assert math.isclose(float(fixed.alpha), 0.2, rel_tol=1e-6)
+
+
+def test_policy_delay_and_target_period():
+    agent = SACAgent(SACNetSpec((16,), (16,)), SACUpdateSpec(policy_delay=2, target_update_every=3), 5, SPACE)
+    actor_before = copy.deepcopy(agent.actor.state_dict())
+    target_before = copy.deepcopy(agent.critic_target.state_dict())
+    first = agent.update(make_batch(seed=1))
+    assert "train/actor_loss" not in first
+    assert all(torch.equal(actor_before[k], v) for k, v in agent.actor.state_dict().items())
+    assert "train/actor_loss" in agent.update(make_batch(seed=2))
+    assert all(torch.equal(target_before[k], v) for k, v in agent.critic_target.state_dict().items())
+    agent.update(make_batch(seed=3))
+    assert not all(torch.equal(target_before[k], v) for k, v in agent.critic_target.state_dict().items())
+
+
+def test_state_dict_round_trip_continues_identically():
+    spec = SACUpdateSpec(seed=5)
+    a = SACAgent(SACNetSpec((16,), (16,)), spec, 5, SPACE)
+    for i in range(3):
+        a.update(make_batch(seed=i))
+    b = SACAgent(SACNetSpec((16,), (16,)), SACUpdateSpec(seed=6), 5, SPACE)
+    b.load_state_dict(copy.deepcopy(a.state_dict()))
+    for i in range(3, 6):
+        ma, mb = a.update(make_batch(seed=i)), b.update(make_batch(seed=i))
+        assert {k: float(v) for k, v in ma.items()} == {k: float(v) for k, v in mb.items()}
+    for (name, x), (_, y) in zip(a.named_tensors(), b.named_tensors()):
+        assert torch.equal(x, y), name
+    assert np.isfinite(float(a.alpha))
+
+
+def test_sac_flow_actor_is_reparameterised_and_scores_its_own_path():
+    from infinirl.models.sac_nets import FlowSACActor, squash_logprob_correction
+
+    torch.manual_seed(0)
+    actor = FlowSACActor(5, 2, SPACE.low, SPACE.high, num_steps=3, hidden=(16, 16))
+    obs = torch.randn(8, 5)
+    action, logprob, u = actor.sample(obs, torch.Generator().manual_seed(4))
+    again, _, _ = actor.sample(obs, torch.Generator().manual_seed(4))
+    assert torch.equal(action, again) and action.abs().max() < 1  # seeded by SAC's generator, squashed
+    # The entropy term is the flow policy's own path log-density (+ the tanh change of variables):
+    # re-scoring the same denoising path with FlowMatchingPolicy.evaluate gives the same number.
+    generator = torch.Generator().manual_seed(4)
+    seed = int(torch.randint(0, 2**62, (1,), generator=generator))
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        step = actor.flow.act({"state": obs})
+    scored = actor.flow.evaluate({"state": obs}, step.actions, step.extras).logprobs.sum(-1)
+    torch.testing.assert_close(logprob, scored - squash_logprob_correction(u).sum(-1))
+    # Reparameterised: the actor loss reaches the velocity network and the learned noise head.
+    (logprob.mean() - actor.to_env(action).sum()).backward()
+    grads = {name: p.grad for name, p in actor.named_parameters()}
+    assert grads["flow.velocity_out.weight"].abs().sum() > 0 and grads["flow.noise_out.weight"].abs().sum() > 0
+
+    agent = SACAgent(SACNetSpec((16,), (16,), actor="flow", flow={"num_steps": 3, "hidden": (16, 16)}),
+                     SACUpdateSpec(), 5, SPACE)
+    before = copy.deepcopy(agent.actor.state_dict())
+    metrics = agent.update(make_batch())
+    assert np.isfinite(float(metrics["train/actor_loss"])) and np.isfinite(float(metrics["train/entropy"]))
+    assert any(not torch.equal(before[k], v) for k, v in agent.actor.state_dict().items())
