@@ -11,10 +11,11 @@ from tensordict import TensorDict
 
 from infinirl.algorithms.objective import PolicyObjectiveConfig, policy_objective
 from infinirl.engines.train_base import TrainEngineConfig
-from infinirl.runtime import WeightSource, Worker
+from infinirl.components.engine_worker import EngineWorker
+from infinirl.runtime import WeightSource
 
 
-class ActorWorker(Worker, WeightSource):
+class ActorWorker(EngineWorker, WeightSource):
     def __init__(self, model: str, engine: TrainEngineConfig, objective: PolicyObjectiveConfig,
                  num_threads: int = 0, sync_dtype: str | None = None):
         from infinirl.engines.fsdp import FSDPTrainEngine, init_distributed
@@ -50,31 +51,5 @@ class ActorWorker(Worker, WeightSource):
         # The entropy pass costs a [tokens, vocab] softmax: only pay for it when it is used.
         return self.engine.train_step(shard, loss_fn, with_entropy=self.objective.entropy_coef > 0)
 
-    def weights_digest(self) -> str:
-        return engine_digest(self.engine)
-
     def weights_for_sync(self):
         return self.engine.state_dict_for_sync(dtype=self.sync_dtype)
-
-    def save_checkpoint(self, path: str) -> None:
-        self.engine.save_checkpoint(path)
-
-    def load_checkpoint(self, path: str) -> None:
-        self.engine.load_checkpoint(path)
-
-    def offload(self) -> None:
-        self.engine.offload()
-
-    def reload(self) -> None:
-        self.engine.reload()
-
-
-def engine_digest(engine) -> str:
-    """SHA-256 over an engine's full weights (all ranks take part): resume tests compare these."""
-    import hashlib
-
-    digest = hashlib.sha256()
-    for name, tensor in engine.state_dict_for_sync():
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
-    return digest.hexdigest()

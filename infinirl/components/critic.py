@@ -14,9 +14,8 @@ from tensordict import TensorDict
 
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import value_loss
-from infinirl.components.actor import engine_digest
 from infinirl.engines.train_base import TrainEngineConfig
-from infinirl.runtime import Worker
+from infinirl.components.engine_worker import EngineWorker
 
 #: Batch keys the critic trains on: the values it predicted when the batch was scored (the centre
 #: of value clipping) and the regression targets (GAE's lambda-returns).
@@ -43,7 +42,7 @@ def critic_loss(micro_batch: TensorDict, values: torch.Tensor, value_clip: float
     return loss, {f"train/{k}": float(v) for k, v in out.metrics.items()}
 
 
-class CriticWorker(Worker):
+class CriticWorker(EngineWorker):
     def __init__(self, model: str, engine: TrainEngineConfig, value_clip: float | None = None,
                  num_threads: int = 0):
         from infinirl.engines.fsdp import FSDPTrainEngine, init_distributed
@@ -67,18 +66,3 @@ class CriticWorker(Worker):
 
         metrics = self.engine.train_step(shard, loss_fn)
         return {_RENAMES.get(key, key): value for key, value in metrics.items()}
-
-    def weights_digest(self) -> str:
-        return engine_digest(self.engine)
-
-    def save_checkpoint(self, path: str) -> None:
-        self.engine.save_checkpoint(path)
-
-    def load_checkpoint(self, path: str) -> None:
-        self.engine.load_checkpoint(path)
-
-    def offload(self) -> None:
-        self.engine.offload()
-
-    def reload(self) -> None:
-        self.engine.reload()
