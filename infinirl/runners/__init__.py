@@ -24,8 +24,8 @@ class RunnerSpec:
 RUNNERS: Registry[RunnerSpec] = Registry("runner", entry_point_group="infinirl.runners")
 
 # Modules that define runners; imported lazily so `infinirl --help` stays fast.
-_RUNNER_MODULES = ("infinirl.runners.runtime_demo", "infinirl.runners.reasoning", "infinirl.evaluation.runner",
-                  "infinirl.runners.sac")
+_RUNNER_MODULES = ("infinirl.runners.runtime_demo", "infinirl.runners.reasoning", "infinirl.runners.embodied",
+                  "infinirl.evaluation.runner", "infinirl.runners.sac")
 
 
 def register_runner(name: str, config_cls: type, summary: str):

@@ -1,0 +1,271 @@
+"""Embodied actor: the PPO trainer of a :class:`~infinirl.models.policies.base.Policy`.
+
+Each rank receives the whole iteration batch (small for state policies; the runner moves it once
+through Ray's object store) and trains on *its share of every mini-batch*:
+
+* mini-batch membership comes from a generator seeded by ``(seed, iteration)``, identical on every
+  rank and on a resumed run;
+* per-mini-batch advantage normalisation uses the statistics of the whole mini-batch, and every
+  loss term is a sum over this rank's rows divided by a *mini-batch-global* count
+  (:func:`~infinirl.algorithms.aggregation.aggregate`), so the summed gradient over ranks equals
+  the single-process gradient: the update is independent of the number of ranks (split-invariant);
+* gradients are summed over ranks: one flat gloo/NCCL ``all_reduce(SUM)`` per optimizer step
+  (``strategy: ddp``), or FSDP2 (``strategy: fsdp``, ``fully_shard`` with SUM reduction and
+  ``gradient_divide_factor=1``) which shards parameters and optimizer state over the ranks.
+
+After its epochs the actor folds the batch's observations into the running observation
+normaliser (part of the module state, so weight sync and checkpoints carry it), so the statistics
+a batch was *collected* with are the ones it is *trained* with.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from infinirl.algorithms.aggregation import aggregate
+from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
+from infinirl.components.embodied_rollout import PolicySpec
+from infinirl.components.env_worker import _limit_threads
+from infinirl.runtime import WeightSource, Worker
+
+__all__ = ["EmbodiedActorWorker", "PPOSpec", "ppo_update"]
+
+_CHECKPOINT = "actor.pt"
+
+
+@dataclass(frozen=True)
+class PPOSpec:
+    """PPO hyperparameters (documented on the runner's config fields)."""
+
+    lr: float = 3e-4
+    anneal_lr: bool = True
+    total_iterations: int = 1
+    epochs: int = 10
+    mini_batches: int = 32
+    clip: float = 0.2
+    value_clip: float | None = None
+    value_coef: float = 0.5
+    entropy_coef: float = 0.0
+    max_grad_norm: float = 0.5
+    normalize_advantages: bool = True
+    gae_level: str = "chunk"
+    adam_eps: float = 1e-5
+    strategy: str = "ddp"
+    seed: int = 0
+
+
+def _to_tensor(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _to_tensor(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):  # arrays from Ray's object store are read-only: copy once
+        return torch.from_numpy(np.array(value, copy=True))
+    return value
+
+
+def _rows(value: Any, index: torch.Tensor) -> Any:
+    if isinstance(value, dict):
+        return {k: _rows(v, index) for k, v in value.items()}
+    return value[index]
+
+
+class EmbodiedActorWorker(Worker, WeightSource):
+    """One data-parallel rank of the PPO trainer."""
+
+    def __init__(self, policy_spec: PolicySpec, observation_spec: dict, action_space, ppo: PPOSpec,
+                 num_threads: int = 1):
+        _limit_threads(num_threads)
+        if ppo.strategy not in ("ddp", "fsdp"):
+            raise ValueError(f"actor strategy must be 'ddp' or 'fsdp', got {ppo.strategy!r}")
+        self.ppo = ppo
+        self.distributed = self.world_size > 1 or ppo.strategy == "fsdp"
+        if self.distributed:
+            self.init_process_group()
+        torch.manual_seed(ppo.seed)  # identical initial weights on every rank
+        self.model = policy_spec.build(observation_spec, action_space)
+        if ppo.strategy == "fsdp":
+            from torch.distributed.fsdp import FSDPModule, fully_shard
+
+            fully_shard(self.model)
+            for module in self.model.modules():
+                if isinstance(module, FSDPModule):
+                    module.set_gradient_divide_factor(1.0)
+                    module.set_force_sum_reduction_for_comms(True)
+        # Fused Adam: one kernel per step instead of a Python loop over parameters (~20% of a small
+        # policy's update on CPU). FSDP2's DTensor parameters take the default implementation.
+        fused = {"fused": True} if ppo.strategy == "ddp" else {}
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=ppo.lr, eps=ppo.adam_eps, **fused)
+
+    # ---------------------------------------------------------------- training
+    def update(self, batch: dict, iteration: int) -> dict:
+        """PPO epochs over ``batch`` (flat ``[B, ...]`` arrays, see the runner); returns metrics."""
+        metrics = ppo_update(self.model, self.optimizer, _to_tensor(batch), iteration, self.ppo,
+                             self.rank, self.world_size, self._all_reduce_grads)
+        obs = _to_tensor(batch["obs"])
+        self.model.update_obs_stats({k: obs[k] for k in self.model.keys})
+        return metrics
+
+    def _all_reduce_grads(self) -> None:
+        if not self.distributed or self.ppo.strategy == "fsdp":
+            return  # FSDP2 reduce-scatters (SUM) in its backward hooks
+        import torch.distributed as dist
+
+        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+        flat = torch.cat([g.reshape(-1) for g in grads])
+        dist.all_reduce(flat, op=dist.ReduceOp.SUM)
+        offset = 0
+        for g in grads:
+            g.copy_(flat[offset:offset + g.numel()].view_as(g))
+            offset += g.numel()
+
+    # ---------------------------------------------------------------- weights
+    def _named_full(self):
+        """(name, full tensor) of every parameter and buffer; a collective under FSDP2."""
+        from torch.distributed.tensor import DTensor
+
+        for name, tensor in self.model.state_dict().items():
+            if isinstance(tensor, DTensor):
+                tensor = tensor.full_tensor()
+            yield name, tensor.detach()
+
+    def weights_for_sync(self):
+        return self._named_full()
+
+    def weights_digest(self) -> str:
+        digest = hashlib.sha256()
+        for name, tensor in self._named_full():
+            digest.update(name.encode())
+            digest.update(tensor.cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+        return digest.hexdigest()
+
+    def save_checkpoint(self, path: str) -> None:
+        """Model (with its observation normaliser) and optimizer, written by rank 0 atomically."""
+        if self.ppo.strategy == "fsdp":
+            from torch.distributed.checkpoint.state_dict import (
+                StateDictOptions,
+                get_model_state_dict,
+                get_optimizer_state_dict,
+            )
+
+            options = StateDictOptions(full_state_dict=True, cpu_offload=True)
+            model_state = get_model_state_dict(self.model, options=options)
+            optim_state = get_optimizer_state_dict(self.model, self.optimizer, options=options)
+        else:
+            model_state, optim_state = self.model.state_dict(), self.optimizer.state_dict()
+        if self.rank != 0:
+            return
+        os.makedirs(path, exist_ok=True)
+        final = os.path.join(path, _CHECKPOINT)
+        tmp = final + ".tmp"
+        torch.save({"model": model_state, "optimizer": optim_state}, tmp)
+        os.replace(tmp, final)
+
+    def load_checkpoint(self, path: str) -> None:
+        state = torch.load(os.path.join(path, _CHECKPOINT), weights_only=False)
+        if self.ppo.strategy == "fsdp":
+            from torch.distributed.checkpoint.state_dict import (
+                StateDictOptions,
+                set_model_state_dict,
+                set_optimizer_state_dict,
+            )
+
+            options = StateDictOptions(full_state_dict=True)
+            set_model_state_dict(self.model, state["model"], options=options)
+            set_optimizer_state_dict(self.model, self.optimizer, state["optimizer"], options=options)
+        else:
+            self.model.load_state_dict(state["model"])
+            self.optimizer.load_state_dict(state["optimizer"])
+
+
+def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank: int = 0, world_size: int = 1,
+               all_reduce_grads=lambda: None) -> dict:
+    """The PPO epochs of one iteration on ``model`` (a ``NormalizedPolicy``, possibly FSDP2-wrapped).
+
+    ``batch`` (tensors, flat over ``B = T * N`` decisions): ``obs`` dict, ``actions``
+    ``[B, C, ...]``, ``logprobs`` / ``step_mask`` ``[B, C]``, ``values`` ``[B]``, ``advantages`` /
+    ``returns`` ``[B]`` (chunk level) or ``[B, C]`` (action level), optional ``extras``.
+    """
+    if ppo.anneal_lr:
+        lr = ppo.lr * max(0.0, 1.0 - iteration / max(1, ppo.total_iterations))
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+    size = batch["actions"].shape[0]
+    per_mini = size // ppo.mini_batches
+    generator = torch.Generator().manual_seed(int(np.random.default_rng([ppo.seed, iteration, 0xB47]).integers(2**62)))
+    action_level = ppo.gae_level == "action"
+    mask_all = batch["step_mask"].to(torch.float32)
+    sums: dict[str, float] = {}
+    steps = 0
+    mismatch = None
+    for _ in range(ppo.epochs):
+        order = torch.randperm(size, generator=generator)
+        for m in range(ppo.mini_batches):
+            mini = order[m * per_mini:(m + 1) * per_mini]
+            adv = batch["advantages"][mini].to(torch.float32)
+            mask = mask_all[mini]
+            if ppo.normalize_advantages:  # statistics of the whole mini-batch (all ranks)
+                valid = mask if action_level else torch.ones_like(adv)
+                mean = (adv * valid).sum() / valid.sum()
+                std = torch.sqrt(((adv - mean) ** 2 * valid).sum() / (valid.sum() - 1).clamp(min=1))
+                adv = (adv - mean) / (std + 1e-8)
+            n_pg = float(mask.sum()) if action_level else float(per_mini)
+            n_value = float(per_mini)
+            n_entropy = float(mask.sum())
+            share = slice(rank * per_mini // world_size, (rank + 1) * per_mini // world_size)
+            mine = mini[share]
+            adv, mask = adv[share], mask[share]
+            logprobs, entropy, values = model(_rows(batch["obs"], mine), batch["actions"][mine],
+                                              _rows(batch["extras"], mine) if "extras" in batch else None,
+                                              True)
+            old = batch["logprobs"][mine]
+            if mismatch is None:
+                mismatch = float(((logprobs.detach() - old).abs() * mask).sum() / mask.sum().clamp(min=1))
+            if action_level:
+                pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=mask,
+                                   clip_low=ppo.clip)
+                pg_loss = aggregate(pg.loss_mat, mask, "token-mean", n_pg)
+                returns = batch["returns"][mine][:, 0]
+            else:
+                ones = torch.ones_like(adv)
+                pg = ppo_clip_loss(logprobs=(logprobs * mask).sum(-1), old_logprobs=(old * mask).sum(-1),
+                                   advantages=adv, response_mask=ones, clip_low=ppo.clip)
+                pg_loss = aggregate(pg.loss_mat, ones, "token-mean", n_pg)
+                returns = batch["returns"][mine]
+            ones = torch.ones_like(returns)
+            vl = value_loss(values=values, old_values=batch["values"][mine], returns=returns.to(values.dtype),
+                            response_mask=ones, clip_range=ppo.value_clip)
+            loss = pg_loss + ppo.value_coef * aggregate(vl.loss_mat, ones, "token-mean", n_value)
+            ent = entropy_loss(mask, entropy=entropy) if entropy is not None else None
+            if ent is not None and ppo.entropy_coef:
+                loss = loss + ppo.entropy_coef * aggregate(ent.loss_mat, mask, "token-mean", n_entropy)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            all_reduce_grads()
+            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), ppo.max_grad_norm)
+            if hasattr(grad_norm, "full_tensor"):
+                grad_norm = grad_norm.full_tensor()
+            optimizer.step()
+            step_metrics = {
+                "train/policy_loss": pg_loss.item(), "train/value_loss": float(vl.metrics["value_mse"]) / 2,
+                "train/approx_kl": float(pg.metrics["approx_kl"]), "train/clip_fraction": float(pg.metrics["clip_fraction"]),
+                "train/grad_norm": float(grad_norm),
+            }
+            if ent is not None:
+                step_metrics["train/entropy"] = float(ent.metrics["entropy"])
+            for key, value in step_metrics.items():
+                sums[key] = sums.get(key, 0.0) + value
+            steps += 1
+    metrics = {key: value / steps for key, value in sums.items()}
+    returns = batch["returns"][:, 0] if action_level else batch["returns"]
+    variance = float(returns.var())
+    metrics["train/explained_variance"] = (float("nan") if variance == 0
+                                           else 1.0 - float((returns - batch["values"]).var()) / variance)
+    metrics["train/lr"] = optimizer.param_groups[0]["lr"]
+    metrics["train/logprob_mismatch"] = mismatch if mismatch is not None else 0.0
+    metrics["train/optimizer_steps"] = steps
+    return metrics

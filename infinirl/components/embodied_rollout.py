@@ -1,0 +1,310 @@
+"""Embodied rollout: policy inference over the env's stages, recording PPO trajectories.
+
+One rank drives one env rank: either a :class:`~infinirl.components.env_worker.StagedEnv` in this
+process (env collocated with the rollout) or a remote :class:`~infinirl.components.env_worker.EnvWorker`
+through an env link. The loop is the same either way (an *endpoint* hides the difference)::
+
+    for t in 0..T:                     # T = rollout_steps decisions per env
+        for stage s in 0..K-1:
+            msg = endpoint.recv(s)     # stage s's step result (reward/done of the last action, next obs)
+            record it; decide the next actions of stage s; endpoint.send(s, actions)
+
+With ``K >= 2`` the env simulates stage ``s`` while this loop decides for stage ``s+1``: the
+pipelining of simulation and inference. Local simulators in subprocesses (``env.num_workers >= 1``)
+overlap the same way through ``step_async``/``step_wait``.
+
+Weights arrive from the trainer through :func:`~infinirl.runtime.sync_weights` with a version,
+which every trajectory carries (``version``), so staleness is measured, not assumed.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from infinirl.components.embodied_policy import build_embodied_policy
+from infinirl.components.env_worker import EnvSpec, StagedEnv, _limit_threads
+from infinirl.models.policies.base import prepare_obs
+from infinirl.runtime import WeightSink, Worker
+
+__all__ = ["EmbodiedRolloutWorker", "PolicySpec", "run_eval_episodes"]
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """Which policy to build, as the rollout and the actor both need it (picklable)."""
+
+    name: str = "mlp_gaussian"
+    options: dict = field(default_factory=dict)
+    chunk: int = 1
+    normalize_obs: bool = True
+    normalize_keys: tuple[str, ...] | None = None
+    obs_clip: float = 10.0
+
+    def build(self, observation_spec, action_space):
+        return build_embodied_policy(self.name, self.options, observation_spec, action_space, self.chunk,
+                                     self.normalize_obs, self.normalize_keys, self.obs_clip)
+
+
+def env_actions(actions: torch.Tensor, chunk: int) -> np.ndarray:
+    """Policy actions ``[B, K, ...]`` -> what the env takes: ``[B, ...]`` unchunked, else as is."""
+    array = actions.detach().cpu().numpy()
+    return array[:, 0] if chunk == 1 else array
+
+
+def array_obs(obs: dict) -> dict:
+    """The array fields of an observation (text fields such as ``instruction`` are dropped)."""
+    return {key: value for key, value in obs.items() if isinstance(value, np.ndarray)}
+
+
+class _LocalEndpoint:
+    """The env in this process: ``send`` starts a stage's step, ``recv`` collects it."""
+
+    def __init__(self, env: StagedEnv, seeds: list[int]):
+        self.env = env
+        self.num_stages = env.num_stages
+        self._first = env.reset(seeds)
+
+    def recv(self, stage: int) -> dict:
+        if self._first[stage] is not None:
+            message, self._first[stage] = self._first[stage], None
+            return message
+        return self.env.step_wait(stage)
+
+    def send(self, stage: int, actions: np.ndarray) -> None:
+        self.env.step_async(stage, actions)
+
+
+class _RemoteEndpoint:
+    """An :class:`EnvWorker` rank over the link; it serves the stages in the order we use them."""
+
+    def __init__(self, link, num_stages: int):
+        self.link, self.num_stages = link, num_stages
+
+    def recv(self, stage: int) -> dict:
+        return self.link.recv()
+
+    def send(self, stage: int, actions: np.ndarray) -> None:
+        self.link.send((stage, actions))
+
+
+class _StageBuffer:
+    """What one stage records over an iteration, stacked to ``[T, n, ...]`` at the end."""
+
+    def __init__(self):
+        self.obs: list[dict] = []
+        self.actions, self.logprobs, self.values = [], [], []
+        self.extras: list[dict] = []
+        self.rewards, self.step_rewards, self.step_mask = [], [], []
+        self.terminated, self.truncated, self.final_values = [], [], []
+        self.bootstrap = None
+
+    def stacked(self) -> dict:
+        def stack(rows):
+            return np.stack(rows)
+
+        out = {
+            "obs": {key: stack([o[key] for o in self.obs]) for key in self.obs[0]},
+            "actions": stack(self.actions), "logprobs": stack(self.logprobs), "values": stack(self.values),
+            "rewards": stack(self.rewards), "step_rewards": stack(self.step_rewards),
+            "step_mask": stack(self.step_mask), "terminated": stack(self.terminated),
+            "truncated": stack(self.truncated), "final_values": stack(self.final_values),
+            "bootstrap_values": self.bootstrap,
+        }
+        if self.extras and self.extras[0]:
+            out["extras"] = {key: stack([e[key] for e in self.extras]) for key in self.extras[0]}
+        return out
+
+
+def _concat_stages(parts: list[dict]) -> dict:
+    """Stage buffers -> one ``[T, n_rank, ...]`` trajectory (env axis 1; bootstrap axis 0)."""
+    out: dict[str, Any] = {}
+    for key, first in parts[0].items():
+        if isinstance(first, dict):
+            out[key] = {k: np.concatenate([p[key][k] for p in parts], axis=1) for k in first}
+        elif key == "bootstrap_values":
+            out[key] = np.concatenate([p[key] for p in parts])
+        else:
+            out[key] = np.concatenate([p[key] for p in parts], axis=1)
+    return out
+
+
+class EmbodiedRolloutWorker(Worker, WeightSink):
+    """One rollout rank: the policy (inference copy), its env endpoint, evaluation and videos."""
+
+    def __init__(self, env_spec: EnvSpec, policy_spec: PolicySpec, observation_spec: dict, action_space,
+                 seed: int, host_env: bool, num_threads: int = 1):
+        _limit_threads(num_threads)
+        self.env_spec, self.policy_spec, self.seed = env_spec, policy_spec, seed
+        self.observation_spec, self.action_space = observation_spec, action_space
+        self.policy = policy_spec.build(observation_spec, action_space).eval()
+        self.env = StagedEnv(env_spec, self.rank) if host_env else None
+        self.link = None
+        self._eval_env = None
+
+    # ---------------------------------------------------------------- wiring
+    def connect_link(self, address: dict) -> None:
+        from infinirl.components.env_link import connect
+
+        self.link = connect(address)
+
+    def load_weights(self, named_tensors, version: int) -> None:
+        own = self.policy.state_dict()
+        with torch.no_grad():
+            for name, tensor in named_tensors:
+                if name not in own:
+                    raise KeyError(f"weight {name!r} from the trainer has no place in the rollout policy")
+                own[name].copy_(tensor)
+
+    # ---------------------------------------------------------------- collection
+    @torch.no_grad()
+    def collect(self, iteration: int, seeds: list[int], num_steps: int) -> dict:
+        """``num_steps`` decisions for every env of this rank; the trajectory as numpy arrays."""
+        torch.manual_seed(int(np.random.default_rng([self.seed, iteration, self.rank, 0xAC7]).integers(2**62)))
+        if self.env is not None:
+            endpoint = _LocalEndpoint(self.env, seeds)
+        else:
+            if self.link is None:
+                raise RuntimeError("collect() with a remote env before connect_link()")
+            endpoint = _RemoteEndpoint(self.link, self.env_spec.stages)
+        chunk = self.policy.chunk
+        buffers = [_StageBuffer() for _ in range(endpoint.num_stages)]
+        episodes = {"return": [], "length": [], "success": []}
+        restarted = 0
+        infer_s = wait_s = 0.0
+        for t in range(num_steps + 1):
+            for stage, buf in enumerate(buffers):
+                start = time.perf_counter()
+                msg = endpoint.recv(stage)
+                wait_s += time.perf_counter() - start
+                start = time.perf_counter()
+                if t > 0:
+                    self._record_result(buf, msg, episodes)
+                    restarted += msg["restarted"]
+                obs = array_obs(msg["obs"])
+                tensors = prepare_obs(obs)
+                if t == num_steps:
+                    buf.bootstrap = self._values(tensors, next(iter(obs.values())).shape[0])
+                    infer_s += time.perf_counter() - start
+                    continue
+                step = self.policy.act(tensors)
+                buf.obs.append(obs)
+                buf.actions.append(step.actions.numpy())
+                buf.logprobs.append(step.logprobs.numpy().astype(np.float32))
+                n = step.actions.shape[0]
+                buf.values.append(np.zeros(n, np.float32) if step.values is None
+                                  else step.values.numpy().astype(np.float32))
+                buf.extras.append({k: v.numpy() for k, v in step.extras.items()})
+                actions = env_actions(step.actions, chunk)
+                infer_s += time.perf_counter() - start
+                endpoint.send(stage, actions)
+        trajectory = _concat_stages([buf.stacked() for buf in buffers])
+        trajectory["version"] = self.weight_version
+        trajectory["episodes"] = {k: np.asarray(v) for k, v in episodes.items()}
+        trajectory["timing"] = {"rollout/inference_s": infer_s, "rollout/wait_env_s": wait_s}
+        trajectory["restarted"] = restarted
+        return trajectory
+
+    def _values(self, tensors: dict, n: int) -> np.ndarray:
+        if not getattr(self.policy.policy, "has_value_head", False):
+            return np.zeros(n, np.float32)
+        return self.policy.value(tensors).numpy().astype(np.float32)
+
+    def _record_result(self, buf: _StageBuffer, msg: dict, episodes: dict) -> None:
+        n = len(msg["reward"])
+        buf.rewards.append(msg["reward"])
+        buf.step_rewards.append(msg["step_rewards"])
+        buf.step_mask.append(msg["step_mask"])
+        buf.terminated.append(msg["terminated"])
+        buf.truncated.append(msg["truncated"])
+        final_values = np.zeros(n, np.float32)
+        ended = msg["ended"]
+        if len(ended):
+            truncated = msg["truncated"][ended]
+            if truncated.any():  # truncated episodes bootstrap from V(final obs)
+                rows = ended[truncated]
+                final = {k: v[truncated] for k, v in array_obs(msg["final_obs"]).items()}
+                final_values[rows] = self._values(prepare_obs(final), len(rows))
+            episodes["return"].extend(msg["episode_return"].tolist())
+            episodes["length"].extend(msg["episode_length"].tolist())
+            episodes["success"].extend(msg["episode_success"].tolist())
+        buf.final_values.append(final_values)
+
+    # ---------------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def evaluate(self, seeds: list[int], num_envs: int, deterministic: bool = True,
+                 env_kwargs: dict | None = None, max_episode_steps: int | None = None) -> dict:
+        """One episode per seed (held-out seeds) with the (deterministic) policy; episode stats."""
+        if self._eval_env is None or self._eval_env.num_envs != num_envs:
+            if self._eval_env is not None:
+                self._eval_env.close()
+            self._eval_env = self.env_spec.build(num_envs, stage=99, num_workers=0, max_episode_steps=max_episode_steps,
+                                                 **(env_kwargs or {}))
+        result = run_eval_episodes(self.policy, self._eval_env, seeds, deterministic)
+        return result
+
+    @torch.no_grad()
+    def record_video(self, seeds: list[int], path: str, frame_skip: int = 1, fps: int = 30,
+                     env_kwargs: dict | None = None, deterministic: bool = True,
+                     max_episode_steps: int | None = None) -> dict:
+        """Render one episode per seed into an mp4 (MuJoCo frames on CPU via osmesa/egl)."""
+        import os
+
+        import imageio.v2 as imageio
+
+        env = self.env_spec.build(1, stage=98, num_workers=0, max_episode_steps=max_episode_steps, **(env_kwargs or {}))
+        frames, successes = [], []
+        try:
+            for seed in seeds:
+                obs = env.reset(seeds=[int(seed)])
+                frames.append(env.render()[0])
+                done, t = False, 0
+                while not done:
+                    step = self.policy.act(prepare_obs(array_obs(obs)), deterministic=deterministic)
+                    result = env.step(env_actions(step.actions, self.policy.chunk))
+                    done, t = bool(result.done[0]), t + 1
+                    if done:
+                        successes.append(bool(result.info["episode_success"][0]))
+                    elif t % frame_skip == 0:
+                        frames.append(env.render()[0])
+                    obs = result.obs
+        finally:
+            env.close()
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
+        return {"path": path, "frames": len(frames), "episode_success": successes}
+
+    def close(self) -> None:
+        for env in (self.env, self._eval_env):
+            if env is not None:
+                env.close()
+        if self.link is not None:
+            self.link.close()
+
+
+def run_eval_episodes(policy, env, seeds: list[int], deterministic: bool = True) -> dict:
+    """Run one episode per seed on ``env`` (rounds of ``env.num_envs``); success/return/length."""
+    num_envs = env.num_envs
+    chunk = policy.chunk
+    successes, returns, lengths = [], [], []
+    for start in range(0, len(seeds), num_envs):
+        batch = [int(s) for s in seeds[start:start + num_envs]]
+        used = len(batch)
+        obs = env.reset(seeds=batch + [batch[-1]] * (num_envs - used))
+        active = np.arange(num_envs) < used
+        while active.any():
+            step = policy.act(prepare_obs(array_obs(obs)), deterministic=deterministic)
+            result = env.step(env_actions(step.actions, chunk), env_mask=active)
+            ended = np.flatnonzero(result.done & active)
+            for i in ended:
+                successes.append(bool(result.info["episode_success"][i]))
+                returns.append(float(result.info["episode_return"][i]))
+                lengths.append(int(result.info["episode_length"][i]))
+            active &= ~result.done
+            obs = result.obs
+    return {"eval/success_rate": float(np.mean(successes)), "eval/return_mean": float(np.mean(returns)),
+            "eval/length_mean": float(np.mean(lengths)), "eval/episodes": len(successes)}

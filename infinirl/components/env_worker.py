@@ -1,0 +1,260 @@
+"""EnvWorker: the env component. One rank owns a slice of the training envs, split into stages.
+
+What one rank holds is a :class:`StagedEnv`: its ``num_envs`` envs as ``stages`` separate
+vectorised envs (``make_env``), so that one stage can be simulated while the policy decides for
+another. The :class:`StagedEnv` is the whole env logic; it runs either
+
+* in the env component's own process (:class:`EnvWorker`, a Ray worker), serving the rollout over
+  an :mod:`~infinirl.components.env_link` (env and rollout placed on disjoint resources), or
+* inside the rollout's process (env and rollout collocated: the placement says they take turns on
+  the same CPU slots/devices, so a hop between two processes would buy nothing).
+
+Messages are :class:`StageStep` dicts of numpy arrays: what the rollout needs to record a step
+and decide the next one (observation, reward, episode ends, the final observation of episodes that
+ended, per-action rewards of chunks, and statistics of finished episodes).
+
+Seeds. Every reset is seeded by the caller (the runner derives training seeds from ``(seed,
+iteration)``), so the envs' state at an iteration boundary is a function of the iteration and a
+resumed run continues exactly. Training seeds are below ``2**31 - 1``; held-out evaluation seeds
+start at :data:`EVAL_SEED_BASE` = ``2**31``, so the two never meet.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from infinirl.runtime import Worker
+
+__all__ = ["EVAL_SEED_BASE", "EnvSpec", "EnvWorker", "StagedEnv", "iteration_seeds", "probe_env_specs"]
+
+EVAL_SEED_BASE = 2**31
+"""First held-out evaluation seed; training seeds (iteration resets and auto-resets) are below it."""
+
+_TRAIN_SEED_LIMIT = 2**31 - 1  # VectorEnv draws auto-reset seeds below this too
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """How to build the envs of one rank (picklable; the runner fills it from the config).
+
+    ``num_envs`` is this rank's total, split over ``stages`` (equal sizes, the remainder to the
+    first stages). ``num_workers`` is the number of simulator subprocesses *per stage* (0: the
+    sub-envs run in the owning process).
+    """
+
+    name: str
+    num_envs: int
+    stages: int = 1
+    num_workers: int = 0
+    max_episode_steps: int | None = None
+    chunk_size: int = 1
+    seed: int = 0
+    kwargs: dict = field(default_factory=dict)
+
+    def stage_sizes(self) -> list[int]:
+        base, extra = divmod(self.num_envs, self.stages)
+        return [base + (1 if s < extra else 0) for s in range(self.stages)]
+
+    def build(self, num_envs: int, stage: int = 0, num_workers: int | None = None,
+              max_episode_steps: int | None = None, **overrides: Any):
+        """One vectorised env of ``num_envs`` (chunked when ``chunk_size > 1``); ``overrides`` go to
+        the simulator, ``max_episode_steps`` replaces the spec's time limit when given."""
+        from infinirl.envs import make_env
+
+        return make_env(
+            self.name,
+            num_envs,
+            seed=_mix(self.seed, stage),
+            num_workers=self.num_workers if num_workers is None else num_workers,
+            max_episode_steps=self.max_episode_steps if max_episode_steps is None else max_episode_steps,
+            chunk_size=self.chunk_size if self.chunk_size > 1 else None,
+            **{**self.kwargs, **overrides},
+        )
+
+
+def iteration_seeds(seed: int, iteration: int, num_envs: int) -> list[int]:
+    """The reset seed of every training env at the start of ``iteration`` (all below 2**31 - 1)."""
+    rng = np.random.default_rng([seed, iteration, 0x5EED])
+    return [int(s) for s in rng.integers(0, _TRAIN_SEED_LIMIT, size=num_envs)]
+
+
+def probe_env_specs(name: str, kwargs: dict) -> tuple[dict, Any]:
+    """Observation spec and (single-step) action space of env ``name``, from one sub-env built in
+    this process. Also validates the name and options, listing the valid ones on error."""
+    from infinirl.envs.registry import ENVS
+
+    family, _, task = name.partition(":")
+    factory = ENVS.get(family)(task or None, **kwargs)
+    sub_env = factory(0)
+    try:
+        return dict(sub_env.observation_spec), sub_env.action_space
+    finally:
+        sub_env.close()
+
+
+def _mix(seed: int, stage: int) -> int:
+    return int(np.random.default_rng([seed, stage, 0xE4]).integers(0, _TRAIN_SEED_LIMIT))
+
+
+StageStep = dict[str, Any]
+"""One stage's step as the env reports it (see :meth:`StagedEnv.step_wait`)."""
+
+
+class StagedEnv:
+    """A rank's envs as ``spec.stages`` vectorised envs; ``step_async``/``step_wait`` per stage."""
+
+    def __init__(self, spec: EnvSpec, rank: int = 0):
+        self.spec = spec
+        self.sizes = spec.stage_sizes()
+        if min(self.sizes) < 1:
+            raise ValueError(f"{spec.num_envs} envs cannot fill {spec.stages} pipeline stages")
+        seeded = EnvSpec(**{**spec.__dict__, "seed": _mix(spec.seed, 1000 + rank)})
+        self.envs = [seeded.build(n, stage=s) for s, n in enumerate(self.sizes)]
+        self.num_stages = len(self.envs)
+        self._pending: list[bool] = [False] * self.num_stages
+
+    @property
+    def observation_spec(self) -> dict:
+        return dict(self.envs[0].observation_spec)
+
+    @property
+    def action_space(self):
+        return self.envs[0].action_space
+
+    def reset(self, seeds: list[int]) -> list[StageStep]:
+        """Reset every env with its seed; the first message of each stage (no reward yet)."""
+        if len(seeds) != self.spec.num_envs:
+            raise ValueError(f"expected {self.spec.num_envs} seeds (one per env of this rank), got {len(seeds)}")
+        messages, start = [], 0
+        for env, n in zip(self.envs, self.sizes):
+            obs = env.reset(seeds=[int(s) for s in seeds[start:start + n]])
+            start += n
+            messages.append(_first_message(obs, n, self.spec.chunk_size))
+        return messages
+
+    def step_async(self, stage: int, actions: np.ndarray) -> None:
+        env = self.envs[stage]
+        if hasattr(env, "step_async"):  # a VectorEnv: the simulators run while we return
+            env.step_async(actions)
+            self._pending[stage] = True
+        else:  # a chunked env steps K times, so it cannot be split; it runs in step_wait
+            self._pending[stage] = actions
+
+    def step_wait(self, stage: int) -> StageStep:
+        pending, self._pending[stage] = self._pending[stage], False
+        env = self.envs[stage]
+        if pending is True:
+            result = env.step_wait()
+        elif pending is False:
+            raise RuntimeError(f"step_wait({stage}) without step_async({stage})")
+        else:
+            result = env.step(pending)
+        return _step_message(result, self.spec.chunk_size)
+
+    def step(self, stage: int, actions: np.ndarray) -> StageStep:
+        self.step_async(stage, actions)
+        return self.step_wait(stage)
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
+def _first_message(obs: dict, n: int, chunk: int) -> StageStep:
+    return {"obs": obs, "first": True}
+
+
+def _step_message(result, chunk: int) -> StageStep:
+    info = result.info
+    done = np.asarray(result.terminated | result.truncated)
+    ended = np.flatnonzero(done)
+    msg: StageStep = {
+        "obs": result.obs,
+        "reward": np.asarray(result.reward, dtype=np.float32),
+        "terminated": np.asarray(result.terminated, dtype=bool),
+        "truncated": np.asarray(result.truncated, dtype=bool),
+        "success": np.asarray(info["success"], dtype=bool),
+        "ended": ended,
+        "final_obs": {k: (v[ended] if isinstance(v, np.ndarray) else [v[i] for i in ended])
+                      for k, v in info["final_obs"].items()},
+        "episode_return": np.asarray(info["episode_return"])[ended],
+        "episode_length": np.asarray(info["episode_length"])[ended],
+        "episode_success": np.asarray(info["episode_success"])[ended],
+        "restarted": int(np.asarray(info["restarted"]).sum()),
+    }
+    if chunk > 1:
+        msg["step_rewards"] = np.asarray(info["step_rewards"], dtype=np.float32)
+        msg["step_mask"] = np.asarray(info["step_mask"], dtype=bool)
+    else:
+        msg["step_rewards"] = msg["reward"][:, None]
+        msg["step_mask"] = np.ones((len(msg["reward"]), 1), dtype=bool)
+    return msg
+
+
+class EnvWorker(Worker):
+    """The env component in its own process: a :class:`StagedEnv` served to one rollout rank.
+
+    Rank ``r`` pairs with rollout rank ``r`` through a link (``open_link`` + ``accept_link`` here,
+    ``connect_link`` on the rollout). Per iteration the runner calls :meth:`serve`, which resets
+    the envs with the given seeds and then answers each stage's actions with its next step, in the
+    order the rollout sends them; simulation of one stage overlaps the rollout's inference for
+    another because the two run in different processes.
+    """
+
+    def __init__(self, spec: EnvSpec, num_threads: int = 1):
+        _limit_threads(num_threads)
+        self.env = StagedEnv(spec, self.rank)
+        self.link = None
+
+    def open_link(self, transport: str, channel_names: tuple[str, str] | None = None,
+                  family: str | None = None) -> Any:
+        """Start listening for this rank's rollout; returns the address to connect to."""
+        from infinirl.components.env_link import open_server
+
+        self._server, address = open_server(transport, channel_names, family=family)
+        return address
+
+    def accept_link(self) -> None:
+        from infinirl.components.env_link import accept
+
+        self.link = accept(self._server)
+
+    def serve(self, seeds: list[int], num_steps: int) -> dict:
+        """One iteration: reset, then ``num_steps`` rounds of (actions in, step out) per stage."""
+        if self.link is None:
+            raise RuntimeError("serve() before the link to the rollout was opened (open_link/accept_link)")
+        import time
+
+        busy = 0.0
+        for message in self.env.reset(seeds):
+            self.link.send(message)
+        for _ in range(num_steps):
+            for stage in range(self.env.num_stages):
+                got_stage, actions = self.link.recv()
+                if got_stage != stage:
+                    raise RuntimeError(f"env expected actions for stage {stage}, got stage {got_stage}")
+                start = time.perf_counter()
+                message = self.env.step(stage, actions)
+                busy += time.perf_counter() - start
+                self.link.send(message)
+        return {"env/simulate_s": busy}
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+        self.env.close()
+
+
+def _limit_threads(num_threads: int) -> None:
+    if num_threads:
+        os.environ.setdefault("OMP_NUM_THREADS", str(num_threads))
+        try:
+            import torch
+
+            torch.set_num_threads(num_threads)
+        except ImportError:
+            pass

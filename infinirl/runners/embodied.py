@@ -1,0 +1,425 @@
+"""Embodied RL (PPO) in vectorised simulators: the macro flow.
+
+Read top to bottom: every iteration collects ``rollout_steps`` decisions per env (the rollout
+component runs the policy, the env component simulates), turns rewards into advantages (embodied
+GAE at chunk or action level), runs the PPO update on the actor, and syncs the actor's weights into
+the rollout with a new version.
+
+How it runs is placement, not code:
+
+* ``env`` and ``rollout`` on the **same** slots (collocated): the env lives in the rollout's
+  process and the two take turns (no hop per step);
+* on **disjoint** slots: the env has its own process and streams observations/actions to the
+  rollout; with ``rollout.pipeline_stages: K >= 2`` the env batch is split into K stages so
+  simulation of one stage overlaps inference of another (hybrid, with the actor time-sharing the
+  same CPUs/devices between rollouts).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+import torch
+
+from infinirl.algorithms import EnvAdvantageInputs, compute_advantages
+from infinirl.components.embodied_actor import EmbodiedActorWorker, PPOSpec
+from infinirl.components.embodied_policy import ReturnNormalizer
+from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec
+from infinirl.components.env_worker import EVAL_SEED_BASE, EnvSpec, EnvWorker, iteration_seeds, probe_env_specs
+from infinirl.config import ConfigError, to_plain
+from infinirl.runners import register_runner
+from infinirl.runners.embodied_config import COMPONENTS, EmbodiedConfig
+from infinirl.runners.metrics_log import MetricsLogger, read_metrics
+from infinirl.runtime import Cluster, WorkerGroup, place, sync_weights
+
+_RUNS_IN_PROCESS = [0]
+
+
+@register_runner("embodied", EmbodiedConfig, "PPO for robot policies in vectorised simulators (env/rollout pipelined or collocated)")
+def run(cfg: EmbodiedConfig) -> dict:
+    started = _start_time()
+    os.makedirs(cfg.output_dir, exist_ok=True)
+    # Checked in the driver before any worker starts: the env task and options, the policy options.
+    try:
+        observation_spec, action_space = probe_env_specs(cfg.env.name, cfg.env.kwargs)
+        policy_spec = PolicySpec(cfg.policy.name, dict(cfg.policy.kwargs), cfg.policy.chunk, cfg.policy.normalize_obs,
+                                 tuple(cfg.policy.normalize_keys) or None, cfg.policy.obs_clip)
+        policy_spec.build(observation_spec, action_space)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ConfigError(f"{cfg.env.name} / policy {cfg.policy.name}: {exc}") from exc
+    with Cluster(cfg.cluster) as cluster:
+        plan = place(cluster.inventory, cfg.placement, components=COMPONENTS)
+        host_env, env_spec = _layout(cfg, plan)
+        print(plan.describe(), flush=True)
+        print(f"env {'inside the rollout process (collocated)' if host_env else 'in its own process (streamed)'}, "
+              f"{cfg.rollout.pipeline_stages} pipeline stage(s) per env rank", flush=True)
+        ppo = PPOSpec(cfg.actor.lr, cfg.actor.anneal_lr, cfg.iterations, cfg.algorithm.epochs, cfg.algorithm.mini_batches,
+                      cfg.algorithm.clip, cfg.algorithm.value_clip, cfg.algorithm.value_coef, cfg.algorithm.entropy_coef,
+                      cfg.algorithm.max_grad_norm, cfg.algorithm.normalize_advantages, cfg.algorithm.gae_level,
+                      cfg.actor.adam_eps, cfg.actor.strategy, cfg.seed)
+        launches = {
+            "rollout": (EmbodiedRolloutWorker, (env_spec, policy_spec, observation_spec, action_space, cfg.seed,
+                                                host_env, cfg.rollout.num_threads)),
+            "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo, cfg.actor.num_threads)),
+        }
+        if not host_env:
+            launches["env"] = (EnvWorker, (env_spec, cfg.rollout.num_threads))
+        groups = _launch_all(plan, launches)
+        flow = EmbodiedFlow(cfg, groups.get("env"), groups["rollout"], groups["actor"], started)
+        try:
+            if flow.env is not None:
+                flow.connect(plan)
+            return flow.train()
+        finally:
+            flow.close()
+            for group in groups.values():
+                group.shutdown()
+
+
+def _start_time() -> float:
+    """Wall-clock origin of ``time/elapsed_s``: the process start for the first run in a process
+    (so interpreter and import start-up count), the call for later ones (tests run several)."""
+    _RUNS_IN_PROCESS[0] += 1
+    if _RUNS_IN_PROCESS[0] == 1:
+        try:
+            import psutil
+
+            return psutil.Process().create_time()
+        except Exception:
+            pass
+    return time.time()
+
+
+def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
+    """Collocated env (inside the rollout's process) or not, and one env rank's :class:`EnvSpec`."""
+    host_env = plan.relation("env", "rollout") == "collocated"
+    env_ranks, rollout_ranks = plan.world_size("env"), plan.world_size("rollout")
+    if env_ranks != rollout_ranks:
+        raise ConfigError(f"placement gives env {env_ranks} rank(s) and rollout {rollout_ranks}; each env rank "
+                          "pairs with one rollout rank, so give them the same number of ranks")
+    stages = cfg.rollout.pipeline_stages
+    if cfg.env.num_envs % (env_ranks * stages):
+        raise ConfigError(f"env.num_envs={cfg.env.num_envs} must be divisible by env ranks ({env_ranks}) x "
+                          f"rollout.pipeline_stages ({stages})")
+    spec = EnvSpec(cfg.env.name, cfg.env.num_envs // env_ranks, stages, cfg.env.num_workers,
+                   cfg.env.max_episode_steps, cfg.policy.chunk, cfg.seed, dict(cfg.env.kwargs))
+    return host_env, spec
+
+
+def _launch_all(plan, launches: dict) -> dict[str, WorkerGroup]:
+    """Start every component at once (their start-up, mostly imports, overlaps)."""
+    with ThreadPoolExecutor(len(launches)) as pool:
+        futures = {name: pool.submit(WorkerGroup.launch, cls, name, placement=plan.ranks(name), args=args)
+                   for name, (cls, args) in launches.items()}
+        groups, error = {}, None
+        for name, future in futures.items():
+            try:
+                groups[name] = future.result()
+            except BaseException as exc:  # keep the first error, stop what did start
+                error = error or exc
+    if error is not None:
+        for group in groups.values():
+            group.shutdown()
+        raise error
+    return groups
+
+
+class EmbodiedFlow:
+    """The iteration logic, separated from process start-up so tests can drive it directly."""
+
+    def __init__(self, cfg: EmbodiedConfig, env, rollout, actor, started: float):
+        self.cfg, self.env, self.rollout, self.actor = cfg, env, rollout, actor
+        self.started = started
+        self.return_norm = ReturnNormalizer(cfg.env.num_envs, cfg.algorithm.gamma)
+        self.env_steps = 0
+        self.elapsed_before = 0.0  # wall time of earlier runs of a resumed job
+        self.logger: MetricsLogger | None = None
+
+    # ------------------------------------------------------------------ wiring
+    def connect(self, plan) -> None:
+        """Open one env<->rollout link per rank pair (a Unix socket on one node, TCP across nodes)."""
+        transport = self.cfg.rollout.transport
+        per_rank = []
+        for r, (env_rank, rollout_rank) in enumerate(zip(plan.ranks("env"), plan.ranks("rollout"))):
+            family = "AF_UNIX" if env_rank.node_id == rollout_rank.node_id else "AF_INET"
+            names = None
+            if transport == "channel":
+                from infinirl.runtime import Channel
+
+                names = (f"embodied-{os.getpid()}-{r}-to-rollout", f"embodied-{os.getpid()}-{r}-to-env")
+                for name in names:
+                    Channel.create(name, pipeline_depth=2, exist_ok=True)
+            per_rank.append((transport, names, family))
+        addresses = self.env.call_each("open_link", per_rank).wait()
+        accepted = self.env.accept_link()
+        self.rollout.call_each("connect_link", [(a,) for a in addresses]).wait()
+        accepted.wait()
+
+    # ------------------------------------------------------------------ the loop
+    def train(self) -> dict:
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        start = self._maybe_resume()
+        self.logger = MetricsLogger(cfg.output_dir, cfg.loggers, to_plain(cfg), start_step=start)
+        sync_weights(self.actor, self.rollout, version=start)
+        if start == 0 and cfg.eval.at_start:
+            self.logger.log({**self.evaluate(), "env/steps": 0, "time/elapsed_s": self.elapsed()}, step=0)
+        progress = tqdm(range(start, cfg.iterations), initial=start, total=cfg.iterations, desc="embodied", unit="it")
+        for iteration in progress:
+            metrics = self.iteration(iteration)
+            done = iteration + 1
+            if (cfg.eval.every and done % cfg.eval.every == 0) or done == cfg.iterations:
+                metrics.update(self.evaluate())
+            metrics["time/elapsed_s"] = self.elapsed()
+            self.logger.log(metrics, step=done)
+            progress.set_postfix(sr=f"{metrics['rollout/success_rate']:.2f}", ret=f"{metrics['rollout/episode_return_mean']:.0f}",
+                                 eval=f"{metrics.get('eval/success_rate', float('nan')):.2f}",
+                                 sps=f"{metrics['time/env_steps_per_s']:.0f}")
+            if (cfg.save_every and done % cfg.save_every == 0) or done == cfg.iterations:
+                self.save(done)
+        return self.finish()
+
+    def iteration(self, iteration: int) -> dict:
+        t0 = time.perf_counter()
+        trajectory, rollout_metrics = self.collect(iteration)
+        t1 = time.perf_counter()
+        batch, advantage_metrics = self.advantages(trajectory)
+        train_metrics = self.actor.update(batch, iteration).wait()[0]
+        t2 = time.perf_counter()
+        sync = sync_weights(self.actor, self.rollout, version=iteration + 1)
+        steps = int(trajectory["step_mask"].sum())
+        self.env_steps += steps
+        return {
+            **rollout_metrics, **advantage_metrics, **train_metrics,
+            "env/steps": self.env_steps,
+            "rollout/max_staleness": float(iteration - trajectory["version"]),
+            "time/collect_s": t1 - t0,
+            "time/train_s": t2 - t1,
+            "time/weight_sync_s": sync.seconds,
+            "time/iteration_s": time.perf_counter() - t0,
+            "time/env_steps_per_s": steps / max(t1 - t0, 1e-9),
+        }
+
+    # ------------------------------------------------------------------ stages
+    def collect(self, iteration: int) -> tuple[dict, dict]:
+        """Every env rank runs ``rollout_steps`` decisions with its rollout rank; one trajectory."""
+        cfg, ranks = self.cfg, self.rollout.world_size
+        seeds = iteration_seeds(cfg.seed, iteration, cfg.env.num_envs)
+        per = cfg.env.num_envs // ranks
+        shards = [seeds[r * per:(r + 1) * per] for r in range(ranks)]
+        serving = self.env.call_each("serve", [(s, cfg.rollout_steps) for s in shards]) if self.env else None
+        parts = self.rollout.call_each("collect", [(iteration, s, cfg.rollout_steps) for s in shards]).wait()
+        env_stats = serving.wait() if serving is not None else [{}]
+        trajectory = _merge(parts)
+        episodes = trajectory["episodes"]
+        metrics = {
+            "rollout/reward_mean": float(trajectory["rewards"].mean()),
+            "rollout/episodes": float(len(episodes["return"])),
+            "rollout/episode_return_mean": float(np.mean(episodes["return"])) if len(episodes["return"]) else float("nan"),
+            "rollout/episode_length_mean": float(np.mean(episodes["length"])) if len(episodes["length"]) else float("nan"),
+            "rollout/success_rate": float(np.mean(episodes["success"])) if len(episodes["success"]) else float("nan"),
+            "env/restarts": float(trajectory["restarted"]),
+            **{k: v for k, v in parts[0]["timing"].items()},
+            **env_stats[0],
+        }
+        return trajectory, metrics
+
+    def advantages(self, traj: dict) -> tuple[dict, dict]:
+        """Embodied GAE (chunk or action level) with optional reward scaling; a flat batch."""
+        alg = self.cfg.algorithm
+        t, n = traj["rewards"].shape
+        action_level = alg.gae_level == "action"
+        rewards = _tensor(traj["step_rewards"] if action_level else traj["rewards"]).to(torch.float32)
+        terminated = _tensor(traj["terminated"])
+        truncated = _tensor(traj["truncated"])
+        dones = terminated | truncated
+        if alg.normalize_rewards:
+            rewards = self.return_norm.scale(rewards, dones)
+        values = _tensor(traj["values"])
+        if action_level:
+            values = values[..., None].expand_as(rewards)
+        inputs = EnvAdvantageInputs(rewards=rewards, dones=dones, values=values,
+                                    bootstrap_values=_tensor(traj["bootstrap_values"]),
+                                    truncations=truncated, final_values=_tensor(traj["final_values"]))
+        out = compute_advantages("embodied_gae", inputs, gamma=alg.gamma, lam=alg.gae_lambda, level=alg.gae_level)
+
+        def flat(array: Any) -> Any:
+            if isinstance(array, dict):
+                return {k: flat(v) for k, v in array.items()}
+            if isinstance(array, torch.Tensor):
+                array = array.numpy()
+            return np.ascontiguousarray(array.reshape(t * n, *array.shape[2:]))
+
+        batch = {key: flat(traj[key]) for key in ("obs", "actions", "logprobs", "step_mask", "values")}
+        if "extras" in traj:
+            batch["extras"] = flat(traj["extras"])
+        batch["advantages"] = flat(out.advantages.to(torch.float32))
+        batch["returns"] = flat(out.returns.to(torch.float32))
+        metrics = {"train/advantage_mean": float(out.advantages.mean()), "train/advantage_std": float(out.advantages.std()),
+                   "train/return_mean": float(out.returns.mean())}
+        if alg.normalize_rewards:
+            metrics["train/reward_scale"] = 1.0 / float(torch.sqrt(self.return_norm.rms.var + self.return_norm.epsilon))
+        return batch, metrics
+
+    def evaluate(self) -> dict:
+        """Success rate etc. over the held-out seeded episodes, shared out over the rollout ranks."""
+        cfg, ranks = self.cfg.eval, self.rollout.world_size
+        t0 = time.perf_counter()
+        seeds = [EVAL_SEED_BASE + cfg.seed + i for i in range(cfg.episodes)]
+        handles = [self.rollout.call("evaluate", seeds[r::ranks], min(cfg.num_envs, len(seeds[r::ranks])),
+                                     cfg.deterministic, dict(cfg.env_kwargs), cfg.max_episode_steps, ranks=[r])
+                   for r in range(min(ranks, len(seeds)))]
+        results = [handle.wait()[0] for handle in handles]
+        total = sum(r["eval/episodes"] for r in results)
+        merged = {key: sum(r[key] * r["eval/episodes"] for r in results) / total
+                  for key in ("eval/success_rate", "eval/return_mean", "eval/length_mean")}
+        merged["eval/episodes"] = float(total)
+        merged["time/eval_s"] = time.perf_counter() - t0
+        return merged
+
+    def elapsed(self) -> float:
+        return self.elapsed_before + time.time() - self.started
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, iteration: int) -> str:
+        root = os.path.join(self.cfg.output_dir, "checkpoints")
+        final = os.path.join(root, f"iter_{iteration:06d}")
+        tmp = final + ".tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        os.makedirs(tmp)
+        self.actor.save_checkpoint(os.path.join(tmp, "actor")).wait()
+        state = {"iteration": iteration, "env_steps": self.env_steps, "elapsed_s": self.elapsed(),
+                 "return_normalizer": self.return_norm.state_dict()}
+        with open(os.path.join(tmp, "runner_state.json"), "w") as handle:
+            json.dump(state, handle)
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
+        return final
+
+    def _maybe_resume(self) -> int:
+        root = os.path.join(self.cfg.output_dir, "checkpoints")
+        done = sorted(d for d in os.listdir(root) if not d.endswith(".tmp")) if os.path.isdir(root) else []
+        if not (self.cfg.resume and done):
+            return 0
+        latest = os.path.join(root, done[-1])
+        with open(os.path.join(latest, "runner_state.json")) as handle:
+            state = json.load(handle)
+        self.actor.load_checkpoint(os.path.join(latest, "actor")).wait()
+        self.return_norm.load_state_dict(state["return_normalizer"])
+        self.env_steps = int(state["env_steps"])
+        self.elapsed_before = float(state["elapsed_s"])
+        self.started = time.time()
+        print(f"resumed from {latest} at iteration {state['iteration']}", flush=True)
+        return int(state["iteration"])
+
+    def finish(self) -> dict:
+        cfg = self.cfg
+        video = None
+        if cfg.eval.video_episodes:
+            seeds = [EVAL_SEED_BASE + cfg.eval.seed + i for i in range(cfg.eval.video_episodes)]
+            try:
+                video = self.rollout.call("record_video", seeds, os.path.join(cfg.output_dir, "eval.mp4"),
+                                          cfg.eval.video_frame_skip, cfg.eval.video_fps,
+                                          {**cfg.eval.env_kwargs, **cfg.eval.video_env_kwargs},
+                                          cfg.eval.deterministic, cfg.eval.max_episode_steps, ranks=[0]).wait()[0]
+            except Exception as exc:  # a missing GL library must not lose the trained run
+                print(f"eval video skipped: {exc}", flush=True)
+        self.logger.close()
+        rows = read_metrics(self.logger.path)
+        curves = plot_learning_curves(rows, os.path.join(cfg.output_dir, "curves.png"), f"PPO {cfg.env.name}")
+        evals = [r for r in rows if "eval/success_rate" in r]
+        summary = {
+            "eval_success_before": evals[0]["eval/success_rate"] if evals else None,
+            "eval_success_after": evals[-1]["eval/success_rate"] if evals else None,
+            "eval_return_after": evals[-1].get("eval/return_mean") if evals else None,
+            "iterations": cfg.iterations, "env_steps": self.env_steps,
+            "elapsed_s": round(self.elapsed(), 1),
+            "first_eval_at_0.9": _first_reaching(evals, 0.9),
+            "curves": curves, "video": video["path"] if video else None, "metrics": self.logger.path,
+            "actor_weights_sha256": self.actor.weights_digest().wait()[0],
+        }
+        print(json.dumps(summary), flush=True)
+        return summary
+
+    def close(self) -> None:
+        for group in (self.rollout, self.env):
+            if group is None:
+                continue
+            try:
+                group.close().wait(timeout=30)
+            except Exception:  # best effort: the group is killed right after
+                pass
+
+
+def _tensor(array: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.array(array, copy=True))  # Ray hands out read-only arrays
+
+
+def _merge(parts: list[dict]) -> dict:
+    """Per-rank trajectories -> one, envs concatenated in rank order."""
+    if len(parts) == 1:
+        return parts[0]
+    out: dict[str, Any] = {}
+    for key, first in parts[0].items():
+        if key == "episodes":
+            out[key] = {k: np.concatenate([p[key][k] for p in parts]) for k in first}
+        elif key in ("timing",):
+            out[key] = first
+        elif key == "version":
+            out[key] = min(p[key] for p in parts)
+        elif key == "restarted":
+            out[key] = sum(p[key] for p in parts)
+        elif key == "bootstrap_values":
+            out[key] = np.concatenate([p[key] for p in parts])
+        elif isinstance(first, dict):
+            out[key] = {k: np.concatenate([p[key][k] for p in parts], axis=1) for k in first}
+        else:
+            out[key] = np.concatenate([p[key] for p in parts], axis=1)
+    return out
+
+
+def _first_reaching(evals: list[dict], target: float) -> dict | None:
+    for row in evals:
+        if row["eval/success_rate"] >= target:
+            return {"iteration": row["step"], "env_steps": row.get("env/steps"), "elapsed_s": row.get("time/elapsed_s")}
+    return None
+
+
+def plot_learning_curves(rows: list[dict], path: str, title: str) -> str | None:
+    """Held-out success vs env steps and vs wall time, training return vs env steps: one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    evals = [r for r in rows if "eval/success_rate" in r and "env/steps" in r]
+    train = [r for r in rows if "rollout/episode_return_mean" in r and np.isfinite(r["rollout/episode_return_mean"])]
+    if not evals and not train:
+        return None
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.6))
+    panels = [
+        (axes[0], evals, "env/steps", "eval/success_rate", "held-out success rate", "env steps"),
+        (axes[1], [r for r in evals if "time/elapsed_s" in r], "time/elapsed_s", "eval/success_rate",
+         "held-out success rate", "wall time incl. start-up (s)"),
+        (axes[2], train, "env/steps", "rollout/episode_return_mean", "training episode return", "env steps"),
+    ]
+    for ax, data, x_key, y_key, label, x_label in panels:
+        ax.plot([r[x_key] for r in data], [r[y_key] for r in data], marker="o", markersize=3)
+        ax.set_title(label)
+        ax.set_xlabel(x_label)
+        ax.grid(alpha=0.3)
+    for ax in axes[:2]:
+        ax.set_ylim(-0.02, 1.02)
+        ax.axhline(0.9, color="grey", linestyle="--", linewidth=0.8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -1,0 +1,200 @@
+"""Typed configuration of the embodied runner (every field is a ``key=value`` CLI override).
+
+``validate()`` checks names and numbers without starting anything (no Ray, no simulator): an
+unknown env family or policy lists the registered ones, a bad placement names the component. The
+env *task* (e.g. the MetaWorld task name) is checked by the runner in the driver, by building one
+sub-env, before any worker starts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from infinirl.config import ConfigError
+from infinirl.runtime import ClusterConfig
+
+COMPONENTS = ("env", "rollout", "actor")
+
+
+@dataclass
+class EnvConfig:
+    name: str = "metaworld:reach-v3"
+    """``family:task`` as `make_env` takes it: metaworld:reach-v3, gym:Pendulum-v1, maniskill:PickCube-v1, ..."""
+    num_envs: int = 16
+    """Training envs over all env ranks (each rank gets num_envs / ranks, split into pipeline stages)."""
+    num_workers: int = 0
+    """Simulator subprocesses per pipeline stage of each env rank; 0 = the sub-envs run in the process
+    that owns them (cheapest for fast simulators; >= 1 lets local simulation overlap inference)."""
+    max_episode_steps: int | None = None
+    """Extra time limit (None: the simulator's own, 200 for MetaWorld)."""
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    """Simulator options, e.g. {obs_mode: state+rgb, image_size: 64} for MetaWorld."""
+
+
+@dataclass
+class PolicyConfig:
+    name: str = "mlp_gaussian"
+    """A registered policy (mlp_gaussian, cnn_gaussian, cnn_bins, flow_matching, plugins)."""
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    """Constructor options (e.g. {hidden: [64, 64]}); shape arguments are filled from the env."""
+    chunk: int = 1
+    """Actions per decision (action chunking); the env executes all of them before the next decision."""
+    normalize_obs: bool = True
+    """Running mean/std normalisation of float observation fields (trained, synced and checkpointed with the weights)."""
+    normalize_keys: list[str] = field(default_factory=list)
+    """Fields to normalise; empty = every float field (state, proprio). Images are never normalised."""
+    obs_clip: float = 10.0
+    """Normalised observations are clipped to [-obs_clip, obs_clip]."""
+
+
+@dataclass
+class AlgorithmConfig:
+    name: Literal["ppo"] = "ppo"
+    gamma: float = 0.99
+    """Discount per decision (per chunk when chunk > 1)."""
+    gae_lambda: float = 0.95
+    gae_level: Literal["chunk", "action"] = "chunk"
+    """chunk: one advantage per decision (summed chunk reward); action: one per executed action."""
+    normalize_rewards: bool = True
+    """Divide rewards by the running std of the discounted return (PPO reward scaling)."""
+    epochs: int = 10
+    """Passes over each iteration's batch."""
+    mini_batches: int = 32
+    """Optimizer steps per epoch; must divide num_envs * rollout_steps."""
+    clip: float = 0.2
+    """PPO ratio clip."""
+    value_clip: float | None = None
+    """Clip the value update to +-value_clip around the rollout's value (None: no clipping)."""
+    value_coef: float = 0.5
+    entropy_coef: float = 0.0
+    max_grad_norm: float = 0.5
+    normalize_advantages: bool = True
+    """Per mini-batch (statistics of the whole mini-batch over all ranks)."""
+
+
+@dataclass
+class ActorConfig:
+    lr: float = 3e-4
+    anneal_lr: bool = True
+    """Linear decay to 0 over `iterations`."""
+    adam_eps: float = 1e-5
+    strategy: Literal["ddp", "fsdp"] = "ddp"
+    """ddp: replicated weights, one SUM all-reduce of the gradients per step; fsdp: FSDP2 fully_shard."""
+    num_threads: int = 1
+    """torch threads per actor rank (1 keeps small models fast and results deterministic)."""
+
+
+@dataclass
+class RolloutConfig:
+    pipeline_stages: int = 1
+    """K: each env rank's envs are split into K stages; simulation of one overlaps inference of another.
+    Takes effect when env and rollout are placed on disjoint resources (or with env.num_workers >= 1)."""
+    transport: Literal["socket", "channel"] = "socket"
+    """Env <-> rollout stream when they run in different processes (see infinirl/components/env_link.py)."""
+    num_threads: int = 1
+
+
+@dataclass
+class EvalConfig:
+    every: int = 5
+    """Held-out evaluation every N iterations (and after the last); 0 = only after the last."""
+    at_start: bool = True
+    """Also evaluate the initial policy (iteration 0)."""
+    episodes: int = 50
+    """Held-out episodes, seeds EVAL_SEED_BASE + seed + i (disjoint from every training seed)."""
+    num_envs: int = 10
+    """Envs the held-out episodes run on, in rounds (in the rollout's process)."""
+    seed: int = 0
+    deterministic: bool = True
+    """Mean action (Gaussian) / most likely action instead of sampling."""
+    max_episode_steps: int | None = None
+    """Time limit of evaluation episodes (None: env.max_episode_steps), so training may use shorter
+    episodes than the standard ones it is evaluated on."""
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Simulator options for the evaluation (and video) envs on top of env.kwargs, e.g.
+    {terminate_on_success: true} for MetaWorld: success-at-any-step is unchanged, episodes get shorter."""
+    video_episodes: int = 2
+    """Episodes rendered into eval.mp4 after training (0 = no video)."""
+    video_frame_skip: int = 2
+    video_fps: int = 30
+    video_env_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Simulator options for the video env on top of eval.env_kwargs (e.g. {image_size: 128, camera: corner})."""
+
+
+@dataclass
+class EmbodiedConfig:
+    runner: str = "embodied"
+    seed: int = 0
+    iterations: int = 20
+    """PPO iterations: collect rollout_steps per env -> advantages -> update -> weight sync."""
+    rollout_steps: int = 200
+    """Decisions per env per iteration. Envs are reset (seeded) at the start of every iteration, so a
+    multiple of the episode length (200 for MetaWorld) never cuts an episode."""
+    output_dir: str = "runs/embodied"
+    save_every: int = 0
+    """Checkpoint every N iterations (0 = only at the end)."""
+    resume: bool = True
+    """Continue from the latest checkpoint in output_dir if there is one."""
+    loggers: list[str] = field(default_factory=lambda: ["tensorboard"])
+    env: EnvConfig = field(default_factory=EnvConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
+    actor: ActorConfig = field(default_factory=ActorConfig)
+    rollout: RolloutConfig = field(default_factory=RolloutConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    placement: dict[str, str] = field(default_factory=lambda: {"env": "0", "rollout": "0", "actor": "0"})
+    """env / rollout / actor -> CPU slots or devices. Same slots for env and rollout: collocated (the env
+    runs inside the rollout's process); disjoint: the env has its own process and streams to the rollout."""
+    cluster: ClusterConfig = field(default_factory=ClusterConfig)
+
+    def validate(self) -> None:
+        from infinirl.components.embodied_policy import registered_policies
+        from infinirl.envs.registry import ENVS
+        from infinirl.runners.metrics_log import KNOWN_LOGGERS
+        from infinirl.runtime.placement import PlacementError, parse_spec
+
+        family = self.env.name.partition(":")[0]
+        if family not in ENVS:
+            raise ConfigError(f"env.name={self.env.name!r}: unknown env family {family!r}; registered: "
+                              f"{', '.join(ENVS.names())} (write family:task, e.g. metaworld:reach-v3)")
+        policies = registered_policies()
+        if self.policy.name not in policies:
+            raise ConfigError(f"policy.name={self.policy.name!r} is not registered; registered: {', '.join(policies)}")
+        for key, value in (("iterations", self.iterations), ("rollout_steps", self.rollout_steps),
+                           ("env.num_envs", self.env.num_envs), ("policy.chunk", self.policy.chunk),
+                           ("algorithm.epochs", self.algorithm.epochs),
+                           ("algorithm.mini_batches", self.algorithm.mini_batches),
+                           ("rollout.pipeline_stages", self.rollout.pipeline_stages),
+                           ("eval.episodes", self.eval.episodes), ("eval.num_envs", self.eval.num_envs),
+                           ("eval.video_frame_skip", self.eval.video_frame_skip)):
+            if value < 1:
+                raise ConfigError(f"{key}={value} must be >= 1")
+        for key, value in (("env.num_workers", self.env.num_workers), ("save_every", self.save_every),
+                           ("eval.every", self.eval.every), ("eval.video_episodes", self.eval.video_episodes),
+                           ("eval.seed", self.eval.seed)):
+            if value < 0:
+                raise ConfigError(f"{key}={value} must be >= 0")
+        if self.actor.lr <= 0:
+            raise ConfigError(f"actor.lr={self.actor.lr} must be > 0")
+        if not 0 < self.algorithm.gamma <= 1 or not 0 <= self.algorithm.gae_lambda <= 1:
+            raise ConfigError("algorithm.gamma must be in (0, 1] and algorithm.gae_lambda in [0, 1]")
+        if not 0 < self.algorithm.clip < 1:
+            raise ConfigError(f"algorithm.clip={self.algorithm.clip} must be in (0, 1)")
+        batch = self.env.num_envs * self.rollout_steps
+        if batch % self.algorithm.mini_batches:
+            raise ConfigError(f"algorithm.mini_batches={self.algorithm.mini_batches} does not divide the batch of "
+                              f"env.num_envs*rollout_steps={batch} decisions; pick a divisor")
+        for name in self.loggers:
+            if name not in KNOWN_LOGGERS:
+                raise ConfigError(f"loggers: unknown logger '{name}'; choose from {', '.join(KNOWN_LOGGERS)}")
+        unknown = set(self.placement) - set(COMPONENTS)
+        missing = set(COMPONENTS) - set(self.placement)
+        if unknown or missing:
+            raise ConfigError(f"placement must name exactly {', '.join(COMPONENTS)}; "
+                              f"unknown {sorted(unknown)}, missing {sorted(missing)}")
+        for component, spec in self.placement.items():
+            try:
+                parse_spec(spec, component)
+            except PlacementError as exc:
+                raise ConfigError(f"placement.{component}: {exc}") from None
