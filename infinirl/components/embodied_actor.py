@@ -1,5 +1,9 @@
 """Embodied actor: the PPO trainer of a :class:`~infinirl.models.policies.base.Policy`.
 
+The same PPO-clip update serves PPO (GAE advantages, value head trained) and embodied GRPO
+(group-normalised episode returns, ``critic=False``: no value loss, and the batch's
+``advantage_mask`` drops the decisions after each env's first episode end from every loss term).
+
 Each rank receives the whole iteration batch (small for state policies; the runner moves it once
 through Ray's object store) and trains on *its share of every mini-batch*:
 
@@ -58,6 +62,8 @@ class PPOSpec:
     adam_eps: float = 1e-5
     strategy: str = "ddp"
     seed: int = 0
+    critic: bool = True
+    """Train the value head (PPO). False (GRPO): no value loss is computed, the head stays as built."""
 
 
 def _to_tensor(value: Any) -> Any:
@@ -188,7 +194,10 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
 
     ``batch`` (tensors, flat over ``B = T * N`` decisions): ``obs`` dict, ``actions``
     ``[B, C, ...]``, ``logprobs`` / ``step_mask`` ``[B, C]``, ``values`` ``[B]``, ``advantages`` /
-    ``returns`` ``[B]`` (chunk level) or ``[B, C]`` (action level), optional ``extras``.
+    ``returns`` ``[B]`` (chunk level) or ``[B, C]`` (action level), optional ``extras``, optional
+    ``advantage_mask`` shaped like ``advantages`` (the estimator's mask; all true if absent):
+    decisions outside it count in no loss term and in no normaliser (policy loss, entropy,
+    per-mini-batch advantage statistics).
     """
     if ppo.anneal_lr:
         lr = ppo.lr * max(0.0, 1.0 - iteration / max(1, ppo.total_iterations))
@@ -199,6 +208,8 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     generator = torch.Generator().manual_seed(int(np.random.default_rng([ppo.seed, iteration, 0xB47]).integers(2**62)))
     action_level = ppo.gae_level == "action"
     mask_all = batch["step_mask"].to(torch.float32)
+    keep_all = (batch["advantage_mask"].to(torch.float32) if "advantage_mask" in batch
+                else torch.ones(batch["advantages"].shape, dtype=torch.float32))
     sums: dict[str, float] = {}
     steps = 0
     mismatch = None
@@ -207,18 +218,20 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
         for m in range(ppo.mini_batches):
             mini = order[m * per_mini:(m + 1) * per_mini]
             adv = batch["advantages"][mini].to(torch.float32)
-            mask = mask_all[mini]
+            keep = keep_all[mini]  # [m] chunk level, [m, C] action level
+            # mask: executed actions to train on [m, C]; weights: the policy-loss rows ([m] or [m, C])
+            mask = mask_all[mini] * keep if action_level else mask_all[mini] * keep[:, None]
+            weights = mask if action_level else keep
             if ppo.normalize_advantages:  # statistics of the whole mini-batch (all ranks)
-                valid = mask if action_level else torch.ones_like(adv)
-                mean = (adv * valid).sum() / valid.sum()
-                std = torch.sqrt(((adv - mean) ** 2 * valid).sum() / (valid.sum() - 1).clamp(min=1))
+                mean = (adv * weights).sum() / weights.sum().clamp(min=1)
+                std = torch.sqrt(((adv - mean) ** 2 * weights).sum() / (weights.sum() - 1).clamp(min=1))
                 adv = (adv - mean) / (std + 1e-8)
-            n_pg = float(mask.sum()) if action_level else float(per_mini)
+            n_pg = float(weights.sum())
             n_value = float(per_mini)
             n_entropy = float(mask.sum())
             share = slice(rank * per_mini // world_size, (rank + 1) * per_mini // world_size)
             mine = mini[share]
-            adv, mask = adv[share], mask[share]
+            adv, mask, weights = adv[share], mask[share], weights[share]
             logprobs, entropy, values = model(_rows(batch["obs"], mine), batch["actions"][mine],
                                               _rows(batch["extras"], mine) if "extras" in batch else None,
                                               True)
@@ -226,20 +239,20 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
             if mismatch is None:
                 mismatch = float(((logprobs.detach() - old).abs() * mask).sum() / mask.sum().clamp(min=1))
             if action_level:
-                pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=mask,
+                pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=weights,
                                    clip_low=ppo.clip)
-                pg_loss = aggregate(pg.loss_mat, mask, "token-mean", n_pg)
                 returns = batch["returns"][mine][:, 0]
             else:
-                ones = torch.ones_like(adv)
                 pg = ppo_clip_loss(logprobs=(logprobs * mask).sum(-1), old_logprobs=(old * mask).sum(-1),
-                                   advantages=adv, response_mask=ones, clip_low=ppo.clip)
-                pg_loss = aggregate(pg.loss_mat, ones, "token-mean", n_pg)
+                                   advantages=adv, response_mask=weights, clip_low=ppo.clip)
                 returns = batch["returns"][mine]
-            ones = torch.ones_like(returns)
-            vl = value_loss(values=values, old_values=batch["values"][mine], returns=returns.to(values.dtype),
-                            response_mask=ones, clip_range=ppo.value_clip)
-            loss = pg_loss + ppo.value_coef * aggregate(vl.loss_mat, ones, "token-mean", n_value)
+            loss = pg_loss = aggregate(pg.loss_mat, weights, "token-mean", n_pg)
+            vl = None
+            if ppo.critic:
+                ones = torch.ones_like(returns)
+                vl = value_loss(values=values, old_values=batch["values"][mine], returns=returns.to(values.dtype),
+                                response_mask=ones, clip_range=ppo.value_clip)
+                loss = pg_loss + ppo.value_coef * aggregate(vl.loss_mat, ones, "token-mean", n_value)
             ent = entropy_loss(mask, entropy=entropy) if entropy is not None else None
             if ent is not None and ppo.entropy_coef:
                 loss = loss + ppo.entropy_coef * aggregate(ent.loss_mat, mask, "token-mean", n_entropy)
@@ -251,20 +264,23 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                 grad_norm = grad_norm.full_tensor()
             optimizer.step()
             step_metrics = {
-                "train/policy_loss": pg_loss.item(), "train/value_loss": float(vl.metrics["value_mse"]) / 2,
+                "train/policy_loss": pg_loss.item(),
                 "train/approx_kl": float(pg.metrics["approx_kl"]), "train/clip_fraction": float(pg.metrics["clip_fraction"]),
                 "train/grad_norm": float(grad_norm),
             }
+            if vl is not None:
+                step_metrics["train/value_loss"] = float(vl.metrics["value_mse"]) / 2
             if ent is not None:
                 step_metrics["train/entropy"] = float(ent.metrics["entropy"])
             for key, value in step_metrics.items():
                 sums[key] = sums.get(key, 0.0) + value
             steps += 1
     metrics = {key: value / steps for key, value in sums.items()}
-    returns = batch["returns"][:, 0] if action_level else batch["returns"]
-    variance = float(returns.var())
-    metrics["train/explained_variance"] = (float("nan") if variance == 0
-                                           else 1.0 - float((returns - batch["values"]).var()) / variance)
+    if ppo.critic:
+        returns = batch["returns"][:, 0] if action_level else batch["returns"]
+        variance = float(returns.var())
+        metrics["train/explained_variance"] = (float("nan") if variance == 0
+                                               else 1.0 - float((returns - batch["values"]).var()) / variance)
     metrics["train/lr"] = optimizer.param_groups[0]["lr"]
     metrics["train/logprob_mismatch"] = mismatch if mismatch is not None else 0.0
     metrics["train/optimizer_steps"] = steps

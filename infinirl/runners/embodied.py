@@ -1,9 +1,15 @@
-"""Embodied RL (PPO) in vectorised simulators: the macro flow.
+"""Embodied RL (PPO, embodied GRPO) in vectorised simulators: the macro flow.
 
 Read top to bottom: every iteration collects ``rollout_steps`` decisions per env (the rollout
-component runs the policy, the env component simulates), turns rewards into advantages (embodied
-GAE at chunk or action level), runs the PPO update on the actor, and syncs the actor's weights into
-the rollout with a new version.
+component runs the policy, the env component simulates), turns rewards into advantages, runs the
+PPO-clip update on the actor, and syncs the actor's weights into the rollout with a new version.
+
+The algorithm (``algorithm.name``, looked up in
+:data:`~infinirl.runners.embodied_config.ALGORITHMS`) decides the advantages: ``ppo`` uses
+embodied GAE (chunk or action level) on the trained value head; ``grpo`` resets the envs in groups
+of ``algorithm.group_size`` with one seed per group and uses each env's first-episode return,
+normalised within its group (``embodied_grpo``): no critic, and the estimator's mask keeps the
+decisions after an env's first episode end out of the update.
 
 How it runs is placement, not code:
 
@@ -34,14 +40,15 @@ from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySp
 from infinirl.components.env_worker import EVAL_SEED_BASE, EnvSpec, EnvWorker, iteration_seeds, probe_env_specs
 from infinirl.config import ConfigError, to_plain
 from infinirl.runners import register_runner
-from infinirl.runners.embodied_config import COMPONENTS, EmbodiedConfig
+from infinirl.runners.embodied_config import ALGORITHMS, COMPONENTS, EmbodiedConfig
 from infinirl.runners.metrics_log import MetricsLogger, read_metrics
 from infinirl.runtime import Cluster, WorkerGroup, place, sync_weights
 
 _RUNS_IN_PROCESS = [0]
 
 
-@register_runner("embodied", EmbodiedConfig, "PPO for robot policies in vectorised simulators (env/rollout pipelined or collocated)")
+@register_runner("embodied", EmbodiedConfig,
+                 "PPO / embodied GRPO for robot policies in vectorised simulators (env/rollout pipelined or collocated)")
 def run(cfg: EmbodiedConfig) -> dict:
     started = _start_time()
     os.makedirs(cfg.output_dir, exist_ok=True)
@@ -53,16 +60,15 @@ def run(cfg: EmbodiedConfig) -> dict:
         policy_spec.build(observation_spec, action_space)
     except (ValueError, TypeError, KeyError) as exc:
         raise ConfigError(f"{cfg.env.name} / policy {cfg.policy.name}: {exc}") from exc
+    if ALGORITHMS[cfg.algorithm.name].grouped:
+        _check_one_task_per_group(cfg)
     with Cluster(cfg.cluster) as cluster:
         plan = place(cluster.inventory, cfg.placement, components=COMPONENTS)
         host_env, env_spec = _layout(cfg, plan)
         print(plan.describe(), flush=True)
         print(f"env {'inside the rollout process (collocated)' if host_env else 'in its own process (streamed)'}, "
               f"{cfg.rollout.pipeline_stages} pipeline stage(s) per env rank", flush=True)
-        ppo = PPOSpec(cfg.actor.lr, cfg.actor.anneal_lr, cfg.iterations, cfg.algorithm.epochs, cfg.algorithm.mini_batches,
-                      cfg.algorithm.clip, cfg.algorithm.value_clip, cfg.algorithm.value_coef, cfg.algorithm.entropy_coef,
-                      cfg.algorithm.max_grad_norm, cfg.algorithm.normalize_advantages, cfg.algorithm.gae_level,
-                      cfg.actor.adam_eps, cfg.actor.strategy, cfg.seed)
+        ppo = ppo_spec(cfg)
         launches = {
             "rollout": (EmbodiedRolloutWorker, (env_spec, policy_spec, observation_spec, action_space, cfg.seed,
                                                 host_env, cfg.rollout.num_threads)),
@@ -80,6 +86,29 @@ def run(cfg: EmbodiedConfig) -> dict:
             flow.close()
             for group in groups.values():
                 group.shutdown()
+
+
+def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
+    """The actor's update settings; grouped (GRPO) advantages are used as they are, no critic is trained."""
+    alg, algorithm = cfg.algorithm, ALGORITHMS[cfg.algorithm.name]
+    return PPOSpec(cfg.actor.lr, cfg.actor.anneal_lr, cfg.iterations, alg.epochs, alg.mini_batches, alg.clip,
+                   alg.value_clip, alg.value_coef, alg.entropy_coef, alg.max_grad_norm,
+                   alg.normalize_advantages and not algorithm.grouped, alg.gae_level, cfg.actor.adam_eps,
+                   cfg.actor.strategy, cfg.seed, critic=algorithm.critic)
+
+
+def _check_one_task_per_group(cfg: EmbodiedConfig) -> None:
+    """Multi-task env names (metaworld:MT10, LIBERO suites) give env ``i`` task ``i mod T``, so a
+    group of consecutive envs would mix tasks under one seed: refuse that before anything starts."""
+    from infinirl.envs.registry import ENVS
+
+    family, _, task = cfg.env.name.partition(":")
+    factory = ENVS.get(family)(task or None, **cfg.env.kwargs)
+    tasks = getattr(factory, "tasks", None) or getattr(factory, "task_indices", None) or ()
+    if len(tasks) > 1:
+        raise ConfigError(f"algorithm.name={cfg.algorithm.name} compares envs reset to the same state, but "
+                          f"env.name={cfg.env.name} runs {len(tasks)} tasks across the envs (env i: task i mod "
+                          f"{len(tasks)}); use one task per run with grpo, or algorithm.name=ppo")
 
 
 def _start_time() -> float:
@@ -136,6 +165,8 @@ class EmbodiedFlow:
     def __init__(self, cfg: EmbodiedConfig, env, rollout, actor, started: float):
         self.cfg, self.env, self.rollout, self.actor = cfg, env, rollout, actor
         self.started = started
+        self.algorithm = ALGORITHMS[cfg.algorithm.name]
+        self.group_size = cfg.algorithm.group_size if self.algorithm.grouped else 1
         self.return_norm = ReturnNormalizer(cfg.env.num_envs, cfg.algorithm.gamma)
         self.env_steps = 0
         self.elapsed_before = 0.0  # wall time of earlier runs of a resumed job
@@ -211,7 +242,7 @@ class EmbodiedFlow:
     def collect(self, iteration: int) -> tuple[dict, dict]:
         """Every env rank runs ``rollout_steps`` decisions with its rollout rank; one trajectory."""
         cfg, ranks = self.cfg, self.rollout.world_size
-        seeds = iteration_seeds(cfg.seed, iteration, cfg.env.num_envs)
+        seeds = iteration_seeds(cfg.seed, iteration, cfg.env.num_envs, self.group_size)
         per = cfg.env.num_envs // ranks
         shards = [seeds[r * per:(r + 1) * per] for r in range(ranks)]
         serving = self.env.call_each("serve", [(s, cfg.rollout_steps) for s in shards]) if self.env else None
@@ -232,23 +263,30 @@ class EmbodiedFlow:
         return trajectory, metrics
 
     def advantages(self, traj: dict) -> tuple[dict, dict]:
-        """Embodied GAE (chunk or action level) with optional reward scaling; a flat batch."""
-        alg = self.cfg.algorithm
+        """The algorithm's estimator (``ALGORITHMS[algorithm.name].advantage`` in ``ADVANTAGES``) on
+        this iteration's trajectory, at chunk or action level; a flat batch for the actor.
+
+        PPO: embodied GAE, rewards optionally scaled by the running return std. GRPO: group-normalised
+        first-episode returns over groups of ``group_size`` consecutive envs (one reset seed each).
+        The estimator's mask travels in the batch as ``advantage_mask`` (all true for GAE)."""
+        alg, algorithm = self.cfg.algorithm, self.algorithm
         t, n = traj["rewards"].shape
         action_level = alg.gae_level == "action"
         rewards = _tensor(traj["step_rewards"] if action_level else traj["rewards"]).to(torch.float32)
         terminated = _tensor(traj["terminated"])
         truncated = _tensor(traj["truncated"])
         dones = terminated | truncated
-        if alg.normalize_rewards:
+        scale_rewards = alg.normalize_rewards and not algorithm.grouped
+        if scale_rewards:
             rewards = self.return_norm.scale(rewards, dones)
         values = _tensor(traj["values"])
         if action_level:
             values = values[..., None].expand_as(rewards)
         inputs = EnvAdvantageInputs(rewards=rewards, dones=dones, values=values,
                                     bootstrap_values=_tensor(traj["bootstrap_values"]),
-                                    truncations=truncated, final_values=_tensor(traj["final_values"]))
-        out = compute_advantages("embodied_gae", inputs, gamma=alg.gamma, lam=alg.gae_lambda, level=alg.gae_level)
+                                    truncations=truncated, final_values=_tensor(traj["final_values"]),
+                                    group_size=self.group_size if algorithm.grouped else None)
+        out = compute_advantages(algorithm.advantage, inputs, **algorithm.advantage_kwargs(alg))
 
         def flat(array: Any) -> Any:
             if isinstance(array, dict):
@@ -262,10 +300,13 @@ class EmbodiedFlow:
             batch["extras"] = flat(traj["extras"])
         batch["advantages"] = flat(out.advantages.to(torch.float32))
         batch["returns"] = flat(out.returns.to(torch.float32))
+        batch["advantage_mask"] = flat(out.mask.to(torch.bool))
         metrics = {"train/advantage_mean": float(out.advantages.mean()), "train/advantage_std": float(out.advantages.std()),
                    "train/return_mean": float(out.returns.mean())}
-        if alg.normalize_rewards:
+        if scale_rewards:
             metrics["train/reward_scale"] = 1.0 / float(torch.sqrt(self.return_norm.rms.var + self.return_norm.epsilon))
+        if algorithm.grouped:
+            metrics.update(group_metrics(out, n, self.group_size))
         return batch, metrics
 
     def evaluate(self) -> dict:
@@ -333,7 +374,8 @@ class EmbodiedFlow:
                 print(f"eval video skipped: {exc}", flush=True)
         self.logger.close()
         rows = read_metrics(self.logger.path)
-        curves = plot_learning_curves(rows, os.path.join(cfg.output_dir, "curves.png"), f"PPO {cfg.env.name}")
+        curves = plot_learning_curves(rows, os.path.join(cfg.output_dir, "curves.png"),
+                                      f"{cfg.algorithm.name.upper()} {cfg.env.name}")
         evals = [r for r in rows if "eval/success_rate" in r]
         summary = {
             "eval_success_before": evals[0]["eval/success_rate"] if evals else None,
@@ -356,6 +398,25 @@ class EmbodiedFlow:
                 group.close().wait(timeout=30)
             except Exception:  # best effort: the group is killed right after
                 pass
+
+
+def group_metrics(out, num_envs: int, group_size: int) -> dict:
+    """GRPO diagnostics: each env's first-episode return (``out.returns`` at step 0) by group.
+
+    ``train/group_return_std_zero_frac``: groups whose returns are all equal (they carry no
+    learning signal); ``train/advantage_mask_frac``: decisions inside the first episode (the ones
+    trained on; well below 1 means rollout_steps is longer than the episodes)."""
+    first = out.returns[0].reshape(num_envs, -1)[:, 0].reshape(-1, group_size)
+    kept = out.mask.to(torch.bool)
+    advantages = out.advantages[kept].to(torch.float32)
+    return {
+        "train/return_mean": float(first.mean()),
+        "train/advantage_mean": float(advantages.mean()) if advantages.numel() else 0.0,
+        "train/advantage_std": float(advantages.std()) if advantages.numel() > 1 else 0.0,
+        "train/group_return_std_mean": float(first.std(dim=1).mean()) if group_size > 1 else 0.0,
+        "train/group_return_std_zero_frac": float((first.amax(dim=1) == first.amin(dim=1)).to(torch.float32).mean()),
+        "train/advantage_mask_frac": float(kept.to(torch.float32).mean()),
+    }
 
 
 def _tensor(array: np.ndarray) -> torch.Tensor:

@@ -8,6 +8,7 @@ sub-env, before any worker starts.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -50,27 +51,64 @@ class PolicyConfig:
 
 @dataclass
 class AlgorithmConfig:
-    name: Literal["ppo"] = "ppo"
+    name: Literal["ppo", "grpo"] = "ppo"
+    """ppo: GAE advantages on a learned critic (the policy's value head is trained).
+    grpo: embodied GRPO, critic-free: envs run in groups of ``group_size`` reset to the same state
+    (same seed); each env's first-episode return, normalised within its group, is the advantage of
+    every decision of that episode, and decisions after the first episode end are masked out. Use
+    ``rollout_steps`` >= the episode length (200 for MetaWorld) so the whole episode is scored."""
+    group_size: int = 8
+    """grpo: consecutive envs sharing a reset seed (>= 2, must divide env.num_envs)."""
+    grpo_norm_by_std: bool = True
+    """grpo: divide by the group's return std (False: only subtract the group mean)."""
     gamma: float = 0.99
-    """Discount per decision (per chunk when chunk > 1)."""
+    """Discount per decision (per chunk when chunk > 1). ppo only."""
     gae_lambda: float = 0.95
+    """ppo only."""
     gae_level: Literal["chunk", "action"] = "chunk"
-    """chunk: one advantage per decision (summed chunk reward); action: one per executed action."""
+    """chunk: one advantage per decision (summed chunk reward); action: one per executed action
+    (grpo: the episode mask then also cuts a chunk at the episode end)."""
     normalize_rewards: bool = True
-    """Divide rewards by the running std of the discounted return (PPO reward scaling)."""
+    """Divide rewards by the running std of the discounted return (PPO reward scaling). ppo only:
+    grpo's group normalisation makes the reward scale irrelevant."""
     epochs: int = 10
     """Passes over each iteration's batch."""
     mini_batches: int = 32
     """Optimizer steps per epoch; must divide num_envs * rollout_steps."""
     clip: float = 0.2
-    """PPO ratio clip."""
+    """PPO ratio clip (both algorithms)."""
     value_clip: float | None = None
-    """Clip the value update to +-value_clip around the rollout's value (None: no clipping)."""
+    """Clip the value update to +-value_clip around the rollout's value (None: no clipping). ppo only."""
     value_coef: float = 0.5
+    """ppo only: grpo trains no value head (its value loss is not computed at all)."""
     entropy_coef: float = 0.0
     max_grad_norm: float = 0.5
     normalize_advantages: bool = True
-    """Per mini-batch (statistics of the whole mini-batch over all ranks)."""
+    """Per mini-batch (statistics of the whole mini-batch over all ranks). ppo only: grpo's
+    advantages are already normalised within each group, and are used as they are."""
+
+
+@dataclass(frozen=True)
+class EmbodiedAlgorithm:
+    """What the runner and the trainer do differently per ``algorithm.name`` (see ALGORITHMS)."""
+
+    advantage: str
+    """Estimator in ``infinirl.algorithms.ADVANTAGES``."""
+    advantage_kwargs: Callable[[AlgorithmConfig], dict]
+    """Its hyperparameters, from the config."""
+    critic: bool
+    """Trains the value head (value loss; explained variance is logged)."""
+    grouped: bool
+    """Envs come in groups of ``algorithm.group_size`` reset with one seed, and the advantages are
+    normalised within a group: no reward scaling, no per-mini-batch advantage normalisation."""
+
+
+ALGORITHMS: dict[str, EmbodiedAlgorithm] = {
+    "ppo": EmbodiedAlgorithm("embodied_gae", lambda a: {"gamma": a.gamma, "lam": a.gae_lambda, "level": a.gae_level},
+                             critic=True, grouped=False),
+    "grpo": EmbodiedAlgorithm("embodied_grpo", lambda a: {"norm_by_std": a.grpo_norm_by_std},
+                              critic=False, grouped=True),
+}
 
 
 @dataclass
@@ -127,7 +165,7 @@ class EmbodiedConfig:
     runner: str = "embodied"
     seed: int = 0
     iterations: int = 20
-    """PPO iterations: collect rollout_steps per env -> advantages -> update -> weight sync."""
+    """Iterations: collect rollout_steps per env -> advantages -> PPO-clip update -> weight sync."""
     rollout_steps: int = 200
     """Decisions per env per iteration. Envs are reset (seeded) at the start of every iteration, so a
     multiple of the episode length (200 for MetaWorld) never cuts an episode."""
@@ -181,6 +219,17 @@ class EmbodiedConfig:
             raise ConfigError("algorithm.gamma must be in (0, 1] and algorithm.gae_lambda in [0, 1]")
         if not 0 < self.algorithm.clip < 1:
             raise ConfigError(f"algorithm.clip={self.algorithm.clip} must be in (0, 1)")
+        if self.algorithm.name not in ALGORITHMS:
+            raise ConfigError(f"algorithm.name={self.algorithm.name!r}; choose from {', '.join(ALGORITHMS)}")
+        if ALGORITHMS[self.algorithm.name].grouped:
+            size, envs = self.algorithm.group_size, self.env.num_envs
+            if size < 2:
+                raise ConfigError(f"algorithm.group_size={size} must be >= 2 for algorithm.name="
+                                  f"{self.algorithm.name} (a group compares envs reset to the same state)")
+            if envs % size:
+                raise ConfigError(f"algorithm.group_size={size} does not divide env.num_envs={envs}: envs run in "
+                                  f"groups of algorithm.group_size sharing a reset seed; pick a divisor of "
+                                  f"env.num_envs or set env.num_envs to a multiple of {size}")
         batch = self.env.num_envs * self.rollout_steps
         if batch % self.algorithm.mini_batches:
             raise ConfigError(f"algorithm.mini_batches={self.algorithm.mini_batches} does not divide the batch of "

@@ -1,6 +1,6 @@
 """The embodied runner end to end on a fast gymnasium task (Pendulum-v1): it runs in the collocated
 and the pipelined placement with the same code, logs, checkpoints, and resumes exactly (the actor's
-weights after 4 iterations equal those after 2 + resume + 2, bit for bit)."""
+weights after 4 iterations equal those after 2 + resume + 2, bit for bit); embodied GRPO likewise."""
 
 import json
 
@@ -58,6 +58,31 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, mode):
     assert list((tmp_path / "straight" / "tensorboard").iterdir())
 
 
+def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
+    """Embodied GRPO (collocated: the cheap placement; seed groups across ranks and stages are
+    checked in tests/unit/test_embodied_grpo.py): 20-step episodes in 32-step rollouts, so each env's
+    decisions after its first episode are masked out (20 of 32 trained)."""
+    placement, stages = PLACEMENTS["collocated"]
+    grpo = {"algorithm": {"name": "grpo", "group_size": 2, "epochs": 2, "mini_batches": 4},
+            "env": {"name": "gym:Pendulum-v1", "num_envs": 4, "max_episode_steps": 20}}
+    straight = run(make_cfg(tmp_path / "straight", 2, placement, stages, **grpo))
+    half = run(make_cfg(tmp_path / "resumed", 1, placement, stages, **grpo))
+    resumed = run(make_cfg(tmp_path / "resumed", 2, placement, stages, **grpo))
+    assert half["actor_weights_sha256"] != straight["actor_weights_sha256"]
+    assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
+
+    rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [0, 1, 2]
+    for key in ("train/group_return_std_zero_frac", "train/group_return_std_mean", "train/advantage_mask_frac",
+                "train/policy_loss", "train/logprob_mismatch", "train/approx_kl", "train/grad_norm",
+                "rollout/episode_return_mean", "eval/success_rate", "eval/return_mean"):
+        assert key in rows[1], key
+    assert "train/value_loss" not in rows[1] and "train/reward_scale" not in rows[1]  # no critic, no reward scaling
+    assert rows[1]["train/advantage_mask_frac"] == 20 / 32
+    assert rows[1]["train/group_return_std_zero_frac"] == 0.0  # sampled actions: returns differ in a group
+    assert rows[1]["train/logprob_mismatch"] < 1e-5
+
+
 def test_bad_names_fail_before_workers_start():
     with pytest.raises(ConfigError, match="unknown env family 'gymm'.*registered: .*gym.*metaworld"):
         make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 1, env={"name": "gymm:Pendulum-v1", "num_envs": 4})
@@ -69,6 +94,8 @@ def test_bad_names_fail_before_workers_start():
         make_cfg("/tmp/x", 1, {"env": "0", "rollout": "0"}, 1)
     with pytest.raises(ConfigError, match="rollout.pipeline_stages=0 must be >= 1"):
         make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 0)
+    with pytest.raises(ConfigError, match="algorithm.group_size=3 does not divide env.num_envs=4"):
+        make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 1, algorithm={"name": "grpo", "group_size": 3})
 
 
 def test_unknown_task_fails_in_the_driver(tmp_path):
