@@ -76,10 +76,24 @@ class EnvSpec:
         )
 
 
-def iteration_seeds(seed: int, iteration: int, num_envs: int) -> list[int]:
-    """The reset seed of every training env at the start of ``iteration`` (all below 2**31 - 1)."""
+def iteration_seeds(seed: int, iteration: int, num_envs: int, group_size: int = 1) -> list[int]:
+    """The reset seed of every training env at the start of ``iteration`` (all below 2**31 - 1).
+
+    ``group_size > 1`` (embodied GRPO): ``num_envs / group_size`` distinct seeds, each given to
+    ``group_size`` consecutive envs, so every group starts from one state. The envs keep their
+    global order through the split into ranks and pipeline stages and back (the runner merges the
+    ranks' trajectories in rank order), so a group may straddle a rank or stage boundary.
+    """
     rng = np.random.default_rng([seed, iteration, 0x5EED])
-    return [int(s) for s in rng.integers(0, _TRAIN_SEED_LIMIT, size=num_envs)]
+    if group_size == 1:
+        return [int(s) for s in rng.integers(0, _TRAIN_SEED_LIMIT, size=num_envs)]
+    if group_size < 1 or num_envs % group_size:
+        raise ValueError(f"group_size={group_size} must be >= 1 and divide num_envs={num_envs}")
+    groups = num_envs // group_size
+    draws = rng.integers(0, _TRAIN_SEED_LIMIT, size=groups)
+    while len(set(draws.tolist())) < groups:  # distinct groups (a collision is ~1e-9 likely)
+        draws = rng.integers(0, _TRAIN_SEED_LIMIT, size=groups)
+    return [int(s) for s in draws for _ in range(group_size)]
 
 
 def probe_env_specs(name: str, kwargs: dict) -> tuple[dict, Any]:
@@ -224,21 +238,44 @@ class EnvWorker(Worker):
         self.link = accept(self._server)
 
     def serve(self, seeds: list[int], num_steps: int) -> dict:
-        """One iteration: reset, then ``num_steps`` rounds of (actions in, step out) per stage."""
+        """One iteration: reset, then ``num_steps`` rounds of (actions in, step out) per stage.
+
+        Stages are started as soon as their actions arrive and finished only when the rollout
+        needs their result: after starting stage ``s`` we finish stage ``s+1`` (started one
+        round earlier), whose result the rollout asks for next. So with simulator subprocesses
+        (``env.num_workers >= 1``) the stages simulate at the same time as each other, and with
+        any setting they simulate while the rollout decides for another stage. ``K = 1`` reduces
+        to step-then-reply.
+        """
         if self.link is None:
             raise RuntimeError("serve() before the link to the rollout was opened (open_link/accept_link)")
         import time
 
+        stages = self.env.num_stages
         busy = 0.0
         for message in self.env.reset(seeds):
             self.link.send(message)
+        pending = [False] * stages
         for _ in range(num_steps):
-            for stage in range(self.env.num_stages):
+            for stage in range(stages):
                 got_stage, actions = self.link.recv()
                 if got_stage != stage:
                     raise RuntimeError(f"env expected actions for stage {stage}, got stage {got_stage}")
                 start = time.perf_counter()
-                message = self.env.step(stage, actions)
+                self.env.step_async(stage, actions)
+                pending[stage] = True
+                following = (stage + 1) % stages
+                if pending[following]:
+                    message = self.env.step_wait(following)
+                    pending[following] = False
+                    busy += time.perf_counter() - start
+                    self.link.send(message)
+                else:
+                    busy += time.perf_counter() - start
+        for stage in range(stages):  # the last round's results, in the order the rollout reads them
+            if pending[stage]:
+                start = time.perf_counter()
+                message = self.env.step_wait(stage)
                 busy += time.perf_counter() - start
                 self.link.send(message)
         return {"env/simulate_s": busy}

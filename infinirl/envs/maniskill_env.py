@@ -62,7 +62,8 @@ class ManiSkillSubEnv:
             task,
             obs_mode=obs_mode,
             sim_backend="physx_cpu",
-            render_backend="cpu" if obs_mode == "rgb" else "none",
+            # a renderer only when frames are wanted: observations, or videos (render_mode="rgb_array")
+            render_backend="cpu" if obs_mode == "rgb" or kwargs.get("render_mode") else "none",
             num_envs=1,
             **kwargs,
         )
@@ -95,7 +96,8 @@ class ManiSkillSubEnv:
     def render(self) -> np.ndarray:
         frame = self._env.render()
         if frame is None:
-            raise RuntimeError("this ManiSkill env was built without a renderer (obs_mode='state')")
+            raise RuntimeError("this ManiSkill env was built without a renderer (obs_mode='state'); build it "
+                               "with render_mode='rgb_array' (e.g. eval.video_env_kwargs={render_mode: rgb_array})")
         return np.asarray(_numpy_row(frame), dtype=np.uint8)
 
     def close(self) -> None:

@@ -1,0 +1,274 @@
+"""Benchmark: env-steps/s of the full PPO loop on MetaWorld, pipelined vs sequential vs single process.
+
+Three ways to run the same PPO iteration (8 envs x 200 steps of `reach-v3`, the same registered
+policy, the same PPO update: 10 epochs x 32 mini-batches), for state observations (MLP 2x64) and
+for 64x64 RGB camera observations (CNN):
+
+  (a) pipelined:      `infinirl train ppo_metaworld_reach` with the env and the rollout on disjoint
+                      CPU slots (placement env=0 rollout=1 actor=0) and `rollout.pipeline_stages=2`:
+                      each stage's simulators run in their own subprocess (`env.num_workers=1`), so
+                      stage 0 simulates while stage 1 simulates and while the rollout decides.
+  (b) sequential:     the same placement and runner with `rollout.pipeline_stages=1` (one stage:
+                      simulate all envs, then decide, then simulate ...), `env.num_workers=1`.
+  (c) single_process: a cleanRL-style loop in one Python process: gymnasium `AsyncVectorEnv` with
+                      one subprocess per env (cleanRL's default for these runs), the same policy,
+                      GAE and `ppo_update` called in-process. Same work, no components.
+
+Each implementation runs in its own subprocess, one after the other. Env-steps/s = env steps of
+the measured iterations / their wall time (collection + update + weight sync), skipping the first
+`--warmup` iterations (start-up, JIT of the first calls); start-up and evaluation are not counted.
+
+Usage:
+    python benchmarks/embodied_pipeline.py                      # state and rgb, all impls (~4-6 min on 2 cores)
+    python benchmarks/embodied_pipeline.py --obs state --iterations 4
+    python benchmarks/embodied_pipeline.py --only single_process --obs rgb   # one impl, its JSON line
+
+The table goes to stderr; the last stdout line is ONE JSON object:
+    {"benchmark": "embodied_pipeline", "ratios": {"pipelined_vs_sequential": ..,
+     "pipelined_vs_single_process": .., "<obs>/...": ..}, "targets": {...}, "results": {...}}
+The unprefixed ratios are those of state observations (the issue's headline); rgb ratios carry
+the "rgb/" prefix. Ratios > 1 mean the pipelined path is faster.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+
+TARGETS = {"pipelined_vs_sequential": 1.3, "pipelined_vs_single_process": 1.0}
+IMPLS = ("pipelined", "sequential", "single_process")
+NUM_ENVS, STEPS = 8, 200
+
+#: per observation mode: config overrides of `ppo_metaworld_reach` shared by every implementation
+OBS_MODES = {
+    "state": {},
+    "rgb": {"env.kwargs": {"obs_mode": "state+rgb", "image_size": 64}, "policy.name": "cnn_gaussian",
+            "policy.kwargs": {}},
+}
+PLACEMENT = {"placement.env": "0", "placement.rollout": "1", "placement.actor": "0", "env.num_workers": 1}
+IMPL_OVERRIDES = {"pipelined": {"rollout.pipeline_stages": 2}, "sequential": {"rollout.pipeline_stages": 1}}
+
+
+def _hydra_value(value) -> str:
+    """A value in Hydra's override grammar ({k:v}, [a,b], quoted strings with symbols)."""
+    if isinstance(value, dict):
+        return "{" + ",".join(f"{k}:{_hydra_value(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_hydra_value(v) for v in value) + "]"
+    if isinstance(value, str) and not value.replace("_", "").replace("-", "").replace("/", "").replace(".", "").isalnum():
+        return "'" + value + "'"
+    return str(value)
+
+
+def _override_args(overrides: dict) -> list[str]:
+    return [f"{key}={_hydra_value(value)}" for key, value in overrides.items()]
+
+
+def run_runner(impl: str, obs: str, iterations: int, warmup: int) -> dict:
+    """(a)/(b): the real runner through the CLI; steps/s from its metrics.jsonl."""
+    with tempfile.TemporaryDirectory(prefix=f"bench-{impl}-") as out:
+        overrides = {"iterations": iterations, "env.num_envs": NUM_ENVS, "rollout_steps": STEPS, "output_dir": out,
+                     "resume": False, "eval.every": 0, "eval.at_start": False, "eval.episodes": 1,
+                     "eval.num_envs": 1, "eval.video_episodes": 0, "loggers": [],
+                     **PLACEMENT, **IMPL_OVERRIDES[impl], **OBS_MODES[obs]}
+        cmd = [sys.executable, "-c", "import sys; from infinirl.cli import main; sys.exit(main())", "train",
+               "ppo_metaworld_reach", *_override_args(overrides)]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode:
+            raise RuntimeError(f"{impl}/{obs} failed ({' '.join(cmd)}):\n{proc.stderr[-4000:]}")
+        rows = [json.loads(line) for line in open(os.path.join(out, "metrics.jsonl")) if "time/iteration_s" in line]
+    return summarise(rows[warmup:], impl)
+
+
+def summarise(rows: list[dict], impl: str) -> dict:
+    steps = NUM_ENVS * STEPS * len(rows)
+    wall = sum(r["time/iteration_s"] for r in rows)
+    mean = lambda key: sum(r.get(key, 0.0) for r in rows) / len(rows)  # noqa: E731
+    return {"impl": impl, "iterations": len(rows), "env_steps": steps, "wall_s": round(wall, 3),
+            "env_steps_per_s": round(steps / wall, 1), "collect_s": round(mean("time/collect_s"), 3),
+            "train_s": round(mean("time/train_s"), 3)}
+
+
+# --------------------------------------------------------------------------- (c) single process
+def run_single_process(obs: str, iterations: int, warmup: int) -> dict:
+    """(c): cleanRL's shape: one process, AsyncVectorEnv, act -> step -> ... -> GAE -> update."""
+    import gymnasium as gym
+    import numpy as np
+    import torch
+
+    from infinirl.components.embodied_actor import PPOSpec, ppo_update
+    from infinirl.components.embodied_rollout import PolicySpec, array_obs
+    from infinirl.components.env_worker import iteration_seeds, probe_env_specs
+    from infinirl.config import compose
+    from infinirl.models.policies.base import prepare_obs
+
+    torch.set_num_threads(1)
+    raw = compose("ppo_metaworld_reach")
+    options = OBS_MODES[obs]
+    env_kwargs = dict(options.get("env.kwargs", raw["env"].get("kwargs") or {}))
+    task = raw["env"]["name"].partition(":")[2]
+    alg = raw["algorithm"]
+    spec, action_space = probe_env_specs(raw["env"]["name"], env_kwargs)
+    keys = [k for k, v in spec.items() if v.dtype != "str"]
+    policy_spec = PolicySpec(options.get("policy.name", raw["policy"]["name"]),
+                             dict(options.get("policy.kwargs", raw["policy"]["kwargs"])))
+    torch.manual_seed(0)
+    model = policy_spec.build(spec, action_space)
+    ppo = PPOSpec(lr=raw["actor"]["lr"], anneal_lr=True, total_iterations=iterations, epochs=alg["epochs"],
+                  mini_batches=alg["mini_batches"], clip=alg["clip"], entropy_coef=alg["entropy_coef"],
+                  max_grad_norm=alg["max_grad_norm"], strategy="ddp")
+    optimizer = torch.optim.Adam(model.parameters(), lr=ppo.lr, eps=ppo.adam_eps, fused=True)
+    envs = gym.vector.AsyncVectorEnv([_gym_env_fn(task, env_kwargs, keys)] * NUM_ENVS,
+                                     autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    rows = []
+    try:
+        for iteration in range(iterations):
+            t0 = time.perf_counter()
+            ob, _ = envs.reset(seed=iteration_seeds(0, iteration, NUM_ENVS))
+            record = {"obs": [], "actions": [], "logprobs": [], "values": [], "rewards": [], "dones": []}
+            with torch.no_grad():
+                for _ in range(STEPS):
+                    step = model.act(prepare_obs(ob))
+                    record["obs"].append(array_obs(ob))
+                    for key in ("actions", "logprobs", "values"):
+                        record[key].append(getattr(step, key))
+                    ob, reward, terminated, truncated, _ = envs.step(step.actions[:, 0].numpy())
+                    record["rewards"].append(torch.as_tensor(reward, dtype=torch.float32))
+                    record["dones"].append(torch.as_tensor(terminated | truncated))
+                last_value = model.value(prepare_obs(ob))
+            t1 = time.perf_counter()
+            batch = _gae_batch(record, last_value, alg["gamma"], alg["gae_lambda"], np)
+            ppo_update(model, optimizer, batch, iteration, ppo)
+            model.update_obs_stats({k: batch["obs"][k] for k in model.keys})
+            t2 = time.perf_counter()
+            rows.append({"time/iteration_s": t2 - t0, "time/collect_s": t1 - t0, "time/train_s": t2 - t1})
+    finally:
+        envs.close()
+    return summarise(rows[warmup:], "single_process")
+
+
+def _gae_batch(record: dict, last_value, gamma: float, lam: float, np) -> dict:
+    """GAE the slow obvious way (cleanRL's loop); the flat batch `ppo_update` takes."""
+    import torch
+
+    values = torch.stack(record["values"])
+    rewards, dones = torch.stack(record["rewards"]), torch.stack(record["dones"]).float()
+    advantages = torch.zeros_like(rewards)
+    running = torch.zeros_like(rewards[0])
+    for t in reversed(range(rewards.shape[0])):
+        next_value = last_value if t == rewards.shape[0] - 1 else values[t + 1]
+        delta = rewards[t] + gamma * next_value * (1 - dones[t]) - values[t]
+        running = delta + gamma * lam * (1 - dones[t]) * running
+        advantages[t] = running
+    flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731
+    obs = {k: flat(torch.as_tensor(np.stack([o[k] for o in record["obs"]]))) for k in record["obs"][0]}
+    actions = flat(torch.stack(record["actions"]))
+    return {"obs": obs, "actions": actions, "logprobs": flat(torch.stack(record["logprobs"])),
+            "step_mask": torch.ones(actions.shape[:2], dtype=torch.bool), "values": flat(values),
+            "advantages": flat(advantages), "returns": flat(advantages + values)}
+
+
+class _GymMetaWorld:
+    """Picklable factory of a gymnasium.Env around our MetaWorld sub-env (same physics/render settings)."""
+
+    def __init__(self, task: str, kwargs: dict, keys: list[str]):
+        self.task, self.kwargs, self.keys = task, kwargs, keys
+
+    def __call__(self):
+        import gymnasium as gym
+        import numpy as np
+
+        from infinirl.envs.metaworld_env import MetaWorldSubEnv
+
+        task, kwargs, keys = self.task, self.kwargs, self.keys
+
+        class Env(gym.Env):
+            def __init__(self):
+                self.sub = MetaWorldSubEnv(task, **kwargs)
+                spec = self.sub.observation_spec
+                self.observation_space = gym.spaces.Dict({
+                    k: gym.spaces.Box(0, 255, spec[k].shape, np.uint8) if spec[k].dtype == "uint8"
+                    else gym.spaces.Box(-np.inf, np.inf, spec[k].shape, np.float32) for k in keys})
+                space = self.sub.action_space
+                self.action_space = gym.spaces.Box(space.low, space.high, dtype=np.float32)
+
+            def reset(self, *, seed=None, options=None):
+                return self._obs(self.sub.reset(seed=seed)), {}
+
+            def step(self, action):
+                out = self.sub.step(action)
+                return self._obs(out.obs), float(out.reward), bool(out.terminated), bool(out.truncated), {}
+
+            def _obs(self, obs):
+                return {k: obs[k] for k in keys}
+
+        return Env()
+
+
+def _gym_env_fn(task: str, kwargs: dict, keys: list[str]):
+    return _GymMetaWorld(task, kwargs, keys)
+
+
+# --------------------------------------------------------------------------- driver
+def run_one(impl: str, obs: str, iterations: int, warmup: int) -> dict:
+    if impl == "single_process":
+        return run_single_process(obs, iterations, warmup)
+    return run_runner(impl, obs, iterations, warmup)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--obs", default="state,rgb", help="comma list of: " + ", ".join(OBS_MODES))
+    parser.add_argument("--impls", default=",".join(IMPLS))
+    parser.add_argument("--iterations", type=int, default=5, help="PPO iterations per run (state; rgb runs 3)")
+    parser.add_argument("--warmup", type=int, default=1, help="first iterations not measured")
+    parser.add_argument("--only", choices=IMPLS, help="run one impl in this process and print its result")
+    args = parser.parse_args()
+    os.environ.setdefault("MUJOCO_GL", "egl" if os.environ.get("INFINIRL_BENCH_EGL") else "osmesa")
+    modes = [m.strip() for m in args.obs.split(",") if m.strip()]
+    impls = [i.strip() for i in args.impls.split(",") if i.strip()]
+    for name in modes:
+        if name not in OBS_MODES:
+            parser.error(f"--obs {name!r}: choose from {', '.join(OBS_MODES)}")
+    for name in impls:
+        if name not in IMPLS:
+            parser.error(f"--impls {name!r}: choose from {', '.join(IMPLS)}")
+    iterations = lambda obs: args.iterations if obs == "state" else max(args.warmup + 2, args.iterations - 2)  # noqa: E731
+    if args.only:
+        print(json.dumps(run_one(args.only, modes[0], iterations(modes[0]), args.warmup)))
+        return
+    started = time.time()
+    results: dict = {}
+    for obs in modes:
+        for impl in impls:
+            cmd = [sys.executable, os.path.abspath(__file__), "--only", impl, "--obs", obs,
+                   "--iterations", str(args.iterations), "--warmup", str(args.warmup)]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode:
+                results[f"{obs}/{impl}"] = {"failed": proc.stderr[-2000:]}
+                print(f"{obs:5s} {impl:15s} FAILED\n{proc.stderr[-2000:]}", file=sys.stderr)
+                continue
+            result = json.loads(proc.stdout.strip().splitlines()[-1])
+            results[f"{obs}/{impl}"] = result
+            print(f"{obs:5s} {impl:15s} {result['env_steps_per_s']:8.1f} env-steps/s  collect {result['collect_s']:.2f}s"
+                  f"  train {result['train_s']:.2f}s  per iteration ({result['iterations']} measured)", file=sys.stderr)
+    ratios = {}
+    for obs in modes:
+        prefix = "" if obs == "state" else f"{obs}/"
+        speed = lambda impl: results.get(f"{obs}/{impl}", {}).get("env_steps_per_s")  # noqa: E731
+        for key, other in (("pipelined_vs_sequential", "sequential"), ("pipelined_vs_single_process", "single_process")):
+            a, b = speed("pipelined"), speed(other)
+            ratios[prefix + key] = round(a / b, 3) if a and b else None
+    print(json.dumps({"benchmark": "embodied_pipeline", "ratios": ratios, "targets": TARGETS, "results": results,
+                      "device": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
+                      "elapsed_s": round(time.time() - started, 1)}))
+
+
+if __name__ == "__main__":
+    main()
