@@ -13,6 +13,8 @@ for 64x64 RGB camera observations (CNN):
   (c) single_process: a cleanRL-style loop in one Python process: gymnasium `AsyncVectorEnv` with
                       one subprocess per env (cleanRL's default for these runs), the same policy,
                       GAE and `ppo_update` called in-process. Same work, no components.
+  (extra, opt-in with --impls ...,collocated): the shipped default placement, env inside the
+                      rollout process (no hop per step), for comparison.
 
 Each implementation runs in its own subprocess, one after the other. Env-steps/s = env steps of
 the measured iterations / their wall time (collection + update + weight sync), skipping the first
@@ -42,7 +44,8 @@ import tempfile
 import time
 
 TARGETS = {"pipelined_vs_sequential": 1.3, "pipelined_vs_single_process": 1.0}
-IMPLS = ("pipelined", "sequential", "single_process")
+IMPLS = ("pipelined", "sequential", "single_process", "collocated")
+DEFAULT_IMPLS = IMPLS[:3]
 NUM_ENVS, STEPS = 8, 200
 
 #: per observation mode: config overrides of `ppo_metaworld_reach` shared by every implementation
@@ -52,7 +55,10 @@ OBS_MODES = {
             "policy.kwargs": {}},
 }
 PLACEMENT = {"placement.env": "0", "placement.rollout": "1", "placement.actor": "0", "env.num_workers": 1}
-IMPL_OVERRIDES = {"pipelined": {"rollout.pipeline_stages": 2}, "sequential": {"rollout.pipeline_stages": 1}}
+IMPL_OVERRIDES = {"pipelined": {"rollout.pipeline_stages": 2}, "sequential": {"rollout.pipeline_stages": 1},
+                  # opt-in row: the default placement of ppo_metaworld_reach (env inside the rollout process)
+                  "collocated": {"placement.env": "0", "placement.rollout": "0", "env.num_workers": 0,
+                                 "rollout.pipeline_stages": 1}}
 
 
 def _hydra_value(value) -> str:
@@ -225,7 +231,8 @@ def run_one(impl: str, obs: str, iterations: int, warmup: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--obs", default="state,rgb", help="comma list of: " + ", ".join(OBS_MODES))
-    parser.add_argument("--impls", default=",".join(IMPLS))
+    parser.add_argument("--impls", default=",".join(DEFAULT_IMPLS),
+                        help="comma list of: " + ", ".join(IMPLS) + " (collocated is an opt-in extra row)")
     parser.add_argument("--iterations", type=int, default=5, help="PPO iterations per run (state; rgb runs 3)")
     parser.add_argument("--warmup", type=int, default=1, help="first iterations not measured")
     parser.add_argument("--only", choices=IMPLS, help="run one impl in this process and print its result")
@@ -260,6 +267,9 @@ def main() -> None:
                   f"  train {result['train_s']:.2f}s  per iteration ({result['iterations']} measured)", file=sys.stderr)
     ratios = {}
     for obs in modes:
+        if "collocated" in impls:
+            a, b = (results.get(f"{obs}/{i}", {}).get("env_steps_per_s") for i in ("collocated", "single_process"))
+            ratios[("" if obs == "state" else f"{obs}/") + "collocated_vs_single_process"] = round(a / b, 3) if a and b else None
         prefix = "" if obs == "state" else f"{obs}/"
         speed = lambda impl: results.get(f"{obs}/{impl}", {}).get("env_steps_per_s")  # noqa: E731
         for key, other in (("pipelined_vs_sequential", "sequential"), ("pipelined_vs_single_process", "single_process")):
