@@ -35,6 +35,7 @@ from pathlib import Path
 
 TASK = {"min_terms": 2, "max_terms": 2, "min_digits": 1, "max_digits": 1}
 PROMPTS, GROUP, MAX_NEW, LR = 8, 8, 48, 1e-5
+MICRO_BATCH = int(os.environ.get("INFINIRL_BENCH_MICRO_BATCH", 16))  # sequences per forward/backward (ours)
 IMPLS = ("infinirl", "trl", "infinirl_vllm")
 DEFAULT_VLLM_VENV = Path(os.environ.get("INFINIRL_CACHE", Path.home() / ".cache" / "infinirl")) / "vllm-venv"
 
@@ -66,7 +67,7 @@ def run_infinirl(steps: int, precision: str, out: str, engine: str = "hf") -> di
         "task": {"config": TASK, "eval_size": 1},
         "rollout": {"group_size": GROUP, "max_new_tokens": MAX_NEW, "max_batch_size": PROMPTS * GROUP,
                     "engine": engine},
-        "actor": {"lr": LR, "micro_batch_size": 16, "param_dtype": precision},
+        "actor": {"lr": LR, "micro_batch_size": MICRO_BATCH, "param_dtype": precision},
         "cluster": {"log_to_driver": False},
     })
     run(cfg)

@@ -61,7 +61,7 @@ from torch.distributed.device_mesh import init_device_mesh
 from torch.distributed.fsdp import FSDPModule, MixedPrecisionPolicy, fully_shard
 from torch.distributed.tensor import DTensor
 
-from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS
+from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK
 from infinirl.engines.logprobs import aligned_logprobs, aligned_values
 from infinirl.engines.train_base import LoraSettings, LossFn, LrSchedule, TrainEngineConfig, TrainOutput
 
@@ -267,10 +267,24 @@ def _used_width(attention_mask: torch.Tensor) -> int:
     return max(1, int((positions * (attention_mask != 0)).max()))
 
 
-def _pad_columns(scores: torch.Tensor, width: int) -> torch.Tensor:
-    if scores.shape[1] == width:
+def _pad_columns(scores: torch.Tensor, width: int, left: int = 0) -> torch.Tensor:
+    """Zero columns: ``left`` before the scores and as many after as make ``width``."""
+    if scores.shape[1] == width and not left:
         return scores
-    return torch.nn.functional.pad(scores, (0, width - scores.shape[1]))
+    return torch.nn.functional.pad(scores, (left, width - left - scores.shape[1]))
+
+
+def _first_scored_column(micro_batch: TensorDict, width: int) -> int:
+    """The first column whose logits any row's response needs: one before the earliest response
+    token (``response_mask``), or 0 when the batch does not say which tokens are responses."""
+    mask = micro_batch.get(RESPONSE_MASK, None)
+    if mask is None or width < 2:
+        return 0
+    mask = mask[:, :width].to(torch.bool)
+    if not bool(mask.any()):
+        return 0
+    first = int(mask.any(dim=0).to(torch.int8).argmax())
+    return max(0, first - 1)
 
 
 # ----------------------------------------------------------------------------- the engine
@@ -456,25 +470,35 @@ class FSDPTrainEngine:
         input_ids, attention_mask = input_ids[:, :width], attention_mask[:, :width]
         if position_ids is not None:
             position_ids = position_ids[:, :width]
+        # Log-probs are only ever read at response tokens: the LM head (and the full-vocabulary
+        # softmax behind it) runs from the column before the earliest response token on, not over
+        # the prompts. Exact: the kept positions' logits are the same numbers either way.
+        scored_from = self.output != "values" and not self.cfg.score_prompts
+        start = _first_scored_column(micro_batch, width) if scored_from else 0
+        extra = {"logits_to_keep": width - start} if start > 0 else {}
         output = self.model(
             input_ids=input_ids,
             attention_mask=attention_mask,
             position_ids=position_ids,
             use_cache=False,
+            **extra,
         )
         if self.output == "values":
             values = aligned_values(output.logits.squeeze(-1), attention_mask)
             return _pad_columns(values, full_width), None
+        logits = output.logits
+        if logits.shape[1] == width and start > 0:  # a model that ignores logits_to_keep
+            logits = logits[:, start:]
         logprobs, entropy = aligned_logprobs(
-            output.logits,
-            input_ids,
-            attention_mask,
+            logits,
+            input_ids[:, start:],
+            attention_mask[:, start:],
             temperature=self.cfg.temperature,
             chunk_tokens=self.cfg.logprob_chunk_tokens,
             with_entropy=with_entropy,
         )
-        logprobs = _pad_columns(logprobs, full_width)
-        return logprobs, (_pad_columns(entropy, full_width) if entropy is not None else None)
+        logprobs = _pad_columns(logprobs, full_width, left=start)
+        return logprobs, (_pad_columns(entropy, full_width, left=start) if entropy is not None else None)
 
     def _micro_batch_plan(self, batch: TensorDict) -> tuple[list[TensorDict], int]:
         """This rank's micro-batches, and how many passes every rank must make (the global max).

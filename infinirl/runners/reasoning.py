@@ -48,8 +48,9 @@ from infinirl.runtime import Channel, Cluster, Tracer, WorkerGroup, place, sync_
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
 # reference (KL), and the critic's values and regression targets.
 OLD_LOGPROBS, REF_LOGPROBS, VALUES, RETURNS = "old_logprobs", "ref_logprobs", "values", "returns"
-# What a forward-only pass needs of a batch (the rest stays in the driver).
-_FORWARD_KEYS = (INPUT_IDS, ATTENTION_MASK, POSITION_IDS)
+# What a forward-only pass needs of a batch (the rest stays in the driver); the response mask lets
+# the engine skip the LM head over prompt positions.
+_FORWARD_KEYS = (INPUT_IDS, ATTENTION_MASK, POSITION_IDS, RESPONSE_MASK)
 
 
 @register_runner("reasoning", ReasoningConfig, "GRPO/PPO-family RL with verifiable rewards on an HF causal LM")
@@ -305,7 +306,7 @@ class ReasoningFlow:
                 actor_mini = mini.select(*actor_keys)
                 handles = [self.actor.call_each("train_step", [(actor_mini[s], normaliser) for s in _slices(per_mini, world)])]
                 if self.critic is not None:
-                    critic_mini = mini.select(*_FORWARD_KEYS, RESPONSE_MASK, VALUES, RETURNS)
+                    critic_mini = mini.select(*_FORWARD_KEYS, VALUES, RETURNS)
                     tokens = aggregation_normaliser(mini["response_mask"], "token-mean")
                     handles.append(self.critic.call_each(
                         "train_step", [(critic_mini[s], tokens) for s in _slices(per_mini, self.critic.world_size)]))

@@ -116,13 +116,47 @@ def one_rank_group():
 
 @pytest.mark.parametrize("tie", [False, True])
 def test_compute_logprobs_matches_unpadded_float64_reference(tie):
-    engine = FSDPTrainEngine(lambda: tiny_llama(tie), config(micro_batch_size=3, temperature=0.8))
+    engine = FSDPTrainEngine(lambda: tiny_llama(tie), config(micro_batch_size=3, temperature=0.8, score_prompts=True))
     batch = make_batch(seed=1, size=5)
     logprobs, entropy = engine.compute_logprobs(batch, with_entropy=True)
     ref_lp, ref_ent = reference_logprobs(reference_model(exported(engine), tie), batch, 0.8)
     assert logprobs.shape == entropy.shape == batch["input_ids"].shape
     torch.testing.assert_close(logprobs.double(), ref_lp, atol=1e-5, rtol=0)
     torch.testing.assert_close(entropy.double(), ref_ent, atol=1e-5, rtol=0)
+
+
+def long_prompt_batch(seed: int, size: int = 4):
+    """Prompts of 6..9 tokens and responses of 1..4: the earliest response starts at column 6."""
+    gen = torch.Generator().manual_seed(seed)
+    prompts = [torch.randint(1, VOCAB, (6 + i % 4,), generator=gen).tolist() for i in range(size)]
+    responses = [torch.randint(1, VOCAB, (1 + i % 4,), generator=gen).tolist() for i in range(size)]
+    return pack_sequences(prompts, responses, pad_token_id=0)
+
+
+def test_responses_only_scoring_is_exact_where_it_is_read_and_skips_the_prompts(monkeypatch):
+    """Default (score_prompts=False): the LM head runs from column 5 on (one before the earliest
+    response token); response log-probs/entropies equal the float64 reference, earlier columns are
+    0, and a training step moves the weights exactly as full scoring does."""
+    seen = []
+    original = fsdp_module._first_scored_column
+    monkeypatch.setattr(fsdp_module, "_first_scored_column", lambda *a: seen.append(original(*a)) or seen[-1])
+    batch = long_prompt_batch(seed=3, size=4)
+    engine = FSDPTrainEngine(tiny_llama, config(micro_batch_size=4, temperature=0.8))
+    logprobs, entropy = engine.compute_logprobs(batch, with_entropy=True)
+    assert seen == [5]
+    ref_lp, ref_ent = reference_logprobs(reference_model(exported(engine)), batch, 0.8)
+    mask = batch[RESPONSE_MASK].bool()
+    torch.testing.assert_close(logprobs.double()[mask], ref_lp[mask], atol=1e-5, rtol=0)
+    torch.testing.assert_close(entropy.double()[mask], ref_ent[mask], atol=1e-5, rtol=0)
+    assert logprobs[:, :5].abs().sum() == 0 and ref_lp[:, 1:5].abs().sum() > 0
+
+    tokens = float(batch[RESPONSE_MASK].sum())
+    full = FSDPTrainEngine(tiny_llama, config(micro_batch_size=2, score_prompts=True))
+    part = FSDPTrainEngine(tiny_llama, config(micro_batch_size=2))
+    assert_weights_close(exported(part), exported(full), atol=0)
+    full.train_step(batch, global_token_loss(tokens))
+    part.train_step(batch, global_token_loss(tokens))
+    assert_weights_close(exported(part), exported(full), atol=1e-6)
 
 
 def test_exported_weights_are_the_models_with_hf_names():
@@ -150,8 +184,9 @@ def test_logprobs_after_a_step_see_the_new_weights():
     engine.train_step(batch, global_token_loss(batch[RESPONSE_MASK].sum().item()))
     after, _ = engine.compute_logprobs(batch)
     ref, _ = reference_logprobs(reference_model(exported(engine)), batch, 1.0)
-    assert not torch.allclose(before, after)
-    torch.testing.assert_close(after.double(), ref, atol=1e-5, rtol=0)
+    mask = batch[RESPONSE_MASK].bool()  # what the engine scores by default (score_prompts=False)
+    assert not torch.allclose(before[mask], after[mask])
+    torch.testing.assert_close(after.double()[mask], ref[mask], atol=1e-5, rtol=0)
 
 
 # ----------------------------------------------------------------------------- train step
