@@ -72,14 +72,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "validate":
             print(f"config '{args.config}' is valid (runner {spec.name})")
             return 0
-        if args.command == "eval":  # its data is read before any worker starts: bad input is a config error
-            spec.run(cfg)
-            return 0
+        # Runners check what only they can (the env task, data files, prompt lengths) in the driver
+        # before any worker starts and raise ConfigError: reported like a bad key, no traceback.
+        spec.run(cfg)
+        return 0
     except ConfigError as exc:
         print(f"infinirl: config error: {exc}", file=sys.stderr)
         return 2
-    spec.run(cfg)
-    return 0
 
 
 if __name__ == "__main__":

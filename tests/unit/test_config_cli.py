@@ -61,6 +61,15 @@ def test_cli_rejects_bad_key_value_and_config(capsys):
     assert "no config named 'no_such_config'" in capsys.readouterr().err
 
 
+def test_train_reports_a_runner_check_as_a_config_error(capsys, tmp_path):
+    """A check only the runner can make (here: the env task, by building one sub-env in the
+    driver before any worker starts) exits 2 with the message, not a traceback."""
+    pytest.importorskip("gymnasium")
+    code = main(["train", "ppo_metaworld_reach", "env.name=gym:NoSuchEnv-v0", f"output_dir={tmp_path}"])
+    assert code == 2
+    assert "infinirl: config error: gym:NoSuchEnv-v0" in capsys.readouterr().err
+
+
 def test_default_config_is_the_grpo_main_job():
     """`infinirl train` with no config name runs GRPO on the embedded model with a held-out set."""
     from infinirl.config import compose
