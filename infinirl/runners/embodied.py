@@ -25,9 +25,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import time
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -42,15 +40,13 @@ from infinirl.config import ConfigError, to_plain
 from infinirl.runners import register_runner
 from infinirl.runners.embodied_config import ALGORITHMS, COMPONENTS, EmbodiedConfig
 from infinirl.runners.metrics_log import MetricsLogger, read_metrics
-from infinirl.runtime import Cluster, WorkerGroup, place, sync_weights
-
-_RUNS_IN_PROCESS = [0]
-
+from infinirl.runners.run_support import CheckpointFolders, launch_all, run_start_time
+from infinirl.runtime import Cluster, place, sync_weights
 
 @register_runner("embodied", EmbodiedConfig,
                  "PPO / embodied GRPO for robot policies in vectorised simulators (env/rollout pipelined or collocated)")
 def run(cfg: EmbodiedConfig) -> dict:
-    started = _start_time()
+    started = run_start_time()
     os.makedirs(cfg.output_dir, exist_ok=True)
     # Checked in the driver before any worker starts: the env task and options, the policy options.
     try:
@@ -76,7 +72,7 @@ def run(cfg: EmbodiedConfig) -> dict:
         }
         if not host_env:
             launches["env"] = (EnvWorker, (env_spec, cfg.rollout.num_threads))
-        groups = _launch_all(plan, launches)
+        groups = launch_all(plan, launches)
         flow = EmbodiedFlow(cfg, groups.get("env"), groups["rollout"], groups["actor"], started)
         try:
             if flow.env is not None:
@@ -111,20 +107,6 @@ def _check_one_task_per_group(cfg: EmbodiedConfig) -> None:
                           f"{len(tasks)}); use one task per run with grpo, or algorithm.name=ppo")
 
 
-def _start_time() -> float:
-    """Wall-clock origin of ``time/elapsed_s``: the process start for the first run in a process
-    (so interpreter and import start-up count), the call for later ones (tests run several)."""
-    _RUNS_IN_PROCESS[0] += 1
-    if _RUNS_IN_PROCESS[0] == 1:
-        try:
-            import psutil
-
-            return psutil.Process().create_time()
-        except Exception:
-            pass
-    return time.time()
-
-
 def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
     """Collocated env (inside the rollout's process) or not, and one env rank's :class:`EnvSpec`."""
     host_env = plan.relation("env", "rollout") == "collocated"
@@ -139,24 +121,6 @@ def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
     spec = EnvSpec(cfg.env.name, cfg.env.num_envs // env_ranks, stages, cfg.env.num_workers,
                    cfg.env.max_episode_steps, cfg.policy.chunk, cfg.seed, dict(cfg.env.kwargs))
     return host_env, spec
-
-
-def _launch_all(plan, launches: dict) -> dict[str, WorkerGroup]:
-    """Start every component at once (their start-up, mostly imports, overlaps)."""
-    with ThreadPoolExecutor(len(launches)) as pool:
-        futures = {name: pool.submit(WorkerGroup.launch, cls, name, placement=plan.ranks(name), args=args)
-                   for name, (cls, args) in launches.items()}
-        groups, error = {}, None
-        for name, future in futures.items():
-            try:
-                groups[name] = future.result()
-            except BaseException as exc:  # keep the first error, stop what did start
-                error = error or exc
-    if error is not None:
-        for group in groups.values():
-            group.shutdown()
-        raise error
-    return groups
 
 
 class EmbodiedFlow:
@@ -330,28 +294,18 @@ class EmbodiedFlow:
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, iteration: int) -> str:
-        root = os.path.join(self.cfg.output_dir, "checkpoints")
-        final = os.path.join(root, f"iter_{iteration:06d}")
-        tmp = final + ".tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        os.makedirs(tmp)
+        folders = CheckpointFolders(self.cfg.output_dir, "iter_")
+        tmp = folders.begin(iteration)
         self.actor.save_checkpoint(os.path.join(tmp, "actor")).wait()
-        state = {"iteration": iteration, "env_steps": self.env_steps, "elapsed_s": self.elapsed(),
-                 "return_normalizer": self.return_norm.state_dict()}
-        with open(os.path.join(tmp, "runner_state.json"), "w") as handle:
-            json.dump(state, handle)
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
-        return final
+        return folders.commit(tmp, iteration, {"iteration": iteration, "env_steps": self.env_steps,
+                                               "elapsed_s": self.elapsed(),
+                                               "return_normalizer": self.return_norm.state_dict()})
 
     def _maybe_resume(self) -> int:
-        root = os.path.join(self.cfg.output_dir, "checkpoints")
-        done = sorted(d for d in os.listdir(root) if not d.endswith(".tmp")) if os.path.isdir(root) else []
-        if not (self.cfg.resume and done):
+        found = CheckpointFolders(self.cfg.output_dir, "iter_").latest() if self.cfg.resume else None
+        if found is None:
             return 0
-        latest = os.path.join(root, done[-1])
-        with open(os.path.join(latest, "runner_state.json")) as handle:
-            state = json.load(handle)
+        latest, state = found
         self.actor.load_checkpoint(os.path.join(latest, "actor")).wait()
         self.return_norm.load_state_dict(state["return_normalizer"])
         self.env_steps = int(state["env_steps"])

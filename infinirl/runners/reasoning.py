@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import random
-import shutil
 import time
 import uuid
 from dataclasses import replace
@@ -40,6 +39,7 @@ from infinirl.config import to_plain
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.runners import register_runner
+from infinirl.runners.run_support import CheckpointFolders, launch_all
 from infinirl.runners.metrics_log import MetricsLogger, plot_curves, read_metrics
 from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
@@ -81,8 +81,6 @@ def run(cfg: ReasoningConfig) -> dict:
 def _launch_components(cfg: ReasoningConfig, plan) -> dict[str, WorkerGroup]:
     """Start every component's ranks at once (model loading overlaps), in a fixed order of names.
     If one fails to start, the others are shut down and its error is raised."""
-    from concurrent.futures import ThreadPoolExecutor
-
     specs = {
         "actor": (ActorWorker, (cfg.model.path, cfg.actor, cfg.algorithm.objective, cfg.num_threads)),
         "rollout": (RolloutWorker, (cfg.model.path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
@@ -92,21 +90,7 @@ def _launch_components(cfg: ReasoningConfig, plan) -> dict[str, WorkerGroup]:
         "critic": (CriticWorker, (cfg.critic_model_path, cfg.critic, cfg.critic.value_clip, cfg.num_threads)),
         "reference": (ReferenceWorker, (cfg.model.path, _reference_engine(cfg), cfg.num_threads)),
     }
-    names = cfg.components()
-    with ThreadPoolExecutor(max_workers=len(names)) as pool:
-        futures = {name: pool.submit(WorkerGroup.launch, specs[name][0], name, placement=plan.ranks(name),
-                                     args=specs[name][1]) for name in names}
-        launched, error = {}, None
-        for name in names:
-            try:
-                launched[name] = futures[name].result()
-            except BaseException as exc:  # noqa: BLE001 - re-raised below, after cleaning up
-                error = error or exc
-    if error is not None:
-        for group in launched.values():
-            group.shutdown()
-        raise error
-    return launched
+    return launch_all(plan, {name: specs[name] for name in cfg.components()})
 
 
 def _reference_engine(cfg: ReasoningConfig):
@@ -342,31 +326,20 @@ class ReasoningFlow:
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, step: int, train_stream) -> str:
-        root = os.path.join(self.cfg.output_dir, "checkpoints")
-        final = os.path.join(root, f"step_{step:06d}")
-        tmp = final + ".tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        os.makedirs(tmp)
+        folders = CheckpointFolders(self.cfg.output_dir, "step_")
+        tmp = folders.begin(step)
         saving = [self.actor.save_checkpoint(os.path.join(tmp, "actor"))]
         if self.critic is not None:
             saving.append(self.critic.save_checkpoint(os.path.join(tmp, "critic")))
         for handle in saving:
             handle.wait()
-        state = {"step": step, "data": train_stream.state_dict(), "rng": _rng_state()}
-        with open(os.path.join(tmp, "runner_state.json"), "w") as handle:
-            json.dump(state, handle)
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
-        return final
+        return folders.commit(tmp, step, {"step": step, "data": train_stream.state_dict(), "rng": _rng_state()})
 
     def _maybe_resume(self, train_stream) -> int:
-        root = os.path.join(self.cfg.output_dir, "checkpoints")
-        done = sorted(d for d in os.listdir(root) if not d.endswith(".tmp")) if os.path.isdir(root) else []
-        if not (self.cfg.resume and done):
+        found = CheckpointFolders(self.cfg.output_dir, "step_").latest() if self.cfg.resume else None
+        if found is None:
             return 0
-        latest = os.path.join(root, done[-1])
-        with open(os.path.join(latest, "runner_state.json")) as handle:
-            state = json.load(handle)
+        latest, state = found
         loading = [self.actor.load_checkpoint(os.path.join(latest, "actor"))]
         if self.critic is not None:
             if not os.path.isdir(os.path.join(latest, "critic")):

@@ -21,9 +21,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
 import time
-from concurrent.futures import ThreadPoolExecutor
 from fractions import Fraction
 
 import numpy as np
@@ -34,20 +32,20 @@ from infinirl.components.sac_learner import SACLearnerWorker, SACNetSpec, SACUpd
 from infinirl.config import ConfigError, to_plain
 from infinirl.runners import register_runner
 from infinirl.runners.metrics_log import MetricsLogger, read_metrics
+from infinirl.runners.run_support import CheckpointFolders, launch_all, run_start_time
 from infinirl.runners.sac_config import COMPONENTS, SACConfig
-from infinirl.runtime import Cluster, WorkerGroup, place, sync_weights
+from infinirl.runtime import Cluster, place, sync_weights
 
 EVAL_SEED_BASE = 2**31
 """First held-out evaluation seed; training episode seeds are below 2**31 - 1, so the two never meet."""
 
-_RUNS_IN_PROCESS = [0]
 _PENDING = "pending_batch.pt"  # with collect_ahead: the next iteration's batch, collected before the save
 
 
 @register_runner("sac", SACConfig,
                  "Soft Actor-Critic (twin Q, auto-tuned entropy, replay buffer) in gymnasium/MuJoCo simulators")
 def run(cfg: SACConfig) -> dict:
-    started = _start_time()
+    started = run_start_time()
     os.makedirs(cfg.output_dir, exist_ok=True)
     obs_dim, action_space = _probe(cfg)  # bad task names / spaces fail here, before any worker starts
     net = SACNetSpec(tuple(cfg.network.actor_hidden), tuple(cfg.network.critic_hidden), cfg.network.num_critics,
@@ -70,7 +68,7 @@ def run(cfg: SACConfig) -> dict:
                 raise ConfigError(f"placement.{name}={cfg.placement[name]!r} gives {plan.world_size(name)} ranks; "
                                   f"the SAC runner runs one {name} rank")
         print(plan.describe(), flush=True)
-        groups = _launch_all(plan, {
+        groups = launch_all(plan, {
             "learner": (SACLearnerWorker, (net, update, obs_dim, action_space, cfg.learner.num_threads)),
             "collector": (SACCollectorWorker, (env, net, obs_dim, action_space, cfg.seed, cfg.collector.num_threads)),
         })
@@ -106,38 +104,6 @@ def _probe(cfg: SACConfig) -> tuple[int, object]:
     if not (np.isfinite(space.low).all() and np.isfinite(space.high).all()):
         raise ConfigError(f"{cfg.env.name} has an unbounded action box; SAC's tanh squash needs finite bounds")
     return int(spec[key].shape[0]), space
-
-
-def _start_time() -> float:
-    """Origin of ``time/elapsed_s``: the process start for the first run in a process (start-up
-    counts), the call for later ones (tests run several)."""
-    _RUNS_IN_PROCESS[0] += 1
-    if _RUNS_IN_PROCESS[0] == 1:
-        try:
-            import psutil
-
-            return psutil.Process().create_time()
-        except Exception:
-            pass
-    return time.time()
-
-
-def _launch_all(plan, launches: dict) -> dict[str, WorkerGroup]:
-    """Start the components at once (their start-up, mostly imports, overlaps)."""
-    with ThreadPoolExecutor(len(launches)) as pool:
-        futures = {name: pool.submit(WorkerGroup.launch, cls, name, placement=plan.ranks(name), args=args)
-                   for name, (cls, args) in launches.items()}
-        groups, error = {}, None
-        for name, future in futures.items():
-            try:
-                groups[name] = future.result()
-            except BaseException as exc:  # keep the first error, stop what did start
-                error = error or exc
-    if error is not None:
-        for group in groups.values():
-            group.shutdown()
-        raise error
-    return groups
 
 
 class SACFlow:
@@ -249,40 +215,28 @@ class SACFlow:
         """One folder per checkpoint, built under a temporary name and renamed into place (every
         file in it is itself written to a temporary name and renamed), so a crash at any point
         leaves the previous checkpoint usable."""
-        root = self._checkpoint_root()
-        final = os.path.join(root, f"iter_{iteration:06d}")
-        tmp = final + ".tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        os.makedirs(tmp)
+        folders = self._checkpoints()
+        tmp = folders.begin(iteration)
         saving = [self.learner.save_checkpoint(os.path.join(tmp, "learner")),
                   self.collector.save_state(os.path.join(tmp, "collector"))]
         for handle in saving:
             handle.wait()
         if self.pending is not None:  # collected ahead (complete: the weight sync waited for it)
             _save_atomic(self.pending.wait()[0], os.path.join(tmp, _PENDING))
-        state = {"iteration": iteration, "env_steps": self.env_steps, "elapsed_s": self.elapsed()}
-        with open(os.path.join(tmp, "runner_state.json"), "w") as handle:
-            json.dump(state, handle)
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
+        final = folders.commit(tmp, iteration, {"iteration": iteration, "env_steps": self.env_steps,
+                                                "elapsed_s": self.elapsed()})
         if self.cfg.keep_checkpoints:
-            for old in self._checkpoints()[:-self.cfg.keep_checkpoints]:
-                shutil.rmtree(os.path.join(root, old), ignore_errors=True)
+            folders.prune(self.cfg.keep_checkpoints)
         return final
 
-    def _checkpoints(self) -> list[str]:
-        root = self._checkpoint_root()
-        if not os.path.isdir(root):
-            return []
-        return sorted(d for d in os.listdir(root) if d.startswith("iter_") and not d.endswith(".tmp"))
+    def _checkpoints(self) -> CheckpointFolders:
+        return CheckpointFolders(self.cfg.output_dir, "iter_")
 
     def _maybe_resume(self) -> int:
-        done = self._checkpoints()
-        if not (self.cfg.resume and done):
+        found = self._checkpoints().latest() if self.cfg.resume else None
+        if found is None:
             return 0
-        latest = os.path.join(self._checkpoint_root(), done[-1])
-        with open(os.path.join(latest, "runner_state.json")) as handle:
-            state = json.load(handle)
+        latest, state = found
         loading = [self.learner.load_checkpoint(os.path.join(latest, "learner")),
                    self.collector.load_state(os.path.join(latest, "collector"))]
         loading[0].wait()
