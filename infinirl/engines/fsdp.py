@@ -63,6 +63,7 @@ from torch.distributed.tensor import DTensor
 
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK
 from infinirl.engines.logprobs import aligned_logprobs, aligned_values
+from infinirl.engines.shared_prefix import pack_by_prompt, packed_logprobs, supports_packed_masks
 from infinirl.engines.train_base import LoraSettings, LossFn, LrSchedule, TrainEngineConfig, TrainOutput
 
 ModelOrFactory = nn.Module | Callable[[], nn.Module]
@@ -333,6 +334,7 @@ class FSDPTrainEngine:
         if not isinstance(model, nn.Module):
             model = model()
         model = model.to(device=self.device, dtype=torch.float32)
+        self._packable = supports_packed_masks(getattr(model, "config", None))
         if cfg.activation_checkpointing:
             _enable_activation_checkpointing(model)
         self._lora_plan: dict[str, tuple[float, bool]] = {}
@@ -470,6 +472,14 @@ class FSDPTrainEngine:
         input_ids, attention_mask = input_ids[:, :width], attention_mask[:, :width]
         if position_ids is not None:
             position_ids = position_ids[:, :width]
+        if self._shares_prompt_prefix:
+            response_mask = micro_batch.get(RESPONSE_MASK, None)
+            packed = pack_by_prompt(input_ids, attention_mask, position_ids,
+                                    None if response_mask is None else response_mask[:, :width],
+                                    mask_dtype=self.compute_dtype)
+            logprobs, entropy = packed_logprobs(self.model, packed, (input_ids.shape[0], full_width),
+                                                self.cfg.temperature, self.cfg.logprob_chunk_tokens, with_entropy)
+            return logprobs, entropy
         # Log-probs are only ever read at response tokens: the LM head (and the full-vocabulary
         # softmax behind it) runs from the column before the earliest response token on, not over
         # the prompts. Exact: the kept positions' logits are the same numbers either way.
@@ -499,6 +509,13 @@ class FSDPTrainEngine:
         )
         logprobs = _pad_columns(logprobs, full_width, left=start)
         return logprobs, (_pad_columns(entropy, full_width, left=start) if entropy is not None else None)
+
+    @property
+    def _shares_prompt_prefix(self) -> bool:
+        """Config only (never the data): every rank must make the same number of model calls."""
+        cfg = self.cfg
+        return (self.output == "logprobs" and cfg.share_prompt_prefix and not cfg.score_prompts
+                and not cfg.activation_checkpointing and self._packable)
 
     def _micro_batch_plan(self, batch: TensorDict) -> tuple[list[TensorDict], int]:
         """This rank's micro-batches, and how many passes every rank must make (the global max).

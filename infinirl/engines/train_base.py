@@ -88,6 +88,14 @@ class TrainEngineConfig:
     ``response_mask``, the LM head and its softmax run only from the column before the earliest
     response token, and earlier columns read 0 (RL losses read response tokens only; on a 135M
     model with a 49k vocabulary the head is ~20% of the FLOPs per token)."""
+    share_prompt_prefix: bool = True
+    """Pack the rows of a micro-batch that share a prompt into one sequence, ``[prompt | response
+    1 | ... | response n]``, with a 4-D attention mask that lets each response see the prompt and
+    itself only. A GRPO group then computes its prompt once instead of ``n`` times and no token is
+    padding. Exact: same log-probs and gradients to float rounding (see
+    :mod:`infinirl.engines.shared_prefix`). Prompt columns read 0. Off with ``score_prompts`` or
+    ``activation_checkpointing``, and automatically for sliding-window models; turn it off for a
+    model whose attention does not take a prepared 4-D mask the HF way."""
     logprob_chunk_tokens: int = 1024
     """Tokens per chunk when turning logits into log-probs: the float32 ``[chunk, vocab]`` block
     is the only full-vocab float32 tensor alive (a 150k vocab at 1024 tokens is ~600 MB)."""

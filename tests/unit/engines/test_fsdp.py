@@ -134,14 +134,14 @@ def long_prompt_batch(seed: int, size: int = 4):
 
 
 def test_responses_only_scoring_is_exact_where_it_is_read_and_skips_the_prompts(monkeypatch):
-    """Default (score_prompts=False): the LM head runs from column 5 on (one before the earliest
-    response token); response log-probs/entropies equal the float64 reference, earlier columns are
-    0, and a training step moves the weights exactly as full scoring does."""
+    """score_prompts=False without prompt packing: the LM head runs from column 5 on (one before
+    the earliest response token); response log-probs/entropies equal the float64 reference,
+    earlier columns are 0, and a training step moves the weights exactly as full scoring does."""
     seen = []
     original = fsdp_module._first_scored_column
     monkeypatch.setattr(fsdp_module, "_first_scored_column", lambda *a: seen.append(original(*a)) or seen[-1])
     batch = long_prompt_batch(seed=3, size=4)
-    engine = FSDPTrainEngine(tiny_llama, config(micro_batch_size=4, temperature=0.8))
+    engine = FSDPTrainEngine(tiny_llama, config(micro_batch_size=4, temperature=0.8, share_prompt_prefix=False))
     logprobs, entropy = engine.compute_logprobs(batch, with_entropy=True)
     assert seen == [5]
     ref_lp, ref_ent = reference_logprobs(reference_model(exported(engine)), batch, 0.8)
@@ -152,7 +152,7 @@ def test_responses_only_scoring_is_exact_where_it_is_read_and_skips_the_prompts(
 
     tokens = float(batch[RESPONSE_MASK].sum())
     full = FSDPTrainEngine(tiny_llama, config(micro_batch_size=2, score_prompts=True))
-    part = FSDPTrainEngine(tiny_llama, config(micro_batch_size=2))
+    part = FSDPTrainEngine(tiny_llama, config(micro_batch_size=2, share_prompt_prefix=False))
     assert_weights_close(exported(part), exported(full), atol=0)
     full.train_step(batch, global_token_loss(tokens))
     part.train_step(batch, global_token_loss(tokens))
@@ -340,7 +340,8 @@ def test_lora_trains_only_adapters_and_exports_merged_weights():
     # The merged plain model scores tokens exactly like the adapted engine.
     logprobs, _ = engine.compute_logprobs(batch)
     ref, _ = reference_logprobs(reference_model(merged), batch, 1.0)
-    torch.testing.assert_close(logprobs.double(), ref, atol=1e-5, rtol=0)
+    mask = batch[RESPONSE_MASK].bool()  # what the engine scores (prompt columns read 0)
+    torch.testing.assert_close(logprobs.double()[mask], ref[mask], atol=1e-5, rtol=0)
 
 
 # ----------------------------------------------------------------------------- checkpoints
