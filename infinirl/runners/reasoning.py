@@ -120,16 +120,17 @@ class ReasoningFlow:
         cfg = self.cfg
         start_step = self._maybe_resume(train_stream)
         self.logger = MetricsLogger(cfg.output_dir, cfg.loggers, to_plain(cfg), start_step=start_step)
+        accuracy = float("nan")  # the latest held-out accuracy, shown on the progress bar
         if start_step == 0:
-            self.logger.log({"eval/greedy_accuracy": self.evaluate(eval_problems)}, step=0)
+            accuracy = self.evaluate(eval_problems)
+            self.logger.log({"eval/greedy_accuracy": accuracy}, step=0)
         progress = tqdm(range(start_step, cfg.steps), initial=start_step, total=cfg.steps, desc="train", unit="step")
         for step in progress:
             metrics = self.step(step, train_stream)
             if (step + 1) % cfg.eval_every == 0 or step + 1 == cfg.steps:
-                metrics["eval/greedy_accuracy"] = self.evaluate(eval_problems)
+                accuracy = metrics["eval/greedy_accuracy"] = self.evaluate(eval_problems)
             self.logger.log(metrics, step=step + 1)
-            progress.set_postfix(reward=f"{metrics['rollout/reward_mean']:.2f}",
-                                 acc=f"{metrics.get('eval/greedy_accuracy', float('nan')):.2f}")
+            progress.set_postfix(reward=f"{metrics['rollout/reward_mean']:.2f}", acc=f"{accuracy:.2f}")
             if (cfg.save_every and (step + 1) % cfg.save_every == 0) or step + 1 == cfg.steps:
                 self.save(step + 1, train_stream)
         return self.finish()
