@@ -150,6 +150,13 @@ class StagedEnv:
             messages.append(_first_message(obs, n, self.spec.chunk_size))
         return messages
 
+    @property
+    def simulates_in_background(self) -> bool:
+        """True when ``step_async`` returns while the simulators run (sub-envs in worker
+        processes); False when the sub-envs run in this process, inside ``step_wait``."""
+        env = self.envs[0]
+        return hasattr(env, "step_async") and getattr(env, "num_workers", 0) > 0
+
     def step_async(self, stage: int, actions: np.ndarray) -> None:
         env = self.envs[stage]
         if hasattr(env, "step_async"):  # a VectorEnv: the simulators run while we return
@@ -240,12 +247,15 @@ class EnvWorker(Worker):
     def serve(self, seeds: list[int], num_steps: int) -> dict:
         """One iteration: reset, then ``num_steps`` rounds of (actions in, step out) per stage.
 
-        Stages are started as soon as their actions arrive and finished only when the rollout
-        needs their result: after starting stage ``s`` we finish stage ``s+1`` (started one
-        round earlier), whose result the rollout asks for next. So with simulator subprocesses
-        (``env.num_workers >= 1``) the stages simulate at the same time as each other, and with
-        any setting they simulate while the rollout decides for another stage. ``K = 1`` reduces
-        to step-then-reply.
+        With simulator subprocesses (``env.num_workers >= 1``) stages are started as soon as
+        their actions arrive and finished only when the rollout needs their result: after
+        starting stage ``s`` we finish stage ``s+1`` (started one round earlier), whose result
+        the rollout asks for next, so the stages simulate at the same time as each other and
+        while the rollout decides. With the sub-envs in this process (``env.num_workers=0``) a
+        stage is simulated as soon as its actions arrive and its result sent at once: while this
+        process simulates stage ``s`` the rollout decides for stage ``s-1``, and the actions for
+        stage ``s+1`` are already waiting when it is done, so the simulator never idles.
+        ``K = 1`` reduces to step-then-reply either way.
         """
         if self.link is None:
             raise RuntimeError("serve() before the link to the rollout was opened (open_link/accept_link)")
@@ -256,12 +266,18 @@ class EnvWorker(Worker):
         for message in self.env.reset(seeds):
             self.link.send(message)
         pending = [False] * stages
+        background = self.env.simulates_in_background
         for _ in range(num_steps):
             for stage in range(stages):
                 got_stage, actions = self.link.recv()
                 if got_stage != stage:
                     raise RuntimeError(f"env expected actions for stage {stage}, got stage {got_stage}")
                 start = time.perf_counter()
+                if not background:
+                    message = self.env.step(stage, actions)
+                    busy += time.perf_counter() - start
+                    self.link.send(message)
+                    continue
                 self.env.step_async(stage, actions)
                 pending[stage] = True
                 following = (stage + 1) % stages

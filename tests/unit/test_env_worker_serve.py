@@ -1,0 +1,74 @@
+"""EnvWorker.serve: what the rollout receives does not depend on how the env side schedules stages.
+
+With simulator subprocesses the env worker starts a stage and finishes the *next* one (so stages
+simulate at once); with the sub-envs in its own process it simulates each stage as soon as its
+actions arrive. Both must hand the rollout exactly the messages that stepping the stages one by one
+gives, in the order it reads them (stage 0, 1, ..., per round).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("gymnasium")
+
+from infinirl.components.env_worker import EnvSpec, EnvWorker, StagedEnv  # noqa: E402
+
+STAGES, ENVS, ROUNDS = 2, 4, 6
+
+
+class ScriptedLink:
+    """The rollout's side, scripted: hands out fixed actions per (round, stage), records messages."""
+
+    def __init__(self, actions):
+        self._actions = iter(actions)
+        self.sent = []
+
+    def recv(self):
+        return next(self._actions)
+
+    def send(self, message):
+        self.sent.append(message)
+
+
+def scripted_actions():
+    rng = np.random.default_rng(0)
+    return [(stage, rng.uniform(-2, 2, (ENVS // STAGES, 1)).astype(np.float32))
+            for _ in range(ROUNDS) for stage in range(STAGES)]
+
+
+def served(num_workers: int) -> tuple[list, bool]:
+    worker = object.__new__(EnvWorker)  # the serving logic only; no Ray actor needed
+    worker.env = StagedEnv(EnvSpec("gym:Pendulum-v1", ENVS, STAGES, num_workers=num_workers, max_episode_steps=4))
+    worker.link = ScriptedLink(scripted_actions())
+    try:
+        stats = worker.serve(seeds=list(range(ENVS)), num_steps=ROUNDS)
+        assert stats["env/simulate_s"] > 0
+        return worker.link.sent, worker.env.simulates_in_background
+    finally:
+        worker.env.close()
+
+
+def stepped_one_by_one() -> list:
+    env = StagedEnv(EnvSpec("gym:Pendulum-v1", ENVS, STAGES, num_workers=0, max_episode_steps=4))
+    try:
+        messages = env.reset(list(range(ENVS)))
+        messages += [env.step(stage, actions) for stage, actions in scripted_actions()]
+        return messages
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("num_workers", [0, 1])
+def test_serve_sends_what_stepping_stage_by_stage_gives(num_workers):
+    sent, background = served(num_workers)
+    assert background == (num_workers > 0)
+    expected = stepped_one_by_one()
+    assert len(sent) == len(expected) == STAGES * (ROUNDS + 1)
+    for got, want in zip(sent, expected):
+        np.testing.assert_array_equal(got["obs"]["state"], want["obs"]["state"])
+        for key in ("reward", "terminated", "truncated", "ended"):
+            if key in want:
+                np.testing.assert_array_equal(got[key], want[key])
+    assert any(len(m.get("ended", [])) for m in sent)  # episodes ended and auto-reset along the way
