@@ -6,10 +6,12 @@ for 64x64 RGB camera observations (CNN):
 
   (a) pipelined:      `infinirl train ppo_metaworld_reach` with the env and the rollout on disjoint
                       CPU slots (placement env=0 rollout=1 actor=0) and `rollout.pipeline_stages=2`:
-                      each stage's simulators run in their own subprocess (`env.num_workers=1`), so
-                      stage 0 simulates while stage 1 simulates and while the rollout decides.
-  (b) sequential:     the same placement and runner with `rollout.pipeline_stages=1` (one stage:
-                      simulate all envs, then decide, then simulate ...), `env.num_workers=1`.
+                      while the env worker simulates one stage the rollout decides for the other.
+                      State: the envs run in the env worker's process (`env.num_workers=0`, a step is
+                      cheaper than a message); RGB: each stage gets a simulator subprocess
+                      (`env.num_workers=1`), so the two stages also render at the same time.
+  (b) sequential:     the same placement, runner and `env.num_workers` with `rollout.pipeline_stages=1`
+                      (one stage: simulate all envs, then decide, then simulate ...).
   (c) single_process: a cleanRL-style loop in one Python process: gymnasium `AsyncVectorEnv` with
                       one subprocess per env (cleanRL's default for these runs), the same policy,
                       GAE and `ppo_update` called in-process. Same work, no components.
