@@ -476,7 +476,7 @@ class FSDPTrainEngine:
             response_mask = micro_batch.get(RESPONSE_MASK, None)
             packed = pack_by_prompt(input_ids, attention_mask, position_ids,
                                     None if response_mask is None else response_mask[:, :width],
-                                    mask_dtype=self.compute_dtype)
+                                    mask_dtype=self.compute_dtype, max_packed_tokens=self.cfg.max_packed_tokens)
             logprobs, entropy = packed_logprobs(self.model, packed, (input_ids.shape[0], full_width),
                                                 self.cfg.temperature, self.cfg.logprob_chunk_tokens, with_entropy)
             return logprobs, entropy

@@ -56,6 +56,7 @@ def pack_by_prompt(
     position_ids: torch.Tensor | None,
     response_mask: torch.Tensor | None,
     mask_dtype: torch.dtype = torch.float32,
+    max_packed_tokens: int = 2048,
 ) -> PackedBatch:
     """Pack ``[B, L]`` rows (aligned layout, :mod:`infinirl.data.batch`) by shared prompt.
 
@@ -64,7 +65,9 @@ def pack_by_prompt(
     column is its suffix, scored where attended.
     Rows share a prompt when prompt ids, mask and positions are all equal. Without a
     ``response_mask`` every row's suffix starts at column 1. Missing ``position_ids`` mean
-    ``0..L-1``, as HF assumes.
+    ``0..L-1``, as HF assumes. A packed row grows to at most ``max_packed_tokens`` (or one
+    prompt plus one suffix, if longer): the mask is dense, so attention costs the square of a
+    packed row's length, and past a point a second copy of the prompt is cheaper.
     """
     batch, width = input_ids.shape
     device = input_ids.device
@@ -87,7 +90,7 @@ def pack_by_prompt(
 
     packed_ids, packed_pos, packed_valid, packed_segment = [], [], [], []
     predictor, target, row, column = [], [], [], []
-    for members in groups.values():
+    for members in _split_long(groups.values(), starts, ends, max_packed_tokens):
         lead, s = members[0], int(starts[members[0]])
         seq_ids, seq_pos, seq_valid, seq_seg = [ids[lead, :s]], [pos[lead, :s]], [attn[lead, :s]], [torch.zeros(s, dtype=torch.long)]
         length = s
@@ -140,6 +143,21 @@ def pack_by_prompt(
         row=cat(row).to(device),
         column=cat(column).to(device),
     )
+
+
+def _split_long(groups, starts: torch.Tensor, ends: torch.Tensor, max_tokens: int):
+    """Each group's rows, cut into runs whose prompt plus suffixes fit ``max_tokens`` (>= 1 row each)."""
+    for members in groups:
+        prompt = int(starts[members[0]])
+        run, length = [], prompt
+        for b in members:
+            suffix = max(0, int(ends[b]) - prompt)
+            if run and length + suffix > max_tokens:
+                yield run
+                run, length = [], prompt
+            run.append(b)
+            length += suffix
+        yield run
 
 
 def packed_logprobs(

@@ -96,6 +96,10 @@ class TrainEngineConfig:
     :mod:`infinirl.engines.shared_prefix`). Prompt columns read 0. Off with ``score_prompts`` or
     ``activation_checkpointing``, and automatically for sliding-window models; turn it off for a
     model whose attention does not take a prepared 4-D mask the HF way."""
+    max_packed_tokens: int = 2048
+    """Longest packed row (``share_prompt_prefix``). The packed mask is dense, so attention costs
+    the square of a row's length: a group whose prompt plus responses exceed this is packed into
+    several rows (each with its own copy of the prompt)."""
     logprob_chunk_tokens: int = 1024
     """Tokens per chunk when turning logits into log-probs: the float32 ``[chunk, vocab]`` block
     is the only full-vocab float32 tensor alive (a 150k vocab at 1024 tokens is ~600 MB)."""
@@ -124,6 +128,8 @@ class TrainEngineConfig:
             )
         if self.temperature <= 0:
             raise ValueError(f"TrainEngineConfig.temperature must be > 0, got {self.temperature}")
+        if self.max_packed_tokens < 1:
+            raise ValueError(f"TrainEngineConfig.max_packed_tokens must be >= 1, got {self.max_packed_tokens}")
         if self.logprob_chunk_tokens < 1:
             raise ValueError("TrainEngineConfig.logprob_chunk_tokens must be >= 1")
         if self.lr_schedule not in ("constant", "cosine"):

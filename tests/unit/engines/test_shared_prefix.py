@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import pytest
 import torch
-import torch.distributed as dist
 from transformers import LlamaConfig
 
 from infinirl.data.batch import RESPONSE_MASK, pack_sequences
-from infinirl.engines.fsdp import FSDPTrainEngine, init_distributed
+from infinirl.engines.fsdp import FSDPTrainEngine
 from infinirl.engines.shared_prefix import pack_by_prompt, supports_packed_masks
 from tests.unit.engines.test_fsdp import (
     VOCAB,
@@ -21,19 +20,11 @@ from tests.unit.engines.test_fsdp import (
     config,
     exported,
     global_token_loss,
+    one_rank_group,  # noqa: F401  (module-scoped autouse fixture: a one-rank gloo group)
     reference_logprobs,
     reference_model,
     tiny_llama,
 )
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_rank_group():
-    torch.set_num_threads(1)
-    created = init_distributed()
-    yield
-    if created:
-        dist.destroy_process_group()
 
 
 def grouped_batch(seed: int, groups: int = 3, group_size: int = 4):
@@ -63,10 +54,22 @@ def test_rows_sharing_a_prompt_become_one_packed_row_without_padding():
     torch.testing.assert_close(packed.target, batch["input_ids"][packed.row, packed.column])
 
 
-@pytest.mark.parametrize("temperature", [1.0, 0.7])
-def test_packed_scoring_equals_the_float64_row_by_row_reference(temperature):
+def test_long_groups_are_cut_into_several_packed_rows():
+    batch = grouped_batch(seed=0)
+    ids, mask, responses = batch["input_ids"], batch["attention_mask"], batch[RESPONSE_MASK]
+    whole = pack_by_prompt(ids, mask, None, responses)
+    cut = pack_by_prompt(ids, mask, None, responses, max_packed_tokens=12)
+    assert cut.input_ids.shape[0] > whole.input_ids.shape[0]
+    assert cut.input_ids.shape[1] <= max(12, int((batch["prompt_lengths"] + batch["response_lengths"]).max()))
+    for field in ("target", "row", "column"):  # the same tokens scored, just in more rows
+        torch.testing.assert_close(getattr(cut, field), getattr(whole, field))
+
+
+@pytest.mark.parametrize(("temperature", "max_packed_tokens"), [(1.0, 2048), (0.7, 2048), (1.0, 12)])
+def test_packed_scoring_equals_the_float64_row_by_row_reference(temperature, max_packed_tokens):
     batch = grouped_batch(seed=1)
-    engine = FSDPTrainEngine(tiny_llama, config(micro_batch_size=16, temperature=temperature))
+    engine = FSDPTrainEngine(tiny_llama, config(micro_batch_size=16, temperature=temperature,
+                                                max_packed_tokens=max_packed_tokens))
     assert engine._shares_prompt_prefix
     logprobs, entropy = engine.compute_logprobs(batch, with_entropy=True)
     ref_lp, ref_ent = reference_logprobs(reference_model(exported(engine)), batch, temperature)
