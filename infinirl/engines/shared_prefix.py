@@ -195,7 +195,11 @@ def packed_logprobs(
 
 def supports_packed_masks(config) -> bool:
     """False for models with sliding-window layers, whose attention builds its own windowed mask
-    (a prepared 4-D mask would silently drop the window)."""
+    (a prepared 4-D mask would silently drop the window), and for attention kernels that take no
+    dense mask (flash-attention, flex): only ``sdpa`` and ``eager`` apply it as given."""
+    kernel = getattr(config, "_attn_implementation", None)
+    if kernel not in (None, "sdpa", "eager"):
+        return False
     layer_types = getattr(config, "layer_types", None) or []
     if any("sliding" in str(kind) for kind in layer_types):
         return False

@@ -122,6 +122,11 @@ def test_sliding_window_models_are_not_packed():
     assert not supports_packed_masks(Windowed())
     assert supports_packed_masks(WindowOff())
 
+    class Flash:
+        _attn_implementation = "flash_attention_2"
+
+    assert not supports_packed_masks(Flash())
+
 
 @pytest.mark.parametrize("overrides", [{"score_prompts": True}, {"activation_checkpointing": True},
                                        {"share_prompt_prefix": False}])
