@@ -78,6 +78,28 @@ def test_camera_frames_are_upright():
         np.testing.assert_array_equal(env.render()[0], frame)
 
 
+def test_fast_render_changes_visual_settings_only():
+    """fast_render: no shadows, reflections or multisampling (the costly software-GL passes); the
+    physics, hence every state observation, is the same as with the model's own visuals."""
+    from infinirl.envs.metaworld_env import MetaWorldSubEnv
+
+    fast = MetaWorldSubEnv("reach-v3", obs_mode="state+rgb", image_size=32)
+    plain = MetaWorldSubEnv("reach-v3", obs_mode="state+rgb", image_size=32, fast_render=False)
+    try:
+        visuals = fast._sim.model.vis.quality
+        assert visuals.offsamples == 0 and plain._sim.model.vis.quality.offsamples > 0
+        assert not fast._sim.model.light_castshadow.any() and plain._sim.model.light_castshadow.any()
+        first_fast, first_plain = fast.reset(seed=5), plain.reset(seed=5)
+        np.testing.assert_array_equal(first_fast["state"], first_plain["state"])
+        action = np.array([0.5, -0.3, 0.2, 0.0], np.float32)
+        for _ in range(5):
+            np.testing.assert_array_equal(fast.step(action).obs["state"], plain.step(action).obs["state"])
+        assert fast.render().shape == plain.render().shape == (32, 32, 3)
+    finally:
+        fast.close()
+        plain.close()
+
+
 def _table_row(frame: np.ndarray) -> float:
     r, g, b = (frame[..., c].astype(int) for c in range(3))
     wood = (r - b > 35) & (g - b > 15) & (r - g < 70)  # brown: red > green > blue, not saturated
