@@ -80,16 +80,20 @@ class _LocalEndpoint:
 
 
 class _RemoteEndpoint:
-    """An :class:`EnvWorker` rank over the link; it serves the stages in the order we use them."""
+    """An :class:`EnvWorker` rank over its link(s): one link it serves every stage over, in the order
+    we use them, or one link per stage (stage processes, each streaming its own stage)."""
 
-    def __init__(self, link, num_stages: int):
-        self.link, self.num_stages = link, num_stages
+    def __init__(self, links: list, num_stages: int):
+        if len(links) not in (1, num_stages):
+            raise ValueError(f"{len(links)} env links for {num_stages} stages: expected 1 or one per stage")
+        self.links, self.num_stages = links, num_stages
+        self._per_stage = len(links) > 1
 
     def recv(self, stage: int) -> dict:
-        return self.link.recv()
+        return self.links[stage if self._per_stage else 0].recv()
 
     def send(self, stage: int, actions: np.ndarray) -> None:
-        self.link.send((stage, actions))
+        self.links[stage if self._per_stage else 0].send((stage, actions))
 
 
 class _StageBuffer:
@@ -143,14 +147,15 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         self.observation_spec, self.action_space = observation_spec, action_space
         self.policy = policy_spec.build(observation_spec, action_space).eval()
         self.env = StagedEnv(env_spec, self.rank) if host_env else None
-        self.link = None
+        self.links: list = []
         self._eval_env = None
 
     # ---------------------------------------------------------------- wiring
     def connect_link(self, address: dict) -> None:
+        """Connect to this rank's env: one address, or ``{"stages": [...]}`` (a link per stage process)."""
         from infinirl.components.env_link import connect
 
-        self.link = connect(address)
+        self.links = [connect(a) for a in address["stages"]] if "stages" in address else [connect(address)]
 
     def load_weights(self, named_tensors, version: int) -> None:
         own = self.policy.state_dict()
@@ -168,9 +173,18 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         if self.env is not None:
             endpoint = _LocalEndpoint(self.env, seeds)
         else:
-            if self.link is None:
+            if not self.links:
                 raise RuntimeError("collect() with a remote env before connect_link()")
-            endpoint = _RemoteEndpoint(self.link, self.env_spec.stages)
+            endpoint = _RemoteEndpoint(self.links, self.env_spec.stages)
+        try:
+            return self._collect(endpoint, iteration, num_steps)
+        except BaseException:
+            # Close the links so the env side stops waiting for actions that will never come; it
+            # then fails with EnvLinkClosed, which the runner knows is not the root cause.
+            self._close_links()
+            raise
+
+    def _collect(self, endpoint, iteration: int, num_steps: int) -> dict:
         chunk = self.policy.chunk
         buffers = [_StageBuffer() for _ in range(endpoint.num_stages)]
         episodes = {"return": [], "length": [], "success": []}
@@ -282,8 +296,12 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         for env in (self.env, self._eval_env):
             if env is not None:
                 env.close()
-        if self.link is not None:
-            self.link.close()
+        self._close_links()
+
+    def _close_links(self) -> None:
+        for link in self.links:
+            link.close()
+        self.links = []
 
 
 def run_eval_episodes(policy, env, seeds: list[int], deterministic: bool = True) -> dict:

@@ -25,9 +25,16 @@ import secrets
 import tempfile
 from typing import Any
 
-__all__ = ["TRANSPORTS", "accept", "connect", "open_server"]
+from infinirl.runtime.errors import InfiniRLError
+
+__all__ = ["TRANSPORTS", "EnvLinkClosed", "accept", "connect", "open_server"]
 
 TRANSPORTS = ("socket", "channel")
+
+
+class EnvLinkClosed(InfiniRLError):
+    """The other end of the link closed it: a *symptom*. The side that closed it failed (or was
+    stopped) and reports its own error; the runner prefers that one as the root cause."""
 
 
 class _SocketLink:
@@ -35,10 +42,16 @@ class _SocketLink:
         self._conn = conn
 
     def send(self, obj: Any) -> None:
-        self._conn.send(obj)
+        try:
+            self._conn.send(obj)
+        except (BrokenPipeError, ConnectionError) as exc:
+            raise EnvLinkClosed(f"the env link's other end is gone ({exc!r})") from None
 
     def recv(self) -> Any:
-        return self._conn.recv()
+        try:
+            return self._conn.recv()
+        except (EOFError, ConnectionError) as exc:
+            raise EnvLinkClosed(f"the env link's other end closed it ({exc!r})") from None
 
     def close(self) -> None:
         self._conn.close()

@@ -29,7 +29,7 @@ import numpy as np
 
 from infinirl.runtime import Worker
 
-__all__ = ["EVAL_SEED_BASE", "EnvSpec", "EnvWorker", "StagedEnv", "iteration_seeds", "probe_env_specs"]
+__all__ = ["EVAL_SEED_BASE", "EnvSpec", "EnvWorker", "StagedEnv", "iteration_seeds", "probe_env_specs", "serve_stages"]
 
 EVAL_SEED_BASE = 2**31
 """First held-out evaluation seed; training seeds (iteration resets and auto-resets) are below it."""
@@ -43,7 +43,8 @@ class EnvSpec:
 
     ``num_envs`` is this rank's total, split over ``stages`` (equal sizes, the remainder to the
     first stages). ``num_workers`` is the number of simulator subprocesses *per stage* (0: the
-    sub-envs run in the owning process).
+    sub-envs run in the owning process). ``stage_processes``: an :class:`EnvWorker` runs each stage
+    in a process of its own that streams straight to the rollout (see :mod:`.env_stages`).
     """
 
     name: str
@@ -54,6 +55,7 @@ class EnvSpec:
     chunk_size: int = 1
     seed: int = 0
     kwargs: dict = field(default_factory=dict)
+    stage_processes: bool = False
 
     def stage_sizes(self) -> list[int]:
         base, extra = divmod(self.num_envs, self.stages)
@@ -119,15 +121,22 @@ StageStep = dict[str, Any]
 
 
 class StagedEnv:
-    """A rank's envs as ``spec.stages`` vectorised envs; ``step_async``/``step_wait`` per stage."""
+    """A rank's envs as ``spec.stages`` vectorised envs; ``step_async``/``step_wait`` per stage.
 
-    def __init__(self, spec: EnvSpec, rank: int = 0):
+    ``stages`` picks a subset of the rank's stages (a stage process holds one): the envs built are
+    exactly those the whole rank would build for them, so where a stage runs never changes what it
+    simulates. ``stage_ids`` are the rank-wide indices of the stages held, in order.
+    """
+
+    def __init__(self, spec: EnvSpec, rank: int = 0, stages: list[int] | None = None):
         self.spec = spec
-        self.sizes = spec.stage_sizes()
-        if min(self.sizes) < 1:
+        sizes = spec.stage_sizes()
+        if min(sizes) < 1:
             raise ValueError(f"{spec.num_envs} envs cannot fill {spec.stages} pipeline stages")
+        self.stage_ids = list(range(spec.stages)) if stages is None else [int(s) for s in stages]
+        self.sizes = [sizes[s] for s in self.stage_ids]
         seeded = EnvSpec(**{**spec.__dict__, "seed": _mix(spec.seed, 1000 + rank)})
-        self.envs = [seeded.build(n, stage=s) for s, n in enumerate(self.sizes)]
+        self.envs = [seeded.build(sizes[s], stage=s) for s in self.stage_ids]
         self.num_stages = len(self.envs)
         self._pending: list[bool] = [False] * self.num_stages
 
@@ -141,8 +150,8 @@ class StagedEnv:
 
     def reset(self, seeds: list[int]) -> list[StageStep]:
         """Reset every env with its seed; the first message of each stage (no reward yet)."""
-        if len(seeds) != self.spec.num_envs:
-            raise ValueError(f"expected {self.spec.num_envs} seeds (one per env of this rank), got {len(seeds)}")
+        if len(seeds) != sum(self.sizes):
+            raise ValueError(f"expected {sum(self.sizes)} seeds (one per env of these stages), got {len(seeds)}")
         messages, start = [], 0
         for env, n in zip(self.envs, self.sizes):
             obs = env.reset(seeds=[int(s) for s in seeds[start:start + n]])
@@ -217,89 +226,134 @@ def _step_message(result, chunk: int) -> StageStep:
 
 
 class EnvWorker(Worker):
-    """The env component in its own process: a :class:`StagedEnv` served to one rollout rank.
+    """The env component in its own process: a rank's stages served to one rollout rank.
 
     Rank ``r`` pairs with rollout rank ``r`` through a link (``open_link`` + ``accept_link`` here,
     ``connect_link`` on the rollout). Per iteration the runner calls :meth:`serve`, which resets
     the envs with the given seeds and then answers each stage's actions with its next step, in the
     order the rollout sends them; simulation of one stage overlaps the rollout's inference for
     another because the two run in different processes.
+
+    Where the stages run: in this process (a :class:`StagedEnv`, one link) or, with
+    ``spec.stage_processes``, each in a process of its own with its own link to the rollout
+    (:class:`~infinirl.components.env_stages.StageProcess`), so stages also simulate at the same
+    time as each other and no message is relayed through this process.
     """
 
     def __init__(self, spec: EnvSpec, num_threads: int = 1):
         _limit_threads(num_threads)
-        self.env = StagedEnv(spec, self.rank)
+        self.spec = spec
         self.link = None
+        if spec.stage_processes:
+            from infinirl.components.env_stages import StageProcess
+
+            self.env = None
+            self.stage_processes = [StageProcess(spec, self.rank, stage) for stage in range(spec.stages)]
+            try:
+                for stage in self.stage_processes:  # they build in parallel; a bad option fails here
+                    stage.wait_ready()
+            except BaseException:
+                for stage in self.stage_processes:
+                    stage.close()
+                raise
+        else:
+            self.env = StagedEnv(spec, self.rank)
+            self.stage_processes = []
 
     def open_link(self, transport: str, channel_names: tuple[str, str] | None = None,
                   family: str | None = None) -> Any:
-        """Start listening for this rank's rollout; returns the address to connect to."""
+        """Start listening for this rank's rollout; returns the address to connect to (with stage
+        processes: ``{"stages": [address of each stage]}``)."""
+        if self.stage_processes:
+            if transport != "socket":
+                raise ValueError(f"env stage processes stream over sockets; rollout.transport={transport!r} "
+                                 "needs env.stage_processes=false")
+            return {"stages": [stage.open_link(family) for stage in self.stage_processes]}
         from infinirl.components.env_link import open_server
 
         self._server, address = open_server(transport, channel_names, family=family)
         return address
 
     def accept_link(self) -> None:
+        if self.stage_processes:
+            for stage in self.stage_processes:
+                stage.accept_link()
+            for stage in self.stage_processes:
+                stage.wait_accepted()
+            return
         from infinirl.components.env_link import accept
 
         self.link = accept(self._server)
 
     def serve(self, seeds: list[int], num_steps: int) -> dict:
-        """One iteration: reset, then ``num_steps`` rounds of (actions in, step out) per stage.
+        """One iteration: reset, then ``num_steps`` rounds of (actions in, step out) per stage;
+        see :func:`serve_stages`. With stage processes each serves its own stage and seeds."""
+        if self.stage_processes:
+            from infinirl.components.env_stages import serve_in_stage_processes
 
-        With simulator subprocesses (``env.num_workers >= 1``) stages are started as soon as
-        their actions arrive and finished only when the rollout needs their result: after
-        starting stage ``s`` we finish stage ``s+1`` (started one round earlier), whose result
-        the rollout asks for next, so the stages simulate at the same time as each other and
-        while the rollout decides. With the sub-envs in this process (``env.num_workers=0``) a
-        stage is simulated as soon as its actions arrive and its result sent at once: while this
-        process simulates stage ``s`` the rollout decides for stage ``s-1``, and the actions for
-        stage ``s+1`` are already waiting when it is done, so the simulator never idles.
-        ``K = 1`` reduces to step-then-reply either way.
-        """
+            return serve_in_stage_processes(self.stage_processes, self.spec.stage_sizes(), seeds, num_steps)
         if self.link is None:
             raise RuntimeError("serve() before the link to the rollout was opened (open_link/accept_link)")
-        import time
-
-        stages = self.env.num_stages
-        busy = 0.0
-        for message in self.env.reset(seeds):
-            self.link.send(message)
-        pending = [False] * stages
-        background = self.env.simulates_in_background
-        for _ in range(num_steps):
-            for stage in range(stages):
-                got_stage, actions = self.link.recv()
-                if got_stage != stage:
-                    raise RuntimeError(f"env expected actions for stage {stage}, got stage {got_stage}")
-                start = time.perf_counter()
-                if not background:
-                    message = self.env.step(stage, actions)
-                    busy += time.perf_counter() - start
-                    self.link.send(message)
-                    continue
-                self.env.step_async(stage, actions)
-                pending[stage] = True
-                following = (stage + 1) % stages
-                if pending[following]:
-                    message = self.env.step_wait(following)
-                    pending[following] = False
-                    busy += time.perf_counter() - start
-                    self.link.send(message)
-                else:
-                    busy += time.perf_counter() - start
-        for stage in range(stages):  # the last round's results, in the order the rollout reads them
-            if pending[stage]:
-                start = time.perf_counter()
-                message = self.env.step_wait(stage)
-                busy += time.perf_counter() - start
-                self.link.send(message)
-        return {"env/simulate_s": busy}
+        return serve_stages(self.env, self.link, seeds, num_steps)
 
     def close(self) -> None:
+        for stage in self.stage_processes:
+            stage.close()
         if self.link is not None:
             self.link.close()
-        self.env.close()
+        if self.env is not None:
+            self.env.close()
+
+
+def serve_stages(env: StagedEnv, link, seeds: list[int], num_steps: int) -> dict:
+    """Serve one iteration of ``env``'s stages over ``link``: reset, then ``num_steps`` rounds of
+    (actions in, step out) per stage, in the order the rollout uses them.
+
+    With simulator subprocesses (``env.num_workers >= 1``) stages are started as soon as their
+    actions arrive and finished only when the rollout needs their result: after starting stage
+    ``s`` we finish stage ``s+1`` (started one round earlier), whose result the rollout asks for
+    next, so the stages simulate at the same time as each other and while the rollout decides.
+    With the sub-envs in this process (``env.num_workers=0``) a stage is simulated as soon as its
+    actions arrive and its result sent at once: while this process simulates stage ``s`` the
+    rollout decides for stage ``s-1``, and the actions for stage ``s+1`` are already waiting when
+    it is done, so the simulator never idles. ``K = 1`` reduces to step-then-reply either way.
+    """
+    import time
+
+    stages = env.num_stages
+    busy = 0.0
+    for message in env.reset(seeds):
+        link.send(message)
+    pending = [False] * stages
+    background = env.simulates_in_background
+    for _ in range(num_steps):
+        for stage in range(stages):
+            got_stage, actions = link.recv()
+            if got_stage != env.stage_ids[stage]:
+                raise RuntimeError(f"env expected actions for stage {env.stage_ids[stage]}, got stage {got_stage}")
+            start = time.perf_counter()
+            if not background:
+                message = env.step(stage, actions)
+                busy += time.perf_counter() - start
+                link.send(message)
+                continue
+            env.step_async(stage, actions)
+            pending[stage] = True
+            following = (stage + 1) % stages
+            if pending[following]:
+                message = env.step_wait(following)
+                pending[following] = False
+                busy += time.perf_counter() - start
+                link.send(message)
+            else:
+                busy += time.perf_counter() - start
+    for stage in range(stages):  # the last round's results, in the order the rollout reads them
+        if pending[stage]:
+            start = time.perf_counter()
+            message = env.step_wait(stage)
+            busy += time.perf_counter() - start
+            link.send(message)
+    return {"env/simulate_s": busy}
 
 
 def _limit_threads(num_threads: int) -> None:

@@ -62,7 +62,10 @@ def run(cfg: EmbodiedConfig) -> dict:
         plan = place(cluster.inventory, cfg.placement, components=COMPONENTS)
         host_env, env_spec = _layout(cfg, plan)
         print(plan.describe(), flush=True)
-        print(f"env {'inside the rollout process (collocated)' if host_env else 'in its own process (streamed)'}, "
+        where = ("inside the rollout process (collocated)" if host_env else
+                 "in a process per pipeline stage (streamed)" if cfg.env.stage_processes else
+                 "in its own process (streamed)")
+        print(f"env {where}, "
               f"{cfg.rollout.pipeline_stages} pipeline stage(s) per env rank", flush=True)
         ppo = ppo_spec(cfg)
         launches = {
@@ -118,9 +121,44 @@ def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
     if cfg.env.num_envs % (env_ranks * stages):
         raise ConfigError(f"env.num_envs={cfg.env.num_envs} must be divisible by env ranks ({env_ranks}) x "
                           f"rollout.pipeline_stages ({stages})")
+    if host_env and cfg.env.stage_processes:
+        raise ConfigError("env.stage_processes=true needs the env on its own resources, but the placement "
+                          f"collocates it with the rollout (placement.env={cfg.placement['env']!r}, "
+                          f"placement.rollout={cfg.placement['rollout']!r}): place them on disjoint slots "
+                          "or set env.stage_processes=false")
     spec = EnvSpec(cfg.env.name, cfg.env.num_envs // env_ranks, stages, cfg.env.num_workers,
-                   cfg.env.max_episode_steps, cfg.policy.chunk, cfg.seed, dict(cfg.env.kwargs))
+                   cfg.env.max_episode_steps, cfg.policy.chunk, cfg.seed, dict(cfg.env.kwargs),
+                   stage_processes=cfg.env.stage_processes)
     return host_env, spec
+
+
+def _raise_env_root_cause(serving, rollout_error: BaseException, timeout_s: float = 60.0) -> None:
+    """When the rollout failed while the env served it, raise the env's error if it is the root cause.
+
+    A failing env closes its link, so the rollout fails too, with ``EnvLinkClosed``: a symptom. A
+    failing rollout closes its links, so the env fails with ``EnvLinkClosed``: also a symptom. The
+    error to show is the one that is not a closed link."""
+    if serving is None or not _is_link_closed(rollout_error):
+        return
+    try:
+        serving.wait(timeout=timeout_s)
+    except TimeoutError:
+        return
+    except BaseException as env_error:
+        if not _is_link_closed(env_error):
+            raise env_error from None
+
+
+def _is_link_closed(error: BaseException) -> bool:
+    """True for ``EnvLinkClosed``, raised here or on a worker (a WorkerError carrying its traceback)."""
+    from infinirl.components.env_link import EnvLinkClosed
+    from infinirl.runtime.errors import WorkerError
+
+    if isinstance(error, EnvLinkClosed):
+        return True
+    if isinstance(error, WorkerError):
+        return "EnvLinkClosed" in error.traceback_text.rstrip().splitlines()[-1]
+    return False
 
 
 class EmbodiedFlow:
@@ -210,7 +248,11 @@ class EmbodiedFlow:
         per = cfg.env.num_envs // ranks
         shards = [seeds[r * per:(r + 1) * per] for r in range(ranks)]
         serving = self.env.call_each("serve", [(s, cfg.rollout_steps) for s in shards]) if self.env else None
-        parts = self.rollout.call_each("collect", [(iteration, s, cfg.rollout_steps) for s in shards]).wait()
+        try:
+            parts = self.rollout.call_each("collect", [(iteration, s, cfg.rollout_steps) for s in shards]).wait()
+        except BaseException as rollout_error:
+            _raise_env_root_cause(serving, rollout_error)
+            raise
         env_stats = serving.wait() if serving is not None else [{}]
         trajectory = _merge(parts)
         episodes = trajectory["episodes"]

@@ -27,6 +27,10 @@ class EnvConfig:
     num_workers: int = 0
     """Simulator subprocesses per pipeline stage of each env rank; 0 = the sub-envs run in the process
     that owns them (cheapest for fast simulators; >= 1 lets local simulation overlap inference)."""
+    stage_processes: bool = False
+    """With the env on its own resources: run each pipeline stage of an env rank in a process of its
+    own that streams straight to the rollout, so the stages simulate in parallel (one core each) and
+    no message is relayed through the env worker. Needs rollout.transport=socket."""
     max_episode_steps: int | None = None
     """Extra time limit (None: the simulator's own, 200 for MetaWorld)."""
     kwargs: dict[str, Any] = field(default_factory=dict)
@@ -230,6 +234,10 @@ class EmbodiedConfig:
                 raise ConfigError(f"algorithm.group_size={size} does not divide env.num_envs={envs}: envs run in "
                                   f"groups of algorithm.group_size sharing a reset seed; pick a divisor of "
                                   f"env.num_envs or set env.num_envs to a multiple of {size}")
+        if self.env.stage_processes and self.rollout.transport != "socket":
+            raise ConfigError(f"env.stage_processes=true streams each stage over its own socket; "
+                              f"rollout.transport={self.rollout.transport} is not supported with it: set "
+                              "rollout.transport=socket or env.stage_processes=false")
         batch = self.env.num_envs * self.rollout_steps
         if batch % self.algorithm.mini_batches:
             raise ConfigError(f"algorithm.mini_batches={self.algorithm.mini_batches} does not divide the batch of "

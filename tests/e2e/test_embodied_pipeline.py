@@ -83,6 +83,27 @@ def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
     assert rows[1]["train/logprob_mismatch"] < 1e-5
 
 
+def test_stage_processes_change_where_stages_run_not_what_is_learned(ray_cluster, tmp_path):
+    """env.stage_processes: each stage in a process of its own, streaming to the rollout; the same
+    envs, seeds and actions as the env worker simulating both stages itself, so the same weights."""
+    placement, stages = PLACEMENTS["pipelined"]
+    env = {"name": "gym:Pendulum-v1", "num_envs": 4}
+    plain = run(make_cfg(tmp_path / "plain", 2, placement, stages, env=env))
+    staged = run(make_cfg(tmp_path / "staged", 2, placement, stages, env={**env, "stage_processes": True}))
+    assert staged["actor_weights_sha256"] == plain["actor_weights_sha256"]
+    rows = [json.loads(line) for line in (tmp_path / "staged" / "metrics.jsonl").read_text().splitlines()]
+    assert rows[1]["env/simulate_max_stage_s"] > 0
+
+
+def test_stage_processes_need_the_env_on_its_own_resources(ray_cluster, tmp_path):
+    env = {"name": "gym:Pendulum-v1", "num_envs": 4, "stage_processes": True}
+    cfg = make_cfg(tmp_path, 1, PLACEMENTS["collocated"][0], 1, env=env)
+    with pytest.raises(ConfigError, match="env.stage_processes=true needs the env on its own resources"):
+        run(cfg)
+    with pytest.raises(ConfigError, match="rollout.transport=channel is not supported with it"):
+        make_cfg(tmp_path, 1, PLACEMENTS["pipelined"][0], 2, env=env, rollout={"pipeline_stages": 2, "transport": "channel"})
+
+
 def test_bad_names_fail_before_workers_start():
     with pytest.raises(ConfigError, match="unknown env family 'gymm'.*registered: .*gym.*metaworld"):
         make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 1, env={"name": "gymm:Pendulum-v1", "num_envs": 4})

@@ -1,4 +1,4 @@
-"""EnvWorker.serve: what the rollout receives does not depend on how the env side schedules stages.
+"""EnvWorker.serve (``serve_stages``): what the rollout receives does not depend on how the env side schedules stages.
 
 With simulator subprocesses the env worker starts a stage and finishes the *next* one (so stages
 simulate at once); with the sub-envs in its own process it simulates each stage as soon as its
@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("gymnasium")
 
-from infinirl.components.env_worker import EnvSpec, EnvWorker, StagedEnv  # noqa: E402
+from infinirl.components.env_worker import EnvSpec, StagedEnv, serve_stages  # noqa: E402
 
 STAGES, ENVS, ROUNDS = 2, 4, 6
 
@@ -39,15 +39,14 @@ def scripted_actions():
 
 
 def served(num_workers: int) -> tuple[list, bool]:
-    worker = object.__new__(EnvWorker)  # the serving logic only; no Ray actor needed
-    worker.env = StagedEnv(EnvSpec("gym:Pendulum-v1", ENVS, STAGES, num_workers=num_workers, max_episode_steps=4))
-    worker.link = ScriptedLink(scripted_actions())
+    env = StagedEnv(EnvSpec("gym:Pendulum-v1", ENVS, STAGES, num_workers=num_workers, max_episode_steps=4))
+    link = ScriptedLink(scripted_actions())
     try:
-        stats = worker.serve(seeds=list(range(ENVS)), num_steps=ROUNDS)
+        stats = serve_stages(env, link, seeds=list(range(ENVS)), num_steps=ROUNDS)
         assert stats["env/simulate_s"] > 0
-        return worker.link.sent, worker.env.simulates_in_background
+        return link.sent, env.simulates_in_background
     finally:
-        worker.env.close()
+        env.close()
 
 
 def stepped_one_by_one() -> list:
