@@ -210,17 +210,25 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     mask_all = batch["step_mask"].to(torch.float32)
     keep_all = (batch["advantage_mask"].to(torch.float32) if "advantage_mask" in batch
                 else torch.ones(batch["advantages"].shape, dtype=torch.float32))
-    sums: dict[str, float] = {}
+    params = [p for p in model.parameters() if p.requires_grad]
+    step_metrics: dict[str, list[torch.Tensor]] = {}
     steps = 0
     mismatch = None
+    columns = {"obs": batch["obs"], "actions": batch["actions"], "logprobs": batch["logprobs"],
+               "values": batch["values"], "returns": batch["returns"],
+               "advantages": batch["advantages"].to(torch.float32), "keep": keep_all, "step_mask": mask_all}
+    if "extras" in batch:
+        columns["extras"] = batch["extras"]
     for _ in range(ppo.epochs):
         order = torch.randperm(size, generator=generator)
+        # One gather per epoch; each mini-batch is then a slice (a view), not a gather per tensor.
+        shuffled = _rows(columns, order)
         for m in range(ppo.mini_batches):
-            mini = order[m * per_mini:(m + 1) * per_mini]
-            adv = batch["advantages"][mini].to(torch.float32)
-            keep = keep_all[mini]  # [m] chunk level, [m, C] action level
+            rows = slice(m * per_mini, (m + 1) * per_mini)
+            adv = shuffled["advantages"][rows]
+            keep = shuffled["keep"][rows]  # [m] chunk level, [m, C] action level
             # mask: executed actions to train on [m, C]; weights: the policy-loss rows ([m] or [m, C])
-            mask = mask_all[mini] * keep if action_level else mask_all[mini] * keep[:, None]
+            mask = shuffled["step_mask"][rows] * keep if action_level else shuffled["step_mask"][rows] * keep[:, None]
             weights = mask if action_level else keep
             if ppo.normalize_advantages:  # statistics of the whole mini-batch (all ranks)
                 mean = (adv * weights).sum() / weights.sum().clamp(min=1)
@@ -229,28 +237,28 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
             n_pg = float(weights.sum())
             n_value = float(per_mini)
             n_entropy = float(mask.sum())
+            mine = slice(rows.start + rank * per_mini // world_size, rows.start + (rank + 1) * per_mini // world_size)
             share = slice(rank * per_mini // world_size, (rank + 1) * per_mini // world_size)
-            mine = mini[share]
             adv, mask, weights = adv[share], mask[share], weights[share]
-            logprobs, entropy, values = model(_rows(batch["obs"], mine), batch["actions"][mine],
-                                              _rows(batch["extras"], mine) if "extras" in batch else None,
+            logprobs, entropy, values = model(_rows(shuffled["obs"], mine), shuffled["actions"][mine],
+                                              _rows(shuffled["extras"], mine) if "extras" in shuffled else None,
                                               True)
-            old = batch["logprobs"][mine]
+            old = shuffled["logprobs"][mine]
             if mismatch is None:
                 mismatch = float(((logprobs.detach() - old).abs() * mask).sum() / mask.sum().clamp(min=1))
             if action_level:
                 pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=weights,
                                    clip_low=ppo.clip)
-                returns = batch["returns"][mine][:, 0]
+                returns = shuffled["returns"][mine][:, 0]
             else:
                 pg = ppo_clip_loss(logprobs=(logprobs * mask).sum(-1), old_logprobs=(old * mask).sum(-1),
                                    advantages=adv, response_mask=weights, clip_low=ppo.clip)
-                returns = batch["returns"][mine]
+                returns = shuffled["returns"][mine]
             loss = pg_loss = aggregate(pg.loss_mat, weights, "token-mean", n_pg)
             vl = None
             if ppo.critic:
                 ones = torch.ones_like(returns)
-                vl = value_loss(values=values, old_values=batch["values"][mine], returns=returns.to(values.dtype),
+                vl = value_loss(values=values, old_values=shuffled["values"][mine], returns=returns.to(values.dtype),
                                 response_mask=ones, clip_range=ppo.value_clip)
                 loss = pg_loss + ppo.value_coef * aggregate(vl.loss_mat, ones, "token-mean", n_value)
             ent = entropy_loss(mask, entropy=entropy) if entropy is not None else None
@@ -259,23 +267,21 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             all_reduce_grads()
-            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), ppo.max_grad_norm)
+            grad_norm = torch.nn.utils.clip_grad_norm_(params, ppo.max_grad_norm, foreach=True)
             if hasattr(grad_norm, "full_tensor"):
                 grad_norm = grad_norm.full_tensor()
             optimizer.step()
-            step_metrics = {
-                "train/policy_loss": pg_loss.item(),
-                "train/approx_kl": float(pg.metrics["approx_kl"]), "train/clip_fraction": float(pg.metrics["clip_fraction"]),
-                "train/grad_norm": float(grad_norm),
-            }
+            # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
+            current = {"train/policy_loss": pg_loss.detach(), "train/approx_kl": pg.metrics["approx_kl"],
+                       "train/clip_fraction": pg.metrics["clip_fraction"], "train/grad_norm": grad_norm.detach()}
             if vl is not None:
-                step_metrics["train/value_loss"] = float(vl.metrics["value_mse"]) / 2
+                current["train/value_loss"] = vl.metrics["value_mse"] / 2
             if ent is not None:
-                step_metrics["train/entropy"] = float(ent.metrics["entropy"])
-            for key, value in step_metrics.items():
-                sums[key] = sums.get(key, 0.0) + value
+                current["train/entropy"] = ent.metrics["entropy"]
+            for key, value in current.items():
+                step_metrics.setdefault(key, []).append(value.reshape(()).to(torch.float64))
             steps += 1
-    metrics = {key: value / steps for key, value in sums.items()}
+    metrics = {key: float(torch.stack(values).mean()) for key, values in step_metrics.items()}
     if ppo.critic:
         returns = batch["returns"][:, 0] if action_level else batch["returns"]
         variance = float(returns.var())
