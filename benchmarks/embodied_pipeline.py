@@ -52,18 +52,17 @@ NUM_ENVS, STEPS = 8, 200
 
 #: per observation mode: config overrides of `ppo_metaworld_reach` shared by every implementation
 OBS_MODES = {
-    # A state step costs ~0.4 ms of simulation, no more than a message between processes: the
-    # envs of each stage run inside the env worker's own process (no simulator subprocess).
-    "state": {"env.num_workers": 0},
-    # A camera frame costs ~17 ms: each stage's envs get a simulator subprocess, so the two stages
-    # render at the same time.
+    "state": {},
     "rgb": {"env.kwargs": {"obs_mode": "state+rgb", "image_size": 64}, "policy.name": "cnn_gaussian",
-            "policy.kwargs": {}, "env.num_workers": 1},
+            "policy.kwargs": {}},
 }
+#: how (a) and (b) run the envs: each pipeline stage in a process of its own streaming straight to
+#: the rollout (stages simulate in parallel, one message hop per step), its sub-envs in that process
+STAGING = {"env.stage_processes": True, "env.num_workers": 0}
 PLACEMENT = {"placement.env": "0", "placement.rollout": "1", "placement.actor": "0"}
 IMPL_OVERRIDES = {"pipelined": {"rollout.pipeline_stages": 2}, "sequential": {"rollout.pipeline_stages": 1},
                   # opt-in row: the default placement of ppo_metaworld_reach (env inside the rollout process)
-                  "collocated": {"placement.env": "0", "placement.rollout": "0", "env.num_workers": 0,
+                  "collocated": {"placement.env": "0", "placement.rollout": "0", "env.stage_processes": False,
                                  "rollout.pipeline_stages": 1}}
 
 
@@ -88,7 +87,7 @@ def run_runner(impl: str, obs: str, iterations: int, warmup: int) -> dict:
         overrides = {"iterations": iterations, "env.num_envs": NUM_ENVS, "rollout_steps": STEPS, "output_dir": out,
                      "resume": False, "eval.every": 0, "eval.at_start": False, "eval.episodes": 1,
                      "eval.num_envs": 1, "eval.video_episodes": 0, "loggers": [],
-                     **PLACEMENT, **IMPL_OVERRIDES[impl], **OBS_MODES[obs]}
+                     **PLACEMENT, **STAGING, **OBS_MODES[obs], **IMPL_OVERRIDES[impl]}
         cmd = [sys.executable, "-c", "import sys; from infinirl.cli import main; sys.exit(main())", "train",
                "ppo_metaworld_reach", *_override_args(overrides)]
         proc = subprocess.run(cmd, capture_output=True, text=True)

@@ -42,15 +42,20 @@ def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def masked_max(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Max of ``values`` where ``mask`` is 1; 0 when nothing is valid."""
-    valid = as_weight(mask, values).bool()
-    return values[valid].max() if valid.any() else values.new_zeros(())
+    """Max of ``values`` where ``mask`` is 1; 0 when nothing is valid. Branch- and index-free (no
+    device sync, no ``nonzero``): masked-out entries become ``-inf`` before the reduction."""
+    return _masked_extreme(values, mask, torch.amax, float("-inf"))
 
 
 def masked_min(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Min of ``values`` where ``mask`` is 1; 0 when nothing is valid."""
-    valid = as_weight(mask, values).bool()
-    return values[valid].min() if valid.any() else values.new_zeros(())
+    """Min of ``values`` where ``mask`` is 1; 0 when nothing is valid (see :func:`masked_max`)."""
+    return _masked_extreme(values, mask, torch.amin, float("inf"))
+
+
+def _masked_extreme(values: torch.Tensor, mask: torch.Tensor, reduce, neutral: float) -> torch.Tensor:
+    valid = as_weight(mask, values) != 0
+    extreme = reduce(torch.where(valid, values, torch.full_like(values, neutral)))
+    return torch.where(valid.any(), extreme, torch.zeros_like(extreme))
 
 
 def masked_whiten(values: torch.Tensor, mask: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:

@@ -97,9 +97,14 @@ class NormalizedPolicy(nn.Module):
     def value(self, obs) -> torch.Tensor:
         return self.policy.value(self.normalize(obs))
 
-    def forward(self, obs, actions, extras=None, with_entropy: bool = True):
-        """``evaluate`` as a tuple ``(logprobs, entropy, values)``: the call FSDP2's hooks see."""
-        out = self.evaluate(obs, actions, extras=extras, with_entropy=with_entropy)
+    def forward(self, obs, actions, extras=None, with_entropy: bool = True, obs_normalized: bool = False):
+        """``evaluate`` as a tuple ``(logprobs, entropy, values)``: the call FSDP2's hooks see.
+        ``obs_normalized``: ``obs`` already went through :meth:`normalize` (the trainer normalises a
+        whole batch once, its statistics being fixed during an update)."""
+        if obs_normalized:
+            out = self.policy.evaluate(obs, actions, extras=extras, with_entropy=with_entropy)
+        else:
+            out = self.evaluate(obs, actions, extras=extras, with_entropy=with_entropy)
         return out.logprobs, out.entropy, out.values
 
     @torch.no_grad()

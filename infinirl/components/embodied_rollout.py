@@ -189,23 +189,30 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         buffers = [_StageBuffer() for _ in range(endpoint.num_stages)]
         episodes = {"return": [], "length": [], "success": []}
         restarted = 0
-        infer_s = wait_s = 0.0
+        infer_s = wait_s = record_s = 0.0
         for t in range(num_steps + 1):
             for stage, buf in enumerate(buffers):
                 start = time.perf_counter()
                 msg = endpoint.recv(stage)
                 wait_s += time.perf_counter() - start
                 start = time.perf_counter()
-                if t > 0:
-                    self._record_result(buf, msg, episodes)
-                    restarted += msg["restarted"]
                 obs = array_obs(msg["obs"])
                 tensors = prepare_obs(obs)
                 if t == num_steps:
+                    self._record_result(buf, msg, episodes)
+                    restarted += msg["restarted"]
                     buf.bootstrap = self._values(tensors, next(iter(obs.values())).shape[0])
                     infer_s += time.perf_counter() - start
                     continue
                 step = self.policy.act(tensors)
+                actions = env_actions(step.actions, chunk)
+                infer_s += time.perf_counter() - start
+                # The env waits for these actions: send first, record afterwards (off its critical path).
+                endpoint.send(stage, actions)
+                start = time.perf_counter()
+                if t > 0:
+                    self._record_result(buf, msg, episodes)
+                    restarted += msg["restarted"]
                 buf.obs.append(obs)
                 buf.actions.append(step.actions.numpy())
                 buf.logprobs.append(step.logprobs.numpy().astype(np.float32))
@@ -213,13 +220,11 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                 buf.values.append(np.zeros(n, np.float32) if step.values is None
                                   else step.values.numpy().astype(np.float32))
                 buf.extras.append({k: v.numpy() for k, v in step.extras.items()})
-                actions = env_actions(step.actions, chunk)
-                infer_s += time.perf_counter() - start
-                endpoint.send(stage, actions)
+                record_s += time.perf_counter() - start
         trajectory = _concat_stages([buf.stacked() for buf in buffers])
         trajectory["version"] = self.weight_version
         trajectory["episodes"] = {k: np.asarray(v) for k, v in episodes.items()}
-        trajectory["timing"] = {"rollout/inference_s": infer_s, "rollout/wait_env_s": wait_s}
+        trajectory["timing"] = {"rollout/inference_s": infer_s, "rollout/wait_env_s": wait_s, "rollout/record_s": record_s}
         trajectory["restarted"] = restarted
         return trajectory
 

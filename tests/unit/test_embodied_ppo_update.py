@@ -1,0 +1,88 @@
+"""The embodied PPO update (``ppo_update``) is split-invariant: two data-parallel ranks, each
+training on its share of every mini-batch and summing gradients, end with the weights one rank
+gets alone. Also: normalising a batch once gives what normalising every mini-batch gives."""
+
+import threading
+
+import pytest
+import torch
+
+pytest.importorskip("gymnasium")
+
+from infinirl.components.embodied_actor import PPOSpec, ppo_update  # noqa: E402
+from infinirl.components.embodied_rollout import PolicySpec  # noqa: E402
+from infinirl.components.env_worker import probe_env_specs  # noqa: E402
+
+B = 48
+
+
+def policy_and_batch():
+    observation_spec, action_space = probe_env_specs("gym:Pendulum-v1", {})
+    spec = PolicySpec("mlp_gaussian", {"hidden": [16, 16]})
+    gen = torch.Generator().manual_seed(1)
+    obs = {"state": 3.0 + 2.0 * torch.randn(B, 3, generator=gen)}  # far from N(0, 1): normalising matters
+
+    def build():
+        torch.manual_seed(0)
+        model = spec.build(observation_spec, action_space)
+        model.update_obs_stats({"state": obs["state"][:20]})  # statistics the rollout would have used
+        return model
+
+    model = build()
+    with torch.no_grad():
+        step = model.act(obs)
+    batch = {"obs": obs, "actions": step.actions, "logprobs": step.logprobs,
+             "step_mask": torch.ones(B, 1, dtype=torch.bool), "values": step.values,
+             "advantages": torch.randn(B, generator=gen), "returns": torch.randn(B, generator=gen)}
+    return build, batch
+
+
+PPO = PPOSpec(lr=1e-2, epochs=3, mini_batches=4, entropy_coef=0.01, value_clip=0.2, total_iterations=2)
+
+
+def flat(model) -> torch.Tensor:
+    return torch.cat([p.detach().reshape(-1) for p in model.parameters()])
+
+
+def test_two_ranks_end_with_the_weights_of_one():
+    build, batch = policy_and_batch()
+    single = build()
+    single_metrics = ppo_update(single, torch.optim.Adam(single.parameters(), lr=PPO.lr), batch, 0, PPO)
+
+    models = [build(), build()]
+    optimizers = [torch.optim.Adam(m.parameters(), lr=PPO.lr) for m in models]
+    barrier = threading.Barrier(2)
+    grads: list = [None, None]
+    results: list = [None, None]
+
+    def all_reduce(rank):  # SUM over the two ranks, as gloo/NCCL all_reduce does
+        grads[rank] = [p.grad.clone() for p in models[rank].parameters()]
+        barrier.wait()
+        for p, mine, other in zip(models[rank].parameters(), grads[rank], grads[1 - rank]):
+            p.grad.copy_(mine + other)
+        barrier.wait()
+
+    def train(rank):
+        results[rank] = ppo_update(models[rank], optimizers[rank], batch, 0, PPO, rank, 2, lambda: all_reduce(rank))
+
+    threads = [threading.Thread(target=train, args=(r,)) for r in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    assert results[0] is not None and results[1] is not None
+    torch.testing.assert_close(flat(models[0]), flat(single), rtol=0, atol=1e-6)
+    torch.testing.assert_close(flat(models[1]), flat(single), rtol=0, atol=1e-6)
+    assert not torch.equal(flat(single), flat(build()))  # the update moved the weights
+    assert single_metrics["train/optimizer_steps"] == PPO.epochs * PPO.mini_batches
+    for key in ("train/policy_loss", "train/value_loss", "train/entropy", "train/approx_kl", "train/grad_norm"):
+        assert key in single_metrics and single_metrics[key] == single_metrics[key]  # present, not NaN
+
+
+def test_a_batch_normalised_once_scores_like_raw_observations():
+    build, batch = policy_and_batch()
+    model = build()
+    raw = model(batch["obs"], batch["actions"], None, True)
+    once = model(model.normalize(batch["obs"]), batch["actions"], None, True, True)
+    for a, b in zip(raw, once):
+        assert torch.equal(a, b)
