@@ -5,13 +5,13 @@ policy, the same PPO update: 10 epochs x 32 mini-batches), for state observation
 for 64x64 RGB camera observations (CNN):
 
   (a) pipelined:      `infinirl train ppo_metaworld_reach` with the env and the rollout on disjoint
-                      CPU slots (placement env=0 rollout=1 actor=0) and `rollout.pipeline_stages=2`:
-                      while the env worker simulates one stage the rollout decides for the other.
-                      State: the envs run in the env worker's process (`env.num_workers=0`, a step is
-                      cheaper than a message); RGB: each stage gets a simulator subprocess
-                      (`env.num_workers=1`), so the two stages also render at the same time.
-  (b) sequential:     the same placement, runner and `env.num_workers` with `rollout.pipeline_stages=1`
-                      (one stage: simulate all envs, then decide, then simulate ...).
+                      CPU slots (placement env=0 rollout=1 actor=0), `rollout.pipeline_stages=2` and
+                      `env.stage_processes=true`: each stage simulates (and renders) in a process of
+                      its own that streams straight to the rollout, so the two stages simulate at
+                      the same time, on both cores, while the rollout decides for whichever stage
+                      is ready.
+  (b) sequential:     the same placement, runner and env settings with `rollout.pipeline_stages=1`
+                      (one stage process: simulate all envs, then decide, then simulate ...).
   (c) single_process: a cleanRL-style loop in one Python process: gymnasium `AsyncVectorEnv` with
                       one subprocess per env (cleanRL's default for these runs), the same policy,
                       GAE and `ppo_update` called in-process. Same work, no components.
