@@ -7,7 +7,9 @@ another. The :class:`StagedEnv` is the whole env logic; it runs either
 * in the env component's own process (:class:`EnvWorker`, a Ray worker), serving the rollout over
   an :mod:`~infinirl.components.env_link` (env and rollout placed on disjoint resources), or
 * inside the rollout's process (env and rollout collocated: the placement says they take turns on
-  the same CPU slots/devices, so a hop between two processes would buy nothing).
+  the same CPU slots/devices, so a hop between two processes would buy nothing), or
+* one stage per process (``env.stage_processes``): the EnvWorker supervises a process per stage,
+  each holding a one-stage :class:`StagedEnv` and its own link (:mod:`.env_stages`).
 
 Messages are :class:`StageStep` dicts of numpy arrays: what the rollout needs to record a step
 and decide the next one (observation, reward, episode ends, the final observation of episodes that
