@@ -76,6 +76,13 @@ class Stages:
         thread.start()
         return thread, outcome
 
+    def serve_past_reset(self):
+        """Start serving and read every stage's first (reset) message; the thread and its outcome."""
+        thread, outcome = self.serve_in_background()
+        for link in self.links:
+            link.recv()
+        return thread, outcome
+
     def close(self):
         for link in self.links:
             link.close()
@@ -112,9 +119,7 @@ def test_stage_processes_send_what_one_process_gives():
 def test_a_failing_stage_reports_its_own_traceback_and_the_rollout_sees_a_closed_link():
     stages = Stages()
     try:
-        thread, outcome = stages.serve_in_background()
-        for s in range(STAGES):
-            stages.links[s].recv()
+        thread, outcome = stages.serve_past_reset()
         stages.links[0].send((0, np.zeros((ENVS // STAGES, 3), np.float32)))  # wrong action shape
         with pytest.raises(EnvLinkClosed):
             stages.links[0].recv()
@@ -132,9 +137,7 @@ def test_a_failing_stage_reports_its_own_traceback_and_the_rollout_sees_a_closed
 def test_a_stage_process_that_dies_is_reported_with_its_signal():
     stages = Stages()
     try:
-        thread, outcome = stages.serve_in_background()
-        for s in range(STAGES):
-            stages.links[s].recv()
+        thread, outcome = stages.serve_past_reset()
         os.kill(stages.procs[1].pid, signal.SIGKILL)
         thread.join(30)
         error = outcome["error"]
