@@ -157,7 +157,8 @@ def _is_link_closed(error: BaseException) -> bool:
     if isinstance(error, EnvLinkClosed):
         return True
     if isinstance(error, WorkerError):
-        return "EnvLinkClosed" in error.traceback_text.rstrip().splitlines()[-1]
+        lines = error.traceback_text.rstrip().splitlines()
+        return bool(lines) and "EnvLinkClosed" in lines[-1]
     return False
 
 
