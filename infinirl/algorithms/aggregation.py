@@ -130,6 +130,10 @@ def aggregate(
     loss = _rows(loss_mat)
     mask = _rows(response_mask).to(dtype=loss.dtype)
     total = spec.contributions(loss, mask)
+    if isinstance(normaliser, torch.Tensor):
+        # No branch on the value (no device sync; traceable by torch.compile). A normaliser of 0
+        # means nothing counts, so every contribution, hence ``total``, is already 0: divide by 1.
+        return total / torch.where(normaliser > 0, normaliser, torch.ones_like(normaliser))
     if normaliser <= 0:
         return total * 0.0
     return total / normaliser

@@ -24,6 +24,7 @@ a batch was *collected* with are the ones it is *trained* with.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from dataclasses import dataclass
@@ -38,7 +39,7 @@ from infinirl.components.embodied_rollout import PolicySpec
 from infinirl.components.env_worker import _limit_threads
 from infinirl.runtime import WeightSource, Worker
 
-__all__ = ["EmbodiedActorWorker", "PPOSpec", "ppo_update"]
+__all__ = ["EmbodiedActorWorker", "PPOSpec", "ppo_minibatch_loss", "ppo_objective", "ppo_update"]
 
 _CHECKPOINT = "actor.pt"
 
@@ -64,6 +65,8 @@ class PPOSpec:
     seed: int = 0
     critic: bool = True
     """Train the value head (PPO). False (GRPO): no value loss is computed, the head stays as built."""
+    compile: bool = False
+    """Run each mini-batch's forward pass and loss through ``torch.compile`` (:func:`_minibatch_loss`)."""
 
 
 def _to_tensor(value: Any) -> Any:
@@ -206,21 +209,19 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     size = batch["actions"].shape[0]
     per_mini = size // ppo.mini_batches
     generator = torch.Generator().manual_seed(int(np.random.default_rng([ppo.seed, iteration, 0xB47]).integers(2**62)))
-    action_level = ppo.gae_level == "action"
-    mask_all = batch["step_mask"].to(torch.float32)
     keep_all = (batch["advantage_mask"].to(torch.float32) if "advantage_mask" in batch
                 else torch.ones(batch["advantages"].shape, dtype=torch.float32))
     params = [p for p in model.parameters() if p.requires_grad]
+    minibatch_loss = _minibatch_loss(ppo.compile)
     step_metrics: dict[str, list[torch.Tensor]] = {}
-    steps = 0
-    mismatch = None
     # The observation statistics are fixed during the update (folded in after it): normalise the
     # whole batch once instead of every mini-batch (identical values, fewer small ops per step).
     normalize = getattr(model, "normalize", None)
     obs = normalize(batch["obs"]) if normalize is not None else batch["obs"]
     columns = {"obs": obs, "actions": batch["actions"], "logprobs": batch["logprobs"],
                "values": batch["values"], "returns": batch["returns"],
-               "advantages": batch["advantages"].to(torch.float32), "keep": keep_all, "step_mask": mask_all}
+               "advantages": batch["advantages"].to(torch.float32), "keep": keep_all,
+               "step_mask": batch["step_mask"].to(torch.float32)}
     if "extras" in batch:
         columns["extras"] = batch["extras"]
     for _ in range(ppo.epochs):
@@ -228,46 +229,14 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
         # One gather per epoch; each mini-batch is then a slice (a view), not a gather per tensor.
         shuffled = _rows(columns, order)
         for m in range(ppo.mini_batches):
-            rows = slice(m * per_mini, (m + 1) * per_mini)
-            adv = shuffled["advantages"][rows]
-            keep = shuffled["keep"][rows]  # [m] chunk level, [m, C] action level
-            # mask: executed actions to train on [m, C]; weights: the policy-loss rows ([m] or [m, C])
-            mask = shuffled["step_mask"][rows] * keep if action_level else shuffled["step_mask"][rows] * keep[:, None]
-            weights = mask if action_level else keep
-            if ppo.normalize_advantages:  # statistics of the whole mini-batch (all ranks)
-                mean = (adv * weights).sum() / weights.sum().clamp(min=1)
-                std = torch.sqrt(((adv - mean) ** 2 * weights).sum() / (weights.sum() - 1).clamp(min=1))
-                adv = (adv - mean) / (std + 1e-8)
-            n_pg = float(weights.sum())
-            n_value = float(per_mini)
-            n_entropy = float(mask.sum())
-            mine = slice(rows.start + rank * per_mini // world_size, rows.start + (rank + 1) * per_mini // world_size)
-            share = slice(rank * per_mini // world_size, (rank + 1) * per_mini // world_size)
-            adv, mask, weights = adv[share], mask[share], weights[share]
-            logprobs, entropy, values = model(_rows(shuffled["obs"], mine), shuffled["actions"][mine],
-                                              _rows(shuffled["extras"], mine) if "extras" in shuffled else None,
-                                              True, normalize is not None)
-            old = shuffled["logprobs"][mine]
-            if mismatch is None:
-                mismatch = float(((logprobs.detach() - old).abs() * mask).sum() / mask.sum().clamp(min=1))
-            if action_level:
-                pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=weights,
-                                   clip_low=ppo.clip)
-                returns = shuffled["returns"][mine][:, 0]
-            else:
-                pg = ppo_clip_loss(logprobs=(logprobs * mask).sum(-1), old_logprobs=(old * mask).sum(-1),
-                                   advantages=adv, response_mask=weights, clip_low=ppo.clip)
-                returns = shuffled["returns"][mine]
-            loss = pg_loss = aggregate(pg.loss_mat, weights, "token-mean", n_pg)
-            vl = None
-            if ppo.critic:
-                ones = torch.ones_like(returns)
-                vl = value_loss(values=values, old_values=shuffled["values"][mine], returns=returns.to(values.dtype),
-                                response_mask=ones, clip_range=ppo.value_clip)
-                loss = pg_loss + ppo.value_coef * aggregate(vl.loss_mat, ones, "token-mean", n_value)
-            ent = entropy_loss(mask, entropy=entropy) if entropy is not None else None
-            if ent is not None and ppo.entropy_coef:
-                loss = loss + ppo.entropy_coef * aggregate(ent.loss_mat, mask, "token-mean", n_entropy)
+            start = m * per_mini
+            mine = slice(start + rank * per_mini // world_size, start + (rank + 1) * per_mini // world_size)
+            whole = {key: shuffled[key][start:start + per_mini] for key in ("advantages", "keep", "step_mask")}
+            rows = {key: shuffled[key][mine] for key in ("logprobs", "values", "returns")}
+            loss, metrics = minibatch_loss(model, ppo, rank, world_size, _rows(shuffled["obs"], mine),
+                                           shuffled["actions"][mine],
+                                           _rows(shuffled["extras"], mine) if "extras" in shuffled else None,
+                                           normalize is not None, whole, rows)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             all_reduce_grads()
@@ -275,23 +244,95 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
             if hasattr(grad_norm, "full_tensor"):
                 grad_norm = grad_norm.full_tensor()
             optimizer.step()
+            metrics["train/grad_norm"] = grad_norm.detach()
             # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
-            current = {"train/policy_loss": pg_loss.detach(), "train/approx_kl": pg.metrics["approx_kl"],
-                       "train/clip_fraction": pg.metrics["clip_fraction"], "train/grad_norm": grad_norm.detach()}
-            if vl is not None:
-                current["train/value_loss"] = vl.metrics["value_mse"] / 2
-            if ent is not None:
-                current["train/entropy"] = ent.metrics["entropy"]
-            for key, value in current.items():
+            for key, value in metrics.items():
                 step_metrics.setdefault(key, []).append(value)
-            steps += 1
+    # The rollout-vs-trainer log-prob mismatch is that of the first mini-batch, before any step.
+    mismatch = step_metrics.pop("train/logprob_mismatch", [torch.zeros(())])[0]
     metrics = {key: float(torch.stack(values).to(torch.float64).mean()) for key, values in step_metrics.items()}
     if ppo.critic:
-        returns = batch["returns"][:, 0] if action_level else batch["returns"]
+        returns = batch["returns"][:, 0] if ppo.gae_level == "action" else batch["returns"]
         variance = float(returns.var())
         metrics["train/explained_variance"] = (float("nan") if variance == 0
                                                else 1.0 - float((returns - batch["values"]).var()) / variance)
     metrics["train/lr"] = optimizer.param_groups[0]["lr"]
-    metrics["train/logprob_mismatch"] = mismatch if mismatch is not None else 0.0
-    metrics["train/optimizer_steps"] = steps
+    metrics["train/logprob_mismatch"] = float(mismatch)
+    metrics["train/optimizer_steps"] = ppo.epochs * ppo.mini_batches
     return metrics
+
+
+def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tensor, entropy: torch.Tensor | None,
+                  values: torch.Tensor, whole: dict, mine: dict) -> tuple[torch.Tensor, dict]:
+    """This rank's loss on one mini-batch and its detached metrics (tensors).
+
+    ``logprobs`` / ``entropy`` ``[m, C]`` and ``values`` ``[m]`` are the model's outputs on this
+    rank's rows; ``mine`` holds the same rows' ``logprobs`` (old), ``values`` (old) and ``returns``;
+    ``whole`` holds ``advantages``, ``keep`` and ``step_mask`` of the *whole* mini-batch (all
+    ranks), whose statistics and counts every rank shares: advantage normalisation and every
+    loss normaliser are mini-batch-global, so the ranks' gradients sum to the 1-rank gradient.
+
+    A pure function of tensors (no Python number read back from them, no branch on their values),
+    so ``torch.compile`` takes it whole, without graph breaks (``actor.compile``).
+    """
+    action_level = ppo.gae_level == "action"
+    adv, keep = whole["advantages"], whole["keep"]  # [M] chunk level, [M, C] action level
+    # mask: executed actions to train on [M, C]; weights: the policy-loss rows ([M] or [M, C])
+    mask = whole["step_mask"] * (keep if action_level else keep[:, None])
+    weights = mask if action_level else keep
+    if ppo.normalize_advantages:  # statistics of the whole mini-batch (all ranks)
+        count = weights.sum()
+        mean = (adv * weights).sum() / count.clamp(min=1)
+        std = torch.sqrt(((adv - mean) ** 2 * weights).sum() / (count - 1).clamp(min=1))
+        adv = (adv - mean) / (std + 1e-8)
+    n_pg, n_entropy, n_value = weights.sum(), mask.sum(), float(adv.shape[0])
+    size = adv.shape[0]
+    share = slice(rank * size // world_size, (rank + 1) * size // world_size)
+    adv, mask, weights = adv[share], mask[share], weights[share]
+    old = mine["logprobs"]
+    metrics = {"train/logprob_mismatch": ((logprobs.detach() - old).abs() * mask).sum() / mask.sum().clamp(min=1)}
+    if action_level:
+        pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=weights,
+                           clip_low=ppo.clip)
+        returns = mine["returns"][:, 0]
+    else:
+        pg = ppo_clip_loss(logprobs=(logprobs * mask).sum(-1), old_logprobs=(old * mask).sum(-1),
+                           advantages=adv, response_mask=weights, clip_low=ppo.clip)
+        returns = mine["returns"]
+    loss = pg_loss = aggregate(pg.loss_mat, weights, "token-mean", n_pg)
+    metrics.update({"train/policy_loss": pg_loss.detach(), "train/approx_kl": pg.metrics["approx_kl"],
+                    "train/clip_fraction": pg.metrics["clip_fraction"]})
+    if ppo.critic:
+        ones = torch.ones_like(returns)
+        vl = value_loss(values=values, old_values=mine["values"], returns=returns.to(values.dtype),
+                        response_mask=ones, clip_range=ppo.value_clip)
+        loss = pg_loss + ppo.value_coef * aggregate(vl.loss_mat, ones, "token-mean", n_value)
+        metrics["train/value_loss"] = vl.metrics["value_mse"] / 2
+    if entropy is not None:
+        ent = entropy_loss(mask, entropy=entropy)
+        metrics["train/entropy"] = ent.metrics["entropy"]
+        if ppo.entropy_coef:
+            loss = loss + ppo.entropy_coef * aggregate(ent.loss_mat, mask, "token-mean", n_entropy)
+    return loss, metrics
+
+
+def ppo_minibatch_loss(model, ppo: PPOSpec, rank: int, world_size: int, obs: dict, actions: torch.Tensor,
+                       extras: dict | None, obs_normalized: bool, whole: dict, mine: dict) -> tuple[torch.Tensor, dict]:
+    """The policy's forward pass on this rank's rows of a mini-batch, then :func:`ppo_objective`."""
+    logprobs, entropy, values = model(obs, actions, extras, True, obs_normalized)
+    return ppo_objective(ppo, rank, world_size, logprobs, entropy, values, whole, mine)
+
+
+@functools.cache
+def _minibatch_loss(compile_: bool):
+    """:func:`ppo_minibatch_loss`, compiled once per process when ``actor.compile`` asks for it.
+
+    Why: a small policy's mini-batch step is hundreds of tiny ops, each paying the eager
+    per-op (and autograd-node) overhead; on CPU that overhead, not arithmetic, is most of the
+    update (``benchmarks/embodied_pipeline.py``). Compiled, the forward pass and the loss and their
+    backward become a few fused kernels. ``dynamic=False``: mini-batch shapes never change within a
+    run. The optimizer step and gradient clipping stay eager (already fused / foreach kernels).
+    """
+    if not compile_:
+        return ppo_minibatch_loss
+    return torch.compile(ppo_minibatch_loss, dynamic=False)

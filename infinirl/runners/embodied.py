@@ -93,7 +93,8 @@ def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
     return PPOSpec(cfg.actor.lr, cfg.actor.anneal_lr, cfg.iterations, alg.epochs, alg.mini_batches, alg.clip,
                    alg.value_clip, alg.value_coef, alg.entropy_coef, alg.max_grad_norm,
                    alg.normalize_advantages and not algorithm.grouped, alg.gae_level, cfg.actor.adam_eps,
-                   cfg.actor.strategy, cfg.seed, critic=algorithm.critic)
+                   cfg.actor.strategy, cfg.seed, critic=algorithm.critic,
+                   compile=cfg.actor.compile)
 
 
 def _check_one_task_per_group(cfg: EmbodiedConfig) -> None:

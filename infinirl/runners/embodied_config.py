@@ -8,6 +8,8 @@ sub-env, before any worker starts.
 
 from __future__ import annotations
 
+import os
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -125,6 +127,11 @@ class ActorConfig:
     """ddp: replicated weights, one SUM all-reduce of the gradients per step; fsdp: FSDP2 fully_shard."""
     num_threads: int = 1
     """torch threads per actor rank (1 keeps small models fast and results deterministic)."""
+    compile: bool = False
+    """torch.compile each mini-batch's forward pass + PPO loss (and their backward) into fused kernels:
+    ~2x faster updates of small policies on CPU, after a one-off compile of seconds to a minute in the
+    first update. Needs a C++ compiler (g++/clang++). With strategy=fsdp only the loss is compiled
+    (FSDP2's hooks run the forward pass eagerly)."""
 
 
 @dataclass
@@ -238,6 +245,8 @@ class EmbodiedConfig:
             raise ConfigError(f"env.stage_processes=true streams each stage over its own socket; "
                               f"rollout.transport={self.rollout.transport} is not supported with it: set "
                               "rollout.transport=socket or env.stage_processes=false")
+        if self.actor.compile:
+            _check_compile()
         batch = self.env.num_envs * self.rollout_steps
         if batch % self.algorithm.mini_batches:
             raise ConfigError(f"algorithm.mini_batches={self.algorithm.mini_batches} does not divide the batch of "
@@ -255,3 +264,13 @@ class EmbodiedConfig:
                 parse_spec(spec, component)
             except PlacementError as exc:
                 raise ConfigError(f"placement.{component}: {exc}") from None
+
+
+def _check_compile() -> None:
+    """``actor.compile`` is checked in the driver: a missing compiler would otherwise surface as an
+    inductor build error inside the actor, in the middle of the first update."""
+    compilers = [os.environ.get("CXX"), "g++", "c++", "clang++"]
+    if not any(shutil.which(c) for c in compilers if c):
+        raise ConfigError("actor.compile=true needs a C++ compiler for torch.compile's CPU kernels, and none of "
+                          "$CXX, g++, c++, clang++ is on PATH: install one (Debian: apt-get install g++) "
+                          "or set actor.compile=false")

@@ -80,6 +80,22 @@ def test_zero_normaliser_gives_zero_loss_still_in_graph():
     assert out.item() == 0.0 and torch.equal(loss.grad, torch.zeros(2, 3, dtype=F64))
 
 
+@pytest.mark.parametrize("normaliser", [0.0, 5.0])
+def test_a_tensor_normaliser_gives_what_the_float_gives(normaliser):
+    """A 0-dim tensor normaliser (an all-reduced count, or one computed inside a compiled loss)
+    takes a branch-free path; it must agree with the float one, 0 included (loss 0, no NaN grad)."""
+    mask = torch.tensor([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]]) if normaliser else torch.zeros(2, 3)
+    results = []
+    for n in (normaliser, torch.tensor(normaliser, dtype=F64)):
+        loss = torch.arange(6, dtype=F64).reshape(2, 3).requires_grad_()
+        out = aggregate(loss, mask, "token-mean", n)
+        out.backward()
+        results.append((out.detach(), loss.grad))
+    assert torch.equal(results[0][0], results[1][0]) and torch.equal(results[0][1], results[1][1])
+    assert torch.isfinite(results[1][1]).all()
+    assert float(results[1][0]) == (0.0 if not normaliser else (0 + 1 + 3 + 4 + 5) / 5.0)
+
+
 def test_aggregation_errors():
     with pytest.raises(KeyError, match="unknown loss aggregation mode 'token_mean'; registered: "
                                        "seq-mean-token-mean, seq-mean-token-sum, "
