@@ -33,6 +33,7 @@ Usage:
     python benchmarks/embodied_pipeline.py --obs state --iterations 4
     python benchmarks/embodied_pipeline.py --only single_process --obs rgb   # one impl, its JSON line
     python benchmarks/embodied_pipeline.py --eager              # every row's update uncompiled
+    python benchmarks/embodied_pipeline.py --obs state --rounds 5   # rows interleaved 5 times, medians
 
 The table goes to stderr; the last stdout line is ONE JSON object:
     {"benchmark": "embodied_pipeline", "ratios": {"pipelined_vs_sequential": ..,
@@ -240,6 +241,15 @@ def run_one(impl: str, obs: str, iterations: int, warmup: int, compile_: bool) -
     return run_runner(impl, obs, iterations, warmup, compile_)
 
 
+def _median_run(rows: list[dict]) -> dict:
+    """The run with the median env-steps/s of a row's rounds (all rounds' speeds listed with it)."""
+    done = sorted((r for r in rows if "env_steps_per_s" in r), key=lambda r: r["env_steps_per_s"])
+    if not done:
+        return rows[-1]
+    return {**done[(len(done) - 1) // 2], "rounds_env_steps_per_s": [r["env_steps_per_s"] for r in rows
+                                                                    if "env_steps_per_s" in r]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--obs", default="state,rgb", help="comma list of: " + ", ".join(OBS_MODES))
@@ -248,12 +258,16 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=5, help="PPO iterations per run (state; rgb runs 3)")
     parser.add_argument("--warmup", type=int, default=1, help="first iterations not measured")
     parser.add_argument("--only", choices=IMPLS, help="run one impl in this process and print its result")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="run every row this many times, interleaved; each row reports its median run")
     parser.add_argument("--eager", action="store_true",
                         help="every row without actor.compile (default: every row compiles its PPO mini-batch loss)")
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl" if os.environ.get("INFINIRL_BENCH_EGL") else "osmesa")
     modes = [m.strip() for m in args.obs.split(",") if m.strip()]
     impls = [i.strip() for i in args.impls.split(",") if i.strip()]
+    if args.rounds < 1:
+        parser.error(f"--rounds {args.rounds}: must be >= 1")
     for name in modes:
         if name not in OBS_MODES:
             parser.error(f"--obs {name!r}: choose from {', '.join(OBS_MODES)}")
@@ -265,20 +279,25 @@ def main() -> None:
         print(json.dumps(run_one(args.only, modes[0], iterations(modes[0]), args.warmup, not args.eager)))
         return
     started = time.time()
-    results: dict = {}
+    runs: dict[str, list] = {}
     for obs in modes:
-        for impl in impls:
-            cmd = [sys.executable, os.path.abspath(__file__), "--only", impl, "--obs", obs,
-                   "--iterations", str(args.iterations), "--warmup", str(args.warmup)] + ["--eager"] * args.eager
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            if proc.returncode:
-                results[f"{obs}/{impl}"] = {"failed": proc.stderr[-2000:]}
-                print(f"{obs:5s} {impl:15s} FAILED\n{proc.stderr[-2000:]}", file=sys.stderr)
-                continue
-            result = json.loads(proc.stdout.strip().splitlines()[-1])
-            results[f"{obs}/{impl}"] = result
-            print(f"{obs:5s} {impl:15s} {result['env_steps_per_s']:8.1f} env-steps/s  collect {result['collect_s']:.2f}s"
-                  f"  train {result['train_s']:.2f}s  per iteration ({result['iterations']} measured)", file=sys.stderr)
+        # Rounds interleave the rows (a, b, c, a, b, c, ...): a slow spell of a shared VM then
+        # lands on every row instead of deciding one row's number.
+        for round_ in range(args.rounds):
+            for impl in impls:
+                cmd = [sys.executable, os.path.abspath(__file__), "--only", impl, "--obs", obs,
+                       "--iterations", str(args.iterations), "--warmup", str(args.warmup)] + ["--eager"] * args.eager
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                if proc.returncode:
+                    runs.setdefault(f"{obs}/{impl}", []).append({"failed": proc.stderr[-2000:]})
+                    print(f"{obs:5s} {impl:15s} FAILED\n{proc.stderr[-2000:]}", file=sys.stderr)
+                    continue
+                result = json.loads(proc.stdout.strip().splitlines()[-1])
+                runs.setdefault(f"{obs}/{impl}", []).append(result)
+                print(f"{obs:5s} {impl:15s} {result['env_steps_per_s']:8.1f} env-steps/s  collect "
+                      f"{result['collect_s']:.2f}s  train {result['train_s']:.2f}s  per iteration "
+                      f"({result['iterations']} measured, round {round_ + 1}/{args.rounds})", file=sys.stderr)
+    results = {key: _median_run(rows) for key, rows in runs.items()}
     ratios = {}
     for obs in modes:
         if "collocated" in impls:
