@@ -106,12 +106,17 @@ def test_the_compiled_update_trains_like_the_eager_one(variant):
     ppo = PPO
     if variant == "grpo":
         batch, ppo = grpo_like(batch)
+    from torch._dynamo.utils import counters
+
     results = {}
     for compiled in (False, True):
         model = build()
         spec = dataclasses.replace(ppo, compile=compiled)
+        counters.clear()
         metrics = ppo_update(model, torch.optim.Adam(model.parameters(), lr=spec.lr), batch, 0, spec)
         results[compiled] = flat(model), metrics
+        # compiled: dynamo captured the mini-batch loss as one graph, with no graph break
+        assert bool(counters["stats"]["unique_graphs"]) == compiled and not counters["graph_break"]
     (eager, eager_metrics), (fused, fused_metrics) = results[False], results[True]
     assert not torch.equal(eager, flat(build()))  # the update moved the weights
     # Fused kernels round differently (float32): equal to float32 precision over 12 Adam steps.
