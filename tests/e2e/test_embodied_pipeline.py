@@ -32,14 +32,21 @@ def make_cfg(output_dir, iterations, placement, stages, **extra):
     return to_dataclass(EmbodiedConfig, raw)
 
 
+def straight_and_resumed(tmp_path, iterations, placement, stages, **extra):
+    """``iterations`` in one run, and half of them + a resumed run to ``iterations``: training moved
+    the weights, and the resumed run ends bit for bit where the straight one did."""
+    straight = run(make_cfg(tmp_path / "straight", iterations, placement, stages, **extra))
+    half = run(make_cfg(tmp_path / "resumed", iterations // 2, placement, stages, **extra))
+    resumed = run(make_cfg(tmp_path / "resumed", iterations, placement, stages, **extra))
+    assert half["actor_weights_sha256"] != straight["actor_weights_sha256"]
+    assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
+    return straight, resumed
+
+
 @pytest.mark.parametrize("mode", list(PLACEMENTS))
 def test_runs_and_resumes_exactly(ray_cluster, tmp_path, mode):
     placement, stages = PLACEMENTS[mode]
-    straight = run(make_cfg(tmp_path / "straight", 4, placement, stages))
-    half = run(make_cfg(tmp_path / "resumed", 2, placement, stages))
-    resumed = run(make_cfg(tmp_path / "resumed", 4, placement, stages))
-    assert half["actor_weights_sha256"] != straight["actor_weights_sha256"]  # training moved the weights
-    assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
+    straight, resumed = straight_and_resumed(tmp_path, 4, placement, stages)
     assert resumed["env_steps"] == straight["env_steps"] == 4 * 4 * 32
 
     rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
@@ -66,11 +73,7 @@ def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
     placement, stages = PLACEMENTS["collocated"]
     grpo = {"algorithm": {"name": "grpo", "group_size": 2, "epochs": 2, "mini_batches": 4},
             "env": {"name": "gym:Pendulum-v1", "num_envs": 4, "max_episode_steps": 20}}
-    straight = run(make_cfg(tmp_path / "straight", 2, placement, stages, **grpo))
-    half = run(make_cfg(tmp_path / "resumed", 1, placement, stages, **grpo))
-    resumed = run(make_cfg(tmp_path / "resumed", 2, placement, stages, **grpo))
-    assert half["actor_weights_sha256"] != straight["actor_weights_sha256"]
-    assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
+    straight_and_resumed(tmp_path, 2, placement, stages, **grpo)
 
     rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == [0, 1, 2]
@@ -91,11 +94,7 @@ def test_compiled_actor_trains_and_resumes_exactly(ray_cluster, tmp_path):
     with the rollout's eager ones, and a resumed run recompiles and continues bit for bit."""
     placement, stages = PLACEMENTS["collocated"]
     compiled = {"actor": {"anneal_lr": False, "compile": True}}
-    straight = run(make_cfg(tmp_path / "straight", 2, placement, stages, **compiled))
-    half = run(make_cfg(tmp_path / "resumed", 1, placement, stages, **compiled))
-    resumed = run(make_cfg(tmp_path / "resumed", 2, placement, stages, **compiled))
-    assert half["actor_weights_sha256"] != straight["actor_weights_sha256"]
-    assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
+    straight_and_resumed(tmp_path, 2, placement, stages, **compiled)
     rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
     assert rows[1]["train/logprob_mismatch"] < 1e-5
     assert rows[2]["train/value_loss"] == rows[2]["train/value_loss"]  # not NaN
