@@ -266,11 +266,19 @@ class EmbodiedConfig:
                 raise ConfigError(f"placement.{component}: {exc}") from None
 
 
+def find_cxx_compiler() -> str | None:
+    """The C++ compiler torch.compile's CPU kernels can be built with ($CXX, g++, c++, clang++), or None."""
+    for name in (os.environ.get("CXX"), "g++", "c++", "clang++"):
+        path = shutil.which(name) if name else None
+        if path:
+            return path
+    return None
+
+
 def _check_compile() -> None:
     """``actor.compile`` is checked in the driver: a missing compiler would otherwise surface as an
     inductor build error inside the actor, in the middle of the first update."""
-    compilers = [os.environ.get("CXX"), "g++", "c++", "clang++"]
-    if not any(shutil.which(c) for c in compilers if c):
+    if find_cxx_compiler() is None:
         raise ConfigError("actor.compile=true needs a C++ compiler for torch.compile's CPU kernels, and none of "
                           "$CXX, g++, c++, clang++ is on PATH: install one (Debian: apt-get install g++) "
                           "or set actor.compile=false")

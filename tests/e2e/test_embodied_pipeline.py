@@ -11,7 +11,7 @@ pytest.importorskip("gymnasium")
 
 from infinirl.config import ConfigError, to_dataclass  # noqa: E402
 from infinirl.runners.embodied import run  # noqa: E402
-from infinirl.runners.embodied_config import EmbodiedConfig  # noqa: E402
+from infinirl.runners.embodied_config import EmbodiedConfig, find_cxx_compiler  # noqa: E402
 
 PLACEMENTS = {
     "collocated": ({"env": "0", "rollout": "0", "actor": "0"}, 1),
@@ -87,7 +87,7 @@ def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
     assert rows[1]["train/logprob_mismatch"] < 1e-5
 
 
-@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
+@pytest.mark.skipif(find_cxx_compiler() is None,
                     reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
 def test_compiled_actor_trains_and_resumes_exactly(ray_cluster, tmp_path):
     """actor.compile: the actor compiles its mini-batch loss in its own process; its log-probs agree

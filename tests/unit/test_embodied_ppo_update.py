@@ -4,7 +4,6 @@ gets alone. Also: normalising a batch once gives what normalising every mini-bat
 compiled update (``actor.compile``) trains like the eager one."""
 
 import dataclasses
-import shutil
 import threading
 
 import pytest
@@ -15,6 +14,7 @@ pytest.importorskip("gymnasium")
 from infinirl.components.embodied_actor import PPOSpec, ppo_update  # noqa: E402
 from infinirl.components.embodied_rollout import PolicySpec  # noqa: E402
 from infinirl.components.env_worker import probe_env_specs  # noqa: E402
+from infinirl.runners.embodied_config import find_cxx_compiler  # noqa: E402
 
 B = 48
 
@@ -98,7 +98,7 @@ def grpo_like(batch):
     return masked, dataclasses.replace(PPO, critic=False, normalize_advantages=False)
 
 
-@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
+@pytest.mark.skipif(find_cxx_compiler() is None,
                     reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
 @pytest.mark.parametrize("variant", ["ppo", "grpo"])
 def test_the_compiled_update_trains_like_the_eager_one(variant):
