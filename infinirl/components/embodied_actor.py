@@ -35,6 +35,7 @@ import torch
 
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
+from infinirl.components.compiled_step import CompiledAdamStep
 from infinirl.components.embodied_rollout import PolicySpec
 from infinirl.components.env_worker import _limit_threads
 from infinirl.runtime import WeightSource, Worker
@@ -213,6 +214,11 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                 else torch.ones(batch["advantages"].shape, dtype=torch.float32))
     params = [p for p in model.parameters() if p.requires_grad]
     minibatch_loss = _minibatch_loss(ppo.compile)
+    # actor.compile on a plain (non-FSDP) model: the whole optimizer step is one compiled function;
+    # under FSDP2 (whose hooks dynamo cannot fuse into it) only the mini-batch loss is compiled.
+    whole_step = (CompiledAdamStep(model, optimizer, _objective_of_outputs, ppo.max_grad_norm,
+                                   all_reduce_grads if world_size > 1 else None)
+                  if ppo.compile and ppo.strategy != "fsdp" else None)
     step_metrics: dict[str, list[torch.Tensor]] = {}
     # The observation statistics are fixed during the update (folded in after it): normalise the
     # whole batch once instead of every mini-batch (identical values, fewer small ops per step).
@@ -233,17 +239,20 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
             mine = slice(start + rank * per_mini // world_size, start + (rank + 1) * per_mini // world_size)
             whole = {key: shuffled[key][start:start + per_mini] for key in ("advantages", "keep", "step_mask")}
             rows = {key: shuffled[key][mine] for key in ("logprobs", "values", "returns")}
-            loss, metrics = minibatch_loss(model, ppo, rank, world_size, _rows(shuffled["obs"], mine),
-                                           shuffled["actions"][mine],
-                                           _rows(shuffled["extras"], mine) if "extras" in shuffled else None,
-                                           normalize is not None, whole, rows)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            all_reduce_grads()
-            grad_norm = torch.nn.utils.clip_grad_norm_(params, ppo.max_grad_norm, foreach=True)
-            if hasattr(grad_norm, "full_tensor"):
-                grad_norm = grad_norm.full_tensor()
-            optimizer.step()
+            model_args = (_rows(shuffled["obs"], mine), shuffled["actions"][mine],
+                          _rows(shuffled["extras"], mine) if "extras" in shuffled else None, True,
+                          normalize is not None)
+            if whole_step is not None:
+                _, metrics, grad_norm = whole_step.step(model_args, (ppo, rank, world_size, whole, rows))
+            else:
+                loss, metrics = minibatch_loss(model, ppo, rank, world_size, model_args, whole, rows)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                all_reduce_grads()
+                grad_norm = torch.nn.utils.clip_grad_norm_(params, ppo.max_grad_norm, foreach=True)
+                if hasattr(grad_norm, "full_tensor"):
+                    grad_norm = grad_norm.full_tensor()
+                optimizer.step()
             metrics["train/grad_norm"] = grad_norm.detach()
             # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
             for key, value in metrics.items():
@@ -316,16 +325,23 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
     return loss, metrics
 
 
-def ppo_minibatch_loss(model, ppo: PPOSpec, rank: int, world_size: int, obs: dict, actions: torch.Tensor,
-                       extras: dict | None, obs_normalized: bool, whole: dict, mine: dict) -> tuple[torch.Tensor, dict]:
-    """The policy's forward pass on this rank's rows of a mini-batch, then :func:`ppo_objective`."""
-    logprobs, entropy, values = model(obs, actions, extras, True, obs_normalized)
+def ppo_minibatch_loss(model, ppo: PPOSpec, rank: int, world_size: int, model_args: tuple, whole: dict,
+                       mine: dict) -> tuple[torch.Tensor, dict]:
+    """The policy's forward pass on this rank's rows of a mini-batch (``model_args``: observations,
+    actions, extras, with_entropy, obs_normalized), then :func:`ppo_objective`."""
+    return _objective_of_outputs(*model(*model_args), ppo, rank, world_size, whole, mine)
+
+
+def _objective_of_outputs(logprobs, entropy, values, ppo: PPOSpec, rank: int, world_size: int, whole: dict,
+                          mine: dict) -> tuple[torch.Tensor, dict]:
+    """:func:`ppo_objective` with the model's outputs first (the compiled step's objective contract)."""
     return ppo_objective(ppo, rank, world_size, logprobs, entropy, values, whole, mine)
 
 
 @functools.cache
 def _minibatch_loss(compile_: bool):
-    """:func:`ppo_minibatch_loss`, compiled once per process when ``actor.compile`` asks for it.
+    """:func:`ppo_minibatch_loss`, compiled once per process when ``actor.compile`` asks for it
+    (the FSDP2 path; a plain model compiles its whole step, :mod:`~infinirl.components.compiled_step`).
 
     Why: a small policy's mini-batch step is hundreds of tiny ops, each paying the eager
     per-op (and autograd-node) overhead; on CPU that overhead, not arithmetic, is most of the

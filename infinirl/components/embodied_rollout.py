@@ -190,6 +190,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         episodes = {"return": [], "length": [], "success": []}
         restarted = 0
         infer_s = wait_s = record_s = 0.0
+        cpu_start = time.thread_time()  # this loop's own CPU time: is the rollout CPU-bound?
         for t in range(num_steps + 1):
             for stage, buf in enumerate(buffers):
                 start = time.perf_counter()
@@ -224,7 +225,8 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         trajectory = _concat_stages([buf.stacked() for buf in buffers])
         trajectory["version"] = self.weight_version
         trajectory["episodes"] = {k: np.asarray(v) for k, v in episodes.items()}
-        trajectory["timing"] = {"rollout/inference_s": infer_s, "rollout/wait_env_s": wait_s, "rollout/record_s": record_s}
+        trajectory["timing"] = {"rollout/inference_s": infer_s, "rollout/wait_env_s": wait_s, "rollout/record_s": record_s,
+                                "rollout/cpu_s": time.thread_time() - cpu_start}
         trajectory["restarted"] = restarted
         return trajectory
 

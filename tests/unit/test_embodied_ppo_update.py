@@ -52,28 +52,7 @@ def test_two_ranks_end_with_the_weights_of_one():
     single = build()
     single_metrics = ppo_update(single, torch.optim.Adam(single.parameters(), lr=PPO.lr), batch, 0, PPO)
 
-    models = [build(), build()]
-    optimizers = [torch.optim.Adam(m.parameters(), lr=PPO.lr) for m in models]
-    barrier = threading.Barrier(2)
-    grads: list = [None, None]
-    results: list = [None, None]
-
-    def all_reduce(rank):  # SUM over the two ranks, as gloo/NCCL all_reduce does
-        grads[rank] = [p.grad.clone() for p in models[rank].parameters()]
-        barrier.wait()
-        for p, mine, other in zip(models[rank].parameters(), grads[rank], grads[1 - rank]):
-            p.grad.copy_(mine + other)
-        barrier.wait()
-
-    def train(rank):
-        results[rank] = ppo_update(models[rank], optimizers[rank], batch, 0, PPO, rank, 2, lambda: all_reduce(rank))
-
-    threads = [threading.Thread(target=train, args=(r,)) for r in range(2)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join(60)
-    assert results[0] is not None and results[1] is not None
+    models, _ = run_two_ranks(build, batch, PPO)
     torch.testing.assert_close(flat(models[0]), flat(single), rtol=0, atol=1e-6)
     torch.testing.assert_close(flat(models[1]), flat(single), rtol=0, atol=1e-6)
     assert not torch.equal(flat(single), flat(build()))  # the update moved the weights
@@ -125,3 +104,77 @@ def test_the_compiled_update_trains_like_the_eager_one(variant):
     assert ("train/value_loss" in eager_metrics) == (variant == "ppo")
     for key, value in eager_metrics.items():
         assert fused_metrics[key] == pytest.approx(value, rel=1e-4, abs=1e-6), key
+
+
+def run_two_ranks(build, batch, ppo):
+    """``ppo_update`` on two ranks (threads) summing gradients as gloo/NCCL ``all_reduce(SUM)``."""
+    models = [build(), build()]
+    optimizers = [torch.optim.Adam(m.parameters(), lr=ppo.lr) for m in models]
+    barrier = threading.Barrier(2)
+    grads: list = [None, None]
+    results: list = [None, None]
+    errors: list = []
+
+    def all_reduce(rank):
+        grads[rank] = [p.grad.clone() for p in models[rank].parameters()]
+        barrier.wait()
+        for p, mine, other in zip(models[rank].parameters(), grads[rank], grads[1 - rank]):
+            p.grad.copy_(mine + other)
+        barrier.wait()
+
+    def train(rank):
+        try:
+            results[rank] = ppo_update(models[rank], optimizers[rank], batch, 0, ppo, rank, 2,
+                                       lambda: all_reduce(rank))
+        except BaseException as exc:  # surfaced below, not lost in the thread
+            errors.append(exc)
+            barrier.abort()
+
+    threads = [threading.Thread(target=train, args=(r,)) for r in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(300)
+    if errors:
+        raise errors[0]
+    assert results[0] is not None and results[1] is not None
+    return models, results
+
+
+@pytest.mark.skipif(find_cxx_compiler() is None,
+                    reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
+def test_two_compiled_ranks_end_with_the_weights_of_one_eager_rank():
+    """With two ranks the compiled step splits around the all-reduce (gradients, then clip + Adam)."""
+    build, batch = policy_and_batch()
+    single = build()
+    ppo_update(single, torch.optim.Adam(single.parameters(), lr=PPO.lr), batch, 0, PPO)
+    models, _ = run_two_ranks(build, batch, dataclasses.replace(PPO, compile=True))
+    for model in models:
+        torch.testing.assert_close(flat(model), flat(single), rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_an_fsdp2_model_trains_like_the_plain_one(compiled):
+    """strategy=fsdp (FSDP2 ``fully_shard``, SUM reduction, one gloo rank here): the same weights as
+    the plain model, eager and with actor.compile (which compiles only the loss under FSDP2)."""
+    if compiled and find_cxx_compiler() is None:
+        pytest.skip("torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
+    from torch.distributed.fsdp import FSDPModule, fully_shard
+
+    from infinirl.engines.fsdp import init_distributed
+
+    init_distributed()
+    build, batch = policy_and_batch()
+    plain = build()
+    ppo_update(plain, torch.optim.Adam(plain.parameters(), lr=PPO.lr), batch, 0, PPO)
+    sharded = build()
+    fully_shard(sharded)
+    for module in sharded.modules():
+        if isinstance(module, FSDPModule):
+            module.set_gradient_divide_factor(1.0)
+            module.set_force_sum_reduction_for_comms(True)
+    spec = dataclasses.replace(PPO, strategy="fsdp", compile=compiled)
+    metrics = ppo_update(sharded, torch.optim.Adam(sharded.parameters(), lr=PPO.lr), batch, 0, spec)
+    weights = torch.cat([p.full_tensor().detach().reshape(-1) for p in sharded.parameters()])
+    torch.testing.assert_close(weights, flat(plain), rtol=0, atol=1e-5)
+    assert metrics["train/grad_norm"] == metrics["train/grad_norm"]
