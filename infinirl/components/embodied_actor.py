@@ -67,7 +67,8 @@ class PPOSpec:
     critic: bool = True
     """Train the value head (PPO). False (GRPO): no value loss is computed, the head stays as built."""
     compile: bool = False
-    """Run each mini-batch's forward pass and loss through ``torch.compile`` (:func:`_minibatch_loss`)."""
+    """Compile each mini-batch's optimizer step (:class:`~infinirl.components.compiled_step.CompiledAdamStep`;
+    under FSDP2 only the forward pass and loss, :func:`_minibatch_loss`)."""
 
 
 def _to_tensor(value: Any) -> Any:

@@ -128,10 +128,10 @@ class ActorConfig:
     num_threads: int = 1
     """torch threads per actor rank (1 keeps small models fast and results deterministic)."""
     compile: bool = False
-    """torch.compile each mini-batch's forward pass + PPO loss (and their backward) into fused kernels:
-    ~2x faster updates of small policies on CPU, after a one-off compile of seconds to a minute in the
-    first update. Needs a C++ compiler (g++/clang++). With strategy=fsdp only the loss is compiled
-    (FSDP2's hooks run the forward pass eagerly)."""
+    """torch.compile the whole optimizer step (forward, PPO loss, gradient, clipping, Adam) into fused
+    kernels: ~4x faster updates of small policies on CPU, after a one-off compile of seconds to a
+    minute in the first update. Needs a C++ compiler (g++/clang++). With strategy=fsdp only the
+    forward pass and loss are compiled (FSDP2's hooks stay eager)."""
 
 
 @dataclass
