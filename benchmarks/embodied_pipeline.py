@@ -18,9 +18,9 @@ for 64x64 RGB camera observations (CNN):
   (extra, opt-in with --impls ...,collocated): the shipped default placement, env inside the
                       rollout process (no hop per step), for comparison.
 
-Every row runs the same update: by default with `actor.compile=true` (the mini-batch forward pass
-and PPO loss through torch.compile; the update is the same arithmetic as eager, ~2x faster for this
-small MLP), with `--eager` without it. The update does not depend on the placement, so it is
+Every row runs the same update: by default with `actor.compile=true` (the whole optimizer step,
+forward pass, PPO loss, gradient, clipping and Adam, through torch.compile; the same arithmetic as
+eager, ~4x faster for this small MLP), with `--eager` without it. The update does not depend on the placement, so it is
 the same cost in every row; pipelining only shortens collection.
 
 Each implementation runs in its own subprocess, one after the other. Env-steps/s = env steps of
