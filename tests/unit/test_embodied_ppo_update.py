@@ -92,10 +92,16 @@ def test_the_compiled_update_trains_like_the_eager_one(variant):
         model = build()
         spec = dataclasses.replace(ppo, compile=compiled)
         counters.clear()
-        metrics = ppo_update(model, torch.optim.Adam(model.parameters(), lr=spec.lr), batch, 0, spec)
+        optimizer = torch.optim.Adam(model.parameters(), lr=spec.lr)
+        eager_steps = []
+        optimizer.register_step_post_hook(lambda *_: eager_steps.append(1))
+        metrics = ppo_update(model, optimizer, batch, 0, spec)
         results[compiled] = flat(model), metrics
-        # compiled: dynamo captured the mini-batch loss as one graph, with no graph break
+        # compiled: dynamo captured the whole step as one graph, with no graph break, and the eager
+        # optimizer step never ran (Adam is inside the graph, on the optimizer's own state)
         assert bool(counters["stats"]["unique_graphs"]) == compiled and not counters["graph_break"]
+        assert len(eager_steps) == (0 if compiled else spec.epochs * spec.mini_batches)
+        assert float(optimizer.state[next(model.parameters())]["step"]) == spec.epochs * spec.mini_batches
     (eager, eager_metrics), (fused, fused_metrics) = results[False], results[True]
     assert not torch.equal(eager, flat(build()))  # the update moved the weights
     # Fused kernels round differently (float32): equal to float32 precision over 12 Adam steps.
