@@ -90,7 +90,7 @@ def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
 @pytest.mark.skipif(find_cxx_compiler() is None,
                     reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
 def test_compiled_actor_trains_and_resumes_exactly(ray_cluster, tmp_path):
-    """actor.compile: the actor compiles its mini-batch loss in its own process; its log-probs agree
+    """actor.compile: the actor compiles its whole optimizer step in its own process; its log-probs agree
     with the rollout's eager ones, and a resumed run recompiles and continues bit for bit."""
     placement, stages = PLACEMENTS["collocated"]
     compiled = {"actor": {"anneal_lr": False, "compile": True}}
