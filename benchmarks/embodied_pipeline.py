@@ -39,7 +39,9 @@ The table goes to stderr; the last stdout line is ONE JSON object:
     {"benchmark": "embodied_pipeline", "ratios": {"pipelined_vs_sequential": ..,
      "pipelined_vs_single_process": .., "<obs>/...": ..}, "targets": {...}, "results": {...}}
 The unprefixed ratios are those of state observations (the issue's headline); rgb ratios carry
-the "rgb/" prefix. Ratios > 1 mean the pipelined path is faster.
+the "rgb/" prefix. Ratios > 1 mean the pipelined path is faster. With `--rounds N` the "ratios"
+are ratios of the rows' medians, and "paired_ratios" holds each round's own ratio (the rows of a
+round ran minutes apart) and the median of those: the stricter reading on a machine that drifts.
 """
 
 from __future__ import annotations
@@ -250,6 +252,13 @@ def _median_run(rows: list[dict]) -> dict:
                                                                     if "env_steps_per_s" in r]}
 
 
+def _paired_ratios(rows_a: list[dict], rows_b: list[dict]) -> list[float]:
+    """Per-round ratios a_i / b_i of two rows (rounds where both ran): each pair ran minutes apart,
+    so a slow spell of the machine that spans a round cancels out of its ratio."""
+    return [round(a["env_steps_per_s"] / b["env_steps_per_s"], 3) for a, b in zip(rows_a, rows_b)
+            if "env_steps_per_s" in a and "env_steps_per_s" in b]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--obs", default="state,rgb", help="comma list of: " + ", ".join(OBS_MODES))
@@ -261,7 +270,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1,
                         help="run every row this many times, interleaved; each row reports its median run")
     parser.add_argument("--eager", action="store_true",
-                        help="every row without actor.compile (default: every row compiles its PPO mini-batch loss)")
+                        help="every row without actor.compile (default: every row compiles its PPO optimizer step)")
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl" if os.environ.get("INFINIRL_BENCH_EGL") else "osmesa")
     modes = [m.strip() for m in args.obs.split(",") if m.strip()]
@@ -298,7 +307,7 @@ def main() -> None:
                       f"{result['collect_s']:.2f}s  train {result['train_s']:.2f}s  per iteration "
                       f"({result['iterations']} measured, round {round_ + 1}/{args.rounds})", file=sys.stderr)
     results = {key: _median_run(rows) for key, rows in runs.items()}
-    ratios = {}
+    ratios, paired = {}, {}
     for obs in modes:
         if "collocated" in impls:
             a, b = (results.get(f"{obs}/{i}", {}).get("env_steps_per_s") for i in ("collocated", "single_process"))
@@ -308,7 +317,14 @@ def main() -> None:
         for key, other in (("pipelined_vs_sequential", "sequential"), ("pipelined_vs_single_process", "single_process")):
             a, b = speed("pipelined"), speed(other)
             ratios[prefix + key] = round(a / b, 3) if a and b else None
-    print(json.dumps({"benchmark": "embodied_pipeline", "ratios": ratios, "targets": TARGETS, "results": results,
+            per_round = _paired_ratios(runs.get(f"{obs}/pipelined", []), runs.get(f"{obs}/{other}", []))
+            if args.rounds > 1 and per_round:
+                paired[prefix + key] = {"rounds": per_round, "median": sorted(per_round)[(len(per_round) - 1) // 2]}
+    if paired:
+        print("per-round ratios: " + "; ".join(f"{k} {v['rounds']} (median {v['median']})" for k, v in paired.items()),
+              file=sys.stderr)
+    print(json.dumps({"benchmark": "embodied_pipeline", "ratios": ratios, "paired_ratios": paired, "targets": TARGETS,
+                      "results": results,
                       "actor_compile": not args.eager,
                       "device": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
                       "elapsed_s": round(time.time() - started, 1)}))
