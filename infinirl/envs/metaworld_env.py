@@ -16,6 +16,9 @@ What this adapter fixes on top of the raw MetaWorld class:
   mounted rolled by 180°, so their frames come out upside down. :func:`camera_is_upside_down`
   detects that from the camera's pose (its image-up axis points below the horizon) and frames are
   rotated back by 180° (a rotation, not a vertical flip, which would mirror the scene).
+* **Cheaper steps.** The object quaternion in the observation is computed by
+  :mod:`~infinirl.envs.fast_rotation` (scipy's numbers bit for bit, ~25x faster per call), about a
+  tenth of the CPU time of a MetaWorld step.
 * **Affordable pixels on CPU.** ``fast_render`` (default) turns off shadows, reflections and
   multisample anti-aliasing in the model's visual settings (physics untouched): software GL then
   renders a 64x64 frame in ~6.5 ms of CPU instead of ~90 ms (see :func:`_fast_visuals`).
@@ -33,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from infinirl.envs.base import ActionSpace, ArraySpec, Obs, SubStep
+from infinirl.envs.fast_rotation import use_fast_rotation
 from infinirl.envs.gymnasium_env import check_obs_mode, use_headless_gl
 
 __all__ = [
@@ -111,6 +115,7 @@ class MetaWorldSubEnv:
             height=height,
             reward_function_version=reward_function_version,
         )
+        use_fast_rotation(type(self._sim))
         _make_goal_observable_and_seedable(self._sim, env_dict.ML1_ARGS_KWARGS[task]["kwargs"])
         self._sim.max_path_length = max_episode_steps
         if fast_render:
