@@ -1,5 +1,7 @@
 """The generic gymnasium adapter on a discrete classic-control task and a MuJoCo task."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -46,3 +48,18 @@ def test_mujoco_task_clips_actions_and_renders_rgb():
         np.testing.assert_allclose(big.obs["state"][0], big.obs["state"][1])
         assert big.obs["rgb"].shape == (2, 48, 64, 3) and big.obs["rgb"].dtype == np.uint8
         assert big.obs["rgb"].std() > 10  # a real picture, not a blank buffer
+
+
+def test_headless_gl_renders_software_frames_on_the_calling_thread(monkeypatch):
+    """osmesa gets LP_NUM_THREADS=0 (llvmpipe rasterises on the calling thread) unless the user
+    chose a value; other backends are left alone."""
+    from infinirl.envs.gymnasium_env import use_headless_gl
+
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    assert use_headless_gl() == "egl" and "LP_NUM_THREADS" not in os.environ
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")
+    assert use_headless_gl() == "osmesa" and os.environ["LP_NUM_THREADS"] == "0"
+    monkeypatch.setenv("LP_NUM_THREADS", "4")
+    use_headless_gl()
+    assert os.environ["LP_NUM_THREADS"] == "4"
