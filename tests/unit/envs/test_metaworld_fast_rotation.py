@@ -41,6 +41,12 @@ def test_nearly_orthogonal_matrices_take_scipys_path(scale):
         np.testing.assert_array_equal(matrix_to_quaternion(noisy), _scipy(noisy))
 
 
+def test_other_dtypes_and_shapes_are_scipys_results():
+    matrix = Rotation.random(random_state=3).as_matrix()
+    for other in (matrix.astype(np.float32), matrix.tolist(), matrix[None]):
+        np.testing.assert_array_equal(matrix_to_quaternion(other), _scipy(other))
+
+
 def test_invalid_matrices_fail_as_in_scipy():
     for bad in (np.diag([1.0, 1.0, -1.0]), np.zeros((3, 3))):
         with pytest.raises(ValueError, match="determinant"):
