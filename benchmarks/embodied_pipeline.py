@@ -18,10 +18,12 @@ for 64x64 RGB camera observations (CNN):
   (extra, opt-in with --impls ...,collocated): the shipped default placement, env inside the
                       rollout process (no hop per step), for comparison.
 
-Every row runs the same update: by default with `actor.compile=true` (the whole optimizer step,
-forward pass, PPO loss, gradient, clipping and Adam, through torch.compile; the same arithmetic as
-eager, ~4x faster for this small MLP), with `--eager` without it. The update does not depend on the placement, so it is
-the same cost in every row; pipelining only shortens collection.
+Every row runs the same update and the same policy inference: by default with `actor.compile=true`
+(the whole optimizer step, forward pass, PPO loss, gradient, clipping and Adam, through
+torch.compile; the same arithmetic as eager, ~4x faster for this small MLP) and
+`rollout.compile=true` (the policy's `act` compiled, the same random draws as eager; row (c)
+compiles its `act` the same way), with `--eager` without either. The update does not depend on
+the placement, so it is the same cost in every row; pipelining only shortens collection.
 
 Each implementation runs in its own subprocess, one after the other. Env-steps/s = env steps of
 the measured iterations / their wall time (collection + update + weight sync), skipping the first
@@ -32,7 +34,7 @@ Usage:
     python benchmarks/embodied_pipeline.py                      # state and rgb, all impls (~4-6 min on 2 cores)
     python benchmarks/embodied_pipeline.py --obs state --iterations 4
     python benchmarks/embodied_pipeline.py --only single_process --obs rgb   # one impl, its JSON line
-    python benchmarks/embodied_pipeline.py --eager              # every row's update uncompiled
+    python benchmarks/embodied_pipeline.py --eager              # every row's update and act uncompiled
     python benchmarks/embodied_pipeline.py --obs state --rounds 5   # rows interleaved 5 times, medians
 
 The table goes to stderr; the last stdout line is ONE JSON object:
@@ -97,6 +99,7 @@ def run_runner(impl: str, obs: str, iterations: int, warmup: int, compile_: bool
         overrides = {"iterations": iterations, "env.num_envs": NUM_ENVS, "rollout_steps": STEPS, "output_dir": out,
                      "resume": False, "eval.every": 0, "eval.at_start": False, "eval.episodes": 1,
                      "eval.num_envs": 1, "eval.video_episodes": 0, "loggers": [], "actor.compile": compile_,
+                     "rollout.compile": compile_,
                      **PLACEMENT, **STAGING, **OBS_MODES[obs], **IMPL_OVERRIDES[impl]}
         cmd = [sys.executable, "-c", "import sys; from infinirl.cli import main; sys.exit(main())", "train",
                "ppo_metaworld_reach", *_override_args(overrides)]
@@ -124,7 +127,7 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
     import torch
 
     from infinirl.components.embodied_actor import PPOSpec, ppo_update
-    from infinirl.components.embodied_rollout import PolicySpec, array_obs
+    from infinirl.components.embodied_rollout import PolicySpec, array_obs, compiled_act
     from infinirl.components.env_worker import iteration_seeds, probe_env_specs
     from infinirl.config import compose
     from infinirl.models.policies.base import prepare_obs
@@ -145,6 +148,7 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
                   mini_batches=alg["mini_batches"], clip=alg["clip"], entropy_coef=alg["entropy_coef"],
                   max_grad_norm=alg["max_grad_norm"], strategy="ddp", compile=compile_)
     optimizer = torch.optim.Adam(model.parameters(), lr=ppo.lr, eps=ppo.adam_eps, fused=True)
+    act = compiled_act(model) if compile_ else model.act  # what rollout.compile does in (a)/(b)
     envs = gym.vector.AsyncVectorEnv([_gym_env_fn(task, env_kwargs, keys)] * NUM_ENVS,
                                      autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
     rows = []
@@ -155,7 +159,7 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
             record = {"obs": [], "actions": [], "logprobs": [], "values": [], "rewards": [], "dones": []}
             with torch.no_grad():
                 for _ in range(STEPS):
-                    step = model.act(prepare_obs(ob))
+                    step = act(prepare_obs(ob))
                     record["obs"].append(array_obs(ob))
                     for key in ("actions", "logprobs", "values"):
                         record[key].append(getattr(step, key))
@@ -270,7 +274,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1,
                         help="run every row this many times, interleaved; each row reports its median run")
     parser.add_argument("--eager", action="store_true",
-                        help="every row without actor.compile (default: every row compiles its PPO optimizer step)")
+                        help="every row without actor.compile and rollout.compile (default: every row compiles "
+                             "its PPO optimizer step and its policy's act)")
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl" if os.environ.get("INFINIRL_BENCH_EGL") else "osmesa")
     modes = [m.strip() for m in args.obs.split(",") if m.strip()]
@@ -325,7 +330,7 @@ def main() -> None:
               file=sys.stderr)
     print(json.dumps({"benchmark": "embodied_pipeline", "ratios": ratios, "paired_ratios": paired, "targets": TARGETS,
                       "results": results,
-                      "actor_compile": not args.eager,
+                      "actor_compile": not args.eager, "rollout_compile": not args.eager,
                       "device": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
                       "elapsed_s": round(time.time() - started, 1)}))
 

@@ -70,7 +70,7 @@ def run(cfg: EmbodiedConfig) -> dict:
         ppo = ppo_spec(cfg)
         launches = {
             "rollout": (EmbodiedRolloutWorker, (env_spec, policy_spec, observation_spec, action_space, cfg.seed,
-                                                host_env, cfg.rollout.num_threads)),
+                                                host_env, cfg.rollout.num_threads, cfg.rollout.compile)),
             "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo, cfg.actor.num_threads)),
         }
         if not host_env:

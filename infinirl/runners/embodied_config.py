@@ -142,6 +142,11 @@ class RolloutConfig:
     transport: Literal["socket", "channel"] = "socket"
     """Env <-> rollout stream when they run in different processes (see infinirl/components/env_link.py)."""
     num_threads: int = 1
+    compile: bool = False
+    """torch.compile the policy's ``act`` for collection (sampling from the same random stream as
+    eager, so the same seed gives the same actions up to float rounding): ~40% cheaper decisions
+    for a small MLP on CPU, ~20% for the CNN, after a one-off compile of seconds in the first
+    iteration. Evaluation and videos stay eager (their batch sizes vary). Needs a C++ compiler."""
 
 
 @dataclass
@@ -245,8 +250,9 @@ class EmbodiedConfig:
             raise ConfigError(f"env.stage_processes=true streams each stage over its own socket; "
                               f"rollout.transport={self.rollout.transport} is not supported with it: set "
                               "rollout.transport=socket or env.stage_processes=false")
-        if self.actor.compile:
-            _check_compile()
+        for key, wanted in (("actor.compile", self.actor.compile), ("rollout.compile", self.rollout.compile)):
+            if wanted:
+                _check_compile(key)
         batch = self.env.num_envs * self.rollout_steps
         if batch % self.algorithm.mini_batches:
             raise ConfigError(f"algorithm.mini_batches={self.algorithm.mini_batches} does not divide the batch of "
@@ -275,10 +281,10 @@ def find_cxx_compiler() -> str | None:
     return None
 
 
-def _check_compile() -> None:
-    """``actor.compile`` is checked in the driver: a missing compiler would otherwise surface as an
-    inductor build error inside the actor, in the middle of the first update."""
+def _check_compile(key: str) -> None:
+    """``actor.compile`` / ``rollout.compile`` are checked in the driver: a missing compiler would
+    otherwise surface as an inductor build error inside a worker, in the middle of the first iteration."""
     if find_cxx_compiler() is None:
-        raise ConfigError("actor.compile=true needs a C++ compiler for torch.compile's CPU kernels, and none of "
+        raise ConfigError(f"{key}=true needs a C++ compiler for torch.compile's CPU kernels, and none of "
                           "$CXX, g++, c++, clang++ is on PATH: install one (Debian: apt-get install g++) "
-                          "or set actor.compile=false")
+                          f"or set {key}=false")

@@ -55,6 +55,7 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, mode):
                 "train/logprob_mismatch", "rollout/max_staleness", "eval/success_rate", "eval/return_mean",
                 "time/env_steps_per_s", "env/steps"):
         assert key in rows[1], key
+    assert rows[1]["rollout/act_compiled"] == 0.0  # eager unless rollout.compile
     assert rows[1]["train/logprob_mismatch"] < 1e-5  # trainer and rollout agree on log-probs
     assert rows[1]["rollout/max_staleness"] == 0.0  # on-policy
     resumed_rows = [json.loads(line) for line in (tmp_path / "resumed" / "metrics.jsonl").read_text().splitlines()]
@@ -89,13 +90,15 @@ def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
 
 @pytest.mark.skipif(find_cxx_compiler() is None,
                     reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
-def test_compiled_actor_trains_and_resumes_exactly(ray_cluster, tmp_path):
-    """actor.compile: the actor compiles its whole optimizer step in its own process; its log-probs agree
-    with the rollout's eager ones, and a resumed run recompiles and continues bit for bit."""
+def test_compiled_actor_and_rollout_train_and_resume_exactly(ray_cluster, tmp_path):
+    """actor.compile + rollout.compile: the actor compiles its whole optimizer step, the rollout its
+    policy's act, each in its own process; the trainer's log-probs agree with the rollout's, and a
+    resumed run recompiles both and continues bit for bit."""
     placement, stages = PLACEMENTS["collocated"]
-    compiled = {"actor": {"anneal_lr": False, "compile": True}}
+    compiled = {"actor": {"anneal_lr": False, "compile": True}, "rollout": {"pipeline_stages": stages, "compile": True}}
     straight_and_resumed(tmp_path, 2, placement, stages, **compiled)
     rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
+    assert rows[1]["rollout/act_compiled"] == 1.0
     assert rows[1]["train/logprob_mismatch"] < 1e-5
     assert rows[2]["train/value_loss"] == rows[2]["train/value_loss"]  # not NaN
 
@@ -104,6 +107,8 @@ def test_compile_without_a_compiler_fails_before_workers_start(tmp_path, monkeyp
     monkeypatch.setattr(shutil, "which", lambda name: None)
     with pytest.raises(ConfigError, match="actor.compile=true needs a C\\+\\+ compiler.*set actor.compile=false"):
         make_cfg(tmp_path, 1, PLACEMENTS["collocated"][0], 1, actor={"compile": True})
+    with pytest.raises(ConfigError, match="rollout.compile=true needs a C\\+\\+ compiler.*set rollout.compile=false"):
+        make_cfg(tmp_path, 1, PLACEMENTS["collocated"][0], 1, rollout={"compile": True})
     make_cfg(tmp_path, 1, PLACEMENTS["collocated"][0], 1)  # compile off: no compiler needed
 
 
