@@ -31,11 +31,20 @@ def assert_same_step(eager, compiled):
     torch.testing.assert_close(compiled.values, eager.values, rtol=1e-5, atol=1e-6)
 
 
-@torch.no_grad()
-def test_compiled_act_draws_the_eager_noise_and_follows_weight_syncs(monkeypatch):
+@pytest.fixture
+def restore_fallback_random():
+    """compiled_act sets an inductor option process-wide; put it back for the tests that follow.
+    (Not monkeypatch: since pytest 9.2 its undo deletes attributes that are not in the target's
+    ``__dict__``, and deleting an inductor option hides it from inductor itself.)"""
     import torch._inductor.config as inductor_config
 
-    monkeypatch.setattr(inductor_config, "fallback_random", inductor_config.fallback_random)  # restored after
+    previous = inductor_config.fallback_random
+    yield
+    inductor_config.fallback_random = previous
+
+
+@torch.no_grad()
+def test_compiled_act_draws_the_eager_noise_and_follows_weight_syncs(restore_fallback_random):
     model = policy(0)
     assert model.keys == ["state"]  # the observation normaliser is part of what is compiled
     act = compiled_act(model)
