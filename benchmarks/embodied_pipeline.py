@@ -61,6 +61,18 @@ TARGETS = {"pipelined_vs_sequential": 1.3, "pipelined_vs_single_process": 1.0}
 IMPLS = ("pipelined", "sequential", "single_process", "collocated")
 DEFAULT_IMPLS = IMPLS[:3]
 NUM_ENVS, STEPS = 8, 200
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _child_env() -> dict:
+    """The environment of a row's subprocess: this checkout first on the path, so the benchmark
+    measures the code beside it whether or not (or wherever) infinirl is installed."""
+    path = os.environ.get("PYTHONPATH")
+    return {**os.environ, "PYTHONPATH": REPO_ROOT + (os.pathsep + path if path else "")}
+
+
+if REPO_ROOT not in sys.path:  # row (c) runs in this process (``--only single_process``)
+    sys.path.insert(0, REPO_ROOT)
 
 #: per observation mode: config overrides of `ppo_metaworld_reach` shared by every implementation
 OBS_MODES = {
@@ -103,7 +115,7 @@ def run_runner(impl: str, obs: str, iterations: int, warmup: int, compile_: bool
                      **PLACEMENT, **STAGING, **OBS_MODES[obs], **IMPL_OVERRIDES[impl]}
         cmd = [sys.executable, "-c", "import sys; from infinirl.cli import main; sys.exit(main())", "train",
                "ppo_metaworld_reach", *_override_args(overrides)]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=_child_env())
         if proc.returncode:
             raise RuntimeError(f"{impl}/{obs} failed ({' '.join(cmd)}):\n{proc.stderr[-4000:]}")
         rows = [json.loads(line) for line in open(os.path.join(out, "metrics.jsonl")) if "time/iteration_s" in line]
@@ -301,7 +313,7 @@ def main() -> None:
             for impl in impls:
                 cmd = [sys.executable, os.path.abspath(__file__), "--only", impl, "--obs", obs,
                        "--iterations", str(args.iterations), "--warmup", str(args.warmup)] + ["--eager"] * args.eager
-                proc = subprocess.run(cmd, capture_output=True, text=True)
+                proc = subprocess.run(cmd, capture_output=True, text=True, env=_child_env())
                 if proc.returncode:
                     runs.setdefault(f"{obs}/{impl}", []).append({"failed": proc.stderr[-2000:]})
                     print(f"{obs:5s} {impl:15s} FAILED\n{proc.stderr[-2000:]}", file=sys.stderr)
