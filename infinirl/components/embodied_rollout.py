@@ -11,7 +11,9 @@ through an env link. The loop is the same either way (an *endpoint* hides the di
 
 With ``K >= 2`` the env simulates stage ``s`` while this loop decides for stage ``s+1``: the
 pipelining of simulation and inference. Local simulators in subprocesses (``env.num_workers >= 1``)
-overlap the same way through ``step_async``/``step_wait``.
+overlap the same way through ``step_async``/``step_wait``. The last decision's step resets no env
+whose episode ends (the next iteration resets every env with its own seed; the bootstrap value of
+an ended env is unused), which saves a simulator reset per env and iteration.
 
 Weights arrive from the trainer through :func:`~infinirl.runtime.sync_weights` with a version,
 which every trajectory carries (``version``), so staleness is measured, not assumed.
@@ -95,8 +97,8 @@ class _LocalEndpoint:
             return message
         return self.env.step_wait(stage)
 
-    def send(self, stage: int, actions: np.ndarray) -> None:
-        self.env.step_async(stage, actions)
+    def send(self, stage: int, actions: np.ndarray, autoreset: bool = True) -> None:
+        self.env.step_async(stage, actions, autoreset)
 
 
 class _RemoteEndpoint:
@@ -112,7 +114,8 @@ class _RemoteEndpoint:
     def recv(self, stage: int) -> dict:
         return self.links[stage if self._per_stage else 0].recv()
 
-    def send(self, stage: int, actions: np.ndarray) -> None:
+    def send(self, stage: int, actions: np.ndarray, autoreset: bool = True) -> None:
+        # the env side knows the iteration's length and skips the last step's resets itself
         self.links[stage if self._per_stage else 0].send((stage, actions))
 
 
@@ -232,7 +235,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                 actions = env_actions(step.actions, chunk)
                 infer_s += time.perf_counter() - start
                 # The env waits for these actions: send first, record afterwards (off its critical path).
-                endpoint.send(stage, actions)
+                endpoint.send(stage, actions, autoreset=t < num_steps - 1)
                 start = time.perf_counter()
                 if t > 0:
                     self._record_result(buf, msg, episodes)
@@ -310,7 +313,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                 done, t = False, 0
                 while not done:
                     step = self.policy.act(prepare_obs(array_obs(obs)), deterministic=deterministic)
-                    result = env.step(env_actions(step.actions, self.policy.chunk))
+                    result = env.step(env_actions(step.actions, self.policy.chunk), autoreset=False)
                     done, t = bool(result.done[0]), t + 1
                     if done:
                         successes.append(bool(result.info["episode_success"][0]))
@@ -347,7 +350,8 @@ def run_eval_episodes(policy, env, seeds: list[int], deterministic: bool = True)
         active = np.arange(num_envs) < used
         while active.any():
             step = policy.act(prepare_obs(array_obs(obs)), deterministic=deterministic)
-            result = env.step(env_actions(step.actions, chunk), env_mask=active)
+            # autoreset=False: an env runs one episode per round; the next round resets it anyway
+            result = env.step(env_actions(step.actions, chunk), env_mask=active, autoreset=False)
             ended = np.flatnonzero(result.done & active)
             for i in ended:
                 successes.append(bool(result.info["episode_success"][i]))

@@ -168,13 +168,16 @@ class StagedEnv:
         env = self.envs[0]
         return hasattr(env, "step_async") and getattr(env, "num_workers", 0) > 0
 
-    def step_async(self, stage: int, actions: np.ndarray) -> None:
+    def step_async(self, stage: int, actions: np.ndarray, autoreset: bool = True) -> None:
+        """Start stage ``stage``'s step. ``autoreset=False`` on an iteration's last step: the next
+        iteration resets every env with its own seed, so restarting episodes that end now would
+        simulate resets whose observations nobody reads (their bootstrap values are masked)."""
         env = self.envs[stage]
         if hasattr(env, "step_async"):  # a VectorEnv: the simulators run while we return
-            env.step_async(actions)
+            env.step_async(actions, autoreset=autoreset)
             self._pending[stage] = True
         else:  # a chunked env steps K times, so it cannot be split; it runs in step_wait
-            self._pending[stage] = actions
+            self._pending[stage] = (actions, autoreset)
 
     def step_wait(self, stage: int) -> StageStep:
         pending, self._pending[stage] = self._pending[stage], False
@@ -184,11 +187,12 @@ class StagedEnv:
         elif pending is False:
             raise RuntimeError(f"step_wait({stage}) without step_async({stage})")
         else:
-            result = env.step(pending)
+            actions, autoreset = pending
+            result = env.step(actions, autoreset=autoreset)
         return _step_message(result, self.spec.chunk_size)
 
-    def step(self, stage: int, actions: np.ndarray) -> StageStep:
-        self.step_async(stage, actions)
+    def step(self, stage: int, actions: np.ndarray, autoreset: bool = True) -> StageStep:
+        self.step_async(stage, actions, autoreset)
         return self.step_wait(stage)
 
     def close(self) -> None:
@@ -328,18 +332,19 @@ def serve_stages(env: StagedEnv, link, seeds: list[int], num_steps: int) -> dict
         link.send(message)
     pending = [False] * stages
     background = env.simulates_in_background
-    for _ in range(num_steps):
+    for step_index in range(num_steps):
+        autoreset = step_index < num_steps - 1  # the next iteration resets every env itself
         for stage in range(stages):
             got_stage, actions = link.recv()
             if got_stage != env.stage_ids[stage]:
                 raise RuntimeError(f"env expected actions for stage {env.stage_ids[stage]}, got stage {got_stage}")
             start = time.perf_counter()
             if not background:
-                message = env.step(stage, actions)
+                message = env.step(stage, actions, autoreset)
                 busy += time.perf_counter() - start
                 link.send(message)
                 continue
-            env.step_async(stage, actions)
+            env.step_async(stage, actions, autoreset)
             pending[stage] = True
             following = (stage + 1) % stages
             if pending[following]:

@@ -253,7 +253,8 @@ class SACCollectorWorker(Worker, WeightSink):
             active = np.arange(num_envs) < len(batch)
             while active.any():
                 actions = self._deterministic(obs[self.obs_key])
-                result = env.step(actions.reshape(num_envs, *self.action_shape), env_mask=active)
+                # autoreset=False: one episode per env and round; the next round resets it anyway
+                result = env.step(actions.reshape(num_envs, *self.action_shape), env_mask=active, autoreset=False)
                 for i in np.flatnonzero(result.done & active):
                     returns.append(float(result.info["episode_return"][i]))
                     lengths.append(int(result.info["episode_length"][i]))
@@ -283,7 +284,8 @@ class SACCollectorWorker(Worker, WeightSink):
                 frames.append(env.render()[0])
                 total, t = 0.0, 0
                 while True:
-                    result = env.step(self._deterministic(obs[self.obs_key]).reshape(1, *self.action_shape))
+                    result = env.step(self._deterministic(obs[self.obs_key]).reshape(1, *self.action_shape),
+                                      autoreset=False)
                     total, t = total + float(result.reward[0]), t + 1
                     if result.done[0] or (max_steps and t >= max_steps):
                         break

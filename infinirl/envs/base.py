@@ -202,7 +202,8 @@ class StepResult:
 
     * ``success``: the simulator's task-success flag at this step;
     * ``final_obs`` / ``final_obs_mask``: an episode that ended at this step was reset at once
-      (``obs`` is then the first observation of the next episode); its last observation is kept in
+      (``obs`` is then the first observation of the next episode; with ``step(...,
+      autoreset=False)`` it is not, and ``obs`` repeats the last one); its last observation is kept in
       ``final_obs``, valid where ``final_obs_mask`` (= ``terminated | truncated``) is true, so
       truncated episodes can still be bootstrapped from a value of their last state;
     * ``episode_return`` / ``episode_length`` / ``episode_success`` (success at any step of the
@@ -251,7 +252,9 @@ class Env(Protocol):
 
     ``step(actions, env_mask=None)``: where ``env_mask`` is false the env is not stepped; its row
     repeats its current observation with zero reward and no episode end (action chunking uses
-    this to stop an env whose episode ended within a chunk). ``offload``/``reload`` release and
+    this to stop an env whose episode ended within a chunk). ``autoreset=False``: an episode that
+    ends is not restarted and that env may not be stepped again before ``reset`` (for a last step
+    whose next observation is not used). ``offload``/``reload`` release and
     restore device memory for simulators that hold some; CPU simulators make them no-ops.
     """
 
@@ -263,7 +266,7 @@ class Env(Protocol):
         self, seeds: int | Sequence[int] | None = None, state_ids: Sequence[int] | None = None
     ) -> Obs: ...
 
-    def step(self, actions: Any, env_mask: np.ndarray | None = None) -> StepResult: ...
+    def step(self, actions: Any, env_mask: np.ndarray | None = None, autoreset: bool = True) -> StepResult: ...
 
     def render(self) -> np.ndarray: ...
 

@@ -58,7 +58,9 @@ class ActionChunkEnv:
     ) -> Obs:
         return self.env.reset(seeds=seeds, state_ids=state_ids)
 
-    def step(self, actions: Any, env_mask: np.ndarray | None = None) -> StepResult:
+    def step(self, actions: Any, env_mask: np.ndarray | None = None, autoreset: bool = True) -> StepResult:
+        """``autoreset=False``: envs whose episode ends in this chunk are not reset (see
+        :meth:`VectorEnv.step`); the returned observation is then their final one."""
         actions = self.action_space.validate(actions, self.num_envs)
         n, k_max = self.num_envs, self.chunk_size
         active = np.ones(n, dtype=bool) if env_mask is None else np.asarray(env_mask, bool).copy()
@@ -74,7 +76,7 @@ class ActionChunkEnv:
         for k in range(k_max):
             if not active.any():
                 break
-            result = self.env.step(actions[:, k], env_mask=active)
+            result = self.env.step(actions[:, k], env_mask=active, autoreset=autoreset)
             step_mask[:, k] = active
             step_rewards[:, k] = np.where(active, result.reward, 0.0)
             success |= result.info["success"] & active

@@ -12,6 +12,9 @@ adapter only supplies a picklable factory ``factory(env_index) -> SubEnv``. What
 * **Auto-reset.** An env whose episode ends is reset at once; its last observation goes to
   ``info["final_obs"]``. Each env draws its episode seeds from its own stream, so a run is
   reproducible from ``seed`` alone, and envs reset to the same ``state_id`` stay in lockstep.
+  ``step(..., autoreset=False)`` skips that reset for a step whose next observation nobody will
+  use (a rollout's last step, before the next iteration resets every env with its own seed): a
+  MetaWorld reset costs as much as ~40 steps. Such an env stays ended until ``reset``.
 * **Crash recovery.** A sub-env whose ``step`` raises is rebuilt from its factory inside its
   worker; a worker process that dies (segfault, ``os._exit``, OOM kill) or exceeds
   ``step_timeout_s`` is replaced. Either way the affected episodes are reported truncated with
@@ -138,7 +141,7 @@ class _EpisodeSlot:
             seed = self._next_seed()
         return self._reset_or_rebuild(seed, state_id)
 
-    def step(self, action: np.ndarray) -> _SlotStep:
+    def step(self, action: np.ndarray, autoreset: bool = True) -> _SlotStep:
         try:
             sub = self.env.step(action)
         except Exception:  # a crashing simulator must not take the run down
@@ -155,7 +158,8 @@ class _EpisodeSlot:
         )
         if result.terminated or result.truncated:
             result.final_obs = sub.obs
-            result.obs = self._reset_or_rebuild(self._next_seed(), None)
+            if autoreset:
+                result.obs = self._reset_or_rebuild(self._next_seed(), None)
         return result
 
     def _next_seed(self) -> int:
@@ -225,11 +229,11 @@ class _SlotGroup:
         """``requests``: (local slot, seed, state_id) per env to reset; batched first obs."""
         return collate_obs([self.slots[k].reset(seed, state_id) for k, seed, state_id in requests])
 
-    def step(self, slots: Sequence[int], actions: np.ndarray) -> _BlockStep | None:
+    def step(self, slots: Sequence[int], actions: np.ndarray, autoreset: bool = True) -> _BlockStep | None:
         """Step local ``slots`` with the matching rows of ``actions``."""
         if not slots:
             return None
-        return _BlockStep.from_slots([self.slots[k].step(a) for k, a in zip(slots, actions, strict=False)])
+        return _BlockStep.from_slots([self.slots[k].step(a, autoreset) for k, a in zip(slots, actions, strict=False)])
 
     def render(self) -> list[np.ndarray]:
         return [slot.env.render() for slot in self.slots]
@@ -433,6 +437,7 @@ class VectorEnv:
         self._step_timeout_s = step_timeout_s
         self._obs: Obs | None = None
         self._pending_step: list[tuple[Any, list[int]]] | None = None
+        self._pending_autoreset = True
         self._workers = self._start_workers(
             factory, num_workers, seed, max_episode_steps, start_method
         )
@@ -442,6 +447,7 @@ class VectorEnv:
         self._episode_return = np.zeros(num_envs, dtype=np.float64)
         self._episode_length = np.zeros(num_envs, dtype=np.int64)
         self._episode_success = np.zeros(num_envs, dtype=bool)
+        self._awaiting_reset = np.zeros(num_envs, dtype=bool)  # ended in a step with autoreset=False
 
     def _start_workers(self, factory, num_workers, seed, max_episode_steps, start_method):
         if num_workers == 0:
@@ -505,15 +511,18 @@ class VectorEnv:
         self._episode_return[:] = 0.0
         self._episode_length[:] = 0
         self._episode_success[:] = False
+        self._awaiting_reset[:] = False
         return copy_obs(self._obs)
 
-    def step(self, actions: Any, env_mask: np.ndarray | None = None) -> StepResult:
+    def step(self, actions: Any, env_mask: np.ndarray | None = None, autoreset: bool = True) -> StepResult:
         """Step every env (or only where ``env_mask`` is true) by one action; see
-        :class:`~infinirl.envs.base.StepResult` for what ``info`` holds."""
-        self.step_async(actions, env_mask)
+        :class:`~infinirl.envs.base.StepResult` for what ``info`` holds. ``autoreset=False``: an
+        episode that ends is not restarted (its row keeps the final observation) and that env
+        cannot be stepped again before :meth:`reset`."""
+        self.step_async(actions, env_mask, autoreset)
         return self.step_wait()
 
-    def step_async(self, actions: Any, env_mask: np.ndarray | None = None) -> None:
+    def step_async(self, actions: Any, env_mask: np.ndarray | None = None, autoreset: bool = True) -> None:
         """Send the actions and return at once; :meth:`step_wait` collects the result. Lets the
         caller compute something else (another stage's policy) while the simulators run."""
         if self._obs is None:
@@ -522,11 +531,18 @@ class VectorEnv:
             raise RuntimeError("step_async() called twice without step_wait()")
         actions = self.action_space.validate(actions, self.num_envs)
         active = self._validate_mask(env_mask)
+        ended = active & self._awaiting_reset
+        if ended.any():
+            raise RuntimeError(
+                f"env(s) {np.flatnonzero(ended).tolist()} ended in a step with autoreset=False and "
+                "have not been reset: call reset() first, or leave them out with env_mask"
+            )
         self._pending_step = []
+        self._pending_autoreset = bool(autoreset)
         for worker in self._workers:
             slots = [k for k, i in enumerate(worker.indices) if active[i]]
             indices = np.asarray(worker.indices)[slots]
-            worker.send("step", slots, actions[indices])
+            worker.send("step", slots, actions[indices], self._pending_autoreset)
             self._pending_step.append((worker, indices))
 
     def step_wait(self) -> StepResult:
@@ -682,6 +698,8 @@ class VectorEnv:
         self._episode_return[done] = 0.0
         self._episode_length[done] = 0
         self._episode_success[done] = False
+        if not self._pending_autoreset:  # a crashed env was rebuilt and reset anyway: also ended
+            self._awaiting_reset |= done
         return StepResult(obs, reward, terminated, truncated, info)
 
 

@@ -3,7 +3,8 @@
 With simulator subprocesses the env worker starts a stage and finishes the *next* one (so stages
 simulate at once); with the sub-envs in its own process it simulates each stage as soon as its
 actions arrive. Both must hand the rollout exactly the messages that stepping the stages one by one
-gives, in the order it reads them (stage 0, 1, ..., per round).
+gives, in the order it reads them (stage 0, 1, ..., per round). On the iteration's last round
+episodes that end are not reset (the next iteration resets every env with its own seed).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ pytest.importorskip("gymnasium")
 from infinirl.components.env_worker import EnvSpec, StagedEnv, serve_stages  # noqa: E402
 
 STAGES, ENVS, ROUNDS = 2, 4, 6
+EPISODE = 3  # episodes end at rounds 3 and 6: mid-iteration and on the last round
 
 
 class ScriptedLink:
@@ -39,7 +41,7 @@ def scripted_actions():
 
 
 def served(num_workers: int) -> tuple[list, bool]:
-    env = StagedEnv(EnvSpec("gym:Pendulum-v1", ENVS, STAGES, num_workers=num_workers, max_episode_steps=4))
+    env = StagedEnv(EnvSpec("gym:Pendulum-v1", ENVS, STAGES, num_workers=num_workers, max_episode_steps=EPISODE))
     link = ScriptedLink(scripted_actions())
     try:
         stats = serve_stages(env, link, seeds=list(range(ENVS)), num_steps=ROUNDS)
@@ -50,10 +52,12 @@ def served(num_workers: int) -> tuple[list, bool]:
 
 
 def stepped_one_by_one() -> list:
-    env = StagedEnv(EnvSpec("gym:Pendulum-v1", ENVS, STAGES, num_workers=0, max_episode_steps=4))
+    env = StagedEnv(EnvSpec("gym:Pendulum-v1", ENVS, STAGES, num_workers=0, max_episode_steps=EPISODE))
     try:
         messages = env.reset(list(range(ENVS)))
-        messages += [env.step(stage, actions) for stage, actions in scripted_actions()]
+        last_round = (ROUNDS - 1) * STAGES
+        messages += [env.step(stage, actions, autoreset=i < last_round)
+                     for i, (stage, actions) in enumerate(scripted_actions())]
         return messages
     finally:
         env.close()
@@ -70,4 +74,10 @@ def test_serve_sends_what_stepping_stage_by_stage_gives(num_workers):
         for key in ("reward", "terminated", "truncated", "ended"):
             if key in want:
                 np.testing.assert_array_equal(got[key], want[key])
-    assert any(len(m.get("ended", [])) for m in sent)  # episodes ended and auto-reset along the way
+    mid, last = sent[EPISODE * STAGES:(EPISODE + 1) * STAGES], sent[-STAGES:]
+    for message in mid + last:
+        assert len(message["ended"]) == ENVS // STAGES  # every episode ended here
+    for message in mid:  # ... and mid-iteration a new one began at once
+        assert not np.array_equal(message["obs"]["state"], message["final_obs"]["state"])
+    for message in last:  # on the last round nothing was reset: the obs is the final one
+        np.testing.assert_array_equal(message["obs"]["state"], message["final_obs"]["state"])

@@ -1,5 +1,6 @@
 """Embodied (env rollout) estimators against float64 loop references, plus hand-made cases."""
 
+import dataclasses
 import math
 
 import pytest
@@ -70,6 +71,28 @@ def test_truncation_bootstraps_and_termination_does_not():
     expected = torch.tensor([[-0.5, 2.0], [-1.0, 4.0], [1.0, 1.0]], dtype=torch.float64)
     torch.testing.assert_close(out.advantages, expected)
     torch.testing.assert_close(out.returns, expected + 2.0)
+
+
+@pytest.mark.parametrize("chunk", [None, 3])
+@pytest.mark.parametrize("seed", SEEDS)
+def test_bootstrap_of_an_env_that_ended_on_the_last_step_is_unused(seed, chunk):
+    """Why a rollout may skip resetting envs on its last step: an env whose episode ended there
+    has no successor in the rollout, so its ``bootstrap_values`` entry (V of an observation from
+    a reset that then never happens) must not reach any advantage or return."""
+    inputs = random_env_inputs(seed, chunk=chunk)
+    inputs.dones[-1, :2] = True  # envs 0 and 1 end on the last decision (one truncated)
+    inputs.truncations[-1, 0], inputs.truncations[-1, 1] = True, False
+    levels = ["chunk"] if chunk is None else ["action"]  # (random_env_inputs gives [T, N, C] values with a chunk)
+    for level in levels:
+        base = embodied_gae(inputs, gamma=0.9, lam=0.8, level=level)
+        changed = inputs.bootstrap_values.clone()
+        changed[:2] += 1e3
+        moved = embodied_gae(dataclasses.replace(inputs, bootstrap_values=changed), gamma=0.9, lam=0.8, level=level)
+        torch.testing.assert_close(moved.advantages, base.advantages, rtol=0, atol=0)
+        torch.testing.assert_close(moved.returns, base.returns, rtol=0, atol=0)
+        changed[2:] += 1e3  # control: envs that did not end do bootstrap from it
+        moved = embodied_gae(dataclasses.replace(inputs, bootstrap_values=changed), gamma=0.9, lam=0.8, level=level)
+        assert not torch.equal(moved.advantages[-1], base.advantages[-1])
 
 
 def test_truncation_without_final_values_is_an_error():

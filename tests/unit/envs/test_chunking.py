@@ -41,6 +41,21 @@ def test_env_whose_episode_ends_mid_chunk_ignores_the_rest_of_its_chunk():
         np.testing.assert_array_equal(result.obs["state"][:, 1], [0, 0])
 
 
+def test_chunk_without_autoreset_ends_episodes_in_place():
+    with _chunk_env(episode_length=6) as env:
+        env.reset(seeds=0)
+        env.step(np.ones((2, 4, 2), np.float32))  # t = 4
+        result = env.step(np.ones((2, 4, 2), np.float32), autoreset=False)
+        np.testing.assert_array_equal(result.info["step_mask"], [[1, 1, 0, 0], [1, 1, 0, 0]])
+        assert result.terminated.all()
+        np.testing.assert_array_equal(result.obs["state"][:, 1], [6, 6])  # the final obs, no new episode
+        np.testing.assert_array_equal(result.info["final_obs"]["state"], result.obs["state"])
+        with pytest.raises(RuntimeError, match="reset"):
+            env.step(np.ones((2, 4, 2), np.float32))
+        env.reset(seeds=0)
+        assert not env.step(np.ones((2, 4, 2), np.float32)).done.any()
+
+
 def test_chunk_action_shape_is_checked():
     with _chunk_env(chunk_size=3) as env:
         env.reset()

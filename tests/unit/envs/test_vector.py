@@ -40,6 +40,31 @@ def test_auto_reset_returns_next_first_obs_and_keeps_final_obs():
         assert not results[0].info["success"].any()
 
 
+@pytest.mark.parametrize("num_workers", [0, 2])
+def test_step_without_autoreset_leaves_ended_envs_ended_until_reset(num_workers):
+    """``autoreset=False`` (a rollout's last step, whose next observation nobody uses): an env
+    whose episode ends is not reset; its row keeps the final observation, and stepping it again
+    before ``reset`` is refused, while masking it out lets the others go on."""
+    with VectorEnv(CounterFactory(episode_length=3, success_at=3), 2, num_workers=num_workers) as env:
+        env.reset(seeds=[10, 20])
+        env.step(ONES[:2], env_mask=np.array([True, False]))  # env 0 is one step ahead
+        env.step(ONES[:2])
+        last = env.step(ONES[:2], autoreset=False)  # env 0 ends (t = 3), env 1 does not (t = 2)
+        np.testing.assert_array_equal(last.done, [True, False])
+        np.testing.assert_array_equal(last.obs["state"], [[10, 3, 6], [20, 2, 4]])  # no new episode
+        np.testing.assert_array_equal(last.info["final_obs"]["state"][0], [10, 3, 6])
+        np.testing.assert_array_equal(last.info["episode_return"], [3, 0])
+        np.testing.assert_array_equal(last.info["episode_length"], [3, 0])
+        with pytest.raises(RuntimeError, match=r"env\(s\) \[0\] ended .*autoreset=False.*reset\(\)"):
+            env.step(ONES[:2])
+        waited = env.step(ONES[:2], env_mask=np.array([False, True]))  # env 1 ends and auto-resets
+        np.testing.assert_array_equal(waited.obs["state"][:, 1], [3, 0])
+        np.testing.assert_array_equal(waited.reward, [0, 1])
+        first = env.reset(seeds=[1, 2])
+        np.testing.assert_array_equal(first["state"][:, :2], [[1, 0], [2, 0]])
+        np.testing.assert_array_equal(env.step(ONES[:2]).obs["state"][:, 1], [1, 1])  # steppable again
+
+
 def test_same_seed_gives_same_episodes_and_int_seed_counts_up():
     def episode_seeds(env):
         env.reset()
