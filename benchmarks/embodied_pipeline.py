@@ -161,8 +161,12 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
                   max_grad_norm=alg["max_grad_norm"], strategy="ddp", compile=compile_)
     optimizer = torch.optim.Adam(model.parameters(), lr=ppo.lr, eps=ppo.adam_eps, fused=True)
     act = compiled_act(model) if compile_ else model.act  # what rollout.compile does in (a)/(b)
+    # NEXT_STEP (gymnasium's default): an env whose episode ended resets on its next step() call.
+    # Every episode here ends on an iteration's last step (200-step episodes, no early
+    # termination), and the next iteration starts with a seeded reset(), so, like (a) and (b),
+    # this loop resets each env once per iteration and never for an observation it does not use.
     envs = gym.vector.AsyncVectorEnv([_gym_env_fn(task, env_kwargs, keys)] * NUM_ENVS,
-                                     autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+                                     autoreset_mode=gym.vector.AutoresetMode.NEXT_STEP)
     rows = []
     try:
         for iteration in range(iterations):
@@ -179,6 +183,9 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
                     record["rewards"].append(torch.as_tensor(reward, dtype=torch.float32))
                     record["dones"].append(torch.as_tensor(terminated | truncated))
                 last_value = model.value(prepare_obs(ob))
+            if any(bool(done.any()) for done in record["dones"][:-1]):
+                raise RuntimeError("an episode ended before the iteration's last step: this loop's "
+                                   "NEXT_STEP auto-reset would then need cleanRL's reset-step handling")
             t1 = time.perf_counter()
             batch = _gae_batch(record, last_value, alg["gamma"], alg["gae_lambda"], np)
             ppo_update(model, optimizer, batch, iteration, ppo)
