@@ -87,8 +87,11 @@ def one_gpu_group():
         dist.destroy_process_group()
 
 
-def test_bf16_logprobs_track_a_float64_reference(one_gpu_group):
-    engine = FSDPTrainEngine(tiny_llama, gpu_config(temperature=0.9))
+@pytest.mark.parametrize("score_prompts", [True, False])
+def test_bf16_logprobs_track_a_float64_reference(one_gpu_group, score_prompts):
+    """bf16 log-probs on CUDA stay within 0.05 of a float64 CPU reference wherever they are read:
+    every token with ``score_prompts``, else the response tokens (prompt columns are 0 then)."""
+    engine = FSDPTrainEngine(tiny_llama, gpu_config(temperature=0.9, score_prompts=score_prompts))
     if torch.cuda.is_bf16_supported():
         assert engine.compute_dtype == torch.bfloat16
     batch = make_batch(1, size=5)
@@ -103,11 +106,12 @@ def test_bf16_logprobs_track_a_float64_reference(one_gpu_group):
             input_ids=batch["input_ids"], attention_mask=batch["attention_mask"]
         ).logits
     log_p = torch.log_softmax(logits[:, :-1] / 0.9, dim=-1)
-    ref = (
-        log_p.gather(-1, batch["input_ids"][:, 1:, None]).squeeze(-1)
-        * batch["attention_mask"][:, 1:]
-    )
-    torch.testing.assert_close(logprobs[:, 1:].cpu().double(), ref, atol=0.05, rtol=0)
+    ref = log_p.gather(-1, batch["input_ids"][:, 1:, None]).squeeze(-1)
+    read = (batch["attention_mask"] if score_prompts else batch[RESPONSE_MASK])[:, 1:].bool()
+    got = logprobs[:, 1:].cpu().double()
+    torch.testing.assert_close(got[read], ref[read], atol=0.05, rtol=0)
+    if not score_prompts:
+        assert got[~read].abs().sum() == 0
     assert entropy.shape == logprobs.shape
 
 
