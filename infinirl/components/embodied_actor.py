@@ -36,6 +36,7 @@ import torch
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
 from infinirl.components.compiled_step import CompiledAdamStep
+from infinirl.components.embodied_policy import compute_device
 from infinirl.components.embodied_rollout import PolicySpec
 from infinirl.components.env_worker import _limit_threads
 from infinirl.runtime import WeightSource, Worker
@@ -71,11 +72,14 @@ class PPOSpec:
     under FSDP2 only the forward pass and loss, :func:`_minibatch_loss`)."""
 
 
-def _to_tensor(value: Any) -> Any:
+def _to_tensor(value: Any, device: torch.device | str = "cpu") -> Any:
+    """Numpy arrays (nested in dicts) -> tensors on ``device``; anything else is left alone."""
     if isinstance(value, dict):
-        return {k: _to_tensor(v) for k, v in value.items()}
+        return {k: _to_tensor(v, device) for k, v in value.items()}
     if isinstance(value, np.ndarray):  # arrays from Ray's object store are read-only: copy once
-        return torch.from_numpy(np.array(value, copy=True))
+        return torch.from_numpy(np.array(value, copy=True)).to(device)
+    if isinstance(value, torch.Tensor):
+        return value.to(device)
     return value
 
 
@@ -86,19 +90,23 @@ def _rows(value: Any, index: torch.Tensor) -> Any:
 
 
 class EmbodiedActorWorker(Worker, WeightSource):
-    """One data-parallel rank of the PPO trainer."""
+    """One data-parallel rank of the PPO trainer.
+
+    It computes on the device its placement gives it (``device="auto"``: a GPU rank trains on the
+    GPU, with NCCL between ranks) or on the CPU (``device="cpu"``, gloo)."""
 
     def __init__(self, policy_spec: PolicySpec, observation_spec: dict, action_space, ppo: PPOSpec,
-                 num_threads: int = 1):
+                 num_threads: int = 1, device: str = "auto"):
         _limit_threads(num_threads)
         if ppo.strategy not in ("ddp", "fsdp"):
             raise ValueError(f"actor strategy must be 'ddp' or 'fsdp', got {ppo.strategy!r}")
         self.ppo = ppo
+        self.compute = compute_device(self.device, device)
         self.distributed = self.world_size > 1 or ppo.strategy == "fsdp"
         if self.distributed:
-            self.init_process_group()
+            self.init_process_group("nccl" if self.compute.type == "cuda" else "gloo")
         torch.manual_seed(ppo.seed)  # identical initial weights on every rank
-        self.model = policy_spec.build(observation_spec, action_space)
+        self.model = policy_spec.build(observation_spec, action_space).to(self.compute)
         if ppo.strategy == "fsdp":
             from torch.distributed.fsdp import FSDPModule, fully_shard
 
@@ -112,13 +120,17 @@ class EmbodiedActorWorker(Worker, WeightSource):
         fused = {"fused": True} if ppo.strategy == "ddp" else {}
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=ppo.lr, eps=ppo.adam_eps, **fused)
 
+    def compute_device(self) -> str:
+        """Where this rank's policy computes (``"cpu"``, ``"cuda"``)."""
+        return str(self.compute)
+
     # ---------------------------------------------------------------- training
     def update(self, batch: dict, iteration: int) -> dict:
         """PPO epochs over ``batch`` (flat ``[B, ...]`` arrays, see the runner); returns metrics."""
-        metrics = ppo_update(self.model, self.optimizer, _to_tensor(batch), iteration, self.ppo,
+        batch = _to_tensor(batch, self.compute)
+        metrics = ppo_update(self.model, self.optimizer, batch, iteration, self.ppo,
                              self.rank, self.world_size, self._all_reduce_grads)
-        obs = _to_tensor(batch["obs"])
-        self.model.update_obs_stats({k: obs[k] for k in self.model.keys})
+        self.model.update_obs_stats({k: batch["obs"][k] for k in self.model.keys})
         return metrics
 
     def _all_reduce_grads(self) -> None:
@@ -177,7 +189,8 @@ class EmbodiedActorWorker(Worker, WeightSource):
         os.replace(tmp, final)
 
     def load_checkpoint(self, path: str) -> None:
-        state = torch.load(os.path.join(path, _CHECKPOINT), weights_only=False)
+        # map_location: a checkpoint written on a GPU resumes on a CPU-only machine, and vice versa
+        state = torch.load(os.path.join(path, _CHECKPOINT), map_location=self.compute, weights_only=False)
         if self.ppo.strategy == "fsdp":
             from torch.distributed.checkpoint.state_dict import (
                 StateDictOptions,
@@ -211,8 +224,9 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     size = batch["actions"].shape[0]
     per_mini = size // ppo.mini_batches
     generator = torch.Generator().manual_seed(int(np.random.default_rng([ppo.seed, iteration, 0xB47]).integers(2**62)))
+    device = batch["advantages"].device
     keep_all = (batch["advantage_mask"].to(torch.float32) if "advantage_mask" in batch
-                else torch.ones(batch["advantages"].shape, dtype=torch.float32))
+                else torch.ones(batch["advantages"].shape, dtype=torch.float32, device=device))
     params = [p for p in model.parameters() if p.requires_grad]
     minibatch_loss = _minibatch_loss(ppo.compile)
     # actor.compile on a plain (non-FSDP) model: the whole optimizer step is one compiled function;
@@ -232,7 +246,7 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     if "extras" in batch:
         columns["extras"] = batch["extras"]
     for _ in range(ppo.epochs):
-        order = torch.randperm(size, generator=generator)
+        order = torch.randperm(size, generator=generator).to(device)  # drawn on CPU: same order on any device
         # One gather per epoch; each mini-batch is then a slice (a view), not a gather per tensor.
         shuffled = _rows(columns, order)
         for m in range(ppo.mini_batches):

@@ -29,7 +29,29 @@ from torch import nn
 
 from infinirl.models.policies.base import POLICIES, Policy, PolicyEval, PolicyStep
 
-__all__ = ["NormalizedPolicy", "ReturnNormalizer", "RunningMeanStd", "build_embodied_policy", "policy_kwargs"]
+__all__ = ["NormalizedPolicy", "ReturnNormalizer", "RunningMeanStd", "build_embodied_policy", "compute_device",
+           "module_device", "policy_kwargs"]
+
+COMPUTE_DEVICES = ("auto", "cpu")
+
+
+def compute_device(placed_on: str, setting: str) -> torch.device:
+    """Where an embodied worker computes: ``setting="auto"`` uses the device its placement gave it
+    (``placed_on``: ``"cuda"`` for a rank holding a GPU, else ``"cpu"``); ``"cpu"`` keeps the
+    policy on the CPU even on a GPU (a small MLP's tiny ops cost less on CPU than as kernel
+    launches, and its env's observations arrive in host memory anyway)."""
+    if setting not in COMPUTE_DEVICES:
+        raise ValueError(f"device={setting!r}: use one of {list(COMPUTE_DEVICES)}")
+    return torch.device("cpu" if setting == "cpu" else placed_on)
+
+
+def module_device(module: nn.Module) -> torch.device:
+    """The device of a module's first parameter or buffer (CPU for one with neither)."""
+    for tensor in module.parameters():
+        return tensor.device
+    for tensor in module.buffers():
+        return tensor.device
+    return torch.device("cpu")
 
 
 class RunningMeanStd(nn.Module):

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from infinirl.components.embodied_policy import build_embodied_policy
+from infinirl.components.embodied_policy import build_embodied_policy, compute_device, module_device
 from infinirl.components.env_worker import EnvSpec, StagedEnv, _limit_threads
 from infinirl.models.policies.base import prepare_obs
 from infinirl.runtime import WeightSink, Worker
@@ -72,9 +72,14 @@ def compiled_act(policy):
     return torch.compile(policy.act, dynamic=False)
 
 
+def host(tensor: torch.Tensor) -> np.ndarray:
+    """A policy output (no grad) as a numpy array, copied off the GPU when the policy runs there."""
+    return (tensor if tensor.device.type == "cpu" else tensor.cpu()).numpy()
+
+
 def env_actions(actions: torch.Tensor, chunk: int) -> np.ndarray:
     """Policy actions ``[B, K, ...]`` -> what the env takes: ``[B, ...]`` unchunked, else as is."""
-    array = actions.detach().cpu().numpy()
+    array = host(actions.detach())
     return array[:, 0] if chunk == 1 else array
 
 
@@ -161,20 +166,29 @@ def _concat_stages(parts: list[dict]) -> dict:
 
 
 class EmbodiedRolloutWorker(Worker, WeightSink):
-    """One rollout rank: the policy (inference copy), its env endpoint, evaluation and videos."""
+    """One rollout rank: the policy (inference copy), its env endpoint, evaluation and videos.
+
+    The policy runs on the device the placement gives this rank (``device="auto"``) or on the CPU
+    (``device="cpu"``); observations go to it and actions come back to host memory each step."""
 
     def __init__(self, env_spec: EnvSpec, policy_spec: PolicySpec, observation_spec: dict, action_space,
-                 seed: int, host_env: bool, num_threads: int = 1, compile_act: bool = False):
+                 seed: int, host_env: bool, num_threads: int = 1, compile_act: bool = False,
+                 device: str = "auto"):
         _limit_threads(num_threads)
         self.env_spec, self.policy_spec, self.seed = env_spec, policy_spec, seed
         self.observation_spec, self.action_space = observation_spec, action_space
-        self.policy = policy_spec.build(observation_spec, action_space).eval()
+        self.compute = compute_device(self.device, device)
+        self.policy = policy_spec.build(observation_spec, action_space).to(self.compute).eval()
         self.env = StagedEnv(env_spec, self.rank) if host_env else None
         self.links: list = []
         self._eval_env = None
         # Collection only: evaluation batches vary in size (each would compile anew) and are rare.
         self._act = compiled_act(self.policy) if compile_act else self.policy.act
         self._act_compiled = bool(compile_act)
+
+    def compute_device(self) -> str:
+        """Where this rank's policy computes (``"cpu"``, ``"cuda"``)."""
+        return str(self.compute)
 
     # ---------------------------------------------------------------- wiring
     def connect_link(self, address: dict) -> None:
@@ -224,7 +238,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                 wait_s += time.perf_counter() - start
                 start = time.perf_counter()
                 obs = array_obs(msg["obs"])
-                tensors = prepare_obs(obs)
+                tensors = prepare_obs(obs, self.compute)
                 if t == num_steps:
                     self._record_result(buf, msg, episodes)
                     restarted += msg["restarted"]
@@ -241,12 +255,12 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                     self._record_result(buf, msg, episodes)
                     restarted += msg["restarted"]
                 buf.obs.append(obs)
-                buf.actions.append(step.actions.numpy())
-                buf.logprobs.append(step.logprobs.numpy().astype(np.float32))
+                buf.actions.append(host(step.actions))
+                buf.logprobs.append(host(step.logprobs).astype(np.float32))
                 n = step.actions.shape[0]
                 buf.values.append(np.zeros(n, np.float32) if step.values is None
-                                  else step.values.numpy().astype(np.float32))
-                buf.extras.append({k: v.numpy() for k, v in step.extras.items()})
+                                  else host(step.values).astype(np.float32))
+                buf.extras.append({k: host(v) for k, v in step.extras.items()})
                 record_s += time.perf_counter() - start
         trajectory = _concat_stages([buf.stacked() for buf in buffers])
         trajectory["version"] = self.weight_version
@@ -260,7 +274,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
     def _values(self, tensors: dict, n: int) -> np.ndarray:
         if not getattr(self.policy.policy, "has_value_head", False):
             return np.zeros(n, np.float32)
-        return self.policy.value(tensors).numpy().astype(np.float32)
+        return host(self.policy.value(tensors)).astype(np.float32)
 
     def _record_result(self, buf: _StageBuffer, msg: dict, episodes: dict) -> None:
         n = len(msg["reward"])
@@ -276,7 +290,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
             if truncated.any():  # truncated episodes bootstrap from V(final obs)
                 rows = ended[truncated]
                 final = {k: v[truncated] for k, v in array_obs(msg["final_obs"]).items()}
-                final_values[rows] = self._values(prepare_obs(final), len(rows))
+                final_values[rows] = self._values(prepare_obs(final, self.compute), len(rows))
             episodes["return"].extend(msg["episode_return"].tolist())
             episodes["length"].extend(msg["episode_length"].tolist())
             episodes["success"].extend(msg["episode_success"].tolist())
@@ -312,7 +326,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                 frames.append(env.render()[0])
                 done, t = False, 0
                 while not done:
-                    step = self.policy.act(prepare_obs(array_obs(obs)), deterministic=deterministic)
+                    step = self.policy.act(prepare_obs(array_obs(obs), self.compute), deterministic=deterministic)
                     result = env.step(env_actions(step.actions, self.policy.chunk), autoreset=False)
                     done, t = bool(result.done[0]), t + 1
                     if done:
@@ -341,7 +355,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
 def run_eval_episodes(policy, env, seeds: list[int], deterministic: bool = True) -> dict:
     """Run one episode per seed on ``env`` (rounds of ``env.num_envs``); success/return/length."""
     num_envs = env.num_envs
-    chunk = policy.chunk
+    chunk, device = policy.chunk, module_device(policy)
     successes, returns, lengths = [], [], []
     for start in range(0, len(seeds), num_envs):
         batch = [int(s) for s in seeds[start:start + num_envs]]
@@ -349,7 +363,7 @@ def run_eval_episodes(policy, env, seeds: list[int], deterministic: bool = True)
         obs = env.reset(seeds=batch + [batch[-1]] * (num_envs - used))
         active = np.arange(num_envs) < used
         while active.any():
-            step = policy.act(prepare_obs(array_obs(obs)), deterministic=deterministic)
+            step = policy.act(prepare_obs(array_obs(obs), device), deterministic=deterministic)
             # autoreset=False: an env runs one episode per round; the next round resets it anyway
             result = env.step(env_actions(step.actions, chunk), env_mask=active, autoreset=False)
             ended = np.flatnonzero(result.done & active)

@@ -70,13 +70,16 @@ def run(cfg: EmbodiedConfig) -> dict:
         ppo = ppo_spec(cfg)
         launches = {
             "rollout": (EmbodiedRolloutWorker, (env_spec, policy_spec, observation_spec, action_space, cfg.seed,
-                                                host_env, cfg.rollout.num_threads, cfg.rollout.compile)),
-            "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo, cfg.actor.num_threads)),
+                                                host_env, cfg.rollout.num_threads, cfg.rollout.compile,
+                                                cfg.rollout.device)),
+            "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo, cfg.actor.num_threads,
+                                            cfg.actor.device)),
         }
         if not host_env:
             launches["env"] = (EnvWorker, (env_spec, cfg.rollout.num_threads))
         groups = launch_all(plan, launches)
         flow = EmbodiedFlow(cfg, groups.get("env"), groups["rollout"], groups["actor"], started)
+        print("policy computes on: " + ", ".join(f"{k} {v}" for k, v in flow.devices().items()), flush=True)
         try:
             if flow.env is not None:
                 flow.connect(plan)
@@ -175,6 +178,11 @@ class EmbodiedFlow:
         self.env_steps = 0
         self.elapsed_before = 0.0  # wall time of earlier runs of a resumed job
         self.logger: MetricsLogger | None = None
+
+    def devices(self) -> dict[str, str]:
+        """Where rank 0 of the rollout and of the actor compute (``rollout.device`` / ``actor.device``)."""
+        return {name: group.call("compute_device", ranks=[0]).wait()[0]
+                for name, group in (("rollout", self.rollout), ("actor", self.actor))}
 
     # ------------------------------------------------------------------ wiring
     def connect(self, plan) -> None:
@@ -384,6 +392,7 @@ class EmbodiedFlow:
             "first_eval_at_0.9": _first_reaching(evals, 0.9),
             "curves": curves, "video": video["path"] if video else None, "metrics": self.logger.path,
             "actor_weights_sha256": self.actor.weights_digest().wait()[0],
+            "devices": self.devices(),
         }
         print(json.dumps(summary), flush=True)
         return summary

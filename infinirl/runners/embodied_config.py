@@ -132,6 +132,10 @@ class ActorConfig:
     kernels: ~4x faster updates of small policies on CPU, after a one-off compile of seconds to a
     minute in the first update. Needs a C++ compiler (g++/clang++). With strategy=fsdp only the
     forward pass and loss are compiled (FSDP2's hooks stay eager)."""
+    device: Literal["auto", "cpu"] = "auto"
+    """auto: train on the device the placement gives each rank (a GPU when placed on one, NCCL between
+    ranks; else CPU); cpu: train on the CPU even when placed on a GPU (a 2x64 MLP's tiny ops are
+    cheaper on CPU than as GPU kernel launches)."""
 
 
 @dataclass
@@ -147,6 +151,10 @@ class RolloutConfig:
     eager, so the same seed gives the same actions up to float rounding): ~40% cheaper decisions
     for a small MLP on CPU, ~20% for the CNN, after a one-off compile of seconds in the first
     iteration. Evaluation and videos stay eager (their batch sizes vary). Needs a C++ compiler."""
+    device: Literal["auto", "cpu"] = "auto"
+    """auto: run the policy on the device the placement gives each rank (a GPU when placed on one);
+    cpu: on the CPU even when placed on a GPU. Observations reach the policy from host memory and
+    actions go back to it every step, so small state policies are often faster on CPU."""
 
 
 @dataclass

@@ -48,6 +48,7 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, mode):
     placement, stages = PLACEMENTS[mode]
     straight, resumed = straight_and_resumed(tmp_path, 4, placement, stages)
     assert resumed["env_steps"] == straight["env_steps"] == 4 * 4 * 32
+    assert straight["devices"] == {"rollout": "cpu", "actor": "cpu"}  # CPU slots: the policy computes on CPU
 
     rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == [0, 1, 2, 3, 4]
