@@ -314,9 +314,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                      env_kwargs: dict | None = None, deterministic: bool = True,
                      max_episode_steps: int | None = None) -> dict:
         """Render one episode per seed into an mp4 (MuJoCo frames on CPU via osmesa/egl)."""
-        import os
-
-        import imageio.v2 as imageio
+        from infinirl.envs.video import write_mp4
 
         env = self.env_spec.build(1, stage=98, num_workers=0, max_episode_steps=max_episode_steps, **(env_kwargs or {}))
         frames, successes = [], []
@@ -336,8 +334,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                     obs = result.obs
         finally:
             env.close()
-        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-        imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
+        write_mp4(path, frames, fps)
         return {"path": path, "frames": len(frames), "episode_success": successes}
 
     def close(self) -> None:

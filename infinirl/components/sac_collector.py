@@ -274,7 +274,7 @@ class SACCollectorWorker(Worker, WeightSink):
                      max_steps: int | None = None, env_kwargs: dict | None = None) -> dict:
         """Render one deterministic episode per seed into an mp4 (MuJoCo renders off-screen on CPU
         through osmesa or egl); returns the path, frame count and each episode's return."""
-        import imageio.v2 as imageio
+        from infinirl.envs.video import write_mp4
 
         env = self.spec.build(1, num_workers=0, salt=98, **(env_kwargs or {}))
         frames, returns = [], []
@@ -295,10 +295,7 @@ class SACCollectorWorker(Worker, WeightSink):
                 returns.append(total)
         finally:
             env.close()
-        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-        tmp = f"{path}.tmp.mp4"  # the extension picks imageio's ffmpeg writer
-        imageio.mimsave(tmp, frames, fps=fps, macro_block_size=1)
-        os.replace(tmp, path)
+        write_mp4(path, frames, fps)
         return {"path": path, "frames": len(frames), "episode_returns": returns}
 
     def close(self) -> None:

@@ -1,0 +1,39 @@
+"""Writing evaluation videos: one mp4 writer for every runner, atomic and with a clear error.
+
+Why a helper: imageio picks its writer from what is installed. Without ``imageio-ffmpeg`` it hands
+an ``.mp4`` path to another plugin (seen: tifffile), which fails with an unrelated message
+("unexpected keyword argument 'fps'") after creating a stub file. We check for the ffmpeg writer
+first, name the package to install, and write to a temporary file that is renamed into place, so
+a video either exists whole or not at all.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = ["write_mp4"]
+
+FFMPEG_HINT = "pip install imageio-ffmpeg (it comes with `pip install 'infinirl[sim]'`)"
+
+
+def write_mp4(path: str, frames: Sequence[np.ndarray], fps: int = 30) -> str:
+    """Encode ``frames`` (``[H, W, 3]`` uint8 each) as an H.264 mp4 at ``path``; returns ``path``."""
+    if importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise RuntimeError(f"writing the eval video {path} needs imageio's ffmpeg writer: {FFMPEG_HINT}")
+    if not len(frames):
+        raise ValueError(f"no frames to write to {path}")
+    import imageio.v2 as imageio
+
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.tmp.mp4"  # the extension selects the ffmpeg writer
+    try:
+        imageio.mimsave(tmp, list(frames), fps=fps, macro_block_size=1, format="FFMPEG")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
