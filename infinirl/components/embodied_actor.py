@@ -36,7 +36,7 @@ import torch
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
 from infinirl.components.compiled_step import CompiledAdamStep
-from infinirl.components.embodied_policy import compute_device
+from infinirl.components.embodied_policy import compute_device, module_device
 from infinirl.components.embodied_rollout import PolicySpec
 from infinirl.components.env_worker import _limit_threads
 from infinirl.runtime import WeightSource, Worker
@@ -121,8 +121,8 @@ class EmbodiedActorWorker(Worker, WeightSource):
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=ppo.lr, eps=ppo.adam_eps, **fused)
 
     def compute_device(self) -> str:
-        """Where this rank's policy computes (``"cpu"``, ``"cuda"``)."""
-        return str(self.compute)
+        """Where this rank's policy is (``"cpu"``, ``"cuda:0"``), read off its parameters."""
+        return str(module_device(self.model))
 
     # ---------------------------------------------------------------- training
     def update(self, batch: dict, iteration: int) -> dict:

@@ -77,9 +77,9 @@ def host(tensor: torch.Tensor) -> np.ndarray:
     return (tensor if tensor.device.type == "cpu" else tensor.cpu()).numpy()
 
 
-def env_actions(actions: torch.Tensor, chunk: int) -> np.ndarray:
+def env_actions(actions: torch.Tensor | np.ndarray, chunk: int) -> np.ndarray:
     """Policy actions ``[B, K, ...]`` -> what the env takes: ``[B, ...]`` unchunked, else as is."""
-    array = host(actions.detach())
+    array = actions if isinstance(actions, np.ndarray) else host(actions.detach())
     return array[:, 0] if chunk == 1 else array
 
 
@@ -187,8 +187,8 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         self._act_compiled = bool(compile_act)
 
     def compute_device(self) -> str:
-        """Where this rank's policy computes (``"cpu"``, ``"cuda"``)."""
-        return str(self.compute)
+        """Where this rank's policy is (``"cpu"``, ``"cuda:0"``), read off its parameters."""
+        return str(module_device(self.policy))
 
     # ---------------------------------------------------------------- wiring
     def connect_link(self, address: dict) -> None:
@@ -246,7 +246,8 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                     infer_s += time.perf_counter() - start
                     continue
                 step = self._act(tensors)
-                actions = env_actions(step.actions, chunk)
+                policy_actions = host(step.actions)  # one copy off the device, for the env and the record
+                actions = env_actions(policy_actions, chunk)
                 infer_s += time.perf_counter() - start
                 # The env waits for these actions: send first, record afterwards (off its critical path).
                 endpoint.send(stage, actions, autoreset=t < num_steps - 1)
@@ -255,7 +256,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                     self._record_result(buf, msg, episodes)
                     restarted += msg["restarted"]
                 buf.obs.append(obs)
-                buf.actions.append(host(step.actions))
+                buf.actions.append(policy_actions)
                 buf.logprobs.append(host(step.logprobs).astype(np.float32))
                 n = step.actions.shape[0]
                 buf.values.append(np.zeros(n, np.float32) if step.values is None

@@ -47,7 +47,7 @@ def metrics_rows(run_dir):
 
 def test_runner_trains_on_the_gpu_and_resumes_exactly(ray_cluster, tmp_path):
     straight, resumed = straight_and_resumed(tmp_path, 4, ON_GPU_0, 1)
-    assert straight["devices"] == resumed["devices"] == {"rollout": "cuda", "actor": "cuda"}
+    assert straight["devices"] == resumed["devices"] == {"rollout": "cuda:0", "actor": "cuda:0"}
     rows = metrics_rows(tmp_path / "straight")
     assert [r["step"] for r in rows] == [0, 1, 2, 3, 4]
     assert max(r["train/logprob_mismatch"] for r in rows[1:]) < 1e-4
@@ -55,7 +55,7 @@ def test_runner_trains_on_the_gpu_and_resumes_exactly(ray_cluster, tmp_path):
 
 def test_gpu_actor_syncs_weights_to_a_cpu_rollout(ray_cluster, tmp_path):
     summary = run_cfg(tmp_path, rollout={"device": "cpu"})
-    assert summary["devices"] == {"rollout": "cpu", "actor": "cuda"}
+    assert summary["devices"] == {"rollout": "cpu", "actor": "cuda:0"}
     # the CPU rollout samples with the weights the GPU actor trained: their log-probs agree
     assert max(r["train/logprob_mismatch"] for r in metrics_rows(tmp_path)[1:]) < 1e-4
 
