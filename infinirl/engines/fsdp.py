@@ -62,6 +62,7 @@ from torch.distributed.fsdp import FSDPModule, MixedPrecisionPolicy, fully_shard
 from torch.distributed.tensor import DTensor
 
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK
+from infinirl.engines.cpu_dtype import resolve_cpu_dtype
 from infinirl.engines.logprobs import aligned_logprobs, aligned_values
 from infinirl.engines.shared_prefix import pack_by_prompt, packed_logprobs, supports_packed_masks
 from infinirl.engines.train_base import LoraSettings, LossFn, LrSchedule, TrainEngineConfig, TrainOutput
@@ -138,6 +139,8 @@ def _compute_dtype(choice: str, device: torch.device) -> torch.dtype:
     if choice == "float32":
         return torch.float32
     if choice == "bfloat16":
+        if device.type == "cpu":
+            return getattr(torch, resolve_cpu_dtype("bfloat16"))  # float32 on CPUs without native bf16
         return torch.bfloat16
     if device.type == "cuda" and torch.cuda.is_bf16_supported():
         return torch.bfloat16

@@ -39,4 +39,8 @@ def _vllm(model: str, dtype: str, device: str, max_batch_size: int, options: dic
 
 def build_rollout_engine(name: str, model: str, dtype: str, device: str, max_batch_size: int,
                          options: dict[str, Any] | None = None) -> InferenceEngine:
+    if device == "cpu":
+        from infinirl.engines.cpu_dtype import resolve_cpu_dtype
+
+        dtype = resolve_cpu_dtype(dtype)  # bf16 becomes float32 on CPUs without native bf16
     return ROLLOUT_ENGINES.get(name)(model, dtype, device, max_batch_size, dict(options or {}))

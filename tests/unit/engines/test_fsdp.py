@@ -297,7 +297,8 @@ def test_config_rejects_nonsense():
     assert TrainEngineConfig(lora={"r": 2}).lora == LoraSettings(r=2)
 
 
-def test_bf16_compute_on_cpu_stays_close_to_fp32():
+def test_bf16_compute_on_cpu_stays_close_to_fp32(monkeypatch):
+    monkeypatch.setattr(fsdp_module, "resolve_cpu_dtype", lambda name: name)  # bf16 even without native bf16
     batch = make_batch(seed=8)
     fp32, _ = FSDPTrainEngine(tiny_llama, config(param_dtype="float32")).compute_logprobs(batch)
     engine = FSDPTrainEngine(tiny_llama, config(param_dtype="bfloat16"))
