@@ -27,10 +27,11 @@ Semantics kept from the eager path:
 from __future__ import annotations
 
 import functools
+import math
 
 import torch
 
-__all__ = ["CompiledAdamStep", "adam_", "clip_by_total_norm"]
+__all__ = ["CompiledAdamStep", "adam_", "adam_corrections", "clip_by_total_norm"]
 
 
 def clip_by_total_norm(grads: list[torch.Tensor], max_norm: float) -> tuple[list[torch.Tensor], torch.Tensor]:
@@ -41,21 +42,30 @@ def clip_by_total_norm(grads: list[torch.Tensor], max_norm: float) -> tuple[list
     return [g * scale for g in grads], norm
 
 
+def adam_corrections(count: int, lr: float, beta1: float, beta2: float) -> tuple[float, float]:
+    """Adam's bias corrections after ``count`` steps, as ``torch.optim.Adam`` computes them (Python
+    float64): ``(lr / (1 - beta1**count), sqrt(1 - beta2**count))``, the step size and the divisor
+    of the second moment's square root."""
+    return lr / (1 - beta1 ** count), math.sqrt(1 - beta2 ** count)
+
+
 def adam_(params: list[torch.Tensor], grads: list[torch.Tensor], exp_avgs: list[torch.Tensor],
-          exp_avg_sqs: list[torch.Tensor], steps: list[torch.Tensor], lr: torch.Tensor, beta1: float,
-          beta2: float, eps: float) -> None:
+          exp_avg_sqs: list[torch.Tensor], steps: list[torch.Tensor], corrections: torch.Tensor,
+          beta1: float, beta2: float, eps: float) -> None:
     """``torch.optim.Adam`` (no weight decay, no amsgrad), in place on its state tensors.
 
-    ``lr`` is a tensor so that a learning-rate schedule does not recompile a compiled caller.
-    Bias corrections are computed in float64 from the step count, as the eager optimizer does
-    with its Python-float step."""
-    for param, grad, exp_avg, exp_avg_sq, step in zip(params, grads, exp_avgs, exp_avg_sqs, steps):
+    ``corrections[i]`` holds parameter ``i``'s :func:`adam_corrections` for this step (float64,
+    shape ``[len(params), 2]``), computed by the caller from the step counts. Why not from ``steps``
+    in here: compiled, the two float64 ``pow`` of the bias corrections are recomputed for every
+    vector of every parameter (inductor inlines scalar math into the loops that use it), which was
+    a third of the whole step of a small policy; as an input they are two loads. ``steps`` are
+    still counted here, in the optimizer's own state (checkpoints, eager resumes)."""
+    for index, (param, grad, exp_avg, exp_avg_sq, step) in enumerate(zip(params, grads, exp_avgs, exp_avg_sqs, steps)):
         step.add_(1)
         exp_avg.lerp_(grad, 1 - beta1)
         exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-        count = step.to(torch.float64)
-        step_size = (lr.to(torch.float64) / (1 - beta1 ** count)).to(param.dtype)
-        correction2_sqrt = torch.sqrt(1 - beta2 ** count).to(param.dtype)
+        step_size = corrections[index, 0].to(param.dtype)
+        correction2_sqrt = corrections[index, 1].to(param.dtype)
         denom = exp_avg_sq.sqrt() / correction2_sqrt + eps
         param.sub_(step_size * exp_avg / denom)
 
@@ -73,19 +83,19 @@ def loss_and_grads(model, names: list[str], params: list[torch.Tensor], frozen: 
     return loss, metrics, list(grads)
 
 
-def clip_and_adam(params, grads, exp_avgs, exp_avg_sqs, steps, lr, max_norm: float, beta1: float,
+def clip_and_adam(params, grads, exp_avgs, exp_avg_sqs, steps, corrections, max_norm: float, beta1: float,
                   beta2: float, eps: float) -> torch.Tensor:
     """Clip ``grads`` by their total norm, then one Adam step; returns the norm before clipping."""
     clipped, norm = clip_by_total_norm(grads, max_norm)
-    adam_(params, clipped, exp_avgs, exp_avg_sqs, steps, lr, beta1, beta2, eps)
+    adam_(params, clipped, exp_avgs, exp_avg_sqs, steps, corrections, beta1, beta2, eps)
     return norm
 
 
 def whole_step(model, names, params, frozen, model_args, objective, objective_args, exp_avgs, exp_avg_sqs, steps,
-               lr, max_norm, beta1, beta2, eps):
+               corrections, max_norm, beta1, beta2, eps):
     """One rank's whole step: :func:`loss_and_grads` then :func:`clip_and_adam`."""
     loss, metrics, grads = loss_and_grads(model, names, params, frozen, model_args, objective, objective_args)
-    norm = clip_and_adam(params, grads, exp_avgs, exp_avg_sqs, steps, lr, max_norm, beta1, beta2, eps)
+    norm = clip_and_adam(params, grads, exp_avgs, exp_avg_sqs, steps, corrections, max_norm, beta1, beta2, eps)
     return loss, metrics, norm
 
 
@@ -135,8 +145,23 @@ class CompiledAdamStep:
         self._exp_avg_sqs = [s["exp_avg_sq"] for s in state]
         self._steps = [s["step"] for s in state]
         # Read once: the learning rate is fixed within an update (the schedule moves it between
-        # iterations), and a tensor, so a new value never recompiles.
-        self._lr = torch.tensor(float(group["lr"]), dtype=torch.float64)
+        # iterations). Each step's bias corrections go in through one float64 tensor, rewritten in
+        # place (through its numpy view, no torch dispatch): a new value never recompiles.
+        self._lr = float(group["lr"])
+        self._counts = [int(step) for step in self._steps]
+        self._corrections = torch.zeros(len(self.params), 2, dtype=torch.float64)
+        self._corrections_view = self._corrections.numpy()
+
+    def _next_corrections(self) -> torch.Tensor:
+        """Count this step for every parameter and write its :func:`adam_corrections`."""
+        memo: dict[int, tuple[float, float]] = {}
+        for index, count in enumerate(self._counts):
+            count += 1
+            self._counts[index] = count
+            if count not in memo:
+                memo[count] = adam_corrections(count, self._lr, self.beta1, self.beta2)
+            self._corrections_view[index] = memo[count]
+        return self._corrections
 
     def _adam_state(self, param: torch.Tensor) -> dict:
         """The optimizer's state of ``param``, created as ``torch.optim.Adam`` creates it."""
@@ -151,10 +176,11 @@ class CompiledAdamStep:
 
     def step(self, model_args: tuple, objective_args: tuple) -> tuple[torch.Tensor, dict, torch.Tensor]:
         """One optimizer step on this mini-batch; ``(loss, metrics, grad_norm)`` (detached)."""
-        exp_avgs, exp_avg_sqs, steps, lr = self._exp_avgs, self._exp_avg_sqs, self._steps, self._lr
+        exp_avgs, exp_avg_sqs, steps = self._exp_avgs, self._exp_avg_sqs, self._steps
+        corrections = self._next_corrections()
         if self.all_reduce_grads is None:
             return _compiled(whole_step)(self.model, self.names, self._values, self.frozen, model_args,
-                                         self.objective, objective_args, exp_avgs, exp_avg_sqs, steps, lr,
+                                         self.objective, objective_args, exp_avgs, exp_avg_sqs, steps, corrections,
                                          self.max_norm, self.beta1, self.beta2, self.eps)
         loss, metrics, grads = _compiled(loss_and_grads)(self.model, self.names, self._values, self.frozen,
                                                          model_args, self.objective, objective_args)
@@ -164,6 +190,6 @@ class CompiledAdamStep:
         grads = [param.grad for param in self.params]
         for param in self.params:
             param.grad = None
-        norm = _compiled(clip_and_adam)(self._values, grads, exp_avgs, exp_avg_sqs, steps, lr, self.max_norm,
+        norm = _compiled(clip_and_adam)(self._values, grads, exp_avgs, exp_avg_sqs, steps, corrections, self.max_norm,
                                         self.beta1, self.beta2, self.eps)
         return loss, metrics, norm

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from infinirl.components.compiled_step import CompiledAdamStep, adam_, clip_by_total_norm
+from infinirl.components.compiled_step import CompiledAdamStep, adam_, adam_corrections, clip_by_total_norm
 from infinirl.runners.embodied_config import find_cxx_compiler
 
 
@@ -52,8 +52,9 @@ def test_adam_matches_a_float64_loop_and_torch_adam():
     torch_adam = torch.optim.Adam(torch_params, lr=lr, betas=(beta1, beta2), eps=eps, foreach=False)
     for t in range(1, 6):
         grads = grads_of(10 + t, 1.0)
+        corrections = torch.tensor([adam_corrections(t, lr, beta1, beta2)] * len(ours), dtype=torch.float64)
         adam_(ours, grads, [s[0] for s in state], [s[1] for s in state], [s[2] for s in state],
-              torch.tensor(lr, dtype=torch.float64), beta1, beta2, eps)
+              corrections, beta1, beta2, eps)
         for values, (m, v), g in zip(reference, moments, grads):  # the textbook update, element by element
             for i, gi in enumerate(g.double().reshape(-1).tolist()):
                 m[i] = beta1 * m[i] + (1 - beta1) * gi
@@ -68,6 +69,12 @@ def test_adam_matches_a_float64_loop_and_torch_adam():
                                    rtol=0, atol=1e-6)
         torch.testing.assert_close(got, p.detach(), rtol=0, atol=1e-7)
     assert [float(s[2]) for s in state] == [5.0, 5.0, 5.0]
+
+
+def test_adam_corrections_are_the_textbook_bias_corrections():
+    step_size, divisor = adam_corrections(7, 3e-4, 0.9, 0.999)
+    assert step_size == pytest.approx(3e-4 / (1 - 0.9 ** 7), rel=1e-15)
+    assert divisor == pytest.approx(math.sqrt(1 - 0.999 ** 7), rel=1e-15)
 
 
 def objective(prediction, target, unused_rows):
@@ -117,6 +124,38 @@ def test_the_compiled_step_steps_like_eager_backward_clip_and_adam():
     torch.testing.assert_close(compiled_opt.state[compiled.body.weight]["exp_avg"],
                                eager_opt.state[eager.body.weight]["exp_avg"], rtol=0, atol=1e-6)
     assert counters["stats"]["unique_graphs"] == 1 and not counters["graph_break"]  # one graph, reused
+
+
+@pytest.mark.skipif(find_cxx_compiler() is None,
+                    reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
+def test_the_compiled_step_continues_an_eager_optimizer_from_its_step_counts():
+    """Eager steps first (the unreached layer gets no gradient, so no Adam state), then compiled
+    steps on the same optimizer: each parameter's bias corrections continue from its own count."""
+    gen = torch.Generator().manual_seed(4)
+    x, y = torch.randn(16, 3, generator=gen), torch.randn(16, generator=gen)
+    eager, mixed = Net(), Net()
+    eager_opt = torch.optim.Adam(eager.parameters(), lr=1e-2, eps=1e-5, fused=True)
+    mixed_opt = torch.optim.Adam(mixed.parameters(), lr=1e-2, eps=1e-5, fused=True)
+
+    def eager_step(net, opt):
+        loss, _ = objective(*net(x), y, None)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_([p for p in net.parameters() if p.grad is not None], 0.5, foreach=True)
+        opt.step()
+
+    for _ in range(5):
+        eager_step(eager, eager_opt)
+    for _ in range(3):
+        eager_step(mixed, mixed_opt)
+    assert mixed.unused.weight not in mixed_opt.state or not mixed_opt.state[mixed.unused.weight]
+    step = CompiledAdamStep(mixed, mixed_opt, objective, 0.5)
+    for _ in range(2):
+        step.step((x,), (y, None))
+    for a, b in zip(mixed.parameters(), eager.parameters()):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+    assert float(mixed_opt.state[mixed.body.weight]["step"]) == 5.0
+    assert float(mixed_opt.state[mixed.unused.weight]["step"]) == 2.0  # created by the compiled step at 0
 
 
 def test_the_compiled_step_refuses_an_optimizer_it_does_not_implement():
