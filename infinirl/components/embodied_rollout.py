@@ -65,11 +65,16 @@ def compiled_act(policy):
     the generator in the same state) either way: the compiled rollout samples the actions the eager
     one would, up to float rounding of the network. Set for this (rollout) process only.
 
-    ``dynamic=False``: one specialised graph per stage batch size (a run has one or two)."""
+    ``dynamic=False``: one specialised graph per stage batch size (a run has one or two). The
+    options (:func:`~infinirl.components.compiled_step.inductor_options`) are those of the policy's
+    device: on CPU the kernels are called from C++, not Python."""
     import torch._inductor.config as inductor_config
 
+    from infinirl.components.compiled_step import inductor_options
+
     inductor_config.fallback_random = True
-    return torch.compile(policy.act, dynamic=False)
+    device = next(iter(policy.parameters()), torch.empty(0)).device
+    return torch.compile(policy.act, dynamic=False, options=inductor_options(device))
 
 
 def host(tensor: torch.Tensor) -> np.ndarray:

@@ -8,7 +8,8 @@ import math
 import pytest
 import torch
 
-from infinirl.components.compiled_step import CompiledAdamStep, adam_, adam_corrections, clip_by_total_norm
+from infinirl.components.compiled_step import (CompiledAdamStep, adam_, adam_corrections, clip_by_total_norm,
+                                               inductor_options)
 from infinirl.runners.embodied_config import find_cxx_compiler
 
 
@@ -75,6 +76,11 @@ def test_adam_corrections_are_the_textbook_bias_corrections():
     step_size, divisor = adam_corrections(7, 3e-4, 0.9, 0.999)
     assert step_size == pytest.approx(3e-4 / (1 - 0.9 ** 7), rel=1e-15)
     assert divisor == pytest.approx(math.sqrt(1 - 0.999 ** 7), rel=1e-15)
+
+
+def test_cpu_compiles_call_their_kernels_from_cpp_and_cuda_keeps_inductors_defaults():
+    assert inductor_options("cpu") == inductor_options(torch.device("cpu")) == {"cpp_wrapper": True}
+    assert inductor_options("cuda:0") == {}
 
 
 def objective(prediction, target, unused_rows):
