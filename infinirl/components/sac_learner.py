@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from infinirl.algorithms.sac import sac_actor_loss, sac_critic_loss, sac_temperature_loss
+from infinirl.components.embodied_policy import compute_device, module_device
 from infinirl.components.replay_buffer import ReplayBuffer
 from infinirl.models.sac_nets import EnsembleQ, FlowSACActor, SquashedGaussianActor
 from infinirl.runtime import WeightSource, Worker
@@ -113,19 +114,24 @@ def transition_fields(obs_dim: int, action_dim: int) -> dict:
 class SACAgent:
     """Actor, critics (+ targets), temperature and their optimisers; :meth:`update` is one SAC step."""
 
-    def __init__(self, net: SACNetSpec, spec: SACUpdateSpec, obs_dim: int, action_space):
-        torch.manual_seed(spec.seed)  # initial weights are a function of the seed
+    def __init__(self, net: SACNetSpec, spec: SACUpdateSpec, obs_dim: int, action_space,
+                 device: torch.device | str = "cpu"):
+        torch.manual_seed(spec.seed)  # initial weights are a function of the seed, on any device
         self.net, self.spec = net, spec
+        self.device = torch.device(device)
         self.action_dim = int(np.prod(action_space.shape))
-        self.actor = net.build_actor(obs_dim, action_space)
-        self.critic = net.build_critic(obs_dim, action_space)
+        self.actor = net.build_actor(obs_dim, action_space).to(self.device)
+        self.critic = net.build_critic(obs_dim, action_space).to(self.device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(spec.init_alpha), dtype=torch.float32))
+        self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(spec.init_alpha), dtype=torch.float32,
+                                                         device=self.device))
         self.target_entropy = float(-self.action_dim if spec.target_entropy is None else spec.target_entropy)
         self.actor_optim = _adam(self.actor.parameters(), spec.actor_lr)
         self.critic_optim = _adam(self.critic.parameters(), spec.critic_lr)
         self.alpha_optim = _adam([self.log_alpha], spec.alpha_lr)
         noise_seed = int(np.random.SeedSequence([spec.seed, 0x1EA2]).generate_state(1)[0])
+        # A CPU generator on every device: the same noise draws (copied to the device) wherever the
+        # learner computes, and a checkpoint's generator state resumes on a CPU or a GPU alike.
         self.generator = torch.Generator().manual_seed(noise_seed)
         self.updates = 0
 
@@ -231,13 +237,15 @@ def _digest(named) -> str:
 class SACLearnerWorker(Worker, WeightSource):
     """One learner rank: :class:`SACAgent` + the :class:`ReplayBuffer`, as a component."""
 
-    def __init__(self, net: SACNetSpec, spec: SACUpdateSpec, obs_dim: int, action_space, num_threads: int = 1):
+    def __init__(self, net: SACNetSpec, spec: SACUpdateSpec, obs_dim: int, action_space, num_threads: int = 1,
+                 device: str = "auto"):
         if num_threads:
             torch.set_num_threads(num_threads)
         # Denormal floats (Adam's second moments of tiny gradients, Polyak-averaged weights) are
         # ~100x slower on x86 CPUs; flushing them to zero measured 1.5-2x faster updates here.
         torch.set_flush_denormal(True)
-        self.agent = SACAgent(net, spec, obs_dim, action_space)
+        self.compute = compute_device(self.device, device)
+        self.agent = SACAgent(net, spec, obs_dim, action_space, self.compute)
         self.buffer = ReplayBuffer(spec.buffer_capacity, transition_fields(obs_dim, self.agent.action_dim),
                                    seed=[spec.seed, 0xB0FF])
 
@@ -255,7 +263,7 @@ class SACLearnerWorker(Worker, WeightSource):
         for _ in range(num_updates):
             rows = self.buffer.sample(self.agent.spec.batch_size)
             ages.append(env_steps - float(rows["env_step"].mean()))
-            tensors = {name: torch.from_numpy(rows[name]) for name in _UPDATE_FIELDS}
+            tensors = {name: torch.from_numpy(rows[name]).to(self.compute) for name in _UPDATE_FIELDS}
             for key, value in self.agent.update(tensors).items():
                 sums[key] = sums[key] + value if key in sums else value
                 counts[key] = counts.get(key, 0) + 1
@@ -276,17 +284,22 @@ class SACLearnerWorker(Worker, WeightSource):
         mask = np.asarray(batch.get("policy_mask", np.zeros(0, bool)), dtype=bool)
         if not mask.any():
             return {}
-        obs = torch.from_numpy(np.asarray(batch["obs"])[mask])
-        u = torch.from_numpy(np.asarray(batch["pre_tanh"])[mask])
+        obs = torch.from_numpy(np.asarray(batch["obs"])[mask]).to(self.compute)
+        u = torch.from_numpy(np.asarray(batch["pre_tanh"])[mask]).to(self.compute)
         ours = self.agent.actor.logprob_of(obs, u)
         if ours is None:  # SAC-Flow: a log-prob needs the denoising path, which is not sent
             return {}
+        ours = ours.cpu()
         theirs = torch.from_numpy(np.asarray(batch["logprob"])[mask])
         return {"train/logprob_mismatch": float((ours - theirs).abs().max())}
 
     # ------------------------------------------------------------------ weight sync / state
     def weights_for_sync(self):
         return list(self.agent.actor.state_dict().items())
+
+    def compute_device(self) -> str:
+        """Where the learner's networks are (``"cpu"``, ``"cuda:0"``), read off their parameters."""
+        return str(module_device(self.agent.actor))
 
     def weights_digest(self) -> str:
         return _digest(self.agent.named_tensors())
@@ -308,5 +321,7 @@ class SACLearnerWorker(Worker, WeightSource):
         self.buffer.save(os.path.join(path, _BUFFER))
 
     def load_checkpoint(self, path: str) -> None:
-        self.agent.load_state_dict(torch.load(os.path.join(path, _CHECKPOINT), weights_only=False))
+        # map_location: a checkpoint written on a GPU resumes on a CPU-only machine, and vice versa
+        # (load_state_dict then copies each tensor onto the learner's device).
+        self.agent.load_state_dict(torch.load(os.path.join(path, _CHECKPOINT), map_location="cpu", weights_only=False))
         self.buffer.load(os.path.join(path, _BUFFER))

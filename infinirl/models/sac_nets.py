@@ -111,7 +111,10 @@ class SquashedGaussianActor(nn.Module):
         if deterministic:
             u = mean
         else:
-            noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+            # Drawn where the generator lives (SAC's is on the CPU) and copied to the network's
+            # device: the same noise on a CPU and a GPU learner.
+            draw_on = generator.device if generator is not None else mean.device
+            noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=draw_on).to(mean.device)
             u = mean + log_std.exp() * noise
         return torch.tanh(u), self._logprob(u, mean, log_std), u
 
@@ -223,7 +226,9 @@ class FlowSACActor(nn.Module):
                deterministic: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         x = obs[self.obs_key] if isinstance(obs, dict) else obs
         seed = int(torch.randint(0, 2**62, (1,), generator=generator)) if generator is not None else None
-        with torch.random.fork_rng(devices=[]):
+        # fork_rng: the flow draws from torch's global generator of x's device; seeding it here
+        # must not disturb anybody else's stream (on CUDA the device's generator is forked too).
+        with torch.random.fork_rng(devices=[x.device] if x.device.type == "cuda" else []):
             if seed is not None:
                 torch.manual_seed(seed)
             step = self.flow.act({self.obs_key: x.to(self.action_scale.dtype)}, deterministic=deterministic)

@@ -69,10 +69,12 @@ def run(cfg: SACConfig) -> dict:
                                   f"the SAC runner runs one {name} rank")
         print(plan.describe(), flush=True)
         groups = launch_all(plan, {
-            "learner": (SACLearnerWorker, (net, update, obs_dim, action_space, cfg.learner.num_threads)),
+            "learner": (SACLearnerWorker, (net, update, obs_dim, action_space, cfg.learner.num_threads,
+                                           cfg.learner.device)),
             "collector": (SACCollectorWorker, (env, net, obs_dim, action_space, cfg.seed, cfg.collector.num_threads)),
         })
         flow = SACFlow(cfg, groups["collector"], groups["learner"], started)
+        print(f"learner computes on: {flow.learner_device()}", flush=True)
         try:
             return flow.train()
         finally:
@@ -278,9 +280,14 @@ class SACFlow:
             "actor_weights_sha256": self.learner.actor_digest().wait()[0],
             "weights_sha256": self.learner.weights_digest().wait()[0],
             "buffer_sha256": self.learner.buffer_digest().wait()[0],
+            "devices": {"learner": self.learner_device()},
         }
         print(json.dumps(summary), flush=True)
         return summary
+
+    def learner_device(self) -> str:
+        """Where the learner computes (``learner.device``), read off its parameters."""
+        return self.learner.compute_device().wait()[0]
 
     def close(self) -> None:
         try:

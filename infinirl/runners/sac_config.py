@@ -124,6 +124,14 @@ class WorkerConfig:
 
 
 @dataclass
+class LearnerConfig(WorkerConfig):
+    device: Literal["auto", "cpu"] = "auto"
+    """auto: the learner computes on the device its placement gives it (a GPU when placed on one,
+    else the CPU); cpu: on the CPU even when placed on a GPU. The collector runs its actor on the
+    CPU either way (one small batch per env step, observations in host memory)."""
+
+
+@dataclass
 class SACConfig:
     runner: str = "sac"
     seed: int = 0
@@ -150,7 +158,7 @@ class SACConfig:
     buffer: BufferConfig = field(default_factory=BufferConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     collector: WorkerConfig = field(default_factory=WorkerConfig)
-    learner: WorkerConfig = field(default_factory=WorkerConfig)
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
     placement: dict[str, str] = field(default_factory=lambda: {"collector": "0", "learner": "0"})
     """collector / learner -> CPU slots or devices (one rank each). Same slots: they take turns."""
     cluster: ClusterConfig = field(default_factory=ClusterConfig)

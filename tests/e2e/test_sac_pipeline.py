@@ -48,6 +48,7 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, collect_ahead):
     for key in ("weights_sha256", "actor_weights_sha256", "buffer_sha256", "env_steps"):
         assert resumed[key] == straight[key], key
     assert straight["env_steps"] == 4 * 2 * 40
+    assert straight["devices"] == {"learner": "cpu"}  # read off the learner's parameters
 
     rows = rows_of(tmp_path / "straight" / "metrics.jsonl")
     assert [r["step"] for r in rows] == [0, 1, 2, 3, 4]
@@ -94,6 +95,8 @@ def test_bad_config_fails_before_workers_start(tmp_path):
         make_cfg(tmp_path, 1, placement={"collector": "0", "actor": "0"})
     with pytest.raises(ConfigError, match="runs one learner rank"):
         make_cfg(tmp_path, 1, placement={"collector": "0", "learner": "0-1"})
+    with pytest.raises(ConfigError, match=r"learner.device.*'gpu'.*auto.*cpu"):
+        make_cfg(tmp_path, 1, learner={"device": "gpu"})
     with pytest.raises(ConfigError, match="unknown config key 'algorithm.utd'"):
         make_cfg(tmp_path, 1, algorithm={"utd": 2})
     # The task and its spaces are checked in the driver, before Ray starts any worker.
