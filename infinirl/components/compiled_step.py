@@ -191,17 +191,18 @@ class CompiledAdamStep:
         exp_avgs, exp_avg_sqs, steps = self._exp_avgs, self._exp_avg_sqs, self._steps
         corrections = self._next_corrections()
         if self.all_reduce_grads is None:
-            return _compiled(whole_step, self._device_type)(self.model, self.names, self._values, self.frozen, model_args,
-                                         self.objective, objective_args, exp_avgs, exp_avg_sqs, steps, corrections,
-                                         self.max_norm, self.beta1, self.beta2, self.eps)
-        loss, metrics, grads = _compiled(loss_and_grads, self._device_type)(self.model, self.names, self._values, self.frozen,
-                                                         model_args, self.objective, objective_args)
+            step = _compiled(whole_step, self._device_type)
+            return step(self.model, self.names, self._values, self.frozen, model_args, self.objective, objective_args,
+                        exp_avgs, exp_avg_sqs, steps, corrections, self.max_norm, self.beta1, self.beta2, self.eps)
+        loss, metrics, grads = _compiled(loss_and_grads, self._device_type)(
+            self.model, self.names, self._values, self.frozen, model_args, self.objective, objective_args)
         for param, grad in zip(self.params, grads):  # the eager path's hand-off: sum p.grad over ranks
             param.grad = grad
         self.all_reduce_grads()
         grads = [param.grad for param in self.params]
         for param in self.params:
             param.grad = None
-        norm = _compiled(clip_and_adam, self._device_type)(self._values, grads, exp_avgs, exp_avg_sqs, steps, corrections, self.max_norm,
-                                        self.beta1, self.beta2, self.eps)
+        norm = _compiled(clip_and_adam, self._device_type)(
+            self._values, grads, exp_avgs, exp_avg_sqs, steps, corrections, self.max_norm, self.beta1, self.beta2,
+            self.eps)
         return loss, metrics, norm
