@@ -73,8 +73,7 @@ def compiled_act(policy):
     from infinirl.components.compiled_step import inductor_options
 
     inductor_config.fallback_random = True
-    device = next(iter(policy.parameters()), torch.empty(0)).device
-    return torch.compile(policy.act, dynamic=False, options=inductor_options(device))
+    return torch.compile(policy.act, dynamic=False, options=inductor_options(module_device(policy)))
 
 
 def host(tensor: torch.Tensor) -> np.ndarray:
