@@ -25,30 +25,37 @@ torch.compile; the same arithmetic as eager, ~4x faster for this small MLP) and
 compiles its `act` the same way), with `--eager` without either. The update does not depend on
 the placement, so it is the same cost in every row; pipelining only shortens collection.
 
-Each implementation runs in its own subprocess, one after the other. Env-steps/s = env steps of
-the measured iterations / their wall time (collection + update + weight sync), skipping the first
-`--warmup` iterations (start-up, the one-off compile, JIT of the first calls); start-up and
-evaluation are not counted.
+The rows run side by side, in turns (`benchmarks/_bench_turns.py`): every row's process starts
+at once, then the rows take turns, one PPO iteration each, while the others wait blocked (no CPU),
+the order rotating every cycle. So the i-th iteration of every row runs within seconds of the
+others' and a slow spell of a shared VM lands on all rows alike (measured on this project's 2-core
+VM: the same row at 1,300 and at 2,000 env-steps/s ten minutes apart, which decided ratios when the
+rows ran one after the other). Env-steps/s = env steps of the measured iterations / their wall time
+(collection + update + weight sync, the runner's own `time/iteration_s`), skipping each row's first
+`--warmup` iterations (the one-off compile, JIT of the first calls); start-up, waiting for a turn
+and the final evaluation are not counted.
 
 Usage:
-    python benchmarks/embodied_pipeline.py                      # state and rgb, all impls (~4-6 min on 2 cores)
+    python benchmarks/embodied_pipeline.py                      # state and rgb, all impls (~3-4 min on 2 cores)
     python benchmarks/embodied_pipeline.py --obs state --iterations 4
-    python benchmarks/embodied_pipeline.py --only single_process --obs rgb   # one impl, its JSON line
+    python benchmarks/embodied_pipeline.py --only single_process --obs rgb   # one impl alone, its JSON line
     python benchmarks/embodied_pipeline.py --eager              # every row's update and act uncompiled
-    python benchmarks/embodied_pipeline.py --obs state --rounds 5   # rows interleaved 5 times, medians
+    python benchmarks/embodied_pipeline.py --obs state --iterations 4 --rounds 3   # three blocks of 4
 
 The table goes to stderr; the last stdout line is ONE JSON object:
     {"benchmark": "embodied_pipeline", "ratios": {"pipelined_vs_sequential": ..,
      "pipelined_vs_single_process": .., "<obs>/...": ..}, "targets": {...}, "results": {...}}
 The unprefixed ratios are those of state observations (the issue's headline); rgb ratios carry
-the "rgb/" prefix. Ratios > 1 mean the pipelined path is faster. With `--rounds N` the "ratios"
-are ratios of the rows' medians, and "paired_ratios" holds each round's own ratio (the rows of a
-round ran minutes apart) and the median of those: the stricter reading on a machine that drifts.
+the "rgb/" prefix. Ratios > 1 mean the pipelined path is faster. "ratios" are over all measured
+iterations; "paired_ratios" holds each round's own ratio (`--rounds N`: N consecutive blocks of
+`--iterations` measured iterations per row) with their median, and the spread of the per-cycle
+ratios (the i-th iterations of two rows, seconds apart).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -61,7 +68,8 @@ TARGETS = {"pipelined_vs_sequential": 1.3, "pipelined_vs_single_process": 1.0}
 IMPLS = ("pipelined", "sequential", "single_process", "collocated")
 DEFAULT_IMPLS = IMPLS[:3]
 NUM_ENVS, STEPS = 8, 200
-REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BENCH_DIR = os.path.dirname(os.path.abspath(__file__))
+REPO_ROOT = os.path.dirname(BENCH_DIR)
 
 
 def _child_env() -> dict:
@@ -73,6 +81,10 @@ def _child_env() -> dict:
 
 if REPO_ROOT not in sys.path:  # row (c) runs in this process (``--only single_process``)
     sys.path.insert(0, REPO_ROOT)
+if BENCH_DIR not in sys.path:
+    sys.path.insert(0, BENCH_DIR)
+
+from _bench_turns import Conductor, Turn  # noqa: E402
 
 #: per observation mode: config overrides of `ppo_metaworld_reach` shared by every implementation
 OBS_MODES = {
@@ -105,20 +117,41 @@ def _override_args(overrides: dict) -> list[str]:
     return [f"{key}={_hydra_value(value)}" for key, value in overrides.items()]
 
 
+def runner_overrides(impl: str, obs: str, iterations: int, compile_: bool, out: str) -> dict:
+    """(a)/(b): the `infinirl train ppo_metaworld_reach` overrides of a row."""
+    return {"iterations": iterations, "env.num_envs": NUM_ENVS, "rollout_steps": STEPS, "output_dir": out,
+            "resume": False, "eval.every": 0, "eval.at_start": False, "eval.episodes": 1,
+            "eval.num_envs": 1, "eval.video_episodes": 0, "loggers": [], "actor.compile": compile_,
+            "rollout.compile": compile_,
+            **PLACEMENT, **STAGING, **OBS_MODES[obs], **IMPL_OVERRIDES[impl]}
+
+
+def row_command(impl: str, obs: str, iterations: int, warmup: int, compile_: bool, out: str) -> list[str]:
+    """A row's process. (a)/(b): the real runner through the CLI, each PPO iteration in a turn when
+    a conductor started it (`_bench_turns.gate_embodied_runner`); its metrics go to ``out``.
+    (c): this script with ``--only single_process``, printing its result as JSON."""
+    if impl == "single_process":
+        return [sys.executable, os.path.abspath(__file__), "--only", impl, "--obs", obs, "--iterations",
+                str(iterations), "--warmup", str(warmup)] + ["--eager"] * (not compile_)
+    bootstrap = (f"import sys; sys.path[:0] = [{REPO_ROOT!r}, {BENCH_DIR!r}]; import _bench_turns; "
+                 "_bench_turns.gate_embodied_runner(); from infinirl.cli import main; sys.exit(main())")
+    return [sys.executable, "-c", bootstrap, "train", "ppo_metaworld_reach",
+            *_override_args(runner_overrides(impl, obs, iterations, compile_, out))]
+
+
+def runner_rows(out: str) -> list[dict]:
+    """The per-iteration metrics a runner row wrote."""
+    return [json.loads(line) for line in open(os.path.join(out, "metrics.jsonl")) if "time/iteration_s" in line]
+
+
 def run_runner(impl: str, obs: str, iterations: int, warmup: int, compile_: bool) -> dict:
-    """(a)/(b): the real runner through the CLI; steps/s from its metrics.jsonl."""
+    """(a)/(b) on their own (``--only``): steps/s from the runner's metrics.jsonl."""
     with tempfile.TemporaryDirectory(prefix=f"bench-{impl}-") as out:
-        overrides = {"iterations": iterations, "env.num_envs": NUM_ENVS, "rollout_steps": STEPS, "output_dir": out,
-                     "resume": False, "eval.every": 0, "eval.at_start": False, "eval.episodes": 1,
-                     "eval.num_envs": 1, "eval.video_episodes": 0, "loggers": [], "actor.compile": compile_,
-                     "rollout.compile": compile_,
-                     **PLACEMENT, **STAGING, **OBS_MODES[obs], **IMPL_OVERRIDES[impl]}
-        cmd = [sys.executable, "-c", "import sys; from infinirl.cli import main; sys.exit(main())", "train",
-               "ppo_metaworld_reach", *_override_args(overrides)]
+        cmd = row_command(impl, obs, iterations, warmup, compile_, out)
         proc = subprocess.run(cmd, capture_output=True, text=True, env=_child_env())
         if proc.returncode:
             raise RuntimeError(f"{impl}/{obs} failed ({' '.join(cmd)}):\n{proc.stderr[-4000:]}")
-        rows = [json.loads(line) for line in open(os.path.join(out, "metrics.jsonl")) if "time/iteration_s" in line]
+        rows = runner_rows(out)
     return summarise(rows[warmup:], impl)
 
 
@@ -128,7 +161,8 @@ def summarise(rows: list[dict], impl: str) -> dict:
     mean = lambda key: sum(r.get(key, 0.0) for r in rows) / len(rows)  # noqa: E731
     return {"impl": impl, "iterations": len(rows), "env_steps": steps, "wall_s": round(wall, 3),
             "env_steps_per_s": round(steps / wall, 1), "collect_s": round(mean("time/collect_s"), 3),
-            "train_s": round(mean("time/train_s"), 3)}
+            "train_s": round(mean("time/train_s"), 3),
+            "iteration_s": [round(r["time/iteration_s"], 4) for r in rows]}
 
 
 # --------------------------------------------------------------------------- (c) single process
@@ -138,11 +172,10 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
     import numpy as np
     import torch
 
-    from infinirl.components.embodied_actor import PPOSpec, ppo_update
-    from infinirl.components.embodied_rollout import PolicySpec, array_obs, compiled_act
-    from infinirl.components.env_worker import iteration_seeds, probe_env_specs
+    from infinirl.components.embodied_actor import PPOSpec
+    from infinirl.components.embodied_rollout import PolicySpec, compiled_act
+    from infinirl.components.env_worker import probe_env_specs
     from infinirl.config import compose
-    from infinirl.models.policies.base import prepare_obs
 
     torch.set_num_threads(1)
     raw = compose("ppo_metaworld_reach")
@@ -168,33 +201,50 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
     envs = gym.vector.AsyncVectorEnv([_gym_env_fn(task, env_kwargs, keys)] * NUM_ENVS,
                                      autoreset_mode=gym.vector.AutoresetMode.NEXT_STEP)
     rows = []
+    turn = Turn.from_env()  # a conductor runs this row side by side with the others, in turns
     try:
         for iteration in range(iterations):
-            t0 = time.perf_counter()
-            ob, _ = envs.reset(seed=iteration_seeds(0, iteration, NUM_ENVS))
-            record = {"obs": [], "actions": [], "logprobs": [], "values": [], "rewards": [], "dones": []}
-            with torch.no_grad():
-                for _ in range(STEPS):
-                    step = act(prepare_obs(ob))
-                    record["obs"].append(array_obs(ob))
-                    for key in ("actions", "logprobs", "values"):
-                        record[key].append(getattr(step, key))
-                    ob, reward, terminated, truncated, _ = envs.step(step.actions[:, 0].numpy())
-                    record["rewards"].append(torch.as_tensor(reward, dtype=torch.float32))
-                    record["dones"].append(torch.as_tensor(terminated | truncated))
-                last_value = model.value(prepare_obs(ob))
-            if any(bool(done.any()) for done in record["dones"][:-1]):
-                raise RuntimeError("an episode ended before the iteration's last step: this loop's "
-                                   "NEXT_STEP auto-reset would then need cleanRL's reset-step handling")
-            t1 = time.perf_counter()
-            batch = _gae_batch(record, last_value, alg["gamma"], alg["gae_lambda"], np)
-            ppo_update(model, optimizer, batch, iteration, ppo)
-            model.update_obs_stats({k: batch["obs"][k] for k in model.keys})
-            t2 = time.perf_counter()
-            rows.append({"time/iteration_s": t2 - t0, "time/collect_s": t1 - t0, "time/train_s": t2 - t1})
+            with turn or contextlib.nullcontext():
+                rows.append(_single_process_iteration(envs, act, model, optimizer, iteration, ppo, alg, np))
+        if turn is not None:
+            turn.take()  # the last turn: closing the envs
     finally:
         envs.close()
-    return summarise(rows[warmup:], "single_process")
+    # every iteration's timings too: a conductor that ran this row in turns splits them into rounds
+    return {**summarise(rows[warmup:], "single_process"), "rows": rows}
+
+
+def _single_process_iteration(envs, act, model, optimizer, iteration: int, ppo, alg: dict, np) -> dict:
+    """One cleanRL-style PPO iteration: seeded reset, STEPS decisions, GAE, the update."""
+    import torch
+
+    from infinirl.components.embodied_actor import ppo_update
+    from infinirl.components.embodied_rollout import array_obs
+    from infinirl.components.env_worker import iteration_seeds
+    from infinirl.models.policies.base import prepare_obs
+
+    t0 = time.perf_counter()
+    ob, _ = envs.reset(seed=iteration_seeds(0, iteration, NUM_ENVS))
+    record = {"obs": [], "actions": [], "logprobs": [], "values": [], "rewards": [], "dones": []}
+    with torch.no_grad():
+        for _ in range(STEPS):
+            step = act(prepare_obs(ob))
+            record["obs"].append(array_obs(ob))
+            for key in ("actions", "logprobs", "values"):
+                record[key].append(getattr(step, key))
+            ob, reward, terminated, truncated, _ = envs.step(step.actions[:, 0].numpy())
+            record["rewards"].append(torch.as_tensor(reward, dtype=torch.float32))
+            record["dones"].append(torch.as_tensor(terminated | truncated))
+        last_value = model.value(prepare_obs(ob))
+    if any(bool(done.any()) for done in record["dones"][:-1]):
+        raise RuntimeError("an episode ended before the iteration's last step: this loop's "
+                           "NEXT_STEP auto-reset would then need cleanRL's reset-step handling")
+    t1 = time.perf_counter()
+    batch = _gae_batch(record, last_value, alg["gamma"], alg["gae_lambda"], np)
+    ppo_update(model, optimizer, batch, iteration, ppo)
+    model.update_obs_stats({k: batch["obs"][k] for k in model.keys})
+    t2 = time.perf_counter()
+    return {"time/iteration_s": t2 - t0, "time/collect_s": t1 - t0, "time/train_s": t2 - t1}
 
 
 def _gae_batch(record: dict, last_value, gamma: float, lam: float, np) -> dict:
@@ -266,20 +316,40 @@ def run_one(impl: str, obs: str, iterations: int, warmup: int, compile_: bool) -
     return run_runner(impl, obs, iterations, warmup, compile_)
 
 
-def _median_run(rows: list[dict]) -> dict:
-    """The run with the median env-steps/s of a row's rounds (all rounds' speeds listed with it)."""
-    done = sorted((r for r in rows if "env_steps_per_s" in r), key=lambda r: r["env_steps_per_s"])
-    if not done:
-        return rows[-1]
-    return {**done[(len(done) - 1) // 2], "rounds_env_steps_per_s": [r["env_steps_per_s"] for r in rows
-                                                                    if "env_steps_per_s" in r]}
+def run_in_turns(obs: str, impls: list[str], measured: int, rounds: int, warmup: int, compile_: bool) -> dict:
+    """Every row at once, in turns (`_bench_turns.Conductor`): ``warmup + rounds * measured``
+    iterations each. Returns each row's per-iteration metrics, the warm-up iterations dropped."""
+    total = warmup + rounds * measured
+    with tempfile.TemporaryDirectory(prefix="bench-embodied-") as tmp:
+        outs = {impl: os.path.join(tmp, impl) for impl in impls}
+        commands = {impl: row_command(impl, obs, total, warmup, compile_, outs[impl]) for impl in impls}
+
+        def progress(cycle: int) -> None:
+            if (cycle + 1) % max(1, total // 4) == 0 or cycle + 1 == total:
+                print(f"{obs:5s} cycle {cycle + 1}/{total} ({', '.join(impls)} one iteration each, in turns)",
+                      file=sys.stderr)
+
+        outputs = Conductor(commands, env=_child_env()).run(total, on_cycle=progress)
+        rows = {impl: (json.loads(outputs[impl].strip().splitlines()[-1])["rows"] if impl == "single_process"
+                       else runner_rows(outs[impl])) for impl in impls}
+    return {impl: r[warmup:] for impl, r in rows.items()}
 
 
-def _paired_ratios(rows_a: list[dict], rows_b: list[dict]) -> list[float]:
-    """Per-round ratios a_i / b_i of two rows (rounds where both ran): each pair ran minutes apart,
-    so a slow spell of the machine that spans a round cancels out of its ratio."""
-    return [round(a["env_steps_per_s"] / b["env_steps_per_s"], 3) for a, b in zip(rows_a, rows_b)
-            if "env_steps_per_s" in a and "env_steps_per_s" in b]
+def _median(values: list[float]) -> float:
+    ordered = sorted(values)
+    return ordered[(len(ordered) - 1) // 2]
+
+
+def _pair(rows_a: list[dict], rows_b: list[dict], measured: int, rounds: int) -> dict:
+    """(a)/(b) speed ratios of two rows that ran in turns: per round (a block of ``measured``
+    consecutive iterations of each) and per cycle (the i-th iteration of each, seconds apart)."""
+    time = lambda rows: sum(r["time/iteration_s"] for r in rows)  # noqa: E731
+    per_round = [round(time(rows_b[k * measured:(k + 1) * measured]) / time(rows_a[k * measured:(k + 1) * measured]), 3)
+                 for k in range(rounds)]
+    per_cycle = [b["time/iteration_s"] / a["time/iteration_s"] for a, b in zip(rows_a, rows_b)]
+    return {"rounds": per_round, "median": _median(per_round),
+            "cycles": {"median": round(_median(per_cycle), 3), "min": round(min(per_cycle), 3),
+                       "max": round(max(per_cycle), 3), "n": len(per_cycle)}}
 
 
 def main() -> None:
@@ -287,11 +357,13 @@ def main() -> None:
     parser.add_argument("--obs", default="state,rgb", help="comma list of: " + ", ".join(OBS_MODES))
     parser.add_argument("--impls", default=",".join(DEFAULT_IMPLS),
                         help="comma list of: " + ", ".join(IMPLS) + " (collocated is an opt-in extra row)")
-    parser.add_argument("--iterations", type=int, default=5, help="PPO iterations per run (state; rgb runs 3)")
-    parser.add_argument("--warmup", type=int, default=1, help="first iterations not measured")
+    parser.add_argument("--iterations", type=int, default=5,
+                        help="measured PPO iterations per row and round (state; rgb measures 2 fewer, at least 2)")
+    parser.add_argument("--warmup", type=int, default=1, help="first iterations of each row, not measured")
     parser.add_argument("--only", choices=IMPLS, help="run one impl in this process and print its result")
     parser.add_argument("--rounds", type=int, default=1,
-                        help="run every row this many times, interleaved; each row reports its median run")
+                        help="measure each row in this many consecutive blocks of --iterations; each block "
+                             "gives the rows' ratios once (all rows run side by side, in turns)")
     parser.add_argument("--eager", action="store_true",
                         help="every row without actor.compile and rollout.compile (default: every row compiles "
                              "its PPO optimizer step and its policy's act)")
@@ -307,48 +379,36 @@ def main() -> None:
     for name in impls:
         if name not in IMPLS:
             parser.error(f"--impls {name!r}: choose from {', '.join(IMPLS)}")
-    iterations = lambda obs: args.iterations if obs == "state" else max(args.warmup + 2, args.iterations - 2)  # noqa: E731
     if args.only:
-        print(json.dumps(run_one(args.only, modes[0], iterations(modes[0]), args.warmup, not args.eager)))
+        print(json.dumps(run_one(args.only, modes[0], args.iterations, args.warmup, not args.eager)))
         return
     started = time.time()
-    runs: dict[str, list] = {}
+    results, ratios, paired = {}, {}, {}
     for obs in modes:
-        # Rounds interleave the rows (a, b, c, a, b, c, ...): a slow spell of a shared VM then
-        # lands on every row instead of deciding one row's number.
-        for round_ in range(args.rounds):
-            for impl in impls:
-                cmd = [sys.executable, os.path.abspath(__file__), "--only", impl, "--obs", obs,
-                       "--iterations", str(args.iterations), "--warmup", str(args.warmup)] + ["--eager"] * args.eager
-                proc = subprocess.run(cmd, capture_output=True, text=True, env=_child_env())
-                if proc.returncode:
-                    runs.setdefault(f"{obs}/{impl}", []).append({"failed": proc.stderr[-2000:]})
-                    print(f"{obs:5s} {impl:15s} FAILED\n{proc.stderr[-2000:]}", file=sys.stderr)
-                    continue
-                result = json.loads(proc.stdout.strip().splitlines()[-1])
-                runs.setdefault(f"{obs}/{impl}", []).append(result)
+        measured = args.iterations if obs == "state" else max(2, args.iterations - 2)
+        rows = run_in_turns(obs, impls, measured, args.rounds, args.warmup, not args.eager)
+        prefix = "" if obs == "state" else f"{obs}/"
+        for impl, impl_rows in rows.items():
+            per_round = [summarise(impl_rows[k * measured:(k + 1) * measured], impl) for k in range(args.rounds)]
+            for k, result in enumerate(per_round):
                 print(f"{obs:5s} {impl:15s} {result['env_steps_per_s']:8.1f} env-steps/s  collect "
                       f"{result['collect_s']:.2f}s  train {result['train_s']:.2f}s  per iteration "
-                      f"({result['iterations']} measured, round {round_ + 1}/{args.rounds})", file=sys.stderr)
-    results = {key: _median_run(rows) for key, rows in runs.items()}
-    ratios, paired = {}, {}
-    for obs in modes:
-        if "collocated" in impls:
-            a, b = (results.get(f"{obs}/{i}", {}).get("env_steps_per_s") for i in ("collocated", "single_process"))
-            ratios[("" if obs == "state" else f"{obs}/") + "collocated_vs_single_process"] = round(a / b, 3) if a and b else None
-        prefix = "" if obs == "state" else f"{obs}/"
+                      f"({result['iterations']} measured, round {k + 1}/{args.rounds})", file=sys.stderr)
+            results[f"{obs}/{impl}"] = {**summarise(impl_rows, impl),
+                                        "rounds_env_steps_per_s": [r["env_steps_per_s"] for r in per_round]}
         speed = lambda impl: results.get(f"{obs}/{impl}", {}).get("env_steps_per_s")  # noqa: E731
-        for key, other in (("pipelined_vs_sequential", "sequential"), ("pipelined_vs_single_process", "single_process")):
-            a, b = speed("pipelined"), speed(other)
-            ratios[prefix + key] = round(a / b, 3) if a and b else None
-            per_round = _paired_ratios(runs.get(f"{obs}/pipelined", []), runs.get(f"{obs}/{other}", []))
-            if args.rounds > 1 and per_round:
-                paired[prefix + key] = {"rounds": per_round, "median": sorted(per_round)[(len(per_round) - 1) // 2]}
-    if paired:
-        print("per-round ratios: " + "; ".join(f"{k} {v['rounds']} (median {v['median']})" for k, v in paired.items()),
-              file=sys.stderr)
+        pairs = [("pipelined_vs_sequential", "pipelined", "sequential"),
+                 ("pipelined_vs_single_process", "pipelined", "single_process"),
+                 ("collocated_vs_single_process", "collocated", "single_process")]
+        for key, a, b in pairs:
+            if a in rows and b in rows:
+                ratios[prefix + key] = round(speed(a) / speed(b), 3)
+                paired[prefix + key] = _pair(rows[a], rows[b], measured, args.rounds)
+    for key, value in paired.items():
+        print(f"{key}: rounds {value['rounds']} (median {value['median']}); cycles median "
+              f"{value['cycles']['median']} [{value['cycles']['min']}, {value['cycles']['max']}]", file=sys.stderr)
     print(json.dumps({"benchmark": "embodied_pipeline", "ratios": ratios, "paired_ratios": paired, "targets": TARGETS,
-                      "results": results,
+                      "results": results, "interleaved": True,
                       "actor_compile": not args.eager, "rollout_compile": not args.eager,
                       "device": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
                       "elapsed_s": round(time.time() - started, 1)}))

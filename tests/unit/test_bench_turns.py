@@ -1,0 +1,76 @@
+"""The benchmark's turn-taking (benchmarks/_bench_turns.py): rows side by side never run at once.
+
+What makes an interleaved benchmark fair is that a row's measured work never overlaps another row's
+(they would compete for the cores) nor its start-up or post-run work. These rows are tiny Python
+processes that stamp each turn's start and end, so the test checks the protocol, not timings."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+BENCHMARKS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks")
+sys.path.insert(0, BENCHMARKS)
+
+from _bench_turns import Conductor, RowFailed  # noqa: E402
+
+ROW = """
+import json, sys, time
+sys.path.insert(0, {benchmarks!r})
+from _bench_turns import Turn
+turn = Turn.from_env()
+time.sleep({startup})                          # start-up: before the first turn
+ready = time.monotonic()
+stamps = []
+for i in range({turns}):
+    with turn:
+        start = time.monotonic()
+        if i == {fail_at}:
+            raise RuntimeError("row {name} broke on turn %d" % i)
+        time.sleep(0.02)
+        stamps.append((start, time.monotonic()))
+turn.take()                                    # the post-loop turn
+print(json.dumps({{"ready": ready, "stamps": stamps, "after": time.monotonic()}}))
+"""
+
+
+def row(name: str, turns: int, startup: float = 0.0, fail_at: int = -1) -> list[str]:
+    return [sys.executable, "-c", ROW.format(benchmarks=BENCHMARKS, startup=startup, turns=turns, fail_at=fail_at,
+                                             name=name)]
+
+
+def test_rows_take_turns_in_rotation_and_never_overlap():
+    names, turns = ["a", "b", "c"], 4
+    # c starts slowly: no turn may begin before every row is ready
+    conductor = Conductor({n: row(n, turns, startup=0.5 if n == "c" else 0.0) for n in names})
+    out = {n: json.loads(text.strip().splitlines()[-1]) for n, text in conductor.run(turns).items()}
+    spans = sorted((start, end, n, i) for n in names for i, (start, end) in enumerate(out[n]["stamps"]))
+    assert len(spans) == 3 * turns
+    for (s0, e0, *_), (s1, e1, *_) in zip(spans, spans[1:]):
+        assert e0 <= s1, "two rows ran at once"
+    assert spans[0][0] >= max(out[n]["ready"] for n in names), "a turn overlapped a row's start-up"
+    # cycle i runs the rows in the order rotated by i, each row's turns in its own order
+    order = [n for *_, n, _ in spans]
+    assert order == ["a", "b", "c", "b", "c", "a", "c", "a", "b", "a", "b", "c"]
+    assert [i for *_, n, i in spans if n == "a"] == list(range(turns))
+    # the post-loop work comes after every measured turn of every row
+    last_end = spans[-1][1]
+    assert all(out[n]["after"] >= last_end for n in names)
+
+
+def test_a_failing_row_is_reported_with_its_traceback_and_the_others_are_stopped():
+    conductor = Conductor({"good": row("good", 5), "bad": row("bad", 5, fail_at=2)})
+    with pytest.raises(RowFailed) as error:
+        conductor.run(5)
+    message = str(error.value)
+    assert "row bad exited" in message and "row bad broke on turn 2" in message
+    assert all(r.process.poll() is not None for r in conductor.rows)
+
+
+def test_a_row_started_without_a_conductor_runs_freely():
+    env = {k: v for k, v in os.environ.items() if k != "INFINIRL_BENCH_TURNS"}
+    script = f"import sys; sys.path.insert(0, {BENCHMARKS!r}); from _bench_turns import Turn; print(Turn.from_env())"
+    assert subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
+                          check=True).stdout.strip() == "None"
