@@ -76,6 +76,14 @@ def compiled_act(policy):
     return torch.compile(policy.act, dynamic=False, options=inductor_options(module_device(policy)))
 
 
+def _sampling_generator(device: torch.device) -> torch.Generator:
+    """The generator a policy's sampling on ``device`` draws from (the device's default one; a
+    compiled ``act`` draws from it too, through ``fallback_random``)."""
+    if device.type == "cuda":
+        return torch.cuda.default_generators[device.index if device.index is not None else torch.cuda.current_device()]
+    return torch.default_generator
+
+
 def host(tensor: torch.Tensor) -> np.ndarray:
     """A policy output (no grad) as a numpy array, copied off the GPU when the policy runs there."""
     return (tensor if tensor.device.type == "cpu" else tensor.cpu()).numpy()
@@ -100,6 +108,8 @@ class _LocalEndpoint:
         self.num_stages = env.num_stages
         self._first = env.reset(seeds)
 
+    any_order = False  # in-process stages are stepped in turn
+
     def recv(self, stage: int) -> dict:
         if self._first[stage] is not None:
             message, self._first[stage] = self._first[stage], None
@@ -119,6 +129,17 @@ class _RemoteEndpoint:
             raise ValueError(f"{len(links)} env links for {num_stages} stages: expected 1 or one per stage")
         self.links, self.num_stages = links, num_stages
         self._per_stage = len(links) > 1
+        # A link per stage with a file descriptor (sockets): serve the stages as their results
+        # arrive. One link (one env process serving every stage in turn) or channel links: in order.
+        self.any_order = self._per_stage and all(hasattr(link, "fileno") for link in links)
+
+    def ready(self, stages: list[int]) -> list[int]:
+        """Stages of ``stages`` whose step result has arrived (blocks until one has), in stage
+        order (``any_order`` endpoints only)."""
+        from multiprocessing.connection import wait
+
+        arrived = {id(link) for link in wait([self.links[stage] for stage in stages])}
+        return [stage for stage in stages if id(self.links[stage]) in arrived]
 
     def recv(self, stage: int) -> dict:
         return self.links[stage if self._per_stage else 0].recv()
@@ -229,26 +250,47 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
             raise
 
     def _collect(self, endpoint, iteration: int, num_steps: int) -> dict:
+        """Serve every stage ``num_steps + 1`` times (the last result only bootstraps values), each
+        in turn, or, over a link per stage process, as soon as its result is there
+        (``_RemoteEndpoint.ready``): a stage whose simulation finished first is not kept waiting
+        behind a slower one. The order of service does not change what is
+        collected: each decision draws its noise from a seed of its own stage and step
+        (:meth:`_decision_seeds`), and each stage records into its own buffer."""
         chunk = self.policy.chunk
-        buffers = [_StageBuffer() for _ in range(endpoint.num_stages)]
-        episodes = {"return": [], "length": [], "success": []}
+        stages = endpoint.num_stages
+        buffers = [_StageBuffer() for _ in range(stages)]
+        episodes = [{"return": [], "length": [], "success": []} for _ in range(stages)]
+        seeds = self._decision_seeds(iteration, stages)
+        generator = _sampling_generator(module_device(self.policy))
+        steps_done = [0] * stages
+        active = list(range(stages))
         restarted = 0
         infer_s = wait_s = record_s = 0.0
         cpu_start = time.thread_time()  # this loop's own CPU time: is the rollout CPU-bound?
-        for t in range(num_steps + 1):
-            for stage, buf in enumerate(buffers):
+        while active:
+            if endpoint.any_order:
+                start = time.perf_counter()
+                ready = endpoint.ready(active)
+                wait_s += time.perf_counter() - start
+            else:  # in turn: the stage with the fewest steps served (the lowest on a tie)
+                ready = [min(active, key=lambda s: (steps_done[s], s))]
+            for stage in ready:
+                t, buf = steps_done[stage], buffers[stage]
                 start = time.perf_counter()
                 msg = endpoint.recv(stage)
                 wait_s += time.perf_counter() - start
                 start = time.perf_counter()
                 obs = array_obs(msg["obs"])
                 tensors = prepare_obs(obs, self.compute)
+                steps_done[stage] = t + 1
                 if t == num_steps:
-                    self._record_result(buf, msg, episodes)
+                    active.remove(stage)
+                    self._record_result(buf, msg, episodes[stage])
                     restarted += msg["restarted"]
                     buf.bootstrap = self._values(tensors, next(iter(obs.values())).shape[0])
                     infer_s += time.perf_counter() - start
                     continue
+                generator.manual_seed(seeds[stage] + t)
                 step = self._act(tensors)
                 policy_actions = host(step.actions)  # one copy off the device, for the env and the record
                 actions = env_actions(policy_actions, chunk)
@@ -257,7 +299,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                 endpoint.send(stage, actions, autoreset=t < num_steps - 1)
                 start = time.perf_counter()
                 if t > 0:
-                    self._record_result(buf, msg, episodes)
+                    self._record_result(buf, msg, episodes[stage])
                     restarted += msg["restarted"]
                 buf.obs.append(obs)
                 buf.actions.append(policy_actions)
@@ -269,12 +311,18 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                 record_s += time.perf_counter() - start
         trajectory = _concat_stages([buf.stacked() for buf in buffers])
         trajectory["version"] = self.weight_version
-        trajectory["episodes"] = {k: np.asarray(v) for k, v in episodes.items()}
+        trajectory["episodes"] = {key: np.asarray([x for stage in episodes for x in stage[key]])
+                                  for key in episodes[0]}
         trajectory["timing"] = {"rollout/inference_s": infer_s, "rollout/wait_env_s": wait_s, "rollout/record_s": record_s,
                                 "rollout/cpu_s": time.thread_time() - cpu_start,
                                 "rollout/act_compiled": float(self._act_compiled)}  # which path produced the timings
         trajectory["restarted"] = restarted
         return trajectory
+
+    def _decision_seeds(self, iteration: int, stages: int) -> list[int]:
+        """Per stage, the seed of its first decision this iteration; step ``t`` uses ``seed + t``."""
+        return [int(np.random.default_rng([self.seed, iteration, self.rank, stage, 0xD0]).integers(2**62))
+                for stage in range(stages)]
 
     def _values(self, tensors: dict, n: int) -> np.ndarray:
         if not getattr(self.policy.policy, "has_value_head", False):

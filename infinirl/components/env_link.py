@@ -53,6 +53,10 @@ class _SocketLink:
         except (EOFError, ConnectionError) as exc:
             raise EnvLinkClosed(f"the env link's other end closed it ({exc!r})") from None
 
+    def fileno(self) -> int:
+        """For ``multiprocessing.connection.wait``: serve whichever link has a message."""
+        return self._conn.fileno()
+
     def close(self) -> None:
         self._conn.close()
 
