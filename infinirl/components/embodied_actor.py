@@ -232,7 +232,7 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     # actor.compile on a plain (non-FSDP) model: the whole optimizer step is one compiled function;
     # under FSDP2 (whose hooks dynamo cannot fuse into it) only the mini-batch loss is compiled.
     whole_step = (CompiledAdamStep(model, optimizer, _objective_of_outputs, ppo.max_grad_norm,
-                                   all_reduce_grads if world_size > 1 else None)
+                                   all_reduce_grads if world_size > 1 else None, fixed_shapes=True)
                   if ppo.compile and ppo.strategy != "fsdp" else None)
     step_metrics: dict[str, list[torch.Tensor]] = {}
     # The observation statistics are fixed during the update (folded in after it): normalise the

@@ -134,6 +134,37 @@ def test_the_compiled_step_steps_like_eager_backward_clip_and_adam():
 
 @pytest.mark.skipif(find_cxx_compiler() is None,
                     reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
+def test_fixed_shape_steps_skip_guards_only_after_each_updates_first_step():
+    """``fixed_shapes=True`` (what a PPO update passes): within one CompiledAdamStep the steps after
+    the first skip dynamo's guards. The next update's first step evaluates them again, so a new
+    mini-batch shape compiles its own graph instead of running the old one. Every step matches
+    eager backward / clip / Adam."""
+    from torch._dynamo.utils import counters
+
+    gen = torch.Generator().manual_seed(5)
+    eager, compiled = Net(), Net()
+    eager_opt = torch.optim.Adam(eager.parameters(), lr=1e-2, eps=1e-5, fused=True)
+    compiled_opt = torch.optim.Adam(compiled.parameters(), lr=1e-2, eps=1e-5, fused=True)
+    counters.clear()
+    for rows in (16, 16, 10):  # three updates; the third one's mini-batches are smaller
+        step = CompiledAdamStep(compiled, compiled_opt, objective, 0.5, fixed_shapes=True)
+        for _ in range(3):
+            x, y = torch.randn(rows, 3, generator=gen), torch.randn(rows, generator=gen)
+            loss, _ = objective(*eager(x), y, None)
+            eager_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            eager_norm = torch.nn.utils.clip_grad_norm_(list(eager.parameters()), 0.5, foreach=True)
+            eager_opt.step()
+            _, metrics, norm = step.step((x,), (y, None))
+            assert float(metrics["mse"]) == pytest.approx(float(loss), rel=1e-5)
+            assert float(norm) == pytest.approx(float(eager_norm), rel=1e-5)
+            for a, b in zip(compiled.parameters(), eager.parameters()):
+                torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+    assert counters["stats"]["unique_graphs"] == 2  # one per mini-batch shape
+
+
+@pytest.mark.skipif(find_cxx_compiler() is None,
+                    reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
 def test_the_compiled_step_continues_an_eager_optimizer_from_its_step_counts():
     """Eager steps first (the unreached layer gets no gradient, so no Adam state), then compiled
     steps on the same optimizer: each parameter's bias corrections continue from its own count."""
