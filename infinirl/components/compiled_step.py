@@ -28,11 +28,12 @@ from __future__ import annotations
 
 import contextlib
 import math
-import threading
 import types
 import weakref
 
 import torch
+
+from infinirl.runtime.compute_thread import on_compute_thread
 
 __all__ = ["CompiledAdamStep", "adam_", "adam_corrections", "clip_by_total_norm", "inductor_options"]
 
@@ -152,8 +153,9 @@ class CompiledAdamStep:
     model, parameter and state tensors, objective and constants, and mini-batch views of the same
     shapes. Why: with one graph for forward, backward, clipping and Adam, the guards check every
     parameter and state tensor on every call, ~100 us of a ~500 us step of MetaWorld's MLP 2x64.
-    The stance is process-wide in torch, so the steps skip guards only on the main thread, and
-    nothing else in the process should call compiled functions meanwhile (true of our workers).
+    The stance is process-wide in torch, so the steps skip guards only on the process's compute
+    thread (:func:`~infinirl.runtime.compute_thread.on_compute_thread`: a script's main thread, a
+    Worker's sync-method thread), the one thread of our processes that calls compiled functions.
     """
 
     def __init__(self, model: torch.nn.Module, optimizer: torch.optim.Optimizer, objective, max_norm: float,
@@ -218,9 +220,9 @@ class CompiledAdamStep:
 
     def step(self, model_args: tuple, objective_args: tuple) -> tuple[torch.Tensor, dict, torch.Tensor]:
         """One optimizer step on this mini-batch; ``(loss, metrics, grad_norm)`` (detached)."""
-        # torch keeps the stance process-wide: only the main thread (where a Ray actor runs its
-        # methods, and a script its loop) changes it, so ranks simulated by threads keep the guards.
-        trusted = self.fixed_shapes and self._steps_taken > 0 and threading.current_thread() is threading.main_thread()
+        # torch keeps the stance process-wide: only the process's compute thread (a script's main
+        # thread, a Worker's sync-method thread) changes it; ranks simulated by threads keep guards.
+        trusted = self.fixed_shapes and self._steps_taken > 0 and on_compute_thread()
         self._steps_taken += 1
         with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True) if trusted else contextlib.nullcontext():
             return self._step(model_args, objective_args)

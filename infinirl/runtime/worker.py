@@ -38,6 +38,8 @@ from typing import Any
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
+from infinirl.runtime.compute_thread import mark_compute_thread
+
 from infinirl.runtime.cluster import NAMESPACE, worker_env
 from infinirl.runtime.errors import WorkerError
 
@@ -170,7 +172,9 @@ class _WorkerHost:
         self._restarted = _was_reconstructed()
         self._ctx = ctx
         self._spans: list[tuple] = []
-        self._sync_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="infinirl-sync")
+        self._sync_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="infinirl-sync",
+                                                 initializer=mark_compute_thread)
+        self._sync_executor.submit(lambda: None)  # start the thread now: it is the compute thread from here on
         self._init_error: WorkerError | None = None
         self._next_seq: dict[str, int] = defaultdict(int)
         self._turn = asyncio.Condition()

@@ -38,6 +38,16 @@ class Echo(Worker):
         await asyncio.sleep(0.01)
         return 2 * x
 
+    def on_compute_thread(self):
+        from infinirl.runtime.compute_thread import on_compute_thread
+
+        return on_compute_thread()
+
+    async def async_on_compute_thread(self):
+        from infinirl.runtime.compute_thread import on_compute_thread
+
+        return on_compute_thread()
+
     def fail_on(self, bad_rank):
         if self.rank == bad_rank:
             raise ValueError(f"boom from rank {self.rank}")
@@ -85,6 +95,16 @@ def test_sync_calls_run_in_call_order(ray_cluster):
         handles = [group.add(i) for i in range(50)]
         [h.wait() for h in handles]
         assert group.order().wait()[0] == list(range(50))
+    finally:
+        group.shutdown()
+
+
+def test_sync_methods_run_on_the_compute_thread_and_async_ones_do_not(ray_cluster):
+    """The thread process-wide torch state may be changed from (compiled_step's guard skipping)."""
+    group = WorkerGroup.launch(Echo, "threads", num_ranks=1)
+    try:
+        assert group.async_on_compute_thread().wait() == [False]  # the event loop's (main) thread
+        assert group.on_compute_thread().wait() == [True]
     finally:
         group.shutdown()
 
