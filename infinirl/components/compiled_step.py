@@ -205,7 +205,13 @@ class CompiledAdamStep:
             if count not in memo:
                 memo[count] = adam_corrections(count, self._lr, self.beta1, self.beta2)
             self._corrections_view[index] = memo[count]
-        return self._corrections
+        if self._device_type == "cpu":
+            return self._corrections
+        # On an accelerator the corrections go in on the parameters' device: inductor would pass a
+        # CPU tensor's pointer straight into a GPU kernel (on an H100: "CUDA driver error: invalid
+        # argument"). A fresh pinned copy per step, copied asynchronously: the caching host
+        # allocator keeps it until the copy is done, so the next step's rewrite cannot race it.
+        return self._corrections.pin_memory().to(self.params[0].device, non_blocking=True)
 
     def _adam_state(self, param: torch.Tensor) -> dict:
         """The optimizer's state of ``param``, created as ``torch.optim.Adam`` creates it."""

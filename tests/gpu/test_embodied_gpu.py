@@ -12,6 +12,7 @@ pytest.importorskip("gymnasium")
 
 from infinirl.components.embodied_actor import ppo_update  # noqa: E402
 from tests.e2e.test_embodied_pipeline import make_cfg, straight_and_resumed  # noqa: E402
+from tests.unit.test_compiled_step import fixed_shape_updates_step_like_eager  # noqa: E402
 from tests.unit.test_embodied_ppo_update import PPO, flat, policy_and_batch  # noqa: E402
 
 pytestmark = pytest.mark.gpu
@@ -39,6 +40,13 @@ def test_ppo_update_on_gpu_matches_the_cpu_update(compile_):
     torch.testing.assert_close(flat(gpu).cpu(), flat(cpu), rtol=0, atol=1e-4)
     for key in ("train/policy_loss", "train/value_loss", "train/grad_norm"):
         assert gpu_metrics[key] == pytest.approx(cpu_metrics[key], rel=1e-3, abs=1e-5), key
+
+
+def test_fixed_shape_compiled_steps_on_cuda_skip_guards_and_step_like_eager():
+    """The compiled step's guard skipping (``fixed_shapes``, what ppo_update passes) on CUDA: the
+    steps after each update's first match eager backward / clip / Adam, and a new mini-batch
+    shape still compiles its own graph."""
+    fixed_shape_updates_step_like_eager("cuda")
 
 
 def metrics_rows(run_dir):

@@ -139,17 +139,24 @@ def test_fixed_shape_steps_skip_guards_only_after_each_updates_first_step():
     the first skip dynamo's guards. The next update's first step evaluates them again, so a new
     mini-batch shape compiles its own graph instead of running the old one. Every step matches
     eager backward / clip / Adam."""
+    fixed_shape_updates_step_like_eager("cpu")
+
+
+def fixed_shape_updates_step_like_eager(device: str) -> None:
+    """Three updates of three fixed-shape steps on ``device`` (the third update's mini-batches are
+    smaller), each step against eager backward / clip / Adam; two graphs, one per shape. Shared
+    with the GPU check (tests/gpu/test_embodied_gpu.py)."""
     from torch._dynamo.utils import counters
 
     gen = torch.Generator().manual_seed(5)
-    eager, compiled = Net(), Net()
+    eager, compiled = Net().to(device), Net().to(device)
     eager_opt = torch.optim.Adam(eager.parameters(), lr=1e-2, eps=1e-5, fused=True)
     compiled_opt = torch.optim.Adam(compiled.parameters(), lr=1e-2, eps=1e-5, fused=True)
     counters.clear()
-    for rows in (16, 16, 10):  # three updates; the third one's mini-batches are smaller
+    for rows in (16, 16, 10):
         step = CompiledAdamStep(compiled, compiled_opt, objective, 0.5, fixed_shapes=True)
         for _ in range(3):
-            x, y = torch.randn(rows, 3, generator=gen), torch.randn(rows, generator=gen)
+            x, y = torch.randn(rows, 3, generator=gen).to(device), torch.randn(rows, generator=gen).to(device)
             loss, _ = objective(*eager(x), y, None)
             eager_opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -160,6 +167,7 @@ def test_fixed_shape_steps_skip_guards_only_after_each_updates_first_step():
             assert float(norm) == pytest.approx(float(eager_norm), rel=1e-5)
             for a, b in zip(compiled.parameters(), eager.parameters()):
                 torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+    assert all(p.device.type == torch.device(device).type for p in compiled.parameters())
     assert counters["stats"]["unique_graphs"] == 2  # one per mini-batch shape
 
 
