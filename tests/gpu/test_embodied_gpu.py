@@ -61,6 +61,17 @@ def test_runner_trains_on_the_gpu_and_resumes_exactly(ray_cluster, tmp_path):
     assert max(r["train/logprob_mismatch"] for r in rows[1:]) < 1e-4
 
 
+def test_compiled_actor_and_rollout_train_and_resume_exactly_on_the_gpu(ray_cluster, tmp_path):
+    """actor.compile + rollout.compile (the MetaWorld configs' settings) on CUDA: the compiled
+    step and act run on the GPU, the trainer agrees with the rollout, a resumed run continues."""
+    compiled = {"actor": {"anneal_lr": False, "compile": True}, "rollout": {"compile": True}}
+    straight, resumed = straight_and_resumed(tmp_path, 2, ON_GPU_0, 1, **compiled)
+    assert straight["devices"] == resumed["devices"] == {"rollout": "cuda:0", "actor": "cuda:0"}
+    rows = metrics_rows(tmp_path / "straight")
+    assert rows[1]["rollout/act_compiled"] == 1.0
+    assert max(r["train/logprob_mismatch"] for r in rows[1:]) < 1e-4
+
+
 def test_gpu_actor_syncs_weights_to_a_cpu_rollout(ray_cluster, tmp_path):
     summary = run_cfg(tmp_path, rollout={"device": "cpu"})
     assert summary["devices"] == {"rollout": "cpu", "actor": "cuda:0"}
