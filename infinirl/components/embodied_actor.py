@@ -97,7 +97,9 @@ class EmbodiedActorWorker(Worker, WeightSource):
 
     def __init__(self, policy_spec: PolicySpec, observation_spec: dict, action_space, ppo: PPOSpec,
                  num_threads: int = 1, device: str = "auto"):
-        _limit_threads(num_threads)
+        # 0: every core this process may run on (actor.num_threads): the on-policy update runs while
+        # the envs and the rollout wait, so it may use the cores they leave idle.
+        _limit_threads(num_threads or len(os.sched_getaffinity(0)))
         if ppo.strategy not in ("ddp", "fsdp"):
             raise ValueError(f"actor strategy must be 'ddp' or 'fsdp', got {ppo.strategy!r}")
         self.ppo = ppo
@@ -131,6 +133,7 @@ class EmbodiedActorWorker(Worker, WeightSource):
         metrics = ppo_update(self.model, self.optimizer, batch, iteration, self.ppo,
                              self.rank, self.world_size, self._all_reduce_grads)
         self.model.update_obs_stats({k: batch["obs"][k] for k in self.model.keys})
+        metrics["train/num_threads"] = torch.get_num_threads()  # what actor.num_threads resolved to
         return metrics
 
     def _all_reduce_grads(self) -> None:

@@ -3,6 +3,7 @@ and the pipelined placement with the same code, logs, checkpoints, and resumes e
 weights after 4 iterations equal those after 2 + resume + 2, bit for bit); embodied GRPO likewise."""
 
 import json
+import os
 import shutil
 
 import pytest
@@ -74,7 +75,8 @@ def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
     decisions after its first episode are masked out (20 of 32 trained)."""
     placement, stages = PLACEMENTS["collocated"]
     grpo = {"algorithm": {"name": "grpo", "group_size": 2, "epochs": 2, "mini_batches": 4},
-            "env": {"name": "gym:Pendulum-v1", "num_envs": 4, "max_episode_steps": 20}}
+            "env": {"name": "gym:Pendulum-v1", "num_envs": 4, "max_episode_steps": 20},
+            "actor": {"num_threads": 0}}  # every core: resumes exactly all the same
     straight_and_resumed(tmp_path, 2, placement, stages, **grpo)
 
     rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
@@ -86,6 +88,7 @@ def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
     assert "train/value_loss" not in rows[1] and "train/reward_scale" not in rows[1]  # no critic, no reward scaling
     assert rows[1]["train/advantage_mask_frac"] == 20 / 32
     assert rows[1]["train/group_return_std_zero_frac"] == 0.0  # sampled actions: returns differ in a group
+    assert rows[1]["train/num_threads"] == len(os.sched_getaffinity(0))  # actor.num_threads=0: every core
     assert rows[1]["train/logprob_mismatch"] < 1e-5
 
 
@@ -143,6 +146,8 @@ def test_bad_names_fail_before_workers_start():
         make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 1, algorithm={"mini_batches": 3})
     with pytest.raises(ConfigError, match="placement must name exactly env, rollout, actor"):
         make_cfg("/tmp/x", 1, {"env": "0", "rollout": "0"}, 1)
+    with pytest.raises(ConfigError, match="actor.num_threads=-1 must be >= 0"):
+        make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 1, actor={"num_threads": -1})
     with pytest.raises(ConfigError, match="rollout.pipeline_stages=0 must be >= 1"):
         make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 0)
     with pytest.raises(ConfigError, match="algorithm.group_size=3 does not divide env.num_envs=4"):
