@@ -22,8 +22,10 @@ Every row runs the same update and the same policy inference: by default with `a
 (the whole optimizer step, forward pass, PPO loss, gradient, clipping and Adam, through
 torch.compile; the same arithmetic as eager, ~4x faster for this small MLP) and
 `rollout.compile=true` (the policy's `act` compiled, the same random draws as eager; row (c)
-compiles its `act` the same way), with `--eager` without either. The update does not depend on
-the placement, so it is the same cost in every row; pipelining only shortens collection.
+compiles its `act` the same way), with `--eager` without either. With RGB the CNN's update uses
+every core in every row (`actor.num_threads=0`; row (c) sets torch's threads to the core count for
+its update and back to 1 to act): it runs while the simulators wait. The update does not depend
+on the placement, so it is the same cost in every row; pipelining only shortens collection.
 
 The rows run side by side, in turns (`benchmarks/_bench_turns.py`): every row's process starts
 at once, then the rows take turns, one PPO iteration each, while the others wait blocked (no CPU),
@@ -89,8 +91,10 @@ from _bench_turns import Conductor, Turn  # noqa: E402
 #: per observation mode: config overrides of `ppo_metaworld_reach` shared by every implementation
 OBS_MODES = {
     "state": {},
+    # the CNN's update takes every core (actor.num_threads=0, as ppo_pixels_metaworld_reach does;
+    # row (c) likewise): it runs while the simulators wait, and convolutions parallelise
     "rgb": {"env.kwargs": {"obs_mode": "state+rgb", "image_size": 64}, "policy.name": "cnn_gaussian",
-            "policy.kwargs": {}},
+            "policy.kwargs": {}, "actor.num_threads": 0},
 }
 #: how (a) and (b) run the envs: each pipeline stage in a process of its own streaming straight to
 #: the rollout (stages simulate in parallel, one message hop per step), its sub-envs in that process
@@ -194,6 +198,8 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
                   max_grad_norm=alg["max_grad_norm"], strategy="ddp", compile=compile_)
     optimizer = torch.optim.Adam(model.parameters(), lr=ppo.lr, eps=ppo.adam_eps, fused=True)
     act = compiled_act(model) if compile_ else model.act  # what rollout.compile does in (a)/(b)
+    # the update's threads, as actor.num_threads gives them in (a)/(b) (0: every core); acting keeps 1
+    update_threads = options.get("actor.num_threads", 1) or len(os.sched_getaffinity(0))
     # NEXT_STEP (gymnasium's default): an env whose episode ended resets on its next step() call.
     # Every episode here ends on an iteration's last step (200-step episodes, no early
     # termination), and the next iteration starts with a seeded reset(), so, like (a) and (b),
@@ -205,7 +211,8 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
     try:
         for iteration in range(iterations):
             with turn or contextlib.nullcontext():
-                rows.append(_single_process_iteration(envs, act, model, optimizer, iteration, ppo, alg, np))
+                rows.append(_single_process_iteration(envs, act, model, optimizer, iteration, ppo, alg, np,
+                                                      update_threads))
         if turn is not None:
             turn.take()  # the last turn: closing the envs
     finally:
@@ -214,7 +221,8 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
     return {**summarise(rows[warmup:], "single_process"), "rows": rows}
 
 
-def _single_process_iteration(envs, act, model, optimizer, iteration: int, ppo, alg: dict, np) -> dict:
+def _single_process_iteration(envs, act, model, optimizer, iteration: int, ppo, alg: dict, np,
+                              update_threads: int = 1) -> dict:
     """One cleanRL-style PPO iteration: seeded reset, STEPS decisions, GAE, the update."""
     import torch
 
@@ -241,7 +249,11 @@ def _single_process_iteration(envs, act, model, optimizer, iteration: int, ppo, 
                            "NEXT_STEP auto-reset would then need cleanRL's reset-step handling")
     t1 = time.perf_counter()
     batch = _gae_batch(record, last_value, alg["gamma"], alg["gae_lambda"], np)
-    ppo_update(model, optimizer, batch, iteration, ppo)
+    torch.set_num_threads(update_threads)
+    try:
+        ppo_update(model, optimizer, batch, iteration, ppo)
+    finally:
+        torch.set_num_threads(1)
     model.update_obs_stats({k: batch["obs"][k] for k in model.keys})
     t2 = time.perf_counter()
     return {"time/iteration_s": t2 - t0, "time/collect_s": t1 - t0, "time/train_s": t2 - t1}

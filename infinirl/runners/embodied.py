@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from infinirl.algorithms import EnvAdvantageInputs, compute_advantages
-from infinirl.components.embodied_actor import EmbodiedActorWorker, PPOSpec
+from infinirl.components.embodied_actor import EmbodiedActorWorker, PPOSpec, actor_process_env
 from infinirl.components.embodied_policy import ReturnNormalizer
 from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec
 from infinirl.components.env_worker import EVAL_SEED_BASE, EnvSpec, EnvWorker, iteration_seeds, probe_env_specs
@@ -73,7 +73,7 @@ def run(cfg: EmbodiedConfig) -> dict:
                                                 host_env, cfg.rollout.num_threads, cfg.rollout.compile,
                                                 cfg.rollout.device)),
             "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo, cfg.actor.num_threads,
-                                            cfg.actor.device)),
+                                            cfg.actor.device), actor_process_env(cfg.actor.num_threads)),
         }
         if not host_env:
             launches["env"] = (EnvWorker, (env_spec, cfg.rollout.num_threads))

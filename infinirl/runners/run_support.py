@@ -37,14 +37,16 @@ def run_start_time() -> float:
 def launch_all(plan, launches: dict):
     """Start every component at once (their start-up, mostly imports, overlaps).
 
-    ``launches``: component name -> (Worker class, constructor args). If any component fails to
+    ``launches``: component name -> (Worker class, constructor args) or (Worker class, constructor
+    args, environment variables of its processes from their start). If any component fails to
     start, the ones that did are shut down and the first error is raised (its root cause, not a
     secondary "actor died" from a sibling)."""
     from infinirl.runtime import WorkerGroup
 
     with ThreadPoolExecutor(len(launches)) as pool:
-        futures = {name: pool.submit(WorkerGroup.launch, cls, name, placement=plan.ranks(name), args=args)
-                   for name, (cls, args) in launches.items()}
+        futures = {name: pool.submit(WorkerGroup.launch, cls, name, placement=plan.ranks(name), args=args,
+                                     env_vars=env_vars[0] if env_vars else None)
+                   for name, (cls, args, *env_vars) in launches.items()}
         groups, error = {}, None
         for name, future in futures.items():
             try:

@@ -374,6 +374,10 @@ class WorkerGroup:
 
         ``placement`` is the tuple of ``RankPlacement`` that ``placement.place`` gives for this
         component; without it, ``num_ranks`` CPU ranks go wherever Ray puts them.
+
+        ``env_vars`` are in every rank's environment from its process's start (Ray's runtime_env),
+        not only set once the Worker is built: libraries that read their settings when they load
+        (OpenMP's wait policy, when torch is imported) see them.
         """
         if not (isinstance(worker_cls, type) and issubclass(worker_cls, Worker)):
             raise TypeError(f"WorkerGroup.launch needs a Worker subclass, got {worker_cls!r}")
@@ -397,7 +401,7 @@ class WorkerGroup:
                 }
             )
             ctx.env_vars.setdefault("LOCAL_RANK", "0")
-            opts = dict(options, runtime_env={"env_vars": worker_env()})
+            opts = dict(options, runtime_env={"env_vars": {**worker_env(), **(env_vars or {})}})
             if ctx.node_id:
                 opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(ctx.node_id, soft=False)
             actors.append(host_cls.options(**opts).remote(worker_cls, ctx, args, kwargs))

@@ -38,6 +38,11 @@ class Echo(Worker):
         await asyncio.sleep(0.01)
         return 2 * x
 
+    def initial_environ(self):
+        """The environment the process started with (/proc/self/environ is not changed by os.environ)."""
+        with open("/proc/self/environ", "rb") as f:
+            return dict(item.decode().split("=", 1) for item in f.read().split(b"\0") if b"=" in item)
+
     def on_compute_thread(self):
         from infinirl.runtime.compute_thread import on_compute_thread
 
@@ -105,6 +110,17 @@ def test_sync_methods_run_on_the_compute_thread_and_async_ones_do_not(ray_cluste
     try:
         assert group.async_on_compute_thread().wait() == [False]  # the event loop's (main) thread
         assert group.on_compute_thread().wait() == [True]
+    finally:
+        group.shutdown()
+
+
+def test_launch_env_vars_are_set_from_the_process_start(ray_cluster):
+    """What OpenMP reads when torch loads (actor_process_env) must be there before any import."""
+    group = WorkerGroup.launch(Echo, "env_at_start", num_ranks=1, env_vars={"GOMP_SPINCOUNT": "12345"})
+    try:
+        start = group.initial_environ().wait()[0]
+        assert start["GOMP_SPINCOUNT"] == "12345"
+        assert start["OMP_WAIT_POLICY"] == "PASSIVE"  # the workers' defaults stay
     finally:
         group.shutdown()
 
