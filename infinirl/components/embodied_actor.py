@@ -57,6 +57,7 @@ def actor_process_env(num_threads: int) -> dict[str, str]:
     OpenMP: hence set from the process's start."""
     return {} if num_threads == 1 else {"GOMP_SPINCOUNT": "300000"}
 
+
 _CHECKPOINT = "actor.pt"
 
 
