@@ -38,9 +38,8 @@ from typing import Any
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from infinirl.runtime.compute_thread import mark_compute_thread
-
 from infinirl.runtime.cluster import NAMESPACE, worker_env
+from infinirl.runtime.compute_thread import mark_compute_thread
 from infinirl.runtime.errors import WorkerError
 
 CRASH_LOG_DIR = Path(tempfile.gettempdir()) / "infinirl-crash-logs"
