@@ -20,6 +20,7 @@ still moves through Ray, where its size, not its latency, matters.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import tempfile
@@ -27,7 +28,7 @@ from typing import Any
 
 from infinirl.runtime.errors import InfiniRLError
 
-__all__ = ["TRANSPORTS", "EnvLinkClosed", "accept", "connect", "open_server"]
+__all__ = ["TRANSPORTS", "EnvLinkClosed", "accept", "close_server", "connect", "open_server"]
 
 TRANSPORTS = ("socket", "channel")
 
@@ -116,14 +117,24 @@ def accept(server) -> Any:
         inbox.register_consumer()
         return _ChannelLink(outbox, inbox)
     conn = server.listener.accept()
+    close_server(server)
+    return _SocketLink(conn)
+
+
+def close_server(server) -> None:
+    """Stop listening and remove a Unix socket's temporary directory (idempotent). Called once
+    the rollout has connected, and by the env side's close in case it never did.
+
+    The listener's own close already unlinks the socket file, so the directory is removed on its
+    own: unlinking and removing the directory in one ``try`` left every directory behind."""
+    if not isinstance(server, _SocketServer):
+        return  # the channel transport listens on nothing
     server.listener.close()
     if server.path:
-        try:
+        with contextlib.suppress(FileNotFoundError):
             os.unlink(server.path)
+        with contextlib.suppress(FileNotFoundError):
             os.rmdir(os.path.dirname(server.path))
-        except OSError:
-            pass
-    return _SocketLink(conn)
 
 
 def connect(address: dict) -> Any:

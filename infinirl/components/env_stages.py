@@ -153,7 +153,7 @@ def _doing(what: str) -> str:
 
 def _stage_main(control, spec: EnvSpec, rank: int, stage: int) -> None:
     """The stage process: build the stage's envs, then obey the env worker's commands."""
-    from infinirl.components.env_link import accept, open_server
+    from infinirl.components.env_link import accept, close_server, open_server
 
     env = link = server = None
     try:
@@ -188,6 +188,8 @@ def _stage_main(control, spec: EnvSpec, rank: int, stage: int) -> None:
         except (OSError, EOFError):
             pass
     finally:
+        if server is not None:
+            close_server(server)
         if link is not None:
             link.close()
         if env is not None:

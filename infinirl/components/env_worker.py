@@ -250,6 +250,7 @@ class EnvWorker(Worker):
         _limit_threads(num_threads)
         self.spec = spec
         self.link = None
+        self._server = None
         if spec.stage_processes:
             from infinirl.components.env_stages import StageProcess
 
@@ -305,6 +306,10 @@ class EnvWorker(Worker):
     def close(self) -> None:
         for stage in self.stage_processes:
             stage.close()
+        if self._server is not None:
+            from infinirl.components.env_link import close_server
+
+            close_server(self._server)
         if self.link is not None:
             self.link.close()
         if self.env is not None:

@@ -1,0 +1,36 @@
+"""The env link's socket transport cleans up after itself: every env rank of every run opens a
+Unix socket in a fresh temporary directory, so a directory left behind per link adds up (a test
+suite left hundreds in /tmp before this was fixed)."""
+
+from __future__ import annotations
+
+import os
+import threading
+
+from infinirl.components.env_link import accept, close_server, connect, open_server
+
+
+def test_a_unix_socket_link_removes_its_directory_once_connected():
+    server, address = open_server("socket")
+    directory = os.path.dirname(address["address"])
+    assert os.path.isdir(directory)
+    client = {}
+    connecting = threading.Thread(target=lambda: client.setdefault("link", connect(address)))
+    connecting.start()
+    env_side = accept(server)
+    connecting.join(timeout=10)
+    try:
+        client["link"].send({"obs": 1})
+        assert env_side.recv() == {"obs": 1}
+        assert not os.path.exists(directory)
+    finally:
+        env_side.close()
+        client["link"].close()
+
+
+def test_a_server_nobody_connected_to_removes_its_directory_when_closed():
+    server, address = open_server("socket")
+    directory = os.path.dirname(address["address"])
+    close_server(server)
+    assert not os.path.exists(directory)
+    close_server(server)  # closing twice is harmless
