@@ -6,6 +6,16 @@ when it starts. Why it matters: some torch state is process-wide rather than per
 (``torch.compiler.set_stance``), and is safe to change only from the one thread that runs compiled
 code. Code that changes such state asks :func:`on_compute_thread` first; other threads (ranks
 simulated by threads in tests, helper threads) leave it alone.
+
+A rank's constructor runs on its compute thread too, so that one thread does all of the rank's
+parallel torch work. Why: torch's intra-op threads are libgomp's (GNU OpenMP), and each thread
+that starts a parallel region gets a thread team of its own. Once the teams hold more threads
+than the process has cores, libgomp makes *every* waiting thread spin only ~100 turns before it
+sleeps in the kernel, instead of ~300,000. A PPO update is thousands of short parallel regions,
+so its helper thread then sleeps and is woken between nearly every pair of them: measured on
+the 2-core machine, the pixels CNN update took 3.7 s with one team and 4.0-5.0 s (30,000+
+voluntary context switches) after one parallel op on a second thread
+(``benchmarks/omp_teams.py``).
 """
 
 from __future__ import annotations

@@ -162,6 +162,13 @@ def _was_reconstructed() -> bool:
         return bool(ray.get_runtime_context().was_current_actor_reconstructed)
 
 
+def _construct(worker_cls: type, ctx: RankContext, args: tuple, kwargs: dict):
+    worker = worker_cls.__new__(worker_cls)
+    worker.ctx = ctx
+    worker.__init__(*args, **kwargs)
+    return worker
+
+
 class _WorkerHost:
     """The Ray actor that hosts one ``Worker`` rank; turns every failure into a ``WorkerError``."""
 
@@ -184,10 +191,11 @@ class _WorkerHost:
 
         p2p.register_host(ray.get_runtime_context().current_actor)
         try:
-            worker = worker_cls.__new__(worker_cls)
-            worker.ctx = ctx
-            worker.__init__(*args, **kwargs)
-            self._worker = worker
+            # On the compute thread, like every sync method: the constructor builds models and
+            # may run parallel torch ops, and one OpenMP team on a second thread makes libgomp
+            # count more threads than cores and cut its spin-wait to ~100 turns for every team
+            # in the process (see compute_thread), which slowed the pixels PPO update ~10-30%.
+            self._worker = self._sync_executor.submit(_construct, worker_cls, ctx, args, kwargs).result()
         except BaseException:  # reported on the first call (see ready())
             self._worker = None
             self._init_error = self._error("__init__", traceback.format_exc())

@@ -16,8 +16,11 @@ ship_by_value(__name__)
 
 class Echo(Worker):
     def __init__(self, offset: int = 0):
+        import threading
+
         self.offset = offset
         self.calls = []
+        self.init_thread = threading.get_ident()
 
     def whoami(self):
         return {"rank": self.rank, "world": self.world_size, "env_rank": os.environ["RANK"],
@@ -47,6 +50,11 @@ class Echo(Worker):
         from infinirl.runtime.compute_thread import on_compute_thread
 
         return on_compute_thread()
+
+    def constructed_on_this_thread(self):
+        import threading
+
+        return self.init_thread == threading.get_ident()
 
     async def async_on_compute_thread(self):
         from infinirl.runtime.compute_thread import on_compute_thread
@@ -110,6 +118,8 @@ def test_sync_methods_run_on_the_compute_thread_and_async_ones_do_not(ray_cluste
     try:
         assert group.async_on_compute_thread().wait() == [False]  # the event loop's (main) thread
         assert group.on_compute_thread().wait() == [True]
+        # the constructor too: parallel torch work on a second thread throttles libgomp's spinning
+        assert group.constructed_on_this_thread().wait() == [True]
     finally:
         group.shutdown()
 
