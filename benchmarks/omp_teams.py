@@ -1,0 +1,149 @@
+"""Benchmark: the pixels PPO update on the compute thread, alone in OpenMP vs after one parallel op
+on a second thread. Why it exists: a Worker rank computes on a thread of its own (the process's
+main thread runs Ray's event loop), and until session 16 its constructor ran on the main thread.
+
+torch's intra-op threads are libgomp's. Every thread that starts a parallel region gets its own
+team of helper threads, and once the teams hold more threads than the process has cores, libgomp
+cuts every waiting thread's spin to ~100 turns (0 under ``OMP_WAIT_POLICY=PASSIVE``, which our
+workers run with) before it sleeps in the kernel. An update is thousands of short parallel regions,
+so the helper thread is put to sleep and woken between nearly every pair of them.
+
+Two processes, each with the actor's OpenMP settings (``OMP_WAIT_POLICY=PASSIVE`` from
+``runtime.cluster``, ``GOMP_SPINCOUNT`` from ``embodied_actor.actor_process_env``) and every core:
+
+  one_team:  build the CNN policy and run ``ppo_update`` on one worker thread (how a Worker rank
+             computes now: constructor and methods on its compute thread);
+  two_teams: the same after one parallel torch op on the main thread (how a rank's constructor
+             ran before).
+
+Each runs the update (1,600 samples of 64x64 RGB + proprio, 10 epochs x 32 mini-batches, compiled
+like the benchmark rows) ``--updates`` times after a warm-up; reports the median seconds and the
+voluntary context switches per update (the sleeps). ``--repeats`` processes per variant run
+alternately (one, two, two, one, ...); the ratio is the median over repeats of two_teams / one_team.
+
+Usage:
+    python benchmarks/omp_teams.py               # ~2 min on 2 cores
+    python benchmarks/omp_teams.py --updates 5
+
+The last stdout line is one JSON object: {"benchmark": "omp_teams", "ratios":
+{"one_team_vs_two_teams": ...}, "results": {...}} (> 1: one team is faster).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+VARIANTS = ("one_team", "two_teams")
+if REPO_ROOT not in sys.path:
+    sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
+
+
+def _child(variant: str, updates: int) -> dict:
+    import resource
+    from concurrent.futures import ThreadPoolExecutor
+
+    import torch
+
+    torch.set_num_threads(len(os.sched_getaffinity(0)))
+    if variant == "two_teams":
+        torch.randn(4_000_000).exp_()  # one parallel region on the main thread
+    compute = ThreadPoolExecutor(max_workers=1)
+    state = compute.submit(_build).result()
+
+    def timed_update(iteration: int) -> tuple[float, int]:
+        import time
+
+        from infinirl.components.embodied_actor import ppo_update
+
+        model, optimizer, batch, ppo = state
+        before, start = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        ppo_update(model, optimizer, batch, iteration, ppo)
+        seconds, after = time.perf_counter() - start, resource.getrusage(resource.RUSAGE_SELF)
+        return seconds, after.ru_nvcsw - before.ru_nvcsw
+
+    compute.submit(timed_update, 0).result()  # compile
+    runs = [compute.submit(timed_update, i + 1).result() for i in range(updates)]
+    return {"update_s": round(statistics.median(s for s, _ in runs), 3),
+            "sleeps_per_update": int(statistics.median(n for _, n in runs)),
+            "all_update_s": [round(s, 3) for s, _ in runs]}
+
+
+def _build():
+    import torch
+
+    from infinirl.components.embodied_actor import PPOSpec
+    from infinirl.components.embodied_rollout import PolicySpec
+    from infinirl.components.env_worker import probe_env_specs
+    from infinirl.config import compose
+
+    raw = compose("ppo_metaworld_reach")
+    alg = raw["algorithm"]
+    spec, space = probe_env_specs(raw["env"]["name"], {"obs_mode": "state+rgb", "image_size": 64})
+    torch.manual_seed(0)
+    model = PolicySpec("cnn_gaussian", {}).build(spec, space)
+    size = 1600  # 8 envs x 200 steps, one iteration of the pipeline benchmark
+    gen = torch.Generator().manual_seed(1)
+    obs = {key: (torch.randint(0, 255, (size, *s.shape), dtype=torch.uint8, generator=gen) if s.dtype == "uint8"
+                 else torch.randn(size, *s.shape, generator=gen)) for key, s in spec.items() if s.dtype != "str"}
+    with torch.no_grad():
+        step = model.act(obs)
+    batch = {"obs": obs, "actions": step.actions, "logprobs": step.logprobs, "values": step.values,
+             "step_mask": torch.ones(size, 1, dtype=torch.bool),
+             "advantages": torch.randn(size, generator=gen), "returns": torch.randn(size, generator=gen)}
+    ppo = PPOSpec(lr=raw["actor"]["lr"], epochs=alg["epochs"], mini_batches=alg["mini_batches"], clip=alg["clip"],
+                  entropy_coef=alg["entropy_coef"], max_grad_norm=alg["max_grad_norm"], total_iterations=100,
+                  compile=True)
+    optimizer = torch.optim.Adam(model.parameters(), lr=ppo.lr, eps=ppo.adam_eps, fused=True)
+    return model, optimizer, batch, ppo
+
+
+def _child_env() -> dict:
+    from infinirl.components.embodied_actor import actor_process_env
+    from infinirl.runtime.cluster import WORKER_ENV_DEFAULTS
+
+    env = {**os.environ, **WORKER_ENV_DEFAULTS, **actor_process_env(0)}
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (REPO_ROOT, env.get("PYTHONPATH")) if p)
+    return env
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--updates", type=int, default=3, help="measured updates per variant (after one warm-up)")
+    parser.add_argument("--repeats", type=int, default=2, help="processes per variant, run alternately")
+    parser.add_argument("--child", choices=VARIANTS, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.updates < 1 or args.repeats < 1:
+        parser.error(f"--updates and --repeats must be >= 1, got {args.updates} and {args.repeats}")
+    if args.child:
+        print(json.dumps(_child(args.child, args.updates)))
+        return
+    runs = {variant: [] for variant in VARIANTS}
+    for repeat in range(args.repeats):  # alternating, so a drifting machine lands on both
+        for variant in VARIANTS if repeat % 2 == 0 else VARIANTS[::-1]:
+            proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", variant, "--updates",
+                                   str(args.updates)], capture_output=True, text=True, env=_child_env())
+            if proc.returncode:
+                raise SystemExit(f"{variant} failed:\n{proc.stderr[-4000:]}")
+            run = json.loads(proc.stdout.strip().splitlines()[-1])
+            runs[variant].append(run)
+            print(f"{variant:10s} update {run['update_s']:.2f}s  {run['sleeps_per_update']} sleeps per update",
+                  file=sys.stderr)
+    pair_ratios = [round(two["update_s"] / one["update_s"], 3) for one, two in zip(runs["one_team"], runs["two_teams"])]
+    ratio = round(statistics.median(pair_ratios), 3)
+    print(f"one_team_vs_two_teams: {ratio} (per repeat {pair_ratios})", file=sys.stderr)
+    results = {variant: {"update_s": round(statistics.median(r["update_s"] for r in rs), 3),
+                         "sleeps_per_update": int(statistics.median(r["sleeps_per_update"] for r in rs)),
+                         "runs": rs} for variant, rs in runs.items()}
+    print(json.dumps({"benchmark": "omp_teams", "ratios": {"one_team_vs_two_teams": ratio},
+                      "per_repeat": pair_ratios, "results": results,
+                      "device": f"{os.uname().machine}, {len(os.sched_getaffinity(0))} CPUs"}))
+
+
+if __name__ == "__main__":
+    main()
