@@ -517,16 +517,31 @@ class WorkerGroup:
         return spans
 
     def shutdown(self) -> None:
-        """Kill every rank's process. Idempotent."""
+        """Kill every rank's process and remove its crash log if nothing was written to it (one
+        file per worker process otherwise piles up in the temp dir; a log with a crash in it is
+        kept for the user). Idempotent."""
         for actor in self._actors:
             try:
                 ray.kill(actor, no_restart=True)
             except Exception:
                 pass
         self._actors = []
+        for info in self.rank_info:
+            _remove_if_empty(info.get("crash_log"))
 
     def pids(self) -> list[int]:
         return [info.get("pid") for info in self.rank_info]
+
+
+def _remove_if_empty(path: str | None) -> None:
+    """Delete ``path`` if it is an empty file here (a rank on another node: not visible, skipped)."""
+    if not path:
+        return
+    try:
+        if os.path.getsize(path) == 0:
+            os.unlink(path)
+    except OSError:
+        pass
 
 
 def _contexts_for(component, num_ranks, placement, extra_env) -> list[RankContext]:

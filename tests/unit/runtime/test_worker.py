@@ -238,3 +238,19 @@ def test_shutdown_leaves_no_worker_process(ray_cluster):
     while any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE for p in pids):
         assert time.monotonic() < deadline, f"worker processes {pids} still alive after shutdown"
         time.sleep(0.2)
+
+
+def test_shutdown_removes_empty_crash_logs_and_keeps_one_with_a_crash(ray_cluster):
+    """One crash log per worker process: left behind, they pile up in the temp dir by thousands."""
+    group = WorkerGroup.launch(Echo, "logs", num_ranks=2)
+    logs = [info["crash_log"] for info in group.rank_info]
+    assert all(os.path.exists(path) for path in logs)
+    with open(logs[1], "a") as log:
+        log.write("Fatal Python error: Segmentation fault\n")  # as faulthandler would
+    try:
+        group.shutdown()
+        assert not os.path.exists(logs[0])
+        assert os.path.exists(logs[1])
+    finally:
+        if os.path.exists(logs[1]):
+            os.unlink(logs[1])
