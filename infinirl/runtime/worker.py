@@ -43,6 +43,7 @@ from infinirl.runtime.compute_thread import mark_compute_thread
 from infinirl.runtime.errors import WorkerError
 
 CRASH_LOG_DIR = Path(tempfile.gettempdir()) / "infinirl-crash-logs"
+_CRASH_LOG_PROCESS = "# infinirl worker process "  # + pid: where each process's section of a crash log starts
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,9 @@ class RankContext:
     cpu_slots: tuple[int, ...] = ()
     robot: Any = None
     env_vars: dict[str, str] = field(default_factory=dict)
+    #: the rank's crash log in ``CRASH_LOG_DIR`` on its node, named by the group at launch so that
+    #: the driver knows it even when the rank fails to start, and a restarted process reuses it
+    crash_log_name: str = ""
 
 
 class Worker:
@@ -202,10 +206,16 @@ class _WorkerHost:
 
     @staticmethod
     def _enable_crash_log(ctx: RankContext) -> str:
-        """Hard crashes (segfault, abort) write their Python stacks here; the driver quotes it."""
+        """Hard crashes (segfault, abort) write their Python stacks here; the driver quotes it.
+
+        One file per rank (``ctx.crash_log_name``), not per process: a rank that Ray restarts
+        appends to it under a line naming the new process, so the driver quotes the crash of the
+        process that died last (see :func:`_last_process_crash`), not the first one's."""
         CRASH_LOG_DIR.mkdir(parents=True, exist_ok=True)
-        path = CRASH_LOG_DIR / f"{ctx.component}-rank{ctx.rank}-pid{os.getpid()}.log"
-        handle = open(path, "w")  # kept open for the life of the process, as faulthandler needs
+        path = CRASH_LOG_DIR / (ctx.crash_log_name or f"{ctx.component}-rank{ctx.rank}-pid{os.getpid()}.log")
+        handle = open(path, "a")  # kept open for the life of the process, as faulthandler needs
+        handle.write(f"{_CRASH_LOG_PROCESS}{os.getpid()}\n")
+        handle.flush()
         faulthandler.enable(file=handle, all_threads=True)
         return str(path)
 
@@ -408,6 +418,7 @@ class WorkerGroup:
                 }
             )
             ctx.env_vars.setdefault("LOCAL_RANK", "0")
+            ctx.crash_log_name = f"{component}-rank{ctx.rank}-{uuid.uuid4().hex[:12]}.log"
             opts = dict(options, runtime_env={"env_vars": {**worker_env(), **(env_vars or {})}})
             if ctx.node_id:
                 opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(ctx.node_id, soft=False)
@@ -492,7 +503,7 @@ class WorkerGroup:
 
     def _died(self, rank: int, method: str, ray_message: str) -> WorkerError:
         info = self.rank_info[rank] if rank < len(self.rank_info) else {}
-        crash = _read_tail(info.get("crash_log"))
+        crash_pid, crash = _last_process_crash(info.get("crash_log"))
         text = (crash + "\n" if crash else "") + _first_line_block(ray_message)
         return WorkerError(
             component=self.component,
@@ -500,7 +511,7 @@ class WorkerGroup:
             method=method,
             node_ip=info.get("node_ip", self.contexts[rank].node_ip or "?"),
             hostname=info.get("hostname", "?"),
-            pid=info.get("pid"),
+            pid=crash_pid or info.get("pid"),
             traceback_text=text,
             cause="died (process exited)",
         )
@@ -517,28 +528,32 @@ class WorkerGroup:
         return spans
 
     def shutdown(self) -> None:
-        """Kill every rank's process and remove its crash log if nothing was written to it (one
-        file per worker process otherwise piles up in the temp dir; a log with a crash in it is
-        kept for the user). Idempotent."""
+        """Kill every rank's process and remove its crash log if no crash was written to it (one
+        file per rank otherwise piles up in the temp dir; a log with a crash in it is kept for
+        the user). Idempotent."""
         for actor in self._actors:
             try:
                 ray.kill(actor, no_restart=True)
             except Exception:
                 pass
         self._actors = []
-        for info in self.rank_info:
-            _remove_if_empty(info.get("crash_log"))
+        logs = {info.get("crash_log") for info in self.rank_info}  # as each rank's node names it
+        logs |= {str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in self.contexts if ctx.crash_log_name}
+        for path in logs:  # the second set also covers ranks that failed to start
+            _remove_if_no_crash(path)
 
     def pids(self) -> list[int]:
         return [info.get("pid") for info in self.rank_info]
 
 
-def _remove_if_empty(path: str | None) -> None:
-    """Delete ``path`` if it is an empty file here (a rank on another node: not visible, skipped)."""
+def _remove_if_no_crash(path: str | None) -> None:
+    """Delete a crash log that holds nothing but its processes' start lines (a rank on another
+    node: not visible here, skipped)."""
     if not path:
         return
     try:
-        if os.path.getsize(path) == 0:
+        lines = Path(path).read_text(errors="replace").splitlines()
+        if all(not line.strip() or line.startswith(_CRASH_LOG_PROCESS) for line in lines):
             os.unlink(path)
     except OSError:
         pass
@@ -584,14 +599,20 @@ def _pick_master(rank0: RankContext) -> tuple[str, int]:
     return ray.get(task.remote())
 
 
-def _read_tail(path: str | None, max_chars: int = 4000) -> str:
+def _last_process_crash(path: str | None, max_chars: int = 4000) -> tuple[int | None, str]:
+    """(pid, crash text) of the last process that wrote to a rank's crash log: its section
+    after its own ``_CRASH_LOG_PROCESS`` line, empty if that process wrote no crash."""
     if not path:
-        return ""
+        return None, ""
     try:
-        text = Path(path).read_text(errors="replace").strip()
+        text = Path(path).read_text(errors="replace")
     except OSError:
-        return ""
-    return text[-max_chars:]
+        return None, ""
+    head, marker, last = text.rpartition(_CRASH_LOG_PROCESS)
+    if not marker:
+        return None, text.strip()[-max_chars:]
+    pid_line, _, crash = last.partition("\n")
+    return (int(pid_line) if pid_line.strip().isdigit() else None), crash.strip()[-max_chars:]
 
 
 def _first_line_block(message: str, max_lines: int = 12) -> str:

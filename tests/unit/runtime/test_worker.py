@@ -175,10 +175,13 @@ def test_exception_names_component_rank_node_and_traceback(ray_cluster):
 
 
 def test_init_failure_is_reported_with_rank(ray_cluster):
+    from infinirl.runtime.worker import CRASH_LOG_DIR
+
     with pytest.raises(WorkerError) as info:
-        WorkerGroup.launch(BadInit, "env", num_ranks=2)
+        WorkerGroup.launch(BadInit, "badinit", num_ranks=2)
     assert info.value.rank == 1 and info.value.method == "__init__"
     assert "cannot open device" in str(info.value)
+    assert not list(CRASH_LOG_DIR.glob("badinit-rank*"))  # nothing left of the failed launch
 
 
 def test_unknown_method_is_rejected_before_dispatch(ray_cluster):
@@ -208,6 +211,68 @@ class Crashy(Worker):
 
     def crash_always(self):
         os._exit(4)
+
+
+class Segfaults(Worker):
+    """Dies of a real segmentation fault, in one of two methods (to tell the crashes apart)."""
+
+    def crash_first(self):
+        import faulthandler
+
+        faulthandler._sigsegv()
+
+    def crash_second(self):
+        import faulthandler
+
+        faulthandler._sigsegv()
+
+    def pid(self):
+        return os.getpid()
+
+
+def test_a_segfault_is_reported_with_the_python_stack_of_the_crash(ray_cluster):
+    group = WorkerGroup.launch(Segfaults, "sim", num_ranks=1)
+    try:
+        with pytest.raises(WorkerError) as info:
+            group.crash_first().wait(timeout=120)
+        text = str(info.value)
+        assert "Segmentation fault" in text and "crash_first" in text
+    finally:
+        group.shutdown()
+        _remove_crash_logs(group)
+
+
+def test_a_restarted_rank_that_crashes_again_is_reported_with_its_own_crash(ray_cluster):
+    """The crash log quoted is the one of the process that died last, not of the first one."""
+    group = WorkerGroup.launch(Segfaults, "sim2", num_ranks=1, restart=RestartPolicy(max_restarts=1, retry_calls=False))
+    try:
+        first_pid = group.pid().wait()[0]
+        with pytest.raises(WorkerError):
+            group.crash_first().wait(timeout=120)
+        deadline = time.monotonic() + 60
+        while True:  # calls fail while Ray restarts the process
+            try:
+                if group.pid().wait(timeout=30)[0] != first_pid:
+                    break
+            except WorkerError:
+                pass
+            assert time.monotonic() < deadline, "the rank was not restarted"
+            time.sleep(0.5)
+        with pytest.raises(WorkerError) as info:
+            group.crash_second().wait(timeout=120)  # the restarted process
+        text = str(info.value)
+        assert "crash_second" in text and "crash_first" not in text
+        assert info.value.pid not in (None, first_pid)  # the process that died last
+    finally:
+        group.shutdown()
+        _remove_crash_logs(group)
+
+
+def _remove_crash_logs(group):
+    """A log with a crash in it outlives shutdown, for the user; tests clean up their own."""
+    for info in group.rank_info:
+        if os.path.exists(info["crash_log"]):
+            os.unlink(info["crash_log"])
 
 
 def test_restart_policy_restarts_and_retries(ray_cluster, tmp_path):
