@@ -118,6 +118,9 @@ class Cluster:
         """Disconnect; stop Ray too when this Cluster started it. Leaves no process of ours behind."""
         self._device_lock = None
         if self._started_here and ray.is_initialized():
+            from infinirl.runtime.worker import shutdown_all_groups  # worker imports this module
+
+            shutdown_all_groups()  # before Ray kills their ranks: they clean up after them
             ray.shutdown()
         self._inventory = None
 

@@ -29,6 +29,7 @@ import tempfile
 import time
 import traceback
 import uuid
+import weakref
 from collections import defaultdict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -361,6 +362,17 @@ async def _settle(ref) -> None:
         pass
 
 
+_LIVE_GROUPS: weakref.WeakSet = weakref.WeakSet()  # launched here and not shut down yet
+
+
+def shutdown_all_groups() -> None:
+    """Shut down every group this process launched and has not shut down. A ``Cluster`` that
+    started Ray calls this before stopping it: Ray would kill the ranks anyway, but only the
+    groups know which crash logs to remove (a program need not shut its groups down itself)."""
+    for group in list(_LIVE_GROUPS):
+        group.shutdown()
+
+
 class WorkerGroup:
     """N ranks of one ``Worker`` class, launched as Ray actors; call methods on all of them at once."""
 
@@ -424,6 +436,7 @@ class WorkerGroup:
                 opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(ctx.node_id, soft=False)
             actors.append(host_cls.options(**opts).remote(worker_cls, ctx, args, kwargs))
         group = cls(worker_cls, component, actors, contexts)
+        _LIVE_GROUPS.add(group)
         handle = GroupHandle(group, "__init__", list(range(len(actors))), [a.ready.remote() for a in actors])
         try:
             group.rank_info = handle.wait(timeout=ready_timeout_s)
@@ -537,6 +550,7 @@ class WorkerGroup:
             except Exception:
                 pass
         self._actors = []
+        _LIVE_GROUPS.discard(self)
         logs = {info.get("crash_log") for info in self.rank_info}  # as each rank's node names it
         logs |= {str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in self.contexts if ctx.crash_log_name}
         for path in logs:  # the second set also covers ranks that failed to start

@@ -10,11 +10,16 @@ README = (REPO / "README.md").read_text()
 
 
 def test_concepts_example_runs_as_written():
+    from infinirl.runtime.worker import CRASH_LOG_DIR
+
     section = README.split("## Concepts", 1)[1]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    logs_before = set(CRASH_LOG_DIR.glob("*"))
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=REPO)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "sum of all observations: 360.0" in proc.stdout
+    # the example never shuts its groups down: leaving the Cluster does, crash logs included
+    assert set(CRASH_LOG_DIR.glob("*")) <= logs_before
 
 
 def test_setup_commands_are_the_first_block_and_ci_runs_the_test_command():
