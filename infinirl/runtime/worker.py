@@ -198,8 +198,8 @@ class _WorkerHost:
         try:
             # On the compute thread, like every sync method: the constructor builds models and
             # may run parallel torch ops, and one OpenMP team on a second thread makes libgomp
-            # count more threads than cores and cut its spin-wait to ~100 turns for every team
-            # in the process (see compute_thread), which slowed the pixels PPO update ~10-30%.
+            # count more threads than cores and stop spin-waiting (0 turns under PASSIVE) for
+            # every team in the process (see compute_thread): the pixels update 1.1-1.4x slower.
             self._worker = self._sync_executor.submit(_construct, worker_cls, ctx, args, kwargs).result()
         except BaseException:  # reported on the first call (see ready())
             self._worker = None
@@ -622,7 +622,7 @@ def _last_process_crash(path: str | None, max_chars: int = 4000) -> tuple[int | 
         text = Path(path).read_text(errors="replace")
     except OSError:
         return None, ""
-    head, marker, last = text.rpartition(_CRASH_LOG_PROCESS)
+    _, marker, last = text.rpartition(_CRASH_LOG_PROCESS)
     if not marker:
         return None, text.strip()[-max_chars:]
     pid_line, _, crash = last.partition("\n")
