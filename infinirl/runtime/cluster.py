@@ -30,6 +30,18 @@ KEEP_CUDA_VISIBLE_DEVICES = {"RAY_EXPERIMENTAL_NOSET_CUDA_VISIBLE_DEVICES": "1"}
 # OpenMP's default spin-waiting makes co-located torch processes 6-10x slower on a small CPU
 # (measured: SmolLM2 generation on 2 shared cores); passive waiting gives the cores back.
 WORKER_ENV_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
+# Ray settings of an instance we start: keep Ray's own background work off small machines, where
+# it takes CPU from the components (on 2 busy cores every Ray process's periodic work competes
+# with the simulators; measured idle, a local instance with three components: ~11.6% of a core
+# with Ray's defaults, ~7.5% with these).
+# * No pool of idle worker processes. Ray starts one per CPU when the driver connects and keeps as
+#   many once they idle, so that tasks start fast; our components are actors with processes of
+#   their own and we run tasks only at start-up, so the pool would only idle. An idle Ray worker
+#   is not free: its main thread wakes every 10 ms (~1% of a core each when idle, and more while
+#   the cores are busy). A task's worker now ends once it has idled a second.
+# * No metrics collection: every Ray process would export metrics for a dashboard we do not start.
+LOCAL_RAY_SYSTEM_CONFIG = {"prestart_worker_first_driver": False, "num_workers_soft_limit": 0,
+                           "enable_metrics_collection": False}
 
 
 def worker_env() -> dict[str, str]:
@@ -90,6 +102,7 @@ class Cluster:
                 include_dashboard=False,
                 log_to_driver=cfg.log_to_driver,
                 configure_logging=False,
+                _system_config=LOCAL_RAY_SYSTEM_CONFIG,
             )
             self._started_here = True
         else:

@@ -599,17 +599,22 @@ def _contexts_for(component, num_ranks, placement, extra_env) -> list[RankContex
     return [RankContext(component=component, rank=r, world_size=n, env_vars=dict(extra_env)) for r in range(n)]
 
 
+def _free_port() -> tuple[str, int]:
+    with socket.socket() as sock:
+        sock.bind(("", 0))
+        return ray.util.get_node_ip_address(), sock.getsockname()[1]
+
+
 def _pick_master(rank0: RankContext) -> tuple[str, int]:
-    """A free TCP port on rank 0's node, found *on that node*, for torch.distributed rendezvous."""
+    """A free TCP port on rank 0's node, found *on that node*, for torch.distributed rendezvous.
 
-    def probe():
-        with socket.socket() as sock:
-            sock.bind(("", 0))
-            return ray.util.get_node_ip_address(), sock.getsockname()[1]
-
-    task = ray.remote(num_cpus=0)(probe)
-    if rank0.node_id:
-        task = task.options(scheduling_strategy=NodeAffinitySchedulingStrategy(rank0.node_id, soft=False))
+    On this process's own node (or with no node asked for) the port is found here: a Ray task
+    would need a worker process of its own, started (importing torch) for a microsecond's work,
+    since a Cluster we start keeps no idle workers (``LOCAL_RAY_SYSTEM_CONFIG``)."""
+    if rank0.node_id is None or rank0.node_id == ray.get_runtime_context().get_node_id():
+        return _free_port()
+    task = ray.remote(num_cpus=0)(_free_port).options(
+        scheduling_strategy=NodeAffinitySchedulingStrategy(rank0.node_id, soft=False))
     return ray.get(task.remote())
 
 

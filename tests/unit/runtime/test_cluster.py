@@ -35,6 +35,37 @@ def test_local_inventory(ray_cluster):
     assert inv.nodes[0].ip
 
 
+def _idle_pool_workers() -> list[int]:
+    """Ray worker processes of this session's raylet that hold no actor and run no task."""
+    import ray
+
+    raylet = ray._private.worker._global_node.all_processes["raylet"][0].process.pid
+    idle = []
+    for child in psutil.Process(raylet).children():
+        try:
+            if child.cmdline()[:1] == ["ray::IDLE"]:
+                idle.append(child.pid)
+        except psutil.NoSuchProcess:
+            pass
+    return idle
+
+
+def test_a_cluster_we_start_keeps_no_idle_worker_processes(ray_cluster):
+    """An idle Ray worker wakes every 10 ms (~3% of a core each on 2 busy cores): Ray's default
+    pool (one per CPU, kept once idle) would only take CPU from the components' processes."""
+    import ray
+
+    @ray.remote(num_cpus=0)
+    def task() -> int:
+        return 1
+
+    assert ray.get(task.remote()) == 1  # a task's worker, idle once it returns
+    deadline = time.monotonic() + 20
+    while _idle_pool_workers() and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not _idle_pool_workers()
+
+
 def test_multinode_placement_on_simulated_cluster():
     out = run_scenario("multinode.py")
     assert out["num_nodes"] == 3 and out["cpus"] == [1, 2, 2]
