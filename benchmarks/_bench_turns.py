@@ -4,10 +4,19 @@ Why: a shared VM's speed drifts by tens of percent over minutes (this project's 
 the same PPO row measured 1,300 and 2,000 env-steps/s ten minutes apart). Rows run one after the
 other then compare different spells of the machine, and a ratio of two such rows says more about
 the spell than about the code. Here every row's process starts at once and the rows take turns:
-one row runs one iteration while the others wait, blocked on a pipe (no CPU), then the next row,
-and so on. The i-th iteration of every row runs within a few seconds of the others', so a slow
-spell lands on all of them alike, and each cycle's ratio compares measurements taken under the
-same conditions. A row never runs while another does, so they never compete for the cores.
+one row runs one iteration while the others wait, then the next row, and so on. The i-th
+iteration of every row runs within a few seconds of the others', so a slow spell lands on all of
+them alike, and each cycle's ratio compares measurements taken under the same conditions. A row
+never runs while another does, so they never compete for the cores.
+
+A waiting row is frozen: every process of its session (its runner, and the Ray instance, workers
+and simulators it started) is stopped with SIGSTOP until its turn. Blocking on a pipe alone is not
+enough: a waiting row's Ray processes keep waking up (each Ray worker's main thread every 10 ms),
+~10% of a core per idle Ray instance on this project's 2-core machine, and that load fell on the
+row whose turn it was, the more so the more of the cores that row needs (a pipelined row uses
+both; a sequential one leaves one mostly free). Frozen, the other rows take no CPU, as if the row
+ran alone. A row is frozen only once it is blocked waiting for its next turn, after its work
+between turns (logging, progress), so that work never overlaps another row's turn either.
 
 The protocol, over two pipes per row (stdlib only; the child finds its ends in ``$INFINIRL_BENCH_TURNS``):
 
@@ -33,6 +42,43 @@ from collections.abc import Sequence
 
 ENV_VAR = "INFINIRL_BENCH_TURNS"
 _STOP_TIMEOUT_S = 30.0
+
+
+def _session_pids(session: int) -> list[int]:
+    """Every live process of ``session`` (Linux ``/proc``; elsewhere only its leader's group)."""
+    pids = []
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return []
+    for entry in entries:
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as stat:
+                fields = stat.read().rpartition(")")[2].split()
+        except OSError:
+            continue  # it exited meanwhile
+        if int(fields[3]) == session:  # fields after the command: state, ppid, pgrp, session
+            pids.append(int(entry))
+    return pids
+
+
+def _signal_session(session: int, sig: int) -> None:
+    """``sig`` to every process of the session a row leads (Ray's workers each lead a process
+    group of their own inside it, so the row's process group alone would miss them)."""
+    pids = _session_pids(session)
+    if not pids:
+        try:
+            os.killpg(session, sig)
+        except ProcessLookupError:
+            pass
+        return
+    for pid in pids:
+        try:
+            os.kill(pid, sig)
+        except ProcessLookupError:
+            pass
 
 
 class RowFailed(RuntimeError):
@@ -125,6 +171,13 @@ class _Row:
         os.write(self._to_child, b"g")
         self.ready = False
 
+    def freeze(self) -> None:
+        """Stop every process of this row's session (it is waiting for a turn)."""
+        _signal_session(self.process.pid, signal.SIGSTOP)
+
+    def thaw(self) -> None:
+        _signal_session(self.process.pid, signal.SIGCONT)
+
     def stderr_tail(self, chars: int = 4000) -> str:
         self.stderr.seek(0)
         return self.stderr.read()[-chars:]
@@ -136,6 +189,7 @@ class _Row:
     def stop(self) -> None:
         """Interrupt the row (its runner cleans up, Ray shuts down), then kill what is left."""
         if self.process.poll() is None:
+            self.thaw()  # a frozen row would not act on SIGINT
             try:
                 os.killpg(self.process.pid, signal.SIGINT)
                 self.process.wait(_STOP_TIMEOUT_S)
@@ -182,14 +236,19 @@ class Conductor:
         try:
             for row in self.rows:
                 row.await_ready()
+                row.freeze()
             for cycle in range(turns):
                 shift = cycle % len(self.rows)
                 for row in self.rows[shift:] + self.rows[:shift]:
+                    row.thaw()
                     row.grant()
                     row.expect(b"d", f"running turn {cycle + 1} of {turns}")
+                    row.await_ready()  # its work between turns is done: it waits for the next one
+                    row.freeze()
                 if on_cycle is not None:
                     on_cycle(cycle)
             for row in self.rows:
+                row.thaw()
                 row.grant()  # the last turn: whatever the row does after its loop, then exit
             outputs = {}
             for row in self.rows:

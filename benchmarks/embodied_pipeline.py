@@ -28,8 +28,8 @@ its update and back to 1 to act): it runs while the simulators wait. The update 
 on the placement, so it is the same cost in every row; pipelining only shortens collection.
 
 The rows run side by side, in turns (`benchmarks/_bench_turns.py`): every row's process starts
-at once, then the rows take turns, one PPO iteration each, while the others wait blocked (no CPU),
-the order rotating every cycle. So the i-th iteration of every row runs within seconds of the
+at once, then the rows take turns, one PPO iteration each, while the others wait frozen (every
+process of theirs, Ray included, stopped: no CPU), the order rotating every cycle. So the i-th iteration of every row runs within seconds of the
 others' and a slow spell of a shared VM lands on all rows alike (measured on this project's 2-core
 VM: the same row at 1,300 and at 2,000 env-steps/s ten minutes apart, which decided ratios when the
 rows ran one after the other). Env-steps/s = env steps of the measured iterations / their wall time

@@ -74,3 +74,42 @@ def test_a_row_started_without_a_conductor_runs_freely():
     script = f"import sys; sys.path.insert(0, {BENCHMARKS!r}); from _bench_turns import Turn; print(Turn.from_env())"
     assert subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
                           check=True).stdout.strip() == "None"
+
+
+TICKER = """
+import sys, time
+with open(sys.argv[1], "a", buffering=1) as out:
+    while True:
+        out.write(f"{time.monotonic()}\\n")
+        time.sleep(0.002)
+"""
+
+BUSY_ROW = """
+import subprocess, sys, time
+sys.path.insert(0, {benchmarks!r})
+from _bench_turns import Turn
+turn = Turn.from_env()
+# a child in a process group of its own (as Ray's workers are): it ticks all the time unless frozen
+child = subprocess.Popen([sys.executable, "-c", {ticker!r}, {ticks!r}], process_group=0)
+time.sleep(0.3)
+for i in range({turns}):
+    with turn:
+        time.sleep(0.05)
+turn.take()
+child.kill()
+"""
+
+
+def test_a_waiting_row_and_every_process_it_started_are_frozen(tmp_path):
+    """A waiting row's processes (a Ray instance's keep waking up) take no CPU during another's turn."""
+    ticks, turns = tmp_path / "ticks", 3
+    busy = [sys.executable, "-c", BUSY_ROW.format(benchmarks=BENCHMARKS, ticker=TICKER, ticks=str(ticks), turns=turns)]
+    quiet = [sys.executable, "-c", ROW.format(benchmarks=BENCHMARKS, startup=0.0, turns=turns, fail_at=-1, name="quiet")
+             .replace("time.sleep(0.02)", "time.sleep(0.3)")]
+    out = Conductor({"busy": busy, "quiet": quiet}).run(turns)
+    spans = json.loads(out["quiet"].strip().splitlines()[-1])["stamps"]
+    stamps = [float(line) for line in ticks.read_text().split()]
+    assert len(stamps) > 50  # it did tick while its row ran
+    for start, end in spans:
+        inside = [t for t in stamps if start + 0.01 < t < end]
+        assert not inside, f"the waiting row's child ran during the other row's turn ({len(inside)} ticks)"
