@@ -45,7 +45,8 @@ _STOP_TIMEOUT_S = 30.0
 
 
 def _session_pids(session: int) -> list[int]:
-    """Every live process of ``session`` (Linux ``/proc``; elsewhere only its leader's group)."""
+    """Every live process of ``session``, read from Linux's ``/proc`` (empty where there is none:
+    :func:`_signal_session` then signals the leader's process group only)."""
     pids = []
     try:
         entries = os.listdir("/proc")
