@@ -384,6 +384,11 @@ class WorkerGroup:
         self.rank_info: list[dict] = []
         self._caller = uuid.uuid4().hex
         self._seq = [0] * len(actors)
+        # A group dropped without shutdown(): Ray ends its ranks once the last handle goes, and
+        # this removes their crash logs then (or at exit) unless a crash was written to them.
+        self._remove_crash_logs = weakref.finalize(
+            self, _remove_all_if_no_crash,
+            [str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in contexts if ctx.crash_log_name])
 
     # ------------------------------------------------------------------ launch
     @classmethod
@@ -551,13 +556,16 @@ class WorkerGroup:
                 pass
         self._actors = []
         _LIVE_GROUPS.discard(self)
-        logs = {info.get("crash_log") for info in self.rank_info}  # as each rank's node names it
-        logs |= {str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in self.contexts if ctx.crash_log_name}
-        for path in logs:  # the second set also covers ranks that failed to start
-            _remove_if_no_crash(path)
+        _remove_all_if_no_crash(info.get("crash_log") for info in self.rank_info)  # as each rank's node names it
+        self._remove_crash_logs()  # by the names given at launch: also ranks that failed to start
 
     def pids(self) -> list[int]:
         return [info.get("pid") for info in self.rank_info]
+
+
+def _remove_all_if_no_crash(paths) -> None:
+    for path in paths:
+        _remove_if_no_crash(path)
 
 
 def _remove_if_no_crash(path: str | None) -> None:

@@ -305,6 +305,19 @@ def test_shutdown_leaves_no_worker_process(ray_cluster):
         time.sleep(0.2)
 
 
+def test_a_group_dropped_without_shutdown_leaves_no_crash_log(ray_cluster):
+    """A program that loses its last reference to a group (Ray then ends the ranks) must not leave
+    the ranks' empty crash logs behind either."""
+    import gc
+
+    group = WorkerGroup.launch(Echo, "dropped", num_ranks=1)
+    logs = [info["crash_log"] for info in group.rank_info]
+    assert all(os.path.exists(path) for path in logs)
+    del group
+    gc.collect()
+    assert not any(os.path.exists(path) for path in logs)
+
+
 def test_shutdown_removes_empty_crash_logs_and_keeps_one_with_a_crash(ray_cluster):
     """One crash log per worker process: left behind, they pile up in the temp dir by thousands."""
     group = WorkerGroup.launch(Echo, "logs", num_ranks=2)
