@@ -1,6 +1,8 @@
 """Benchmark: the pixels PPO update on the compute thread, alone in OpenMP vs after one parallel op
-on a second thread. Why it exists: a Worker rank computes on a thread of its own (the process's
-main thread runs Ray's event loop), and until session 16 its constructor ran on the main thread.
+on a second thread, and alone vs beside an idle Ray instance. Why it exists: a Worker rank computes
+on a thread of its own (the process's main thread runs Ray's event loop), and until session 16 its
+constructor ran on the main thread; and an actor rank's update always has Ray beside it, which row
+(c) of ``embodied_pipeline.py`` (one process, no Ray) does not.
 
 torch's intra-op threads are libgomp's. Every thread that starts a parallel region gets its own
 team of helper threads, and once the teams hold more threads than the process has cores, libgomp
@@ -15,18 +17,25 @@ Two processes, each with the actor's OpenMP settings (``OMP_WAIT_POLICY=PASSIVE`
              computes now: constructor and methods on its compute thread);
   two_teams: the same after one parallel torch op on the main thread (how a rank's constructor
              ran before).
+  beside_ray: one_team while a local Ray instance of ours idles beside it, with three idle
+             components (a pipelined row's env, rollout and actor, minus their work). Every Ray
+             worker's main thread wakes every 10 ms, and Ray's daemons poll: ~700 wake-ups a second
+             on this VM, each of which may preempt one of the update's two OpenMP threads while
+             the other waits for it at the next barrier (the involuntary context switches).
 
 Each runs the update (1,600 samples of 64x64 RGB + proprio, 10 epochs x 32 mini-batches, compiled
 like the benchmark rows) ``--updates`` times after a warm-up; reports the median seconds and the
-voluntary context switches per update (the sleeps). ``--repeats`` processes per variant run
-alternately (one, two, two, one, ...); the ratio is the median over repeats of two_teams / one_team.
+voluntary context switches per update (the sleeps) and the involuntary ones (preemptions).
+``--repeats`` processes per variant run in turn, the order reversed every repeat; each ratio is the
+median over repeats of (variant's update) / (one_team's update).
 
 Usage:
     python benchmarks/omp_teams.py               # ~2 min on 2 cores
     python benchmarks/omp_teams.py --updates 5
 
 The last stdout line is one JSON object: {"benchmark": "omp_teams", "ratios":
-{"one_team_vs_two_teams": ...}, "results": {...}} (> 1: one team is faster).
+{"one_team_vs_two_teams": ..., "alone_vs_beside_ray": ...}, "results": {...}} (> 1: one team,
+alone, is faster).
 """
 
 from __future__ import annotations
@@ -39,7 +48,9 @@ import subprocess
 import sys
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-VARIANTS = ("one_team", "two_teams")
+VARIANTS = ("one_team", "two_teams", "beside_ray")
+#: ratio key -> the variant compared with one_team
+RATIOS = {"one_team_vs_two_teams": "two_teams", "alone_vs_beside_ray": "beside_ray"}
 if REPO_ROOT not in sys.path:
     sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
 
@@ -56,7 +67,7 @@ def _child(variant: str, updates: int) -> dict:
     compute = ThreadPoolExecutor(max_workers=1)
     state = compute.submit(_build).result()
 
-    def timed_update(iteration: int) -> tuple[float, int]:
+    def timed_update(iteration: int) -> tuple[float, int, int]:
         import time
 
         from infinirl.components.embodied_actor import ppo_update
@@ -65,13 +76,14 @@ def _child(variant: str, updates: int) -> dict:
         before, start = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
         ppo_update(model, optimizer, batch, iteration, ppo)
         seconds, after = time.perf_counter() - start, resource.getrusage(resource.RUSAGE_SELF)
-        return seconds, after.ru_nvcsw - before.ru_nvcsw
+        return seconds, after.ru_nvcsw - before.ru_nvcsw, after.ru_nivcsw - before.ru_nivcsw
 
     compute.submit(timed_update, 0).result()  # compile
     runs = [compute.submit(timed_update, i + 1).result() for i in range(updates)]
-    return {"update_s": round(statistics.median(s for s, _ in runs), 3),
-            "sleeps_per_update": int(statistics.median(n for _, n in runs)),
-            "all_update_s": [round(s, 3) for s, _ in runs]}
+    return {"update_s": round(statistics.median(r[0] for r in runs), 3),
+            "sleeps_per_update": int(statistics.median(r[1] for r in runs)),
+            "preemptions_per_update": int(statistics.median(r[2] for r in runs)),
+            "all_update_s": [round(r[0], 3) for r in runs]}
 
 
 def _build():
@@ -103,6 +115,42 @@ def _build():
     return model, optimizer, batch, ppo
 
 
+def _idle_ray() -> None:
+    """Start a local Ray instance as the runners do (``Cluster``), launch three idle components,
+    print ``up`` and idle until stdin closes."""
+    from infinirl.runtime import Cluster, Worker, WorkerGroup
+
+    class IdleComponent(Worker):
+        """A component with nothing to do: what is left of a rank between its calls."""
+
+    with Cluster():
+        groups = [WorkerGroup.launch(IdleComponent, num_ranks=1, component=name) for name in ("env", "rollout", "actor")]
+        print("up", flush=True)
+        sys.stdin.read()
+        for group in groups:
+            group.shutdown()
+
+
+def _beside_idle_ray(command: list[str], env: dict) -> subprocess.CompletedProcess:
+    """Run ``command`` while :func:`_idle_ray` idles in another process."""
+    ray_proc = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--idle-ray"], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+    try:
+        for line in ray_proc.stdout:
+            if line.strip() == "up":
+                break
+        else:
+            raise SystemExit(f"the idle Ray instance did not start (exit code {ray_proc.wait()})")
+        return subprocess.run(command, capture_output=True, text=True, env=env)
+    finally:
+        ray_proc.stdin.close()
+        try:
+            ray_proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            ray_proc.kill()
+            ray_proc.wait()
+
+
 def _child_env() -> dict:
     from infinirl.components.embodied_actor import actor_process_env
     from infinirl.runtime.cluster import WORKER_ENV_DEFAULTS
@@ -117,31 +165,40 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=3, help="measured updates per variant (after one warm-up)")
     parser.add_argument("--repeats", type=int, default=2, help="processes per variant, run alternately")
     parser.add_argument("--child", choices=VARIANTS, help=argparse.SUPPRESS)
+    parser.add_argument("--idle-ray", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.idle_ray:
+        _idle_ray()
+        return
     if args.updates < 1 or args.repeats < 1:
         parser.error(f"--updates and --repeats must be >= 1, got {args.updates} and {args.repeats}")
     if args.child:
         print(json.dumps(_child(args.child, args.updates)))
         return
     runs = {variant: [] for variant in VARIANTS}
-    for repeat in range(args.repeats):  # alternating, so a drifting machine lands on both
+    for repeat in range(args.repeats):  # the order reversed every repeat, so a drifting machine lands on all
         for variant in VARIANTS if repeat % 2 == 0 else VARIANTS[::-1]:
-            proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", variant, "--updates",
-                                   str(args.updates)], capture_output=True, text=True, env=_child_env())
+            command = [sys.executable, os.path.abspath(__file__), "--child", variant, "--updates", str(args.updates)]
+            env = _child_env()
+            proc = (_beside_idle_ray(command, env) if variant == "beside_ray"
+                    else subprocess.run(command, capture_output=True, text=True, env=env))
             if proc.returncode:
                 raise SystemExit(f"{variant} failed:\n{proc.stderr[-4000:]}")
             run = json.loads(proc.stdout.strip().splitlines()[-1])
             runs[variant].append(run)
-            print(f"{variant:10s} update {run['update_s']:.2f}s  {run['sleeps_per_update']} sleeps per update",
-                  file=sys.stderr)
-    pair_ratios = [round(two["update_s"] / one["update_s"], 3) for one, two in zip(runs["one_team"], runs["two_teams"])]
-    ratio = round(statistics.median(pair_ratios), 3)
-    print(f"one_team_vs_two_teams: {ratio} (per repeat {pair_ratios})", file=sys.stderr)
+            print(f"{variant:10s} update {run['update_s']:.2f}s  {run['sleeps_per_update']} sleeps, "
+                  f"{run['preemptions_per_update']} preemptions per update", file=sys.stderr)
+    per_repeat = {key: [round(other["update_s"] / one["update_s"], 3) for one, other in zip(runs["one_team"], runs[variant])]
+                  for key, variant in RATIOS.items()}
+    ratios = {key: round(statistics.median(values), 3) for key, values in per_repeat.items()}
+    for key, value in ratios.items():
+        print(f"{key}: {value} (per repeat {per_repeat[key]})", file=sys.stderr)
     results = {variant: {"update_s": round(statistics.median(r["update_s"] for r in rs), 3),
                          "sleeps_per_update": int(statistics.median(r["sleeps_per_update"] for r in rs)),
+                         "preemptions_per_update": int(statistics.median(r["preemptions_per_update"] for r in rs)),
                          "runs": rs} for variant, rs in runs.items()}
-    print(json.dumps({"benchmark": "omp_teams", "ratios": {"one_team_vs_two_teams": ratio},
-                      "per_repeat": pair_ratios, "results": results,
+    print(json.dumps({"benchmark": "omp_teams", "ratios": ratios,
+                      "per_repeat": per_repeat, "results": results,
                       "device": f"{os.uname().machine}, {len(os.sched_getaffinity(0))} CPUs"}))
 
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -143,10 +144,15 @@ class EmbodiedActorWorker(Worker, WeightSource):
 
     # ---------------------------------------------------------------- training
     def update(self, batch: dict, iteration: int) -> dict:
-        """PPO epochs over ``batch`` (flat ``[B, ...]`` arrays, see the runner); returns metrics."""
+        """PPO epochs over ``batch`` (flat ``[B, ...]`` arrays, see the runner); returns metrics.
+
+        ``time/actor_update_s`` is the PPO update alone (this rank): the runner's ``time/train_s``
+        also holds the advantages, moving the batch here and waiting for the slowest rank."""
         batch = _to_tensor(batch, self.compute)
+        start = time.perf_counter()
         metrics = ppo_update(self.model, self.optimizer, batch, iteration, self.ppo,
                              self.rank, self.world_size, self._all_reduce_grads)
+        metrics["time/actor_update_s"] = time.perf_counter() - start
         self.model.update_obs_stats({k: batch["obs"][k] for k in self.model.keys})
         metrics["train/num_threads"] = torch.get_num_threads()  # what actor.num_threads resolved to
         return metrics
