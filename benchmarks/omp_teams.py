@@ -30,7 +30,7 @@ voluntary context switches per update (the sleeps) and the involuntary ones (pre
 median over repeats of (variant's update) / (one_team's update).
 
 Usage:
-    python benchmarks/omp_teams.py               # ~2 min on 2 cores
+    python benchmarks/omp_teams.py               # ~4 min on 2 cores
     python benchmarks/omp_teams.py --updates 5
 
 The last stdout line is one JSON object: {"benchmark": "omp_teams", "ratios":
@@ -132,17 +132,25 @@ def _idle_ray() -> None:
 
 
 def _beside_idle_ray(command: list[str], env: dict) -> subprocess.CompletedProcess:
-    """Run ``command`` while :func:`_idle_ray` idles in another process."""
+    """Run ``command`` while :func:`_idle_ray` idles in another process (its stderr goes to a
+    temporary file, shown if the instance fails to start)."""
+    import tempfile
+
+    log = tempfile.TemporaryFile(mode="w+")
     ray_proc = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--idle-ray"], stdin=subprocess.PIPE,
-                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+                                stdout=subprocess.PIPE, stderr=log, text=True, env=env)
     try:
         for line in ray_proc.stdout:
             if line.strip() == "up":
                 break
         else:
-            raise SystemExit(f"the idle Ray instance did not start (exit code {ray_proc.wait()})")
+            code = ray_proc.wait()
+            log.seek(0)
+            raise SystemExit(f"the idle Ray instance for beside_ray did not start (exit code {code}):\n"
+                             f"{log.read()[-4000:]}")
         return subprocess.run(command, capture_output=True, text=True, env=env)
     finally:
+        log.close()
         ray_proc.stdin.close()
         try:
             ray_proc.wait(timeout=60)
