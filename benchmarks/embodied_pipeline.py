@@ -51,7 +51,10 @@ The unprefixed ratios are those of state observations (the issue's headline); rg
 the "rgb/" prefix. Ratios > 1 mean the pipelined path is faster. "ratios" are over all measured
 iterations; "paired_ratios" holds each round's own ratio (`--rounds N`: N consecutive blocks of
 `--iterations` measured iterations per row) with their median, and the spread of the per-cycle
-ratios (the i-th iterations of two rows, seconds apart).
+ratios (the i-th iterations of two rows, seconds apart). "host" holds what the ratios depend on,
+measured before the rows start (`benchmarks/_host_probe.py`, ~10 s; `--no-probe` skips it): the
+CPU, a 4- and an 8-env MetaWorld step, the link's round trip, and how two busy processes scale.
+Read ratios from different machines side by side with it (docs/embodied.md, "Measured").
 """
 
 from __future__ import annotations
@@ -60,7 +63,6 @@ import argparse
 import contextlib
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -347,6 +349,21 @@ def run_in_turns(obs: str, impls: list[str], measured: int, rounds: int, warmup:
     return {impl: r[warmup:] for impl, r in rows.items()}
 
 
+def probe_host() -> dict:
+    """The host facts of `_host_probe.py`, measured in a process of their own (the conductor stays
+    free of the simulator), printed to stderr and returned for the JSON line."""
+    proc = subprocess.run([sys.executable, os.path.join(BENCH_DIR, "_host_probe.py")], capture_output=True,
+                          text=True, env=_child_env())
+    if proc.returncode:
+        raise SystemExit(f"measuring the host failed (use --no-probe to skip it):\n{proc.stderr[-4000:]}")
+    host = json.loads(proc.stdout.strip().splitlines()[-1])
+    steps = host["sim_step_ms"]
+    print(f"host  {host['cpu']}: MetaWorld step {steps['4_envs']} ms (4 envs), {steps['8_envs']} ms (8 envs); "
+          f"link round trip {host['link_round_trip_us']} us; two busy processes {host['parallel_scaling']}x one",
+          file=sys.stderr)
+    return host
+
+
 def _median(values: list[float]) -> float:
     ordered = sorted(values)
     return ordered[(len(ordered) - 1) // 2]
@@ -376,6 +393,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1,
                         help="measure each row in this many consecutive blocks of --iterations; each block "
                              "gives the rows' ratios once (all rows run side by side, in turns)")
+    parser.add_argument("--no-probe", action="store_true",
+                        help="skip measuring the host first (the JSON line's \"host\" is then null)")
     parser.add_argument("--eager", action="store_true",
                         help="every row without actor.compile and rollout.compile (default: every row compiles "
                              "its PPO optimizer step and its policy's act)")
@@ -395,6 +414,7 @@ def main() -> None:
         print(json.dumps(run_one(args.only, modes[0], args.iterations, args.warmup, not args.eager)))
         return
     started = time.time()
+    host = None if args.no_probe else probe_host()
     results, ratios, paired = {}, {}, {}
     for obs in modes:
         measured = args.iterations if obs == "state" else max(2, args.iterations - 2)
@@ -422,7 +442,7 @@ def main() -> None:
     print(json.dumps({"benchmark": "embodied_pipeline", "ratios": ratios, "paired_ratios": paired, "targets": TARGETS,
                       "results": results, "interleaved": True,
                       "actor_compile": not args.eager, "rollout_compile": not args.eager,
-                      "device": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
+                      "device": host["cpu"] if host else f"{os.cpu_count()} CPUs", "host": host,
                       "elapsed_s": round(time.time() - started, 1)}))
 
 
