@@ -437,8 +437,10 @@ def main() -> None:
                 ratios[prefix + key] = round(speed(a) / speed(b), 3)
                 paired[prefix + key] = _pair(rows[a], rows[b], measured, args.rounds)
     for key, value in paired.items():
+        target = TARGETS.get(key.rpartition("/")[2])
+        verdict = "" if target is None else f"; target {target}: {'met' if ratios[key] >= target else 'MISSED'} ({ratios[key]})"
         print(f"{key}: rounds {value['rounds']} (median {value['median']}); cycles median "
-              f"{value['cycles']['median']} [{value['cycles']['min']}, {value['cycles']['max']}]", file=sys.stderr)
+              f"{value['cycles']['median']} [{value['cycles']['min']}, {value['cycles']['max']}]{verdict}", file=sys.stderr)
     print(json.dumps({"benchmark": "embodied_pipeline", "ratios": ratios, "paired_ratios": paired, "targets": TARGETS,
                       "results": results, "interleaved": True,
                       "actor_compile": not args.eager, "rollout_compile": not args.eager,
