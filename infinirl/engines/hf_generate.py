@@ -24,6 +24,7 @@ therefore the same as generating each prompt alone, up to float rounding.
 
 from __future__ import annotations
 
+import inspect
 import numbers
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -258,6 +259,16 @@ def _as_id_list(value) -> list[int]:
     return [int(v) for v in value]
 
 
+def cache_keyword(model) -> str:
+    """The name under which ``model``'s forward takes its KV cache.
+
+    transformers 5.2x renamed it ``cache``; ``past_key_values`` still works there but warns on
+    every forward call (dozens of warnings per rollout, from every rank) and is to be removed in
+    5.40. Older releases (we support >= 4.56) know only ``past_key_values``."""
+    forward = getattr(model, "_orig_mod", model).forward  # a torch.compile'd model: its module's
+    return "cache" if "cache" in inspect.signature(forward).parameters else "past_key_values"
+
+
 class HFGenerateEngine(InferenceEngine):
     """``InferenceEngine`` over a transformers causal LM (any device; tuned for CPU rollouts).
 
@@ -294,6 +305,7 @@ class HFGenerateEngine(InferenceEngine):
         self._max_positions = getattr(model.config, "max_position_embeddings", None)
         self._weight_version = 0
         self._offloaded = False
+        self._cache_keyword = cache_keyword(model)
 
     @staticmethod
     def _default_eos_ids(model, tokenizer, explicit) -> tuple[int, ...]:
@@ -397,9 +409,9 @@ class HFGenerateEngine(InferenceEngine):
             input_ids=input_ids,
             attention_mask=attention_mask,
             position_ids=position_ids,
-            past_key_values=cache,
             use_cache=True,
             logits_to_keep=1,
+            **{self._cache_keyword: cache},
         )
         if len(unique_prompts) != len(requests):
             cache.batch_select_indices(row_to_slot)
@@ -420,8 +432,8 @@ class HFGenerateEngine(InferenceEngine):
             input_ids=tokens.unsqueeze(-1),
             attention_mask=state.attention_mask,
             position_ids=state.next_position.unsqueeze(-1),
-            past_key_values=state.cache,
             use_cache=True,
+            **{self._cache_keyword: state.cache},
         )
         state.next_position = state.next_position + 1
         return out.logits[:, -1, :].float()

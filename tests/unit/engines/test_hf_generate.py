@@ -18,6 +18,7 @@ from infinirl.engines.base import SamplingParams
 from infinirl.engines.hf_generate import (
     HFGenerateEngine,
     PreallocatedKVLayer,
+    cache_keyword,
     excluded_tokens,
     new_kv_cache,
     sample_from_weights,
@@ -227,16 +228,40 @@ def test_preallocated_cache_matches_transformers_dynamic_cache(tiny):
     prompt = torch.tensor([PROMPTS[0], PROMPTS[0][::-1]])
     ours, theirs = new_kv_cache(model, capacity=12), DynamicCache(config=model.config)
     assert all(isinstance(layer, PreallocatedKVLayer) for layer in ours.layers)
+    key = cache_keyword(model)
     with torch.no_grad():
         for cache in (ours, theirs):
-            model(input_ids=prompt, past_key_values=cache, use_cache=True)
+            model(input_ids=prompt, use_cache=True, **{key: cache})
             cache.batch_select_indices(torch.tensor([1, 0, 1]))
         step = torch.tensor([[40], [41], [42]])
         for _ in range(3):
-            a = model(input_ids=step, past_key_values=ours, use_cache=True).logits
-            b = model(input_ids=step, past_key_values=theirs, use_cache=True).logits
+            a = model(input_ids=step, use_cache=True, **{key: ours}).logits
+            b = model(input_ids=step, use_cache=True, **{key: theirs}).logits
             torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
     assert ours.get_seq_length() == theirs.get_seq_length() == len(PROMPTS[0]) + 3
+
+
+def test_cache_keyword_follows_the_forward_signature():
+    class Renamed(torch.nn.Module):  # transformers >= 5.2x
+        def forward(self, input_ids, cache=None, **kwargs):
+            return input_ids
+
+    class Original(torch.nn.Module):  # transformers 4.x
+        def forward(self, input_ids, past_key_values=None, **kwargs):
+            return input_ids
+
+    assert cache_keyword(Renamed()) == "cache"
+    assert cache_keyword(Original()) == "past_key_values"
+    assert cache_keyword(torch.compile(Renamed())) == "cache"  # looks through torch.compile's wrapper
+
+
+def test_generation_passes_the_cache_without_deprecation_warnings(engine, recwarn):
+    """A deprecated cache keyword warns on every forward: dozens of lines per rollout, per rank."""
+    import warnings
+
+    warnings.simplefilter("always")
+    engine.generate(PROMPTS[:2], SamplingParams(max_new_tokens=4, n=2, seed=0))
+    assert not [w for w in recwarn if "past_key_values" in str(w.message)], [str(w.message) for w in recwarn]
 
 
 def test_stop_token_truncates_and_is_kept(tiny, engine):
