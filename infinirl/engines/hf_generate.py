@@ -265,7 +265,7 @@ def cache_keyword(model) -> str:
     transformers 5.2x renamed it ``cache``; ``past_key_values`` still works there but warns on
     every forward call (dozens of warnings per rollout, from every rank) and is to be removed in
     5.40. Older releases (we support >= 4.56) know only ``past_key_values``."""
-    forward = getattr(model, "_orig_mod", model).forward  # a torch.compile'd model: its module's
+    forward = getattr(model, "_orig_mod", model).forward  # torch.compile's wrapper hides the signature
     return "cache" if "cache" in inspect.signature(forward).parameters else "past_key_values"
 
 
