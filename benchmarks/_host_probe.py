@@ -4,11 +4,12 @@ Why it exists: the same code gives different ratios on different 2-core VMs. Ses
 the state targets and missed RGB a/c; session 19's (a faster AMD EPYC with AVX-512) met RGB a/c and
 missed state a/b. What moves them is arithmetic over a few costs, so the result line carries them:
 
-* ``sim_step_ms``: one pipeline stage's step of 4 and of 8 MetaWorld ``reach-v3`` envs in one process
-  (state observations), as a stage process runs it (``StagedEnv``). Row (b) simulates 8 envs per step in one process, row (a) 4 per stage in two;
-  the cheaper the simulation, the larger the share of each step that is fixed per-message cost,
-  which pipelining does not hide and which (a) pays once per stage.
-* ``link_round_trip_us``: median round trip of a 4-env stage's message and its actions over the
+* ``sim_step_ms``: one pipeline stage's step of N/2 and of N MetaWorld ``reach-v3`` envs in one
+  process (state observations; N the benchmark's env count, 16 by default, ``--envs`` here), as a
+  stage process runs it (``StagedEnv``). Row (b) simulates N envs per step in one process, row (a)
+  N/2 per stage in two (the first stage takes an odd env); the cheaper the simulation, the larger the share of each step that is
+  fixed per-message cost, which pipelining does not hide and which (a) pays once per stage.
+* ``link_round_trip_us``: median round trip of an N/2-env stage's message and its actions over the
   socket link the pipelined rows use (``infinirl.components.env_link``), between two processes.
 * ``parallel_scaling``: how much work two busy processes get done together, relative to one alone
   (2.0: the VM gives two full cores; session 6's host gave ~1.57). (a) needs both cores.
@@ -24,14 +25,16 @@ import time
 SPIN_S = 1.0
 
 
-def probe_host() -> dict:
-    """Every fact above, in ~10 s; to be run while nothing else is busy."""
+def probe_host(num_envs: int = 16) -> dict:
+    """Every fact above for a benchmark of ``num_envs`` envs, in ~10 s; to be run while nothing
+    else is busy."""
     from _bench_common import device_description
 
-    four, stage_message = sim_step_ms(4)  # the pipelined row's stage size: its message is what the link carries
-    eight, _ = sim_step_ms(8)
-    return {"cpu": device_description(), "sim_step_ms": {"4_envs": four, "8_envs": eight},
-            "link_round_trip_us": link_round_trip_us(stage_message), "parallel_scaling": parallel_scaling()}
+    stage = (num_envs + 1) // 2  # the pipelined row's (first) stage: its message is what the link carries
+    stage_ms, stage_message = sim_step_ms(stage)
+    whole_ms, _ = sim_step_ms(num_envs)
+    return {"cpu": device_description(), "sim_step_ms": {f"{stage}_envs": stage_ms, f"{num_envs}_envs": whole_ms},
+            "link_round_trip_us": link_round_trip_us(stage_message, stage), "parallel_scaling": parallel_scaling()}
 
 
 def sim_step_ms(num_envs: int, steps: int = 300) -> tuple[float, object]:
@@ -70,7 +73,7 @@ def _echo_stage(address_out, message, rounds: int) -> None:
     link.close()
 
 
-def link_round_trip_us(message, rounds: int = 2000, warmup: int = 200) -> float:
+def link_round_trip_us(message, num_envs: int, rounds: int = 2000, warmup: int = 200) -> float:
     """Median microseconds from sending a stage's actions to receiving its next ``message``."""
     import numpy as np
 
@@ -83,7 +86,7 @@ def link_round_trip_us(message, rounds: int = 2000, warmup: int = 200) -> float:
     try:
         link = connect(parent_end.recv())
         link.recv()
-        actions = (0, np.zeros((4, 4), np.float32))
+        actions = (0, np.zeros((num_envs, 4), np.float32))
         times = []
         for _ in range(rounds + warmup):
             start = time.perf_counter()
@@ -120,9 +123,15 @@ def parallel_scaling() -> float:
 
 
 if __name__ == "__main__":
+    import argparse
     import json
     import os
     import sys
 
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--envs", type=int, default=16, help="the benchmark's env count N (>= 2)")
+    args = parser.parse_args()
+    if args.envs < 2:
+        parser.error(f"--envs {args.envs}: must be >= 2 (two pipeline stages)")
     sys.path[:0] = [os.path.dirname(os.path.abspath(__file__)), os.path.dirname(os.path.dirname(os.path.abspath(__file__)))]
-    print(json.dumps(probe_host()))
+    print(json.dumps(probe_host(args.envs)))

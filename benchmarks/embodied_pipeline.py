@@ -1,8 +1,10 @@
 """Benchmark: env-steps/s of the full PPO loop on MetaWorld, pipelined vs sequential vs single process.
 
-Three ways to run the same PPO iteration (8 envs x 200 steps of `reach-v3`, the same registered
-policy, the same PPO update: 10 epochs x 32 mini-batches), for state observations (MLP 2x64) and
-for 64x64 RGB camera observations (CNN):
+Three ways to run the same PPO iteration, for state observations (MLP 2x64) and for 64x64 RGB
+camera observations (CNN): the same registered policy, the same PPO update (10 epochs x 32
+mini-batches) and the shipped `ppo_metaworld_reach` demo's shape, read from its config (16 envs x
+100 steps of `reach-v3`; `--num-envs/--steps` change it, e.g. 8 x 200, the demo's shape until
+session 19):
 
   (a) pipelined:      `infinirl train ppo_metaworld_reach` with the env and the rollout on disjoint
                       CPU slots (placement env=0 rollout=1 actor=0), `rollout.pipeline_stages=2` and
@@ -43,6 +45,7 @@ Usage:
     python benchmarks/embodied_pipeline.py --only single_process --obs rgb   # one impl alone, its JSON line
     python benchmarks/embodied_pipeline.py --eager              # every row's update and act uncompiled
     python benchmarks/embodied_pipeline.py --obs state --iterations 4 --rounds 3   # three blocks of 4
+    python benchmarks/embodied_pipeline.py --num-envs 8 --steps 200   # another iteration shape
 
 The table goes to stderr; the last stdout line is ONE JSON object:
     {"benchmark": "embodied_pipeline", "ratios": {"pipelined_vs_sequential": ..,
@@ -53,7 +56,7 @@ iterations; "paired_ratios" holds each round's own ratio (`--rounds N`: N consec
 `--iterations` measured iterations per row) with their median, and the spread of the per-cycle
 ratios (the i-th iterations of two rows, seconds apart). "host" holds what the ratios depend on,
 measured before the rows start (`benchmarks/_host_probe.py`, ~10 s; `--no-probe` skips it): the
-CPU, a 4- and an 8-env MetaWorld step, the link's round trip, and how two busy processes scale.
+CPU, a MetaWorld step of one pipelined stage's envs and of all of them, the link's round trip, and how two busy processes scale.
 Read ratios from different machines side by side with it (docs/embodied.md, "Measured").
 """
 
@@ -71,7 +74,9 @@ import time
 TARGETS = {"pipelined_vs_sequential": 1.3, "pipelined_vs_single_process": 1.0}
 IMPLS = ("pipelined", "sequential", "single_process", "collocated")
 DEFAULT_IMPLS = IMPLS[:3]
-NUM_ENVS, STEPS = 8, 200
+DEMO = "ppo_metaworld_reach"
+#: envs and decisions per iteration; main() sets them (default: the demo config's own)
+NUM_ENVS, STEPS = 16, 100
 BENCH_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO_ROOT = os.path.dirname(BENCH_DIR)
 
@@ -138,10 +143,11 @@ def row_command(impl: str, obs: str, iterations: int, warmup: int, compile_: boo
     (c): this script with ``--only single_process``, printing its result as JSON."""
     if impl == "single_process":
         return [sys.executable, os.path.abspath(__file__), "--only", impl, "--obs", obs, "--iterations",
-                str(iterations), "--warmup", str(warmup)] + ["--eager"] * (not compile_)
+                str(iterations), "--warmup", str(warmup), "--num-envs", str(NUM_ENVS),
+                "--steps", str(STEPS)] + ["--eager"] * (not compile_)
     bootstrap = (f"import sys; sys.path[:0] = [{REPO_ROOT!r}, {BENCH_DIR!r}]; import _bench_turns; "
                  "_bench_turns.gate_embodied_runner(); from infinirl.cli import main; sys.exit(main())")
-    return [sys.executable, "-c", bootstrap, "train", "ppo_metaworld_reach",
+    return [sys.executable, "-c", bootstrap, "train", DEMO,
             *_override_args(runner_overrides(impl, obs, iterations, compile_, out))]
 
 
@@ -184,7 +190,7 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
     from infinirl.config import compose
 
     torch.set_num_threads(1)
-    raw = compose("ppo_metaworld_reach")
+    raw = compose(DEMO)
     options = OBS_MODES[obs]
     env_kwargs = dict(options.get("env.kwargs", raw["env"].get("kwargs") or {}))
     task = raw["env"]["name"].partition(":")[2]
@@ -203,9 +209,10 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
     # the update's threads, as actor.num_threads gives them in (a)/(b) (0: every core); acting keeps 1
     update_threads = options.get("actor.num_threads", 1) or len(os.sched_getaffinity(0))
     # NEXT_STEP (gymnasium's default): an env whose episode ended resets on its next step() call.
-    # Every episode here ends on an iteration's last step (200-step episodes, no early
-    # termination), and the next iteration starts with a seeded reset(), so, like (a) and (b),
-    # this loop resets each env once per iteration and never for an observation it does not use.
+    # No episode ends before an iteration's last step (200-step episodes, no early termination,
+    # at most 200 steps an iteration: checked below), and the next iteration starts with a seeded
+    # reset(), so, like (a) and (b), this loop resets each env once per iteration and never for
+    # an observation it does not use.
     envs = gym.vector.AsyncVectorEnv([_gym_env_fn(task, env_kwargs, keys)] * NUM_ENVS,
                                      autoreset_mode=gym.vector.AutoresetMode.NEXT_STEP)
     rows = []
@@ -352,16 +359,28 @@ def run_in_turns(obs: str, impls: list[str], measured: int, rounds: int, warmup:
 def probe_host() -> dict:
     """The host facts of `_host_probe.py`, measured in a process of their own (the conductor stays
     free of the simulator), printed to stderr and returned for the JSON line."""
-    proc = subprocess.run([sys.executable, os.path.join(BENCH_DIR, "_host_probe.py")], capture_output=True,
-                          text=True, env=_child_env())
+    proc = subprocess.run([sys.executable, os.path.join(BENCH_DIR, "_host_probe.py"), "--envs", str(NUM_ENVS)],
+                          capture_output=True, text=True, env=_child_env())
     if proc.returncode:
         raise SystemExit(f"measuring the host failed (use --no-probe to skip it):\n{proc.stderr[-4000:]}")
     host = json.loads(proc.stdout.strip().splitlines()[-1])
-    steps = host["sim_step_ms"]
-    print(f"host  {host['cpu']}: MetaWorld step {steps['4_envs']} ms (4 envs), {steps['8_envs']} ms (8 envs); "
-          f"link round trip {host['link_round_trip_us']} us; two busy processes {host['parallel_scaling']}x one",
+    steps = ", ".join(f"{ms} ms ({key.replace('_', ' ')})" for key, ms in host["sim_step_ms"].items())
+    print(f"host  {host['cpu']}: MetaWorld step {steps}; link round trip {host['link_round_trip_us']} us; two busy processes {host['parallel_scaling']}x one",
           file=sys.stderr)
     return host
+
+
+def demo_shape(num_envs: int | None = None, steps: int | None = None) -> tuple[int, int]:
+    """(envs, decisions per env) of an iteration: the given ones, else the demo config's. Why the
+    demo's: the benchmark measures the PPO loop users run; session 19 changed the demo from 8 x 200
+    to 16 x 100 (better held-out success), and a hard-coded shape had stayed behind."""
+    if num_envs is not None and steps is not None:
+        return num_envs, steps
+    from infinirl.config import compose
+
+    raw = compose(DEMO)
+    return (num_envs if num_envs is not None else int(raw["env"]["num_envs"]),
+            steps if steps is not None else int(raw["rollout_steps"]))
 
 
 def _median(values: list[float]) -> float:
@@ -393,6 +412,10 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1,
                         help="measure each row in this many consecutive blocks of --iterations; each block "
                              "gives the rows' ratios once (all rows run side by side, in turns)")
+    parser.add_argument("--num-envs", type=int, default=None,
+                        help=f"envs per iteration in every row (default: {DEMO}'s env.num_envs)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help=f"decisions per env and iteration (default: {DEMO}'s rollout_steps)")
     parser.add_argument("--no-probe", action="store_true",
                         help="skip measuring the host first (the JSON line's \"host\" is then null)")
     parser.add_argument("--eager", action="store_true",
@@ -410,10 +433,18 @@ def main() -> None:
     for name in impls:
         if name not in IMPLS:
             parser.error(f"--impls {name!r}: choose from {', '.join(IMPLS)}")
+    global NUM_ENVS, STEPS
+    NUM_ENVS, STEPS = demo_shape(args.num_envs, args.steps)
+    if NUM_ENVS < 2:
+        parser.error(f"--num-envs {NUM_ENVS}: the pipelined row splits the envs into 2 stages, so it needs >= 2")
+    if not 1 <= STEPS <= 200:
+        parser.error(f"--steps {STEPS}: must be in [1, 200] (MetaWorld's episodes are 200 steps; row (c) "
+                     "handles no episode ending inside an iteration)")
     if args.only:
         print(json.dumps(run_one(args.only, modes[0], args.iterations, args.warmup, not args.eager)))
         return
     started = time.time()
+    print(f"each PPO iteration: {NUM_ENVS} envs x {STEPS} steps of {DEMO}", file=sys.stderr)
     host = None if args.no_probe else probe_host()
     results, ratios, paired = {}, {}, {}
     for obs in modes:
@@ -442,7 +473,7 @@ def main() -> None:
         print(f"{key}: rounds {value['rounds']} (median {value['median']}); cycles median "
               f"{value['cycles']['median']} [{value['cycles']['min']}, {value['cycles']['max']}]{verdict}", file=sys.stderr)
     print(json.dumps({"benchmark": "embodied_pipeline", "ratios": ratios, "paired_ratios": paired, "targets": TARGETS,
-                      "results": results, "interleaved": True,
+                      "results": results, "interleaved": True, "num_envs": NUM_ENVS, "steps": STEPS,
                       "actor_compile": not args.eager, "rollout_compile": not args.eager,
                       "device": host["cpu"] if host else f"{os.cpu_count()} CPUs", "host": host,
                       "elapsed_s": round(time.time() - started, 1)}))
