@@ -383,6 +383,23 @@ def demo_shape(num_envs: int | None = None, steps: int | None = None) -> tuple[i
             steps if steps is not None else int(raw["rollout_steps"]))
 
 
+def shape_problem(num_envs: int, steps: int) -> str | None:
+    """What is wrong with an iteration shape, checked before any row starts (a row would otherwise
+    fail seconds later, inside the conductor's report); None when every row can run it."""
+    if num_envs < 2:
+        return f"--num-envs {num_envs}: the pipelined row splits the envs into 2 stages, so it needs >= 2"
+    if not 1 <= steps <= 200:
+        return (f"--steps {steps}: must be in [1, 200] (MetaWorld's episodes are 200 steps; row (c) "
+                "handles no episode ending inside an iteration)")
+    from infinirl.config import compose
+
+    mini_batches = int(compose(DEMO)["algorithm"]["mini_batches"])
+    if (num_envs * steps) % mini_batches:
+        return (f"--num-envs {num_envs} x --steps {steps} = {num_envs * steps} decisions an iteration, which "
+                f"{DEMO}'s algorithm.mini_batches={mini_batches} does not divide: pick a shape it divides")
+    return None
+
+
 def _median(values: list[float]) -> float:
     ordered = sorted(values)
     return ordered[(len(ordered) - 1) // 2]
@@ -435,11 +452,9 @@ def main() -> None:
             parser.error(f"--impls {name!r}: choose from {', '.join(IMPLS)}")
     global NUM_ENVS, STEPS
     NUM_ENVS, STEPS = demo_shape(args.num_envs, args.steps)
-    if NUM_ENVS < 2:
-        parser.error(f"--num-envs {NUM_ENVS}: the pipelined row splits the envs into 2 stages, so it needs >= 2")
-    if not 1 <= STEPS <= 200:
-        parser.error(f"--steps {STEPS}: must be in [1, 200] (MetaWorld's episodes are 200 steps; row (c) "
-                     "handles no episode ending inside an iteration)")
+    problem = shape_problem(NUM_ENVS, STEPS)
+    if problem:
+        parser.error(problem)
     if args.only:
         print(json.dumps(run_one(args.only, modes[0], args.iterations, args.warmup, not args.eager)))
         return

@@ -35,3 +35,13 @@ def test_rows_run_the_shape_set_for_the_run(monkeypatch):
     command = bench.row_command("single_process", "state", 3, 1, True, "/tmp/out")
     assert command[command.index("--num-envs") + 1] == "6" and command[command.index("--steps") + 1] == "40"
     assert bench.summarise([{"time/iteration_s": 1.0}], "x")["env_steps"] == 6 * 40
+
+
+def test_a_shape_no_row_can_run_is_refused_before_rows_start():
+    raw = compose(bench.DEMO)
+    assert bench.shape_problem(raw["env"]["num_envs"], raw["rollout_steps"]) is None
+    assert bench.shape_problem(8, 200) is None
+    assert "--num-envs 1" in bench.shape_problem(1, 100)
+    assert "--steps 300" in bench.shape_problem(16, 300)
+    problem = bench.shape_problem(4, 20)  # 80 decisions: 32 mini-batches do not divide them
+    assert "mini_batches=32" in problem and "80" in problem
