@@ -7,8 +7,9 @@ missed state a/b. What moves them is arithmetic over a few costs, so the result 
 * ``sim_step_ms``: one pipeline stage's step of N/2 and of N MetaWorld ``reach-v3`` envs in one
   process (state observations; N the benchmark's env count, 16 by default, ``--envs`` here), as a
   stage process runs it (``StagedEnv``). Row (b) simulates N envs per step in one process, row (a)
-  N/2 per stage in two (the first stage takes an odd env); the cheaper the simulation, the larger the share of each step that is
-  fixed per-message cost, which pipelining does not hide and which (a) pays once per stage.
+  N/2 per stage in two (the first stage takes an odd env); the cheaper the simulation, the larger
+  the share of each step that is fixed per-message cost, which pipelining does not hide and which
+  (a) pays once per stage.
 * ``link_round_trip_us``: median round trip of an N/2-env stage's message and its actions over the
   socket link the pipelined rows use (``infinirl.components.env_link``), between two processes.
 * ``parallel_scaling``: how much work two busy processes get done together, relative to one alone

@@ -56,7 +56,8 @@ iterations; "paired_ratios" holds each round's own ratio (`--rounds N`: N consec
 `--iterations` measured iterations per row) with their median, and the spread of the per-cycle
 ratios (the i-th iterations of two rows, seconds apart). "host" holds what the ratios depend on,
 measured before the rows start (`benchmarks/_host_probe.py`, ~10 s; `--no-probe` skips it): the
-CPU, a MetaWorld step of one pipelined stage's envs and of all of them, the link's round trip, and how two busy processes scale.
+CPU, a MetaWorld step of one pipelined stage's envs and of all of them, the link's round trip, and
+how two busy processes scale.
 Read ratios from different machines side by side with it (docs/embodied.md, "Measured").
 """
 
@@ -365,8 +366,8 @@ def probe_host() -> dict:
         raise SystemExit(f"measuring the host failed (use --no-probe to skip it):\n{proc.stderr[-4000:]}")
     host = json.loads(proc.stdout.strip().splitlines()[-1])
     steps = ", ".join(f"{ms} ms ({key.replace('_', ' ')})" for key, ms in host["sim_step_ms"].items())
-    print(f"host  {host['cpu']}: MetaWorld step {steps}; link round trip {host['link_round_trip_us']} us; two busy processes {host['parallel_scaling']}x one",
-          file=sys.stderr)
+    print(f"host  {host['cpu']}: MetaWorld step {steps}; link round trip {host['link_round_trip_us']} us; "
+          f"two busy processes {host['parallel_scaling']}x one", file=sys.stderr)
     return host
 
 

@@ -1,10 +1,11 @@
-"""The embodied demos learn, with their shipped configs (slow: 1-2 minutes each on 2 cores).
+"""The embodied demos learn, with their shipped configs (slow: 1-4.5 minutes each on 2 cores).
 
-PPO + MLP on MetaWorld reach-v3: held-out success (50 seeded layouts never trained on, deterministic policy) measured with this
-config (16 envs x 100 steps, session 19): 0.14 at iteration 10 -> 0.94 at 40 -> 0.96 at 50; the
-last evaluation over seeds 0-4 was 0.96-1.00 (docs/embodied.md). The issue's target is >= 90%; the
-test asserts it at the end of the run, and that the run wrote its curve and video. The config's
-earlier 8 envs x 200 steps failed it on session 19's host (0.88): it sampled half the layouts.
+PPO + MLP on MetaWorld reach-v3: held-out success (50 seeded layouts never trained on,
+deterministic policy) measured with this config (16 envs x 100 steps, session 19): 0.14 at
+iteration 10 -> 0.94 at 40 -> 0.96 at 50; the last evaluation over seeds 0-4 was 0.96-1.00
+(docs/embodied.md). The issue's target is >= 90%; the test asserts it at the end of the run, and
+that the run wrote its curve and video. The config's earlier 8 envs x 200 steps failed it on
+session 19's host (0.88): it sampled half the layouts.
 """
 
 import pytest
