@@ -93,7 +93,8 @@ def run(cfg: EmbodiedConfig) -> dict:
 def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
     """The actor's update settings; grouped (GRPO) advantages are used as they are, no critic is trained."""
     alg, algorithm = cfg.algorithm, ALGORITHMS[cfg.algorithm.name]
-    return PPOSpec(cfg.actor.lr, cfg.actor.anneal_lr, cfg.iterations, alg.epochs, alg.mini_batches, alg.clip,
+    horizon = cfg.actor.anneal_iterations or cfg.iterations
+    return PPOSpec(cfg.actor.lr, cfg.actor.anneal_lr, horizon, alg.epochs, alg.mini_batches, alg.clip,
                    alg.value_clip, alg.value_coef, alg.entropy_coef, alg.max_grad_norm,
                    alg.normalize_advantages and not algorithm.grouped, alg.gae_level, cfg.actor.adam_eps,
                    cfg.actor.strategy, cfg.seed, critic=algorithm.critic,

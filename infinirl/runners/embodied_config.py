@@ -121,7 +121,11 @@ ALGORITHMS: dict[str, EmbodiedAlgorithm] = {
 class ActorConfig:
     lr: float = 3e-4
     anneal_lr: bool = True
-    """Linear decay to 0 over `iterations`."""
+    """Linear decay to 0 over `iterations` (or over `actor.anneal_iterations`)."""
+    anneal_iterations: int = 0
+    """The decay's horizon in iterations; 0 = `iterations`. Set it to stop a run early on a longer
+    run's learning-rate schedule: a shorter `iterations=` alone decays faster and learns differently
+    (push-v3: 0.62 held-out at 300 iterations annealed over 300, 0.80 at 150 annealed over 600)."""
     adam_eps: float = 1e-5
     strategy: Literal["ddp", "fsdp"] = "ddp"
     """ddp: replicated weights, one SUM all-reduce of the gradients per step; fsdp: FSDP2 fully_shard."""
@@ -238,6 +242,7 @@ class EmbodiedConfig:
         for key, value in (("env.num_workers", self.env.num_workers), ("save_every", self.save_every),
                            ("eval.every", self.eval.every), ("eval.video_episodes", self.eval.video_episodes),
                            ("eval.seed", self.eval.seed), ("actor.num_threads", self.actor.num_threads),
+                           ("actor.anneal_iterations", self.actor.anneal_iterations),
                            ("rollout.num_threads", self.rollout.num_threads)):
             if value < 0:
                 raise ConfigError(f"{key}={value} must be >= 0")

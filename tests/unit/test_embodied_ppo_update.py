@@ -184,3 +184,36 @@ def test_an_fsdp2_model_trains_like_the_plain_one(compiled):
     weights = torch.cat([p.full_tensor().detach().reshape(-1) for p in sharded.parameters()])
     torch.testing.assert_close(weights, flat(plain), rtol=0, atol=1e-5)
     assert metrics["train/grad_norm"] == metrics["train/grad_norm"]
+
+
+@pytest.mark.parametrize("anneal_iterations, expected_horizon", [(0, 150), (600, 600)])
+def test_the_learning_rate_decays_over_the_configured_horizon(anneal_iterations, expected_horizon):
+    """``actor.anneal_iterations`` sets the linear decay's horizon (0: ``iterations``), so a run
+    stopped early (a shortened demo, a test) keeps the longer run's learning rates."""
+    from infinirl.config import compose, to_dataclass
+    from infinirl.runners.embodied import ppo_spec
+    from infinirl.runners.embodied_config import EmbodiedConfig
+
+    raw = compose("ppo_metaworld_push")
+    raw["iterations"] = 150
+    raw["actor"]["anneal_iterations"] = anneal_iterations
+    spec = ppo_spec(to_dataclass(EmbodiedConfig, raw))
+    assert spec.total_iterations == expected_horizon
+
+    build, batch = policy_and_batch()
+    model = build()
+    optimizer = torch.optim.Adam(model.parameters(), lr=spec.lr)
+    ppo = dataclasses.replace(PPO, lr=spec.lr, total_iterations=spec.total_iterations)
+    for iteration in (0, 75, 149):
+        ppo_update(model, optimizer, batch, iteration, ppo)
+        assert optimizer.param_groups[0]["lr"] == pytest.approx(3e-4 * (1 - iteration / expected_horizon), rel=1e-12)
+
+
+def test_a_negative_anneal_horizon_is_refused_before_anything_starts():
+    from infinirl.config import ConfigError, compose, to_dataclass
+    from infinirl.runners.embodied_config import EmbodiedConfig
+
+    raw = compose("ppo_metaworld_push")
+    raw["actor"]["anneal_iterations"] = -1
+    with pytest.raises(ConfigError, match="actor.anneal_iterations=-1"):
+        to_dataclass(EmbodiedConfig, raw).validate()
