@@ -16,7 +16,10 @@ def _runners():
     return load_runners()
 
 
-def _build_config(name: str, overrides: list[str], command: str = "train"):
+def build_config(name: str, overrides: list[str], command: str = "train"):
+    """``(runner spec, typed config)`` for ``infinirl <command> <name> <overrides...>``: override keys
+    are checked against the runner's config class, so any of its keys may be set, also one the YAML
+    leaves out. Tests use it to run a demo exactly as the command line would."""
     runner_name = compose(name).get("runner")
     if not runner_name:
         raise ConfigError(f"config '{name}' has no 'runner:' key; set one of: {', '.join(_runners().names())}")
@@ -68,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"runner {name}: {runners.get(name).summary}")
         return 0
     try:
-        spec, cfg = _build_config(args.config, args.overrides, args.command)
+        spec, cfg = build_config(args.config, args.overrides, args.command)
         if args.command == "validate":
             print(f"config '{args.config}' is valid (runner {spec.name})")
             return 0
