@@ -209,11 +209,14 @@ def test_the_learning_rate_decays_over_the_configured_horizon(anneal_iterations,
         assert optimizer.param_groups[0]["lr"] == pytest.approx(3e-4 * (1 - iteration / expected_horizon), rel=1e-12)
 
 
-def test_a_negative_anneal_horizon_is_refused_before_anything_starts():
+@pytest.mark.parametrize("horizon, message", [(-1, "actor.anneal_iterations=-1 must be >= 0"),
+                                              (100, "actor.anneal_iterations=100 < iterations=150")])
+def test_a_bad_anneal_horizon_is_refused_before_anything_starts(horizon, message):
     from infinirl.config import ConfigError, compose, to_dataclass
     from infinirl.runners.embodied_config import EmbodiedConfig
 
     raw = compose("ppo_metaworld_push")
-    raw["actor"]["anneal_iterations"] = -1
-    with pytest.raises(ConfigError, match="actor.anneal_iterations=-1"):
+    raw["iterations"] = 150
+    raw["actor"]["anneal_iterations"] = horizon
+    with pytest.raises(ConfigError, match=message):
         to_dataclass(EmbodiedConfig, raw).validate()
