@@ -45,7 +45,7 @@ def sim_step_ms(num_envs: int, steps: int = 300) -> tuple[float, object]:
 
     from infinirl.components.env_worker import EnvSpec, StagedEnv
 
-    env = StagedEnv(EnvSpec("metaworld:reach-v3", num_envs))
+    env = StagedEnv(EnvSpec(name="metaworld:reach-v3", num_envs=num_envs))
     try:
         env.reset(list(range(num_envs)))
         actions = np.random.default_rng(0).uniform(-1, 1, (steps + 20, num_envs, 4)).astype(np.float32)

@@ -198,8 +198,8 @@ def run_single_process(obs: str, iterations: int, warmup: int, compile_: bool) -
     alg = raw["algorithm"]
     spec, action_space = probe_env_specs(raw["env"]["name"], env_kwargs)
     keys = [k for k, v in spec.items() if v.dtype != "str"]
-    policy_spec = PolicySpec(options.get("policy.name", raw["policy"]["name"]),
-                             dict(options.get("policy.kwargs", raw["policy"]["kwargs"])))
+    policy_spec = PolicySpec(name=options.get("policy.name", raw["policy"]["name"]),
+                             options=dict(options.get("policy.kwargs", raw["policy"]["kwargs"])))
     torch.manual_seed(0)
     model = policy_spec.build(spec, action_space)
     ppo = PPOSpec(lr=raw["actor"]["lr"], anneal_lr=True, total_iterations=iterations, epochs=alg["epochs"],

@@ -98,7 +98,7 @@ def _build():
     alg = raw["algorithm"]
     spec, space = probe_env_specs(raw["env"]["name"], {"obs_mode": "state+rgb", "image_size": 64})
     torch.manual_seed(0)
-    model = PolicySpec("cnn_gaussian", {}).build(spec, space)
+    model = PolicySpec(name="cnn_gaussian", options={}).build(spec, space)
     size = 1600  # 8 envs x 200 steps, one iteration of the pipeline benchmark
     gen = torch.Generator().manual_seed(1)
     obs = {key: (torch.randint(0, 255, (size, *s.shape), dtype=torch.uint8, generator=gen) if s.dtype == "uint8"

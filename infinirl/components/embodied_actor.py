@@ -41,6 +41,7 @@ from infinirl.components.embodied_policy import compute_device, module_device
 from infinirl.components.embodied_rollout import PolicySpec
 from infinirl.components.env_worker import _limit_threads
 from infinirl.runtime import WeightSource, Worker
+from infinirl.utils.atomic import torch_save_atomic
 
 __all__ = ["EmbodiedActorWorker", "PPOSpec", "actor_process_env", "ppo_minibatch_loss", "ppo_objective",
            "ppo_update"]
@@ -62,7 +63,7 @@ def actor_process_env(num_threads: int) -> dict[str, str]:
 _CHECKPOINT = "actor.pt"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class PPOSpec:
     """PPO hyperparameters (documented on the runner's config fields)."""
 
@@ -206,11 +207,7 @@ class EmbodiedActorWorker(Worker, WeightSource):
             model_state, optim_state = self.model.state_dict(), self.optimizer.state_dict()
         if self.rank != 0:
             return
-        os.makedirs(path, exist_ok=True)
-        final = os.path.join(path, _CHECKPOINT)
-        tmp = final + ".tmp"
-        torch.save({"model": model_state, "optimizer": optim_state}, tmp)
-        os.replace(tmp, final)
+        torch_save_atomic({"model": model_state, "optimizer": optim_state}, os.path.join(path, _CHECKPOINT))
 
     def load_checkpoint(self, path: str) -> None:
         # map_location: a checkpoint written on a GPU resumes on a CPU-only machine, and vice versa

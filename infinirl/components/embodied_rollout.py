@@ -36,7 +36,7 @@ from infinirl.runtime import WeightSink, Worker
 __all__ = ["EmbodiedRolloutWorker", "PolicySpec", "compiled_act", "run_eval_episodes"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class PolicySpec:
     """Which policy to build, as the rollout and the actor both need it (picklable)."""
 

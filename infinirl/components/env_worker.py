@@ -39,7 +39,7 @@ EVAL_SEED_BASE = 2**31
 _TRAIN_SEED_LIMIT = 2**31 - 1  # VectorEnv draws auto-reset seeds below this too
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class EnvSpec:
     """How to build the envs of one rank (picklable; the runner fills it from the config).
 

@@ -21,11 +21,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+
+from infinirl.utils.atomic import atomic_open
 
 __all__ = ["FieldSpec", "ReplayBuffer"]
 
@@ -171,19 +172,8 @@ class ReplayBuffer:
         meta = {key: value for key, value in state.items() if key != "data"}
         arrays = {f"data/{name}": rows for name, rows in state["data"].items()}
         arrays[_META_KEY] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-        directory = os.path.dirname(os.path.abspath(path))
-        os.makedirs(directory, exist_ok=True)
-        tmp = f"{path}.tmp.{os.getpid()}"
-        try:
-            with open(tmp, "wb") as handle:  # a file object: np.savez must not append ".npz" to tmp
-                np.savez(handle, **arrays)
-                handle.flush()
-                os.fsync(handle.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_open(path, "wb", durable=True) as handle:  # a file object: np.savez adds no ".npz"
+            np.savez(handle, **arrays)
         return path
 
     def load(self, path: str) -> None:

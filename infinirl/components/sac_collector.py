@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from infinirl.runtime import WeightSink, Worker
+from infinirl.utils.atomic import torch_save_atomic
 
 __all__ = ["CollectorEnvSpec", "SACCollectorWorker"]
 
@@ -44,7 +45,7 @@ _SEED_LIMIT = 2**31 - 1  # training episode seeds; held-out eval seeds start at 
 _STATE_FILE = "collector.pt"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class CollectorEnvSpec:
     """How to build the collector's envs (picklable; the runner fills it from the config)."""
 
@@ -197,11 +198,7 @@ class SACCollectorWorker(Worker, WeightSink):
 
     def save_state(self, path: str) -> None:
         """:meth:`state` to ``path/collector.pt``, written to a temporary name and renamed."""
-        os.makedirs(path, exist_ok=True)
-        final = os.path.join(path, _STATE_FILE)
-        tmp = f"{final}.tmp.{os.getpid()}"
-        torch.save(self.state(), tmp)
-        os.replace(tmp, final)
+        torch_save_atomic(self.state(), os.path.join(path, _STATE_FILE))
 
     def load_state(self, path: str) -> dict:
         """Restore :meth:`save_state`'s file: generators, counters, and each env replayed to the

@@ -41,6 +41,7 @@ from infinirl.components.embodied_policy import compute_device, module_device
 from infinirl.components.replay_buffer import ReplayBuffer
 from infinirl.models.sac_nets import EnsembleQ, FlowSACActor, SquashedGaussianActor
 from infinirl.runtime import WeightSource, Worker
+from infinirl.utils.atomic import torch_save_atomic
 
 __all__ = ["SACAgent", "SACLearnerWorker", "SACNetSpec", "SACUpdateSpec", "transition_fields"]
 
@@ -49,7 +50,7 @@ _BUFFER = "replay_buffer.npz"
 _UPDATE_FIELDS = ("obs", "action", "reward", "next_obs", "terminated")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SACNetSpec:
     """Network shapes and options (the collector builds the same actor from it)."""
 
@@ -80,7 +81,7 @@ class SACNetSpec:
                          self.activation, self.obs_key)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SACUpdateSpec:
     """Hyperparameters of the update (documented on the config fields, ``infinirl/runners/sac_config.py``)."""
 
@@ -313,11 +314,7 @@ class SACLearnerWorker(Worker, WeightSource):
     def save_checkpoint(self, path: str) -> None:
         """Agent (weights, optimisers, generator, update count) and replay buffer, each file
         written to a temporary name and renamed into place."""
-        os.makedirs(path, exist_ok=True)
-        final = os.path.join(path, _CHECKPOINT)
-        tmp = f"{final}.tmp.{os.getpid()}"
-        torch.save(self.agent.state_dict(), tmp)
-        os.replace(tmp, final)
+        torch_save_atomic(self.agent.state_dict(), os.path.join(path, _CHECKPOINT))
         self.buffer.save(os.path.join(path, _BUFFER))
 
     def load_checkpoint(self, path: str) -> None:

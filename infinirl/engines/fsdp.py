@@ -37,7 +37,6 @@ process does.
 from __future__ import annotations
 
 import os
-import random
 import shutil
 import time
 import warnings
@@ -45,7 +44,6 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.distributed as dist
 import torch.distributed.checkpoint as dcp
@@ -66,6 +64,7 @@ from infinirl.engines.cpu_dtype import resolve_cpu_dtype
 from infinirl.engines.logprobs import aligned_logprobs, aligned_values
 from infinirl.engines.shared_prefix import pack_by_prompt, packed_logprobs, supports_packed_masks
 from infinirl.engines.train_base import LoraSettings, LossFn, LrSchedule, TrainEngineConfig, TrainOutput
+from infinirl.utils import capture_rng_state, replace_directory, restore_rng_state, seed_everything
 
 ModelOrFactory = nn.Module | Callable[[], nn.Module]
 
@@ -333,7 +332,7 @@ class FSDPTrainEngine:
         self.device = _select_device(device_type)
         self.compute_dtype = _compute_dtype(cfg.param_dtype, self.device)
 
-        _seed_all(cfg.seed)  # identical init on every rank
+        seed_everything(cfg.seed)  # identical init on every rank
         if not isinstance(model, nn.Module):
             model = model()
         model = model.to(device=self.device, dtype=torch.float32)
@@ -362,7 +361,7 @@ class FSDPTrainEngine:
             self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, LrSchedule(cfg))
         self.global_step = 0
         self._offloaded = False
-        _seed_all(cfg.seed + self.rank)  # runtime randomness (dropout) differs per rank
+        seed_everything(cfg.seed + self.rank)  # runtime randomness (dropout) differs per rank
 
     @classmethod
     def from_pretrained(
@@ -712,13 +711,10 @@ class FSDPTrainEngine:
                 if has_optimizer_state:  # reading an empty optimizer's state would initialise it
                     state["optimizer"] = get_optimizer_state_dict(self.model, self.optimizer)
                 dcp.save(state, checkpoint_id=str(tmp / _DCP_DIR))
-                _write_engine_state(
-                    self._engine_state(has_optimizer_state),
-                    tmp / _ENGINE_STATE.format(rank=self.rank),
-                )
+                torch.save(self._engine_state(has_optimizer_state), tmp / _ENGINE_STATE.format(rank=self.rank))
                 self._barrier()
                 if self.rank == 0:
-                    _replace_directory(tmp, path)
+                    replace_directory(tmp, path)
                 self._barrier()
             except BaseException:
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -751,7 +747,7 @@ class FSDPTrainEngine:
                 set_optimizer_state_dict(self.model, self.optimizer, state["optimizer"])
         self.scheduler.load_state_dict(engine_state["scheduler"])
         self.global_step = engine_state["global_step"]
-        _set_rng_state(engine_state["rng"])
+        restore_rng_state(engine_state["rng"])
 
     def _barrier(self) -> None:
         if self.device.type == "cuda":
@@ -764,7 +760,7 @@ class FSDPTrainEngine:
             "global_step": self.global_step,
             "scheduler": self.scheduler.state_dict(),
             "has_optimizer_state": has_optimizer_state,
-            "rng": _get_rng_state(),
+            "rng": capture_rng_state(),
             "world_size": self.world_size,
         }
 
@@ -847,42 +843,3 @@ def _hf_name(name: str) -> str:
     if name.startswith(_PEFT_PREFIX):
         name = name[len(_PEFT_PREFIX) :]
     return name.replace(".base_layer.", ".")
-
-
-def _replace_directory(new: Path, target: Path) -> None:
-    """Move ``new`` to ``target``, replacing an existing ``target`` (kept as ``.old`` meanwhile)."""
-    old = target.with_name(target.name + ".old")
-    if target.exists():
-        shutil.rmtree(old, ignore_errors=True)
-        os.replace(target, old)
-    os.replace(new, target)
-    shutil.rmtree(old, ignore_errors=True)
-
-
-def _write_engine_state(state: dict, file: Path) -> None:
-    torch.save(state, file)
-
-
-def _seed_all(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)  # also seeds every CUDA device
-
-
-def _get_rng_state() -> dict:
-    state = {
-        "python": random.getstate(),
-        "numpy": np.random.get_state(),
-        "torch": torch.get_rng_state(),
-    }
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def _set_rng_state(state: dict) -> None:
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])

@@ -10,10 +10,11 @@ a video either exists whole or not at all.
 from __future__ import annotations
 
 import importlib.util
-import os
 from collections.abc import Sequence
 
 import numpy as np
+
+from infinirl.utils.atomic import atomic_open
 
 __all__ = ["write_mp4"]
 
@@ -28,12 +29,6 @@ def write_mp4(path: str, frames: Sequence[np.ndarray], fps: int = 30) -> str:
         raise ValueError(f"no frames to write to {path}")
     import imageio.v2 as imageio
 
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = f"{path}.tmp.mp4"  # the extension selects the ffmpeg writer
-    try:
-        imageio.mimsave(tmp, list(frames), fps=fps, macro_block_size=1, format="FFMPEG")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    with atomic_open(path, "wb", suffix=".tmp.mp4") as handle:  # the extension selects the ffmpeg writer
+        imageio.mimsave(handle.name, list(frames), fps=fps, macro_block_size=1, format="FFMPEG")
     return path

@@ -16,7 +16,7 @@ from infinirl.engines.base import SamplingParams
 from infinirl.evaluation.config import EvalConfig, EvalPlan
 from infinirl.evaluation.evaluator import Evaluator, per_problem_records, summarize
 from infinirl.runners import register_runner
-from infinirl.runners.metrics_log import write_json_atomic
+from infinirl.utils import write_json_atomic
 from infinirl.tasks.problem import Problem
 
 

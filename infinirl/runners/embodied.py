@@ -51,8 +51,9 @@ def run(cfg: EmbodiedConfig) -> dict:
     # Checked in the driver before any worker starts: the env task and options, the policy options.
     try:
         observation_spec, action_space = probe_env_specs(cfg.env.name, cfg.env.kwargs)
-        policy_spec = PolicySpec(cfg.policy.name, dict(cfg.policy.kwargs), cfg.policy.chunk, cfg.policy.normalize_obs,
-                                 tuple(cfg.policy.normalize_keys) or None, cfg.policy.obs_clip)
+        policy_spec = PolicySpec(name=cfg.policy.name, options=dict(cfg.policy.kwargs), chunk=cfg.policy.chunk,
+                                 normalize_obs=cfg.policy.normalize_obs,
+                                 normalize_keys=tuple(cfg.policy.normalize_keys) or None, obs_clip=cfg.policy.obs_clip)
         policy_spec.build(observation_spec, action_space)
     except (ValueError, TypeError, KeyError) as exc:
         raise ConfigError(f"{cfg.env.name} / policy {cfg.policy.name}: {exc}") from exc
@@ -94,11 +95,12 @@ def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
     """The actor's update settings; grouped (GRPO) advantages are used as they are, no critic is trained."""
     alg, algorithm = cfg.algorithm, ALGORITHMS[cfg.algorithm.name]
     horizon = cfg.actor.anneal_iterations or cfg.iterations
-    return PPOSpec(cfg.actor.lr, cfg.actor.anneal_lr, horizon, alg.epochs, alg.mini_batches, alg.clip,
-                   alg.value_clip, alg.value_coef, alg.entropy_coef, alg.max_grad_norm,
-                   alg.normalize_advantages and not algorithm.grouped, alg.gae_level, cfg.actor.adam_eps,
-                   cfg.actor.strategy, cfg.seed, critic=algorithm.critic,
-                   compile=cfg.actor.compile)
+    return PPOSpec(lr=cfg.actor.lr, anneal_lr=cfg.actor.anneal_lr, total_iterations=horizon, epochs=alg.epochs,
+                   mini_batches=alg.mini_batches, clip=alg.clip, value_clip=alg.value_clip,
+                   value_coef=alg.value_coef, entropy_coef=alg.entropy_coef, max_grad_norm=alg.max_grad_norm,
+                   normalize_advantages=alg.normalize_advantages and not algorithm.grouped,
+                   gae_level=alg.gae_level, adam_eps=cfg.actor.adam_eps, strategy=cfg.actor.strategy,
+                   seed=cfg.seed, critic=algorithm.critic, compile=cfg.actor.compile)
 
 
 def _check_one_task_per_group(cfg: EmbodiedConfig) -> None:
@@ -131,8 +133,9 @@ def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
                           f"collocates it with the rollout (placement.env={cfg.placement['env']!r}, "
                           f"placement.rollout={cfg.placement['rollout']!r}): place them on disjoint slots "
                           "or set env.stage_processes=false")
-    spec = EnvSpec(cfg.env.name, cfg.env.num_envs // env_ranks, stages, cfg.env.num_workers,
-                   cfg.env.max_episode_steps, cfg.policy.chunk, cfg.seed, dict(cfg.env.kwargs),
+    spec = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // env_ranks, stages=stages,
+                   num_workers=cfg.env.num_workers, max_episode_steps=cfg.env.max_episode_steps,
+                   chunk_size=cfg.policy.chunk, seed=cfg.seed, kwargs=dict(cfg.env.kwargs),
                    stage_processes=cfg.env.stage_processes)
     return host_env, spec
 

@@ -17,6 +17,8 @@ import numbers
 import os
 from collections.abc import Callable, Sequence
 
+from infinirl.utils import atomic_open, write_json_atomic
+
 KNOWN_LOGGERS = ("tensorboard", "wandb", "swanlab")
 CONFIG_FILE = "config.json"
 
@@ -69,12 +71,10 @@ class MetricsLogger:
     def _keep_rows_up_to(self, step: int) -> None:
         """A fresh run starts an empty file; a resumed one drops rows logged after its checkpoint."""
         rows = read_metrics(self.path) if os.path.exists(self.path) and step > 0 else []
-        tmp = self.path + ".tmp"
-        with open(tmp, "w") as handle:
+        with atomic_open(self.path, "w") as handle:
             for row in rows:
                 if row.get("step", 0) <= step:
                     handle.write(json.dumps(row) + "\n")
-        os.replace(tmp, self.path)
 
     def log(self, metrics: dict, step: int) -> None:
         """Log the scalar entries of ``metrics`` (Python, NumPy or one-element tensor numbers)."""
@@ -104,15 +104,6 @@ def _scalar(value) -> float | None:
     if getattr(value, "numel", None) is not None and value.numel() == 1:  # a one-element tensor
         return float(value.item())
     return None
-
-
-def write_json_atomic(path: str, data) -> None:
-    """Write JSON so that readers see the old file or the complete new one, never a partial one."""
-    tmp = f"{path}.tmp.{os.getpid()}"
-    with open(tmp, "w") as handle:
-        json.dump(data, handle, indent=2, default=str)
-        handle.write("\n")
-    os.replace(tmp, path)
 
 
 def read_metrics(path: str) -> list[dict]:

@@ -136,7 +136,7 @@ class ReasoningFlow:
         return self.finish()
 
     def step(self, step: int, train_stream) -> dict:
-        cfg, t0 = self.cfg, time.perf_counter()
+        t0 = time.perf_counter()
         problems, results, rewards, gen_metrics = self.generate_batch(step, train_stream)
         t_gen = time.perf_counter()
         batch = pack_sequences([r.prompt_ids for r in results], [r.response_ids for r in results],

@@ -35,6 +35,7 @@ from infinirl.runners.metrics_log import MetricsLogger, read_metrics
 from infinirl.runners.run_support import CheckpointFolders, launch_all, run_start_time
 from infinirl.runners.sac_config import COMPONENTS, SACConfig
 from infinirl.runtime import Cluster, place, sync_weights
+from infinirl.utils import torch_save_atomic
 
 EVAL_SEED_BASE = 2**31
 """First held-out evaluation seed; training episode seeds are below 2**31 - 1, so the two never meet."""
@@ -48,19 +49,23 @@ def run(cfg: SACConfig) -> dict:
     started = run_start_time()
     os.makedirs(cfg.output_dir, exist_ok=True)
     obs_dim, action_space = _probe(cfg)  # bad task names / spaces fail here, before any worker starts
-    net = SACNetSpec(tuple(cfg.network.actor_hidden), tuple(cfg.network.critic_hidden), cfg.network.num_critics,
-                     cfg.network.activation, cfg.network.log_std_min, cfg.network.log_std_max, cfg.network.obs_key,
-                     cfg.network.actor, dict(cfg.network.flow))
+    network = cfg.network
+    net = SACNetSpec(actor_hidden=tuple(network.actor_hidden), critic_hidden=tuple(network.critic_hidden),
+                     num_critics=network.num_critics, activation=network.activation,
+                     log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key=network.obs_key,
+                     actor=network.actor, flow=dict(network.flow))
     try:  # bad network options (e.g. an unknown flow_matching keyword) fail here, not in a worker
         net.build_actor(obs_dim, action_space)
     except (ValueError, TypeError, KeyError) as exc:
         raise ConfigError(f"network (actor={cfg.network.actor}): {exc}") from exc
     alg = cfg.algorithm
-    update = SACUpdateSpec(alg.gamma, alg.tau, alg.batch_size, alg.actor_lr, alg.critic_lr, alg.alpha_lr,
-                           alg.init_alpha, alg.autotune_alpha, alg.target_entropy, alg.policy_delay,
-                           alg.target_update_every, cfg.buffer.capacity, cfg.seed)
-    env = CollectorEnvSpec(cfg.env.name, cfg.env.num_envs, cfg.env.num_workers, cfg.env.max_episode_steps,
-                           dict(cfg.env.kwargs), cfg.seed)
+    update = SACUpdateSpec(gamma=alg.gamma, tau=alg.tau, batch_size=alg.batch_size, actor_lr=alg.actor_lr,
+                           critic_lr=alg.critic_lr, alpha_lr=alg.alpha_lr, init_alpha=alg.init_alpha,
+                           autotune_alpha=alg.autotune_alpha, target_entropy=alg.target_entropy,
+                           policy_delay=alg.policy_delay, target_update_every=alg.target_update_every,
+                           buffer_capacity=cfg.buffer.capacity, seed=cfg.seed)
+    env = CollectorEnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs, num_workers=cfg.env.num_workers,
+                           max_episode_steps=cfg.env.max_episode_steps, kwargs=dict(cfg.env.kwargs), seed=cfg.seed)
     with Cluster(cfg.cluster) as cluster:
         plan = place(cluster.inventory, cfg.placement, components=COMPONENTS)
         for name in COMPONENTS:
@@ -224,7 +229,7 @@ class SACFlow:
         for handle in saving:
             handle.wait()
         if self.pending is not None:  # collected ahead (complete: the weight sync waited for it)
-            _save_atomic(self.pending.wait()[0], os.path.join(tmp, _PENDING))
+            torch_save_atomic(self.pending.wait()[0], os.path.join(tmp, _PENDING))
         final = folders.commit(tmp, iteration, {"iteration": iteration, "env_steps": self.env_steps,
                                                 "elapsed_s": self.elapsed()})
         if self.cfg.keep_checkpoints:
@@ -304,12 +309,6 @@ class _Ready:
 
     def wait(self, timeout: float | None = None) -> list:
         return [self.value]
-
-
-def _save_atomic(obj, path: str) -> None:
-    tmp = f"{path}.tmp.{os.getpid()}"
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def _first_reaching(evals: list[dict], target: float | None) -> dict | None:

@@ -10,10 +10,10 @@ pipeline bubble that the execution modes are meant to remove.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections import defaultdict
 from collections.abc import Iterable
+
+from infinirl.utils.atomic import atomic_open
 
 
 class Tracer:
@@ -56,12 +56,8 @@ class Tracer:
                     "args": {"ok": ok},
                 }
             )
-        directory = os.path.dirname(os.path.abspath(path))
-        os.makedirs(directory, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp")
-        with os.fdopen(fd, "w") as handle:
+        with atomic_open(path, "w") as handle:
             json.dump({"traceEvents": events, "displayTimeUnit": "ms"}, handle)
-        os.replace(tmp, path)
         return path
 
     def busy_ratio(self, window: tuple[float, float] | None = None) -> dict[str, float]:

@@ -17,7 +17,7 @@ from tests.unit.test_sac_agent import SPACE, make_batch  # noqa: E402
 
 pytestmark = pytest.mark.gpu
 
-NET = SACNetSpec((32, 32), (32, 32))
+NET = SACNetSpec(actor_hidden=(32, 32), critic_hidden=(32, 32))
 
 
 def weights(agent):
@@ -30,7 +30,7 @@ def on(batch, device):
 
 @pytest.mark.parametrize("actor", ["gaussian", "flow"])
 def test_the_cuda_agent_updates_like_the_cpu_agent(actor):
-    net = NET if actor == "gaussian" else SACNetSpec((32, 32), (32, 32), actor="flow",
+    net = NET if actor == "gaussian" else SACNetSpec(actor_hidden=(32, 32), critic_hidden=(32, 32), actor="flow",
                                                      flow={"num_steps": 3, "hidden": (32, 32)})
     cpu = SACAgent(net, SACUpdateSpec(seed=3), 5, SPACE)
     gpu = SACAgent(net, SACUpdateSpec(seed=3), 5, SPACE, device="cuda")

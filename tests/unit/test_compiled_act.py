@@ -22,7 +22,7 @@ ACTIONS = ActionSpace.box([-1.0] * 4, [1.0] * 4)
 
 def policy(seed: int):
     torch.manual_seed(seed)
-    return PolicySpec("mlp_gaussian", {}).build(SPEC, ACTIONS).eval()
+    return PolicySpec(name="mlp_gaussian", options={}).build(SPEC, ACTIONS).eval()
 
 
 def assert_same_step(eager, compiled):

@@ -39,7 +39,7 @@ def _grouped_first_obs(name: str, kwargs: dict, num_envs: int, ranks: int, stage
     """Reset the envs of every rank (each split into stages) with the runner's grouped seeds after
     some random steps, and return the first observations in global env order."""
     per_rank = num_envs // ranks
-    envs = [StagedEnv(EnvSpec(name, per_rank, stages, kwargs=kwargs), rank=r) for r in range(ranks)]
+    envs = [StagedEnv(EnvSpec(name=name, num_envs=per_rank, stages=stages, kwargs=kwargs), rank=r) for r in range(ranks)]
     try:
         rng = np.random.default_rng(0)
         for env in envs:  # different histories before the reset
@@ -124,7 +124,7 @@ def test_grpo_batch_carries_the_episode_mask_and_group_advantages():
 
 def _policy_and_batch():
     observation_spec, action_space = probe_env_specs("gym:Pendulum-v1", {})
-    spec = PolicySpec("mlp_gaussian", {"hidden": [8]}, normalize_obs=False)
+    spec = PolicySpec(name="mlp_gaussian", options={"hidden": [8]}, normalize_obs=False)
     torch.manual_seed(0)
     model = spec.build(observation_spec, action_space)
     b = 16
@@ -191,7 +191,7 @@ def test_grpo_action_level_with_chunks_masks_per_action_and_trains():
     assert batch["advantages"].shape == (20, 2) and mask[:3, 1].all() and not mask[3:, 1].any()
 
     observation_spec, action_space = probe_env_specs("gym:Pendulum-v1", {})
-    model = PolicySpec("mlp_gaussian", {"hidden": [8]}, chunk=2, normalize_obs=False).build(observation_spec, action_space)
+    model = PolicySpec(name="mlp_gaussian", options={"hidden": [8]}, chunk=2, normalize_obs=False).build(observation_spec, action_space)
     tensors = {k: ({kk: torch.from_numpy(vv) for kk, vv in v.items()} if isinstance(v, dict) else torch.from_numpy(v))
                for k, v in batch.items()}
     with torch.no_grad():

@@ -21,7 +21,7 @@ B = 48
 
 def policy_and_batch():
     observation_spec, action_space = probe_env_specs("gym:Pendulum-v1", {})
-    spec = PolicySpec("mlp_gaussian", {"hidden": [16, 16]})
+    spec = PolicySpec(name="mlp_gaussian", options={"hidden": [16, 16]})
     gen = torch.Generator().manual_seed(1)
     obs = {"state": 3.0 + 2.0 * torch.randn(B, 3, generator=gen)}  # far from N(0, 1): normalising matters
 

@@ -36,11 +36,11 @@ def reset_count(monkeypatch):
 
 
 def rollout_with_local_env(stages: int) -> EmbodiedRolloutWorker:
-    spec = EnvSpec("gym:Pendulum-v1", ENVS, stages, num_workers=0, max_episode_steps=EPISODE)
+    spec = EnvSpec(name="gym:Pendulum-v1", num_envs=ENVS, stages=stages, num_workers=0, max_episode_steps=EPISODE)
     observation_spec, action_space = probe_env_specs(spec.name, {})
     worker = EmbodiedRolloutWorker.__new__(EmbodiedRolloutWorker)
     worker.ctx = RankContext("rollout", 0, 1)
-    worker.__init__(spec, PolicySpec("mlp_gaussian", {"hidden": [8]}), observation_spec, action_space,
+    worker.__init__(spec, PolicySpec(name="mlp_gaussian", options={"hidden": [8]}), observation_spec, action_space,
                     seed=0, host_env=True)
     return worker
 

@@ -13,13 +13,13 @@ from infinirl.envs.base import ActionSpace  # noqa: E402
 from infinirl.runtime import RankContext  # noqa: E402
 
 SPACE = ActionSpace.box([-2.0], [2.0])
-NET = SACNetSpec((16,), (16,))
+NET = SACNetSpec(actor_hidden=(16,), critic_hidden=(16,))
 
 
 def make_collector(seed=0, num_envs=2, num_workers=0):
     worker = SACCollectorWorker.__new__(SACCollectorWorker)
     worker.ctx = RankContext("collector", 0, 1)  # what the runtime sets before __init__
-    env = CollectorEnvSpec("gym:Pendulum-v1", num_envs, num_workers=num_workers, seed=seed)
+    env = CollectorEnvSpec(name="gym:Pendulum-v1", num_envs=num_envs, num_workers=num_workers, seed=seed)
     worker.__init__(env, NET, 3, SPACE, seed, num_threads=1)
     torch.manual_seed(1)
     weights = NET.build_actor(3, SPACE).state_dict()

@@ -1,0 +1,80 @@
+"""Files and folders that appear whole or not at all.
+
+Every file a run writes for later (checkpoints, replay buffers, configs, traces, videos) goes to a
+temporary name in the same folder and is renamed into place: a rename within one filesystem is
+atomic, so a reader (or a resumed run after a crash, a full disk or ``kill -9``) sees the old
+file or the complete new one, never a torn one. The temporary file is removed on any error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO, Any
+
+__all__ = ["atomic_open", "replace_directory", "torch_save_atomic", "write_json_atomic", "write_text_atomic"]
+
+
+@contextmanager
+def atomic_open(path: str | os.PathLike, mode: str = "wb", suffix: str = ".tmp",
+                durable: bool = False) -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path`` for writing; on a clean exit it replaces ``path``.
+
+    ``suffix`` ends the temporary name (writers that pick a format by extension need it, e.g.
+    ``".tmp.mp4"``). ``durable``: ``fsync`` the data before the rename, so the new file survives a
+    power loss too (replay buffers, whose contents cannot be recomputed)."""
+    if mode not in ("w", "wb"):
+        raise ValueError(f"atomic_open writes whole files: mode must be 'w' or 'wb', got {mode!r}")
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=suffix)
+    try:
+        with os.fdopen(fd, mode) as handle:
+            yield handle
+            handle.flush()
+            if durable:
+                os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    with atomic_open(path, "w") as handle:
+        handle.write(text)
+
+
+def write_json_atomic(path: str | os.PathLike, data: Any) -> None:
+    """``data`` as indented JSON (values JSON cannot hold are written as their ``str``)."""
+    with atomic_open(path, "w") as handle:
+        json.dump(data, handle, indent=2, default=str)
+        handle.write("\n")
+
+
+def torch_save_atomic(obj: Any, path: str | os.PathLike, durable: bool = False) -> None:
+    import torch
+
+    with atomic_open(path, "wb", durable=durable) as handle:
+        torch.save(obj, handle)
+
+
+def replace_directory(new: str | os.PathLike, target: str | os.PathLike) -> None:
+    """Move folder ``new`` to ``target``, replacing an existing ``target``.
+
+    Two renames cannot be one atomic step: the old ``target`` is kept as ``<target>.old`` until the
+    new one is in place, so at every moment one complete folder exists under one of the names."""
+    new, target = Path(new), Path(target)
+    old = target.with_name(target.name + ".old")
+    if target.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(target, old)
+    os.replace(new, target)
+    shutil.rmtree(old, ignore_errors=True)
