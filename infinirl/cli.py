@@ -9,9 +9,8 @@ from infinirl.config import ConfigError, available_configs, check_override_keys,
 
 
 def _runners():
-    from infinirl.runners import load_runners
-
     import infinirl.evaluation.runner  # noqa: F401  (registers runner `eval`)
+    from infinirl.runners import load_runners
 
     return load_runners()
 

@@ -10,8 +10,8 @@ import torch
 from tensordict import TensorDict
 
 from infinirl.algorithms.objective import PolicyObjectiveConfig, policy_objective
-from infinirl.engines.train_base import TrainEngineConfig
 from infinirl.components.engine_worker import EngineWorker
+from infinirl.engines.train_base import TrainEngineConfig
 from infinirl.runtime import WeightSource
 
 

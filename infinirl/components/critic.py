@@ -14,8 +14,8 @@ from tensordict import TensorDict
 
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import value_loss
-from infinirl.engines.train_base import TrainEngineConfig
 from infinirl.components.engine_worker import EngineWorker
+from infinirl.engines.train_base import TrainEngineConfig
 
 #: Batch keys the critic trains on: the values it predicted when the batch was scored (the centre
 #: of value clipping) and the regression targets (GAE's lambda-returns).

@@ -39,9 +39,9 @@ from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
 from infinirl.components.compiled_step import CompiledAdamStep
 from infinirl.components.embodied_policy import compute_device, module_device
 from infinirl.components.embodied_rollout import PolicySpec
-from infinirl.components.env_worker import _limit_threads
 from infinirl.runtime import WeightSource, Worker
 from infinirl.utils.atomic import torch_save_atomic
+from infinirl.utils.threads import limit_threads
 
 __all__ = ["EmbodiedActorWorker", "PPOSpec", "actor_process_env", "ppo_minibatch_loss", "ppo_objective",
            "ppo_update"]
@@ -116,7 +116,7 @@ class EmbodiedActorWorker(Worker, WeightSource):
                  num_threads: int = 1, device: str = "auto"):
         # 0: every core this process may run on (actor.num_threads): the on-policy update runs while
         # the envs and the rollout wait, so it may use the cores they leave idle.
-        _limit_threads(num_threads or len(os.sched_getaffinity(0)))
+        limit_threads(num_threads or len(os.sched_getaffinity(0)))
         if ppo.strategy not in ("ddp", "fsdp"):
             raise ValueError(f"actor strategy must be 'ddp' or 'fsdp', got {ppo.strategy!r}")
         self.ppo = ppo

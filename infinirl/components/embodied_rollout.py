@@ -29,9 +29,10 @@ import numpy as np
 import torch
 
 from infinirl.components.embodied_policy import build_embodied_policy, compute_device, module_device
-from infinirl.components.env_worker import EnvSpec, StagedEnv, _limit_threads
+from infinirl.components.env_worker import EnvSpec, StagedEnv
 from infinirl.models.policies.base import prepare_obs
 from infinirl.runtime import WeightSink, Worker
+from infinirl.utils.threads import limit_threads
 
 __all__ = ["EmbodiedRolloutWorker", "PolicySpec", "compiled_act", "run_eval_episodes"]
 
@@ -199,7 +200,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
     def __init__(self, env_spec: EnvSpec, policy_spec: PolicySpec, observation_spec: dict, action_space,
                  seed: int, host_env: bool, num_threads: int = 1, compile_act: bool = False,
                  device: str = "auto"):
-        _limit_threads(num_threads)
+        limit_threads(num_threads)
         self.env_spec, self.policy_spec, self.seed = env_spec, policy_spec, seed
         self.observation_spec, self.action_space = observation_spec, action_space
         self.compute = compute_device(self.device, device)

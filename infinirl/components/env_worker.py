@@ -23,13 +23,13 @@ start at :data:`EVAL_SEED_BASE` = ``2**31``, so the two never meet.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from infinirl.runtime import Worker
+from infinirl.utils.threads import limit_threads
 
 __all__ = ["EVAL_SEED_BASE", "EnvSpec", "EnvWorker", "StagedEnv", "iteration_seeds", "probe_env_specs", "serve_stages"]
 
@@ -247,7 +247,7 @@ class EnvWorker(Worker):
     """
 
     def __init__(self, spec: EnvSpec, num_threads: int = 1):
-        _limit_threads(num_threads)
+        limit_threads(num_threads)
         self.spec = spec
         self.link = None
         self._server = None
@@ -366,14 +366,3 @@ def serve_stages(env: StagedEnv, link, seeds: list[int], num_steps: int) -> dict
             busy += time.perf_counter() - start
             link.send(message)
     return {"env/simulate_s": busy}
-
-
-def _limit_threads(num_threads: int) -> None:
-    if num_threads:
-        os.environ.setdefault("OMP_NUM_THREADS", str(num_threads))
-        try:
-            import torch
-
-            torch.set_num_threads(num_threads)
-        except ImportError:
-            pass

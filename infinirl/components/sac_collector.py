@@ -36,6 +36,7 @@ import torch
 
 from infinirl.runtime import WeightSink, Worker
 from infinirl.utils.atomic import torch_save_atomic
+from infinirl.utils.threads import limit_threads
 
 __all__ = ["CollectorEnvSpec", "SACCollectorWorker"]
 
@@ -65,17 +66,11 @@ class CollectorEnvSpec:
                         max_episode_steps=self.max_episode_steps, **{**self.kwargs, **overrides})
 
 
-def _limit_threads(num_threads: int) -> None:
-    if num_threads:
-        os.environ.setdefault("OMP_NUM_THREADS", str(num_threads))
-        torch.set_num_threads(num_threads)
-
-
 class SACCollectorWorker(Worker, WeightSink):
     """One collector rank: training envs + the actor's inference copy; evaluation and videos."""
 
     def __init__(self, env: CollectorEnvSpec, net, obs_dim: int, action_space, seed: int, num_threads: int = 1):
-        _limit_threads(num_threads)
+        limit_threads(num_threads)
         self.spec, self.obs_key = env, net.obs_key
         self.action_shape = tuple(action_space.shape)
         self.action_dim = int(np.prod(self.action_shape))

@@ -35,7 +35,6 @@ from transformers.cache_utils import DynamicLayer
 
 from infinirl.engines.base import GenerationResult, InferenceEngine, SamplingParams
 
-
 NUCLEUS_SEARCH_WIDTH = 64
 """Top-p looks for the nucleus among this many most likely tokens first: a full-vocabulary sort
 costs ~100 ms per step at batch 64 on CPU, while the nucleus usually holds a handful of tokens.

@@ -15,10 +15,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from infinirl.registry import Registry
 from infinirl.envs.base import Env
 from infinirl.envs.chunking import ActionChunkEnv
 from infinirl.envs.vector import SubEnvFactory, VectorEnv
+from infinirl.registry import Registry
 
 __all__ = ["ENVS", "make_env"]
 

@@ -16,8 +16,8 @@ from infinirl.engines.base import SamplingParams
 from infinirl.evaluation.config import EvalConfig, EvalPlan
 from infinirl.evaluation.evaluator import Evaluator, per_problem_records, summarize
 from infinirl.runners import register_runner
-from infinirl.utils import write_json_atomic
 from infinirl.tasks.problem import Problem
+from infinirl.utils import write_json_atomic
 
 
 @register_runner("eval", EvalConfig, "greedy accuracy, pass@1 and pass@k of a model or a run's checkpoint")

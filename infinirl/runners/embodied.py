@@ -43,6 +43,7 @@ from infinirl.runners.metrics_log import MetricsLogger, read_metrics
 from infinirl.runners.run_support import CheckpointFolders, launch_all, run_start_time
 from infinirl.runtime import Cluster, place, sync_weights
 
+
 @register_runner("embodied", EmbodiedConfig,
                  "PPO / embodied GRPO for robot policies in vectorised simulators (env/rollout pipelined or collocated)")
 def run(cfg: EmbodiedConfig) -> dict:

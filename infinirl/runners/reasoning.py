@@ -39,10 +39,10 @@ from infinirl.config import to_plain
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.runners import register_runner
-from infinirl.runners.run_support import CheckpointFolders, launch_all
 from infinirl.runners.metrics_log import MetricsLogger, plot_curves, read_metrics
 from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
+from infinirl.runners.run_support import CheckpointFolders, launch_all
 from infinirl.runtime import Channel, Cluster, Tracer, WorkerGroup, place, sync_weights
 
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import ray
 import torch
 
-from infinirl.runtime.transport import unbox, box
+from infinirl.runtime.transport import box, unbox
 
 DEFAULT_BUCKET_BYTES = 256 * 1024 * 1024
 

@@ -15,10 +15,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
+from infinirl.registry import Registry
 from infinirl.tasks.answers import extract_after_marker
 from infinirl.tasks.problem import Problem
 from infinirl.tasks.prompts import BOXED_ANSWER_TEMPLATE, NUMBER_ANSWER_TEMPLATE, render_prompt
-from infinirl.registry import Registry
 
 DATA_DIR_ENV = "INFINIRL_DATA_DIR"
 _REPO_ROOT = Path(__file__).resolve().parents[2]

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from typing import Any
 
+from infinirl.registry import Registry
 from infinirl.tasks.answers import (
     extract_after_marker,
     extract_first_number,
@@ -27,7 +28,6 @@ from infinirl.tasks.answers import (
     parse_number,
 )
 from infinirl.tasks.problem import Problem
-from infinirl.registry import Registry
 
 
 @dataclass

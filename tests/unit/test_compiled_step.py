@@ -8,8 +8,13 @@ import math
 import pytest
 import torch
 
-from infinirl.components.compiled_step import (CompiledAdamStep, adam_, adam_corrections, clip_by_total_norm,
-                                               inductor_options)
+from infinirl.components.compiled_step import (
+    CompiledAdamStep,
+    adam_,
+    adam_corrections,
+    clip_by_total_norm,
+    inductor_options,
+)
 from infinirl.runners.embodied_config import find_cxx_compiler
 
 

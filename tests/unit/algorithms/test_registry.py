@@ -4,6 +4,7 @@ import types
 
 import pytest
 
+from infinirl import registry as registry_module
 from infinirl.algorithms import (
     ADVANTAGES,
     AGGREGATIONS,
@@ -12,7 +13,6 @@ from infinirl.algorithms import (
     Registry,
     UnknownNameError,
 )
-from infinirl import registry as registry_module
 
 
 def test_register_get_and_names_sorted():

@@ -66,8 +66,8 @@ def test_fast_rotation_forwards_everything_else_to_scipy():
 
 
 def test_use_fast_rotation_swaps_only_scipys_rotation(monkeypatch):
-    import types
     import sys
+    import types
 
     module = types.ModuleType("fake_metaworld_task")
     module.Rotation = Rotation
