@@ -5,11 +5,19 @@ from __future__ import annotations
 import argparse
 import sys
 
-from infinirl.config import ConfigError, available_configs, check_override_keys, compose, to_dataclass
+from infinirl.config import (
+    ConfigError,
+    available_configs,
+    check_override_keys,
+    compose,
+    to_dataclass,
+    upgrade_renamed_overrides,
+)
+
+_DEFAULT_CONFIG = {"train": "default", "eval": "eval", "validate": "default"}
 
 
 def _runners():
-    import infinirl.evaluation.runner  # noqa: F401  (registers runner `eval`)
     from infinirl.runners import load_runners
 
     return load_runners()
@@ -19,7 +27,8 @@ def build_config(name: str, overrides: list[str], command: str = "train"):
     """``(runner spec, typed config)`` for ``infinirl <command> <name> <overrides...>``: override keys
     are checked against the runner's config class, so any of its keys may be set, also one the YAML
     leaves out. Tests use it to run a demo exactly as the command line would."""
-    runner_name = compose(name).get("runner")
+    base = compose(name)
+    runner_name = base.get("runner")
     if not runner_name:
         raise ConfigError(f"config '{name}' has no 'runner:' key; set one of: {', '.join(_runners().names())}")
     if command == "eval" and runner_name != "eval":
@@ -29,40 +38,67 @@ def build_config(name: str, overrides: list[str], command: str = "train"):
         spec = _runners().get(runner_name)
     except KeyError as exc:
         raise ConfigError(f"runner: {exc}") from None
+    overrides = upgrade_renamed_overrides(spec.config_cls, overrides)
+    _refuse_runner_change(name, runner_name, overrides)
     check_override_keys(spec.config_cls, overrides)
-    # Keys were checked against the typed config above, so a valid key the YAML leaves at its
-    # default may be set too (Hydra's `++` = add or override).
-    upserts = [o if o[:1] in "+~" else "++" + o for o in overrides]
-    return spec, to_dataclass(spec.config_cls, compose(name, upserts))
+    return spec, to_dataclass(spec.config_cls, compose(name, hydra_overrides(base, overrides)))
+
+
+def _refuse_runner_change(name: str, runner_name: str, overrides: list[str]) -> None:
+    for override in overrides:
+        key, _, value = override.lstrip("+~").partition("=")
+        if key == "runner" and value != runner_name:
+            raise ConfigError(f"runner={value}: config '{name}' is for the {runner_name!r} runner and its keys are "
+                              f"that runner's; pick a config of the runner you want (`infinirl list`) instead of "
+                              "overriding runner")
+
+
+def hydra_overrides(base: dict, overrides: list[str]) -> list[str]:
+    """Our ``key=value`` overrides in Hydra's grammar.
+
+    Keys were checked against the typed config, so a valid key the YAML leaves out may be set too
+    (Hydra's ``++``: add or override). A mapping value replaces the YAML's mapping instead of being
+    merged into it (``eval.env_kwargs={}`` clears it), as a user reading ``key=value`` expects."""
+    out = []
+    for override in overrides:
+        if override[:1] in "+~":
+            out.append(override)
+            continue
+        key, _, value = override.partition("=")
+        if value.strip().startswith("{") and _has_key(base, key):
+            out += [f"~{key}", f"+{key}={value}"]
+        else:
+            out.append("++" + override)
+    return out
+
+
+def _has_key(tree: dict, dotted: str) -> bool:
+    node = tree
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+def _configs_for(command: str) -> list[str]:
+    """Config names ``command`` accepts: eval configs for ``eval``, training configs otherwise."""
+    names = available_configs()
+    if command == "validate":
+        return names
+    wants_eval = command == "eval"
+    return [n for n in names if (compose(n).get("runner") == "eval") == wants_eval]
 
 
 def main(argv: list[str] | None = None) -> int:
     import os
 
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads: see runtime.cluster
-    parser = argparse.ArgumentParser(
-        prog="infinirl",
-        description="InfiniRL: RL post-training for LLMs, VLAs and robot policies, from a laptop CPU to a cluster.",
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-    default_config = {"train": "default", "eval": "eval", "validate": "default"}
-    for command, text, example in (
-        ("train", "run a job", "steps=10 placement.learner=0"),
-        ("eval", "greedy accuracy, pass@1 and pass@k of a model or a training run's checkpoint",
-         "run_dir=runs/grpo_chain_sum samples=8 k=[1,8]"),
-        ("validate", "check a config without running it", "steps=10"),
-    ):
-        default = default_config[command]
-        p = sub.add_parser(command, help=text)
-        p.add_argument("config", nargs="?", default=default,
-                       help=f"config name (default: {default}). Available: {', '.join(available_configs())}")
-        p.add_argument("overrides", nargs="*", help=f"key=value overrides, e.g. {example}")
-    sub.add_parser("list", help="list configs and runners")
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = _parser(argv).parse_args(argv)
     if "=" in (getattr(args, "config", None) or ""):  # `infinirl eval run_dir=...`: no config name given
         args.overrides.insert(0, args.config)
-        args.config = default_config[args.command]
-
+        args.config = _DEFAULT_CONFIG[args.command]
     if args.command == "list":
         runners = _runners()
         print("configs:", ", ".join(available_configs()))
@@ -74,13 +110,37 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "validate":
             print(f"config '{args.config}' is valid (runner {spec.name})")
             return 0
-        # Runners check what only they can (the env task, data files, prompt lengths) in the driver
-        # before any worker starts and raise ConfigError: reported like a bad key, no traceback.
+        # Runners check what only they can (the env task, data files, prompt lengths, the resume
+        # point) in the driver before any worker starts and raise ConfigError: reported like a bad
+        # key, one line, no traceback.
         spec.run(cfg)
         return 0
     except ConfigError as exc:
         print(f"infinirl: config error: {exc}", file=sys.stderr)
         return 2
+
+
+def _parser(argv: list[str]) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="infinirl",
+        description="InfiniRL: RL post-training for LLMs, VLAs and robot policies, from a laptop CPU to a cluster.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for command, text, example in (
+        ("train", "run a job", "iterations=10 placement.actor=0"),
+        ("eval", "greedy accuracy, pass@1 and pass@k of a model or a training run's checkpoint",
+         "run_dir=runs/grpo_chain_sum samples=8 k=[1,8]"),
+        ("validate", "check a config without running it", "iterations=10"),
+    ):
+        default = _DEFAULT_CONFIG[command]
+        p = sub.add_parser(command, help=text)
+        # Only `--help` shows the names, and sorting them by runner composes every config: do it then only.
+        names = _configs_for(command) if {"-h", "--help"} & set(argv) else available_configs()
+        p.add_argument("config", nargs="?", default=default,
+                       help=f"config name (default: {default}). Available: {', '.join(names)}")
+        p.add_argument("overrides", nargs="*", help=f"key=value overrides, e.g. {example}")
+    sub.add_parser("list", help="list configs and runners")
+    return parser
 
 
 if __name__ == "__main__":

@@ -10,8 +10,11 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
+import sys
 import types
 import typing
+from dataclasses import MISSING
 from pathlib import Path
 from typing import Any, Literal
 
@@ -20,6 +23,59 @@ CONFIG_DIR = Path(__file__).parent / "configs"
 
 class ConfigError(ValueError):
     """A configuration value or key that cannot work; the message says which and how to fix it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Bounds:
+    """Numeric limits of a config field, checked when the config is built (see :func:`bounded`)."""
+
+    gt: float | None = None
+    ge: float | None = None
+    lt: float | None = None
+    le: float | None = None
+    each: bool = False
+    """The field is a list: every element must lie within the limits."""
+
+    def describe(self) -> str:
+        low = f"> {self.gt}" if self.gt is not None else f">= {self.ge}" if self.ge is not None else None
+        high = f"< {self.lt}" if self.lt is not None else f"<= {self.le}" if self.le is not None else None
+        if low and high:
+            left = "(" if self.gt is not None else "["
+            right = ")" if self.lt is not None else "]"
+            lo = self.gt if self.gt is not None else self.ge
+            hi = self.lt if self.lt is not None else self.le
+            return f"in {left}{lo}, {hi}{right}"
+        return low or high or "any number"
+
+    def holds(self, value: float) -> bool:
+        if isinstance(value, float) and math.isnan(value):
+            return False
+        return not ((self.gt is not None and not value > self.gt) or (self.ge is not None and not value >= self.ge)
+                    or (self.lt is not None and not value < self.lt) or (self.le is not None and not value <= self.le))
+
+
+def bounded(default: Any = MISSING, *, default_factory: Any = MISSING, gt: float | None = None,
+            ge: float | None = None, lt: float | None = None, le: float | None = None, each: bool = False) -> Any:
+    """A dataclass field whose numeric value must lie within the given limits (``None`` values pass).
+
+    The limits live on the field, next to its documentation, and :func:`to_dataclass` checks them
+    with the key's dotted path in the error; a config's ``validate()`` keeps only the rules that
+    involve several fields."""
+    bounds = Bounds(gt=gt, ge=ge, lt=lt, le=le, each=each)
+    if default_factory is not MISSING:
+        return dataclasses.field(default_factory=default_factory, metadata={"bounds": bounds})
+    return dataclasses.field(default=default, metadata={"bounds": bounds})
+
+
+def _check_bounds(field: dataclasses.Field, value: Any, path: str) -> None:
+    bounds = field.metadata.get("bounds")
+    if bounds is None or value is None:
+        return
+    values = list(value) if bounds.each else [value]
+    for item in values:
+        if not bounds.holds(item):
+            shown = f"{path}={value!r}" if not bounds.each else f"{path}={list(value)!r}: every entry"
+            raise ConfigError(f"{shown} must be {bounds.describe()}")
 
 
 def available_configs() -> list[str]:
@@ -81,6 +137,7 @@ def to_dataclass(cls: type, data: Any, path: str = "") -> Any:
         raise ConfigError(f"{path or 'config'}: expected a mapping for {cls.__name__}, got {data!r}")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     hints = typing.get_type_hints(cls)
+    data = upgrade_renamed_keys(cls, data, path)
     unknown = [k for k in data if k not in fields]
     if unknown:
         key = unknown[0]
@@ -90,9 +147,13 @@ def to_dataclass(cls: type, data: Any, path: str = "") -> Any:
             f"unknown config key '{_join(path, key)}'.{hint} Valid keys here: {', '.join(sorted(fields))}"
         )
     kwargs = {name: _convert(hints[name], value, _join(path, name)) for name, value in data.items()}
+    for name, value in kwargs.items():
+        _check_bounds(fields[name], value, _join(path, name))
     try:
         obj = cls(**kwargs)
-    except TypeError as exc:
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}" if path else str(exc)) from None
+    except (TypeError, ValueError) as exc:  # a class's own __post_init__ checks
         raise ConfigError(f"{path or 'config'}: {exc}") from None
     validate = getattr(obj, "validate", None)
     if callable(validate):
@@ -103,65 +164,179 @@ def to_dataclass(cls: type, data: Any, path: str = "") -> Any:
     return obj
 
 
+def renamed_keys(cls: type) -> dict[str, str]:
+    """``old dotted key -> new dotted key`` of a config class (its ``RENAMED_KEYS``), for keys that
+    were renamed and still work, with a warning, until the next minor release."""
+    return dict(getattr(cls, "RENAMED_KEYS", {}) or {})
+
+
+def upgrade_renamed_keys(cls: type, data: dict, path: str = "") -> dict:
+    """A copy of ``data`` (a raw mapping for ``cls``) with renamed keys moved to their new names."""
+    renames = renamed_keys(cls)
+    if not renames or not any(old.split(".")[0] in data for old in renames):
+        return data
+    data = _deep_copy(data)
+    for old, new in renames.items():
+        value, found = _pop_path(data, old.split("."))
+        if not found:
+            continue
+        if _has_path(data, new.split(".")):
+            raise ConfigError(f"both '{_join(path, old)}' and its new name '{_join(path, new)}' are set; "
+                              f"keep only '{_join(path, new)}'")
+        _warn_renamed(_join(path, old), _join(path, new))
+        _set_path(data, new.split("."), value)
+    return data
+
+
+def upgrade_renamed_overrides(cls: type, overrides: list[str]) -> list[str]:
+    """``key=value`` overrides with renamed keys replaced by their new names (warning once each)."""
+    renames = renamed_keys(cls)
+    out = []
+    for override in overrides:
+        prefix = override[: len(override) - len(override.lstrip("+~"))]
+        key, sep, value = override[len(prefix):].partition("=")
+        if key in renames:
+            _warn_renamed(key, renames[key])
+            key = renames[key]
+        out.append(f"{prefix}{key}{sep}{value}")
+    return out
+
+
+_WARNED: set[str] = set()
+
+
+def _warn_renamed(old: str, new: str) -> None:
+    if old in _WARNED:
+        return
+    _WARNED.add(old)
+    print(f"infinirl: config key '{old}' is now '{new}'; the old name works until release 0.2, please rename it",
+          file=sys.stderr, flush=True)
+
+
+def _deep_copy(data: Any) -> Any:
+    return {k: _deep_copy(v) for k, v in data.items()} if isinstance(data, dict) else data
+
+
+def _pop_path(data: dict, parts: list[str]) -> tuple[Any, bool]:
+    node = data
+    for part in parts[:-1]:
+        node = node.get(part)
+        if not isinstance(node, dict):
+            return None, False
+    if parts[-1] not in node:
+        return None, False
+    return node.pop(parts[-1]), True
+
+
+def _has_path(data: dict, parts: list[str]) -> bool:
+    node: Any = data
+    for part in parts:
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+def _set_path(data: dict, parts: list[str], value: Any) -> None:
+    node = data
+    for part in parts[:-1]:
+        node = node.setdefault(part, {})
+        if not isinstance(node, dict):
+            raise ConfigError(f"config key '{'.'.join(parts)}': '{part}' is not a mapping")
+    node[parts[-1]] = value
+
+
 def _join(path: str, key: Any) -> str:
     return f"{path}.{key}" if path else str(key)
 
 
 def _convert(tp: Any, value: Any, path: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
+    """``value`` as type ``tp`` (checked, never coerced across kinds); errors name ``path``."""
     if tp is Any:
         return value
+    origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _convert(arg, value, path)
-            except ConfigError as exc:
-                errors.append(str(exc))
-        raise ConfigError(errors[0] if len(errors) == 1 else f"{path}: {value!r} matches none of {tp}")
+        return _convert_union(tp, value, path)
     if origin is Literal:
-        if value not in args:
-            near = difflib.get_close_matches(str(value), [str(a) for a in args], n=1)
-            hint = f" Did you mean '{near[0]}'?" if near else ""
-            raise ConfigError(f"{path}={value!r} is not allowed.{hint} Choose one of: {', '.join(map(str, args))}")
-        return value
+        return _convert_literal(tp, value, path)
     if dataclasses.is_dataclass(tp):
         return to_dataclass(tp, value, path)
     if origin in (list, tuple) or tp in (list, tuple):
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path}: expected a list, got {value!r}")
-        inner = args[0] if args else Any
-        items = [_convert(inner, v, f"{path}[{i}]") for i, v in enumerate(value)]
-        return tuple(items) if (origin is tuple or tp is tuple) else items
+        return _convert_sequence(tp, value, path)
     if origin is dict or tp is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{path}: expected a mapping, got {value!r}")
-        vt = args[1] if len(args) == 2 else Any
-        return {k: _convert(vt, v, _join(path, k)) for k, v in value.items()}
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{path}: expected true/false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path}: expected an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{path}: expected a number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return str(value)  # e.g. placement `learner: 1` (YAML/CLI read it as an int)
-        if not isinstance(value, str):
-            raise ConfigError(f"{path}: expected a string, got {value!r}")
-        return value
+        return _convert_mapping(tp, value, path)
+    scalar = _SCALARS.get(tp)
+    return scalar(value, path) if scalar is not None else value
+
+
+def _convert_union(tp: Any, value: Any, path: str) -> Any:
+    args = typing.get_args(tp)
+    if value is None and type(None) in args:
+        return None
+    errors = []
+    for arg in args:
+        if arg is type(None):
+            continue
+        try:
+            return _convert(arg, value, path)
+        except ConfigError as exc:
+            errors.append(str(exc))
+    raise ConfigError(errors[0] if len(errors) == 1 else f"{path}: {value!r} matches none of {tp}")
+
+
+def _convert_literal(tp: Any, value: Any, path: str) -> Any:
+    args = typing.get_args(tp)
+    if value not in args:
+        near = difflib.get_close_matches(str(value), [str(a) for a in args], n=1)
+        hint = f" Did you mean '{near[0]}'?" if near else ""
+        raise ConfigError(f"{path}={value!r} is not allowed.{hint} Choose one of: {', '.join(map(str, args))}")
     return value
+
+
+def _convert_sequence(tp: Any, value: Any, path: str) -> Any:
+    if not isinstance(value, (list, tuple)):
+        raise ConfigError(f"{path}: expected a list, got {value!r}")
+    args = typing.get_args(tp)
+    inner = args[0] if args else Any
+    items = [_convert(inner, v, f"{path}[{i}]") for i, v in enumerate(value)]
+    return tuple(items) if (typing.get_origin(tp) is tuple or tp is tuple) else items
+
+
+def _convert_mapping(tp: Any, value: Any, path: str) -> Any:
+    if not isinstance(value, dict):
+        raise ConfigError(f"{path}: expected a mapping, got {value!r}")
+    args = typing.get_args(tp)
+    value_type = args[1] if len(args) == 2 else Any
+    return {k: _convert(value_type, v, _join(path, k)) for k, v in value.items()}
+
+
+def _to_bool(value: Any, path: str) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{path}: expected true/false, got {value!r}")
+    return value
+
+
+def _to_int(value: Any, path: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{path}: expected an integer, got {value!r}")
+    return value
+
+
+def _to_float(value: Any, path: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{path}: expected a number, got {value!r}")
+    return float(value)
+
+
+def _to_str(value: Any, path: str) -> str:
+    if isinstance(value, int) and not isinstance(value, bool):
+        return str(value)  # e.g. placement `learner: 1` (YAML/CLI read it as an int)
+    if not isinstance(value, str):
+        raise ConfigError(f"{path}: expected a string, got {value!r}")
+    return value
+
+
+_SCALARS = {bool: _to_bool, int: _to_int, float: _to_float, str: _to_str}
 
 
 def to_plain(obj: Any) -> Any:

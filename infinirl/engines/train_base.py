@@ -16,6 +16,8 @@ from typing import Literal, Protocol
 import torch
 from tensordict import TensorDict
 
+from infinirl.config import bounded
+
 #: ``loss_fn(micro_batch, logprobs, entropy) -> (loss, metrics)``. ``logprobs``/``entropy`` are
 #: ``[b, L]`` in the aligned layout of :mod:`infinirl.data.batch` (``entropy`` is ``None`` unless
 #: requested; for a value engine the second argument holds the values, see :data:`TrainOutput`). The engine *sums* gradients of ``loss`` over micro-batches and data-parallel ranks,
@@ -58,19 +60,19 @@ class LoraSettings:
 class TrainEngineConfig:
     """Optimiser, schedule, batching and precision of a training engine."""
 
-    lr: float = 1e-6
+    lr: float = bounded(1e-6, gt=0)
     """Peak learning rate (AdamW). RL fine-tuning of LLMs typically uses 1e-6..1e-5 (LoRA ~1e-4)."""
-    weight_decay: float = 0.0
+    weight_decay: float = bounded(0.0, ge=0)
     """Decoupled weight decay (AdamW). 0 by default: RL steps are few and decay pulls weights
     away from the pretrained model that the reference policy also uses."""
     betas: tuple[float, float] = (0.9, 0.999)
     """Adam moment decay rates."""
-    eps: float = 1e-8
+    eps: float = bounded(1e-8, gt=0)
     """Adam denominator epsilon."""
     grad_clip: float | None = 1.0
     """Clip the global gradient L2 norm to this value; ``None`` or 0 disables clipping (the norm
     is still computed and reported as ``train/grad_norm``)."""
-    warmup_steps: int = 0
+    warmup_steps: int = bounded(0, ge=0)
     """Linear warmup: step ``s`` (0-based) uses ``lr * min(1, (s + 1) / warmup_steps)``, so the
     first step already moves (an lr of 0 would waste a rollout)."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
@@ -78,9 +80,9 @@ class TrainEngineConfig:
     (cosine)."""
     total_steps: int | None = None
     """Optimizer steps of the whole run; required by the cosine schedule."""
-    min_lr_ratio: float = 0.0
+    min_lr_ratio: float = bounded(0.0, ge=0, le=1)
     """Cosine floor, as a fraction of ``lr``."""
-    micro_batch_size: int = 4
+    micro_batch_size: int = bounded(4, ge=1)
     """Sequences per forward/backward. Bounds activation memory; results do not depend on it
     (gradients are summed over micro-batches)."""
     score_prompts: bool = False

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from infinirl.utils.atomic import atomic_open
+from infinirl.utils.atomic import atomic_path
 
 __all__ = ["write_mp4"]
 
@@ -29,6 +29,6 @@ def write_mp4(path: str, frames: Sequence[np.ndarray], fps: int = 30) -> str:
         raise ValueError(f"no frames to write to {path}")
     import imageio.v2 as imageio
 
-    with atomic_open(path, "wb", suffix=".tmp.mp4") as handle:  # the extension selects the ffmpeg writer
-        imageio.mimsave(handle.name, list(frames), fps=fps, macro_block_size=1, format="FFMPEG")
+    with atomic_path(path, suffix=".tmp.mp4") as tmp:  # the extension selects the ffmpeg writer
+        imageio.mimsave(tmp, list(frames), fps=fps, macro_block_size=1, format="FFMPEG")
     return path

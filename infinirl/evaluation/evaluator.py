@@ -85,7 +85,8 @@ class Evaluator:
         scored = (await self.reward.call("score", results, per_sample, ranks=[rank % self.reward.world_size]))[0]
         out = self._out[name]
         keep_text = name == "greedy"
-        texts = self.tokenizer.batch_decode([r.response_ids for r in results], skip_special_tokens=True) if keep_text else []
+        texts = (self.tokenizer.batch_decode([r.response_ids for r in results], skip_special_tokens=True)
+                 if keep_text else [])
         for j, (result, score) in enumerate(zip(results, scored)):
             i = indices[j // n]
             out.correct[i].append(bool(score.correct))
@@ -103,7 +104,8 @@ def summarize(passes: dict[str, PassResult], ks: list[int]) -> dict[str, float]:
     metrics: dict[str, float] = {}
     if "greedy" in passes:
         greedy = passes["greedy"]
-        metrics["eval/greedy_accuracy"] = float(np.mean([c[0] for c in greedy.correct])) if greedy.correct else float("nan")
+        correct = [c[0] for c in greedy.correct]
+        metrics["eval/greedy_accuracy"] = float(np.mean(correct)) if correct else float("nan")
     if "sampled" in passes:
         sampled = passes["sampled"]
         counts = [sum(c) for c in sampled.correct]

@@ -11,12 +11,13 @@ from __future__ import annotations
 import json
 import time
 
-from infinirl.config import ConfigError, to_plain
+from infinirl.config import to_plain
 from infinirl.engines.base import SamplingParams
 from infinirl.evaluation.config import EvalConfig, EvalPlan
 from infinirl.evaluation.evaluator import Evaluator, per_problem_records, summarize
 from infinirl.runners import register_runner
 from infinirl.tasks.problem import Problem
+from infinirl.tasks.sources import eval_problems
 from infinirl.utils import write_json_atomic
 
 
@@ -79,24 +80,7 @@ def sampling_passes(cfg: EvalConfig, plan: EvalPlan) -> dict[str, SamplingParams
 
 def load_problems(plan: EvalPlan, split: str, limit: int | None) -> list[Problem]:
     """The evaluation problems; a bad task (unknown generator, missing row key) is a ConfigError."""
-    from infinirl.tasks.datasets import DATASET_PRESETS, load_preset
-    from infinirl.tasks.datasets import load_problems as load_file
-    from infinirl.tasks.reasoning_gym_tasks import ReasoningGymTask, build_eval_set
-
-    task = plan.task
-    try:
-        if task.source == "reasoning_gym":
-            # The same held-out set the training run evaluated on (same task config and eval seed).
-            generator = ReasoningGymTask(task.name, task.config)
-            return build_eval_set(generator, limit or task.eval_size, seed=task.eval_seed)
-        if task.name in DATASET_PRESETS:
-            return load_preset(task.name, split, limit=limit)
-        if plan.task_from_run:  # the run trained on all but the first eval_size rows
-            limit = min(limit or task.eval_size, task.eval_size)
-        return load_file(task.name, prompt_key=task.prompt_key, answer_key=task.answer_key,
-                         verifier=plan.verifier, limit=limit)
-    except (KeyError, ValueError, TypeError, FileNotFoundError) as exc:
-        raise ConfigError(f"task (source={task.source}, name={task.name!r}): {exc}") from None
+    return eval_problems(plan.task, split, limit, from_run=plan.task_from_run)
 
 
 def load_checkpoint_into(rollout, plan: EvalPlan, placement, num_threads: int) -> str:

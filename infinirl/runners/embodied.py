@@ -23,7 +23,6 @@ How it runs is placement, not code:
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from typing import Any
@@ -35,21 +34,54 @@ from infinirl.algorithms import EnvAdvantageInputs, compute_advantages
 from infinirl.components.embodied_actor import EmbodiedActorWorker, PPOSpec, actor_process_env
 from infinirl.components.embodied_policy import ReturnNormalizer
 from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec
-from infinirl.components.env_worker import EVAL_SEED_BASE, EnvSpec, EnvWorker, iteration_seeds, probe_env_specs
-from infinirl.config import ConfigError, to_plain
+from infinirl.components.env_worker import EnvSpec, EnvWorker, iteration_seeds, probe_env_specs
+from infinirl.config import ConfigError
 from infinirl.runners import register_runner
-from infinirl.runners.embodied_config import ALGORITHMS, COMPONENTS, EmbodiedConfig
-from infinirl.runners.metrics_log import MetricsLogger, read_metrics
-from infinirl.runners.run_support import CheckpointFolders, launch_all, run_start_time
-from infinirl.runtime import Cluster, place, sync_weights
+from infinirl.runners.curves import Panel
+from infinirl.runners.embodied_config import ALGORITHMS, EmbodiedConfig
+from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
+from infinirl.runners.run_support import run_components, run_start_time
+from infinirl.runners.sim_config import episode_metrics, eval_seeds
+from infinirl.runtime import sync_weights
 
 
-@register_runner("embodied", EmbodiedConfig,
-                 "PPO / embodied GRPO for robot policies in vectorised simulators (env/rollout pipelined or collocated)")
+@register_runner("embodied", EmbodiedConfig, "PPO / embodied GRPO for robot policies in vectorised simulators "
+                 "(env/rollout pipelined or collocated)")
 def run(cfg: EmbodiedConfig) -> dict:
-    started = run_start_time()
-    os.makedirs(cfg.output_dir, exist_ok=True)
-    # Checked in the driver before any worker starts: the env task and options, the policy options.
+    with RunLoop(cfg, run_start_time()) as loop:
+        observation_spec, action_space, policy_spec = _check_env_and_policy(cfg)
+        ppo = ppo_spec(cfg)
+
+        def launches(plan) -> dict:
+            host_env, env_spec = _layout(cfg, plan)
+            where = ("inside the rollout process (collocated)" if host_env else
+                     "in a process per pipeline stage (streamed)" if cfg.env.stage_processes else
+                     "in its own process (streamed)")
+            print(f"env {where}, {cfg.rollout.pipeline_stages} pipeline stage(s) per env rank", flush=True)
+            launched = {
+                "rollout": (EmbodiedRolloutWorker, (env_spec, policy_spec, observation_spec, action_space, cfg.seed,
+                                                    host_env, cfg.rollout.num_threads, cfg.rollout.compile,
+                                                    cfg.rollout.device)),
+                "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo,
+                                                cfg.actor.num_threads, cfg.actor.device),
+                          actor_process_env(cfg.actor.num_threads)),
+            }
+            if not host_env:
+                launched["env"] = (EnvWorker, (env_spec, cfg.rollout.num_threads))
+            return launched
+
+        def make_flow(groups, plan) -> EmbodiedFlow:
+            flow = EmbodiedFlow(cfg, groups.get("env"), groups["rollout"], groups["actor"])
+            print("policy computes on: " + ", ".join(f"{k} {v}" for k, v in flow.devices().items()), flush=True)
+            if flow.env is not None:
+                flow.connect(plan)
+            return flow
+
+        return run_components(cfg, loop, launches, make_flow)
+
+
+def _check_env_and_policy(cfg: EmbodiedConfig):
+    """The env task, its options and the policy's, checked in the driver before any worker starts."""
     try:
         observation_spec, action_space = probe_env_specs(cfg.env.name, cfg.env.kwargs)
         policy_spec = PolicySpec(name=cfg.policy.name, options=dict(cfg.policy.kwargs), chunk=cfg.policy.chunk,
@@ -60,36 +92,7 @@ def run(cfg: EmbodiedConfig) -> dict:
         raise ConfigError(f"{cfg.env.name} / policy {cfg.policy.name}: {exc}") from exc
     if ALGORITHMS[cfg.algorithm.name].grouped:
         _check_one_task_per_group(cfg)
-    with Cluster(cfg.cluster) as cluster:
-        plan = place(cluster.inventory, cfg.placement, components=COMPONENTS)
-        host_env, env_spec = _layout(cfg, plan)
-        print(plan.describe(), flush=True)
-        where = ("inside the rollout process (collocated)" if host_env else
-                 "in a process per pipeline stage (streamed)" if cfg.env.stage_processes else
-                 "in its own process (streamed)")
-        print(f"env {where}, "
-              f"{cfg.rollout.pipeline_stages} pipeline stage(s) per env rank", flush=True)
-        ppo = ppo_spec(cfg)
-        launches = {
-            "rollout": (EmbodiedRolloutWorker, (env_spec, policy_spec, observation_spec, action_space, cfg.seed,
-                                                host_env, cfg.rollout.num_threads, cfg.rollout.compile,
-                                                cfg.rollout.device)),
-            "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo, cfg.actor.num_threads,
-                                            cfg.actor.device), actor_process_env(cfg.actor.num_threads)),
-        }
-        if not host_env:
-            launches["env"] = (EnvWorker, (env_spec, cfg.rollout.num_threads))
-        groups = launch_all(plan, launches)
-        flow = EmbodiedFlow(cfg, groups.get("env"), groups["rollout"], groups["actor"], started)
-        print("policy computes on: " + ", ".join(f"{k} {v}" for k, v in flow.devices().items()), flush=True)
-        try:
-            if flow.env is not None:
-                flow.connect(plan)
-            return flow.train()
-        finally:
-            flow.close()
-            for group in groups.values():
-                group.shutdown()
+    return observation_spec, action_space, policy_spec
 
 
 def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
@@ -172,17 +175,29 @@ def _is_link_closed(error: BaseException) -> bool:
 
 
 class EmbodiedFlow:
-    """The iteration logic, separated from process start-up so tests can drive it directly."""
+    """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
 
-    def __init__(self, cfg: EmbodiedConfig, env, rollout, actor, started: float):
+    def __init__(self, cfg: EmbodiedConfig, env, rollout, actor):
         self.cfg, self.env, self.rollout, self.actor = cfg, env, rollout, actor
-        self.started = started
         self.algorithm = ALGORITHMS[cfg.algorithm.name]
         self.group_size = cfg.algorithm.group_size if self.algorithm.grouped else 1
         self.return_norm = ReturnNormalizer(cfg.env.num_envs, cfg.algorithm.gamma)
         self.env_steps = 0
-        self.elapsed_before = 0.0  # wall time of earlier runs of a resumed job
-        self.logger: MetricsLogger | None = None
+        self.spec = LoopSpec(
+            name="embodied", title=f"{cfg.algorithm.name.upper()} {cfg.env.name}", headline="eval/success_rate",
+            target=cfg.eval.target,
+            progress=(ProgressField(label="sr", key="rollout/success_rate"),
+                      ProgressField(label="ret", key="rollout/episode_return_mean", format=".0f",
+                                    fallback="rollout/open_episode_return_mean"),
+                      ProgressField(label="eval", key="eval/success_rate"),
+                      ProgressField(label="sps", key="time/env_steps_per_s", format=".0f")),
+            panels=(Panel(title="held-out success rate", y=("eval/success_rate",), x="env/steps",
+                          x_label="env steps", y_range=(-0.02, 1.02), target=cfg.eval.target),
+                    Panel(title="held-out success rate", y=("eval/success_rate",), x="time/elapsed_s",
+                          x_label="wall time incl. start-up (s)", y_range=(-0.02, 1.02), target=cfg.eval.target),
+                    Panel(title="training episode return", y=("rollout/episode_return_mean",
+                                                              "rollout/open_episode_return_mean"),
+                          x="env/steps", x_label="env steps")))
 
     def devices(self) -> dict[str, str]:
         """Where rank 0 of the rollout and of the actor compute (``rollout.device`` / ``actor.device``)."""
@@ -209,32 +224,10 @@ class EmbodiedFlow:
         self.rollout.call_each("connect_link", [(a,) for a in addresses]).wait()
         accepted.wait()
 
-    # ------------------------------------------------------------------ the loop
-    def train(self) -> dict:
-        from tqdm import tqdm
+    def start(self, iteration: int) -> None:
+        sync_weights(self.actor, self.rollout, version=iteration)
 
-        cfg = self.cfg
-        start = self._maybe_resume()
-        self.logger = MetricsLogger(cfg.output_dir, cfg.loggers, to_plain(cfg), start_step=start)
-        sync_weights(self.actor, self.rollout, version=start)
-        if start == 0 and cfg.eval.at_start:
-            self.logger.log({**self.evaluate(), "env/steps": 0, "time/elapsed_s": self.elapsed()}, step=0)
-        progress = tqdm(range(start, cfg.iterations), initial=start, total=cfg.iterations, desc="embodied", unit="it")
-        for iteration in progress:
-            metrics = self.iteration(iteration)
-            done = iteration + 1
-            if (cfg.eval.every and done % cfg.eval.every == 0) or done == cfg.iterations:
-                metrics.update(self.evaluate())
-            metrics["time/elapsed_s"] = self.elapsed()
-            self.logger.log(metrics, step=done)
-            progress.set_postfix(sr=f"{metrics['rollout/success_rate']:.2f}", ret=f"{metrics['rollout/episode_return_mean']:.0f}",
-                                 eval=f"{metrics.get('eval/success_rate', float('nan')):.2f}",
-                                 sps=f"{metrics['time/env_steps_per_s']:.0f}")
-            if (cfg.save_every and done % cfg.save_every == 0) or done == cfg.iterations:
-                self.save(done)
-        return self.finish()
-
-    def iteration(self, iteration: int) -> dict:
+    def step(self, iteration: int) -> dict:
         t0 = time.perf_counter()
         trajectory, rollout_metrics = self.collect(iteration)
         t1 = time.perf_counter()
@@ -270,13 +263,9 @@ class EmbodiedFlow:
             raise
         env_stats = serving.wait() if serving is not None else [{}]
         trajectory = _merge(parts)
-        episodes = trajectory["episodes"]
         metrics = {
             "rollout/reward_mean": float(trajectory["rewards"].mean()),
-            "rollout/episodes": float(len(episodes["return"])),
-            "rollout/episode_return_mean": float(np.mean(episodes["return"])) if len(episodes["return"]) else float("nan"),
-            "rollout/episode_length_mean": float(np.mean(episodes["length"])) if len(episodes["length"]) else float("nan"),
-            "rollout/success_rate": float(np.mean(episodes["success"])) if len(episodes["success"]) else float("nan"),
+            **episode_metrics(trajectory["episodes"], trajectory.get("open_episodes")),
             "env/restarts": float(trajectory["restarted"]),
             **{k: v for k, v in parts[0]["timing"].items()},
             **env_stats[0],
@@ -322,8 +311,8 @@ class EmbodiedFlow:
         batch["advantages"] = flat(out.advantages.to(torch.float32))
         batch["returns"] = flat(out.returns.to(torch.float32))
         batch["advantage_mask"] = flat(out.mask.to(torch.bool))
-        metrics = {"train/advantage_mean": float(out.advantages.mean()), "train/advantage_std": float(out.advantages.std()),
-                   "train/return_mean": float(out.returns.mean())}
+        metrics = {"train/advantage_mean": float(out.advantages.mean()),
+                   "train/advantage_std": float(out.advantages.std()), "train/return_mean": float(out.returns.mean())}
         if scale_rewards:
             metrics["train/reward_scale"] = 1.0 / float(torch.sqrt(self.return_norm.rms.var + self.return_norm.epsilon))
         if algorithm.grouped:
@@ -334,7 +323,7 @@ class EmbodiedFlow:
         """Success rate etc. over the held-out seeded episodes, shared out over the rollout ranks."""
         cfg, ranks = self.cfg.eval, self.rollout.world_size
         t0 = time.perf_counter()
-        seeds = [EVAL_SEED_BASE + cfg.seed + i for i in range(cfg.episodes)]
+        seeds = eval_seeds(cfg.seed, cfg.episodes)
         handles = [self.rollout.call("evaluate", seeds[r::ranks], min(cfg.num_envs, len(seeds[r::ranks])),
                                      cfg.deterministic, dict(cfg.env_kwargs), cfg.max_episode_steps, ranks=[r])
                    for r in range(min(ranks, len(seeds)))]
@@ -344,63 +333,32 @@ class EmbodiedFlow:
                   for key in ("eval/success_rate", "eval/return_mean", "eval/length_mean")}
         merged["eval/episodes"] = float(total)
         merged["time/eval_s"] = time.perf_counter() - t0
+        merged["env/steps"] = self.env_steps
         return merged
 
-    def elapsed(self) -> float:
-        return self.elapsed_before + time.time() - self.started
-
     # ------------------------------------------------------------------ checkpoints
-    def save(self, iteration: int) -> str:
-        folders = CheckpointFolders(self.cfg.output_dir, "iter_")
-        tmp = folders.begin(iteration)
-        self.actor.save_checkpoint(os.path.join(tmp, "actor")).wait()
-        return folders.commit(tmp, iteration, {"iteration": iteration, "env_steps": self.env_steps,
-                                               "elapsed_s": self.elapsed(),
-                                               "return_normalizer": self.return_norm.state_dict()})
+    def save(self, folder: str) -> dict:
+        self.actor.save_checkpoint(os.path.join(folder, "actor")).wait()
+        return {"env_steps": self.env_steps, "return_normalizer": self.return_norm.state_dict()}
 
-    def _maybe_resume(self) -> int:
-        found = CheckpointFolders(self.cfg.output_dir, "iter_").latest() if self.cfg.resume else None
-        if found is None:
-            return 0
-        latest, state = found
-        self.actor.load_checkpoint(os.path.join(latest, "actor")).wait()
+    def load(self, folder: str, state: dict) -> None:
+        self.actor.load_checkpoint(os.path.join(folder, "actor")).wait()
         self.return_norm.load_state_dict(state["return_normalizer"])
         self.env_steps = int(state["env_steps"])
-        self.elapsed_before = float(state["elapsed_s"])
-        self.started = time.time()
-        print(f"resumed from {latest} at iteration {state['iteration']}", flush=True)
-        return int(state["iteration"])
 
-    def finish(self) -> dict:
+    def finish(self, output_dir: str) -> dict:
         cfg = self.cfg
         video = None
         if cfg.eval.video_episodes:
-            seeds = [EVAL_SEED_BASE + cfg.eval.seed + i for i in range(cfg.eval.video_episodes)]
             try:
-                video = self.rollout.call("record_video", seeds, os.path.join(cfg.output_dir, "eval.mp4"),
-                                          cfg.eval.video_frame_skip, cfg.eval.video_fps,
-                                          {**cfg.eval.env_kwargs, **cfg.eval.video_env_kwargs},
+                video = self.rollout.call("record_video", eval_seeds(cfg.eval.seed, cfg.eval.video_episodes),
+                                          os.path.join(output_dir, "eval.mp4"), cfg.eval.video_frame_skip,
+                                          cfg.eval.video_fps, {**cfg.eval.env_kwargs, **cfg.eval.video_env_kwargs},
                                           cfg.eval.deterministic, cfg.eval.max_episode_steps, ranks=[0]).wait()[0]
             except Exception as exc:  # a missing GL library must not lose the trained run
                 print(f"eval video skipped: {exc}", flush=True)
-        self.logger.close()
-        rows = read_metrics(self.logger.path)
-        curves = plot_learning_curves(rows, os.path.join(cfg.output_dir, "curves.png"),
-                                      f"{cfg.algorithm.name.upper()} {cfg.env.name}")
-        evals = [r for r in rows if "eval/success_rate" in r]
-        summary = {
-            "eval_success_before": evals[0]["eval/success_rate"] if evals else None,
-            "eval_success_after": evals[-1]["eval/success_rate"] if evals else None,
-            "eval_return_after": evals[-1].get("eval/return_mean") if evals else None,
-            "iterations": cfg.iterations, "env_steps": self.env_steps,
-            "elapsed_s": round(self.elapsed(), 1),
-            "first_eval_at_0.9": _first_reaching(evals, 0.9),
-            "curves": curves, "video": video["path"] if video else None, "metrics": self.logger.path,
-            "actor_weights_sha256": self.actor.weights_digest().wait()[0],
-            "devices": self.devices(),
-        }
-        print(json.dumps(summary), flush=True)
-        return summary
+        return {"env_steps": self.env_steps, "video": video["path"] if video else None,
+                "actor_weights_sha256": self.actor.weights_digest().wait()[0], "devices": self.devices()}
 
     def close(self) -> None:
         for group in (self.rollout, self.env):
@@ -456,43 +414,3 @@ def _merge(parts: list[dict]) -> dict:
         else:
             out[key] = np.concatenate([p[key] for p in parts], axis=1)
     return out
-
-
-def _first_reaching(evals: list[dict], target: float) -> dict | None:
-    for row in evals:
-        if row["eval/success_rate"] >= target:
-            return {"iteration": row["step"], "env_steps": row.get("env/steps"), "elapsed_s": row.get("time/elapsed_s")}
-    return None
-
-
-def plot_learning_curves(rows: list[dict], path: str, title: str) -> str | None:
-    """Held-out success vs env steps and vs wall time, training return vs env steps: one PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    evals = [r for r in rows if "eval/success_rate" in r and "env/steps" in r]
-    train = [r for r in rows if "rollout/episode_return_mean" in r and np.isfinite(r["rollout/episode_return_mean"])]
-    if not evals and not train:
-        return None
-    fig, axes = plt.subplots(1, 3, figsize=(15, 3.6))
-    panels = [
-        (axes[0], evals, "env/steps", "eval/success_rate", "held-out success rate", "env steps"),
-        (axes[1], [r for r in evals if "time/elapsed_s" in r], "time/elapsed_s", "eval/success_rate",
-         "held-out success rate", "wall time incl. start-up (s)"),
-        (axes[2], train, "env/steps", "rollout/episode_return_mean", "training episode return", "env steps"),
-    ]
-    for ax, data, x_key, y_key, label, x_label in panels:
-        ax.plot([r[x_key] for r in data], [r[y_key] for r in data], marker="o", markersize=3)
-        ax.set_title(label)
-        ax.set_xlabel(x_label)
-        ax.grid(alpha=0.3)
-    for ax in axes[:2]:
-        ax.set_ylim(-0.02, 1.02)
-        ax.axhline(0.9, color="grey", linestyle="--", linewidth=0.8)
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path

@@ -9,9 +9,7 @@ placement, not code.
 
 from __future__ import annotations
 
-import json
 import os
-import random
 import time
 import uuid
 from dataclasses import replace
@@ -35,15 +33,15 @@ from infinirl.components.critic import CriticWorker
 from infinirl.components.reference import ReferenceWorker
 from infinirl.components.reward import RewardWorker
 from infinirl.components.rollout import RolloutWorker
-from infinirl.config import to_plain
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.runners import register_runner
-from infinirl.runners.metrics_log import MetricsLogger, plot_curves, read_metrics
+from infinirl.runners.curves import Panel
+from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
-from infinirl.runners.run_support import CheckpointFolders, launch_all
-from infinirl.runtime import Channel, Cluster, Tracer, WorkerGroup, place, sync_weights
+from infinirl.runners.run_support import run_components, run_start_time
+from infinirl.runtime import Channel, Tracer, sync_weights
 
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
 # reference (KL), and the critic's values and regression targets.
@@ -55,32 +53,21 @@ _FORWARD_KEYS = (INPUT_IDS, ATTENTION_MASK, POSITION_IDS, RESPONSE_MASK)
 
 @register_runner("reasoning", ReasoningConfig, "GRPO/PPO-family RL with verifiable rewards on an HF causal LM")
 def run(cfg: ReasoningConfig) -> dict:
-    os.makedirs(cfg.output_dir, exist_ok=True)
-    _seed_everything(cfg.seed)
-    train_stream, eval_problems, tokenizer = build_problem_sources(cfg)
-    # Bad input fails before any worker starts: every eval prompt must fit (train prompts are
-    # checked as they are drawn).
-    encode_checked(eval_problems, tokenizer, cfg.task.system_prompt, cfg.rollout.max_prompt_length, "eval")
-    with Cluster(cfg.cluster) as cluster:
-        plan = place(cluster.inventory, cfg.placement_spec(), components=cfg.components())
-        print(plan.describe(), flush=True)
-        groups: dict[str, WorkerGroup] = {}
-        try:
-            groups.update(_launch_components(cfg, plan))
-            flow = ReasoningFlow(cfg, groups["actor"], groups["rollout"], groups["reward"], tokenizer,
-                                 critic=groups.get("critic"), reference=groups.get("reference"))
-            try:
-                return flow.train(train_stream, eval_problems)
-            finally:
-                flow.close()
-        finally:
-            for group in groups.values():
-                group.shutdown()
+    with RunLoop(cfg, run_start_time()) as loop:
+        train_stream, eval_problems, tokenizer = build_problem_sources(cfg)
+        # Bad input fails before any worker starts: every eval prompt must fit (train prompts are
+        # checked as they are drawn).
+        encode_checked(eval_problems, tokenizer, cfg.task.system_prompt, cfg.rollout.max_prompt_length, "eval")
+        return run_components(
+            cfg, loop, lambda plan: _launches(cfg),
+            lambda groups, plan: ReasoningFlow(cfg, groups["actor"], groups["rollout"], groups["reward"], tokenizer,
+                                               train_stream, eval_problems, critic=groups.get("critic"),
+                                               reference=groups.get("reference")))
 
 
-def _launch_components(cfg: ReasoningConfig, plan) -> dict[str, WorkerGroup]:
-    """Start every component's ranks at once (model loading overlaps), in a fixed order of names.
-    If one fails to start, the others are shut down and its error is raised."""
+def _launches(cfg: ReasoningConfig) -> dict:
+    """Every component's worker class and arguments, in a fixed order of names (they start at once,
+    model loading overlapping)."""
     specs = {
         "actor": (ActorWorker, (cfg.model.path, cfg.actor, cfg.algorithm.objective, cfg.num_threads)),
         "rollout": (RolloutWorker, (cfg.model.path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
@@ -90,7 +77,7 @@ def _launch_components(cfg: ReasoningConfig, plan) -> dict[str, WorkerGroup]:
         "critic": (CriticWorker, (cfg.critic_model_path, cfg.critic, cfg.critic.value_clip, cfg.num_threads)),
         "reference": (ReferenceWorker, (cfg.model.path, _reference_engine(cfg), cfg.num_threads)),
     }
-    return launch_all(plan, {name: specs[name] for name in cfg.components()})
+    return {name: specs[name] for name in cfg.components()}
 
 
 def _reference_engine(cfg: ReasoningConfig):
@@ -100,10 +87,12 @@ def _reference_engine(cfg: ReasoningConfig):
 
 
 class ReasoningFlow:
-    """The step logic, separated from process start-up so tests can drive it directly."""
+    """The step logic (the loop drives it: see :mod:`infinirl.runners.loop`); tests drive it directly too."""
 
-    def __init__(self, cfg: ReasoningConfig, actor, rollout, reward, tokenizer, critic=None, reference=None):
+    def __init__(self, cfg: ReasoningConfig, actor, rollout, reward, tokenizer, train_stream=None,
+                 eval_problems=(), critic=None, reference=None):
         self.cfg, self.actor, self.rollout, self.reward, self.tokenizer = cfg, actor, rollout, reward, tokenizer
+        self.train_stream, self.eval_problems = train_stream, list(eval_problems)
         self.critic, self.reference = critic, reference
         if cfg.uses_critic and critic is None:
             raise ValueError("algorithm.advantage=gae needs a critic group")
@@ -112,32 +101,21 @@ class ReasoningFlow:
         self.tracer = Tracer()
         self.pad_id = tokenizer.pad_token_id if tokenizer.pad_token_id is not None else 0
         self._channels: dict[str, Channel] = {}
+        self.spec = LoopSpec(
+            name="reasoning", title="reasoning RL", headline="eval/greedy_accuracy",
+            progress=(ProgressField(label="reward", key="rollout/reward_mean"),
+                      ProgressField(label="acc", key="eval/greedy_accuracy")),
+            panels=(Panel(title="train reward", y=("rollout/reward_mean",)),
+                    Panel(title="held-out greedy accuracy", y=("eval/greedy_accuracy",), y_range=(-0.02, 1.02)),
+                    Panel(title="response length (tokens)", y=("rollout/response_length_mean",))))
 
-    # ------------------------------------------------------------------ the loop
-    def train(self, train_stream, eval_problems) -> dict:
-        from tqdm import tqdm
+    def start(self, iteration: int) -> None:
+        if iteration:  # resumed: the rollout engine still holds the initial weights
+            sync_weights(self.actor, self.rollout, version=iteration)
 
-        cfg = self.cfg
-        start_step = self._maybe_resume(train_stream)
-        self.logger = MetricsLogger(cfg.output_dir, cfg.loggers, to_plain(cfg), start_step=start_step)
-        accuracy = float("nan")  # the latest held-out accuracy, shown on the progress bar
-        if start_step == 0:
-            accuracy = self.evaluate(eval_problems)
-            self.logger.log({"eval/greedy_accuracy": accuracy}, step=0)
-        progress = tqdm(range(start_step, cfg.steps), initial=start_step, total=cfg.steps, desc="train", unit="step")
-        for step in progress:
-            metrics = self.step(step, train_stream)
-            if (step + 1) % cfg.eval_every == 0 or step + 1 == cfg.steps:
-                accuracy = metrics["eval/greedy_accuracy"] = self.evaluate(eval_problems)
-            self.logger.log(metrics, step=step + 1)
-            progress.set_postfix(reward=f"{metrics['rollout/reward_mean']:.2f}", acc=f"{accuracy:.2f}")
-            if (cfg.save_every and (step + 1) % cfg.save_every == 0) or step + 1 == cfg.steps:
-                self.save(step + 1, train_stream)
-        return self.finish()
-
-    def step(self, step: int, train_stream) -> dict:
+    def step(self, step: int) -> dict:
         t0 = time.perf_counter()
-        problems, results, rewards, gen_metrics = self.generate_batch(step, train_stream)
+        problems, results, rewards, gen_metrics = self.generate_batch(step)
         t_gen = time.perf_counter()
         batch = pack_sequences([r.prompt_ids for r in results], [r.response_ids for r in results],
                                self.pad_id, [r.response_logprobs for r in results])
@@ -162,7 +140,7 @@ class ReasoningFlow:
         }
 
     # ------------------------------------------------------------------ stages
-    def generate_batch(self, step: int, train_stream):
+    def generate_batch(self, step: int):
         """Prompts -> groups of responses -> rewards; with DAPO dynamic sampling, keep only
         informative groups and generate more rounds (capped) until the batch is full."""
         cfg = self.cfg
@@ -171,7 +149,7 @@ class ReasoningFlow:
         rounds, dropped, errors = 0, 0, 0
         all_rewards = []
         while len(kept_problems) < want:
-            problems = train_stream.next_batch(want - len(kept_problems) if rounds else want)
+            problems = self.train_stream.next_batch(want - len(kept_problems) if rounds else want)
             results, scored = self.generate_and_score(problems, self._sampling(step, rounds))
             rewards = torch.tensor([s.reward for s in scored], dtype=torch.float32)
             all_rewards.extend(rewards.tolist())
@@ -289,7 +267,8 @@ class ReasoningFlow:
                     **({"max_response_length": cfg.rollout.max_new_tokens}
                        if cfg.algorithm.objective.aggregation == "seq-mean-token-sum-norm" else {}))
                 actor_mini = mini.select(*actor_keys)
-                handles = [self.actor.call_each("train_step", [(actor_mini[s], normaliser) for s in _slices(per_mini, world)])]
+                shares = [(actor_mini[s], normaliser) for s in _slices(per_mini, world)]
+                handles = [self.actor.call_each("train_step", shares)]
                 if self.critic is not None:
                     critic_mini = mini.select(*_FORWARD_KEYS, VALUES, RETURNS)
                     tokens = aggregation_normaliser(mini["response_mask"], "token-mean")
@@ -311,7 +290,10 @@ class ReasoningFlow:
         ids = batch.select(*_FORWARD_KEYS)
         return group.call_each(method, [(ids[s],) for s in _slices(batch.batch_size[0], group.world_size)])
 
-    def evaluate(self, problems) -> float:
+    def evaluate(self) -> dict:
+        return {"eval/greedy_accuracy": self.greedy_accuracy(self.eval_problems)}
+
+    def greedy_accuracy(self, problems) -> float:
         if not problems:
             return float("nan")
         greedy = SamplingParams(n=1, max_new_tokens=self.cfg.rollout.max_new_tokens, greedy=True,
@@ -326,50 +308,32 @@ class ReasoningFlow:
                               seed=(self.cfg.seed * 1_000_003 + step * 101 + round_) % (2**31))
 
     # ------------------------------------------------------------------ checkpoints
-    def save(self, step: int, train_stream) -> str:
-        folders = CheckpointFolders(self.cfg.output_dir, "step_")
-        tmp = folders.begin(step)
-        saving = [self.actor.save_checkpoint(os.path.join(tmp, "actor"))]
+    def save(self, folder: str) -> dict:
+        saving = [self.actor.save_checkpoint(os.path.join(folder, "actor"))]
         if self.critic is not None:
-            saving.append(self.critic.save_checkpoint(os.path.join(tmp, "critic")))
+            saving.append(self.critic.save_checkpoint(os.path.join(folder, "critic")))
         for handle in saving:
             handle.wait()
-        return folders.commit(tmp, step, {"step": step, "data": train_stream.state_dict(), "rng": _rng_state()})
+        return {"data": self.train_stream.state_dict()}
 
-    def _maybe_resume(self, train_stream) -> int:
-        found = CheckpointFolders(self.cfg.output_dir, "step_").latest() if self.cfg.resume else None
-        if found is None:
-            return 0
-        latest, state = found
-        loading = [self.actor.load_checkpoint(os.path.join(latest, "actor"))]
+    def load(self, folder: str, state: dict) -> None:
+        loading = [self.actor.load_checkpoint(os.path.join(folder, "actor"))]
         if self.critic is not None:
-            if not os.path.isdir(os.path.join(latest, "critic")):
+            if not os.path.isdir(os.path.join(folder, "critic")):
                 raise RuntimeError(
-                    f"{latest} has no critic/ checkpoint (it was written by a run without a critic, i.e. not "
+                    f"{folder} has no critic/ checkpoint (it was written by a run without a critic, i.e. not "
                     "algorithm.advantage=gae); resume it with its own algorithm, or start over with resume=false "
                     "or a new output_dir"
                 )
-            loading.append(self.critic.load_checkpoint(os.path.join(latest, "critic")))
+            loading.append(self.critic.load_checkpoint(os.path.join(folder, "critic")))
         for handle in loading:
             handle.wait()
-        train_stream.load_state_dict(state["data"])
-        _set_rng_state(state["rng"])
-        sync_weights(self.actor, self.rollout, version=state["step"])
-        print(f"resumed from {latest} at step {state['step']}", flush=True)
-        return int(state["step"])
+        self.train_stream.load_state_dict(state["data"])
 
-    def finish(self) -> dict:
-        self.logger.close()
-        rows = read_metrics(self.logger.path)
-        plot = plot_curves(rows, ["rollout/reward_mean", "eval/greedy_accuracy", "rollout/response_length_mean"],
-                           os.path.join(self.cfg.output_dir, "curves.png"), "reasoning RL")
-        evals = [r["eval/greedy_accuracy"] for r in rows if "eval/greedy_accuracy" in r]
-        summary = {"eval_before": evals[0] if evals else None, "eval_after": evals[-1] if evals else None,
-                   "steps": self.cfg.steps, "curves": plot, "metrics": self.logger.path,
-                   "actor_weights_sha256": self.actor.weights_digest().wait()[0]}
+    def finish(self, output_dir: str) -> dict:
+        summary = {"actor_weights_sha256": self.actor.weights_digest().wait()[0]}
         if self.critic is not None:
             summary["critic_weights_sha256"] = self.critic.weights_digest().wait()[0]
-        print(json.dumps(summary), flush=True)
         return summary
 
     @property
@@ -395,24 +359,3 @@ def _split(items: list, parts: int) -> list[list]:
 def _slices(size: int, parts: int) -> list[slice]:
     per = -(-size // parts)
     return [slice(i * per, min(size, (i + 1) * per)) for i in range(parts)]
-
-
-def _seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
-def _rng_state() -> dict:
-    kind, keys, pos, has_gauss, gauss = np.random.get_state()
-    return {"python": repr(random.getstate()), "numpy": [kind, keys.tolist(), pos, has_gauss, gauss],
-            "torch": torch.get_rng_state().tolist()}
-
-
-def _set_rng_state(state: dict) -> None:
-    import ast
-
-    random.setstate(ast.literal_eval(state["python"]))
-    kind, keys, pos, has_gauss, gauss = state["numpy"]
-    np.random.set_state((kind, np.array(keys, dtype=np.uint32), pos, has_gauss, gauss))
-    torch.set_rng_state(torch.tensor(state["torch"], dtype=torch.uint8))

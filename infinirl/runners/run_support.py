@@ -1,22 +1,21 @@
-"""What every runner's driver does the same way: when the run started, starting its components
-together, and checkpoint folders that appear whole or not at all.
+"""What every runner's driver does the same way around its flow: when the run started, placing and
+starting its components together, and running the flow on the shared loop.
 
 Kept out of the runners so that the reasoning, embodied and SAC macro flows read as their
-algorithm and nothing else, and so a fix here (say, to the checkpoint commit) reaches all of them.
+algorithm and nothing else.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import shutil
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["CheckpointFolders", "launch_all", "run_start_time"]
+from infinirl.config import ConfigError
+
+__all__ = ["launch_all", "plan_placement", "run_components", "run_start_time"]
 
 _RUNS_IN_PROCESS = [0]
-_STATE_FILE = "runner_state.json"
 
 
 def run_start_time() -> float:
@@ -60,50 +59,35 @@ def launch_all(plan, launches: dict):
     return groups
 
 
-class CheckpointFolders:
-    """``<output_dir>/checkpoints/<prefix>NNNNNN/``, each built under ``.tmp`` and renamed into
-    place, with the driver's own state in ``runner_state.json``: a crash at any point leaves the
-    previous checkpoint usable, and a half-written folder is never mistaken for one."""
+def plan_placement(inventory, cfg):
+    """The placement of ``cfg``'s components on the cluster; a spec the cluster cannot satisfy (a
+    device or slot it does not have) is a ConfigError naming the component, before any worker starts."""
+    from infinirl.runtime import place
+    from infinirl.runtime.placement import PlacementError
 
-    def __init__(self, output_dir: str, prefix: str):
-        self.root = os.path.join(output_dir, "checkpoints")
-        self.prefix = prefix
+    try:
+        return place(inventory, cfg.placement_spec(), components=cfg.components())
+    except PlacementError as exc:
+        raise ConfigError(f"placement: {exc}") from None
 
-    def begin(self, index: int) -> str:
-        """An empty temporary folder for checkpoint ``index``; components write into it."""
-        tmp = self._final(index) + ".tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        os.makedirs(tmp)
-        return tmp
 
-    def commit(self, tmp: str, index: int, state: dict) -> str:
-        """Write the driver's ``state`` and rename the folder into place; the final path."""
-        with open(os.path.join(tmp, _STATE_FILE), "w") as handle:
-            json.dump(state, handle)
-        final = self._final(index)
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
-        return final
+def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:
+    """Start the cluster, place and launch the components, run ``make_flow(groups, plan)`` on ``loop``.
 
-    def completed(self) -> list[str]:
-        """Names of the committed checkpoints, oldest first."""
-        if not os.path.isdir(self.root):
-            return []
-        return sorted(d for d in os.listdir(self.root) if d.startswith(self.prefix) and not d.endswith(".tmp"))
+    ``launches(plan)`` returns what :func:`launch_all` takes; the flow's ``close()`` and every
+    group's shutdown run however the loop ends."""
+    from infinirl.runtime import Cluster
 
-    def latest(self) -> tuple[str, dict] | None:
-        """(path, driver state) of the newest committed checkpoint, or None."""
-        done = self.completed()
-        if not done:
-            return None
-        path = os.path.join(self.root, done[-1])
-        with open(os.path.join(path, _STATE_FILE)) as handle:
-            return path, json.load(handle)
-
-    def prune(self, keep: int) -> None:
-        """Delete all but the newest ``keep`` checkpoints."""
-        for old in self.completed()[:-keep]:
-            shutil.rmtree(os.path.join(self.root, old), ignore_errors=True)
-
-    def _final(self, index: int) -> str:
-        return os.path.join(self.root, f"{self.prefix}{index:06d}")
+    with Cluster(cfg.cluster) as cluster:
+        plan = plan_placement(cluster.inventory, cfg)
+        print(plan.describe(), flush=True)
+        groups = launch_all(plan, launches(plan))
+        try:
+            flow = make_flow(groups, plan)
+            try:
+                return loop.run(flow)
+            finally:
+                flow.close()
+        finally:
+            for group in groups.values():
+                group.shutdown()

@@ -14,10 +14,11 @@ import logging
 import os
 import time
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 
-from infinirl.config import ConfigError, to_plain
+from infinirl.config import ConfigError, bounded, to_plain
 from infinirl.runners import register_runner
 from infinirl.runtime import (
     Channel,
@@ -35,20 +36,22 @@ from infinirl.runtime import (
 logger = logging.getLogger(__name__)
 
 
-@dataclass
+@dataclass(kw_only=True)
 class DemoConfig:
     """Every field documented: it is also the CLI reference (`key=value` overrides)."""
 
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {"steps": "iterations"}
+
     runner: str = "runtime_demo"
-    steps: int = 20
-    """Training steps (each: sample, train, sync)."""
-    dim: int = 16
+    iterations: int = bounded(20, ge=1)
+    """Training iterations (each: sample, train, sync)."""
+    dim: int = bounded(16, ge=1)
     """Input dimension of the hidden linear task."""
-    samples_per_step: int = 512
-    """Samples produced per step over all sampler ranks."""
-    micro_batch: int = 64
+    samples_per_step: int = bounded(512, ge=1)
+    """Samples produced per iteration over all sampler ranks."""
+    micro_batch: int = bounded(64, ge=1)
     """Samples per channel item (the unit that streams from samplers to the learner)."""
-    lr: float = 0.05
+    lr: float = bounded(0.05, gt=0)
     seed: int = 0
     output_dir: str = "runs/runtime_demo"
     """Where the metrics (JSONL) and the Chrome/Perfetto trace go."""
@@ -57,20 +60,15 @@ class DemoConfig:
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
 
     def validate(self) -> None:
-        for key in ("steps", "dim", "samples_per_step", "micro_batch"):
-            if getattr(self, key) <= 0:
-                raise ConfigError(f"{key}={getattr(self, key)} must be > 0")
-        from infinirl.runtime.placement import PlacementError, parse_spec
+        from infinirl.runners.run_config import validate_placement
 
+        if self.runner != "runtime_demo":
+            raise ConfigError(f"runner={self.runner!r}: this config is for the 'runtime_demo' runner")
         if set(self.placement) != {"sampler", "learner"}:
             raise ConfigError(
                 f"placement must name exactly the components sampler and learner, got {sorted(self.placement)}"
             )
-        for component, spec in self.placement.items():
-            try:
-                parse_spec(spec, component)
-            except PlacementError as exc:
-                raise ConfigError(f"placement.{component}: {exc}") from None
+        validate_placement(self.placement, ("sampler", "learner"), "runtime_demo")
 
 
 def _policy(dim: int) -> torch.nn.Module:
@@ -139,14 +137,15 @@ def run(cfg: DemoConfig) -> dict:
         plan = place(cluster.inventory, cfg.placement, components=["sampler", "learner"])
         print(plan.describe(), flush=True)
         samplers = WorkerGroup.launch(Sampler, "sampler", placement=plan.ranks("sampler"), args=(cfg.dim, cfg.seed))
-        learner = WorkerGroup.launch(Learner, "learner", placement=plan.ranks("learner"), args=(cfg.dim, cfg.lr, cfg.seed))
+        learner = WorkerGroup.launch(Learner, "learner", placement=plan.ranks("learner"),
+                                     args=(cfg.dim, cfg.lr, cfg.seed))
         channel = Channel.create(f"demo-{os.getpid()}", maxsize=4 * cfg.samples_per_step)
         tracer = Tracer()
         history = []
         per_sampler = cfg.samples_per_step // samplers.world_size
         from tqdm import tqdm
 
-        for step in tqdm(range(cfg.steps), desc="runtime_demo", unit="step"):
+        for step in tqdm(range(cfg.iterations), desc="runtime_demo", unit="step"):
             t0 = time.perf_counter()
             produced = samplers.produce(channel, per_sampler, cfg.micro_batch)  # returns at once
             trained = learner.train(channel, per_sampler * samplers.world_size)  # streams as items land

@@ -354,3 +354,12 @@ def summarize_rewards(results: Iterable[RewardResult]) -> dict[str, float]:
         values = [r.metrics[name] for r in results if name in r.metrics]
         summary[f"{name}_mean"] = sum(values) / len(values)
     return summary
+
+
+def check_verifier(name: str) -> None:
+    """Raise if ``name`` names no registered verifier and no importable ``package.module:function``
+    (the driver calls it before any reward worker starts)."""
+    if ":" in name:
+        load_function(name)
+    else:
+        VERIFIERS.get(name)

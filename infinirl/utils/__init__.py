@@ -3,6 +3,7 @@ and the process's random-number-generator state."""
 
 from infinirl.utils.atomic import (
     atomic_open,
+    atomic_path,
     replace_directory,
     torch_save_atomic,
     write_json_atomic,
@@ -12,6 +13,7 @@ from infinirl.utils.rng import capture_rng_state, restore_rng_state, seed_everyt
 
 __all__ = [
     "atomic_open",
+    "atomic_path",
     "capture_rng_state",
     "replace_directory",
     "restore_rng_state",

@@ -17,7 +17,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_open", "replace_directory", "torch_save_atomic", "write_json_atomic", "write_text_atomic"]
+__all__ = ["atomic_open", "atomic_path", "replace_directory", "torch_save_atomic", "write_json_atomic",
+           "write_text_atomic"]
 
 
 @contextmanager
@@ -40,6 +41,24 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb", suffix: str = ".tmp",
             handle.flush()
             if durable:
                 os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[str]:
+    """A temporary file name beside ``path`` for writers that open files themselves (e.g. a video
+    encoder picking its format by extension); on a clean exit the file replaces ``path``."""
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=suffix)
+    os.close(fd)
+    try:
+        yield tmp
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

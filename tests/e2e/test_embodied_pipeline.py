@@ -146,8 +146,9 @@ def test_bad_names_fail_before_workers_start():
         make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 1, policy={"name": "mlp"})
     with pytest.raises(ConfigError, match="mini_batches=3 does not divide"):
         make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 1, algorithm={"mini_batches": 3})
-    with pytest.raises(ConfigError, match="placement must name exactly env, rollout, actor"):
-        make_cfg("/tmp/x", 1, {"env": "0", "rollout": "0"}, 1)
+    with pytest.raises(ConfigError, match="placement.learner: the embodied runner has no such component; its "
+                                          "components are env, rollout, actor"):
+        make_cfg("/tmp/x", 1, {"env": "0", "rollout": "0", "learner": "0"}, 1)
     with pytest.raises(ConfigError, match="actor.num_threads=-1 must be >= 0"):
         make_cfg("/tmp/x", 1, PLACEMENTS["collocated"][0], 1, actor={"num_threads": -1})
     with pytest.raises(ConfigError, match="rollout.pipeline_stages=0 must be >= 1"):

@@ -75,7 +75,7 @@ def test_base_model_eval_writes_results_and_one_summary_line(ray_cluster, tiny_l
 def test_checkpoint_eval_serves_the_trained_weights_and_ranks_do_not_change_results(ray_cluster, tiny_llama, tmp_path):
     run_dir = tmp_path / "run"
     trained = run_train(to_dataclass(ReasoningConfig, {
-        "steps": 2, "prompts_per_step": 2, "eval_every": 2, "save_every": 2, "loggers": [],
+        "iterations": 2, "prompts_per_step": 2, "eval": {"every": 2}, "save_every": 2, "loggers": [],
         "output_dir": str(run_dir), "model": {"path": tiny_llama}, "task": TASK,
         "rollout": {"group_size": 2, "max_new_tokens": 6}, "actor": {"lr": 1e-3, "micro_batch_size": 2},
         "cluster": {"log_to_driver": False}}))
@@ -93,7 +93,7 @@ def test_checkpoint_eval_serves_the_trained_weights_and_ranks_do_not_change_resu
 
     # The run's checkpoint: the run's model, task and response length come from its config.json.
     ckpt = run_eval(eval_cfg(run_dir=str(run_dir)))
-    assert ckpt["output"] == str(run_dir / "eval" / "chain_sum-step_000002.json") and ckpt["step"] == 2
+    assert ckpt["output"] == str(run_dir / "eval" / "chain_sum-iter_000002.json") and ckpt["step"] == 2
     assert ckpt["weights_sha256"] == trained["actor_weights_sha256"]  # the trained weights were loaded
     assert ckpt["weight_versions"] == [2]  # ... and every sample came from them, after the sync
     assert ckpt["eval/greedy_accuracy"] == train_evals[-1]  # what training measured after step 2

@@ -36,9 +36,9 @@ def _merge(base: dict, extra: dict) -> dict:
     return out
 
 
-def make_cfg(model_dir, output_dir, steps, **extra):
+def make_cfg(model_dir, output_dir, iterations, **extra):
     raw = {
-        "steps": steps, "prompts_per_step": 2, "eval_every": 2, "output_dir": str(output_dir),
+        "iterations": iterations, "prompts_per_step": 2, "eval": {"every": 2}, "output_dir": str(output_dir),
         "save_every": 2, "loggers": ["tensorboard"],
         "model": {"path": model_dir},
         "rollout": {"group_size": 2, "max_new_tokens": 6},
@@ -52,9 +52,9 @@ def make_cfg(model_dir, output_dir, steps, **extra):
 
 
 def test_runs_logs_and_resumes_exactly(ray_cluster, tiny_model_dir, tmp_path):
-    straight = run(make_cfg(tiny_model_dir, tmp_path / "straight", steps=4))
-    first_half = run(make_cfg(tiny_model_dir, tmp_path / "resumed", steps=2))
-    resumed = run(make_cfg(tiny_model_dir, tmp_path / "resumed", steps=4))
+    straight = run(make_cfg(tiny_model_dir, tmp_path / "straight", iterations=4))
+    first_half = run(make_cfg(tiny_model_dir, tmp_path / "resumed", iterations=2))
+    resumed = run(make_cfg(tiny_model_dir, tmp_path / "resumed", iterations=4))
     assert first_half["actor_weights_sha256"] != straight["actor_weights_sha256"]  # training moved weights
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
 
@@ -83,18 +83,18 @@ PPO = {
     "algorithm": {"advantage": "gae", "advantage_kwargs": {"gamma": 1.0, "lam": 0.95}, "whiten_advantages": True,
                   "kl_reward_coef": 0.05, "objective": {"kl_coef": 0.05}},
     "critic": {"lr": 1e-3, "micro_batch_size": 2},
-    "eval_every": 100, "save_every": 1,
+    "eval": {"every": 100}, "save_every": 1,
 }
 
 
 @pytest.mark.slow  # two runs of five components: over a minute on 2 cores
 def test_ppo_with_critic_and_reference_resumes_exactly(ray_cluster, tiny_model_dir, tmp_path):
-    straight = run(make_cfg(tiny_model_dir, tmp_path / "straight", steps=3, **PPO))
+    straight = run(make_cfg(tiny_model_dir, tmp_path / "straight", iterations=3, **PPO))
     # Resume from the straight run's step-2 checkpoint: the third step must come out identical.
     resumed_dir = tmp_path / "resumed" / "checkpoints"
     resumed_dir.mkdir(parents=True)
-    shutil.copytree(tmp_path / "straight" / "checkpoints" / "step_000002", resumed_dir / "step_000002")
-    resumed = run(make_cfg(tiny_model_dir, tmp_path / "resumed", steps=3, **PPO))
+    shutil.copytree(tmp_path / "straight" / "checkpoints" / "iter_000002", resumed_dir / "iter_000002")
+    resumed = run(make_cfg(tiny_model_dir, tmp_path / "resumed", iterations=3, **PPO))
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
     assert resumed["critic_weights_sha256"] == straight["critic_weights_sha256"]
 
@@ -114,7 +114,7 @@ def test_ppo_with_a_lora_actor_scores_kl_against_its_base(ray_cluster, tiny_mode
     """PPO end to end in one short run: critic + GAE, KL as loss term and reward penalty, and
     reference.mode=auto with a LoRA actor, i.e. the actor's base with the adapter off (no
     reference component)."""
-    cfg = make_cfg(tiny_model_dir, tmp_path, steps=3, resume=False, **_merge(PPO, {
+    cfg = make_cfg(tiny_model_dir, tmp_path, iterations=3, resume=False, **_merge(PPO, {
         "save_every": 0, "actor": {"lr": 5e-2, "lora": {"r": 4, "alpha": 8}},
         "critic": {"lora": {"r": 4, "alpha": 8}}}))
     assert cfg.reference_mode == "actor_base"
@@ -140,7 +140,7 @@ def test_a_prompt_over_max_prompt_length_fails_naming_the_key(tiny_model_dir, tm
     from infinirl.runners.reasoning_data import PromptTooLongError, build_problem_sources
 
     # Eval prompts are checked up front, before any worker starts (no Ray cluster needed here).
-    cfg = make_cfg(tiny_model_dir, tmp_path, steps=1, rollout={"max_prompt_length": 8})
+    cfg = make_cfg(tiny_model_dir, tmp_path, iterations=1, rollout={"max_prompt_length": 8})
     with pytest.raises(PromptTooLongError, match=r"rollout.max_prompt_length=8: eval prompt .* is \d+ tokens long.*"
                                                  r"Raise rollout.max_prompt_length to at least \d+"):
         run(cfg)
@@ -160,9 +160,9 @@ def test_a_prompt_over_max_prompt_length_fails_naming_the_key(tiny_model_dir, tm
 def test_streamed_chunks_give_the_same_run_on_one_or_two_rollout_ranks(ray_cluster, tiny_model_dir, tmp_path):
     """Generation streams rollout -> reward -> driver through channels in chunks; each chunk's seed
     follows its index, so spreading chunks over two rollout and two reward ranks changes nothing."""
-    common = {"rollout": {"stream_chunk_prompts": 1}, "save_every": 0, "eval_every": 1}
-    one = run(make_cfg(tiny_model_dir, tmp_path / "one", steps=1, **common))
-    two = run(make_cfg(tiny_model_dir, tmp_path / "two", steps=1, **common,
+    common = {"rollout": {"stream_chunk_prompts": 1}, "save_every": 0, "eval": {"every": 1}}
+    one = run(make_cfg(tiny_model_dir, tmp_path / "one", iterations=1, **common))
+    two = run(make_cfg(tiny_model_dir, tmp_path / "two", iterations=1, **common,
                        placement={"actor": "0", "rollout": "0-1", "reward": "0-1"}))
     assert one["actor_weights_sha256"] == two["actor_weights_sha256"]
     assert read_rows(tmp_path / "one")[1]["rollout/reward_mean"] == read_rows(tmp_path / "two")[1]["rollout/reward_mean"]

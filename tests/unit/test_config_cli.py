@@ -51,10 +51,10 @@ def test_every_shipped_config_loads_and_validates():
 
 def test_cli_rejects_bad_key_value_and_config(capsys):
     assert main(["validate", "default"]) == 0
-    assert main(["validate", "default", "stepz=1"]) == 2
-    assert "Did you mean 'steps'" in capsys.readouterr().err
-    assert main(["validate", "default", "steps=-1"]) == 2
-    assert "steps=-1 must be > 0" in capsys.readouterr().err
+    assert main(["validate", "default", "iterationz=1"]) == 2
+    assert "Did you mean 'iterations'" in capsys.readouterr().err
+    assert main(["validate", "default", "iterations=-1"]) == 2
+    assert "iterations=-1 must be >= 1" in capsys.readouterr().err
     assert main(["validate", "runtime_demo", "placement.learner=1-x"]) == 2
     assert "placement.learner" in capsys.readouterr().err
     assert main(["validate", "no_such_config"]) == 2
@@ -86,7 +86,7 @@ def test_runtime_demo_cli_trains_end_to_end(tmp_path):
     import sys
 
     proc = subprocess.run(
-        [sys.executable, "-m", "infinirl.cli", "train", "runtime_demo", "steps=8", f"output_dir={tmp_path}",
+        [sys.executable, "-m", "infinirl.cli", "train", "runtime_demo", "iterations=8", f"output_dir={tmp_path}",
          "cluster.log_to_driver=false"],
         capture_output=True, text=True, timeout=300,
     )

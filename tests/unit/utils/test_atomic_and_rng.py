@@ -57,3 +57,17 @@ def test_restoring_rng_state_replays_every_generator():
     first = (random.random(), np.random.rand(), torch.rand(1).item())
     restore_rng_state(state)
     assert (random.random(), np.random.rand(), torch.rand(1).item()) == first
+
+
+def test_atomic_path_gives_writers_a_file_name_and_cleans_up(tmp_path):
+    from infinirl.utils import atomic_path
+
+    with atomic_path(tmp_path / "video.mp4", suffix=".tmp.mp4") as tmp:
+        assert tmp.endswith(".tmp.mp4") and str(tmp_path) in tmp
+        with open(tmp, "w") as handle:
+            handle.write("frames")
+    assert (tmp_path / "video.mp4").read_text() == "frames"
+    with pytest.raises(OSError):
+        with atomic_path(tmp_path / "other.mp4") as tmp:
+            raise OSError("encoder failed")
+    assert sorted(os.listdir(tmp_path)) == ["video.mp4"]

@@ -1,0 +1,144 @@
+"""The run configuration every runner shares: seed, length, output, cadences, loggers, placement, cluster.
+
+A runner's config class derives from :class:`RunConfig` and adds its own sections (model, env,
+algorithm, ...). The shared keys mean the same in every runner:
+
+* ``iterations``: how many times the runner's ``step()`` runs (one rollout + one update);
+* ``eval.every`` / ``eval.at_start``: held-out evaluation cadence;
+* ``save_every`` / ``keep_checkpoints``: checkpoint cadence and retention
+  (``<output_dir>/checkpoints/iter_NNNNNN/``);
+* ``resume``: continue from the newest checkpoint of ``output_dir``;
+* ``placement``: component -> devices or CPU slots; a key may name several components
+  (``"actor,rollout": "0"``), and components a config leaves out keep the runner's defaults.
+
+Numeric limits are declared on the fields (:func:`~infinirl.config.bounded`); a subclass's
+``check()`` holds only the rules that involve several fields.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from infinirl.config import ConfigError, bounded
+from infinirl.runtime import ClusterConfig
+
+__all__ = ["EvalSchedule", "RunConfig", "expand_placement", "validate_placement"]
+
+
+@dataclass(kw_only=True)
+class EvalSchedule:
+    """When the held-out evaluation runs; each runner's eval section adds what it evaluates."""
+
+    every: int = bounded(5, ge=0)
+    """Evaluate every N iterations (and after the last); 0 = only after the last."""
+    at_start: bool = True
+    """Also evaluate the initial policy (iteration 0): the baseline the summary's eval_before reports."""
+
+
+@dataclass(kw_only=True)
+class RunConfig:
+    """Keys shared by every runner (see the module docstring)."""
+
+    RUNNER: ClassVar[str] = ""
+    """The registered runner this config class belongs to."""
+    DEFAULT_PLACEMENT: ClassVar[dict[str, str]] = {}
+    """Where each required component goes unless the config says otherwise."""
+    OPTIONAL_COMPONENTS: ClassVar[dict[str, str]] = {}
+    """Components a run may launch besides the required ones -> the component whose placement
+    they take when the config gives none (e.g. a critic on the actor's devices)."""
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {}
+    """Old key -> new key; the old one still works, with a warning, until release 0.2."""
+    RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ()
+    """Keys (or key prefixes) of this runner, besides the shared ones, whose change on resume takes
+    effect as intended (throughput settings that do not change what is learned)."""
+
+    runner: str = ""
+    seed: int = 0
+    iterations: int = bounded(20, ge=1)
+    """Iterations of the runner's step (one rollout and one update each)."""
+    output_dir: str = "runs/run"
+    """Metrics, TensorBoard, curves, checkpoints and the resolved config go here."""
+    save_every: int = bounded(0, ge=0)
+    """Checkpoint every N iterations (0 = only at the end)."""
+    keep_checkpoints: int = bounded(0, ge=0)
+    """Newest checkpoints kept on disk; 0 = keep all."""
+    resume: bool = True
+    """Continue from the newest checkpoint in output_dir if there is one (a config that changed in a
+    way the checkpoint cannot honour is refused, naming the keys)."""
+    loggers: list[str] = field(default_factory=lambda: ["tensorboard"])
+    """Metric sinks besides metrics.jsonl: tensorboard, wandb, swanlab."""
+    eval: EvalSchedule = field(default_factory=EvalSchedule)
+    placement: dict[str, str] = field(default_factory=dict)
+    """Component -> devices or CPU slots (see infinirl.runtime.placement); "a,b" keys place several."""
+    cluster: ClusterConfig = field(default_factory=ClusterConfig)
+
+    def __post_init__(self) -> None:
+        if not self.runner:
+            self.runner = self.RUNNER
+        self.placement = {**expand_placement(self.DEFAULT_PLACEMENT), **expand_placement(self.placement)}
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> None:
+        """Shared rules, then the runner's cross-field rules (:meth:`check`)."""
+        from infinirl.runners.loggers import LOGGERS
+
+        if self.runner != self.RUNNER:
+            raise ConfigError(f"runner={self.runner!r}: this config is for the {self.RUNNER!r} runner; to run another "
+                              "runner pick one of its configs (`infinirl list`)")
+        for name in self.loggers:
+            if name not in LOGGERS:
+                raise ConfigError(f"loggers: unknown logger {name!r}; choose from {', '.join(LOGGERS.names())}")
+        self._validate_placement()
+        self.check()
+
+    def check(self) -> None:
+        """Rules that involve several fields of the runner's own sections; raise ConfigError."""
+
+    def _validate_placement(self) -> None:
+        validate_placement(self.placement, [*self.DEFAULT_PLACEMENT, *self.OPTIONAL_COMPONENTS], self.RUNNER)
+
+    # ------------------------------------------------------------------ derived
+    def components(self) -> list[str]:
+        """The components this run launches (required ones, then optional ones it uses)."""
+        return list(self.DEFAULT_PLACEMENT)
+
+    def placement_spec(self) -> dict[str, str]:
+        """One placement entry per launched component (optional ones fall back as declared)."""
+        entries = dict(self.placement)
+        for name, fallback in self.OPTIONAL_COMPONENTS.items():
+            entries.setdefault(name, entries[fallback])
+        return {name: entries[name] for name in self.components()}
+
+    def resume_may_change(self, key: str) -> bool:
+        """Whether a change of ``key`` (dotted) between a checkpoint and this config takes effect on resume."""
+        shared = ("iterations", "output_dir", "resume", "save_every", "keep_checkpoints", "loggers", "eval",
+                  "placement", "cluster")
+        return any(key == p or key.startswith(p + ".") for p in (*shared, *self.RESUME_MAY_CHANGE))
+
+
+def validate_placement(placement: dict[str, str], known, runner: str) -> None:
+    """Every entry names a component of ``runner`` and parses as a placement spec."""
+    from infinirl.runtime.placement import PlacementError, parse_spec
+
+    for component, spec in placement.items():
+        if component not in known:
+            raise ConfigError(f"placement.{component}: the {runner} runner has no such component; "
+                              f"its components are {', '.join(known)}")
+        try:
+            parse_spec(spec, component)
+        except PlacementError as exc:
+            raise ConfigError(f"placement.{component}: {exc}") from None
+
+
+def expand_placement(placement: dict[str, Any]) -> dict[str, str]:
+    """``{"actor,rollout": "0"}`` -> ``{"actor": "0", "rollout": "0"}``; a component named twice is an error."""
+    entries: dict[str, str] = {}
+    for key, spec in (placement or {}).items():
+        for name in (part.strip() for part in str(key).split(",")):
+            if not name:
+                raise ConfigError(f"placement key {key!r} has an empty component name")
+            if name in entries:
+                raise ConfigError(f"placement gives {name!r} twice; give each component one entry")
+            entries[name] = str(spec)
+    return entries

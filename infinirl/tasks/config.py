@@ -1,0 +1,43 @@
+"""The ``task`` section shared by the reasoning runner and ``infinirl eval``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from infinirl.config import ConfigError, bounded
+
+__all__ = ["TaskConfig"]
+
+
+@dataclass(kw_only=True)
+class TaskConfig:
+    source: str = "reasoning_gym"
+    """Where problems come from, by registered task source: reasoning_gym (a generator) | dataset
+    (a preset such as gsm8k / math500, or a JSONL/Parquet file)."""
+    name: str = "chain_sum"
+    """reasoning-gym task name, or dataset preset (gsm8k, math500) / JSONL/Parquet path."""
+    config: dict[str, Any] = field(default_factory=lambda: {"min_terms": 2, "max_terms": 2, "min_digits": 1,
+                                                            "max_digits": 2})
+    """Generator options of the reasoning-gym task."""
+    verifier: str = "reasoning_gym"
+    """Reward verifier: reasoning_gym | math | gsm8k | a dotted path `pkg.module:function`."""
+    format_bonus: float = 0.0
+    eval_size: int = bounded(64, ge=0)
+    """Held-out problems, excluded from training by question text (a data file: its first rows)."""
+    eval_seed: int = 1_000_003
+    system_prompt: str | None = None
+    prompt_key: str = "question"
+    answer_key: str = "answer"
+
+    def validate(self) -> None:
+        from infinirl.tasks.sources import TASK_SOURCES
+        from infinirl.tasks.verifiers import check_verifier
+
+        if self.source not in TASK_SOURCES:
+            raise ConfigError(f"task.source={self.source!r} is not registered; registered: "
+                              f"{', '.join(TASK_SOURCES.names())}")
+        try:
+            check_verifier(self.verifier)
+        except (ValueError, ImportError, AttributeError, TypeError, KeyError) as exc:
+            raise ConfigError(f"task.verifier={self.verifier!r}: {exc}") from None

@@ -1,0 +1,80 @@
+"""Checkpoint folders appear whole or not at all; the newest committed one is what resume reads,
+after its files are checked against the manifest written with it."""
+
+import json
+import os
+
+import pytest
+
+from infinirl.config import ConfigError
+from infinirl.runners.checkpoints import Checkpoints, config_changes
+
+
+def _commit(folders: Checkpoints, index: int, payload: str = "") -> str:
+    tmp = folders.begin(index)
+    os.makedirs(os.path.join(tmp, "actor"))
+    with open(os.path.join(tmp, "actor", "weights.bin"), "w") as handle:
+        handle.write(payload or str(index))
+    return folders.commit(tmp, index, {"iteration": index})
+
+
+def test_commit_latest_prune_and_half_written_folders_are_ignored(tmp_path):
+    folders = Checkpoints(str(tmp_path))
+    assert folders.latest() is None
+    for index in (2, 4, 6):
+        final = _commit(folders, index)
+        assert final.endswith("iter_%06d" % index) and not os.path.exists(final + ".tmp")
+    crashed = folders.begin(8)  # a save that died before its commit
+    open(os.path.join(crashed, "weights.bin"), "w").write("partial")
+    path, state = folders.latest()
+    assert state == {"iteration": 6} and open(os.path.join(path, "actor", "weights.bin")).read() == "6"
+    folders.prune(2)
+    assert folders.completed() == [(4, "iter_000004"), (6, "iter_000006")]
+    assert os.path.isdir(crashed)  # left for the next begin(8) to clear, never read as a checkpoint
+    assert os.listdir(folders.begin(8)) == []  # a new save starts from an empty folder
+
+
+def test_keep_prunes_on_commit(tmp_path):
+    folders = Checkpoints(str(tmp_path), keep=2)
+    for index in (1, 2, 3):
+        _commit(folders, index)
+    assert [name for _, name in folders.completed()] == ["iter_000002", "iter_000003"]
+
+
+def test_legacy_step_folders_resume_and_sort_by_number(tmp_path):
+    root = tmp_path / "checkpoints"
+    (root / "step_000010").mkdir(parents=True)
+    (root / "step_000010" / "runner_state.json").write_text(json.dumps({"step": 10}))
+    folders = Checkpoints(str(tmp_path))
+    assert folders.latest()[1] == {"step": 10}
+    _commit(folders, 9)
+    assert [name for _, name in folders.completed()] == ["iter_000009", "step_000010"]
+
+
+def test_a_truncated_file_is_named_with_the_fix(tmp_path):
+    folders = Checkpoints(str(tmp_path))
+    _commit(folders, 1)
+    final = _commit(folders, 2, payload="x" * 100)
+    weights = os.path.join(final, "actor", "weights.bin")
+    os.truncate(weights, 10)
+    with pytest.raises(ConfigError, match=r"checkpoint file .*actor/weights.bin is truncated or altered \(10 bytes, "
+                                          r"written with 100\); start over with resume=false, or delete .*iter_000002"):
+        folders.latest()
+    os.remove(weights)
+    with pytest.raises(ConfigError, match=r"weights.bin is missing"):
+        folders.latest()
+
+
+def test_a_corrupt_driver_state_is_named(tmp_path):
+    final = _commit(Checkpoints(str(tmp_path)), 1)
+    with open(os.path.join(final, "runner_state.json"), "w") as handle:
+        handle.write("{not json")
+    with pytest.raises(ConfigError, match=r"runner_state.json is not valid JSON"):
+        Checkpoints(str(tmp_path)).latest()
+
+
+def test_config_changes_lists_every_changed_leaf():
+    old = {"actor": {"lr": 1e-3, "betas": [0.9, 0.99]}, "iterations": 10, "gone": 1}
+    new = {"actor": {"lr": 3e-4, "betas": [0.9, 0.99]}, "iterations": 20, "added": {"x": 1}}
+    assert config_changes(old, new) == {"actor.lr": (1e-3, 3e-4), "iterations": (10, 20), "gone": (1, None),
+                                        "added": (None, {"x": 1})}
