@@ -30,14 +30,15 @@ those, goal xyz), ``proprio`` (hand xyz + gripper opening), ``rgb`` (uint8 HxWx3
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 
 from infinirl.envs.base import ActionSpace, ArraySpec, Obs, SubStep
 from infinirl.envs.fast_rotation import use_fast_rotation
-from infinirl.envs.gymnasium_env import check_obs_mode, use_headless_gl
+from infinirl.envs.gymnasium_env import OBS_MODES, check_obs_mode, use_headless_gl
+from infinirl.envs.options import EnvOptions
 
 __all__ = [
     "DEFAULT_MAX_EPISODE_STEPS",
@@ -45,6 +46,7 @@ __all__ = [
     "MetaWorldSubEnv",
     "camera_is_upside_down",
     "metaworld_factory",
+    "metaworld_options",
     "metaworld_task_names",
 ]
 
@@ -235,3 +237,12 @@ def metaworld_factory(task: str | None, **kwargs: Any) -> MetaWorldFactory:
         )
     check_obs_mode(kwargs.get("obs_mode", "state"))
     return MetaWorldFactory(tuple(names[task]), **kwargs)
+
+
+def metaworld_options(task: str | None) -> EnvOptions:
+    """What ``metaworld:<task>`` takes: the fields of :class:`MetaWorldFactory` (every task takes
+    the same ones, so neither the task nor MetaWorld is looked at)."""
+    return EnvOptions(
+        names=frozenset(f.name for f in fields(MetaWorldFactory) if f.name != "tasks"),
+        choices={"obs_mode": OBS_MODES},
+    )
