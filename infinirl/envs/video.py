@@ -27,8 +27,10 @@ def write_mp4(path: str, frames: Sequence[np.ndarray], fps: int = 30) -> str:
         raise RuntimeError(f"writing the eval video {path} needs imageio's ffmpeg writer: {FFMPEG_HINT}")
     if not len(frames):
         raise ValueError(f"no frames to write to {path}")
-    import imageio.v2 as imageio
+    import imageio.v3 as iio
 
-    with atomic_open(path, "wb", suffix=".tmp.mp4") as handle:  # the extension selects the ffmpeg writer
-        imageio.mimsave(handle.name, list(frames), fps=fps, macro_block_size=1, format="FFMPEG")
+    with atomic_open(path, "wb", suffix=".tmp.mp4") as handle:
+        # imageio encodes into a file of its own and copies it into the open handle: the handle of
+        # a temporary file has no path to give the ffmpeg writer, and the extension must be named.
+        iio.imwrite(handle, np.stack(frames), extension=".mp4", plugin="FFMPEG", fps=fps, macro_block_size=1)
     return path
