@@ -57,9 +57,8 @@ def compiled_act(policy):
     """``policy.act`` through ``torch.compile``, for the collection loop (``rollout.compile``).
 
     Why: a small policy's decision is a few dozen tiny tensor ops whose interpreter overhead
-    outweighs their arithmetic on CPU; compiled, they fuse into a few kernels (MetaWorld's MLP 2x64
-    on 4 envs: ~170 -> ~100 us a decision). The decision sits on every env step's critical path,
-    twice per step with two pipeline stages.
+    outweighs their arithmetic on CPU; compiled, they fuse into a few kernels. The decision sits on
+    every env step's critical path, twice per step with two pipeline stages.
 
     ``fallback_random``: the compiled function draws its Gaussian noise with eager torch's own
     generator calls instead of inductor's in-kernel RNG, so a seed gives the same noise (and leaves
