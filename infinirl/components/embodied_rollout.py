@@ -57,9 +57,8 @@ def compiled_act(policy):
     """``policy.act`` through ``torch.compile``, for the collection loop (``rollout.compile``).
 
     Why: a small policy's decision is a few dozen tiny tensor ops whose interpreter overhead
-    outweighs their arithmetic on CPU; compiled, they fuse into a few kernels (MetaWorld's MLP 2x64
-    on 4 envs: ~170 -> ~100 us a decision). The decision sits on every env step's critical path,
-    twice per step with two pipeline stages.
+    outweighs their arithmetic on CPU; compiled, they fuse into a few kernels. The decision sits on
+    every env step's critical path, twice per step with two pipeline stages.
 
     ``fallback_random``: the compiled function draws its Gaussian noise with eager torch's own
     generator calls instead of inductor's in-kernel RNG, so a seed gives the same noise (and leaves
@@ -178,6 +177,38 @@ class _StageBuffer:
         return out
 
 
+class _RunningEpisodes:
+    """The return and length so far of each env's episode in progress, in one stage.
+
+    Every iteration starts by resetting every env, so both start at zero with the collection;
+    the step results' per-action rewards are summed in float64, action by action in the order
+    the env ran them, as the env's own episode statistics are (:meth:`VectorEnv.open_episodes`).
+    Lengths count env steps (the actions that ran), not decisions."""
+
+    def __init__(self):
+        self.returns: np.ndarray | None = None
+        self.lengths: np.ndarray | None = None
+
+    def add(self, msg: dict) -> None:
+        step_rewards, step_mask = msg["step_rewards"], msg["step_mask"]
+        if self.returns is None:
+            self.returns = np.zeros(len(step_rewards), np.float64)
+            self.lengths = np.zeros(len(step_rewards), np.int64)
+        for k in range(step_rewards.shape[1]):
+            self.returns += np.where(step_mask[:, k], step_rewards[:, k], 0.0)
+        self.lengths += step_mask.sum(axis=1)
+        ended = msg["terminated"] | msg["truncated"]
+        self.returns[ended] = 0.0
+        self.lengths[ended] = 0
+
+
+def _open_episodes(stages: list[_RunningEpisodes]) -> dict[str, np.ndarray]:
+    """Per env of the rank (stage order, as the trajectory's env axis): the running episode's
+    return so far (float64) and steps so far (int64); 0 and 0 where none is running."""
+    return {"return": np.concatenate([s.returns for s in stages]),
+            "length": np.concatenate([s.lengths for s in stages])}
+
+
 def _concat_stages(parts: list[dict]) -> dict:
     """Stage buffers -> one ``[T, n_rank, ...]`` trajectory (env axis 1; bootstrap axis 0)."""
     out: dict[str, Any] = {}
@@ -261,6 +292,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         stages = endpoint.num_stages
         buffers = [_StageBuffer() for _ in range(stages)]
         episodes = [{"return": [], "length": [], "success": []} for _ in range(stages)]
+        running = [_RunningEpisodes() for _ in range(stages)]
         seeds = self._decision_seeds(iteration, stages)
         generator = _sampling_generator(module_device(self.policy))
         steps_done = [0] * stages
@@ -286,7 +318,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                 steps_done[stage] = t + 1
                 if t == num_steps:
                     active.remove(stage)
-                    self._record_result(buf, msg, episodes[stage])
+                    self._record_result(buf, msg, episodes[stage], running[stage])
                     restarted += msg["restarted"]
                     buf.bootstrap = self._values(tensors, next(iter(obs.values())).shape[0])
                     infer_s += time.perf_counter() - start
@@ -300,7 +332,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                 endpoint.send(stage, actions, autoreset=t < num_steps - 1)
                 start = time.perf_counter()
                 if t > 0:
-                    self._record_result(buf, msg, episodes[stage])
+                    self._record_result(buf, msg, episodes[stage], running[stage])
                     restarted += msg["restarted"]
                 buf.obs.append(obs)
                 buf.actions.append(policy_actions)
@@ -314,8 +346,9 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         trajectory["version"] = self.weight_version
         trajectory["episodes"] = {key: np.asarray([x for stage in episodes for x in stage[key]])
                                   for key in episodes[0]}
-        trajectory["timing"] = {"rollout/inference_s": infer_s, "rollout/wait_env_s": wait_s, "rollout/record_s": record_s,
-                                "rollout/cpu_s": time.thread_time() - cpu_start,
+        trajectory["open_episodes"] = _open_episodes(running)
+        trajectory["timing"] = {"rollout/inference_s": infer_s, "rollout/wait_env_s": wait_s,
+                                "rollout/record_s": record_s, "rollout/cpu_s": time.thread_time() - cpu_start,
                                 "rollout/act_compiled": float(self._act_compiled)}  # which path produced the timings
         trajectory["restarted"] = restarted
         return trajectory
@@ -330,7 +363,8 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
             return np.zeros(n, np.float32)
         return host(self.policy.value(tensors)).astype(np.float32)
 
-    def _record_result(self, buf: _StageBuffer, msg: dict, episodes: dict) -> None:
+    def _record_result(self, buf: _StageBuffer, msg: dict, episodes: dict, running: _RunningEpisodes) -> None:
+        running.add(msg)
         n = len(msg["reward"])
         buf.rewards.append(msg["reward"])
         buf.step_rewards.append(msg["step_rewards"])

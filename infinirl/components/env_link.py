@@ -9,13 +9,13 @@ Two transports behind one tiny interface (``send(obj)``, ``recv()``, ``close()``
 * ``channel``: two :class:`~infinirl.runtime.Channel` queues (one per direction). Works wherever
   Ray does and needs no port, at the price of a round trip through the channel actor per message.
 
-Why a socket is the default, measured on this project's 2-core machine (shared, loaded), ping-pong
-of a 4-env MetaWorld observation and its actions between two Ray workers: Channel 12.7 ms per
-round trip, a Ray actor call 2.9 ms, a gloo send/recv pair 2.3 ms (and ~1 ms of CPU per side:
-gloo spins), a socket 0.33 ms (~40 us of CPU per side). One MetaWorld step of 4 envs costs ~2 ms
-of CPU, so only the socket keeps the stream cheaper than the simulation it feeds; with Channels
-the pipeline would mostly be waiting on itself. Bulk data (trajectories to the trainer, weights)
-still moves through Ray, where its size, not its latency, matters.
+Why a socket is the default: a round trip of one small observation and its actions must cost less
+than the simulator step it feeds, or the pipeline mostly waits on itself. A direct socket is one
+kernel hand-off per message with little CPU on either side; a Channel adds a round trip through
+its actor per message, a Ray actor call goes through Ray's scheduling, and gloo's send/recv spins
+a core while it waits. Of these, only the socket stays well below a cheap simulator's step. Bulk
+data (trajectories to the trainer, weights) still moves through Ray, where its size, not its
+latency, matters.
 """
 
 from __future__ import annotations

@@ -152,45 +152,78 @@ def _doing(what: str) -> str:
 
 
 def _stage_main(control, spec: EnvSpec, rank: int, stage: int) -> None:
-    """The stage process: build the stage's envs, then obey the env worker's commands."""
-    from infinirl.components.env_link import accept, close_server, open_server
-
-    env = link = server = None
+    """The stage process: build the stage's envs, then obey the env worker's commands until told
+    to close or until the env worker is gone; a failure goes back to it with its traceback."""
+    server = None
     try:
-        env = StagedEnv(spec, rank, stages=[stage])
+        server = _StageServer(spec, rank, stage)
         control.send(("built", None))
-        while True:
-            try:
-                command, *args = control.recv()
-            except (EOFError, OSError):  # the env worker is gone: nothing left to serve
-                return
-            if command == "listen":
-                server, address = open_server("socket", family=args[0])
-                control.send(("listening", address))
-            elif command == "accept":
-                link = accept(server)
-                control.send(("accepted", None))
-            elif command == "serve":
-                if link is None:
-                    raise RuntimeError("serve before the rollout connected (open_link/accept_link first)")
-                stats = serve_stages(env, link, *args)
-                control.send(("served", {"busy_s": stats["env/simulate_s"]}))
-            elif command == "close":
-                return
-            else:
-                raise RuntimeError(f"unknown stage command {command!r}")
+        _obey(control, server)
     except BaseException:
-        text = (f"env stage {stage} of rank {rank} (pid {os.getpid()}) failed:\n{traceback.format_exc()}")
-        if link is not None:
-            link.close()  # the rollout stops waiting for this stage at once
+        text = f"env stage {stage} of rank {rank} (pid {os.getpid()}) failed:\n{traceback.format_exc()}"
+        if server is not None:
+            server.close_link()  # the rollout stops waiting for this stage at once
         try:
             control.send(("error", text))
         except (OSError, EOFError):
             pass
     finally:
         if server is not None:
-            close_server(server)
-        if link is not None:
-            link.close()
-        if env is not None:
-            env.close()
+            server.close()
+
+
+def _obey(control, server: _StageServer) -> None:
+    """Answer the env worker's commands, one reply each, until ``close`` or a closed pipe."""
+    while True:
+        try:
+            command, *args = control.recv()
+        except (EOFError, OSError):  # the env worker is gone: nothing left to serve
+            return
+        if command == "close":
+            return
+        handler = _STAGE_COMMANDS.get(command)
+        if handler is None:
+            raise RuntimeError(f"unknown stage command {command!r}")
+        control.send(handler(server, *args))
+
+
+class _StageServer:
+    """What a stage process holds: its one-stage :class:`StagedEnv`, the server it listens on,
+    and its link to the rollout once accepted. Each command returns the reply to send."""
+
+    def __init__(self, spec: EnvSpec, rank: int, stage: int):
+        self.env = StagedEnv(spec, rank, stages=[stage])
+        self.server = self.link = None
+
+    def listen(self, family: str | None) -> tuple[str, Any]:
+        from infinirl.components.env_link import open_server
+
+        self.server, address = open_server("socket", family=family)
+        return "listening", address
+
+    def accept(self) -> tuple[str, None]:
+        from infinirl.components.env_link import accept
+
+        self.link = accept(self.server)
+        return "accepted", None
+
+    def serve(self, seeds: list[int], num_steps: int) -> tuple[str, dict]:
+        if self.link is None:
+            raise RuntimeError("serve before the rollout connected (open_link/accept_link first)")
+        stats = serve_stages(self.env, self.link, seeds, num_steps)
+        return "served", {"busy_s": stats["env/simulate_s"]}
+
+    def close_link(self) -> None:
+        if self.link is not None:
+            self.link.close()
+
+    def close(self) -> None:
+        if self.server is not None:
+            from infinirl.components.env_link import close_server
+
+            close_server(self.server)
+        self.close_link()
+        self.env.close()
+
+
+_STAGE_COMMANDS = {"listen": _StageServer.listen, "accept": _StageServer.accept, "serve": _StageServer.serve}

@@ -100,13 +100,15 @@ def iteration_seeds(seed: int, iteration: int, num_envs: int, group_size: int = 
     return [int(s) for s in draws for _ in range(group_size)]
 
 
-def probe_env_specs(name: str, kwargs: dict) -> tuple[dict, Any]:
+def probe_env_specs(name: str, kwargs: dict, where: str = "env.kwargs") -> tuple[dict, Any]:
     """Observation spec and (single-step) action space of env ``name``, from one sub-env built in
-    this process. Also validates the name and options, listing the valid ones on error."""
-    from infinirl.envs.registry import ENVS
+    this process. Also validates the name and options (``where``: their config key, for the
+    error), listing the valid ones on error."""
+    from infinirl.envs.registry import ENVS, check_env_kwargs, split_env_name
 
-    family, _, task = name.partition(":")
-    factory = ENVS.get(family)(task or None, **kwargs)
+    check_env_kwargs(name, kwargs, where)
+    family, task = split_env_name(name)
+    factory = ENVS.get(family)(task, **kwargs)
     sub_env = factory(0)
     try:
         return dict(sub_env.observation_spec), sub_env.action_space

@@ -118,7 +118,8 @@ class SACCollectorWorker(Worker, WeightSink):
     def collect(self, num_steps: int, random_steps: int = 0) -> dict:
         """``num_steps`` steps of every env; the first ``random_steps`` with uniform random
         actions (warm-up), the rest sampled from the actor. Returns the transitions (time-major:
-        step ``t`` of env ``i`` is row ``t * num_envs + i``) and episode statistics."""
+        step ``t`` of env ``i`` is row ``t * num_envs + i``) and episode statistics: of the episodes
+        that ended (``episodes``) and of those still running (``open_episodes``, see :meth:`open_episodes`)."""
         self._ensure_started()
         n, t0 = len(self.envs), time.perf_counter()
         rows: dict[str, list] = {k: [] for k in ("obs", "action", "reward", "next_obs", "terminated", "env_step",
@@ -174,11 +175,19 @@ class SACCollectorWorker(Worker, WeightSink):
         batch["pre_tanh"] = batch["pre_tanh"].astype(np.float32).reshape(-1, self.action_dim)
         batch["env_step"] = batch["env_step"].astype(np.int64)
         batch["episodes"] = {k: np.asarray(v) for k, v in episodes.items()}
+        batch["open_episodes"] = self.open_episodes()
         batch["version"] = self.weight_version
         batch["restarted"] = restarted
         batch["timing"] = {"rollout/inference_s": infer_s, "rollout/simulate_s": sim_s,
                            "rollout/collect_s": time.perf_counter() - t0}
         return batch
+
+    def open_episodes(self) -> dict[str, np.ndarray]:
+        """Per training env, its running episode's return so far (float64) and steps so far (int64),
+        which may span several collections; 0 and 0 right after an episode ended. Read from the
+        envs' own statistics, which replaying an episode on resume rebuilds exactly."""
+        running = [env.open_episodes() for env in self.envs]
+        return {key: np.concatenate([r[key] for r in running]) for key in ("return", "length")}
 
     # ---------------------------------------------------------------- state (exact resume)
     def state(self) -> dict:

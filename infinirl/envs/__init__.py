@@ -1,17 +1,17 @@
 """Vectorised environments for embodied RL: one protocol, one subprocess vectoriser, adapters.
 
-* ``base``      the :class:`Env` / :class:`SubEnv` protocols, :class:`StepResult`, spaces;
-* ``vector``    :class:`VectorEnv`, the one vectoriser (worker processes, auto-reset, restarts);
-* ``chunking``  :class:`ActionChunkEnv`, K actions per step;
-* ``registry``  :data:`ENVS` and :func:`make_env` (``make_env("metaworld:reach-v3", 8)``);
-* adapters      ``gymnasium_env``, ``metaworld_env``, ``maniskill_env``, ``libero_env``.
+* ``base``           the :class:`Env` / :class:`SubEnv` protocols, :class:`StepResult`, spaces;
+* ``vector``         :class:`VectorEnv`, the one vectoriser (auto-reset, restarts, episode stats),
+  with its worker processes in ``vector_worker`` and what they run in ``episode_slots``;
+* ``chunking``       :class:`ActionChunkEnv`, K actions per step;
+* ``registry``       :data:`ENVS`, :func:`make_env` (``make_env("metaworld:reach-v3", 8)``) and
+  :func:`check_env_kwargs` (an option the family does not take, refused before anything is built);
+* ``options``        :class:`EnvOptions`, which options a family takes, read off signatures;
+* adapters           ``gymnasium_env``, ``metaworld_env``, ``maniskill_env``, ``libero_env``.
 
-``make_env`` and ``ENVS`` are loaded on first use: the registry lives under
-``infinirl.algorithms``, which imports torch, and every spawned env worker imports this package;
-keeping it light saves each worker seconds of start-up and hundreds of MB.
+Every spawned env worker imports this package, so it imports numpy and the standard library only;
+simulators are imported by the adapter a worker runs.
 """
-
-from typing import Any
 
 from infinirl.envs.base import (
     ActionSpace,
@@ -26,6 +26,8 @@ from infinirl.envs.base import (
     collate_obs,
 )
 from infinirl.envs.chunking import ActionChunkEnv
+from infinirl.envs.options import EnvOptions
+from infinirl.envs.registry import ENVS, check_env_kwargs, env_options, make_env
 from infinirl.envs.vector import SubEnvFactory, VectorEnv
 
 __all__ = [
@@ -35,6 +37,7 @@ __all__ = [
     "ArraySpec",
     "Env",
     "EnvCrashError",
+    "EnvOptions",
     "Obs",
     "ObservationSpec",
     "StepResult",
@@ -42,16 +45,9 @@ __all__ = [
     "SubEnvFactory",
     "SubStep",
     "VectorEnv",
+    "check_env_kwargs",
     "collate_obs",
+    "env_options",
     "make_env",
 ]
 
-_LAZY = {"ENVS", "make_env"}
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        from infinirl.envs import registry
-
-        return getattr(registry, name)
-    raise AttributeError(f"module 'infinirl.envs' has no attribute {name!r}")

@@ -19,7 +19,7 @@ language strings). Only numpy is used here, so this module imports in any proces
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -38,6 +38,7 @@ __all__ = [
     "ObservationSpec",
     "StepResult",
     "SubEnv",
+    "SubEnvFactory",
     "SubStep",
 ]
 
@@ -246,6 +247,11 @@ class SubEnv(Protocol):
     def close(self) -> None: ...
 
 
+SubEnvFactory = Callable[[int], SubEnv]
+"""Builds the sub-env with the given global index; must be picklable (a module-level class or a
+``functools.partial`` of one) because worker processes call it."""
+
+
 @runtime_checkable
 class Env(Protocol):
     """The vectorised environment components and runners program against.
@@ -254,7 +260,9 @@ class Env(Protocol):
     repeats its current observation with zero reward and no episode end (action chunking uses
     this to stop an env whose episode ended within a chunk). ``autoreset=False``: an episode that
     ends is not restarted and that env may not be stepped again before ``reset`` (for a last step
-    whose next observation is not used). ``offload``/``reload`` release and
+    whose next observation is not used). ``open_episodes()``: the return so far and the steps so
+    far of each env's running episode (``{"return": [num_envs], "length": [num_envs]}``), for
+    reporting progress on episodes longer than a collection. ``offload``/``reload`` release and
     restore device memory for simulators that hold some; CPU simulators make them no-ops.
     """
 
@@ -269,6 +277,8 @@ class Env(Protocol):
     def step(self, actions: Any, env_mask: np.ndarray | None = None, autoreset: bool = True) -> StepResult: ...
 
     def render(self) -> np.ndarray: ...
+
+    def open_episodes(self) -> dict[str, np.ndarray]: ...
 
     def offload(self) -> None: ...
 

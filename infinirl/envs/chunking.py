@@ -108,6 +108,10 @@ class ActionChunkEnv:
     def render(self) -> np.ndarray:
         return self.env.render()
 
+    def open_episodes(self) -> dict[str, np.ndarray]:
+        """The wrapped env's running episodes (lengths in env steps, not chunks)."""
+        return self.env.open_episodes()
+
     def offload(self) -> None:
         self.env.offload()
 

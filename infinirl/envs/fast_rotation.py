@@ -1,14 +1,15 @@
 """MetaWorld's object quaternions without scipy's per-call overhead, bit for bit the same numbers.
 
 Every MetaWorld v3 task that observes an object's orientation computes it on every step as
-``Rotation.from_matrix(xmat.reshape(3, 3)).as_quat()`` (scipy). For one 3x3 matrix that call costs
-~50-100 us in scipy 1.17 (array-API dispatch, determinant, Gram-matrix and ``isclose`` checks): a
-third of the CPU time of a ``reach-v3`` step, physics included (4 envs: 1.2-1.3 ms -> 0.8 ms). :func:`matrix_to_quaternion` does the same arithmetic as
+``Rotation.from_matrix(xmat.reshape(3, 3)).as_quat()`` (scipy). For one 3x3 matrix scipy's fixed
+per-call work (array-API dispatch, determinant, Gram-matrix and ``isclose`` checks) outweighs the
+arithmetic many times over, and it is paid on every simulator step, so it is a sizeable share of a
+cheap task's step, physics included. :func:`matrix_to_quaternion` does the same arithmetic as
 scipy (the orthogonality and handedness checks, then Markley's method and the normalisation, in
-scipy's order of operations) on Python floats in ~2 us, and hands anything scipy would treat
-specially (a matrix that is not orthogonal within scipy's tolerance, or not right-handed) to scipy
-itself, so results and errors are scipy's own. ``tests/unit/test_metaworld_fast_rotation.py``
-checks bitwise equality on random rotations, the branch boundaries and real MetaWorld states.
+scipy's order of operations) on Python floats, and hands anything scipy would treat specially (a
+matrix that is not orthogonal within scipy's tolerance, or not right-handed) to scipy itself, so
+results and errors are scipy's own. ``tests/unit/envs/test_metaworld_fast_rotation.py`` checks
+bitwise equality on random rotations, the branch boundaries and real MetaWorld states.
 
 :func:`use_fast_rotation` puts :class:`FastRotation` in place of ``Rotation`` in the one module
 that defines a MetaWorld task class (only if that name is scipy's ``Rotation``); the module's only

@@ -22,11 +22,16 @@ from typing import Any
 import numpy as np
 
 from infinirl.envs.base import ActionSpace, ArraySpec, Obs, SubStep
+from infinirl.envs.options import EnvOptions, keyword_names
 
-__all__ = ["GymnasiumFactory", "GymnasiumSubEnv", "OBS_MODES", "use_headless_gl"]
+__all__ = ["GymnasiumFactory", "GymnasiumSubEnv", "OBS_MODES", "gymnasium_factory", "gymnasium_options",
+           "use_headless_gl"]
 
 OBS_MODES = ("state", "rgb", "state+rgb")
 """Which observation fields a rendering-capable adapter returns."""
+
+ADAPTER_OPTIONS = ("obs_mode", "clip_actions", "instruction")
+"""The options this adapter takes itself; every other one goes to ``gymnasium.make``."""
 
 
 def use_headless_gl() -> str:
@@ -40,9 +45,7 @@ def use_headless_gl() -> str:
     With ``osmesa`` (software rendering by Mesa's llvmpipe) it also sets ``LP_NUM_THREADS=0``
     unless the user exported a value: each frame is then rasterised by the thread that asked for
     it. llvmpipe's default, a rasteriser thread per CPU for every GL context, only adds hand-offs
-    for frames of 64-128 pixels when every core already runs a simulator process: measured on
-    2 cores, 8 MetaWorld envs rendering 64x64 frames as 2 processes of 4 ran ~9% more steps/s (the
-    pipelined RGB benchmark row ~10% more), 8 processes of 1 the same, one env alone ~20% more.
+    for frames of 64-128 pixels when every core already runs a simulator process.
     """
     if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
         for backend, library in (("osmesa", "OSMesa"), ("egl", "EGL")):
@@ -177,20 +180,46 @@ def gymnasium_factory(task: str | None, **kwargs: Any) -> GymnasiumFactory:
     if not task:
         raise ValueError("name a gymnasium env id: make_env('gym:CartPole-v1', ...)")
     check_gym_id(task)
-    own = {key: kwargs.pop(key) for key in ("obs_mode", "clip_actions", "instruction") if key in kwargs}
+    own = {key: kwargs.pop(key) for key in ADAPTER_OPTIONS if key in kwargs}
     check_obs_mode(own.get("obs_mode", "state"))
     return GymnasiumFactory(task, make_kwargs=kwargs, **own)
+
+
+def gymnasium_options(task: str | None) -> EnvOptions:
+    """What ``gym:<task>`` takes: this adapter's options, ``gymnasium.make``'s own, and the env
+    constructor's (read off its signature: the env is not built). ``render_mode`` is the
+    adapter's to set."""
+    if not task:
+        raise ValueError("name a gymnasium env id: make_env('gym:CartPole-v1', ...)")
+    check_gym_id(task)
+    import gymnasium as gym
+
+    # Loading a MuJoCo task's module imports MuJoCo, which fixes its GL backend on import: choose
+    # the headless one first, as building the env would.
+    use_headless_gl()
+    constructor, passes_others = keyword_names(env_creator(task))
+    make_options, _ = keyword_names(gym.make, skip=("id",))
+    return EnvOptions(
+        names=frozenset(ADAPTER_OPTIONS) | make_options | (constructor - {"render_mode"}),
+        passes_others=passes_others,
+        reserved={"render_mode": "the adapter sets it: rgb_array where the env can render, for rgb and videos"},
+        choices={"obs_mode": OBS_MODES},
+    )
+
+
+def env_creator(env_id: str) -> Any:
+    """The class or function ``gymnasium.make(env_id)`` calls (its module imported, nothing built)."""
+    import gymnasium as gym
+    from gymnasium.envs.registration import load_env_creator
+
+    entry_point = gym.spec(env_id).entry_point
+    return load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point
 
 
 def _rgb_render_mode(env_id: str) -> str | None:
     """``"rgb_array"`` if the env supports it (frames for ``rgb`` and videos), else ``None``.
     Creating a renderer is lazy in gymnasium, so asking for it costs nothing until a render."""
-    import gymnasium as gym
-    from gymnasium.envs.registration import load_env_creator
-
-    entry_point = gym.spec(env_id).entry_point
-    creator = load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point
-    modes = getattr(creator, "metadata", {}).get("render_modes", [])
+    modes = getattr(env_creator(env_id), "metadata", {}).get("render_modes", [])
     return "rgb_array" if "rgb_array" in modes else None
 
 

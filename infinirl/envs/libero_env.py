@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +27,9 @@ import numpy as np
 
 from infinirl.envs.base import ActionSpace, ArraySpec, Obs, SubStep
 from infinirl.envs.gymnasium_env import use_headless_gl
+from infinirl.envs.options import EnvOptions
 
-__all__ = ["LiberoAssetsMissing", "LiberoFactory", "LiberoSubEnv", "find_assets", "libero_factory"]
+__all__ = ["LiberoAssetsMissing", "LiberoFactory", "LiberoSubEnv", "find_assets", "libero_factory", "libero_options"]
 
 SUITE_MAX_EPISODE_STEPS = {
     "libero_spatial": 220,
@@ -226,3 +227,9 @@ def libero_factory(task: str | None, **kwargs: Any) -> LiberoFactory:
         raise ValueError(f"LIBERO {suite} has tasks 0..{num_tasks - 1}, got {index!r}")
     indices = (int(index),) if index else tuple(range(num_tasks))
     return LiberoFactory(suite, indices, **kwargs)
+
+
+def libero_options(task: str | None) -> EnvOptions:
+    """What ``libero:<suite>`` takes: the fields of :class:`LiberoFactory` other than the task
+    selection (read without importing LIBERO)."""
+    return EnvOptions(names=frozenset(f.name for f in fields(LiberoFactory)) - {"suite", "task_indices"})

@@ -23,10 +23,17 @@ from typing import Any
 import numpy as np
 
 from infinirl.envs.base import ActionSpace, ArraySpec, Obs, SubStep
+from infinirl.envs.options import EnvOptions, keyword_names
 
-__all__ = ["ManiSkillFactory", "ManiSkillSubEnv", "maniskill_factory"]
+__all__ = ["ManiSkillFactory", "ManiSkillSubEnv", "maniskill_factory", "maniskill_options"]
 
 MANISKILL_OBS_MODES = ("state", "rgb")
+ADAPTER_OPTIONS = ("obs_mode", "image_size")
+"""The options this adapter takes itself; every other one goes to ``gymnasium.make``."""
+ADAPTER_SETS = {
+    "sim_backend": "the adapter simulates on SAPIEN's CPU backend, physx_cpu",
+    "render_backend": "the adapter sets it from obs_mode and render_mode",
+}
 _CAMERA = "base_camera"
 
 
@@ -133,8 +140,36 @@ class ManiSkillFactory:
 def maniskill_factory(task: str | None, **kwargs: Any) -> ManiSkillFactory:
     """Registry entry: ``maniskill:<task id>``; unknown keyword arguments go to ``gymnasium.make``
     (e.g. ``control_mode="pd_ee_delta_pos"``, ``reward_mode="dense"``)."""
+    check_task(task)
+    own = {key: kwargs.pop(key) for key in ADAPTER_OPTIONS if key in kwargs}
+    if own.get("obs_mode", "state") not in MANISKILL_OBS_MODES:
+        raise ValueError(f"ManiSkill obs_mode must be one of {MANISKILL_OBS_MODES}, got {own['obs_mode']!r}")
+    return ManiSkillFactory(task, make_kwargs=kwargs, **own)
+
+
+def maniskill_options(task: str | None) -> EnvOptions:
+    """What ``maniskill:<task>`` takes: this adapter's options, ``gymnasium.make``'s own, and the
+    task class's constructor options (ManiSkill's ``BaseEnv`` ones included), read off signatures:
+    importing ManiSkill registers its tasks, no scene is built."""
+    import gymnasium as gym
+
+    check_task(task)
+    from mani_skill.utils.registration import REGISTERED_ENVS
+
+    constructor, passes_others = keyword_names(REGISTERED_ENVS[task].cls)
+    make_options, _ = keyword_names(gym.make, skip=("id",))
+    return EnvOptions(
+        names=frozenset(ADAPTER_OPTIONS) | make_options | (constructor - set(ADAPTER_SETS)),
+        passes_others=passes_others,
+        reserved=ADAPTER_SETS,
+        choices={"obs_mode": MANISKILL_OBS_MODES},
+    )
+
+
+def check_task(task: str | None) -> None:
+    """Fail in the caller's process if ManiSkill is missing or does not know ``task``."""
     try:
-        import mani_skill.envs  # noqa: F401
+        import mani_skill.envs  # noqa: F401  (registers the ManiSkill tasks)
     except ImportError as exc:
         raise ModuleNotFoundError(
             "ManiSkill is not installed: pip install mani-skill (and Mesa >= 23 Vulkan drivers, "
@@ -144,7 +179,3 @@ def maniskill_factory(task: str | None, **kwargs: Any) -> ManiSkillFactory:
 
     if task not in REGISTERED_ENVS:
         raise ValueError(f"unknown ManiSkill task {task!r}; tasks: {', '.join(sorted(REGISTERED_ENVS))}")
-    own = {key: kwargs.pop(key) for key in ("obs_mode", "image_size") if key in kwargs}
-    if own.get("obs_mode", "state") not in MANISKILL_OBS_MODES:
-        raise ValueError(f"ManiSkill obs_mode must be one of {MANISKILL_OBS_MODES}, got {own['obs_mode']!r}")
-    return ManiSkillFactory(task, make_kwargs=kwargs, **own)

@@ -17,11 +17,11 @@ What this adapter fixes on top of the raw MetaWorld class:
   detects that from the camera's pose (its image-up axis points below the horizon) and frames are
   rotated back by 180° (a rotation, not a vertical flip, which would mirror the scene).
 * **Cheaper steps.** The object quaternion in the observation is computed by
-  :mod:`~infinirl.envs.fast_rotation` (scipy's numbers bit for bit, ~25x faster per call): a
-  ``reach-v3`` step takes a third less CPU.
+  :mod:`~infinirl.envs.fast_rotation` (scipy's numbers bit for bit, without scipy's per-call
+  overhead, which is a sizeable share of a cheap task's step).
 * **Affordable pixels on CPU.** ``fast_render`` (default) turns off shadows, reflections and
   multisample anti-aliasing in the model's visual settings (physics untouched): software GL then
-  renders a 64x64 frame in ~6.5 ms of CPU instead of ~90 ms (see :func:`_fast_visuals`).
+  renders a small frame in a fraction of the time (see :func:`_fast_visuals`).
 
 Observations: ``state`` (39 floats: hand xyz, gripper opening, object poses, the previous frame of
 those, goal xyz), ``proprio`` (hand xyz + gripper opening), ``rgb`` (uint8 HxWx3, when
@@ -30,14 +30,15 @@ those, goal xyz), ``proprio`` (hand xyz + gripper opening), ``rgb`` (uint8 HxWx3
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 
 from infinirl.envs.base import ActionSpace, ArraySpec, Obs, SubStep
 from infinirl.envs.fast_rotation import use_fast_rotation
-from infinirl.envs.gymnasium_env import check_obs_mode, use_headless_gl
+from infinirl.envs.gymnasium_env import OBS_MODES, check_obs_mode, use_headless_gl
+from infinirl.envs.options import EnvOptions
 
 __all__ = [
     "DEFAULT_MAX_EPISODE_STEPS",
@@ -45,6 +46,7 @@ __all__ = [
     "MetaWorldSubEnv",
     "camera_is_upside_down",
     "metaworld_factory",
+    "metaworld_options",
     "metaworld_task_names",
 ]
 
@@ -187,11 +189,11 @@ def _make_goal_observable_and_seedable(sim: Any, task_kwargs: dict) -> None:
 
 
 def _fast_visuals(model: Any) -> None:
-    """Visual-only model settings for software GL (physics untouched), measured on 64x64 frames:
+    """Visual-only model settings for software GL (physics untouched), for small frames:
 
-    * shadows and reflections off: their extra passes dominated rendering (~90 -> ~17 ms);
-    * no multisample anti-aliasing (``offsamples`` 4 -> 0): reading a frame back resolved the whole
-      4-sample 640x480 offscreen buffer in software, ~2/3 of what was left (~17 -> ~6.5 ms). The
+    * shadows and reflections off: each adds render passes, which dominate a small frame's cost;
+    * no multisample anti-aliasing (``offsamples`` 4 -> 0): reading a frame back otherwise resolves
+      the whole 4-sample 640x480 offscreen buffer in software, whatever the frame's size. The
       only change to the picture is on object edges, which lose their anti-aliasing.
 
     Must run before the first render, which creates the GL context with these settings."""
@@ -235,3 +237,12 @@ def metaworld_factory(task: str | None, **kwargs: Any) -> MetaWorldFactory:
         )
     check_obs_mode(kwargs.get("obs_mode", "state"))
     return MetaWorldFactory(tuple(names[task]), **kwargs)
+
+
+def metaworld_options(task: str | None) -> EnvOptions:
+    """What ``metaworld:<task>`` takes: the fields of :class:`MetaWorldFactory` (every task takes
+    the same ones, so neither the task nor MetaWorld is looked at)."""
+    return EnvOptions(
+        names=frozenset(f.name for f in fields(MetaWorldFactory) if f.name != "tasks"),
+        choices={"obs_mode": OBS_MODES},
+    )

@@ -7,21 +7,25 @@ adapter only supplies a picklable factory ``factory(env_index) -> SubEnv``. What
   holds torch threads or a GL context is unsafe), each owning a contiguous block of sub-envs, so
   the cost of a message is paid per worker, not per env. ``num_workers=0`` steps the sub-envs in
   the calling process through the same code path (cheapest for tiny envs, and easy to debug).
-  Observations travel pickled through pipes: simpler than shared memory and, measured, not the
-  bottleneck for state or small RGB observations.
+  Observations travel pickled through pipes: simpler than shared memory, and state or small RGB
+  observations are small next to a simulator step. The worker process and the parent's handle on
+  it are :mod:`~infinirl.envs.vector_worker`; what a worker does with its sub-envs is
+  :mod:`~infinirl.envs.episode_slots`.
 * **Auto-reset.** An env whose episode ends is reset at once; its last observation goes to
   ``info["final_obs"]``. Each env draws its episode seeds from its own stream, so a run is
   reproducible from ``seed`` alone, and envs reset to the same ``state_id`` stay in lockstep.
   ``step(..., autoreset=False)`` skips that reset for a step whose next observation nobody will
   use (a rollout's last step, before the next iteration resets every env with its own seed): a
-  MetaWorld reset costs as much as ~40 steps. Such an env stays ended until ``reset``.
+  simulator reset can cost as much as many steps (MetaWorld rebuilds its scene layout). Such an
+  env stays ended until ``reset``.
 * **Crash recovery.** A sub-env whose ``step`` raises is rebuilt from its factory inside its
   worker; a worker process that dies (segfault, ``os._exit``, OOM kill) or exceeds
   ``step_timeout_s`` is replaced. Either way the affected episodes are reported truncated with
   ``info["restarted"]`` and training goes on; only a sub-env that cannot be rebuilt, or more than
   ``max_restarts`` crashes, stops the run, with the original traceback in the error.
 * **Episode statistics.** Return, length and success-at-any-step are tracked here, in the parent,
-  so they survive a worker that dies.
+  so they survive a worker that dies; :meth:`VectorEnv.open_episodes` reads those of the episodes
+  still running.
 """
 
 from __future__ import annotations
@@ -29,367 +33,29 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
-import signal
-import traceback
 import weakref
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from infinirl.envs.base import (
-    ActionSpace,
     EnvCrashError,
     Obs,
     ObservationSpec,
     StepResult,
-    SubEnv,
+    SubEnvFactory,
     collate_obs,
     copy_obs,
     obs_row,
     set_obs_rows,
 )
+from infinirl.envs.episode_slots import BlockStep
+from infinirl.envs.vector_worker import LocalWorker, ProcessWorker, WorkerLost, close_workers
 
 __all__ = ["SubEnvFactory", "VectorEnv"]
 
 logger = logging.getLogger(__name__)
-
-SubEnvFactory = Callable[[int], SubEnv]
-"""Builds the sub-env with the given global index; must be picklable (a module-level class or a
-``functools.partial`` of one) because worker processes call it."""
-
-# Distinct seed-stream namespaces, so "seed 3" and "state 3" give different episode sequences.
-_SEED_STREAM = 0
-_STATE_STREAM = 1
-_CLOSE_TIMEOUT_S = 5.0
-
-
-# --------------------------------------------------------------------------------------------
-# Inside a worker: sub-envs with seeds, time limits, auto-reset and in-place restarts.
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class _SlotStep:
-    """One sub-env's step as a worker reports it (pickled back to the parent)."""
-
-    obs: Obs
-    reward: float
-    terminated: bool
-    truncated: bool
-    success: bool
-    final_obs: Obs | None = None  # set when the episode ended and ``obs`` is a fresh reset
-    restart_error: str | None = None  # set when the sub-env crashed and was rebuilt
-
-
-@dataclass
-class _BlockStep:
-    """The steps of the envs one worker stepped, batched in the worker so that one small message
-    (a few arrays) crosses the pipe instead of one object per env. Positions index the block."""
-
-    obs: Obs
-    reward: np.ndarray
-    terminated: np.ndarray
-    truncated: np.ndarray
-    success: np.ndarray
-    final_obs: dict[int, Obs]
-    restart_errors: dict[int, str]
-
-    @classmethod
-    def from_slots(cls, steps: Sequence[_SlotStep]) -> _BlockStep:
-        return cls(
-            obs=collate_obs([step.obs for step in steps]),
-            reward=np.array([step.reward for step in steps], dtype=np.float32),
-            terminated=np.array([step.terminated for step in steps], dtype=bool),
-            truncated=np.array([step.truncated for step in steps], dtype=bool),
-            success=np.array([step.success for step in steps], dtype=bool),
-            final_obs={k: step.final_obs for k, step in enumerate(steps) if step.final_obs is not None},
-            restart_errors={
-                k: step.restart_error for k, step in enumerate(steps) if step.restart_error is not None
-            },
-        )
-
-
-class _EpisodeSlot:
-    """One sub-env plus what every simulator needs around it: its episode-seed stream, the time
-    limit, auto-reset, and rebuilding it from its factory when it raises."""
-
-    def __init__(
-        self,
-        index: int,
-        factory: SubEnvFactory,
-        seed_entropy: Sequence[int],
-        max_episode_steps: int | None,
-    ) -> None:
-        self.index = index
-        self._factory = factory
-        self._max_episode_steps = max_episode_steps
-        self._seed_stream = np.random.default_rng(list(seed_entropy))
-        self._length = 0
-        self.env = factory(index)
-
-    def reset(self, seed: int | None = None, state_id: int | None = None) -> Obs:
-        """Start an episode: at ``state_id`` if given, else with ``seed`` (else the next seed of
-        this env's stream). Later auto-resets continue a stream derived from that seed or state,
-        so envs reset to the same state keep starting identical episodes."""
-        if state_id is not None:
-            self._seed_stream = np.random.default_rng([state_id, _STATE_STREAM])
-        elif seed is not None:
-            self._seed_stream = np.random.default_rng([seed, _SEED_STREAM])
-        else:
-            seed = self._next_seed()
-        return self._reset_or_rebuild(seed, state_id)
-
-    def step(self, action: np.ndarray, autoreset: bool = True) -> _SlotStep:
-        try:
-            sub = self.env.step(action)
-        except Exception:  # a crashing simulator must not take the run down
-            error = traceback.format_exc()
-            return _SlotStep(self._rebuild(error), 0.0, False, True, False, restart_error=error)
-        self._length += 1
-        out_of_time = self._max_episode_steps is not None and self._length >= self._max_episode_steps
-        result = _SlotStep(
-            sub.obs,
-            float(sub.reward),
-            bool(sub.terminated),
-            bool(sub.truncated) or (out_of_time and not sub.terminated),
-            bool(sub.success),
-        )
-        if result.terminated or result.truncated:
-            result.final_obs = sub.obs
-            if autoreset:
-                result.obs = self._reset_or_rebuild(self._next_seed(), None)
-        return result
-
-    def _next_seed(self) -> int:
-        return int(self._seed_stream.integers(2**31 - 1))
-
-    def _reset_or_rebuild(self, seed: int | None, state_id: int | None) -> Obs:
-        self._length = 0
-        try:
-            return self.env.reset(seed=seed, state_id=state_id)
-        except Exception:
-            error = traceback.format_exc()
-        logger.warning("sub-env %d failed to reset; rebuilding it:\n%s", self.index, error)
-        self._replace_env(error)
-        try:
-            return self.env.reset(seed=seed, state_id=state_id)
-        except Exception as exc:
-            raise EnvCrashError(
-                f"sub-env {self.index} fails to reset even when freshly built:\n"
-                f"{traceback.format_exc()}\nfirst failure:\n{error}"
-            ) from exc
-
-    def _rebuild(self, error: str) -> Obs:
-        """Replace a crashed sub-env and start it on the next seed of its stream."""
-        self._replace_env(error)
-        return self._reset_or_rebuild(self._next_seed(), None)
-
-    def _replace_env(self, error: str) -> None:
-        try:
-            self.env.close()
-        except Exception:  # the old env is broken anyway; closing it is best effort
-            pass
-        try:
-            self.env = self._factory(self.index)
-        except Exception as exc:
-            raise EnvCrashError(
-                f"sub-env {self.index} crashed and cannot be rebuilt:\n{traceback.format_exc()}\n"
-                f"original crash:\n{error}"
-            ) from exc
-
-    def close(self) -> None:
-        self.env.close()
-
-
-class _SlotGroup:
-    """The sub-envs one worker owns, answering the parent's commands. Local slot ``k`` is global
-    env ``indices[k]``; ``generation`` counts process restarts so a replacement worker draws
-    episode seeds different from the ones its dead predecessor used."""
-
-    def __init__(
-        self,
-        factory: SubEnvFactory,
-        indices: Sequence[int],
-        base_seed: int,
-        generation: int,
-        max_episode_steps: int | None,
-    ) -> None:
-        self.slots = [
-            _EpisodeSlot(index, factory, (base_seed, index, generation), max_episode_steps)
-            for index in indices
-        ]
-
-    def specs(self) -> tuple[ActionSpace, dict]:
-        env = self.slots[0].env
-        return env.action_space, dict(env.observation_spec)
-
-    def reset(self, requests: Sequence[tuple[int, int | None, int | None]]) -> Obs:
-        """``requests``: (local slot, seed, state_id) per env to reset; batched first obs."""
-        return collate_obs([self.slots[k].reset(seed, state_id) for k, seed, state_id in requests])
-
-    def step(self, slots: Sequence[int], actions: np.ndarray, autoreset: bool = True) -> _BlockStep | None:
-        """Step local ``slots`` with the matching rows of ``actions``."""
-        if not slots:
-            return None
-        return _BlockStep.from_slots([self.slots[k].step(a, autoreset) for k, a in zip(slots, actions, strict=False)])
-
-    def render(self) -> list[np.ndarray]:
-        return [slot.env.render() for slot in self.slots]
-
-    def close(self) -> None:
-        for slot in self.slots:
-            slot.close()
-
-
-_COMMANDS: dict[str, Callable[..., Any]] = {
-    "reset": _SlotGroup.reset,
-    "step": _SlotGroup.step,
-    "render": _SlotGroup.render,
-    "close": _SlotGroup.close,
-}
-
-
-def _worker_main(conn, factory, indices, base_seed, generation, max_episode_steps) -> None:
-    """Entry point of a worker process: build the slots, then serve commands until told to close
-    or until the parent disappears (its end of the pipe closes)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
-    try:
-        group = _SlotGroup(factory, indices, base_seed, generation, max_episode_steps)
-        conn.send(("ok", group.specs()))
-    except BaseException:
-        conn.send(("error", traceback.format_exc()))
-        conn.close()
-        return
-    while True:
-        try:
-            command, args = conn.recv()
-        except (EOFError, OSError):
-            break
-        try:
-            reply = ("ok", _COMMANDS[command](group, *args))
-        except Exception:
-            reply = ("error", traceback.format_exc())
-        conn.send(reply)
-        if command == "close":
-            break
-    conn.close()
-
-
-# --------------------------------------------------------------------------------------------
-# In the parent: one handle per worker, in-process or a child process, with one interface.
-# --------------------------------------------------------------------------------------------
-
-
-class _WorkerLost(Exception):
-    """The worker process died or stopped answering; the parent replaces it."""
-
-
-class _LocalWorker:
-    """Runs a :class:`_SlotGroup` in the calling process (``num_workers=0``)."""
-
-    def __init__(self, factory, indices, base_seed, max_episode_steps) -> None:
-        self.indices = list(indices)
-        self._group = _SlotGroup(factory, indices, base_seed, 0, max_episode_steps)
-        self.specs = self._group.specs()
-        self._pending: tuple[str, tuple] | None = None
-
-    def send(self, command: str, *args: Any) -> None:
-        self._pending = (command, args)
-
-    def receive(self, timeout_s: float | None = None) -> Any:
-        command, args = self._pending
-        self._pending = None
-        return _COMMANDS[command](self._group, *args)
-
-    def restart(self) -> None:  # a local worker cannot die without taking the parent with it
-        raise AssertionError("in-process workers are never restarted")
-
-    def close(self) -> None:
-        self._group.close()
-
-
-class _ProcessWorker:
-    """A child process owning ``indices``; ``receive`` turns death or silence into
-    :class:`_WorkerLost` and a Python error inside it into :class:`EnvCrashError`."""
-
-    def __init__(self, context, factory, indices, base_seed, max_episode_steps) -> None:
-        self.indices = list(indices)
-        self._context = context
-        self._args = (factory, self.indices, base_seed)
-        self._max_episode_steps = max_episode_steps
-        self.generation = 0
-        self.process = None
-        self._conn = None
-        self.specs = None
-
-    def start(self) -> None:
-        parent_conn, child_conn = self._context.Pipe()
-        factory, indices, base_seed = self._args
-        self.process = self._context.Process(
-            target=_worker_main,
-            args=(child_conn, factory, indices, base_seed, self.generation, self._max_episode_steps),
-            name=f"infinirl-env-worker-{indices[0]}-{indices[-1]}",
-            daemon=True,
-        )
-        self.process.start()
-        child_conn.close()  # so that the child's death reads as EOF here
-        self._conn = parent_conn
-
-    def wait_ready(self) -> None:
-        self.specs = self.receive()
-
-    def send(self, command: str, *args: Any) -> None:
-        try:
-            self._conn.send((command, args))
-        except (BrokenPipeError, OSError):
-            pass  # the death is reported by the following receive
-
-    def receive(self, timeout_s: float | None = None) -> Any:
-        try:
-            if not self._conn.poll(timeout_s):
-                raise _WorkerLost(f"no answer within {timeout_s} s")
-            status, payload = self._conn.recv()
-        except (EOFError, OSError, ConnectionError) as exc:
-            self.process.join(_CLOSE_TIMEOUT_S)  # reap it, so the exit code is known
-            raise _WorkerLost(f"process died (exit code {self.process.exitcode})") from exc
-        if status == "error":
-            raise EnvCrashError(f"sub-envs {self.indices} failed in their worker process:\n{payload}")
-        return payload
-
-    def restart(self) -> None:
-        self._stop(graceful=False)
-        self.generation += 1
-        self.start()
-        self.wait_ready()
-
-    def close(self) -> None:
-        self._stop(graceful=True)
-
-    def _stop(self, graceful: bool) -> None:
-        if self.process is None:
-            return
-        if graceful and self.process.is_alive():
-            self.send("close")
-            try:
-                self.receive(_CLOSE_TIMEOUT_S)
-            except (_WorkerLost, EnvCrashError):
-                pass
-            self.process.join(_CLOSE_TIMEOUT_S)
-        if self.process.is_alive():
-            self.process.kill()
-        self.process.join()  # reaps the child: no zombie left behind
-        self._conn.close()
-        self.process = None
-
-
-def _close_workers(workers: list) -> None:
-    for worker in workers:
-        try:
-            worker.close()
-        except Exception:  # closing is best effort; one broken worker must not keep others open
-            logger.exception("closing env worker %s failed", worker.indices)
 
 
 class VectorEnv:
@@ -441,7 +107,7 @@ class VectorEnv:
         self._workers = self._start_workers(
             factory, num_workers, seed, max_episode_steps, start_method
         )
-        self._finalizer = weakref.finalize(self, _close_workers, self._workers)
+        self._finalizer = weakref.finalize(self, close_workers, self._workers)
         self.action_space, observation_spec = self._workers[0].specs
         self.observation_spec: ObservationSpec = observation_spec
         self._episode_return = np.zeros(num_envs, dtype=np.float64)
@@ -451,11 +117,11 @@ class VectorEnv:
 
     def _start_workers(self, factory, num_workers, seed, max_episode_steps, start_method):
         if num_workers == 0:
-            return [_LocalWorker(factory, range(self.num_envs), seed, max_episode_steps)]
+            return [LocalWorker(factory, range(self.num_envs), seed, max_episode_steps)]
         context = mp.get_context(start_method)
         blocks = np.array_split(np.arange(self.num_envs), num_workers)
         workers = [
-            _ProcessWorker(context, factory, [int(i) for i in block], seed, max_episode_steps)
+            ProcessWorker(context, factory, [int(i) for i in block], seed, max_episode_steps)
             for block in blocks
         ]
         try:
@@ -464,7 +130,7 @@ class VectorEnv:
             for worker in workers:
                 try:
                     worker.wait_ready()
-                except _WorkerLost as exc:
+                except WorkerLost as exc:
                     raise EnvCrashError(
                         f"env worker for sub-envs {worker.indices} died while starting ({exc}); "
                         "its traceback is on stderr. Workers are spawned: they re-import the "
@@ -472,7 +138,7 @@ class VectorEnv:
                         "`if __name__ == '__main__':` and cannot be read from stdin"
                     ) from exc
         except BaseException:
-            _close_workers(workers)
+            close_workers(workers)
             raise
         return workers
 
@@ -504,7 +170,7 @@ class VectorEnv:
         for worker, request in zip(self._workers, requests, strict=False):
             try:
                 blocks.append(worker.receive(self._step_timeout_s))
-            except _WorkerLost as exc:
+            except WorkerLost as exc:
                 self._count_restart(worker.indices, f"worker process lost during reset: {exc}")
                 blocks.append(self._restart_and_reset(worker, request))
         self._obs = _concat_blocks(blocks)  # workers own contiguous index blocks, in order
@@ -553,7 +219,7 @@ class VectorEnv:
         for worker, indices in pending:
             try:
                 blocks.append((indices, worker.receive(self._step_timeout_s)))
-            except _WorkerLost as exc:
+            except WorkerLost as exc:
                 blocks.append(self._replace_lost_worker(worker, f"worker process lost: {exc}"))
         return self._assemble([(indices, block) for indices, block in blocks if block is not None])
 
@@ -563,9 +229,16 @@ class VectorEnv:
             worker.send("render")
         try:
             frames = [f for worker in self._workers for f in worker.receive(self._step_timeout_s)]
-        except _WorkerLost as exc:
+        except WorkerLost as exc:
             raise EnvCrashError(f"an env worker was lost while rendering ({exc})") from exc
         return np.stack(frames)
+
+    def open_episodes(self) -> dict[str, np.ndarray]:
+        """The episode each env is in the middle of: ``{"return": float64 [num_envs], "length":
+        int64 [num_envs]}``, the reward summed and the steps taken since it started. Zero where
+        no step has been taken since the reset, and where an episode ended in a step with
+        ``autoreset=False`` (none has started since). Copies: later steps do not change them."""
+        return {"return": self._episode_return.copy(), "length": self._episode_length.copy()}
 
     def offload(self) -> None:
         """CPU simulators hold no device memory: nothing to release."""
@@ -610,12 +283,12 @@ class VectorEnv:
             raise ValueError(f"expected env_mask of shape ({self.num_envs},), got {mask.shape}")
         return mask
 
-    def _replace_lost_worker(self, worker, reason: str) -> tuple[np.ndarray, _BlockStep]:
+    def _replace_lost_worker(self, worker, reason: str) -> tuple[np.ndarray, BlockStep]:
         """Start a new process for a dead worker; ALL its envs lost their episodes, stepped or
         not, so all are reported truncated and restarted (counted in :meth:`_assemble`)."""
         count = len(worker.indices)
         fresh = self._restart_and_reset(worker, [(k, None, None) for k in range(count)])
-        block = _BlockStep(
+        block = BlockStep(
             obs=fresh,
             reward=np.zeros(count, dtype=np.float32),
             terminated=np.zeros(count, dtype=bool),
@@ -633,7 +306,7 @@ class VectorEnv:
             worker.restart()
             worker.send("reset", requests)
             return worker.receive(self._step_timeout_s)
-        except _WorkerLost as exc:
+        except WorkerLost as exc:
             raise EnvCrashError(
                 f"env worker for sub-envs {worker.indices} died again right after a restart ({exc})"
             ) from exc
@@ -647,7 +320,7 @@ class VectorEnv:
                 f"last crash (envs {list(indices)}):\n{reason}"
             )
 
-    def _assemble(self, blocks: list[tuple[np.ndarray, _BlockStep]]) -> StepResult:
+    def _assemble(self, blocks: list[tuple[np.ndarray, BlockStep]]) -> StepResult:
         """The workers' blocks -> one batched :class:`StepResult`; updates the current obs."""
         n = self.num_envs
         reward = np.zeros(n, dtype=np.float32)

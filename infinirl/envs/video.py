@@ -1,7 +1,7 @@
 """Writing evaluation videos: one mp4 writer for every runner, atomic and with a clear error.
 
 Why a helper: imageio picks its writer from what is installed. Without ``imageio-ffmpeg`` it hands
-an ``.mp4`` path to another plugin (seen: tifffile), which fails with an unrelated message
+an ``.mp4`` path to another plugin (tifffile, for one), which fails with an unrelated message
 ("unexpected keyword argument 'fps'") after creating a stub file. We check for the ffmpeg writer
 first, name the package to install, and write to a temporary file that is renamed into place, so
 a video either exists whole or not at all.

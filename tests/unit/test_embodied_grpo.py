@@ -39,7 +39,8 @@ def _grouped_first_obs(name: str, kwargs: dict, num_envs: int, ranks: int, stage
     """Reset the envs of every rank (each split into stages) with the runner's grouped seeds after
     some random steps, and return the first observations in global env order."""
     per_rank = num_envs // ranks
-    envs = [StagedEnv(EnvSpec(name=name, num_envs=per_rank, stages=stages, kwargs=kwargs), rank=r) for r in range(ranks)]
+    envs = [StagedEnv(EnvSpec(name=name, num_envs=per_rank, stages=stages, kwargs=kwargs), rank=r)
+            for r in range(ranks)]
     try:
         rng = np.random.default_rng(0)
         for env in envs:  # different histories before the reset
@@ -132,8 +133,9 @@ def _policy_and_batch():
     obs = {"state": torch.randn(b, 3, generator=gen)}
     with torch.no_grad():
         step = model.act(obs)
-    batch = {"obs": obs, "actions": step.actions, "logprobs": step.logprobs, "step_mask": torch.ones(b, 1, dtype=torch.bool),
-             "values": torch.zeros(b), "advantages": torch.randn(b, generator=gen), "returns": torch.randn(b, generator=gen),
+    batch = {"obs": obs, "actions": step.actions, "logprobs": step.logprobs,
+             "step_mask": torch.ones(b, 1, dtype=torch.bool), "values": torch.zeros(b),
+             "advantages": torch.randn(b, generator=gen), "returns": torch.randn(b, generator=gen),
              "advantage_mask": torch.arange(b) % 4 != 3}
     return spec, observation_spec, action_space, batch
 
@@ -191,7 +193,8 @@ def test_grpo_action_level_with_chunks_masks_per_action_and_trains():
     assert batch["advantages"].shape == (20, 2) and mask[:3, 1].all() and not mask[3:, 1].any()
 
     observation_spec, action_space = probe_env_specs("gym:Pendulum-v1", {})
-    model = PolicySpec(name="mlp_gaussian", options={"hidden": [8]}, chunk=2, normalize_obs=False).build(observation_spec, action_space)
+    spec = PolicySpec(name="mlp_gaussian", options={"hidden": [8]}, chunk=2, normalize_obs=False)
+    model = spec.build(observation_spec, action_space)
     tensors = {k: ({kk: torch.from_numpy(vv) for kk, vv in v.items()} if isinstance(v, dict) else torch.from_numpy(v))
                for k, v in batch.items()}
     with torch.no_grad():

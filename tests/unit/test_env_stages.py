@@ -26,7 +26,8 @@ from infinirl.runners.embodied import _raise_env_root_cause  # noqa: E402
 from infinirl.runtime.errors import WorkerError  # noqa: E402
 
 STAGES, ENVS, ROUNDS, RANK = 2, 4, 6, 1
-SPEC = EnvSpec(name="gym:Pendulum-v1", num_envs=ENVS, stages=STAGES, num_workers=0, max_episode_steps=4, seed=3, stage_processes=True)
+SPEC = EnvSpec(name="gym:Pendulum-v1", num_envs=ENVS, stages=STAGES, num_workers=0, max_episode_steps=4, seed=3,
+               stage_processes=True)
 SEEDS = [11, 12, 13, 14]
 
 

@@ -41,7 +41,8 @@ def scripted_actions():
 
 
 def served(num_workers: int) -> tuple[list, bool]:
-    env = StagedEnv(EnvSpec(name="gym:Pendulum-v1", num_envs=ENVS, stages=STAGES, num_workers=num_workers, max_episode_steps=EPISODE))
+    env = StagedEnv(EnvSpec(name="gym:Pendulum-v1", num_envs=ENVS, stages=STAGES, num_workers=num_workers,
+                            max_episode_steps=EPISODE))
     link = ScriptedLink(scripted_actions())
     try:
         stats = serve_stages(env, link, seeds=list(range(ENVS)), num_steps=ROUNDS)
@@ -52,7 +53,8 @@ def served(num_workers: int) -> tuple[list, bool]:
 
 
 def stepped_one_by_one() -> list:
-    env = StagedEnv(EnvSpec(name="gym:Pendulum-v1", num_envs=ENVS, stages=STAGES, num_workers=0, max_episode_steps=EPISODE))
+    env = StagedEnv(EnvSpec(name="gym:Pendulum-v1", num_envs=ENVS, stages=STAGES, num_workers=0,
+                            max_episode_steps=EPISODE))
     try:
         messages = env.reset(list(range(ENVS)))
         last_round = (ROUNDS - 1) * STAGES

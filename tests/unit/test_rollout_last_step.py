@@ -3,7 +3,7 @@
 Every iteration starts by resetting every env with its own seed, so an episode that ends on the
 iteration's last step would otherwise be reset once more for an observation nobody reads (its
 bootstrap value is masked: ``test_bootstrap_of_an_env_that_ended_on_the_last_step_is_unused``).
-A MetaWorld reset costs about as much as 40 steps, so that is ~5% of an iteration there.
+A simulator reset can cost as much as many steps (MetaWorld rebuilds its scene layout).
 """
 
 from __future__ import annotations

@@ -76,3 +76,29 @@ def test_envs_in_subprocesses_collect_the_same_data():
     finally:
         local.close()
         spawned.close()
+
+
+def test_open_episodes_span_collections_and_resume_exactly(tmp_path):
+    """Pendulum's 200-step episodes outlast a collection of 30 steps: no episode ends, and
+    ``open_episodes`` carries each env's return and steps so far, across calls and a resume."""
+    collector = make_collector()
+    rewards = []
+    for steps in (30, 20):
+        batch = collector.collect(steps, random_steps=10)
+        assert len(batch["episodes"]["return"]) == 0
+        rewards.append(batch["reward"].reshape(steps, 2))
+        open_episodes = batch["open_episodes"]
+        assert open_episodes["return"].dtype == np.float64 and open_episodes["length"].dtype == np.int64
+    np.testing.assert_array_equal(open_episodes["length"], [50, 50])
+    expected = [sum(float(r) for r in env_rewards) for env_rewards in np.concatenate(rewards).T]  # float64, in order
+    np.testing.assert_allclose(open_episodes["return"], expected, rtol=1e-12)
+
+    collector.save_state(str(tmp_path / "ckpt"))
+    resumed = make_collector(seed=5)
+    resumed.load_state(str(tmp_path / "ckpt"))
+    np.testing.assert_array_equal(resumed.open_episodes()["return"], open_episodes["return"])
+    a, b = collector.collect(150), resumed.collect(150)  # lands on the episodes' end
+    assert len(a["episodes"]["return"]) == 2
+    for key in ("return", "length"):
+        np.testing.assert_array_equal(a["open_episodes"][key], b["open_episodes"][key])
+        np.testing.assert_array_equal(a["open_episodes"][key], [0, 0])

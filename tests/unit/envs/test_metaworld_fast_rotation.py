@@ -2,9 +2,12 @@
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from infinirl.envs.fast_rotation import FastRotation, matrix_to_quaternion, use_fast_rotation
+
+# scipy is the reference here and comes with the simulator extras (MetaWorld needs it), not with the
+# base install
+Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
 
 
 def _scipy(matrix):
