@@ -41,7 +41,7 @@ from infinirl.runners.curves import Panel
 from infinirl.runners.embodied_config import ALGORITHMS, EmbodiedConfig
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.run_support import run_components, run_start_time
-from infinirl.runners.sim_config import episode_metrics, eval_seeds
+from infinirl.runners.sim_config import check_env_options, episode_metrics, eval_seeds
 from infinirl.runtime import sync_weights
 
 
@@ -82,6 +82,8 @@ def run(cfg: EmbodiedConfig) -> dict:
 
 def _check_env_and_policy(cfg: EmbodiedConfig):
     """The env task, its options and the policy's, checked in the driver before any worker starts."""
+    check_env_options(cfg.env.name, {"env.kwargs": cfg.env.kwargs, "eval.env_kwargs": cfg.eval.env_kwargs,
+                                     "eval.video_env_kwargs": cfg.eval.video_env_kwargs})
     try:
         observation_spec, action_space = probe_env_specs(cfg.env.name, cfg.env.kwargs)
         policy_spec = PolicySpec(name=cfg.policy.name, options=dict(cfg.policy.kwargs), chunk=cfg.policy.chunk,
@@ -399,7 +401,7 @@ def _merge(parts: list[dict]) -> dict:
         return parts[0]
     out: dict[str, Any] = {}
     for key, first in parts[0].items():
-        if key == "episodes":
+        if key in ("episodes", "open_episodes"):
             out[key] = {k: np.concatenate([p[key][k] for p in parts]) for k in first}
         elif key in ("timing",):
             out[key] = first

@@ -34,7 +34,7 @@ from infinirl.runners.curves import Panel
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.run_support import run_components, run_start_time
 from infinirl.runners.sac_config import SACConfig
-from infinirl.runners.sim_config import episode_metrics, eval_seeds
+from infinirl.runners.sim_config import check_env_options, episode_metrics, eval_seeds
 from infinirl.runtime import sync_weights
 from infinirl.utils import torch_save_atomic
 
@@ -78,12 +78,15 @@ def _net_spec(cfg: SACConfig) -> SACNetSpec:
 
 
 def _probe(cfg: SACConfig) -> tuple[int, object]:
-    """Observation size and action space of the env, from one sub-env built in the driver."""
-    from infinirl.envs.registry import ENVS
+    """Observation size and action space of the env, from one sub-env built in the driver; the env
+    options of training, evaluation and the video are checked against the env family first."""
+    from infinirl.envs.registry import ENVS, split_env_name
 
-    family, _, task = cfg.env.name.partition(":")
+    check_env_options(cfg.env.name, {"env.kwargs": cfg.env.kwargs, "eval.env_kwargs": cfg.eval.env_kwargs,
+                                     "eval.video_env_kwargs": cfg.eval.video_env_kwargs})
     try:
-        sub_env = ENVS.get(family)(task or None, **cfg.env.kwargs)(0)
+        family, task = split_env_name(cfg.env.name)
+        sub_env = ENVS.get(family)(task, **cfg.env.kwargs)(0)
     except (ValueError, TypeError, KeyError) as exc:
         raise ConfigError(f"env.name={cfg.env.name!r}: {exc}") from exc
     try:

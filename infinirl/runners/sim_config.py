@@ -8,7 +8,7 @@ from typing import Any
 from infinirl.config import ConfigError, bounded
 from infinirl.runners.run_config import EvalSchedule
 
-__all__ = ["EVAL_SEED_BASE", "SimEnvConfig", "SimEvalConfig", "eval_seeds"]
+__all__ = ["EVAL_SEED_BASE", "SimEnvConfig", "SimEvalConfig", "check_env_options", "episode_metrics", "eval_seeds"]
 
 EVAL_SEED_BASE = 2**31
 """First held-out evaluation seed; training episode seeds are below 2**31 - 1, so the two never meet."""
@@ -61,13 +61,26 @@ class SimEvalConfig(EvalSchedule):
     """Simulator options of the video env on top of eval.env_kwargs (e.g. a larger image size)."""
 
 
+def check_env_options(name: str, options_by_key: dict[str, dict]) -> None:
+    """Every env option mapping of a run (``config key -> options``) against the env family, in the
+    driver: an option the env does not take is a ConfigError naming the key, not a failure at the
+    first evaluation after minutes of training."""
+    from infinirl.envs import check_env_kwargs
+
+    for where, options in options_by_key.items():
+        try:
+            check_env_kwargs(name, options, where)
+        except (ValueError, KeyError) as exc:
+            raise ConfigError(str(exc.args[0]) if exc.args else str(exc)) from None
+
+
 def episode_metrics(finished: dict, still_open: dict | None = None) -> dict:
     """``rollout/*`` statistics of an iteration's episodes.
 
     ``finished``: arrays ``return``, ``length`` (and ``success``) of the episodes that ended during
     the iteration; their means are logged only when at least one ended, never as NaN.
-    ``still_open``: ``return`` / ``length`` so far of the episodes still running at its end (one
-    per env), so a task whose episodes outlast an iteration still shows its returns."""
+    ``still_open``: ``return`` / ``length`` so far of the episode running in each env at its end
+    (length 0: none running), so a task whose episodes outlast an iteration still shows its returns."""
     import numpy as np
 
     count = len(finished["return"])
@@ -77,7 +90,8 @@ def episode_metrics(finished: dict, still_open: dict | None = None) -> dict:
         metrics["rollout/episode_length_mean"] = float(np.mean(finished["length"]))
         if "success" in finished:
             metrics["rollout/success_rate"] = float(np.mean(finished["success"]))
-    if still_open is not None and len(still_open["return"]):
-        metrics["rollout/open_episode_return_mean"] = float(np.mean(still_open["return"]))
-        metrics["rollout/open_episode_length_mean"] = float(np.mean(still_open["length"]))
+    running = np.asarray(still_open["length"]) > 0 if still_open is not None else np.zeros(0, dtype=bool)
+    if running.any():
+        metrics["rollout/open_episode_return_mean"] = float(np.mean(np.asarray(still_open["return"])[running]))
+        metrics["rollout/open_episode_length_mean"] = float(np.mean(np.asarray(still_open["length"])[running]))
     return metrics
