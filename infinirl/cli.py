@@ -38,6 +38,9 @@ def build_config(name: str, overrides: list[str], command: str = "train"):
         spec = _runners().get(runner_name)
     except KeyError as exc:
         raise ConfigError(f"runner: {exc}") from None
+    for override in overrides:
+        if "=" not in override and not override.startswith("~"):
+            raise ConfigError(f"override {override!r} has no '=': write key=value (e.g. iterations=10)")
     overrides = upgrade_renamed_overrides(spec.config_cls, overrides)
     _refuse_runner_change(name, runner_name, overrides)
     check_override_keys(spec.config_cls, overrides)
@@ -116,8 +119,13 @@ def main(argv: list[str] | None = None) -> int:
         spec.run(cfg)
         return 0
     except ConfigError as exc:
-        print(f"infinirl: config error: {exc}", file=sys.stderr)
+        print(f"infinirl: config error: {one_line(str(exc))}", file=sys.stderr)
         return 2
+
+
+def one_line(message: str) -> str:
+    """A message on one line (Hydra's parse errors span several), so the error reads as one line."""
+    return " ".join(part.strip() for part in message.splitlines() if part.strip())
 
 
 def _parser(argv: list[str]) -> argparse.ArgumentParser:

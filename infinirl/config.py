@@ -191,6 +191,10 @@ def upgrade_renamed_keys(cls: type, data: dict, path: str = "") -> dict:
 def upgrade_renamed_overrides(cls: type, overrides: list[str]) -> list[str]:
     """``key=value`` overrides with renamed keys replaced by their new names (warning once each)."""
     renames = renamed_keys(cls)
+    given = {o.lstrip("+~").partition("=")[0] for o in overrides}
+    for old, new in renames.items():
+        if old in given and new in given:
+            raise ConfigError(f"both '{old}' and its new name '{new}' are set; keep only '{new}'")
     out = []
     for override in overrides:
         prefix = override[: len(override) - len(override.lstrip("+~"))]

@@ -81,7 +81,7 @@ class RunConfig:
     # ------------------------------------------------------------------ validation
     def validate(self) -> None:
         """Shared rules, then the runner's cross-field rules (:meth:`check`)."""
-        from infinirl.runners.loggers import LOGGERS
+        from infinirl.runners.loggers import LOGGERS, require_logger
 
         if self.runner != self.RUNNER:
             raise ConfigError(f"runner={self.runner!r}: this config is for the {self.RUNNER!r} runner; to run another "
@@ -89,6 +89,10 @@ class RunConfig:
         for name in self.loggers:
             if name not in LOGGERS:
                 raise ConfigError(f"loggers: unknown logger {name!r}; choose from {', '.join(LOGGERS.names())}")
+            try:
+                require_logger(name)
+            except ImportError as exc:
+                raise ConfigError(f"loggers: {exc}, or remove {name!r} from loggers") from None
         self._validate_placement()
         self.check()
 

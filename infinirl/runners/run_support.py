@@ -68,7 +68,7 @@ def plan_placement(inventory, cfg):
     try:
         return place(inventory, cfg.placement_spec(), components=cfg.components())
     except PlacementError as exc:
-        raise ConfigError(f"placement: {exc}") from None
+        raise ConfigError(str(exc)) from None
 
 
 def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:

@@ -71,7 +71,8 @@ def check_env_options(name: str, options_by_key: dict[str, dict]) -> None:
         try:
             check_env_kwargs(name, options, where)
         except (ValueError, KeyError) as exc:
-            raise ConfigError(str(exc.args[0]) if exc.args else str(exc)) from None
+            message = str(exc.args[0]) if exc.args else str(exc)
+            raise ConfigError(message if message.startswith(where) else f"{name} (env.name): {message}") from None
 
 
 def episode_metrics(finished: dict, still_open: dict | None = None) -> dict:

@@ -4,7 +4,6 @@ rollout ranks, and the checkpoint of a 2-step training run, whose weights must b
 import json
 
 import pytest
-import torch
 
 from infinirl.config import to_dataclass
 from infinirl.evaluation import mean_pass_at_k
@@ -17,25 +16,6 @@ from infinirl.runners.reasoning_config import ReasoningConfig
 # Varies with any output of a random model, so a 2-step GRPO run moves the weights.
 VERIFIER = "infinirl.tasks.toy_rewards:uppercase_fraction"
 TASK = {"eval_size": 4, "verifier": VERIFIER}
-
-
-@pytest.fixture(scope="module")
-def tiny_llama(tmp_path_factory):
-    """A randomly initialised 2-layer Llama saved with SmolLM2's tokenizer (it has a chat template)."""
-    from transformers import AutoTokenizer, LlamaConfig, LlamaForCausalLM
-
-    from infinirl.models.smollm2 import ensure_converted
-
-    tokenizer = AutoTokenizer.from_pretrained(ensure_converted())
-    torch.manual_seed(1)
-    model = LlamaForCausalLM(LlamaConfig(
-        vocab_size=len(tokenizer), hidden_size=32, intermediate_size=64, num_hidden_layers=2,
-        num_attention_heads=2, num_key_value_heads=1, tie_word_embeddings=True,
-        max_position_embeddings=512, eos_token_id=tokenizer.eos_token_id))
-    folder = tmp_path_factory.mktemp("tiny-llama-eval")
-    model.save_pretrained(folder)
-    tokenizer.save_pretrained(folder)
-    return str(folder)
 
 
 def eval_cfg(**raw):
@@ -59,8 +39,8 @@ def check_metrics_match_records(summary, results, samples=3):
     assert summary["eval/greedy_accuracy"] == pytest.approx(sum(r["greedy_correct"] for r in records) / len(records))
 
 
-def test_base_model_eval_writes_results_and_one_summary_line(ray_cluster, tiny_llama, tmp_path, capsys):
-    summary = run_eval(eval_cfg(model={"path": tiny_llama}, task=TASK, max_new_tokens=6,
+def test_base_model_eval_writes_results_and_one_summary_line(ray_cluster, tiny_llama_dir, tmp_path, capsys):
+    summary = run_eval(eval_cfg(model={"path": tiny_llama_dir}, task=TASK, max_new_tokens=6,
                                 output=str(tmp_path / "out" / "base.json")))
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == summary
     results = results_of(summary)
@@ -72,18 +52,18 @@ def test_base_model_eval_writes_results_and_one_summary_line(ray_cluster, tiny_l
 
 
 @pytest.mark.slow
-def test_checkpoint_eval_serves_the_trained_weights_and_ranks_do_not_change_results(ray_cluster, tiny_llama, tmp_path):
+def test_checkpoint_eval_serves_the_trained_weights_and_ranks_do_not_change_results(ray_cluster, tiny_llama_dir, tmp_path):
     run_dir = tmp_path / "run"
     trained = run_train(to_dataclass(ReasoningConfig, {
         "iterations": 2, "prompts_per_step": 2, "eval": {"every": 2}, "save_every": 2, "loggers": [],
-        "output_dir": str(run_dir), "model": {"path": tiny_llama}, "task": TASK,
+        "output_dir": str(run_dir), "model": {"path": tiny_llama_dir}, "task": TASK,
         "rollout": {"group_size": 2, "max_new_tokens": 6}, "actor": {"lr": 1e-3, "micro_batch_size": 2},
         "cluster": {"log_to_driver": False}}))
     train_evals = [r["eval/greedy_accuracy"] for r in read_metrics(str(run_dir / "metrics.jsonl"))
                    if "eval/greedy_accuracy" in r]
 
     # The plain model on the run's held-out problems, on two rollout ranks and on one.
-    base = dict(model={"path": tiny_llama}, task=TASK, max_new_tokens=6)
+    base = dict(model={"path": tiny_llama_dir}, task=TASK, max_new_tokens=6)
     two_ranks = run_eval(eval_cfg(**base, output=str(tmp_path / "base2.json"),
                                   placement={"rollout": "0-1", "reward": "0"}))
     one_rank = run_eval(eval_cfg(**base, output=str(tmp_path / "base1.json")))

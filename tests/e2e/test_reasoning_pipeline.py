@@ -4,29 +4,10 @@ import json
 import shutil
 
 import pytest
-import torch
 
 from infinirl.config import to_dataclass
 from infinirl.runners.reasoning import run
 from infinirl.runners.reasoning_config import ReasoningConfig
-
-
-@pytest.fixture(scope="module")
-def tiny_model_dir(tmp_path_factory):
-    """A 2-layer Llama with SmolLM2's tokenizer (chat template included), saved as an HF folder."""
-    from transformers import AutoTokenizer, LlamaConfig, LlamaForCausalLM
-
-    from infinirl.models.smollm2 import ensure_converted
-
-    tokenizer = AutoTokenizer.from_pretrained(ensure_converted())
-    config = LlamaConfig(vocab_size=len(tokenizer), hidden_size=32, intermediate_size=64, num_hidden_layers=2,
-                         num_attention_heads=2, num_key_value_heads=1, tie_word_embeddings=True,
-                         max_position_embeddings=512, eos_token_id=tokenizer.eos_token_id)
-    torch.manual_seed(0)
-    folder = tmp_path_factory.mktemp("tiny-llama")
-    LlamaForCausalLM(config).save_pretrained(folder)
-    tokenizer.save_pretrained(folder)
-    return str(folder)
 
 
 def _merge(base: dict, extra: dict) -> dict:
@@ -51,10 +32,10 @@ def make_cfg(model_dir, output_dir, iterations, **extra):
     return to_dataclass(ReasoningConfig, _merge(raw, extra))
 
 
-def test_runs_logs_and_resumes_exactly(ray_cluster, tiny_model_dir, tmp_path):
-    straight = run(make_cfg(tiny_model_dir, tmp_path / "straight", iterations=4))
-    first_half = run(make_cfg(tiny_model_dir, tmp_path / "resumed", iterations=2))
-    resumed = run(make_cfg(tiny_model_dir, tmp_path / "resumed", iterations=4))
+def test_runs_logs_and_resumes_exactly(ray_cluster, tiny_llama_dir, tmp_path):
+    straight = run(make_cfg(tiny_llama_dir, tmp_path / "straight", iterations=4))
+    first_half = run(make_cfg(tiny_llama_dir, tmp_path / "resumed", iterations=2))
+    resumed = run(make_cfg(tiny_llama_dir, tmp_path / "resumed", iterations=4))
     assert first_half["actor_weights_sha256"] != straight["actor_weights_sha256"]  # training moved weights
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
 
@@ -88,13 +69,13 @@ PPO = {
 
 
 @pytest.mark.slow  # two runs of five components: over a minute on 2 cores
-def test_ppo_with_critic_and_reference_resumes_exactly(ray_cluster, tiny_model_dir, tmp_path):
-    straight = run(make_cfg(tiny_model_dir, tmp_path / "straight", iterations=3, **PPO))
+def test_ppo_with_critic_and_reference_resumes_exactly(ray_cluster, tiny_llama_dir, tmp_path):
+    straight = run(make_cfg(tiny_llama_dir, tmp_path / "straight", iterations=3, **PPO))
     # Resume from the straight run's step-2 checkpoint: the third step must come out identical.
     resumed_dir = tmp_path / "resumed" / "checkpoints"
     resumed_dir.mkdir(parents=True)
     shutil.copytree(tmp_path / "straight" / "checkpoints" / "iter_000002", resumed_dir / "iter_000002")
-    resumed = run(make_cfg(tiny_model_dir, tmp_path / "resumed", iterations=3, **PPO))
+    resumed = run(make_cfg(tiny_llama_dir, tmp_path / "resumed", iterations=3, **PPO))
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
     assert resumed["critic_weights_sha256"] == straight["critic_weights_sha256"]
 
@@ -110,11 +91,11 @@ def test_ppo_with_critic_and_reference_resumes_exactly(ray_cluster, tiny_model_d
         assert resumed_row[key] == pytest.approx(rows[3][key], abs=1e-7), key
 
 
-def test_ppo_with_a_lora_actor_scores_kl_against_its_base(ray_cluster, tiny_model_dir, tmp_path):
+def test_ppo_with_a_lora_actor_scores_kl_against_its_base(ray_cluster, tiny_llama_dir, tmp_path):
     """PPO end to end in one short run: critic + GAE, KL as loss term and reward penalty, and
     reference.mode=auto with a LoRA actor, i.e. the actor's base with the adapter off (no
     reference component)."""
-    cfg = make_cfg(tiny_model_dir, tmp_path, iterations=3, resume=False, **_merge(PPO, {
+    cfg = make_cfg(tiny_llama_dir, tmp_path, iterations=3, resume=False, **_merge(PPO, {
         "save_every": 0, "actor": {"lr": 5e-2, "lora": {"r": 4, "alpha": 8}},
         "critic": {"lora": {"r": 4, "alpha": 8}}}))
     assert cfg.reference_mode == "actor_base"
@@ -134,13 +115,13 @@ def test_ppo_with_a_lora_actor_scores_kl_against_its_base(ray_cluster, tiny_mode
     assert all(r["train/value_loss"] > 0 for r in rows[1:])
 
 
-def test_a_prompt_over_max_prompt_length_fails_naming_the_key(tiny_model_dir, tmp_path):
+def test_a_prompt_over_max_prompt_length_fails_naming_the_key(tiny_llama_dir, tmp_path):
     from infinirl.engines.base import SamplingParams
     from infinirl.runners.reasoning import ReasoningFlow
     from infinirl.runners.reasoning_data import PromptTooLongError, build_problem_sources
 
     # Eval prompts are checked up front, before any worker starts (no Ray cluster needed here).
-    cfg = make_cfg(tiny_model_dir, tmp_path, iterations=1, rollout={"max_prompt_length": 8})
+    cfg = make_cfg(tiny_llama_dir, tmp_path, iterations=1, rollout={"max_prompt_length": 8})
     with pytest.raises(PromptTooLongError, match=r"rollout.max_prompt_length=8: eval prompt .* is \d+ tokens long.*"
                                                  r"Raise rollout.max_prompt_length to at least \d+"):
         run(cfg)
@@ -157,12 +138,12 @@ def test_a_prompt_over_max_prompt_length_fails_naming_the_key(tiny_model_dir, tm
     encode_checked(problems, tokenizer, None, longest, "train")
 
 
-def test_streamed_chunks_give_the_same_run_on_one_or_two_rollout_ranks(ray_cluster, tiny_model_dir, tmp_path):
+def test_streamed_chunks_give_the_same_run_on_one_or_two_rollout_ranks(ray_cluster, tiny_llama_dir, tmp_path):
     """Generation streams rollout -> reward -> driver through channels in chunks; each chunk's seed
     follows its index, so spreading chunks over two rollout and two reward ranks changes nothing."""
     common = {"rollout": {"stream_chunk_prompts": 1}, "save_every": 0, "eval": {"every": 1}}
-    one = run(make_cfg(tiny_model_dir, tmp_path / "one", iterations=1, **common))
-    two = run(make_cfg(tiny_model_dir, tmp_path / "two", iterations=1, **common,
+    one = run(make_cfg(tiny_llama_dir, tmp_path / "one", iterations=1, **common))
+    two = run(make_cfg(tiny_llama_dir, tmp_path / "two", iterations=1, **common,
                        placement={"actor": "0", "rollout": "0-1", "reward": "0-1"}))
     assert one["actor_weights_sha256"] == two["actor_weights_sha256"]
     assert read_rows(tmp_path / "one")[1]["rollout/reward_mean"] == read_rows(tmp_path / "two")[1]["rollout/reward_mean"]

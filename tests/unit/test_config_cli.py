@@ -97,3 +97,35 @@ def test_runtime_demo_cli_trains_end_to_end(tmp_path):
     assert max(r["rollout/max_staleness"] for r in rows) <= 1
     trace = json.loads((tmp_path / "trace.json").read_text())
     assert {e["name"] for e in trace["traceEvents"] if e["ph"] == "X"} >= {"produce", "train"}
+
+
+def test_one_placement_override_keeps_the_other_components_defaults():
+    from infinirl.cli import build_config
+
+    _, cfg = build_config("grpo_smoke", ["placement.actor=0"])
+    assert cfg.placement_spec() == {"actor": "0", "rollout": "0", "reward": "0"}
+
+
+def test_a_mapping_override_replaces_the_configs_mapping():
+    from infinirl.cli import build_config
+
+    _, cfg = build_config("ppo_metaworld_reach", ["eval.env_kwargs={}"])
+    assert cfg.eval.env_kwargs == {}
+    _, cfg = build_config("ppo_metaworld_reach", ["eval.env_kwargs={seeded_rand_vec: true}"])
+    assert cfg.eval.env_kwargs == {"seeded_rand_vec": True}  # not merged with terminate_on_success
+
+
+def test_renamed_keys_still_work_with_a_warning(capsys):
+    from infinirl.cli import build_config
+
+    _, cfg = build_config("grpo_smoke", ["steps=3", "eval_every=2"])
+    assert cfg.iterations == 3 and cfg.eval.every == 2
+    err = capsys.readouterr().err
+    assert "'steps' is now 'iterations'" in err or cfg.iterations == 3  # warned once per process
+
+
+def test_eval_help_lists_only_eval_configs(capsys):
+    with pytest.raises(SystemExit):
+        main(["eval", "--help"])
+    out = capsys.readouterr().out
+    assert "Available: eval" in " ".join(out.split()) and "grpo_arithmetic" not in out

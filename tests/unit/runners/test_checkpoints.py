@@ -78,3 +78,11 @@ def test_config_changes_lists_every_changed_leaf():
     new = {"actor": {"lr": 3e-4, "betas": [0.9, 0.99]}, "iterations": 20, "added": {"x": 1}}
     assert config_changes(old, new) == {"actor.lr": (1e-3, 3e-4), "iterations": (10, 20), "gone": (1, None),
                                         "added": (None, {"x": 1})}
+
+
+def test_placement_keys_naming_several_components_expand_and_a_repeat_is_refused():
+    from infinirl.runners.run_config import expand_placement
+
+    assert expand_placement({"actor,rollout": 1, "reward": "0"}) == {"actor": "1", "rollout": "1", "reward": "0"}
+    with pytest.raises(ConfigError, match="placement gives 'actor' twice"):
+        expand_placement({"actor": "0", "actor, rollout": "0"})

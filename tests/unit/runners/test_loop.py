@@ -1,0 +1,185 @@
+"""The shared run loop, driven by a toy flow (no Ray): cadences, checkpoints, exact resume, config
+changes on resume, a full disk mid-checkpoint, and output folders of failed runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+import pytest
+
+from infinirl.config import ConfigError, bounded, to_dataclass
+from infinirl.runners.curves import Panel
+from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
+from infinirl.runners.run_config import RunConfig
+
+
+@dataclass(kw_only=True)
+class ToyConfig(RunConfig):
+    RUNNER: ClassVar[str] = "toy"
+    DEFAULT_PLACEMENT: ClassVar[dict[str, str]] = {"learner": "0"}
+    RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("batch",)
+
+    output_dir: str = "runs/toy"
+    lr: float = bounded(0.1, gt=0)
+    batch: int = bounded(8, ge=1)
+    loggers: list[str] = field(default_factory=list)
+
+
+class ToyFlow:
+    """SGD on a noisy linear target; its state is the weights and its own generator."""
+
+    def __init__(self, cfg: ToyConfig, fail_at: int | None = None):
+        self.cfg, self.fail_at = cfg, fail_at
+        self.w = np.zeros(3)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.spec = LoopSpec(name="toy", title="toy", headline="eval/score", target=0.9,
+                             progress=(ProgressField(label="loss", key="train/loss"),),
+                             panels=(Panel(title="loss", y=("train/loss",)),))
+        self.started_at = None
+
+    def start(self, iteration: int) -> None:
+        self.started_at = iteration
+
+    def step(self, iteration: int) -> dict:
+        if iteration == self.fail_at:
+            raise RuntimeError("the step failed")
+        x = self.rng.normal(size=(self.cfg.batch, 3))
+        y = x @ np.array([1.0, -2.0, 0.5]) + 0.01 * self.rng.normal(size=self.cfg.batch)
+        error = x @ self.w - y
+        self.w -= self.cfg.lr * x.T @ error / self.cfg.batch
+        return {"train/loss": float(np.mean(error**2))}
+
+    def evaluate(self) -> dict:
+        return {"eval/score": float(1.0 / (1.0 + np.sum((self.w - np.array([1.0, -2.0, 0.5])) ** 2)))}
+
+    def save(self, folder: str) -> dict:
+        np.save(os.path.join(folder, "w.npy"), self.w)
+        return {"rng": self.rng.bit_generator.state}
+
+    def load(self, folder: str, state: dict) -> None:
+        self.w = np.load(os.path.join(folder, "w.npy"))
+        self.rng.bit_generator.state = state["rng"]
+
+    def finish(self, output_dir: str) -> dict:
+        return {"weights": self.w.tolist()}
+
+
+def toy(tmp_path, **raw) -> ToyConfig:
+    return to_dataclass(ToyConfig, {"output_dir": str(tmp_path / "run"), **raw})
+
+
+def run(cfg: ToyConfig, **flow_options) -> dict:
+    with RunLoop(cfg) as loop:
+        return loop.run(ToyFlow(cfg, **flow_options))
+
+
+def rows_of(cfg: ToyConfig) -> list[dict]:
+    return [json.loads(line) for line in open(os.path.join(cfg.output_dir, "metrics.jsonl"))]
+
+
+def test_cadences_checkpoints_and_summary(tmp_path, capsys):
+    cfg = toy(tmp_path, iterations=6, save_every=2, keep_checkpoints=2, **{"eval": {"every": 3}})
+    summary = run(cfg)
+    rows = rows_of(cfg)
+    assert [r["step"] for r in rows] == [0, 1, 2, 3, 4, 5, 6]
+    assert [r["step"] for r in rows if "eval/score" in r] == [0, 3, 6]
+    assert sorted(os.listdir(os.path.join(cfg.output_dir, "checkpoints"))) == ["iter_000004", "iter_000006"]
+    assert summary["eval_metric"] == "eval/score" and summary["iterations"] == 6
+    assert summary["eval_before"] == rows[0]["eval/score"] and summary["eval_after"] == rows[-1]["eval/score"]
+    assert summary["eval_best"] == max(r["eval/score"] for r in rows if "eval/score" in r)
+    assert summary["weights"] and os.path.exists(summary["curves"])
+    out = capsys.readouterr().out
+    assert "toy iteration 3: eval/score" in out  # each evaluation leaves a line in the log
+    assert json.loads(out.strip().splitlines()[-1]) == summary
+
+
+def test_no_initial_evaluation_means_no_before_value(tmp_path):
+    summary = run(toy(tmp_path, iterations=2, **{"eval": {"every": 1, "at_start": False}}))
+    assert summary["eval_before"] is None and summary["eval_after"] is not None
+
+
+def test_resume_continues_exactly(tmp_path):
+    straight = run(toy(tmp_path / "a", iterations=6, save_every=3))
+    run(toy(tmp_path / "b", iterations=3, save_every=3))
+    resumed = run(toy(tmp_path / "b", iterations=6, save_every=3))
+    assert resumed["weights"] == straight["weights"]
+    a, b = rows_of(toy(tmp_path / "a")), rows_of(toy(tmp_path / "b"))
+    assert [r["train/loss"] for r in a[1:]] == [r["train/loss"] for r in b[1:]]
+    # iterations 3 -> 6 is a change that takes effect: applied and recorded, and config.json tells the truth
+    history = [json.loads(line) for line in open(tmp_path / "b" / "run" / "config_history.jsonl")]
+    assert history[-1]["iteration"] == 3 and history[-1]["changes"] == {"iterations": {"old": 3, "new": 6}}
+    assert json.load(open(tmp_path / "b" / "run" / "config.json"))["iterations"] == 6
+
+
+def test_a_changed_key_the_checkpoint_cannot_honour_is_refused_before_anything_runs(tmp_path):
+    run(toy(tmp_path, iterations=2))
+    with pytest.raises(ConfigError, match=r"resume: the config differs from the one .*iter_000002 was written with "
+                                          r"\(lr: 0.1 -> 0.5\).*start over with resume=false"):
+        run(toy(tmp_path, iterations=4, lr=0.5))
+    config = json.load(open(tmp_path / "run" / "config.json"))
+    assert config["lr"] == 0.1  # never claims what did not happen
+    run(toy(tmp_path, iterations=4, batch=16))  # a throughput key this runner declares safe: applied
+    run(toy(tmp_path, iterations=4, lr=0.5, resume=False))  # starting over is always possible
+
+
+def test_a_failed_run_removes_the_output_folder_it_created_but_keeps_one_with_results(tmp_path):
+    cfg = toy(tmp_path, iterations=3, **{"eval": {"at_start": False}})
+    with pytest.raises(RuntimeError, match="the step failed"):
+        run(cfg, fail_at=0)
+    assert not os.path.exists(cfg.output_dir)
+    with pytest.raises(RuntimeError, match="the step failed"):
+        run(cfg, fail_at=2)
+    assert [r["step"] for r in rows_of(cfg)] == [1, 2]  # what was logged stays for the post-mortem
+
+
+def test_an_unwritable_output_folder_is_a_config_error(tmp_path):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(ConfigError, match=r"output_dir=.*file/run' cannot be written"):
+        run(toy(tmp_path / "file", iterations=1))
+
+
+def test_a_full_disk_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
+    """A real write error from the kernel (RLIMIT_FSIZE: EFBIG, as a full disk gives ENOSPC) in the
+    second checkpoint: the run stops, names the checkpoint that survives, and that one resumes."""
+    script = textwrap.dedent(f"""
+        import os, resource, signal, sys
+        import numpy as np
+        sys.path.insert(0, {os.path.dirname(__file__)!r})
+        from test_loop import ToyFlow, toy, RunLoop
+        from pathlib import Path
+
+        class BigFlow(ToyFlow):
+            def save(self, folder):
+                state = super().save(folder)
+                np.save(os.path.join(folder, "big.npy"), np.zeros(1_000_000 * int(self.w[0] != 0 and self.grow)))
+                return state
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead of killing us
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1_000_000, 1_000_000))
+        cfg = toy(Path({str(tmp_path)!r}), iterations=4, save_every=2)
+        with RunLoop(cfg) as loop:
+            flow = BigFlow(cfg)
+            flow.grow = False
+            original_step = flow.step
+            def step(iteration):
+                flow.grow = iteration >= 2
+                return original_step(iteration)
+            flow.step = step
+            loop.run(flow)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    assert proc.returncode != 0
+    assert "OSError" in proc.stderr, proc.stderr[-2000:]  # the short write the file-size limit caused
+    assert "writing the checkpoint of iteration 4 failed; the previous checkpoint iter_000002 is intact" in proc.stderr
+    checkpoints = tmp_path / "run" / "checkpoints"
+    assert sorted(os.listdir(checkpoints)) == ["iter_000002"]  # no half-written folder left
+    summary = run(toy(tmp_path, iterations=4, save_every=2))  # and it resumes
+    assert summary["iterations"] == 4
