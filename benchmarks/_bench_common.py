@@ -202,3 +202,23 @@ def find_json_line(text: str, required_key: str) -> dict | None:
         if isinstance(obj, dict) and required_key in obj:
             return obj
     return None
+
+
+def add_record_argument(parser) -> None:
+    parser.add_argument("--record", metavar="RESULTS_MD", default=None,
+                        help="append this run's final JSON line, command and host to a results file "
+                             "(docs/results.md) as a new entry")
+
+
+def record_result(path: str | None, title: str, final: Mapping) -> None:
+    """With ``--record``: the final JSON line as a results entry (command, host probe, date)."""
+    if not path:
+        return
+    import shlex
+    import sys
+
+    from infinirl.results import append_entry, format_entry, host_probe
+
+    command = shlex.join(["python", *sys.argv])
+    append_entry(path, format_entry(title=title, command=command, result=dict(final),
+                                    host={**host_probe(), **dict(final.get("host") or {})}))

@@ -94,6 +94,7 @@ if REPO_ROOT not in sys.path:  # row (c) runs in this process (``--only single_p
 if BENCH_DIR not in sys.path:
     sys.path.insert(0, BENCH_DIR)
 
+from _bench_common import add_record_argument, record_result  # noqa: E402
 from _bench_turns import Conductor, Turn  # noqa: E402
 
 #: per observation mode: config overrides of `ppo_metaworld_reach` shared by every implementation
@@ -439,6 +440,7 @@ def main() -> None:
     parser.add_argument("--eager", action="store_true",
                         help="every row without actor.compile and rollout.compile (default: every row compiles "
                              "its PPO optimizer step and its policy's act)")
+    add_record_argument(parser)
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl" if os.environ.get("INFINIRL_BENCH_EGL") else "osmesa")
     modes = [m.strip() for m in args.obs.split(",") if m.strip()]
@@ -488,11 +490,13 @@ def main() -> None:
         verdict = "" if target is None else f"; target {target}: {'met' if ratios[key] >= target else 'MISSED'} ({ratios[key]})"
         print(f"{key}: rounds {value['rounds']} (median {value['median']}); cycles median "
               f"{value['cycles']['median']} [{value['cycles']['min']}, {value['cycles']['max']}]{verdict}", file=sys.stderr)
-    print(json.dumps({"benchmark": "embodied_pipeline", "ratios": ratios, "paired_ratios": paired, "targets": TARGETS,
-                      "results": results, "interleaved": True, "num_envs": NUM_ENVS, "steps": STEPS,
-                      "actor_compile": not args.eager, "rollout_compile": not args.eager,
-                      "device": host["cpu"] if host else f"{os.cpu_count()} CPUs", "host": host,
-                      "elapsed_s": round(time.time() - started, 1)}))
+    final = {"benchmark": "embodied_pipeline", "ratios": ratios, "paired_ratios": paired, "targets": TARGETS,
+             "results": results, "interleaved": True, "num_envs": NUM_ENVS, "steps": STEPS,
+             "actor_compile": not args.eager, "rollout_compile": not args.eager,
+             "device": host["cpu"] if host else f"{os.cpu_count()} CPUs", "host": host,
+             "elapsed_s": round(time.time() - started, 1)}
+    print(json.dumps(final))
+    record_result(args.record, "Embodied pipeline benchmark", final)
 
 
 if __name__ == "__main__":

@@ -33,6 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _bench_common import add_record_argument, record_result
+
 TASK = {"min_terms": 2, "max_terms": 2, "min_digits": 1, "max_digits": 1}
 PROMPTS, GROUP, MAX_NEW, LR = 8, 8, 48, 1e-5
 MICRO_BATCH = int(os.environ.get("INFINIRL_BENCH_MICRO_BATCH", 16))  # sequences per forward/backward (ours)
@@ -141,6 +143,7 @@ def main() -> int:
     parser.add_argument("--impls", default=",".join(IMPLS),
                         help="comma-separated rows to run (infinirl_vllm only runs where vLLM is installed)")
     parser.add_argument("--only", choices=IMPLS, help=argparse.SUPPRESS)
+    add_record_argument(parser)
     args = parser.parse_args()
     if args.only:
         out = tempfile.mkdtemp(prefix=f"bench-{args.only}-")
@@ -183,10 +186,11 @@ def main() -> int:
     if "infinirl_vllm" in results:
         ratios["step_speed_vllm_vs_trl"] = speedup("trl", "infinirl_vllm")
         ratios["step_speed_vllm_vs_hf"] = speedup("infinirl", "infinirl_vllm")
-    print(json.dumps({"benchmark": "grpo_vs_trl", "ratios": ratios,
-                      "targets": {"step_speed_vs_trl": 1.5},
-                      "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
-                      "precision": args.precision, "results": results}))
+    final = {"benchmark": "grpo_vs_trl", "ratios": ratios, "targets": {"step_speed_vs_trl": 1.5},
+             "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
+             "precision": args.precision, "results": results}
+    print(json.dumps(final))
+    record_result(args.record, "GRPO step against TRL", final)
     return 0
 
 

@@ -54,6 +54,8 @@ RATIOS = {"one_team_vs_two_teams": "two_teams", "alone_vs_beside_ray": "beside_r
 if REPO_ROOT not in sys.path:
     sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
 
+from _bench_common import add_record_argument, record_result  # noqa: E402
+
 
 def _child(variant: str, updates: int) -> dict:
     import resource
@@ -174,6 +176,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2, help="processes per variant, run alternately")
     parser.add_argument("--child", choices=VARIANTS, help=argparse.SUPPRESS)
     parser.add_argument("--idle-ray", action="store_true", help=argparse.SUPPRESS)
+    add_record_argument(parser)
     args = parser.parse_args()
     if args.idle_ray:
         _idle_ray()
@@ -205,9 +208,10 @@ def main() -> None:
                          "sleeps_per_update": int(statistics.median(r["sleeps_per_update"] for r in rs)),
                          "preemptions_per_update": int(statistics.median(r["preemptions_per_update"] for r in rs)),
                          "runs": rs} for variant, rs in runs.items()}
-    print(json.dumps({"benchmark": "omp_teams", "ratios": ratios,
-                      "per_repeat": per_repeat, "results": results,
-                      "device": f"{os.uname().machine}, {len(os.sched_getaffinity(0))} CPUs"}))
+    final = {"benchmark": "omp_teams", "ratios": ratios, "per_repeat": per_repeat, "results": results,
+             "device": f"{os.uname().machine}, {len(os.sched_getaffinity(0))} CPUs"}
+    print(json.dumps(final))
+    record_result(args.record, "omp_teams", final)
 
 
 if __name__ == "__main__":

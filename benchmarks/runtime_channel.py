@@ -397,6 +397,7 @@ def main(argv: list[str] | None = None) -> int:
         choices=("infinirl", "ray", "ray_numpy"),
         help="run one impl in this process and print its JSON line (used by the driver)",
     )
+    bc.add_record_argument(ap)
     args = ap.parse_args(argv)
     sizes = bc.parse_sizes(args.sizes)
 
@@ -444,6 +445,7 @@ def main(argv: list[str] | None = None) -> int:
         "elapsed_s": round(time.perf_counter() - t0, 1),
     }
     print(json.dumps(line), flush=True)
+    bc.record_result(args.record, "Runtime channel benchmark", line)
     return 0
 
 

@@ -102,6 +102,15 @@ def main(argv: list[str] | None = None) -> int:
     if "=" in (getattr(args, "config", None) or ""):  # `infinirl eval run_dir=...`: no config name given
         args.overrides.insert(0, args.config)
         args.config = _DEFAULT_CONFIG[args.command]
+    if args.command == "record":
+        from infinirl.results import record_run
+
+        try:
+            print(record_run(args.source, args.to, args.title))
+        except (FileNotFoundError, ValueError) as exc:
+            print(f"infinirl: record: {exc}", file=sys.stderr)
+            return 2
+        return 0
     if args.command == "list":
         runners = _runners()
         print("configs:", ", ".join(available_configs()))
@@ -148,6 +157,11 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
                        help=f"config name (default: {default}). Available: {', '.join(names)}")
         p.add_argument("overrides", nargs="*", help=f"key=value overrides, e.g. {example}")
     sub.add_parser("list", help="list configs and runners")
+    record = sub.add_parser("record", help="append a finished run's summary (or a benchmark's JSON file) to the "
+                                           "results file, with its command, host and date")
+    record.add_argument("source", help="a run's output_dir (its summary.json) or a JSON file")
+    record.add_argument("--to", default="docs/results.md", help="the results file (default: docs/results.md)")
+    record.add_argument("--title", default=None, help="the entry's title (default: the run's)")
     return parser
 
 

@@ -36,15 +36,23 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from infinirl.config import ConfigError, to_plain
+from infinirl.results import host_probe
 from infinirl.runners.checkpoints import Checkpoints, config_changes
 from infinirl.runners.curves import Panel, plot_panels
 from infinirl.runners.metrics_log import MetricsLogger, read_metrics
 from infinirl.runners.run_config import RunConfig
-from infinirl.utils import capture_rng_state, restore_rng_state, seed_everything, torch_save_atomic
+from infinirl.utils import (
+    capture_rng_state,
+    restore_rng_state,
+    seed_everything,
+    torch_save_atomic,
+    write_json_atomic,
+)
 
 __all__ = ["Flow", "LoopSpec", "ProgressField", "RunLoop"]
 
 DRIVER_RNG_FILE = "driver_rng.pt"
+SUMMARY_FILE = "summary.json"
 CONFIG_HISTORY_FILE = "config_history.jsonl"
 
 
@@ -255,12 +263,25 @@ class RunLoop:
             "metrics": self.logger.path,
             **artifacts,
         }
+        # For `infinirl record <output_dir>`: the result with what produced it and where.
+        write_json_atomic(os.path.join(cfg.output_dir, SUMMARY_FILE),
+                          {**summary, "title": f"{spec.title} ({cfg.runner})", "command": _command_line(),
+                           "host": host_probe()})
         print(json.dumps(summary), flush=True)
         return summary
 
     def _remove_unused_output(self) -> None:
         if self._created_output and os.path.isdir(self.cfg.output_dir):
             shutil.rmtree(self.cfg.output_dir, ignore_errors=True)
+
+
+def _command_line() -> str:
+    import shlex
+    import sys
+
+    argv = sys.argv or ["python"]
+    program = os.path.basename(argv[0])
+    return shlex.join(["infinirl" if program in ("infinirl", "cli.py") else program, *argv[1:]])
 
 
 def _check_writable(output_dir: str) -> None:
