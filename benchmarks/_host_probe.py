@@ -1,8 +1,8 @@
 """The host facts that decide the embodied benchmark's ratios, measured before its rows run.
 
-Why it exists: the same code gives different ratios on different 2-core VMs. Session 18's host met
-the state targets and missed RGB a/c; session 19's (a faster AMD EPYC with AVX-512) met RGB a/c and
-missed state a/b. What moves them is arithmetic over a few costs, so the result line carries them:
+Why it exists: the same code gives different ratios on different 2-core VMs (a faster simulator
+makes the pipeline's fixed per-message costs a larger share of a step). What moves the ratios is
+arithmetic over a few costs, so the result line carries them:
 
 * ``sim_step_ms``: one pipeline stage's step of N/2 and of N MetaWorld ``reach-v3`` envs in one
   process (state observations; N the benchmark's env count, 16 by default, ``--envs`` here), as a
@@ -13,7 +13,7 @@ missed state a/b. What moves them is arithmetic over a few costs, so the result 
 * ``link_round_trip_us``: median round trip of an N/2-env stage's message and its actions over the
   socket link the pipelined rows use (``infinirl.components.env_link``), between two processes.
 * ``parallel_scaling``: how much work two busy processes get done together, relative to one alone
-  (2.0: the VM gives two full cores; session 6's host gave ~1.57). (a) needs both cores.
+  (2.0: the VM gives two full cores; shared VMs give less). (a) needs both cores.
 """
 
 from __future__ import annotations

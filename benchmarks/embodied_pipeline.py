@@ -3,8 +3,7 @@
 Three ways to run the same PPO iteration, for state observations (MLP 2x64) and for 64x64 RGB
 camera observations (CNN): the same registered policy, the same PPO update (10 epochs x 32
 mini-batches) and the shipped `ppo_metaworld_reach` demo's shape, read from its config (16 envs x
-100 steps of `reach-v3`; `--num-envs/--steps` change it, e.g. 8 x 200, the demo's shape until
-session 19):
+100 steps of `reach-v3`; `--num-envs/--steps` change it, e.g. 8 x 200):
 
   (a) pipelined:      `infinirl train ppo_metaworld_reach` with the env and the rollout on disjoint
                       CPU slots (placement env=0 rollout=1 actor=0), `rollout.pipeline_stages=2` and
@@ -22,7 +21,7 @@ session 19):
 
 Every row runs the same update and the same policy inference: by default with `actor.compile=true`
 (the whole optimizer step, forward pass, PPO loss, gradient, clipping and Adam, through
-torch.compile; the same arithmetic as eager, ~4x faster for this small MLP) and
+torch.compile; the same arithmetic as eager, in fewer, fused kernels) and
 `rollout.compile=true` (the policy's `act` compiled, the same random draws as eager; row (c)
 compiles its `act` the same way), with `--eager` without either. With RGB the CNN's update uses
 every core in every row (`actor.num_threads=0`; row (c) sets torch's threads to the core count for
@@ -31,21 +30,21 @@ on the placement, so it is the same cost in every row; pipelining only shortens 
 
 The rows run side by side, in turns (`benchmarks/_bench_turns.py`): every row's process starts
 at once, then the rows take turns, one PPO iteration each, while the others wait frozen (every
-process of theirs, Ray included, stopped: no CPU), the order rotating every cycle. So the i-th iteration of every row runs within seconds of the
-others' and a slow spell of a shared VM lands on all rows alike (measured on this project's 2-core
-VM: the same row at 1,300 and at 2,000 env-steps/s ten minutes apart, which decided ratios when the
-rows ran one after the other). Env-steps/s = env steps of the measured iterations / their wall time
+process of theirs, Ray included, stopped: no CPU), the order rotating every cycle. So the i-th
+iteration of every row runs within seconds of the others' and a slow spell of a shared VM, whose
+speed drifts by tens of percent within minutes, lands on all rows alike. Env-steps/s = env steps of the measured iterations / their wall time
 (collection + update + weight sync, the runner's own `time/iteration_s`), skipping each row's first
 `--warmup` iterations (the one-off compile, JIT of the first calls); start-up, waiting for a turn
 and the final evaluation are not counted.
 
 Usage:
-    python benchmarks/embodied_pipeline.py                      # state and rgb, all impls (~3-4 min on 2 cores)
+    python benchmarks/embodied_pipeline.py                      # state and rgb, all impls (minutes)
     python benchmarks/embodied_pipeline.py --obs state --iterations 4
     python benchmarks/embodied_pipeline.py --only single_process --obs rgb   # one impl alone, its JSON line
     python benchmarks/embodied_pipeline.py --eager              # every row's update and act uncompiled
     python benchmarks/embodied_pipeline.py --obs state --iterations 4 --rounds 3   # three blocks of 4
     python benchmarks/embodied_pipeline.py --num-envs 8 --steps 200   # another iteration shape
+    python benchmarks/embodied_pipeline.py --record docs/results.md   # also append the result as an entry
 
 The table goes to stderr; the last stdout line is ONE JSON object:
     {"benchmark": "embodied_pipeline", "ratios": {"pipelined_vs_sequential": ..,
@@ -58,7 +57,7 @@ ratios (the i-th iterations of two rows, seconds apart). "host" holds what the r
 measured before the rows start (`benchmarks/_host_probe.py`, ~10 s; `--no-probe` skips it): the
 CPU, a MetaWorld step of one pipelined stage's envs and of all of them, the link's round trip, and
 how two busy processes scale.
-Read ratios from different machines side by side with it (docs/embodied.md, "Measured").
+Read ratios from different machines side by side with it (docs/results.md).
 """
 
 from __future__ import annotations
@@ -374,8 +373,7 @@ def probe_host() -> dict:
 
 def demo_shape(num_envs: int | None = None, steps: int | None = None) -> tuple[int, int]:
     """(envs, decisions per env) of an iteration: the given ones, else the demo config's. Why the
-    demo's: the benchmark measures the PPO loop users run; session 19 changed the demo from 8 x 200
-    to 16 x 100 (better held-out success), and a hard-coded shape had stayed behind."""
+    demo's: the benchmark measures the PPO loop users run, so it follows the demo's config."""
     if num_envs is not None and steps is not None:
         return num_envs, steps
     from infinirl.config import compose

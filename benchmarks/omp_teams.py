@@ -1,7 +1,8 @@
 """Benchmark: the pixels PPO update on the compute thread, alone in OpenMP vs after one parallel op
 on a second thread, and alone vs beside an idle Ray instance. Why it exists: a Worker rank computes
-on a thread of its own (the process's main thread runs Ray's event loop), and until session 16 its
-constructor ran on the main thread; and an actor rank's update always has Ray beside it, which row
+on a thread of its own (the process's main thread runs Ray's event loop), and its constructor runs
+on that thread too (a constructor on the main thread would start a second OpenMP team); and an
+actor rank's update always has Ray beside it, which row
 (c) of ``embodied_pipeline.py`` (one process, no Ray) does not.
 
 torch's intra-op threads are libgomp's. Every thread that starts a parallel region gets its own
@@ -15,12 +16,12 @@ Two processes, each with the actor's OpenMP settings (``OMP_WAIT_POLICY=PASSIVE`
 
   one_team:  build the CNN policy and run ``ppo_update`` on one worker thread (how a Worker rank
              computes now: constructor and methods on its compute thread);
-  two_teams: the same after one parallel torch op on the main thread (how a rank's constructor
-             ran before).
+  two_teams: the same after one parallel torch op on the main thread (what a constructor on the
+             main thread would cause).
   beside_ray: one_team while a local Ray instance of ours idles beside it, with three idle
              components (a pipelined row's env, rollout and actor, minus their work). Every Ray
-             worker's main thread wakes every 10 ms, and Ray's daemons poll: ~700 wake-ups a second
-             on this VM, each of which may preempt one of the update's two OpenMP threads while
+             worker's main thread wakes every 10 ms, and Ray's daemons poll: hundreds of wake-ups a
+             second, each of which may preempt one of the update's two OpenMP threads while
              the other waits for it at the next barrier (the involuntary context switches).
 
 Each runs the update (1,600 samples of 64x64 RGB + proprio, 10 epochs x 32 mini-batches, compiled
@@ -30,7 +31,7 @@ voluntary context switches per update (the sleeps) and the involuntary ones (pre
 median over repeats of (variant's update) / (one_team's update).
 
 Usage:
-    python benchmarks/omp_teams.py               # ~4 min on 2 cores
+    python benchmarks/omp_teams.py               # minutes
     python benchmarks/omp_teams.py --updates 5
 
 The last stdout line is one JSON object: {"benchmark": "omp_teams", "ratios":

@@ -35,7 +35,7 @@ import _bench_common as bc
 
 def _force_private_ray() -> None:
     """RLinf's Cluster first tries `ray.init(address="auto")`, which would join any Ray cluster
-    already running on this machine (another benchmark, another user). Redirect that to a fresh
+    already running on the machine (another benchmark, another user). Redirect that to a fresh
     local instance owned by this process tree, without the dashboard (2-core machines)."""
     import ray
 

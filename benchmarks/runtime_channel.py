@@ -16,7 +16,7 @@ own subprocess with its own private Ray instance (`ray.init(address="local")`), 
 so none of them sees another's actors, memory or CPU load.
 
 Usage:
-    python benchmarks/runtime_channel.py                 # all impls, all sizes (~2-4 min on 2 cores)
+    python benchmarks/runtime_channel.py                 # all impls, all sizes (minutes)
     python benchmarks/runtime_channel.py --quick         # short run
     python benchmarks/runtime_channel.py --sizes 1KB,1MB --impls ray,rlinf
     python benchmarks/runtime_channel.py --only ray      # one impl in-process, prints its JSON line

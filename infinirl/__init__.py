@@ -1,6 +1,6 @@
 """InfiniRL: RL infrastructure for post-training foundation models and robot policies.
 
-The layers (see DESIGN.md): ``runtime`` (distributed core), ``engines`` (compute backends),
+The layers (docs/architecture.md): ``runtime`` (distributed core), ``engines`` (compute backends),
 ``algorithms`` (pure tensor functions), ``components`` (RL workers), ``runners`` (macro flows).
 """
 

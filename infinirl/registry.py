@@ -2,7 +2,7 @@
 
 RLinf picks advantages, losses, models and envs through if/elif chains over config strings, so
 adding one means editing a dispatcher far from the new code. Here a new entry is one decorated
-definition in one file (DESIGN.md section 4, point 2). The class is generic on purpose: ``envs``,
+definition in one file. The class is generic on purpose: ``envs``,
 ``models`` and ``robots`` reuse it, and out-of-tree plugins can register through entry points.
 
 A misspelt name fails with every registered name listed (and the closest match suggested), because

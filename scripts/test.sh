@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The default test suite (CPU, < 20 min on 2 cores). `pytest -m slow` runs the learning runs;
+# The default test suite (CPU only; CI gives it 20 minutes on 2 cores). `pytest -m slow` runs the learning runs;
 # `pytest -m gpu` the GPU checks (skipped without CUDA). Extra arguments go to pytest.
 set -uo pipefail
 cd "$(dirname "$0")/.."

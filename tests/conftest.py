@@ -18,7 +18,7 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session")
 def ray_cluster():
-    """One local Ray instance for the whole session (starting Ray costs seconds on 2 cores)."""
+    """One local Ray instance for the whole session (starting Ray costs seconds)."""
     from infinirl.runtime import Cluster
 
     cluster = Cluster(num_cpus=2, log_to_driver=False).start()

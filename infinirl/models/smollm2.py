@@ -6,7 +6,7 @@ That GGUF is **Q4_1-quantised** (token embedding Q8_0, norms F32): transformers 
 float32 on load, and those dequantised float weights *are* the model we use. They are close to,
 but not bit-identical with, the original bf16 SmolLM2 release.
 
-Dequantising takes ~20 s, so we do it once and keep an ordinary safetensors folder (float32, so
+Dequantising takes seconds, so we do it once and keep an ordinary safetensors folder (float32, so
 the dequantised values are stored exactly) in ``$INFINIRL_CACHE/models/smollm2-135m-instruct``
 (``$INFINIRL_CACHE`` defaults to ``~/.cache/infinirl``). The folder is built in a temporary
 sibling directory and renamed into place, so a crash or a concurrent conversion never leaves a

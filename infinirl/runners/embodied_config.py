@@ -122,20 +122,19 @@ class ActorConfig:
     anneal_iterations: int = bounded(0, ge=0)
     """The decay's horizon in iterations; 0 = `iterations`, else at least `iterations`. Set it to stop
     a run early on a longer run's learning-rate schedule: a shorter `iterations=` alone decays faster
-    and learns differently (push-v3: 0.62 held-out at 300 iterations annealed over 300, 0.60-0.80 at
-    150 annealed over 600)."""
+    and learns differently."""
     adam_eps: float = bounded(1e-5, gt=0)
     strategy: Literal["ddp", "fsdp"] = "ddp"
     """ddp: replicated weights, one SUM all-reduce of the gradients per step; fsdp: FSDP2 fully_shard."""
     num_threads: int = bounded(1, ge=0)
-    """torch threads per actor rank. 1 keeps small models fast (a 2x64 MLP's update doubles with 2
-    threads on 2 cores); 0 takes every core of the host: the on-policy update runs while the envs and
-    the rollout wait, so a conv net's update can use the cores they leave idle (the 64x64 pixels CNN
-    on 2 cores: 6.4 -> 4.4 s an update). Meant for one actor rank per host."""
+    """torch threads per actor rank. 1 keeps small models fast (a small MLP's many tiny ops only pay
+    for waking a second thread); 0 takes every core of the host: the on-policy update runs while the
+    envs and the rollout wait, so a conv net's update can use the cores they leave idle. Meant for
+    one actor rank per host."""
     compile: bool = False
     """torch.compile the whole optimizer step (forward, PPO loss, gradient, clipping, Adam) into fused
-    kernels: ~4x faster updates of small policies on CPU, after a one-off compile of seconds to a
-    minute in the first update. Needs a C++ compiler (g++/clang++). With strategy=fsdp only the
+    kernels: much faster updates of small policies on CPU, whose eager cost is per-op overhead, after
+    a one-off compile of seconds to a minute in the first update. Needs a C++ compiler (g++/clang++). With strategy=fsdp only the
     forward pass and loss are compiled (FSDP2's hooks stay eager)."""
     device: Literal["auto", "cpu"] = "auto"
     """auto: train on the device the placement gives each rank (a GPU when placed on one, NCCL between
@@ -153,8 +152,8 @@ class RolloutConfig:
     num_threads: int = bounded(1, ge=0)
     compile: bool = False
     """torch.compile the policy's ``act`` for collection (sampling from the same random stream as
-    eager, so the same seed gives the same actions up to float rounding): ~40% cheaper decisions
-    for a small MLP on CPU, ~20% for the CNN, after a one-off compile of seconds in the first
+    eager, so the same seed gives the same actions up to float rounding): cheaper decisions for
+    small policies on CPU, after a one-off compile of seconds in the first
     iteration. Evaluation and videos stay eager (their batch sizes vary). Needs a C++ compiler."""
     device: Literal["auto", "cpu"] = "auto"
     """auto: run the policy on the device the placement gives each rank (a GPU when placed on one);

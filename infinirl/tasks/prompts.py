@@ -58,7 +58,7 @@ def encode_prompt(
     """Prompt token ids for ``problem``, ending where the assistant's reply begins.
 
     This is the only place prompt text becomes tokens; rollout, reward and trainer pass these ids
-    on unchanged (DESIGN.md §5: never decode and re-tokenize).
+    on unchanged (never decode and re-tokenize: the log-probs must be of the exact tokens sampled).
     """
     if not use_chat_template:
         return list(tokenizer(problem.prompt, add_special_tokens=True)["input_ids"])

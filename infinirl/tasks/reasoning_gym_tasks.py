@@ -10,15 +10,8 @@ of the next item, because every item is a pure function of ``(name, config, seed
 
 Choosing a chain_sum config (distinct questions = sum over term counts t and digit counts d of
 ``operands(d)**t * 2**(t-1)``, operands(1) = 10, operands(d) = 9*10**(d-1); generation draws t and
-d uniformly first, so the smallest (t, d) cell supplies a disproportionate share of draws).
-Greedy accuracy of the embedded SmolLM2-135M-Instruct, 24 new tokens, raw question:
-
-    terms  digits   distinct questions   greedy accuracy
-    2      1        200                  42% (all 200; default system prompt) / 34% ("Answer
-                                         with the number only."); + 62%, - 22%
-    2      1-2      16,400               16-21% (1-digit part as above, 2-digit part ~1-5%)
-    2      2        16,200               2-5%
-    2-3    1        4,200                27%
+d uniformly first, so the smallest (t, d) cell supplies a disproportionate share of draws). The
+embedded model's greedy accuracy per config: docs/results.md, "Base accuracy on chain_sum".
 """
 
 from __future__ import annotations
@@ -54,10 +47,8 @@ class ReasoningGymTask:
         prompt_template: instruction around each question. Default: the question as generated,
             since reasoning-gym questions carry their own instruction ("State the final answer
             to ..."), and the ``reasoning_gym`` verifier's ``auto`` extractor reads the answer
-            whatever format the model picks. Measured on SmolLM2-135M-Instruct (chain_sum, 2
-            terms, 1-2 digits, greedy): raw question 25%, with "Give the final answer after
-            '####'." 17% (the model never used the marker), so extra instructions only cost
-            prompt tokens for tiny models.
+            whatever format the model picks; for tiny models extra answer-format instructions
+            cost prompt tokens and accuracy (docs/results.md, "Prompt format of chain_sum").
     """
 
     name: str

@@ -1,4 +1,4 @@
-"""The embodied demos learn, with their shipped configs (slow: 1-7 minutes each on 2 cores).
+"""The embodied demos learn, with their shipped configs (slow).
 
 PPO + MLP on MetaWorld reach-v3 must reach >= 90% held-out success (50 seeded layouts never
 trained on, deterministic policy) by the end of its run and write its curve and video; the other

@@ -1,4 +1,4 @@
-"""The main job learns: GRPO on the embedded SmolLM2-135M (slow: minutes on 2 cores).
+"""The main job learns: GRPO on the embedded SmolLM2-135M (slow).
 
 This runs the shipped `default` config itself (what `infinirl train` runs, all 40 iterations) and
 asserts 80% held-out greedy accuracy at its end, so a change that slows learning or breaks the

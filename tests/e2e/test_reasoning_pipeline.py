@@ -68,7 +68,7 @@ PPO = {
 }
 
 
-@pytest.mark.slow  # two runs of five components: over a minute on 2 cores
+@pytest.mark.slow  # two runs of five components each
 def test_ppo_with_critic_and_reference_resumes_exactly(ray_cluster, tiny_llama_dir, tmp_path):
     straight = run(make_cfg(tiny_llama_dir, tmp_path / "straight", iterations=3, **PPO))
     # Resume from the straight run's step-2 checkpoint: the third step must come out identical.

@@ -1,4 +1,4 @@
-"""SAC learns InvertedPendulum-v5 with the shipped demo config (slow: minutes on 2 cores).
+"""SAC learns InvertedPendulum-v5 with the shipped demo config (slow).
 
 The held-out return (10 seeded episodes, deterministic policy) starts far below and reaches the
 1000-step maximum (curve: docs/results.md)."""

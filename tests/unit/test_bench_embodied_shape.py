@@ -1,8 +1,8 @@
 """The embodied benchmark measures the iteration shape of the demo it names (benchmarks/embodied_pipeline.py).
 
-Why: session 19 changed `ppo_metaworld_reach` to 16 envs x 100 steps while the benchmark kept a
-hard-coded 8 x 200, so for a session it measured a loop nobody ran. The shape now comes from the
-demo's config; these checks fail if it is hard-coded again or an explicit shape is ignored."""
+Why: a hard-coded shape would drift from the demo's config and measure a loop nobody runs. The
+shape comes from the demo's config; these checks fail if it is hard-coded again or an explicit
+shape is ignored."""
 
 import os
 import sys
