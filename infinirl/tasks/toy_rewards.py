@@ -23,3 +23,13 @@ def uppercase_fraction(response: str, problem) -> float:
     a GRPO run on a tiny random model has signal from step one (used by the fast learning test)."""
     letters = [ch for ch in response if ch.isalpha()]
     return sum(ch.isupper() for ch in letters) / max(1, len(letters))
+
+
+def kill_own_process(response: str, problem) -> float:
+    """Kills the process that scores (SIGKILL, as the kernel's OOM killer would): for fault-injection
+    tests of what a run does when its reward worker dies mid-step."""
+    import os
+    import signal
+
+    os.kill(os.getpid(), signal.SIGKILL)
+    return 0.0
