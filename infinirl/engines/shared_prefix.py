@@ -92,7 +92,8 @@ def pack_by_prompt(
     predictor, target, row, column = [], [], [], []
     for members in _split_long(groups.values(), starts, ends, max_packed_tokens):
         lead, s = members[0], int(starts[members[0]])
-        seq_ids, seq_pos, seq_valid, seq_seg = [ids[lead, :s]], [pos[lead, :s]], [attn[lead, :s]], [torch.zeros(s, dtype=torch.long)]
+        seq_ids, seq_pos, seq_valid = [ids[lead, :s]], [pos[lead, :s]], [attn[lead, :s]]
+        seq_seg = [torch.zeros(s, dtype=torch.long)]
         length = s
         for k, b in enumerate(members, start=1):
             e = int(ends[b])

@@ -18,8 +18,9 @@ from tensordict import TensorDict
 
 #: ``loss_fn(micro_batch, logprobs, entropy) -> (loss, metrics)``. ``logprobs``/``entropy`` are
 #: ``[b, L]`` in the aligned layout of :mod:`infinirl.data.batch` (``entropy`` is ``None`` unless
-#: requested; for a value engine the second argument holds the values, see :data:`TrainOutput`). The engine *sums* gradients of ``loss`` over micro-batches and data-parallel ranks,
-#: so the loss must already be normalised by a global (whole mini-batch, all ranks) denominator.
+#: requested; for a value engine the second argument holds the values, see :data:`TrainOutput`).
+#: The engine *sums* gradients of ``loss`` over micro-batches and data-parallel ranks, so the loss
+#: must already be normalised by a global (whole mini-batch, all ranks) denominator.
 LossFn = Callable[
     [TensorDict, torch.Tensor, "torch.Tensor | None"],
     "tuple[torch.Tensor, Mapping[str, float | torch.Tensor]]",
