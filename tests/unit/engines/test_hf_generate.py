@@ -15,14 +15,9 @@ from infinirl.data.batch import (
     pack_sequences,
 )
 from infinirl.engines.base import SamplingParams
-from infinirl.engines.hf_generate import (
-    HFGenerateEngine,
-    PreallocatedKVLayer,
-    cache_keyword,
-    excluded_tokens,
-    new_kv_cache,
-    sample_from_weights,
-)
+from infinirl.engines.hf_generate import HFGenerateEngine
+from infinirl.engines.kv_cache import PreallocatedKVLayer, cache_keyword, new_kv_cache
+from infinirl.engines.sampling import excluded_tokens, sample_from_weights
 from infinirl.models.hf_causal_lm import tiny_causal_lm
 
 # Different lengths, so batched prompts really are left-padded.
