@@ -2,10 +2,10 @@
 
 Why: a small policy's mini-batch step is a few hundred tiny tensor ops. On CPU each eager op (and
 each autograd node, the gradient-clipping kernels and the optimizer's bookkeeping) costs more
-interpreter overhead than arithmetic. Compiling only the loss (with its backward) halves the
-step; compiling the *whole* step halves it again, because the backward pass, the clipping and the
-Adam update then fuse into the same few kernels (measured on a mini-batch of the MetaWorld benchmark's
-MLP 2x64: 785 us a step with the compiled loss and the eager optimizer, 350 us as one compiled step).
+interpreter overhead than arithmetic. Compiling only the loss (with its backward) removes that
+overhead from the forward and backward passes; compiling the *whole* step removes it from the
+clipping and the optimizer too, because the backward pass, the clipping and the Adam update then
+fuse into the same few kernels.
 
 How: the gradient is taken functionally (``torch.func.grad_and_value`` over
 ``torch.func.functional_call``), so dynamo traces forward and backward as one graph; gradient
@@ -43,9 +43,8 @@ def inductor_options(device: torch.device | str) -> dict:
 
     On CPU, ``cpp_wrapper``: the compiled graph's kernels are called from one generated C++
     function instead of a generated Python one, which removes most of the per-call interpreter
-    overhead that dominates a small network's step (measured on MetaWorld's MLP 2x64, quiet 2-core
-    CPU: the PPO update of 320 mini-batch steps 0.185 -> 0.161 s, a 4-env decision ~210 -> ~165 us).
-    The arithmetic is the same kernels'. On CUDA no option: the verified GPU path stays as it is."""
+    overhead that dominates a small network's step and decision. The arithmetic is the same
+    kernels'. On CUDA no option: the verified GPU path stays as it is."""
     return {"cpp_wrapper": True} if torch.device(device).type == "cpu" else {}
 
 
@@ -152,7 +151,7 @@ class CompiledAdamStep:
     and the later ones cannot differ from it in anything a guard checks, since they pass the same
     model, parameter and state tensors, objective and constants, and mini-batch views of the same
     shapes. Why: with one graph for forward, backward, clipping and Adam, the guards check every
-    parameter and state tensor on every call, ~100 us of a ~500 us step of MetaWorld's MLP 2x64.
+    parameter and state tensor on every call, a sizeable share of a small policy's whole step.
     The stance is process-wide in torch, so the steps skip guards only on the process's compute
     thread (:func:`~infinirl.runtime.compute_thread.on_compute_thread`: a script's main thread, a
     Worker's sync-method thread), the one thread of our processes that calls compiled functions.
@@ -208,8 +207,8 @@ class CompiledAdamStep:
         if self._device_type == "cpu":
             return self._corrections
         # On an accelerator the corrections go in on the parameters' device: inductor would pass a
-        # CPU tensor's pointer straight into a GPU kernel (on an H100: "CUDA driver error: invalid
-        # argument"). A fresh pinned copy per step, copied asynchronously: the caching host
+        # CPU tensor's pointer straight into a GPU kernel (CUDA fails with "invalid argument").
+        # A fresh pinned copy per step, copied asynchronously: the caching host
         # allocator keeps it until the copy is done, so the next step's rewrite cannot race it.
         return self._corrections.pin_memory().to(self.params[0].device, non_blocking=True)
 

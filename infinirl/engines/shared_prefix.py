@@ -3,8 +3,7 @@
 In GRPO-style training every prompt is sampled ``n`` times (8 is typical) and each of the ``n``
 rows repeats the whole prompt: a plain forward computes, and backpropagates through, the same
 prompt ``n`` times. Rows are also right-padded to the longest response of the micro-batch. With
-short answers both are most of the tokens (arithmetic benchmark: 46-token prompts, responses of
-~30 tokens padded to 48; 94 columns per row of which ~30 are new work).
+short answers to long prompts, repeated prompts and padding are most of the tokens computed.
 
 So the rows of a micro-batch that share a prompt become one packed row::
 

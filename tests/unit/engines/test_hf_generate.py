@@ -27,7 +27,7 @@ PROMPTS = [[5, 6, 7, 8, 9, 10, 11], [20, 21], [30, 31, 32, 33]]
 @pytest.fixture(scope="module", autouse=True)
 def single_thread():
     """A tiny model gains nothing from threads, and on a shared CPU every extra thread's
-    synchronisation costs ~20x (measured): run these tests on one thread."""
+    synchronisation costs far more than its share of the arithmetic: run these tests on one thread."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
