@@ -5,6 +5,7 @@ Modules, one job each:
 * ``registry``     the generic ``Registry`` and the four algorithm registries;
 * ``advantages``   token-level estimators (gae, grpo, dr_grpo, rloo, reinforce_pp[_baseline]);
 * ``embodied``     env-rollout estimators (embodied_gae at chunk/action level, embodied_grpo);
+* ``embodied_ppo`` the embodied PPO objective and its epochs of mini-batch steps (PPO, embodied GRPO);
 * ``losses``       PPO clip (clip-higher, dual clip, TIS / decoupled PPO), value and entropy losses;
 * ``kl``           k1/k2/k3 KL estimators as a loss term or a per-token reward penalty;
 * ``aggregation``  loss matrix -> scalar with a mini-batch-global normaliser (split-invariant);
@@ -33,6 +34,7 @@ from infinirl.algorithms.aggregation import (
     aggregation_normaliser,
 )
 from infinirl.algorithms.embodied import EnvAdvantageInputs, embodied_gae, embodied_grpo
+from infinirl.algorithms.embodied_ppo import PPOSpec, ppo_objective
 from infinirl.algorithms.filters import (
     DynamicSamplingBuffer,
     DynamicSamplingResult,
@@ -80,6 +82,7 @@ __all__ = [
     "DynamicSamplingResult",
     "EnvAdvantageInputs",
     "LossOutput",
+    "PPOSpec",
     "Registry",
     "SACLoss",
     "TokenAdvantageInputs",
@@ -111,6 +114,7 @@ __all__ = [
     "masked_whiten",
     "overlong_penalty",
     "policy_gradient_loss",
+    "ppo_objective",
     "ppo_clip_loss",
     "reinforce_pp",
     "reinforce_pp_baseline",

@@ -1,9 +1,8 @@
 """bfloat16 on CPUs without native bf16 arithmetic falls back to float32.
 
 Why: PyTorch runs bf16 matrix products fast on x86 CPUs with AVX512-BF16 or AMX, but on the many
-that have only AVX2 (AMD Zen 2/3, older Intel) it takes a slow path. Measured on a 2-vCPU AMD EPYC
-(AVX2 only), torch 2.13, one thread, 512x512x512: float32 90.6 GFLOP/s, bfloat16 1.2 GFLOP/s. The
-main job (bf16 on CPU) then took ~4-7 minutes a step instead of ~10 s. On such a CPU a requested
+that have only AVX2 (AMD Zen 2/3, older Intel) it takes a slow path, many times slower than float32,
+which turns a training step of minutes into one of tens of minutes. On such a CPU a requested
 ``bfloat16`` becomes ``float32`` (with one warning), for the trainer's compute dtype and the
 rollout's weights alike. ``INFINIRL_CPU_BF16=1`` keeps bf16 anyway. Other architectures (Arm) keep
 what was asked: we do not guess there.
@@ -45,5 +44,5 @@ def resolve_cpu_dtype(name: str) -> str:
 @functools.cache
 def _warn_once() -> None:
     warnings.warn("bfloat16 was requested on a CPU without native bf16 arithmetic (no AVX512-BF16/AMX): "
-                  "bf16 matrix products run ~75x slower than float32 here, so float32 is used instead. "
+                  "bf16 matrix products run many times slower than float32 here, so float32 is used instead. "
                   "Set INFINIRL_CPU_BF16=1 to keep bfloat16.", stacklevel=3)

@@ -3,8 +3,7 @@
 In GRPO-style training every prompt is sampled ``n`` times (8 is typical) and each of the ``n``
 rows repeats the whole prompt: a plain forward computes, and backpropagates through, the same
 prompt ``n`` times. Rows are also right-padded to the longest response of the micro-batch. With
-short answers both are most of the tokens (arithmetic benchmark: 46-token prompts, responses of
-~30 tokens padded to 48; 94 columns per row of which ~30 are new work).
+short answers to long prompts, repeated prompts and padding are most of the tokens computed.
 
 So the rows of a micro-batch that share a prompt become one packed row::
 
@@ -92,7 +91,8 @@ def pack_by_prompt(
     predictor, target, row, column = [], [], [], []
     for members in _split_long(groups.values(), starts, ends, max_packed_tokens):
         lead, s = members[0], int(starts[members[0]])
-        seq_ids, seq_pos, seq_valid, seq_seg = [ids[lead, :s]], [pos[lead, :s]], [attn[lead, :s]], [torch.zeros(s, dtype=torch.long)]
+        seq_ids, seq_pos, seq_valid = [ids[lead, :s]], [pos[lead, :s]], [attn[lead, :s]]
+        seq_seg = [torch.zeros(s, dtype=torch.long)]
         length = s
         for k, b in enumerate(members, start=1):
             e = int(ends[b])

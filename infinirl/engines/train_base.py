@@ -20,8 +20,9 @@ from infinirl.config import bounded
 
 #: ``loss_fn(micro_batch, logprobs, entropy) -> (loss, metrics)``. ``logprobs``/``entropy`` are
 #: ``[b, L]`` in the aligned layout of :mod:`infinirl.data.batch` (``entropy`` is ``None`` unless
-#: requested; for a value engine the second argument holds the values, see :data:`TrainOutput`). The engine *sums* gradients of ``loss`` over micro-batches and data-parallel ranks,
-#: so the loss must already be normalised by a global (whole mini-batch, all ranks) denominator.
+#: requested; for a value engine the second argument holds the values, see :data:`TrainOutput`).
+#: The engine *sums* gradients of ``loss`` over micro-batches and data-parallel ranks, so the loss
+#: must already be normalised by a global (whole mini-batch, all ranks) denominator.
 LossFn = Callable[
     [TensorDict, torch.Tensor, "torch.Tensor | None"],
     "tuple[torch.Tensor, Mapping[str, float | torch.Tensor]]",
@@ -88,8 +89,8 @@ class TrainEngineConfig:
     score_prompts: bool = False
     """Compute log-probs at prompt positions too. Off (default): when the batch has a
     ``response_mask``, the LM head and its softmax run only from the column before the earliest
-    response token, and earlier columns read 0 (RL losses read response tokens only; on a 135M
-    model with a 49k vocabulary the head is ~20% of the FLOPs per token)."""
+    response token, and earlier columns read 0 (RL losses read response tokens only; for a small
+    model with a large vocabulary the head is a large share of the FLOPs per token)."""
     share_prompt_prefix: bool = True
     """Pack the rows of a micro-batch that share a prompt into one sequence, ``[prompt | response
     1 | ... | response n]``, with a 4-D attention mask that lets each response see the prompt and
@@ -108,13 +109,13 @@ class TrainEngineConfig:
     param_dtype: Literal["auto", "float32", "bfloat16"] = "auto"
     """Compute dtype of forward/backward. Master weights, optimizer state and gradient reduction
     stay float32. ``auto``: bfloat16 on CUDA devices that support it, float32 on CPU. On CPU, bf16
-    pays off only with native bf16 matmuls (AVX512_BF16/AMX: on an AMD EPYC with AVX512_BF16 a
-    1024^2 matmul ran 3.4x faster and a train step of a 4-layer, hidden-256 model ~1.6-1.9x) and
-    costs accuracy, so it is opt-in there."""
+    pays off only with native bf16 matmuls (AVX512_BF16/AMX; see :mod:`infinirl.engines.cpu_dtype`)
+    and costs accuracy, so it is opt-in there."""
     lora: LoraSettings | None = None
     """Train low-rank adapters instead of the full model (see :class:`LoraSettings`)."""
     activation_checkpointing: bool = False
-    """Recompute each decoder layer's activations in backward: less memory, ~30% more compute."""
+    """Recompute each decoder layer's activations in backward: less memory, one more forward pass
+    of compute."""
     temperature: float = 1.0
     """Log-probs are computed from ``logits / temperature``, to match the sampling distribution
     of the rollout engine (otherwise the PPO ratio is off even at the same weights)."""

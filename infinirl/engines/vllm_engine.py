@@ -28,157 +28,41 @@ which also redoes post-load processing such as the CPU backend's prepacked GEMM 
 re-processes the LM head (a tied LM head gets no weights of its own, and on CPU would otherwise
 keep a stale prepacked copy of the old embedding), then resets the prefix cache so no KV block
 computed with the old weights is reused.
+
+Beside the engine, one job each: :mod:`~infinirl.engines.vllm_process` (vLLM in this process),
+:mod:`~infinirl.engines.vllm_worker` (functions run on vLLM's worker),
+:mod:`~infinirl.engines.vllm_weights` (the weights a checkpoint has) and
+:mod:`~infinirl.engines.vllm_requests` (requests to vLLM, results from it).
 """
 
 from __future__ import annotations
 
-import hashlib
-import numbers
 import os
-import random
-from collections.abc import Iterable, Iterator
-from pathlib import Path
+from collections.abc import Iterable
 from typing import Any
 
 import torch
 
 from infinirl.engines.base import GenerationResult, InferenceEngine, SamplingParams
+from infinirl.engines.generate_inputs import default_eos_ids, stop_token_ids, validate_prompts
+from infinirl.engines.vllm_process import align_openmp_threads, import_vllm, preserved_process_state, vllm_available
+from infinirl.engines.vllm_requests import prompt_seed, to_generation_result, vllm_sampling_params
+from infinirl.engines.vllm_weights import checkpoint_weight_names, missing_weights, screened
+from infinirl.engines.vllm_worker import (
+    free_kv_cache,
+    install_tempered_logprobs,
+    kv_cache_bytes,
+    reload_weights,
+    restore_kv_cache,
+)
 
-# Read by vLLM when the engine is built; set before vllm is imported (see module docstring).
-_VLLM_ENV = {"VLLM_ENABLE_V1_MULTIPROCESSING": "0", "VLLM_USE_V2_MODEL_RUNNER": "0"}
+__all__ = ["DEFAULT_CPU_KV_CACHE_BYTES", "VLLMEngine", "vllm_available"]
 
 DEFAULT_CPU_KV_CACHE_BYTES = 1 << 30
 """KV cache reserved on CPU unless ``kv_cache_bytes`` says otherwise. vLLM's own CPU default is a
 fraction of *all* host memory (``gpu_memory_utilization``), far too much on a machine the trainer
 shares. 1 GiB holds ~23k tokens of SmolLM2-135M in float32; when a batch needs more, vLLM's
 scheduler preempts and recomputes (correct, slower)."""
-
-_GREEDY_EPS = 1e-5  # vLLM treats temperature below this as greedy
-
-
-def vllm_available() -> bool:
-    """True if ``import vllm`` would find a vLLM install (without importing it)."""
-    import importlib.util
-
-    return importlib.util.find_spec("vllm") is not None
-
-
-def _import_vllm():
-    for key, value in _VLLM_ENV.items():
-        if os.environ.get(key, value) != value:
-            raise RuntimeError(
-                f"VLLMEngine needs {key}={value} (in-process engine core, V1 model runner); "
-                f"this process has {key}={os.environ[key]!r}"
-            )
-        os.environ[key] = value
-    try:
-        import vllm
-    except ImportError as exc:
-        raise ImportError(
-            "rollout.engine=vllm needs vLLM, an optional extra with its own pins; build its venv "
-            "with `bash scripts/setup_vllm_venv.sh` and run from there (see docs/vllm.md). "
-            f"Import failed: {exc}"
-        ) from exc
-    return vllm
-
-
-# ------------------------------------------------------------------ functions run on the worker
-# Each is called as ``llm.collective_rpc(fn, args=...)``, i.e. ``fn(worker, *args)``, where
-# ``worker`` is vLLM's worker wrapper (attributes fall through to the CPU/GPU worker).
-
-
-def _install_tempered_logprobs(worker) -> str:
-    """Make the sampler's raw log-probs ``log softmax(logits / T)`` with each row's temperature
-    (``T = 1`` on greedy rows), computed before any top-k/top-p masking."""
-    from vllm.v1.sample.sampler import Sampler
-
-    sampler = worker.model_runner.sampler
-    if type(sampler) is not Sampler or sampler.logprobs_mode != "raw_logprobs":
-        raise RuntimeError(
-            f"VLLMEngine: expected vLLM's V1 Sampler in raw_logprobs mode, found "
-            f"{type(sampler).__name__} ({getattr(sampler, 'logprobs_mode', '?')}); this vLLM "
-            "version is not supported (scripts/setup_vllm_venv.sh pins a tested one)"
-        )
-    if getattr(sampler, "_infinirl_tempered", False):
-        return "already installed"
-    base_forward = sampler.forward
-    state: dict[str, Any] = {"metadata": None}
-
-    def forward(logits, sampling_metadata, *args, **kwargs):
-        state["metadata"] = sampling_metadata
-        try:
-            return base_forward(logits, sampling_metadata, *args, **kwargs)
-        finally:
-            state["metadata"] = None
-
-    def compute_logprobs(logits: torch.Tensor) -> torch.Tensor:
-        metadata = state["metadata"]
-        if metadata is not None and not metadata.all_greedy and metadata.temperature is not None:
-            temperature = metadata.temperature
-            if len(temperature) != len(logits):
-                raise RuntimeError(
-                    f"VLLMEngine: {len(logits)} logit rows for {len(temperature)} requests; "
-                    "tempered log-probs need one row per request (speculative decoding is not "
-                    "supported)"
-                )
-            temperature = torch.where(
-                temperature < _GREEDY_EPS, torch.ones_like(temperature), temperature
-            )
-            logits = logits.to(torch.float32) / temperature.unsqueeze(1)
-        return logits.log_softmax(dim=-1, dtype=torch.float32)
-
-    sampler.forward = forward  # nn.Module.__call__ dispatches to the instance attribute
-    sampler.compute_logprobs = compute_logprobs
-    sampler._infinirl_tempered = True
-    return "installed"
-
-
-def _reload_weights(worker, named_tensors: Iterable[tuple[str, torch.Tensor]]) -> None:
-    """vLLM's in-place reload, then re-run post-load processing of (tied) LM heads."""
-    from vllm.model_executor.layers.vocab_parallel_embedding import ParallelLMHead
-
-    worker.reload_weights(weights_iterator=named_tensors, is_checkpoint_format=True)
-    model = worker.model_runner.get_model()
-    for module in model.modules():
-        if isinstance(module, ParallelLMHead) and module.weight.numel():
-            module.quant_method.process_weights_after_loading(module)
-
-
-def _free_kv_cache(worker) -> int:
-    """Release the KV cache's memory but keep its storages, so every view vLLM holds of them (per
-    layer, per attention backend) stays valid; returns the bytes released."""
-    storages = {}
-    for tensor in worker.model_runner.kv_caches:  # layers may share one buffer
-        storage = tensor.untyped_storage()
-        if storage.nbytes():
-            storages.setdefault(storage.data_ptr(), storage)
-    freed = [(storage, storage.nbytes()) for storage in storages.values()]
-    for storage, _ in freed:
-        storage.resize_(0)
-    worker._infinirl_freed_kv = freed
-    return sum(size for _, size in freed)
-
-
-def _restore_kv_cache(worker) -> int:
-    """Reallocate what ``_free_kv_cache`` released, zeroed: a fresh cache, contents forgotten."""
-    freed = getattr(worker, "_infinirl_freed_kv", None) or []
-    for storage, size in freed:
-        storage.resize_(size)
-        torch.empty(0, dtype=torch.uint8).set_(storage).zero_()
-    worker._infinirl_freed_kv = None
-    return sum(size for _, size in freed)
-
-
-def _kv_cache_bytes(worker) -> int:
-    """Bytes currently allocated to the KV cache (0 while freed)."""
-    seen = {}
-    for tensor in worker.model_runner.kv_caches:
-        storage = tensor.untyped_storage()
-        seen[storage.data_ptr()] = storage.nbytes()
-    return sum(seen.values())
-
-
-# ------------------------------------------------------------------------------------ the engine
 
 
 class VLLMEngine(InferenceEngine):
@@ -247,7 +131,7 @@ class VLLMEngine(InferenceEngine):
             raise ValueError(f"VLLMEngine: max_batch_size={max_batch_size} must be >= 1")
         if sleep_level not in (1, 2):
             raise ValueError(f"VLLMEngine: sleep_level={sleep_level}; use 1 or 2")
-        vllm = _import_vllm()
+        vllm = import_vllm()
         from vllm.platforms import current_platform
 
         self._on_cpu = current_platform.is_cpu()
@@ -285,30 +169,21 @@ class VLLMEngine(InferenceEngine):
         else:
             kwargs["gpu_memory_utilization"] = gpu_memory_utilization
         kwargs.update(vllm_kwargs or {})
-        with _preserved_process_state():
+        with preserved_process_state():
             self.llm = vllm.LLM(**kwargs)
-        self.llm.collective_rpc(_install_tempered_logprobs)
+        self.llm.collective_rpc(install_tempered_logprobs)
 
         model_config = self.llm.llm_engine.model_config
         self.max_model_len = int(model_config.max_model_len)
         self._vocab_size = int(model_config.get_vocab_size())
-        self.eos_token_ids = self._default_eos_ids(model_config, eos_token_ids)
-        self._expected_weights = _checkpoint_weight_names(source)
+        generation_eos = model_config.try_get_generation_config().get("eos_token_id")
+        tokenizer = self.llm.get_tokenizer() if eos_token_ids is None else None
+        self.eos_token_ids = default_eos_ids(eos_token_ids, generation_eos, tokenizer)
+        self._expected_weights = checkpoint_weight_names(source)
         self._weight_version = 0
         self._offloaded = False
         self._weights_awake = False  # GPU: weights woken by load_weights while offloaded
         self._weights_discarded = False  # GPU sleep level 2: weights gone until load_weights
-
-    def _default_eos_ids(self, model_config, explicit) -> tuple[int, ...]:
-        if explicit is not None:
-            return tuple(int(t) for t in explicit)
-        ids: list[int] = []
-        eos = model_config.try_get_generation_config().get("eos_token_id")
-        ids += [eos] if isinstance(eos, int) else list(eos or [])
-        tokenizer = self.llm.get_tokenizer()
-        if getattr(tokenizer, "eos_token_id", None) is not None:
-            ids.append(tokenizer.eos_token_id)
-        return tuple(dict.fromkeys(int(t) for t in ids))
 
     # ----------------------------------------------------------------------------- generation
 
@@ -327,12 +202,9 @@ class VLLMEngine(InferenceEngine):
             return []
         from vllm.inputs import TokensPrompt
 
-        _align_openmp_threads()
+        align_openmp_threads()
 
-        stop_ids = list(sampling.stop_token_ids)
-        if not sampling.ignore_eos:
-            stop_ids += self.eos_token_ids
-        stop_ids = list(dict.fromkeys(stop_ids))
+        stop_ids = stop_token_ids(sampling, self.eos_token_ids)
         # vLLM refuses n > 1 with greedy decoding: send each greedy sample as its own request.
         per_request = 1 if sampling.is_greedy else sampling.n
         copies = sampling.n // per_request
@@ -341,8 +213,8 @@ class VLLMEngine(InferenceEngine):
             base_seed = int(torch.randint(0, 2**62, ()).item())
         prompts, params = [], []
         for index, prompt in enumerate(prompt_token_ids):
-            seed = None if sampling.is_greedy else _prompt_seed(base_seed, index)
-            vllm_params = self._vllm_sampling(sampling, per_request, stop_ids, seed)
+            seed = None if sampling.is_greedy else prompt_seed(base_seed, index)
+            vllm_params = vllm_sampling_params(sampling, per_request, stop_ids, seed)
             for _ in range(copies):
                 prompts.append(TokensPrompt(prompt_token_ids=[int(t) for t in prompt]))
                 params.append(vllm_params)
@@ -359,85 +231,11 @@ class VLLMEngine(InferenceEngine):
                     f"expected n={sampling.n}"
                 )
             for sample_index, completion in enumerate(completions):
-                results.append(self._to_result(prompt, index, sample_index, completion))
+                results.append(to_generation_result(prompt, index, sample_index, completion, self._weight_version))
         return results
 
-    @staticmethod
-    def _vllm_sampling(sampling: SamplingParams, n: int, stop_ids: list[int], seed: int | None):
-        from vllm import SamplingParams as VLLMSamplingParams
-
-        greedy = sampling.is_greedy
-        return VLLMSamplingParams(
-            n=n,
-            temperature=0.0 if greedy else sampling.temperature,
-            top_p=1.0 if greedy else sampling.top_p,
-            top_k=0 if greedy else sampling.top_k,
-            max_tokens=sampling.max_new_tokens,
-            seed=seed,
-            # EOS is handled as an ordinary stop id, so `eos_token_ids` decides what ends a
-            # response (vLLM would otherwise add the model's own EOS ids on its own).
-            ignore_eos=True,
-            stop_token_ids=stop_ids,
-            stop=list(sampling.stop_strings) or None,
-            include_stop_str_in_output=True,
-            # Stop strings are matched on the text of *all* tokens, like HFGenerateEngine's.
-            skip_special_tokens=False,
-            spaces_between_special_tokens=False,
-            detokenize=bool(sampling.stop_strings),  # text is never returned: decode only to stop
-            logprobs=0,  # the sampled token's log-prob only
-        )
-
-    def _to_result(self, prompt, prompt_index: int, sample_index: int, completion) -> GenerationResult:
-        response = list(completion.token_ids)
-        if completion.logprobs is None or len(completion.logprobs) != len(response):
-            raise RuntimeError(
-                "VLLMEngine: vLLM returned no per-token log-probs for a response "
-                f"({0 if completion.logprobs is None else len(completion.logprobs)} for "
-                f"{len(response)} tokens)"
-            )
-        logprobs = [float(step[token].logprob) for step, token in zip(completion.logprobs, response)]
-        if completion.finish_reason not in ("stop", "length"):
-            raise RuntimeError(
-                f"VLLMEngine: request finished with {completion.finish_reason!r} "
-                f"(stop_reason={completion.stop_reason!r}); expected 'stop' or 'length'"
-            )
-        extra = {}
-        if isinstance(completion.stop_reason, str):
-            extra["stop_string"] = completion.stop_reason
-        return GenerationResult(
-            prompt_ids=list(prompt),
-            response_ids=response,
-            response_logprobs=logprobs,
-            finish_reason=completion.finish_reason,
-            weight_version=self._weight_version,
-            prompt_index=prompt_index,
-            sample_index=sample_index,
-            extra=extra,
-        )
-
     def _validate_prompts(self, prompts: list[list[int]], sampling: SamplingParams) -> None:
-        for i, prompt in enumerate(prompts):
-            if len(prompt) == 0:
-                raise ValueError(f"generate: prompt {i} is empty; every prompt needs >= 1 token")
-            if not all(isinstance(t, numbers.Integral) for t in prompt):
-                raise TypeError(
-                    f"generate: prompt {i} must be a list of token ids (ints), got elements like "
-                    f"{next(t for t in prompt if not isinstance(t, numbers.Integral))!r}; "
-                    "tokenize first (apply_chat_template(..., return_dict=False))"
-                )
-            low, high = min(prompt), max(prompt)
-            if low < 0 or high >= self._vocab_size:
-                raise ValueError(
-                    f"generate: prompt {i} has token id {high if high >= self._vocab_size else low}"
-                    f" outside the model's vocabulary [0, {self._vocab_size})"
-                )
-            needed = len(prompt) + sampling.max_new_tokens
-            if needed > self.max_model_len:
-                raise ValueError(
-                    f"generate: prompt {i} ({len(prompt)} tokens) + max_new_tokens="
-                    f"{sampling.max_new_tokens} = {needed} exceeds the engine's max_model_len="
-                    f"{self.max_model_len}; shorten the prompt or lower max_new_tokens"
-                )
+        validate_prompts(prompts, sampling, self._vocab_size, self.max_model_len, "the engine's max_model_len")
 
     # ---------------------------------------------------------------------------- weight sync
 
@@ -461,11 +259,11 @@ class VLLMEngine(InferenceEngine):
         if self._offloaded and self._sleep_mode and not self._weights_awake:
             self.llm.wake_up(tags=["weights"])
             self._weights_awake = True
-        _align_openmp_threads()
+        align_openmp_threads()
         sent: set[str] = set()
         rejected: list[str] = []
-        screened = _screened(named_tensors, self._expected_weights, sent, rejected)
-        self.llm.collective_rpc(_reload_weights, args=(screened,))
+        stream = screened(named_tensors, self._expected_weights, sent, rejected)
+        self.llm.collective_rpc(reload_weights, args=(stream,))
         self._reset_prefix_cache()
         if rejected:
             raise ValueError(
@@ -474,7 +272,7 @@ class VLLMEngine(InferenceEngine):
                 f"{', '.join(sorted(self._expected_weights)[:2])}). "
                 f"weight_version stays {self._weight_version}"
             )
-        missing = self._missing_weights(sent)
+        missing = missing_weights(self._expected_weights, sent)
         if missing:
             raise ValueError(
                 f"load_weights: {len(missing)} weights were not sent (e.g. {sorted(missing)[:3]}); "
@@ -482,14 +280,6 @@ class VLLMEngine(InferenceEngine):
             )
         self._weights_discarded = False
         self._weight_version = version
-
-    def _missing_weights(self, sent: set[str]) -> set[str]:
-        if self._expected_weights is None:
-            return set()
-        missing = set(self._expected_weights) - sent
-        if missing & _TIED_PAIR and sent & _TIED_PAIR:  # either name of a tied pair will do
-            missing -= _TIED_PAIR
-        return missing
 
     def _reset_prefix_cache(self) -> None:
         if self.llm.reset_prefix_cache() is False:
@@ -509,7 +299,7 @@ class VLLMEngine(InferenceEngine):
             self.llm.sleep(level=self.sleep_level)
             self._weights_discarded = self.sleep_level >= 2
         else:
-            self.llm.collective_rpc(_free_kv_cache)
+            self.llm.collective_rpc(free_kv_cache)
             self._reset_prefix_cache()
         self._offloaded = True
 
@@ -519,13 +309,13 @@ class VLLMEngine(InferenceEngine):
         if self._sleep_mode:
             self.llm.wake_up()  # wakes whatever is still asleep (all of it, or just the KV cache)
         else:
-            self.llm.collective_rpc(_restore_kv_cache)
+            self.llm.collective_rpc(restore_kv_cache)
         self._weights_awake = False
         self._offloaded = False
 
     def kv_cache_bytes(self) -> int:
         """Bytes held by the KV cache right now (CPU engine; 0 while offloaded)."""
-        return int(sum(self.llm.collective_rpc(_kv_cache_bytes)))
+        return int(sum(self.llm.collective_rpc(kv_cache_bytes)))
 
     def close(self) -> None:
         """Shut vLLM's engine core down (its memory goes with the object)."""
@@ -536,84 +326,3 @@ class VLLMEngine(InferenceEngine):
                 shutdown()
             self.llm = None
 
-
-_TIED_PAIR = {"lm_head.weight", "model.embed_tokens.weight"}
-
-
-def _screened(named_tensors, expected: dict[str, tuple[int, ...]] | None, sent: set[str],
-              rejected: list[str]) -> Iterator[tuple[str, torch.Tensor]]:
-    """Pass on the tensors whose name and shape the checkpoint has; record the others instead of
-    raising mid-stream (an exception inside vLLM's layerwise reload would leave layers half
-    restored), so ``load_weights`` can report them once the known ones are in."""
-    for name, tensor in named_tensors:
-        if expected is not None:
-            shape = expected.get(name)
-            if shape is None and name not in _TIED_PAIR:
-                rejected.append(f"unknown weight name {name!r}")
-                continue
-            if shape is not None and tuple(tensor.shape) != shape:
-                rejected.append(f"{name!r} has shape {tuple(tensor.shape)}, expected {shape}")
-                continue
-        sent.add(name)
-        yield name, tensor
-
-
-def _align_openmp_threads() -> None:
-    """Give the calling thread torch's thread count as its OpenMP thread count.
-
-    OpenMP's thread count is per thread. A thread that never ran a torch op (e.g. the executor
-    thread a Ray worker runs its methods on) still has the process default (``OMP_NUM_THREADS``,
-    which Ray sets to 1) until torch first touches it. vLLM's CPU attention plans its work with
-    the thread's OpenMP count and then runs it through torch, which first raises that count to
-    torch's (``torch.set_num_threads``, e.g. from ``rollout.num_threads``): the kernel then aborts
-    with "Check failed: input->metadata->thread_num == thread_num (1 vs. 2)". Setting the count
-    up front makes both agree.
-    """
-    torch.set_num_threads(torch.get_num_threads())
-
-
-def _prompt_seed(seed: int, prompt_index: int) -> int:
-    """A per-prompt seed: vLLM seeds sample k of a request with ``seed + k``, so prompts sharing
-    one seed would draw identical samples. Hashing keeps prompts apart and the result independent
-    of batching."""
-    digest = hashlib.blake2b(f"{seed}/{prompt_index}".encode(), digest_size=8).digest()
-    return int.from_bytes(digest, "little") & (2**62 - 1)
-
-
-def _checkpoint_weight_names(source) -> dict[str, tuple[int, ...]] | None:
-    """Name -> shape of every tensor in a local safetensors checkpoint (None if not listable)."""
-    folder = Path(str(source))
-    files = sorted(folder.glob("*.safetensors")) if folder.is_dir() else []
-    if not files:
-        return None
-    from safetensors import safe_open
-
-    shapes: dict[str, tuple[int, ...]] = {}
-    for file in files:
-        with safe_open(str(file), framework="pt") as handle:
-            for name in handle.keys():
-                shapes[name] = tuple(handle.get_slice(name).get_shape())
-    return shapes
-
-
-class _preserved_process_state:
-    """vLLM's in-process start reseeds Python/NumPy/torch RNGs and replaces
-    ``torch.set_num_threads`` with a no-op; put both back for the host process."""
-
-    def __enter__(self):
-        import numpy as np
-
-        self._python = random.getstate()
-        self._numpy = np.random.get_state()
-        self._torch = torch.get_rng_state()
-        self._set_num_threads = torch.set_num_threads
-        return self
-
-    def __exit__(self, *exc):
-        import numpy as np
-
-        random.setstate(self._python)
-        np.random.set_state(self._numpy)
-        torch.set_rng_state(self._torch)
-        torch.set_num_threads = self._set_num_threads
-        return False

@@ -1,4 +1,4 @@
-"""The compiled optimizer step's pieces (``infinirl.components.compiled_step``) against slow
+"""The compiled optimizer step's pieces (``infinirl.engines.compiled_step``) against slow
 references: gradient clipping against a float64 loop and ``clip_grad_norm_``, the Adam update
 against a float64 loop and ``torch.optim.Adam``; and the compiled step on a small module against
 the eager ``backward`` / ``clip_grad_norm_`` / ``Adam.step`` sequence."""
@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from infinirl.components.compiled_step import (
+from infinirl.engines.compiled_step import (
     CompiledAdamStep,
     adam_,
     adam_corrections,
@@ -125,7 +125,7 @@ def test_the_compiled_step_steps_like_eager_backward_clip_and_adam():
         step = CompiledAdamStep(compiled, compiled_opt, objective, 0.5)
         compiled_loss, metrics, norm = step.step((x,), (y, None))
         assert float(norm) == pytest.approx(float(eager_norm), rel=1e-5)
-        assert float(metrics["mse"]) == pytest.approx(float(loss), rel=1e-5)
+        assert float(metrics["mse"]) == pytest.approx(float(loss.detach()), rel=1e-5)
     for a, b in zip(compiled.parameters(), eager.parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
     assert not torch.equal(compiled.body.weight, Net().body.weight)  # it trained
@@ -168,7 +168,7 @@ def fixed_shape_updates_step_like_eager(device: str) -> None:
             eager_norm = torch.nn.utils.clip_grad_norm_(list(eager.parameters()), 0.5, foreach=True)
             eager_opt.step()
             _, metrics, norm = step.step((x,), (y, None))
-            assert float(metrics["mse"]) == pytest.approx(float(loss), rel=1e-5)
+            assert float(metrics["mse"]) == pytest.approx(float(loss.detach()), rel=1e-5)
             assert float(norm) == pytest.approx(float(eager_norm), rel=1e-5)
             for a, b in zip(compiled.parameters(), eager.parameters()):
                 torch.testing.assert_close(a, b, rtol=0, atol=1e-6)

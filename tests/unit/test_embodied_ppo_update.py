@@ -5,6 +5,7 @@ compiled update (``actor.compile``) trains like the eager one."""
 
 import dataclasses
 import threading
+import warnings
 
 import pytest
 import torch
@@ -94,7 +95,7 @@ def test_the_compiled_update_trains_like_the_eager_one(variant):
         counters.clear()
         optimizer = torch.optim.Adam(model.parameters(), lr=spec.lr)
         eager_steps = []
-        optimizer.register_step_post_hook(lambda *_: eager_steps.append(1))
+        optimizer.register_step_post_hook(lambda *_, steps=eager_steps: steps.append(1))
         metrics = ppo_update(model, optimizer, batch, 0, spec)
         results[compiled] = flat(model), metrics
         # compiled: dynamo captured the whole step as one graph, with no graph break, and the eager
@@ -162,25 +163,22 @@ def test_two_compiled_ranks_end_with_the_weights_of_one_eager_rank():
 @pytest.mark.parametrize("compiled", [False, True])
 def test_an_fsdp2_model_trains_like_the_plain_one(compiled):
     """strategy=fsdp (FSDP2 ``fully_shard``, SUM reduction, one gloo rank here): the same weights as
-    the plain model, eager and with actor.compile (which compiles only the loss under FSDP2)."""
+    the plain model, eager and with actor.compile (which compiles only the loss under FSDP2), and
+    no FSDP2 warning about returned views (``engines.sharding`` copies them)."""
     if compiled and find_cxx_compiler() is None:
         pytest.skip("torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
-    from torch.distributed.fsdp import FSDPModule, fully_shard
-
-    from infinirl.engines.fsdp import init_distributed
+    from infinirl.engines.distributed import init_distributed
+    from infinirl.engines.parallel import DATA_PARALLEL
 
     init_distributed()
     build, batch = policy_and_batch()
     plain = build()
     ppo_update(plain, torch.optim.Adam(plain.parameters(), lr=PPO.lr), batch, 0, PPO)
-    sharded = build()
-    fully_shard(sharded)
-    for module in sharded.modules():
-        if isinstance(module, FSDPModule):
-            module.set_gradient_divide_factor(1.0)
-            module.set_force_sum_reduction_for_comms(True)
+    sharded = DATA_PARALLEL.get("fsdp")().wrap(build())
     spec = dataclasses.replace(PPO, strategy="fsdp", compile=compiled)
-    metrics = ppo_update(sharded, torch.optim.Adam(sharded.parameters(), lr=PPO.lr), batch, 0, spec)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*returned a view tensor")
+        metrics = ppo_update(sharded, torch.optim.Adam(sharded.parameters(), lr=PPO.lr), batch, 0, spec)
     weights = torch.cat([p.full_tensor().detach().reshape(-1) for p in sharded.parameters()])
     torch.testing.assert_close(weights, flat(plain), rtol=0, atol=1e-5)
     assert metrics["train/grad_norm"] == metrics["train/grad_norm"]

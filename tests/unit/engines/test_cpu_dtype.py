@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from infinirl.engines import cpu_dtype
-from infinirl.engines import fsdp as fsdp_module
+from infinirl.engines.distributed import compute_dtype
 from infinirl.engines.registry import ROLLOUT_ENGINES, build_rollout_engine
 
 
@@ -27,14 +27,14 @@ def test_without_native_bf16_bfloat16_becomes_float32_with_one_warning(native_bf
         warnings.simplefilter("error")  # said once per process, not per call
         assert cpu_dtype.resolve_cpu_dtype("bf16") == "float32"
     assert cpu_dtype.resolve_cpu_dtype("float32") == "float32"
-    assert fsdp_module._compute_dtype("bfloat16", torch.device("cpu")) == torch.float32
-    assert fsdp_module._compute_dtype("float32", torch.device("cpu")) == torch.float32
+    assert compute_dtype("bfloat16", torch.device("cpu")) == torch.float32
+    assert compute_dtype("float32", torch.device("cpu")) == torch.float32
 
 
 def test_with_native_bf16_bfloat16_is_kept(native_bf16):
     native_bf16(True)
     assert cpu_dtype.resolve_cpu_dtype("bfloat16") == "bfloat16"
-    assert fsdp_module._compute_dtype("bfloat16", torch.device("cpu")) == torch.bfloat16
+    assert compute_dtype("bfloat16", torch.device("cpu")) == torch.bfloat16
 
 
 def test_the_rollout_engine_gets_the_resolved_dtype_on_cpu_only(native_bf16, monkeypatch):

@@ -18,7 +18,9 @@ import torch.multiprocessing as mp
 from transformers import LlamaConfig, LlamaForCausalLM
 
 from infinirl.data.batch import RESPONSE_MASK, pack_sequences
+from infinirl.engines import distributed as distributed_module
 from infinirl.engines import fsdp as fsdp_module
+from infinirl.engines import fsdp_checkpoint
 from infinirl.engines.fsdp import FSDPTrainEngine, init_distributed
 from infinirl.engines.train_base import LoraSettings, LrSchedule, TrainEngineConfig
 
@@ -138,8 +140,8 @@ def test_responses_only_scoring_is_exact_where_it_is_read_and_skips_the_prompts(
     the earliest response token); response log-probs/entropies equal the float64 reference,
     earlier columns are 0, and a training step moves the weights exactly as full scoring does."""
     seen = []
-    original = fsdp_module._first_scored_column
-    monkeypatch.setattr(fsdp_module, "_first_scored_column", lambda *a: seen.append(original(*a)) or seen[-1])
+    original = fsdp_module.first_scored_column
+    monkeypatch.setattr(fsdp_module, "first_scored_column", lambda *a: seen.append(original(*a)) or seen[-1])
     batch = long_prompt_batch(seed=3, size=4)
     engine = FSDPTrainEngine(tiny_llama, config(micro_batch_size=4, temperature=0.8, share_prompt_prefix=False))
     logprobs, entropy = engine.compute_logprobs(batch, with_entropy=True)
@@ -298,7 +300,7 @@ def test_config_rejects_nonsense():
 
 
 def test_bf16_compute_on_cpu_stays_close_to_fp32(monkeypatch):
-    monkeypatch.setattr(fsdp_module, "resolve_cpu_dtype", lambda name: name)  # bf16 even without native bf16
+    monkeypatch.setattr(distributed_module, "resolve_cpu_dtype", lambda name: name)  # bf16 even without native bf16
     batch = make_batch(seed=8)
     fp32, _ = FSDPTrainEngine(tiny_llama, config(param_dtype="float32")).compute_logprobs(batch)
     engine = FSDPTrainEngine(tiny_llama, config(param_dtype="bfloat16"))
@@ -401,7 +403,7 @@ def test_failed_save_leaves_no_partial_directory_and_keeps_the_old_one(tmp_path,
     def crash(state, file):
         raise OSError("disk full (simulated)")
 
-    monkeypatch.setattr(fsdp_module, "_write_engine_state", crash)
+    monkeypatch.setattr(fsdp_checkpoint, "write_engine_state", crash)
     with pytest.raises(OSError, match="simulated"):
         engine.save_checkpoint(target)
     with pytest.raises(OSError, match="simulated"):

@@ -15,14 +15,9 @@ from infinirl.data.batch import (
     pack_sequences,
 )
 from infinirl.engines.base import SamplingParams
-from infinirl.engines.hf_generate import (
-    HFGenerateEngine,
-    PreallocatedKVLayer,
-    cache_keyword,
-    excluded_tokens,
-    new_kv_cache,
-    sample_from_weights,
-)
+from infinirl.engines.hf_generate import HFGenerateEngine
+from infinirl.engines.kv_cache import PreallocatedKVLayer, cache_keyword, new_kv_cache
+from infinirl.engines.sampling import excluded_tokens, sample_from_weights
 from infinirl.models.hf_causal_lm import tiny_causal_lm
 
 # Different lengths, so batched prompts really are left-padded.
@@ -32,7 +27,7 @@ PROMPTS = [[5, 6, 7, 8, 9, 10, 11], [20, 21], [30, 31, 32, 33]]
 @pytest.fixture(scope="module", autouse=True)
 def single_thread():
     """A tiny model gains nothing from threads, and on a shared CPU every extra thread's
-    synchronisation costs ~20x (measured): run these tests on one thread."""
+    synchronisation costs far more than its share of the arithmetic: run these tests on one thread."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield

@@ -56,7 +56,8 @@ def test_only_the_top_layers_get_adapters_and_train():
     names = [n for n, p in eng.model.named_parameters() if p.requires_grad]
     layers = {int(n.split(".layers.")[1].split(".")[0]) for n in names}
     assert layers == {2, 3}
-    assert {n.split(".")[-4] for n in names} == {"q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj"}
+    projections = {"q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj"}
+    assert {n.split(".")[-4] for n in names} == projections
     before = {n: t.clone() for n, t in eng.state_dict_for_sync()}
     losses = [eng.train_step(batch(), loss_fn)["train/loss"] for _ in range(4)]
     assert losses[-1] < losses[0]

@@ -1,0 +1,247 @@
+"""The embodied PPO update: the PPO-clip objective of a policy over env decisions, and its epochs
+of mini-batch steps.
+
+The same update serves PPO (GAE advantages, value head trained) and embodied GRPO (group-normalised
+episode returns, ``critic=False``: no value loss, and the batch's ``advantage_mask`` drops the
+decisions after each env's first episode end from every loss term).
+
+Split-invariance: each data-parallel rank trains on *its share of every mini-batch*. Mini-batch
+membership comes from the caller's generator (identical on every rank and on a resumed run);
+per-mini-batch advantage normalisation uses the statistics of the whole mini-batch, and every loss
+term is a sum over this rank's rows divided by a *mini-batch-global* count
+(:func:`~infinirl.algorithms.aggregation.aggregate`), so the gradients summed over ranks equal the
+single-process gradient: the update is independent of the number of ranks.
+
+How gradients are summed over ranks and whether the whole optimizer step is compiled belong to the
+training backend (:mod:`infinirl.engines.parallel`); :func:`ppo_update` takes both as arguments.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from infinirl.algorithms.aggregation import aggregate
+from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
+
+__all__ = ["PPOSpec", "compiled_minibatch_loss", "ppo_minibatch_loss", "ppo_objective", "ppo_objective_of_outputs",
+           "ppo_update"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PPOSpec:
+    """PPO hyperparameters (documented on the runner's config fields)."""
+
+    lr: float = 3e-4
+    anneal_lr: bool = True
+    total_iterations: int = 1
+    epochs: int = 10
+    mini_batches: int = 32
+    clip: float = 0.2
+    value_clip: float | None = None
+    value_coef: float = 0.5
+    entropy_coef: float = 0.0
+    max_grad_norm: float = 0.5
+    normalize_advantages: bool = True
+    gae_level: str = "chunk"
+    adam_eps: float = 1e-5
+    strategy: str = "ddp"
+    """The data-parallel strategy of the actor (:data:`infinirl.engines.parallel.DATA_PARALLEL`)."""
+    seed: int = 0
+    critic: bool = True
+    """Train the value head (PPO). False (GRPO): no value loss is computed, the head stays as built."""
+    compile: bool = False
+    """Compile each mini-batch's optimizer step where the strategy allows it (the whole step,
+    :class:`~infinirl.engines.compiled_step.CompiledAdamStep`), else the forward pass and loss
+    (:func:`compiled_minibatch_loss`)."""
+
+
+def _rows(value: Any, index: torch.Tensor | slice) -> Any:
+    if isinstance(value, dict):
+        return {k: _rows(v, index) for k, v in value.items()}
+    return value[index]
+
+
+def _no_reduction() -> None:
+    """One rank: nothing to sum the gradients with."""
+
+
+#: ``whole_step(model, optimizer, objective, max_norm, all_reduce_grads)`` builds an object whose
+#: ``step(model_args, objective_args)`` takes one whole optimizer step and returns
+#: ``(loss, metrics, grad_norm)``; ``all_reduce_grads`` is None with one rank.
+WholeStepFactory = Callable[..., Any]
+
+
+def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank: int = 0, world_size: int = 1,
+               all_reduce_grads: Callable[[], None] = _no_reduction, *, generator: torch.Generator,
+               whole_step: WholeStepFactory | None = None) -> dict:
+    """The PPO epochs of one iteration on ``model`` (a ``NormalizedPolicy``, possibly sharded).
+
+    ``batch`` (tensors, flat over ``B = T * N`` decisions): ``obs`` dict, ``actions``
+    ``[B, C, ...]``, ``logprobs`` / ``step_mask`` ``[B, C]``, ``values`` ``[B]``, ``advantages`` /
+    ``returns`` ``[B]`` (chunk level) or ``[B, C]`` (action level), optional ``extras``, optional
+    ``advantage_mask`` shaped like ``advantages`` (the estimator's mask; all true if absent):
+    decisions outside it count in no loss term and in no normaliser (policy loss, entropy,
+    per-mini-batch advantage statistics).
+
+    ``generator`` (a CPU generator, the same state on every rank) draws each epoch's mini-batch
+    order. ``all_reduce_grads()`` sums ``p.grad`` over ranks after each backward pass.
+    ``whole_step`` (see :data:`WholeStepFactory`): with ``ppo.compile``, the factory of the compiled
+    whole optimizer step; None where the model cannot be compiled whole (then only the loss is).
+    """
+    if ppo.anneal_lr:
+        lr = ppo.lr * max(0.0, 1.0 - iteration / max(1, ppo.total_iterations))
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+    size = batch["actions"].shape[0]
+    per_mini = size // ppo.mini_batches
+    device = batch["advantages"].device
+    keep_all = (batch["advantage_mask"].to(torch.float32) if "advantage_mask" in batch
+                else torch.ones(batch["advantages"].shape, dtype=torch.float32, device=device))
+    params = [p for p in model.parameters() if p.requires_grad]
+    minibatch_loss = compiled_minibatch_loss(ppo.compile)
+    stepper = (whole_step(model, optimizer, ppo_objective_of_outputs, ppo.max_grad_norm,
+                          all_reduce_grads if world_size > 1 else None)
+               if ppo.compile and whole_step is not None else None)
+    step_metrics: dict[str, list[torch.Tensor]] = {}
+    # The observation statistics are fixed during the update (folded in after it): normalise the
+    # whole batch once instead of every mini-batch (identical values, fewer small ops per step).
+    normalize = getattr(model, "normalize", None)
+    obs = normalize(batch["obs"]) if normalize is not None else batch["obs"]
+    columns = {"obs": obs, "actions": batch["actions"], "logprobs": batch["logprobs"],
+               "values": batch["values"], "returns": batch["returns"],
+               "advantages": batch["advantages"].to(torch.float32), "keep": keep_all,
+               "step_mask": batch["step_mask"].to(torch.float32)}
+    if "extras" in batch:
+        columns["extras"] = batch["extras"]
+    for _ in range(ppo.epochs):
+        order = torch.randperm(size, generator=generator).to(device)  # drawn on CPU: same order on any device
+        # One gather per epoch; each mini-batch is then a slice (a view), not a gather per tensor.
+        shuffled = _rows(columns, order)
+        for m in range(ppo.mini_batches):
+            start = m * per_mini
+            mine = slice(start + rank * per_mini // world_size, start + (rank + 1) * per_mini // world_size)
+            whole = {key: shuffled[key][start:start + per_mini] for key in ("advantages", "keep", "step_mask")}
+            rows = {key: shuffled[key][mine] for key in ("logprobs", "values", "returns")}
+            model_args = (_rows(shuffled["obs"], mine), shuffled["actions"][mine],
+                          _rows(shuffled["extras"], mine) if "extras" in shuffled else None, True,
+                          normalize is not None)
+            if stepper is not None:
+                _, metrics, grad_norm = stepper.step(model_args, (ppo, rank, world_size, whole, rows))
+            else:
+                loss, metrics = minibatch_loss(model, ppo, rank, world_size, model_args, whole, rows)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                all_reduce_grads()
+                grad_norm = torch.nn.utils.clip_grad_norm_(params, ppo.max_grad_norm, foreach=True)
+                if hasattr(grad_norm, "full_tensor"):  # a sharded model's norm: partial per rank
+                    grad_norm = grad_norm.full_tensor()
+                optimizer.step()
+            metrics["train/grad_norm"] = grad_norm.detach()
+            # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
+            for key, value in metrics.items():
+                step_metrics.setdefault(key, []).append(value)
+    return _update_metrics(step_metrics, batch, ppo, optimizer)
+
+
+def _update_metrics(step_metrics: dict[str, list[torch.Tensor]], batch: dict, ppo: PPOSpec, optimizer) -> dict:
+    """The mean of every step's metrics, plus the update's own (explained variance, lr, steps)."""
+    # The rollout-vs-trainer log-prob mismatch is that of the first mini-batch, before any step.
+    mismatch = step_metrics.pop("train/logprob_mismatch", [torch.zeros(())])[0]
+    metrics = {key: float(torch.stack(values).to(torch.float64).mean()) for key, values in step_metrics.items()}
+    if ppo.critic:
+        returns = batch["returns"][:, 0] if ppo.gae_level == "action" else batch["returns"]
+        variance = float(returns.var())
+        metrics["train/explained_variance"] = (float("nan") if variance == 0
+                                               else 1.0 - float((returns - batch["values"]).var()) / variance)
+    metrics["train/lr"] = optimizer.param_groups[0]["lr"]
+    metrics["train/logprob_mismatch"] = float(mismatch)
+    metrics["train/optimizer_steps"] = ppo.epochs * ppo.mini_batches
+    return metrics
+
+
+def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tensor, entropy: torch.Tensor | None,
+                  values: torch.Tensor, whole: dict, mine: dict) -> tuple[torch.Tensor, dict]:
+    """This rank's loss on one mini-batch and its detached metrics (tensors).
+
+    ``logprobs`` / ``entropy`` ``[m, C]`` and ``values`` ``[m]`` are the model's outputs on this
+    rank's rows; ``mine`` holds the same rows' ``logprobs`` (old), ``values`` (old) and ``returns``;
+    ``whole`` holds ``advantages``, ``keep`` and ``step_mask`` of the *whole* mini-batch (all
+    ranks), whose statistics and counts every rank shares: advantage normalisation and every
+    loss normaliser are mini-batch-global, so the ranks' gradients sum to the 1-rank gradient.
+
+    A pure function of tensors (no Python number read back from them, no branch on their values),
+    so ``torch.compile`` takes it whole, without graph breaks (``actor.compile``).
+    """
+    action_level = ppo.gae_level == "action"
+    adv, keep = whole["advantages"], whole["keep"]  # [M] chunk level, [M, C] action level
+    # mask: executed actions to train on [M, C]; weights: the policy-loss rows ([M] or [M, C])
+    mask = whole["step_mask"] * (keep if action_level else keep[:, None])
+    weights = mask if action_level else keep
+    if ppo.normalize_advantages:  # statistics of the whole mini-batch (all ranks)
+        count = weights.sum()
+        mean = (adv * weights).sum() / count.clamp(min=1)
+        std = torch.sqrt(((adv - mean) ** 2 * weights).sum() / (count - 1).clamp(min=1))
+        adv = (adv - mean) / (std + 1e-8)
+    n_pg, n_entropy, n_value = weights.sum(), mask.sum(), float(adv.shape[0])
+    size = adv.shape[0]
+    share = slice(rank * size // world_size, (rank + 1) * size // world_size)
+    adv, mask, weights = adv[share], mask[share], weights[share]
+    old = mine["logprobs"]
+    metrics = {"train/logprob_mismatch": ((logprobs.detach() - old).abs() * mask).sum() / mask.sum().clamp(min=1)}
+    if action_level:
+        pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=weights,
+                           clip_low=ppo.clip)
+        returns = mine["returns"][:, 0]
+    else:
+        pg = ppo_clip_loss(logprobs=(logprobs * mask).sum(-1), old_logprobs=(old * mask).sum(-1),
+                           advantages=adv, response_mask=weights, clip_low=ppo.clip)
+        returns = mine["returns"]
+    loss = pg_loss = aggregate(pg.loss_mat, weights, "token-mean", n_pg)
+    metrics.update({"train/policy_loss": pg_loss.detach(), "train/approx_kl": pg.metrics["approx_kl"],
+                    "train/clip_fraction": pg.metrics["clip_fraction"]})
+    if ppo.critic:
+        ones = torch.ones_like(returns)
+        vl = value_loss(values=values, old_values=mine["values"], returns=returns.to(values.dtype),
+                        response_mask=ones, clip_range=ppo.value_clip)
+        loss = pg_loss + ppo.value_coef * aggregate(vl.loss_mat, ones, "token-mean", n_value)
+        metrics["train/value_loss"] = vl.metrics["value_mse"] / 2
+    if entropy is not None:
+        ent = entropy_loss(mask, entropy=entropy)
+        metrics["train/entropy"] = ent.metrics["entropy"]
+        if ppo.entropy_coef:
+            loss = loss + ppo.entropy_coef * aggregate(ent.loss_mat, mask, "token-mean", n_entropy)
+    return loss, metrics
+
+
+def ppo_minibatch_loss(model, ppo: PPOSpec, rank: int, world_size: int, model_args: tuple, whole: dict,
+                       mine: dict) -> tuple[torch.Tensor, dict]:
+    """The policy's forward pass on this rank's rows of a mini-batch (``model_args``: observations,
+    actions, extras, with_entropy, obs_normalized), then :func:`ppo_objective`."""
+    return ppo_objective_of_outputs(*model(*model_args), ppo, rank, world_size, whole, mine)
+
+
+def ppo_objective_of_outputs(logprobs, entropy, values, ppo: PPOSpec, rank: int, world_size: int, whole: dict,
+                             mine: dict) -> tuple[torch.Tensor, dict]:
+    """:func:`ppo_objective` with the model's outputs first (the compiled whole step's objective contract)."""
+    return ppo_objective(ppo, rank, world_size, logprobs, entropy, values, whole, mine)
+
+
+@functools.cache
+def compiled_minibatch_loss(compile_: bool):
+    """:func:`ppo_minibatch_loss`, compiled once per process when ``actor.compile`` asks for it
+    (where the whole step cannot be compiled, e.g. under FSDP2).
+
+    Why: a small policy's mini-batch step is hundreds of tiny ops, each paying the eager
+    per-op (and autograd-node) overhead; on CPU that overhead, not arithmetic, is most of the
+    update. Compiled, the forward pass and the loss and their backward become a few fused kernels.
+    ``dynamic=False``: mini-batch shapes never change within a run. The optimizer step and gradient
+    clipping stay eager (already fused / foreach kernels).
+    """
+    if not compile_:
+        return ppo_minibatch_loss
+    return torch.compile(ppo_minibatch_loss, dynamic=False)

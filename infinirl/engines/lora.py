@@ -1,0 +1,105 @@
+"""LoRA adapters (peft): put them on a model, and fold them back into plain HF weights for export.
+
+The rollout engine loads a plain model under the original parameter names, so a LoRA trainer's
+exported weights are ``W + scaling * B @ A`` under ``W``'s HF name, with no adapter entries.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+
+import torch
+from torch import nn
+
+from infinirl.engines.sharding import full_tensor
+from infinirl.engines.train_base import LoraSettings
+
+__all__ = ["LORA_ADAPTER", "LoraMergePlan", "apply_lora", "hf_name", "lora_merge_plan", "merged_full_weights"]
+
+LORA_ADAPTER = "default"  # peft's name of the one adapter we add
+_PEFT_PREFIX = "base_model.model."
+
+#: ``{module FQN: (scaling, fan_in_fan_out)}`` of every LoRA-wrapped linear layer.
+LoraMergePlan = dict[str, tuple[float, bool]]
+
+
+def apply_lora(model: nn.Module, settings: LoraSettings, fully_trained: list[str] | None = None) -> nn.Module:
+    """Wrap ``model`` with LoRA adapters; modules named in ``fully_trained`` (a critic's freshly
+    initialised value head) get no adapter and train in full (peft's ``modules_to_save``)."""
+    from peft import LoraConfig, get_peft_model
+    from peft.tuners.lora import Linear as LoraLinear
+    from peft.tuners.lora import LoraLayer
+
+    layers = None
+    if settings.top_layers:
+        total = int(model.config.num_hidden_layers)
+        if not 0 < settings.top_layers <= total:
+            raise ValueError(f"lora.top_layers={settings.top_layers}: the model has {total} decoder layers; "
+                             f"use 1..{total}, or 0 for all")
+        layers = list(range(total - settings.top_layers, total))
+    targets = settings.target_modules
+    if layers is not None and targets == "all-linear":  # peft wants explicit names with a layer filter
+        skip = {"lm_head", *(fully_trained or [])}
+        targets = sorted({name.rsplit(".", 1)[-1] for name, module in model.named_modules()
+                          if isinstance(module, nn.Linear) and name.rsplit(".", 1)[-1] not in skip})
+    config = LoraConfig(
+        r=settings.r,
+        lora_alpha=settings.alpha,
+        target_modules=targets,
+        lora_dropout=settings.dropout,
+        bias="none",
+        modules_to_save=fully_trained,
+        layers_to_transform=layers,
+    )
+    peft_model = get_peft_model(model, config)
+    for name, module in peft_model.named_modules():
+        if isinstance(module, LoraLayer) and not isinstance(module, LoraLinear):
+            raise ValueError(
+                f"LoRA target {name!r} is a {type(module).__name__}; only nn.Linear targets are "
+                "supported (their merge for weight sync is implemented). Narrow target_modules."
+            )
+    return peft_model
+
+
+def lora_merge_plan(model: nn.Module) -> LoraMergePlan:
+    """What :func:`merged_full_weights` needs to merge each adapter into its base weight."""
+    from peft.tuners.lora import LoraLayer
+
+    return {
+        name: (float(module.scaling[LORA_ADAPTER]), bool(getattr(module, "fan_in_fan_out", False)))
+        for name, module in model.named_modules()
+        if isinstance(module, LoraLayer)
+    }
+
+
+def merged_full_weights(state_dict: Mapping[str, torch.Tensor], plan: LoraMergePlan,
+                        dtype: torch.dtype | None = None) -> Iterator[tuple[str, torch.Tensor]]:
+    """``(HF name, full tensor)`` of every entry of a (possibly sharded, possibly LoRA) state dict.
+
+    Each sharded tensor is gathered on its own (a collective: every rank must consume the iterator
+    to the end), so peak memory is one full parameter. Adapters are merged into their base
+    weights and not yielded themselves; ``dtype`` casts.
+    """
+    for name, tensor in state_dict.items():
+        if plan and (".lora_A." in name or ".lora_B." in name):
+            continue
+        full = full_tensor(tensor.detach())
+        module_name, _, leaf = name.rpartition(".base_layer.")
+        if leaf == "weight" and module_name in plan:
+            full = full + _lora_delta(state_dict, module_name, plan)
+        yield hf_name(name), (full.to(dtype) if dtype is not None else full)
+
+
+def _lora_delta(state_dict: Mapping[str, torch.Tensor], module_name: str, plan: LoraMergePlan) -> torch.Tensor:
+    scaling, fan_in_fan_out = plan[module_name]
+    lora_a = full_tensor(state_dict[f"{module_name}.lora_A.{LORA_ADAPTER}.weight"].detach())
+    lora_b = full_tensor(state_dict[f"{module_name}.lora_B.{LORA_ADAPTER}.weight"].detach())
+    delta = (lora_b @ lora_a) * scaling
+    return delta.T if fan_in_fan_out else delta
+
+
+def hf_name(name: str) -> str:
+    """peft's wrapped name -> the plain HF model's state_dict key."""
+    if name.startswith(_PEFT_PREFIX):
+        name = name[len(_PEFT_PREFIX):]
+    return name.replace(".base_layer.", ".")
