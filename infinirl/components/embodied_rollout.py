@@ -66,11 +66,11 @@ def compiled_act(policy):
     one would, up to float rounding of the network. Set for this (rollout) process only.
 
     ``dynamic=False``: one specialised graph per stage batch size (a run has one or two). The
-    options (:func:`~infinirl.components.compiled_step.inductor_options`) are those of the policy's
+    options (:func:`~infinirl.engines.compiled_step.inductor_options`) are those of the policy's
     device: on CPU the kernels are called from C++, not Python."""
     import torch._inductor.config as inductor_config
 
-    from infinirl.components.compiled_step import inductor_options
+    from infinirl.engines.compiled_step import inductor_options
 
     inductor_config.fallback_random = True
     return torch.compile(policy.act, dynamic=False, options=inductor_options(module_device(policy)))

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from infinirl.algorithms import EnvAdvantageInputs, compute_advantages
-from infinirl.components.embodied_actor import EmbodiedActorWorker, PPOSpec, actor_process_env
+from infinirl.algorithms.embodied_ppo import PPOSpec
+from infinirl.components.embodied_actor import EmbodiedActorWorker, actor_process_env
 from infinirl.components.embodied_policy import ReturnNormalizer
 from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec
 from infinirl.components.env_worker import EnvSpec, EnvWorker, iteration_seeds, probe_env_specs
