@@ -1,8 +1,16 @@
-"""Distributed core: knows nothing about RL. See DESIGN.md §3 for the contracts."""
+"""Distributed core: knows nothing about RL. See docs/runtime.md for the reference."""
 
 from infinirl.runtime.channel import Channel
 from infinirl.runtime.cluster import Cluster, ClusterConfig
-from infinirl.runtime.errors import ChannelClosed, ChannelError, ClusterError, InfiniRLError, WorkerError
+from infinirl.runtime.errors import (
+    CallCancelled,
+    ChannelClosed,
+    ChannelError,
+    ChannelPeerDied,
+    ClusterError,
+    InfiniRLError,
+    WorkerError,
+)
 from infinirl.runtime.inventory import Accelerator, ClusterInventory, NodeInventory, Robot
 from infinirl.runtime.memory import device_turn
 from infinirl.runtime.placement import PlacementError, PlacementPlan, RankPlacement, place
@@ -11,8 +19,8 @@ from infinirl.runtime.weights import WeightSink, WeightSource, WeightSyncGroup, 
 from infinirl.runtime.worker import GroupHandle, RankContext, RestartPolicy, Worker, WorkerGroup
 
 __all__ = [
-    "Accelerator", "Channel", "ChannelClosed", "ChannelError", "Cluster", "ClusterConfig",
-    "ClusterError", "ClusterInventory", "GroupHandle", "InfiniRLError", "NodeInventory",
+    "Accelerator", "CallCancelled", "Channel", "ChannelClosed", "ChannelError", "ChannelPeerDied",
+    "Cluster", "ClusterConfig", "ClusterError", "ClusterInventory", "GroupHandle", "InfiniRLError", "NodeInventory",
     "PlacementError", "PlacementPlan", "RankContext", "RankPlacement", "RestartPolicy", "Robot",
     "Tracer", "WeightSink", "WeightSource", "WeightSyncGroup", "Worker", "WorkerError",
     "WorkerGroup", "device_turn", "place", "sync_weights",

@@ -1,15 +1,23 @@
 """Channel: a named, keyed, weighted, bounded queue between worker groups.
 
-The queue lives in a small async Ray actor and holds *metadata only* (an ``Envelope``: path,
-producer, weight, and a ref or a small inline payload). Payloads move from producer to consumer by
-the cheapest path (see ``transport``): never twice through a channel actor, as RLinf's do.
+The queue lives in a small async Ray actor (``channel_actor``) and holds *metadata only* (an
+``Envelope``: path, producer, weight, and a ref or a small inline payload). Payloads move from
+producer to consumer by the cheapest path (see ``transport``), never through the channel actor.
 
-- ``put(item, key=, weight=)`` blocks while the channel is full (``maxsize`` is a capacity in
-  *weight* units; weight defaults to 1, so by default it counts items): back-pressure.
+- ``put(item, key=, weight=)`` blocks while the item's key is full: ``maxsize`` is a capacity
+  *per key*, in weight units (weight defaults to 1, so by default it counts items). Keys never
+  block each other: a consumer reading one key while another key fills up cannot deadlock.
 - ``get(key=)`` takes the oldest item of a key (per-key FIFO).
-- ``get_batch(target_weight, key=)`` takes items until their weights reach the target: consumers
-  asking for equal weight get balanced work even when items differ in size (e.g. token counts).
+- ``get_batch(target_weight, key=)`` takes items in order while their total weight stays within
+  the target: consumers asking for equal weight get balanced work even when items differ in
+  size (e.g. token counts). An item heavier than the target comes alone.
 - ``close()``: producers are done. Getters drain what is left, then get ``ChannelClosed``.
+- A producer or consumer that dies cannot leave the other side waiting forever: once every
+  producer of the channel has died, a getter that finds no item gets ``ChannelPeerDied``; once
+  every consumer has died, so does a putter waiting for space (see ``channel_actor``).
+- Waits have no default timeout (a consumer may wait for a long rollout); ``timeout=`` bounds one
+  call, and a synchronous wait inside a worker method ends with ``CallCancelled`` when that
+  method's call is cancelled (``GroupHandle.cancel()``).
 - Every call has an ``*_async`` twin for use inside ``async def`` worker methods.
 
 A ``Channel`` object is picklable: pass it to worker methods, or ``Channel.connect(name)`` anywhere.
@@ -18,6 +26,7 @@ A ``Channel`` object is picklable: pass it to worker methods, or ``Channel.conne
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import time
 import uuid
@@ -26,177 +35,14 @@ from typing import Any
 
 import ray
 
-from infinirl.runtime.cluster import NAMESPACE
-from infinirl.runtime.errors import ChannelClosed, ChannelError
+from infinirl.runtime import cancellation, processes
+from infinirl.runtime.channel_actor import ChannelActor
+from infinirl.runtime.errors import CallCancelled, ChannelClosed, ChannelError
+from infinirl.runtime.ray_defaults import NAMESPACE
 from infinirl.runtime.transport import Envelope, pack, unpack
 
 DEFAULT_KEY = "default"
 _ACTOR_PREFIX = "infinirl.channel."
-
-
-class _Item:
-    __slots__ = ("envelope", "weight", "pinned_pid")
-
-    def __init__(self, envelope: Envelope, weight: float, pinned_pid: int | None):
-        self.envelope = envelope
-        self.weight = weight
-        self.pinned_pid = pinned_pid
-
-
-class _ChannelActor:
-    """Holds per-key deques of envelopes; all waiting happens here, on asyncio conditions."""
-
-    def __init__(self, name: str, maxsize: float, transport: str = "auto", pipeline_depth: int = 0,
-                 prefetch: int = 1):
-        self.name = name
-        self.transport = transport
-        self.pipeline_depth = pipeline_depth
-        self.prefetch = prefetch
-        self.next_seq: dict[str, int] = {}
-        self.maxsize = maxsize
-        self.queues: dict[Any, deque[_Item]] = {}
-        self.weight_in_queue = 0.0
-        self.closed = False
-        self.cond = asyncio.Condition()
-        self.consumer_pids: set[int] = set()
-        self.stats = {"put": 0, "get": 0}
-
-    async def put(self, envelope: Envelope, key, weight: float, timeout: float | None,
-                  producer: str | None = None, seq: int = -1):
-        if seq < 0:
-            return await self._put(envelope, key, weight, timeout)
-        # Pipelined producers number their puts: Ray does not promise that an async actor starts
-        # calls in submission order, and per-producer FIFO must hold.
-        async with self.cond:
-            await self.cond.wait_for(lambda: self.next_seq.get(producer, 0) == seq)
-        try:
-            return await self._put(envelope, key, weight, timeout)
-        finally:
-            async with self.cond:
-                self.next_seq[producer] = seq + 1
-                self.cond.notify_all()
-
-    async def _put(self, envelope: Envelope, key, weight: float, timeout: float | None):
-        if self.closed:
-            raise ChannelClosed(f"put on closed channel '{self.name}'")
-        if self.maxsize and weight > self.maxsize:
-            raise ChannelError(
-                f"channel '{self.name}': an item of weight {weight} can never fit maxsize={self.maxsize}; "
-                "raise maxsize or split the item"
-            )
-        pinned = envelope.producer_pid if envelope.path == "local" else None
-        async with self.cond:
-            if self.maxsize:
-                await self._wait_for(lambda: self.weight_in_queue + weight <= self.maxsize or self.closed, timeout, "put")
-                if self.closed:
-                    raise ChannelClosed(f"channel '{self.name}' closed while a put waited for space")
-            self.queues.setdefault(key, deque()).append(_Item(envelope, weight, pinned))
-            self.weight_in_queue += weight
-            self.stats["put"] += 1
-            self.cond.notify_all()
-        return sorted(self.consumer_pids)
-
-    async def put_many(self, envelopes: list[Envelope], key, weights: list[float], timeout):
-        for envelope, weight in zip(envelopes, weights):
-            await self.put(envelope, key, weight, timeout)
-        return sorted(self.consumer_pids)
-
-    def _eligible(self, key, pid: int) -> int | None:
-        queue = self.queues.get(key)
-        if not queue:
-            return None
-        for index, item in enumerate(queue):
-            if item.pinned_pid is None or item.pinned_pid == pid:
-                return index
-        return None
-
-    def _take(self, key, index: int) -> _Item:
-        queue = self.queues[key]
-        if index == 0:
-            item = queue.popleft()
-        else:
-            item = queue[index]
-            del queue[index]
-        self.weight_in_queue -= item.weight
-        self.stats["get"] += 1
-        return item
-
-    async def get(self, key, pid: int, timeout: float | None):
-        self.consumer_pids.add(pid)
-        async with self.cond:
-            await self._wait_for(lambda: self._eligible(key, pid) is not None or self.closed, timeout, "get")
-            index = self._eligible(key, pid)
-            if index is None:
-                raise ChannelClosed(f"channel '{self.name}' is closed and has no more items for key {key!r}")
-            item = self._take(key, index)
-            self.cond.notify_all()
-            return item.envelope, item.weight
-
-    async def get_many(self, key, pid: int, max_items: int, timeout: float | None):
-        """Wait for one item, then also take up to ``max_items - 1`` more already waiting (prefetch)."""
-        self.consumer_pids.add(pid)
-        async with self.cond:
-            await self._wait_for(lambda: self._eligible(key, pid) is not None or self.closed, timeout, "get")
-            taken = []
-            while len(taken) < max_items:
-                index = self._eligible(key, pid)
-                if index is None:
-                    break
-                item = self._take(key, index)
-                taken.append((item.envelope, item.weight))
-            if not taken:
-                raise ChannelClosed(f"channel '{self.name}' is closed and has no more items for key {key!r}")
-            self.cond.notify_all()
-            return taken
-
-    async def get_batch(self, target_weight: float, key, pid: int, timeout: float | None):
-        self.consumer_pids.add(pid)
-        taken: list[tuple[Envelope, float]] = []
-        total = 0.0
-        async with self.cond:
-            while total < target_weight:
-                try:
-                    await self._wait_for(
-                        lambda: self._eligible(key, pid) is not None or self.closed, timeout, "get_batch"
-                    )
-                except TimeoutError:
-                    if taken:
-                        break
-                    raise
-                index = self._eligible(key, pid)
-                if index is None:  # closed and drained
-                    if taken:
-                        break
-                    raise ChannelClosed(f"channel '{self.name}' is closed and has no more items for key {key!r}")
-                item = self._take(key, index)
-                taken.append((item.envelope, item.weight))
-                total += item.weight
-                self.cond.notify_all()
-        return taken
-
-    async def register_consumer(self, pid: int) -> None:
-        self.consumer_pids.add(pid)
-
-    async def close(self) -> None:
-        async with self.cond:
-            self.closed = True
-            self.cond.notify_all()
-
-    async def qsize(self, key=None) -> int:
-        if key is None:
-            return sum(len(q) for q in self.queues.values())
-        return len(self.queues.get(key, ()))
-
-    async def info(self) -> dict:
-        return {"name": self.name, "maxsize": self.maxsize, "closed": self.closed, "transport": self.transport,
-                "pipeline_depth": self.pipeline_depth, "prefetch": self.prefetch,
-                "weight_in_queue": self.weight_in_queue, **self.stats}
-
-    async def _wait_for(self, predicate, timeout: float | None, op: str) -> None:
-        try:
-            await asyncio.wait_for(self.cond.wait_for(predicate), timeout)
-        except asyncio.TimeoutError:
-            raise TimeoutError(f"channel '{self.name}': {op} timed out after {timeout}s") from None
 
 
 class Channel:
@@ -213,12 +59,17 @@ class Channel:
         self._producer = uuid.uuid4().hex  # per client: a pickled copy in a worker is a new producer
         self._seq = 0
         self._inflight: deque = deque()
+        self._roles: set[str] = set()  # registered with the channel actor from this client
 
     # ------------------------------------------------------------------ create / connect
     @classmethod
     def create(cls, name: str, maxsize: float = 0, exist_ok: bool = False, transport: str = "auto",
                pipeline_depth: int = 0, prefetch: int = 1) -> "Channel":
-        """Create the channel ``name`` (``maxsize`` 0 = unbounded). Call from the driver or a worker.
+        """Create the channel ``name``. Call from the driver or a worker.
+
+        ``maxsize``: the capacity of *each key*, in weight units (0 = unbounded). A put waits
+        while its key's queued weight plus the item's would exceed it; an item heavier than
+        ``maxsize`` is refused at once.
 
         ``transport``: ``"auto"`` picks the cheapest path per item (see ``transport``); ``"p2p"``
         sends tensors producer -> consumer over a pairwise gloo/NCCL group (useful across nodes
@@ -239,9 +90,9 @@ class Channel:
             raise ChannelError(f"channel '{name}': pipeline_depth must be >= 0, got {pipeline_depth}")
         if transport not in ("auto", "p2p"):
             raise ChannelError(f"channel '{name}': transport={transport!r}; use 'auto' or 'p2p'")
-        if maxsize < 0:
+        if not maxsize >= 0:
             raise ChannelError(f"channel '{name}': maxsize must be >= 0 (0 = unbounded), got {maxsize}")
-        actor_cls = ray.remote(_ChannelActor).options(
+        actor_cls = ray.remote(ChannelActor).options(
             name=_ACTOR_PREFIX + name,
             namespace=NAMESPACE,
             num_cpus=0,
@@ -276,11 +127,13 @@ class Channel:
 
     # ------------------------------------------------------------------ sync API
     def put(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout: float | None = None) -> None:
+        weight = self._check_weight(weight, "weight")
+        self._register("producer")
         if not self.pipeline_depth:
-            self._note_consumers(self._call(self._actor.put.remote(self._pack(item), key, float(weight), timeout)))
+            self._note_consumers(self._call(self._actor.put.remote(self._pack(item), key, weight, timeout)))
             return
         self._inflight.append(
-            self._actor.put.remote(self._pack(item), key, float(weight), timeout, self._producer, self._seq)
+            self._actor.put.remote(self._pack(item), key, weight, timeout, self._producer, self._seq)
         )
         self._seq += 1
         while len(self._inflight) > self.pipeline_depth:
@@ -293,56 +146,85 @@ class Channel:
 
     def put_many(self, items: list, key=DEFAULT_KEY, weights: list[float] | None = None, timeout=None) -> None:
         """Put several items with one round trip (they stay in order)."""
-        weights = [1.0] * len(items) if weights is None else [float(w) for w in weights]
+        if weights is None:
+            weights = [1.0] * len(items)
+        elif len(weights) != len(items):
+            raise ValueError(f"channel '{self.name}': put_many got {len(items)} items but {len(weights)} weights")
+        weights = [self._check_weight(w, "weights") for w in weights]
+        self._register("producer")
         consumers = self._call(self._actor.put_many.remote([self._pack(i) for i in items], key, weights, timeout))
         self._note_consumers(consumers)
 
     def get(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
+        """The oldest item of ``key``; waits for one (``timeout``: at most that many seconds)."""
+        self._register("consumer")
         if self.prefetch > 1:
             buffered = self._prefetched.setdefault(key, deque())
             if not buffered:
-                buffered.extend(self._call(self._actor.get_many.remote(key, os.getpid(), self.prefetch, timeout)))
+                buffered.extend(self._call(self._actor.get_many.remote(key, os.getpid(), _peer_id(), self.prefetch,
+                                                                       timeout)))
             envelope, _ = buffered.popleft()
             return unpack(envelope)
-        envelope, _ = self._call(self._actor.get.remote(key, os.getpid(), timeout))
+        envelope, _ = self._call(self._actor.get.remote(key, os.getpid(), _peer_id(), timeout))
         return unpack(envelope)
 
     def get_with_weight(self, key=DEFAULT_KEY, timeout: float | None = None) -> tuple[Any, float]:
-        envelope, weight = self._call(self._actor.get.remote(key, os.getpid(), timeout))
+        self._register("consumer")
+        envelope, weight = self._call(self._actor.get.remote(key, os.getpid(), _peer_id(), timeout))
         return unpack(envelope), weight
 
     def get_batch(self, target_weight: float, key=DEFAULT_KEY, timeout: float | None = None) -> list:
-        """Items until their total weight reaches ``target_weight`` (fewer if the channel closes)."""
-        taken = self._call(self._actor.get_batch.remote(float(target_weight), key, os.getpid(), timeout))
+        """Items of ``key``, oldest first, whose total weight stays within ``target_weight``.
+
+        Returns once the total equals the target or the next item would exceed it; an item heavier
+        than the target is returned alone. Returns short (whatever it has, if anything) when the
+        channel is closed and drained, when every producer has died, or when ``timeout`` expires;
+        with nothing to return it raises ``ChannelClosed``, ``ChannelPeerDied`` or ``TimeoutError``.
+        """
+        target = self._check_target(target_weight)
+        self._register("consumer")
+        taken = self._call(self._actor.get_batch.remote(target, key, os.getpid(), _peer_id(), timeout))
         return [unpack(envelope) for envelope, _ in taken]
 
     def close(self) -> None:
         self.flush()
-        ray.get(self._actor.close.remote())
+        self._call(self._actor.close.remote())
 
     def qsize(self, key=None) -> int:
-        return ray.get(self._actor.qsize.remote(key))
+        return self._call(self._actor.qsize.remote(key))
 
     def info(self) -> dict:
-        return ray.get(self._actor.info.remote())
+        return self._call(self._actor.info.remote())
 
     def register_consumer(self) -> None:
-        """Declare this process a consumer (lets same-process producers hand items by reference)."""
-        ray.get(self._actor.register_consumer.remote(os.getpid()))
+        """Declare this process a consumer before its first get: same-process producers may then
+        hand items over by reference, and producers waiting for space learn if it dies."""
+        self._register("consumer")
+        self._call(self._actor.register_consumer.remote(os.getpid()))
+
+    def register_producer(self) -> None:
+        """Declare this process a producer before its first put, so that consumers waiting on
+        the channel learn if it dies before it has put anything."""
+        self._register("producer", wait=True)
 
     def destroy(self) -> None:
         ray.kill(self._actor)
 
     # ------------------------------------------------------------------ async API
     async def put_async(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout=None) -> None:
-        self._note_consumers(await self._acall(self._actor.put.remote(self._pack(item), key, float(weight), timeout)))
+        weight = self._check_weight(weight, "weight")
+        self._register("producer")
+        self._note_consumers(await self._acall(self._actor.put.remote(self._pack(item), key, weight, timeout)))
 
     async def get_async(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
-        envelope, _ = await self._acall(self._actor.get.remote(key, os.getpid(), timeout))
+        self._register("consumer")
+        envelope, _ = await self._acall(self._actor.get.remote(key, os.getpid(), _peer_id(), timeout))
         return unpack(envelope)
 
     async def get_batch_async(self, target_weight: float, key=DEFAULT_KEY, timeout=None) -> list:
-        taken = await self._acall(self._actor.get_batch.remote(float(target_weight), key, os.getpid(), timeout))
+        target = self._check_target(target_weight)
+        self._register("consumer")
+        taken = await self._acall(self._actor.get_batch.remote(target, key, os.getpid(), _peer_id(), timeout))
         return [unpack(envelope) for envelope, _ in taken]
 
     # ------------------------------------------------------------------ internals
@@ -353,19 +235,52 @@ class Channel:
         # By-reference hand-over is only safe when every consumer seen so far is this process.
         self._consumers_here_only = bool(consumer_pids) and set(consumer_pids) == {os.getpid()}
 
-    @staticmethod
-    def _call(ref):
+    def _register(self, role: str, wait: bool = False) -> None:
+        """Announce this process as a producer or consumer, once per client and role. Not waited
+        for (one more message, sent ahead of the call that needs it) unless ``wait``."""
+        if role in self._roles:
+            return
+        self._roles.add(role)
+        pid = os.getpid()
+        ref = self._actor.register.remote(_peer_id(), role, processes.describe_self(), processes.host_handle(),
+                                          _node_id(), pid, processes.start_ticks(pid))
+        if wait:
+            self._call(ref)
+
+    def _check_weight(self, weight, argument: str) -> float:
+        value = _as_float(weight)
+        if not value > 0 or math.isinf(value):
+            raise ValueError(f"channel '{self.name}': {argument} must be a finite number > 0, got {weight!r}")
+        return value
+
+    def _check_target(self, target_weight) -> float:
+        if not _as_float(target_weight) > 0:
+            raise ValueError(f"channel '{self.name}': target_weight must be a number > 0, got {target_weight!r}")
+        return float(target_weight)
+
+    def _call(self, ref):
         try:
-            return ray.get(ref)
+            return cancellation.wait_ref(ref)
+        except CallCancelled:
+            raise
         except ray.exceptions.RayTaskError as exc:
             raise _unwrap(exc) from None
+        except ray.exceptions.RayActorError:
+            raise self._gone() from None
 
-    @staticmethod
-    async def _acall(ref):
+    async def _acall(self, ref):
         try:
             return await ref
+        except asyncio.CancelledError:
+            cancellation.cancel_quietly(ref)  # else the actor's wait goes on, and could take an item nobody receives
+            raise
         except ray.exceptions.RayTaskError as exc:
             raise _unwrap(exc) from None
+        except ray.exceptions.RayActorError:
+            raise self._gone() from None
+
+    def _gone(self) -> ChannelError:
+        return ChannelError(f"channel '{self.name}' is gone: its actor was destroyed or died")
 
 
 def _unwrap(exc: ray.exceptions.RayTaskError) -> BaseException:
@@ -373,3 +288,33 @@ def _unwrap(exc: ray.exceptions.RayTaskError) -> BaseException:
     if isinstance(cause, (ChannelClosed, ChannelError, TimeoutError)):
         return cause
     return exc
+
+
+def _as_float(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+_node_ids: dict[int, str] = {}  # by pid: a forked process asks again
+_peer_ids: dict[int, str] = {}
+
+
+def _node_id() -> str:
+    pid = os.getpid()
+    if pid not in _node_ids:
+        _node_ids[pid] = ray.get_runtime_context().get_node_id()
+    return _node_ids[pid]
+
+
+def _peer_id() -> str:
+    """This process as the channel knows it: a worker rank by its host actor (the same peer after
+    Ray restarts it), any other process by node and pid."""
+    pid = os.getpid()
+    if pid not in _peer_ids:
+        if processes.host_handle() is not None:
+            _peer_ids[pid] = "actor:" + ray.get_runtime_context().get_actor_id()
+        else:
+            _peer_ids[pid] = f"process:{_node_id()}:{pid}"
+    return _peer_ids[pid]

@@ -8,7 +8,6 @@ disable it.
 from __future__ import annotations
 
 import logging
-import os
 import socket
 import time
 from dataclasses import dataclass, field
@@ -19,36 +18,25 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 from infinirl.runtime.errors import ClusterError
 from infinirl.runtime.hardware import discover_node
 from infinirl.runtime.inventory import ClusterInventory, NodeInventory, Robot
+from infinirl.runtime.memory import device_lock_actor
+from infinirl.runtime.ray_defaults import NAMESPACE, WORKER_ENV_DEFAULTS, worker_env
+from infinirl.runtime.worker import shutdown_all_groups
+
+# NAMESPACE and WORKER_ENV_DEFAULTS live in ray_defaults; they are read from here as well.
+__all__ = ["LOCAL_RAY_SYSTEM_CONFIG", "NAMESPACE", "WORKER_ENV_DEFAULTS", "Cluster", "ClusterConfig"]
 
 logger = logging.getLogger(__name__)
 
-NAMESPACE = "infinirl"
-# Ray would otherwise blank CUDA_VISIBLE_DEVICES for tasks/actors that reserve no Ray GPU; we place
-# devices ourselves (collocated components share a GPU), so we keep control of that variable.
-KEEP_CUDA_VISIBLE_DEVICES = {"RAY_EXPERIMENTAL_NOSET_CUDA_VISIBLE_DEVICES": "1"}
-# Every worker process starts with these (unless the driver's environment says otherwise).
-# OpenMP's default spin-waiting makes co-located torch processes 6-10x slower on a small CPU
-# (measured: SmolLM2 generation on 2 shared cores); passive waiting gives the cores back.
-WORKER_ENV_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
 # Ray settings of an instance we start: keep Ray's own background work off small machines, where
-# it takes CPU from the components (on 2 busy cores every Ray process's periodic work competes
-# with the simulators; measured idle, a local instance with three components: ~11.6% of a core
-# with Ray's defaults, ~7.5% with these).
+# every Ray process's periodic work takes CPU from the components (simulators, models).
 # * No pool of idle worker processes. Ray starts one per CPU when the driver connects and keeps as
 #   many once they idle, so that tasks start fast; our components are actors with processes of
 #   their own and we run tasks only at start-up, so the pool would only idle. An idle Ray worker
-#   is not free: its main thread wakes every 10 ms (~1% of a core each when idle, and more while
-#   the cores are busy). A task's worker now ends once it has idled a second.
+#   is not free: its main thread wakes every 10 ms, taking CPU from cores the components keep
+#   busy. With these settings a task's worker ends once it has idled a second.
 # * No metrics collection: every Ray process would export metrics for a dashboard we do not start.
 LOCAL_RAY_SYSTEM_CONFIG = {"prestart_worker_first_driver": False, "num_workers_soft_limit": 0,
                            "enable_metrics_collection": False}
-
-
-def worker_env() -> dict[str, str]:
-    env = dict(KEEP_CUDA_VISIBLE_DEVICES)
-    for key, value in WORKER_ENV_DEFAULTS.items():
-        env[key] = os.environ.get(key, value)
-    return env
 
 
 @dataclass
@@ -121,8 +109,6 @@ class Cluster:
                 ) from exc
         self._wait_for_nodes()
         self._inventory = self._take_inventory()
-        from infinirl.runtime.memory import device_lock_actor
-
         # The driver owns the cluster-wide device lock, so it lives exactly as long as the job.
         self._device_lock = device_lock_actor()
         return self
@@ -131,8 +117,6 @@ class Cluster:
         """Disconnect; stop Ray too when this Cluster started it. Leaves no process of ours behind."""
         self._device_lock = None
         if self._started_here and ray.is_initialized():
-            from infinirl.runtime.worker import shutdown_all_groups  # worker imports this module
-
             shutdown_all_groups()  # before Ray kills their ranks: they clean up after them
             ray.shutdown()
         self._inventory = None
@@ -227,11 +211,3 @@ def _probe_address(address: str, timeout_s: float) -> None:
             f"cannot reach the Ray head at {address} within {timeout_s:.0f}s ({exc}). Check the address "
             "and that `ray start --head --port=...` runs there, or use cluster.address=local."
         ) from None
-
-
-def current_node_ip() -> str:
-    try:
-        return ray.util.get_node_ip_address()
-    except Exception:  # outside Ray
-        return socket.gethostbyname(socket.gethostname())
-

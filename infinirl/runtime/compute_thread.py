@@ -10,13 +10,12 @@ simulated by threads in tests, helper threads) leave it alone.
 A rank's constructor runs on its compute thread too, so that one thread does all of the rank's
 parallel torch work. Why: torch's intra-op threads are libgomp's (GNU OpenMP), and each thread
 that starts a parallel region gets a thread team of its own. Once the teams hold more threads
-than the process has cores, libgomp makes *every* waiting thread spin only ~100 turns (0 under
-``OMP_WAIT_POLICY=PASSIVE``, which workers run with) before it sleeps in the kernel, whatever
-``GOMP_SPINCOUNT`` says. A PPO update is thousands of short parallel regions, so its helper
-thread then sleeps and is woken between nearly every pair of them: on the 2-core machine, with
-the actor's settings, the pixels CNN update took 3.66-3.91 s with one team and 4.16-5.45 s
-(~61,000 voluntary context switches) after one parallel op on a second thread
-(``python benchmarks/omp_teams.py --repeats 4``).
+than the process has cores, libgomp makes *every* waiting thread spin only briefly (not at all
+under ``OMP_WAIT_POLICY=PASSIVE``, which workers run with) before it sleeps in the kernel,
+whatever ``GOMP_SPINCOUNT`` says. A PPO update is thousands of short parallel regions, so its
+helper threads would then sleep and be woken between nearly every pair of them, and the update
+slows down after a single parallel op on a second thread
+(``python benchmarks/omp_teams.py --repeats 4`` shows the difference on a given machine).
 """
 
 from __future__ import annotations

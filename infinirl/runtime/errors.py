@@ -66,4 +66,15 @@ class ChannelClosed(InfiniRLError):
 
 
 class ChannelError(InfiniRLError):
-    """A channel operation cannot succeed as asked (e.g. an item that can never fit maxsize)."""
+    """A channel operation cannot succeed as asked (e.g. an item that can never fit maxsize, or the
+    channel itself is gone)."""
+
+
+class ChannelPeerDied(ChannelError):
+    """A channel wait can never end: every producer of the channel died (for a getter that
+    finds no item) or every consumer did (for a putter waiting for space). Names the channel,
+    the key and the dead processes."""
+
+
+class CallCancelled(InfiniRLError):
+    """The call was cancelled (``GroupHandle.cancel()``) before it finished."""

@@ -17,7 +17,7 @@ from collections import deque
 
 import ray
 
-from infinirl.runtime.cluster import NAMESPACE
+from infinirl.runtime.ray_defaults import NAMESPACE
 
 LOCK_ACTOR_NAME = "infinirl.device_lock"
 

@@ -14,6 +14,7 @@ process.
 
 from __future__ import annotations
 
+import asyncio
 import datetime
 import itertools
 import os
@@ -26,25 +27,20 @@ from typing import Any
 import ray
 import torch
 
-from infinirl.runtime.transport import _DTYPE_BY_NAME, _Placeholder, tensors_in, unbox, walk
+from infinirl.runtime import processes
+from infinirl.runtime.payload import DTYPE_BY_NAME, Placeholder, tensors_in, unbox, walk
 
 _outbox: dict[int, list[torch.Tensor]] = {}
 _groups: dict[tuple, Any] = {}
 _lock = threading.Lock()
 _ids = itertools.count()
 _comm = ThreadPoolExecutor(max_workers=1, thread_name_prefix="infinirl-p2p")
-_host = None  # this process's _WorkerHost actor handle, set by the host at start-up
 TIMEOUT = datetime.timedelta(seconds=300)
-
-
-def register_host(handle) -> None:
-    global _host
-    _host = handle
 
 
 def available() -> bool:
     """P2P needs a producer that can serve pulls: a Worker process (not the driver)."""
-    return _host is not None
+    return processes.host_handle() is not None
 
 
 @dataclass
@@ -66,7 +62,7 @@ def offer(payload: Any, with_ipc: bool = False) -> Offer:
     if len(devices) > 1:
         raise ValueError("a p2p payload must keep all its tensors on one device type")
     counter = itertools.count()
-    skeleton = walk(payload, lambda t: _Placeholder(next(counter)))
+    skeleton = walk(payload, lambda t: Placeholder(next(counter)))
     item = next(_ids)
     with _lock:
         _outbox[item] = tensors
@@ -77,7 +73,7 @@ def offer(payload: Any, with_ipc: bool = False) -> Offer:
         from torch.multiprocessing.reductions import reduce_tensor
 
         ipc = [reduce_tensor(t) for t in tensors]
-    return Offer(_host, item, os.getpid(), skeleton, [tuple(t.shape) for t in tensors],
+    return Offer(processes.host_handle(), item, os.getpid(), skeleton, [tuple(t.shape) for t in tensors],
                  [str(t.dtype) for t in tensors], device, uuid, ipc)
 
 
@@ -111,7 +107,7 @@ def _pull(body: Offer) -> list[torch.Tensor]:
         store = dist.TCPStore(addr, port, 2, is_master=True, timeout=TIMEOUT, wait_for_workers=False)
     serving = body.host._infinirl_p2p_serve.remote(body.item, key, addr, port, backend)
     group = _groups.get(key) or _join(key, store, rank=1, backend=backend)
-    buffers = [torch.empty(shape, dtype=_DTYPE_BY_NAME[dtype], device=device)
+    buffers = [torch.empty(shape, dtype=DTYPE_BY_NAME[dtype], device=device)
                for shape, dtype in zip(body.shapes, body.dtypes)]
     for buffer in buffers:
         group.recv([buffer], 0, 0).wait()
@@ -130,6 +126,13 @@ def _join(key: tuple, store, rank: int, backend: str):
         group = dist.ProcessGroupGloo(dist.PrefixStore("p2p", store), rank, 2, TIMEOUT)
     _groups[key] = group
     return group
+
+
+async def serve_async(item: int, key: tuple, addr: str, port: int, backend: str) -> int:
+    """Producer side, from the host's event loop: ``serve`` on the p2p thread (the worker's own
+    method keeps the compute thread meanwhile)."""
+    loop = asyncio.get_running_loop()
+    return await loop.run_in_executor(_comm, serve, item, key, addr, port, backend)
 
 
 def serve(item: int, key: tuple, addr: str, port: int, backend: str) -> int:

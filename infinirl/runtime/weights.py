@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import ray
 import torch
 
-from infinirl.runtime.transport import box, unbox
+from infinirl.runtime.payload import DTYPE_BY_NAME, box, unbox
+from infinirl.runtime.rendezvous import pick_master
 
 DEFAULT_BUCKET_BYTES = 256 * 1024 * 1024
 
@@ -39,7 +40,8 @@ class TensorMeta:
     nbytes: int
 
 
-def make_buckets(named_tensors: Iterable[tuple[str, torch.Tensor]], bucket_bytes: int) -> Iterator[tuple[torch.Tensor, list[TensorMeta]]]:
+def make_buckets(named_tensors: Iterable[tuple[str, torch.Tensor]],
+                 bucket_bytes: int) -> Iterator[tuple[torch.Tensor, list[TensorMeta]]]:
     """Group tensors by dtype into flat uint8 buffers of at most ``bucket_bytes`` (one big tensor alone)."""
     open_buckets: dict[torch.dtype, tuple[list[torch.Tensor], list[TensorMeta], int]] = {}
 
@@ -64,12 +66,10 @@ def make_buckets(named_tensors: Iterable[tuple[str, torch.Tensor]], bucket_bytes
 
 def split_bucket(flat: torch.Tensor, metas: list[TensorMeta]) -> list[tuple[str, torch.Tensor]]:
     """Views into one received bucket, one per original tensor (no copies)."""
-    from infinirl.runtime.transport import _DTYPE_BY_NAME
-
     out = []
     for meta in metas:
         piece = flat[meta.offset : meta.offset + meta.nbytes]
-        out.append((meta.name, piece.view(_DTYPE_BY_NAME[meta.dtype]).reshape(meta.shape)))
+        out.append((meta.name, piece.view(DTYPE_BY_NAME[meta.dtype]).reshape(meta.shape)))
     return out
 
 
@@ -184,11 +184,9 @@ class WeightSyncGroup:
     """A process group over trainer rank 0 + all rollout ranks, for the ``collective`` path."""
 
     def __init__(self, source, sink, backend: str | None = None, timeout_s: float = 300.0):
-        from infinirl.runtime.worker import _pick_master
-
         if backend is None:
             backend = "nccl" if torch.cuda.is_available() and source.contexts[0].local_devices else "gloo"
-        addr, port = _pick_master(source.contexts[0])
+        addr, port = pick_master(source.contexts[0])
         world = 1 + sink.world_size
         handles = [source.call("_infinirl_join_sync_group", addr, port, 0, world, backend, timeout_s, ranks=[0])]
         handles += [

@@ -31,18 +31,72 @@ def test_per_key_fifo_and_keys_independent(ray_cluster):
     assert [ch.get(key="a") for _ in range(20)] == [("a", i) for i in range(20)]
 
 
-def test_get_batch_reaches_target_weight(ray_cluster):
+def test_get_batch_never_exceeds_target_weight(ray_cluster):
     ch = fresh()
     for w in [3, 1, 4, 1, 5, 9, 2, 6]:
         ch.put(w, weight=w)
-    first = ch.get_batch(target_weight=8)
-    assert first == [3, 1, 4] and sum(first) >= 8
-    second = ch.get_batch(target_weight=8)
-    assert second == [1, 5, 9]
+    assert ch.get_batch(target_weight=8) == [3, 1, 4]  # reaches the target exactly
+    assert ch.get_batch(target_weight=8) == [1, 5]  # 9 more would exceed it: it waits for the next batch
+    assert ch.get_batch(target_weight=8) == [9]  # heavier than the target: alone
     ch.close()
     assert ch.get_batch(target_weight=100) == [2, 6]  # closed: what is left
     with pytest.raises(ChannelClosed):
         ch.get_batch(target_weight=1)
+
+
+def test_get_batch_weights_add_up_exactly(ray_cluster):
+    """Batches take items in FIFO order and never pass the target; a short batch is returned as
+    soon as the next item would pass it (the items are all still delivered, in order)."""
+    ch = fresh()
+    weights = [2, 3, 1, 1, 4, 2, 2, 5, 1]
+    for i, w in enumerate(weights):
+        ch.put(i, weight=w)
+    ch.close()
+    batches = []
+    while True:
+        try:
+            batches.append(ch.get_batch(target_weight=5))
+        except ChannelClosed:
+            break
+    assert [x for batch in batches for x in batch] == list(range(len(weights)))
+    assert all(sum(weights[i] for i in batch) <= 5 for batch in batches)
+    assert batches == [[0, 1], [2, 3], [4], [5, 6], [7], [8]]
+
+
+def test_bad_weights_and_targets_are_refused(ray_cluster):
+    ch = fresh()
+    for weight in (-1, 0, float("nan"), float("inf"), "heavy"):
+        with pytest.raises(ValueError, match=f"channel '{ch.name}': weight must be a finite number > 0"):
+            ch.put("x", weight=weight)
+        with pytest.raises(ValueError, match="weight must be a finite number > 0"):
+            asyncio.run(ch.put_async("x", weight=weight))
+    with pytest.raises(ValueError, match="weights must be a finite number > 0, got 0"):
+        ch.put_many(["a", "b"], weights=[1, 0])
+    with pytest.raises(ValueError, match="put_many got 2 items but 1 weights"):
+        ch.put_many(["a", "b"], weights=[1])
+    for target in (0, -2, float("nan")):
+        with pytest.raises(ValueError, match=f"channel '{ch.name}': target_weight must be a number > 0"):
+            ch.get_batch(target)
+        with pytest.raises(ValueError, match="target_weight must be a number > 0"):
+            asyncio.run(ch.get_batch_async(target))
+    assert ch.qsize() == 0  # nothing got in
+
+
+def test_capacity_is_per_key(ray_cluster):
+    """One key filling up must not block another: a consumer reading key 'a' while a producer
+    fills key 'b' (with one maxsize shared by all keys, both would wait forever)."""
+    ch = fresh(maxsize=2)
+    ch.put("b0", key="b")
+    ch.put("b1", key="b")  # key 'b' is full
+    ch.put("a0", key="a", timeout=30)  # key 'a' still has room
+    ch.put("a1", key="a", timeout=30)
+    assert ch.get(key="a", timeout=30) == "a0"
+    with pytest.raises(TimeoutError, match=f"channel '{ch.name}': put on key 'b' timed out after 0.3s"):
+        ch.put("b2", key="b", timeout=0.3)
+    assert ch.info()["weight_by_key"] == {"'a'": 1.0, "'b'": 2.0}
+    assert ch.get(key="b") == "b0"
+    ch.put("b2", key="b", timeout=30)  # room again
+    assert [ch.get(key="b"), ch.get(key="b")] == ["b1", "b2"]
 
 
 def test_backpressure_blocks_until_space(ray_cluster):
@@ -84,10 +138,14 @@ def test_get_on_closed_channel(ray_cluster):
         ch.put("late")
 
 
-def test_get_timeout(ray_cluster):
+def test_get_timeout_names_channel_and_key(ray_cluster):
     ch = fresh()
-    with pytest.raises(TimeoutError):
-        ch.get(timeout=0.2)
+    with pytest.raises(TimeoutError, match=f"channel '{ch.name}': get on key 'k' timed out after 0.2s"):
+        ch.get(key="k", timeout=0.2)
+    with pytest.raises(TimeoutError, match=f"channel '{ch.name}': get_batch on key 'k' timed out"):
+        ch.get_batch(3, key="k", timeout=0.2)
+    ch.put("only", key="k")
+    assert ch.get_batch(3, key="k", timeout=0.5) == ["only"]  # the timeout ends a short batch
 
 
 def test_duplicate_create_and_missing_connect(ray_cluster):

@@ -1,6 +1,7 @@
 """Cluster: local start, inventory, multi-node placement (simulated), clean shutdown, bad addresses."""
 
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -10,18 +11,23 @@ from pathlib import Path
 import psutil
 import pytest
 
-from infinirl.runtime import Cluster, ClusterError
+from infinirl.runtime import Cluster, ClusterError, Worker, WorkerGroup
+from tests.conftest import ship_by_value
+
+ship_by_value(__name__)
 
 SCENARIOS = Path(__file__).parent / "scenarios"
 REPO = Path(__file__).resolve().parents[3]
 
 
-def run_scenario(name: str, timeout: float = 300) -> dict:
-    import os
-
+def _scenario_env() -> dict:
     pythonpath = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)
+    return {**os.environ, "PYTHONPATH": pythonpath}
+
+
+def run_scenario(name: str, timeout: float = 300) -> dict:
     proc = subprocess.run([sys.executable, str(SCENARIOS / name)], capture_output=True, text=True,
-                          timeout=timeout, cwd=REPO, env={**os.environ, "PYTHONPATH": pythonpath})
+                          timeout=timeout, cwd=REPO, env=_scenario_env())
     assert proc.returncode == 0, proc.stderr[-4000:]
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
     return json.loads(line.removeprefix("RESULT "))
@@ -106,4 +112,38 @@ def test_malformed_address():
 
 def test_inventory_before_start_is_an_error():
     with pytest.raises(ClusterError, match="not started"):
-        Cluster().inventory
+        _ = Cluster().inventory
+
+
+class Idle(Worker):
+    pass
+
+
+def test_the_next_launch_removes_crash_logs_of_a_killed_driver_and_keeps_live_ones(ray_cluster, deliberate_deaths):
+    """A driver killed with SIGKILL never shuts its groups down: its ranks' (crash-free) logs would
+    stay in the temp dir for good. The next launch on the host removes them, and only them."""
+    import ray
+
+    driver = subprocess.Popen([sys.executable, str(SCENARIOS / "killed_driver.py"),
+                               ray.get_runtime_context().gcs_address],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=_scenario_env())
+    live = None
+    try:
+        line = ""
+        while not line.startswith("RESULT "):
+            line = driver.stdout.readline()
+            assert line, f"the driver scenario ended without a result: {driver.stderr.read()[-4000:]}"
+        orphaned = json.loads(line.removeprefix("RESULT "))
+        assert all(os.path.exists(path) for path in orphaned["logs"])
+        live = WorkerGroup.launch(Idle, "live-driver", num_ranks=1)  # this (live) process's group
+        deliberate_deaths(*orphaned["pids"])  # their driver's death ends them
+        driver.kill()
+        driver.wait(timeout=60)
+        WorkerGroup.launch(Idle, "next-launch", num_ranks=1).shutdown()
+        assert not any(os.path.exists(path) for path in orphaned["logs"])
+        assert all(os.path.exists(info["crash_log"]) for info in live.rank_info)
+    finally:
+        driver.kill()
+        driver.wait(timeout=60)
+        if live is not None:
+            live.shutdown()

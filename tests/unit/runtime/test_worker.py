@@ -2,13 +2,14 @@
 
 import asyncio
 import os
+import threading
 import time
 
 import psutil
 import pytest
 import torch
 
-from infinirl.runtime import RestartPolicy, Worker, WorkerError, WorkerGroup
+from infinirl.runtime import CallCancelled, Channel, RestartPolicy, Worker, WorkerError, WorkerGroup
 from tests.conftest import ship_by_value
 
 ship_by_value(__name__)
@@ -66,6 +67,17 @@ class Echo(Worker):
             raise ValueError(f"boom from rank {self.rank}")
         time.sleep(30)  # a healthy rank stuck in a "collective": the error must not wait for it
         return "ok"
+
+    def take(self, ch: Channel, started: Channel):
+        started.put(self.rank)
+        return ch.get()
+
+    async def take_async(self, ch: Channel, started: Channel):
+        await started.put_async(self.rank)
+        return await ch.get_async()
+
+    def make_lock(self):
+        return threading.Lock()  # cannot be pickled
 
     def allreduce(self):
         import torch.distributed as dist
@@ -146,6 +158,56 @@ def test_handle_done_and_timeout(ray_cluster):
         assert handle.done()
     finally:
         group.shutdown()
+
+
+def test_cancel_frees_ranks_blocked_in_a_channel_for_later_calls(ray_cluster):
+    """A call that can never finish (its producer is gone) is cancelled; the calls queued behind
+    it on the same ranks run, and the cancelled gets took nothing from the channel."""
+    tag = time.time_ns()
+    ch, started = Channel.create(f"cancel-{tag}"), Channel.create(f"cancel-started-{tag}")
+    group = WorkerGroup.launch(Echo, "cancel", num_ranks=2)
+    try:
+        for take in (group.take, group.take_async):
+            blocked = take(ch, started)
+            assert sorted(started.get(timeout=60) for _ in range(2)) == [0, 1]  # both ranks wait in ch.get
+            queued = group.add(1)  # on each rank's compute thread, behind a blocked sync call
+            blocked.cancel()
+            with pytest.raises(CallCancelled, match=r"cancel\[rank \d\]\.take(_async)?\(\) was cancelled"):
+                blocked.wait(timeout=60)
+            assert queued.wait(timeout=60) == [1, 2]
+            assert group.add(5).wait(timeout=60) == [5, 6]
+        ch.put("kept")
+        assert ch.get(timeout=30) == "kept"
+        assert ch.qsize() == 0
+    finally:
+        group.shutdown()
+
+
+def test_an_unserialisable_result_is_reported_and_the_rank_stays_usable(ray_cluster):
+    group = WorkerGroup.launch(Echo, "unpicklable", num_ranks=1)
+    try:
+        with pytest.raises(WorkerError) as info:
+            group.make_lock().wait(timeout=60)
+        text = str(info.value)
+        assert ("unpicklable[rank 0].make_lock() returned a value of type _thread.lock that could not be "
+                "serialised") in text
+        assert "cannot pickle '_thread.lock' object" in text
+        assert "died" not in text and "process exited" not in text
+        assert group.add(1).wait(timeout=60) == [1]
+    finally:
+        group.shutdown()
+
+
+def test_a_component_name_belongs_to_one_live_group(ray_cluster):
+    first = WorkerGroup.launch(Echo, "unique", num_ranks=1)
+    try:
+        with pytest.raises(ValueError, match="a WorkerGroup named 'unique' is already running"):
+            WorkerGroup.launch(Echo, "unique", num_ranks=1)
+        assert first.add(1).wait(timeout=60) == [1]  # the running group is untouched
+    finally:
+        first.shutdown()
+    second = WorkerGroup.launch(Echo, "unique", num_ranks=1)  # shut down: the name is free again
+    second.shutdown()
 
 
 def test_torch_distributed_group_forms(ray_cluster):
@@ -230,8 +292,9 @@ class Segfaults(Worker):
         return os.getpid()
 
 
-def test_a_segfault_is_reported_with_the_python_stack_of_the_crash(ray_cluster):
+def test_a_segfault_is_reported_with_the_python_stack_of_the_crash(ray_cluster, deliberate_deaths):
     group = WorkerGroup.launch(Segfaults, "sim", num_ranks=1)
+    deliberate_deaths(*group.pids())
     try:
         with pytest.raises(WorkerError) as info:
             group.crash_first().wait(timeout=120)
@@ -242,17 +305,20 @@ def test_a_segfault_is_reported_with_the_python_stack_of_the_crash(ray_cluster):
         _remove_crash_logs(group)
 
 
-def test_a_restarted_rank_that_crashes_again_is_reported_with_its_own_crash(ray_cluster):
+def test_a_restarted_rank_that_crashes_again_is_reported_with_its_own_crash(ray_cluster, deliberate_deaths):
     """The crash log quoted is the one of the process that died last, not of the first one."""
     group = WorkerGroup.launch(Segfaults, "sim2", num_ranks=1, restart=RestartPolicy(max_restarts=1, retry_calls=False))
     try:
         first_pid = group.pid().wait()[0]
+        deliberate_deaths(first_pid)
         with pytest.raises(WorkerError):
             group.crash_first().wait(timeout=120)
         deadline = time.monotonic() + 60
         while True:  # calls fail while Ray restarts the process
             try:
-                if group.pid().wait(timeout=30)[0] != first_pid:
+                second_pid = group.pid().wait(timeout=30)[0]
+                if second_pid != first_pid:
+                    deliberate_deaths(second_pid)
                     break
             except WorkerError:
                 pass
@@ -275,17 +341,19 @@ def _remove_crash_logs(group):
             os.unlink(info["crash_log"])
 
 
-def test_restart_policy_restarts_and_retries(ray_cluster, tmp_path):
+def test_restart_policy_restarts_and_retries(ray_cluster, tmp_path, deliberate_deaths):
     group = WorkerGroup.launch(Crashy, "env", num_ranks=1, args=(str(tmp_path / "m"),),
                                restart=RestartPolicy(max_restarts=2))
+    deliberate_deaths(*group.pids())
     try:
         assert group.work(21).wait(timeout=120) == [42]
     finally:
         group.shutdown()
 
 
-def test_dead_process_reported_as_root_cause(ray_cluster, tmp_path):
+def test_dead_process_reported_as_root_cause(ray_cluster, tmp_path, deliberate_deaths):
     group = WorkerGroup.launch(Crashy, "robot", num_ranks=1, args=(str(tmp_path / "m"),))
+    deliberate_deaths(*group.pids())
     try:
         with pytest.raises(WorkerError) as info:
             group.crash_always().wait(timeout=120)
@@ -332,3 +400,26 @@ def test_shutdown_removes_empty_crash_logs_and_keeps_one_with_a_crash(ray_cluste
     finally:
         if os.path.exists(logs[1]):
             os.unlink(logs[1])
+
+
+def test_raylet_reports_of_deliberate_deaths_are_dropped_and_others_kept(ray_cluster, deliberate_deaths, capsys):
+    """Ray's driver prints the raylet's "A worker died ..." messages (see this directory's
+    conftest); the ones about processes a test killed on purpose stay out of the output."""
+    import random
+    import string
+
+    import ray._private.worker as ray_worker
+
+    # Ray prints a raylet message only the first time its digit-free words occur: make them new.
+    unique = "".join(random.choices(string.ascii_letters, k=24))
+
+    def raylet_says(pid: int) -> None:
+        line = (f"A worker died or was killed while executing a task by an unexpected system error. {unique} "
+                f"Worker PID: {pid} Worker exit type: SYSTEM_ERROR (1) the process was killed by the OOM killer")
+        ray_worker.print_to_stdstream({"lines": [line], "pid": "raylet", "is_err": False}, ignore_prefix=False)
+
+    deliberate_deaths(4_000_001)
+    raylet_says(4_000_001)
+    raylet_says(4_000_002)
+    out = capsys.readouterr().out
+    assert "Worker PID: 4000002" in out and "Worker PID: 4000001" not in out

@@ -22,7 +22,8 @@ def main():
                       robot_plugins={"simulated": {"count": 1, "kind": "arm"}}).start()
     inv = cluster.inventory
     plan = place(inv, {"actor": "node:1:0-1", "env": "node:2", "robot": "robot:2"})
-    groups = {name: WorkerGroup.launch(WhereAmI, name, placement=plan.ranks(name)) for name in ("actor", "env", "robot")}
+    groups = {name: WorkerGroup.launch(WhereAmI, name, placement=plan.ranks(name))
+              for name in ("actor", "env", "robot")}
     out = {
         "num_nodes": inv.num_nodes,
         "cpus": [n.num_cpus for n in inv.nodes],

@@ -1,0 +1,58 @@
+"""Per-caller start order for calls to an async Ray actor.
+
+Ray does not promise that an async actor starts calls in the order one caller submitted them, so
+callers number their calls (0, 1, 2...) and the actor starts call ``seq`` only after call
+``seq - 1`` has taken its turn. A call cancelled while it waits for its turn gives the turn up:
+later calls from the same caller never wait behind a call that will not run.
+
+Everything but the wait itself is synchronous, so a cancellation can only land while a call
+waits for its turn, never halfway through handing the turn on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import defaultdict
+
+__all__ = ["CallOrder"]
+
+
+class CallOrder:
+    """Used from one event loop (an async actor's)."""
+
+    def __init__(self):
+        self._next: dict[str, int] = defaultdict(int)
+        self._given_up: dict[str, set[int]] = defaultdict(set)
+        self._waiting: dict[tuple[str, int], asyncio.Future] = {}
+
+    async def wait_turn(self, caller: str, seq: int, resume: bool = False) -> None:
+        """Wait until call ``seq`` of ``caller`` may start. ``resume``: a caller not seen yet
+        continues at ``seq`` (a restarted actor picks up the numbering where its caller is)."""
+        if resume and caller not in self._next:
+            self._next[caller] = seq
+        if self._next[caller] == seq:
+            return
+        turn = asyncio.get_running_loop().create_future()
+        self._waiting[(caller, seq)] = turn
+        try:
+            await turn
+        except asyncio.CancelledError:  # the turn is given up, now (if it came) or when it comes
+            self._waiting.pop((caller, seq), None)
+            self._given_up[caller].add(seq)
+            self._hand_on(caller)
+            raise
+
+    def end_turn(self, caller: str, seq: int) -> None:
+        """Call ``seq`` has started: the next call of ``caller`` may start."""
+        if self._next[caller] == seq:
+            self._next[caller] = seq + 1
+            self._hand_on(caller)
+
+    def _hand_on(self, caller: str) -> None:
+        given_up = self._given_up[caller]
+        while self._next[caller] in given_up:
+            given_up.discard(self._next[caller])
+            self._next[caller] += 1
+        turn = self._waiting.pop((caller, self._next[caller]), None)
+        if turn is not None and not turn.done():
+            turn.set_result(None)

@@ -1,0 +1,308 @@
+"""The actor behind a ``Channel``: per-key queues of envelopes, and every wait of the channel.
+
+It holds metadata only (``transport.Envelope``s); payloads move from producer to consumer
+directly. All waiting happens here, on one asyncio condition: getters wait for an item of their
+key, putters for space in theirs. A wait ends when it can succeed, when the channel closes, or
+when it can never succeed because the processes on the other side are gone:
+
+- every process that puts or gets registers as a producer or consumer (its first call does),
+- the actor watches each one (a worker rank's host through Ray, any other process on the
+  actor's node through its pid) and marks it dead when its process exits for good (a rank that
+  Ray restarts is the same peer, alive again),
+- a getter that finds no item once every producer has died, or a putter waiting for space once
+  every consumer has died, gets ``ChannelPeerDied`` naming the channel, the key and the dead
+  processes; a pending get of a consumer that died takes nothing (nobody would receive it).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import ray
+
+from infinirl.runtime import processes
+from infinirl.runtime.call_order import CallOrder
+from infinirl.runtime.errors import ChannelClosed, ChannelError, ChannelPeerDied
+from infinirl.runtime.transport import Envelope
+
+__all__ = ["ChannelActor"]
+
+# A watch call on a rank's host returns after this long and is renewed: a watch that outlives
+# its channel (destroyed, or its owner gone) ends by itself instead of holding a slot in the host.
+WATCH_RENEW_S = 30.0
+# How often a process without a host (the driver, a plain Ray task) on this node is checked.
+PID_POLL_S = 1.0
+
+
+class _Item:
+    __slots__ = ("envelope", "weight", "pinned_pid")
+
+    def __init__(self, envelope: Envelope, weight: float, pinned_pid: int | None):
+        self.envelope = envelope
+        self.weight = weight
+        self.pinned_pid = pinned_pid
+
+
+@dataclass
+class _Peer:
+    description: str
+    roles: set[str] = field(default_factory=set)
+    death: str = ""  # why it is dead, once it is
+
+
+class ChannelActor:
+    """Run as an async Ray actor (``Channel.create`` starts it); see the module docstring."""
+
+    def __init__(self, name: str, maxsize: float, transport: str = "auto", pipeline_depth: int = 0,
+                 prefetch: int = 1):
+        self.name = name
+        self.transport = transport
+        self.pipeline_depth = pipeline_depth
+        self.prefetch = prefetch
+        self.maxsize = maxsize  # per key, in weight units; 0: unbounded
+        self.queues: dict[Any, deque[_Item]] = {}
+        self.weight_by_key: dict[Any, float] = {}
+        self.closed = False
+        self.cond = asyncio.Condition()
+        self.order = CallOrder()
+        self.consumer_pids: set[int] = set()
+        self.peers: dict[str, _Peer] = {}
+        self.watches: set[asyncio.Task] = set()
+        self.node_id = ray.get_runtime_context().get_node_id()
+        self.stats = {"put": 0, "get": 0}
+
+    # ------------------------------------------------------------------ peers
+    async def register(self, peer_id: str, role: str, description: str, host, node_id: str, pid: int,
+                       start: int) -> None:
+        """A producer or consumer announces itself (once per role); its death is watched from now."""
+        peer = self.peers.get(peer_id)
+        if peer is None:
+            peer = self.peers[peer_id] = _Peer(description)
+            task = asyncio.ensure_future(self._watch(peer_id, host, node_id, pid, start))
+            self.watches.add(task)
+            task.add_done_callback(self.watches.discard)
+        peer.roles.add(role)
+
+    async def register_consumer(self, pid: int) -> None:
+        self.consumer_pids.add(pid)
+
+    async def _watch(self, peer_id: str, host, node_id: str, pid: int, start: int) -> None:
+        if host is not None:
+            death = await _until_host_dies(host)
+        elif node_id == self.node_id:
+            while processes.alive(pid, start):
+                await asyncio.sleep(PID_POLL_S)
+            death = "its process exited"
+        else:
+            return  # a process without a host on another node: nothing here can watch it
+        async with self.cond:
+            self.peers[peer_id].death = death
+            self.cond.notify_all()
+
+    def _all_dead(self, role: str) -> list[_Peer]:
+        """The peers of ``role`` if every one of them has died, else [] (also when none is known)."""
+        peers = [p for p in self.peers.values() if role in p.roles]
+        return peers if peers and all(p.death for p in peers) else []
+
+    def _is_dead(self, peer_id: str) -> bool:
+        peer = self.peers.get(peer_id)
+        return bool(peer and peer.death)
+
+    def _died(self, what: str, peers: list[_Peer]) -> ChannelPeerDied:
+        dead = "; ".join(f"{p.description}: {p.death}" for p in peers)
+        return ChannelPeerDied(f"channel '{self.name}': {what} [{dead}]")
+
+    # ------------------------------------------------------------------ put
+    async def put(self, envelope: Envelope, key, weight: float, timeout: float | None,
+                  producer: str | None = None, seq: int = -1):
+        if seq < 0:
+            return await self._put(envelope, key, weight, timeout)
+        # Pipelined producers number their puts: Ray does not promise that an async actor starts
+        # calls in submission order, and per-producer FIFO must hold.
+        await self.order.wait_turn(producer, seq)
+        try:
+            return await self._put(envelope, key, weight, timeout)
+        finally:
+            self.order.end_turn(producer, seq)
+
+    async def _put(self, envelope: Envelope, key, weight: float, timeout: float | None):
+        if self.closed:
+            raise ChannelClosed(f"put on closed channel '{self.name}' (key {key!r})")
+        if self.maxsize and weight > self.maxsize:
+            raise ChannelError(
+                f"channel '{self.name}': an item of weight {weight} can never fit maxsize={self.maxsize} "
+                f"(key {key!r}); raise maxsize or split the item"
+            )
+        pinned = envelope.producer_pid if envelope.path == "local" else None
+        async with self.cond:
+            if self.maxsize:
+                await self._wait_for(
+                    lambda: self._fits(key, weight) or self.closed or self._all_dead("consumer"),
+                    _deadline(timeout), f"put on key {key!r}", timeout)
+                if self.closed:
+                    raise ChannelClosed(f"channel '{self.name}' closed while a put on key {key!r} waited for space")
+                if not self._fits(key, weight):
+                    raise self._died(f"a put on key {key!r} waits for space (maxsize={self.maxsize} per key) and "
+                                     "every consumer of the channel has died", self._all_dead("consumer"))
+            self.queues.setdefault(key, deque()).append(_Item(envelope, weight, pinned))
+            self.weight_by_key[key] = self.weight_by_key.get(key, 0.0) + weight
+            self.stats["put"] += 1
+            self.cond.notify_all()
+        return sorted(self.consumer_pids)
+
+    def _fits(self, key, weight: float) -> bool:
+        return self.weight_by_key.get(key, 0.0) + weight <= self.maxsize
+
+    async def put_many(self, envelopes: list[Envelope], key, weights: list[float], timeout):
+        for envelope, weight in zip(envelopes, weights):
+            await self.put(envelope, key, weight, timeout)
+        return sorted(self.consumer_pids)
+
+    # ------------------------------------------------------------------ get
+    def _eligible(self, key, pid: int) -> int | None:
+        queue = self.queues.get(key)
+        if not queue:
+            return None
+        for index, item in enumerate(queue):
+            if item.pinned_pid is None or item.pinned_pid == pid:
+                return index
+        return None
+
+    def _can_end_get(self, key, pid: int, peer_id: str) -> bool:
+        return (self._eligible(key, pid) is not None or self.closed or self._is_dead(peer_id)
+                or bool(self._all_dead("producer")))
+
+    def _takeable(self, key, pid: int, peer_id: str) -> int:
+        """The index of the item to take, once a get's wait ended; else the error that ends it."""
+        if self._is_dead(peer_id):
+            raise self._died(f"the consumer waiting for key {key!r} died", [self.peers[peer_id]])
+        index = self._eligible(key, pid)
+        if index is not None:
+            return index
+        if self.closed:
+            raise ChannelClosed(f"channel '{self.name}' is closed and has no more items for key {key!r}")
+        raise self._died(f"no item for key {key!r} and every producer of the channel has died",
+                         self._all_dead("producer"))
+
+    def _take(self, key, index: int) -> _Item:
+        queue = self.queues[key]
+        if index == 0:
+            item = queue.popleft()
+        else:
+            item = queue[index]
+            del queue[index]
+        self.weight_by_key[key] -= item.weight
+        self.stats["get"] += 1
+        return item
+
+    def _give_back(self, key, items: list[_Item]) -> None:
+        """Return taken items to the front of their queue, in their order (a get that cannot
+        deliver them must not lose them)."""
+        self.queues.setdefault(key, deque()).extendleft(reversed(items))
+        self.weight_by_key[key] = self.weight_by_key.get(key, 0.0) + sum(i.weight for i in items)
+        self.stats["get"] -= len(items)
+        self.cond.notify_all()
+
+    async def get(self, key, pid: int, peer_id: str, timeout: float | None):
+        self.consumer_pids.add(pid)
+        async with self.cond:
+            await self._wait_for(lambda: self._can_end_get(key, pid, peer_id), _deadline(timeout),
+                                 f"get on key {key!r}", timeout)
+            item = self._take(key, self._takeable(key, pid, peer_id))
+            self.cond.notify_all()
+            return item.envelope, item.weight
+
+    async def get_many(self, key, pid: int, peer_id: str, max_items: int, timeout: float | None):
+        """Wait for one item, then also take up to ``max_items - 1`` more already waiting (prefetch)."""
+        self.consumer_pids.add(pid)
+        async with self.cond:
+            await self._wait_for(lambda: self._can_end_get(key, pid, peer_id), _deadline(timeout),
+                                 f"get on key {key!r}", timeout)
+            taken = [self._take(key, self._takeable(key, pid, peer_id))]
+            while len(taken) < max_items and (index := self._eligible(key, pid)) is not None:
+                taken.append(self._take(key, index))
+            self.cond.notify_all()
+            return [(item.envelope, item.weight) for item in taken]
+
+    async def get_batch(self, target_weight: float, key, pid: int, peer_id: str, timeout: float | None):
+        """Items of ``key`` in FIFO order while their total weight stays within ``target_weight``;
+        returns once the total equals it, once the next item would exceed it, or (with what it
+        has) once the channel is closed and drained, every producer died, or the timeout expired.
+        An item heavier than the target comes alone."""
+        self.consumer_pids.add(pid)
+        deadline = _deadline(timeout)
+        taken: list[_Item] = []
+        total = 0.0
+        async with self.cond:
+            try:
+                while total < target_weight:
+                    try:
+                        await self._wait_for(lambda: self._can_end_get(key, pid, peer_id), deadline,
+                                             f"get_batch on key {key!r}", timeout)
+                        index = self._takeable(key, pid, peer_id)
+                    except (TimeoutError, ChannelClosed, ChannelPeerDied):
+                        if taken and not self._is_dead(peer_id):
+                            break
+                        raise
+                    weight = self.queues[key][index].weight
+                    if taken and total + weight > target_weight:
+                        break
+                    taken.append(self._take(key, index))
+                    total += weight
+                    self.cond.notify_all()
+            except BaseException:  # cancelled, or its consumer died: nothing taken is lost
+                self._give_back(key, taken)
+                raise
+        return [(item.envelope, item.weight) for item in taken]
+
+    # ------------------------------------------------------------------ lifecycle / introspection
+    async def close(self) -> None:
+        async with self.cond:
+            self.closed = True
+            self.cond.notify_all()
+
+    async def qsize(self, key=None) -> int:
+        if key is None:
+            return sum(len(q) for q in self.queues.values())
+        return len(self.queues.get(key, ()))
+
+    async def info(self) -> dict:
+        return {"name": self.name, "maxsize": self.maxsize, "closed": self.closed, "transport": self.transport,
+                "pipeline_depth": self.pipeline_depth, "prefetch": self.prefetch,
+                "weight_in_queue": sum(self.weight_by_key.values()),
+                "weight_by_key": {repr(k): w for k, w in self.weight_by_key.items() if w},
+                "peers": {p.description: {"roles": sorted(p.roles), "death": p.death} for p in self.peers.values()},
+                **self.stats}
+
+    async def _wait_for(self, predicate, deadline: float | None, what: str, timeout: float | None) -> None:
+        remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+        try:
+            await asyncio.wait_for(self.cond.wait_for(predicate), remaining)
+        except asyncio.TimeoutError:
+            raise TimeoutError(f"channel '{self.name}': {what} timed out after {timeout}s") from None
+
+
+def _deadline(timeout: float | None) -> float | None:
+    return None if timeout is None or math.isinf(timeout) else time.monotonic() + timeout
+
+
+async def _until_host_dies(host) -> str:
+    """Wait until a worker rank's host actor is dead for good; returns why. A rank that Ray
+    restarts is alive again once restarted, and watched on."""
+    while True:
+        try:
+            await host.alive_for.options(max_task_retries=0).remote(WATCH_RENEW_S)
+            continue
+        except ray.exceptions.RayActorError:
+            pass
+        try:
+            await host.__ray_ready__.remote()  # waits out a restart; fails if the actor is dead
+        except ray.exceptions.ActorDiedError:
+            return "its process exited"
+        except ray.exceptions.RayActorError:
+            await asyncio.sleep(PID_POLL_S)  # unavailable for now: ask again

@@ -1,0 +1,74 @@
+"""CallOrder: calls of one caller start in their numbered order; a cancelled call gives its turn up."""
+
+import asyncio
+
+from infinirl.runtime.call_order import CallOrder
+
+# A broken CallOrder makes a call wait forever: every wait here is bounded so the test fails instead.
+
+
+async def _settle() -> None:
+    for _ in range(5):  # let every waiting task run up to its next wait
+        await asyncio.sleep(0)
+
+
+def _run_calls(order: CallOrder, started: list, caller: str, seqs: list[int]) -> dict[int, asyncio.Task]:
+    async def call(seq: int) -> None:
+        await order.wait_turn(caller, seq)
+        started.append(seq)
+        order.end_turn(caller, seq)
+
+    return {seq: asyncio.ensure_future(call(seq)) for seq in seqs}
+
+
+def test_calls_start_in_order_whatever_order_they_arrive_in():
+    async def main():
+        order, started = CallOrder(), []
+        tasks = _run_calls(order, started, "c", [3, 1, 2, 0])
+        await asyncio.wait_for(asyncio.gather(*tasks.values()), 30)
+        return started
+
+    assert asyncio.run(main()) == [0, 1, 2, 3]
+
+
+def test_a_call_cancelled_before_its_turn_gives_the_turn_up():
+    """Without this, every later call of the caller would wait forever behind the cancelled one."""
+
+    async def main():
+        order, started = CallOrder(), []
+        tasks = _run_calls(order, started, "c", [1, 2, 3])
+        await _settle()
+        tasks[2].cancel()  # waits for its turn (call 1 has not started either)
+        other = _run_calls(order, started, "other", [0])  # another caller is not affected
+        await _settle()
+        tasks.update(_run_calls(order, started, "c", [0]))
+        await asyncio.wait_for(asyncio.gather(*(t for seq, t in tasks.items() if seq != 2), *other.values()), 30)
+        return started, tasks[2].cancelled()
+
+    started, cancelled = asyncio.run(main())
+    assert cancelled
+    assert started.count(0) == 2  # call 0 of each caller
+    assert [s for s in started if s != 0] == [1, 3]  # call 2 never ran, call 3 did not wait for it
+
+
+def test_a_call_cancelled_when_its_turn_came_hands_it_on():
+    async def main():
+        order, started = CallOrder(), []
+        tasks = _run_calls(order, started, "c", [1, 2])
+        await _settle()
+        order.end_turn("c", 0)  # call 0 started elsewhere: call 1's turn is granted...
+        tasks[1].cancel()  # ...but it is cancelled before it runs
+        await asyncio.wait_for(tasks[2], 30)
+        return started
+
+    assert asyncio.run(main()) == [2]
+
+
+def test_a_restarted_actor_resumes_a_callers_numbering():
+    async def main():
+        order = CallOrder()
+        await asyncio.wait_for(order.wait_turn("c", 7, resume=True), 30)  # not seen before: its turn now
+        order.end_turn("c", 7)
+        await asyncio.wait_for(order.wait_turn("c", 8, resume=True), 30)
+
+    asyncio.run(main())

@@ -1,0 +1,144 @@
+"""Channel: a producer or consumer that dies never leaves the other side waiting forever."""
+
+import asyncio
+import os
+import signal
+import threading
+import time
+
+import pytest
+
+from infinirl.runtime import Channel, ChannelPeerDied, Worker, WorkerGroup
+from tests.conftest import ship_by_value
+
+ship_by_value(__name__)
+
+_names = iter(range(10_000))
+
+
+def fresh(maxsize=0, prefetch=1) -> Channel:
+    return Channel.create(f"peers-{time.time_ns()}-{next(_names)}", maxsize=maxsize, prefetch=prefetch)
+
+
+class Peer(Worker):
+    def produce(self, channels: list, items: list):
+        for ch in channels:
+            ch.register_producer()
+        for item in items:
+            channels[0].put(item, key="k")
+        return os.getpid()
+
+    def take(self, ch: Channel):
+        return ch.get(key="k")
+
+    def register_consumer(self, ch: Channel):
+        ch.register_consumer()
+        return os.getpid()
+
+
+def _in_thread(fn, *args, **kwargs):
+    """Run ``fn`` on a thread; returns a function that joins it and gives its result or error."""
+    out = {}
+
+    def run():
+        try:
+            out["result"] = fn(*args, **kwargs)
+        except BaseException as exc:  # handed to the test thread
+            out["error"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+
+    def join():
+        thread.join(timeout=120)
+        assert not thread.is_alive(), "the call is still blocked"
+        return out
+
+    return join
+
+
+def _wait_until(condition, what: str, limit_s: float = 60.0) -> None:
+    deadline = time.monotonic() + limit_s
+    while not condition():
+        assert time.monotonic() < deadline, f"{what} did not happen"
+        time.sleep(0.1)
+
+
+def _peer_roles(ch: Channel) -> dict:
+    return {name: peer for name, peer in ch.info()["peers"].items() if name.startswith("peer[")}
+
+
+def test_getters_learn_that_every_producer_died(ray_cluster, deliberate_deaths):
+    ch = fresh()
+    prefetching = fresh(prefetch=4)  # its gets take several items per call (get_many)
+    group = WorkerGroup.launch(Peer, "peer", num_ranks=1)
+    try:
+        pid = group.produce([ch, prefetching], ["first", "second"]).wait(timeout=60)[0]
+        assert ch.get(key="k", timeout=30) == "first"
+        blocked = [_in_thread(ch.get, key="k2", timeout=90)]  # waits on an empty key
+        deliberate_deaths(pid)
+        os.kill(pid, signal.SIGKILL)
+        error = blocked[0]().get("error")
+        assert isinstance(error, ChannelPeerDied), error
+        text = str(error)
+        assert f"channel '{ch.name}'" in text and "key 'k2'" in text
+        assert "every producer of the channel has died" in text and "peer[rank 0]" in text and str(pid) in text
+        assert ch.get(key="k", timeout=30) == "second"  # what was put is still delivered
+        for call in (lambda: ch.get(key="k", timeout=30),
+                     lambda: ch.get_batch(5, key="k", timeout=30),
+                     lambda: prefetching.get(key="k", timeout=30),
+                     lambda: asyncio.run(ch.get_async(key="k", timeout=30)),
+                     lambda: asyncio.run(ch.get_batch_async(5, key="k", timeout=30))):
+            with pytest.raises(ChannelPeerDied, match="every producer of the channel has died"):
+                call()
+    finally:
+        group.shutdown()
+
+
+def test_a_producer_that_never_put_anything_is_watched_too(ray_cluster, deliberate_deaths):
+    ch = fresh()
+    group = WorkerGroup.launch(Peer, "peer", num_ranks=1)
+    try:
+        pid = group.produce([ch], []).wait(timeout=60)[0]  # registers, puts nothing
+        deliberate_deaths(pid)
+        os.kill(pid, signal.SIGKILL)
+        with pytest.raises(ChannelPeerDied, match=r"no item for key 'k' and every producer .* has died"):
+            ch.get_batch(3, key="k", timeout=90)
+    finally:
+        group.shutdown()
+
+
+def test_a_producer_waiting_for_space_learns_that_every_consumer_died(ray_cluster, deliberate_deaths):
+    ch = fresh(maxsize=1)
+    group = WorkerGroup.launch(Peer, "peer", num_ranks=1)
+    try:
+        pid = group.register_consumer(ch).wait(timeout=60)[0]
+        ch.put("fills key k", key="k")
+        blocked = _in_thread(ch.put, "waits for space", key="k", timeout=90)
+        deliberate_deaths(pid)
+        os.kill(pid, signal.SIGKILL)
+        error = blocked().get("error")
+        assert isinstance(error, ChannelPeerDied), error
+        text = str(error)
+        assert f"channel '{ch.name}'" in text and "put on key 'k' waits for space" in text
+        assert "every consumer of the channel has died" in text and "peer[rank 0]" in text
+    finally:
+        group.shutdown()
+
+
+def test_a_dead_consumers_pending_get_takes_nothing(ray_cluster, deliberate_deaths):
+    """The get a consumer had pending when it died must not take the next item: nobody would
+    receive it."""
+    ch = fresh()
+    group = WorkerGroup.launch(Peer, "peer", num_ranks=1)
+    try:
+        pid = group.pids()[0]
+        group.take(ch)  # blocks in the rank: the channel is empty
+        _wait_until(lambda: _peer_roles(ch), "the rank's registration as a consumer")
+        deliberate_deaths(pid)
+        os.kill(pid, signal.SIGKILL)
+        _wait_until(lambda: all(p["death"] for p in _peer_roles(ch).values()), "the channel noticing the death")
+        ch.put("not lost", key="k")
+        assert ch.get(key="k", timeout=30) == "not lost"
+    finally:
+        group.shutdown()
