@@ -134,5 +134,6 @@ if __name__ == "__main__":
     args = parser.parse_args()
     if args.envs < 2:
         parser.error(f"--envs {args.envs}: must be >= 2 (two pipeline stages)")
-    sys.path[:0] = [os.path.dirname(os.path.abspath(__file__)), os.path.dirname(os.path.dirname(os.path.abspath(__file__)))]
+    here = os.path.dirname(os.path.abspath(__file__))
+    sys.path[:0] = [here, os.path.dirname(here)]
     print(json.dumps(probe_host(args.envs)))

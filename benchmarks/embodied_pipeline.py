@@ -32,10 +32,10 @@ The rows run side by side, in turns (`benchmarks/_bench_turns.py`): every row's 
 at once, then the rows take turns, one PPO iteration each, while the others wait frozen (every
 process of theirs, Ray included, stopped: no CPU), the order rotating every cycle. So the i-th
 iteration of every row runs within seconds of the others' and a slow spell of a shared VM, whose
-speed drifts by tens of percent within minutes, lands on all rows alike. Env-steps/s = env steps of the measured iterations / their wall time
-(collection + update + weight sync, the runner's own `time/iteration_s`), skipping each row's first
-`--warmup` iterations (the one-off compile, JIT of the first calls); start-up, waiting for a turn
-and the final evaluation are not counted.
+speed drifts by tens of percent within minutes, lands on all rows alike. Env-steps/s = env steps of
+the measured iterations / their wall time (collection + update + weight sync, the runner's own
+`time/iteration_s`), skipping each row's first `--warmup` iterations (the one-off compile, JIT of
+the first calls); start-up, waiting for a turn and the final evaluation are not counted.
 
 Usage:
     python benchmarks/embodied_pipeline.py                      # state and rgb, all impls (minutes)
@@ -120,8 +120,10 @@ def _hydra_value(value) -> str:
         return "{" + ",".join(f"{k}:{_hydra_value(v)}" for k, v in value.items()) + "}"
     if isinstance(value, (list, tuple)):
         return "[" + ",".join(_hydra_value(v) for v in value) + "]"
-    if isinstance(value, str) and not value.replace("_", "").replace("-", "").replace("/", "").replace(".", "").isalnum():
-        return "'" + value + "'"
+    if isinstance(value, str):
+        bare = value.replace("_", "").replace("-", "").replace("/", "").replace(".", "")
+        if not bare.isalnum():
+            return "'" + value + "'"
     return str(value)
 
 
@@ -417,7 +419,9 @@ def _pair(rows_a: list[dict], rows_b: list[dict], measured: int, rounds: int) ->
                        "max": round(max(per_cycle), 3), "n": len(per_cycle)}}
 
 
-def main() -> None:
+def _parse_args() -> argparse.Namespace:
+    """The command line, checked: every --obs and --impls name known, --rounds >= 1, a runnable shape
+    (--num-envs and --steps resolved to the demo's where not given)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--obs", default="state,rgb", help="comma list of: " + ", ".join(OBS_MODES))
     parser.add_argument("--impls", default=",".join(DEFAULT_IMPLS),
@@ -440,54 +444,73 @@ def main() -> None:
                              "its PPO optimizer step and its policy's act)")
     add_record_argument(parser)
     args = parser.parse_args()
-    os.environ.setdefault("MUJOCO_GL", "egl" if os.environ.get("INFINIRL_BENCH_EGL") else "osmesa")
-    modes = [m.strip() for m in args.obs.split(",") if m.strip()]
-    impls = [i.strip() for i in args.impls.split(",") if i.strip()]
+    args.modes = [m.strip() for m in args.obs.split(",") if m.strip()]
+    args.impl_names = [i.strip() for i in args.impls.split(",") if i.strip()]
     if args.rounds < 1:
         parser.error(f"--rounds {args.rounds}: must be >= 1")
-    for name in modes:
+    for name in args.modes:
         if name not in OBS_MODES:
             parser.error(f"--obs {name!r}: choose from {', '.join(OBS_MODES)}")
-    for name in impls:
+    for name in args.impl_names:
         if name not in IMPLS:
             parser.error(f"--impls {name!r}: choose from {', '.join(IMPLS)}")
-    global NUM_ENVS, STEPS
-    NUM_ENVS, STEPS = demo_shape(args.num_envs, args.steps)
-    problem = shape_problem(NUM_ENVS, STEPS)
+    args.num_envs, args.steps = demo_shape(args.num_envs, args.steps)
+    problem = shape_problem(args.num_envs, args.steps)
     if problem:
         parser.error(problem)
+    return args
+
+
+def _measure_obs(obs: str, args: argparse.Namespace, results: dict, ratios: dict, paired: dict) -> None:
+    """Run every row of one observation mode in turns; add its results, speed ratios and paired ratios."""
+    measured = args.iterations if obs == "state" else max(2, args.iterations - 2)
+    rows = run_in_turns(obs, args.impl_names, measured, args.rounds, args.warmup, not args.eager)
+    prefix = "" if obs == "state" else f"{obs}/"
+    for impl, impl_rows in rows.items():
+        per_round = [summarise(impl_rows[k * measured:(k + 1) * measured], impl) for k in range(args.rounds)]
+        for k, result in enumerate(per_round):
+            print(f"{obs:5s} {impl:15s} {result['env_steps_per_s']:8.1f} env-steps/s  collect "
+                  f"{result['collect_s']:.2f}s  train {result['train_s']:.2f}s  per iteration "
+                  f"({result['iterations']} measured, round {k + 1}/{args.rounds})", file=sys.stderr)
+        results[f"{obs}/{impl}"] = {**summarise(impl_rows, impl),
+                                    "rounds_env_steps_per_s": [r["env_steps_per_s"] for r in per_round]}
+    speed = lambda impl: results.get(f"{obs}/{impl}", {}).get("env_steps_per_s")  # noqa: E731
+    pairs = [("pipelined_vs_sequential", "pipelined", "sequential"),
+             ("pipelined_vs_single_process", "pipelined", "single_process"),
+             ("collocated_vs_single_process", "collocated", "single_process")]
+    for key, a, b in pairs:
+        if a in rows and b in rows:
+            ratios[prefix + key] = round(speed(a) / speed(b), 3)
+            paired[prefix + key] = _pair(rows[a], rows[b], measured, args.rounds)
+
+
+def _print_ratios(ratios: dict, paired: dict) -> None:
+    """One stderr line per pair: its per-round and per-cycle ratios, and the verdict where it has a target."""
+    for key, value in paired.items():
+        target = TARGETS.get(key.rpartition("/")[2])
+        verdict = ""
+        if target is not None:
+            verdict = f"; target {target}: {'met' if ratios[key] >= target else 'MISSED'} ({ratios[key]})"
+        print(f"{key}: rounds {value['rounds']} (median {value['median']}); cycles median "
+              f"{value['cycles']['median']} [{value['cycles']['min']}, {value['cycles']['max']}]{verdict}",
+              file=sys.stderr)
+
+
+def main() -> None:
+    args = _parse_args()
+    os.environ.setdefault("MUJOCO_GL", "egl" if os.environ.get("INFINIRL_BENCH_EGL") else "osmesa")
+    global NUM_ENVS, STEPS
+    NUM_ENVS, STEPS = args.num_envs, args.steps
     if args.only:
-        print(json.dumps(run_one(args.only, modes[0], args.iterations, args.warmup, not args.eager)))
+        print(json.dumps(run_one(args.only, args.modes[0], args.iterations, args.warmup, not args.eager)))
         return
     started = time.time()
     print(f"each PPO iteration: {NUM_ENVS} envs x {STEPS} steps of {DEMO}", file=sys.stderr)
     host = None if args.no_probe else probe_host()
     results, ratios, paired = {}, {}, {}
-    for obs in modes:
-        measured = args.iterations if obs == "state" else max(2, args.iterations - 2)
-        rows = run_in_turns(obs, impls, measured, args.rounds, args.warmup, not args.eager)
-        prefix = "" if obs == "state" else f"{obs}/"
-        for impl, impl_rows in rows.items():
-            per_round = [summarise(impl_rows[k * measured:(k + 1) * measured], impl) for k in range(args.rounds)]
-            for k, result in enumerate(per_round):
-                print(f"{obs:5s} {impl:15s} {result['env_steps_per_s']:8.1f} env-steps/s  collect "
-                      f"{result['collect_s']:.2f}s  train {result['train_s']:.2f}s  per iteration "
-                      f"({result['iterations']} measured, round {k + 1}/{args.rounds})", file=sys.stderr)
-            results[f"{obs}/{impl}"] = {**summarise(impl_rows, impl),
-                                        "rounds_env_steps_per_s": [r["env_steps_per_s"] for r in per_round]}
-        speed = lambda impl: results.get(f"{obs}/{impl}", {}).get("env_steps_per_s")  # noqa: E731
-        pairs = [("pipelined_vs_sequential", "pipelined", "sequential"),
-                 ("pipelined_vs_single_process", "pipelined", "single_process"),
-                 ("collocated_vs_single_process", "collocated", "single_process")]
-        for key, a, b in pairs:
-            if a in rows and b in rows:
-                ratios[prefix + key] = round(speed(a) / speed(b), 3)
-                paired[prefix + key] = _pair(rows[a], rows[b], measured, args.rounds)
-    for key, value in paired.items():
-        target = TARGETS.get(key.rpartition("/")[2])
-        verdict = "" if target is None else f"; target {target}: {'met' if ratios[key] >= target else 'MISSED'} ({ratios[key]})"
-        print(f"{key}: rounds {value['rounds']} (median {value['median']}); cycles median "
-              f"{value['cycles']['median']} [{value['cycles']['min']}, {value['cycles']['max']}]{verdict}", file=sys.stderr)
+    for obs in args.modes:
+        _measure_obs(obs, args, results, ratios, paired)
+    _print_ratios(ratios, paired)
     final = {"benchmark": "embodied_pipeline", "ratios": ratios, "paired_ratios": paired, "targets": TARGETS,
              "results": results, "interleaved": True, "num_envs": NUM_ENVS, "steps": STEPS,
              "actor_compile": not args.eager, "rollout_compile": not args.eager,

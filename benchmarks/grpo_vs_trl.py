@@ -50,8 +50,8 @@ def vllm_python() -> str | None:
     candidates = [os.environ.get("INFINIRL_VLLM_PYTHON"), str(DEFAULT_VLLM_VENV / "bin" / "python")]
     for python in filter(None, candidates):
         if os.path.isfile(python):
-            probe = subprocess.run([python, "-c", "import importlib.util as u, sys; sys.exit(u.find_spec('vllm') is None)"],
-                                   capture_output=True)
+            has_vllm = "import importlib.util as u, sys; sys.exit(u.find_spec('vllm') is None)"
+            probe = subprocess.run([python, "-c", has_vllm], capture_output=True)
             if probe.returncode == 0:
                 return python
     return None

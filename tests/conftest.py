@@ -1,5 +1,7 @@
-"""Shared pytest setup: skip `gpu` tests without CUDA so the CPU suite stays green and honest."""
+"""Shared pytest setup: skip `gpu` tests without CUDA so the CPU suite stays green and honest; one
+Ray instance for the session; the tiny model reasoning tests share; quiet deliberate crashes."""
 import os
+import re
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see infinirl.runtime.cluster)
 
@@ -52,3 +54,55 @@ def tiny_llama_dir(tmp_path_factory):
     LlamaForCausalLM(config).save_pretrained(folder)
     tokenizer.save_pretrained(folder)
     return str(folder)
+
+
+# Tests kill worker processes on purpose; keep Ray's report of those deaths out of the output.
+#
+# When a worker process exits unexpectedly, its raylet publishes "A worker died or was killed while
+# executing a task by an unexpected system error ... Worker PID: <pid> ... (1) the process was
+# killed by the OOM killer ..." to the driver. Every Ray driver runs a thread
+# (``ray._private.worker.listen_error_messages``) that prints such messages to stdout through
+# ``ray._private.worker.print_to_stdstream``, whatever ``log_to_driver`` says, whenever they
+# arrive. A test that kills a rank on purpose declares the process with ``deliberate_deaths(pid)``;
+# raylet messages naming one of those pids are dropped, every other message is printed as before.
+
+
+
+_expected_pids: set[int] = set()
+_WORKER_PID = re.compile(r"Worker PID: (\d+)")
+
+
+def about_a_deliberate_death(line: str) -> bool:
+    """Whether a raylet message reports the death of a process a test killed on purpose."""
+    match = _WORKER_PID.search(line)
+    return bool(match) and int(match[1]) in _expected_pids
+
+
+def _install_filter() -> None:
+    import ray._private.worker as ray_worker
+
+    original = ray_worker.print_to_stdstream
+    if getattr(original, "drops_deliberate_deaths", False):
+        return
+
+    def print_to_stdstream(data, ignore_prefix: bool):
+        if data.get("pid") == "raylet":
+            lines = [line for line in data.get("lines", []) if not about_a_deliberate_death(line)]
+            if not lines:
+                return
+            data = {**data, "lines": lines}
+        return original(data, ignore_prefix)
+
+    print_to_stdstream.drops_deliberate_deaths = True
+    ray_worker.print_to_stdstream = print_to_stdstream
+
+
+@pytest.fixture
+def deliberate_deaths():
+    """Call with the pids of worker processes the test is about to kill or crash."""
+    _install_filter()
+
+    def expect(*pids: int) -> None:
+        _expected_pids.update(int(pid) for pid in pids if pid)
+
+    return expect

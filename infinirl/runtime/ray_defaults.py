@@ -12,8 +12,10 @@ NAMESPACE = "infinirl"
 KEEP_CUDA_VISIBLE_DEVICES = {"RAY_EXPERIMENTAL_NOSET_CUDA_VISIBLE_DEVICES": "1"}
 # Every worker process starts with these (unless the driver's environment says otherwise).
 # OpenMP's default spin-waiting keeps every idle torch thread busy on a core, so co-located torch
-# processes take the cores from each other; passive waiting gives the cores back.
-WORKER_ENV_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
+# processes take the cores from each other; passive waiting gives the cores back. Progress bars of
+# worker processes (a model's "Loading weights") reach the driver's terminal whenever Ray forwards
+# them, over the driver's own progress bar and after its summary line: the driver shows progress.
+WORKER_ENV_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE", "HF_HUB_DISABLE_PROGRESS_BARS": "1"}
 
 
 def worker_env() -> dict[str, str]:

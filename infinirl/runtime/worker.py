@@ -392,31 +392,26 @@ class WorkerGroup:
                     f"({reason}); the rank is alive and takes further calls")
         else:
             what = f"could not be run or answered by Ray ({reason}); the rank is alive"
-        info = self.rank_info[rank] if rank < len(self.rank_info) else {}
-        return WorkerError(
-            component=self.component,
-            rank=rank,
-            method=method,
-            node_ip=info.get("node_ip", self.contexts[rank].node_ip or "?"),
-            hostname=info.get("hostname", "?"),
-            pid=info.get("pid"),
-            traceback_text=_first_line_block(str(exc)),
-            cause=what,
-        )
+        return self._error(rank, method, _first_line_block(str(exc)), what)
 
     def _died(self, rank: int, method: str, ray_message: str) -> WorkerError:
         info = self.rank_info[rank] if rank < len(self.rank_info) else {}
         crash_pid, crash = crash_logs.last_process_crash(info.get("crash_log"))
         text = (crash + "\n" if crash else "") + _first_line_block(ray_message)
+        return self._error(rank, method, text, "died (process exited)", pid=crash_pid)
+
+    def _error(self, rank: int, method: str, text: str, cause: str, pid: int | None = None) -> WorkerError:
+        """A WorkerError for ``rank`` with what the group knows of the rank's host and process."""
+        info = self.rank_info[rank] if rank < len(self.rank_info) else {}
         return WorkerError(
             component=self.component,
             rank=rank,
             method=method,
             node_ip=info.get("node_ip", self.contexts[rank].node_ip or "?"),
             hostname=info.get("hostname", "?"),
-            pid=crash_pid or info.get("pid"),
+            pid=pid or info.get("pid"),
             traceback_text=text,
-            cause="died (process exited)",
+            cause=cause,
         )
 
     # ------------------------------------------------------------------ tracing / lifecycle

@@ -48,7 +48,7 @@ def test_rows_take_turns_in_rotation_and_never_overlap():
     out = {n: json.loads(text.strip().splitlines()[-1]) for n, text in conductor.run(turns).items()}
     spans = sorted((start, end, n, i) for n in names for i, (start, end) in enumerate(out[n]["stamps"]))
     assert len(spans) == 3 * turns
-    for (s0, e0, *_), (s1, e1, *_) in zip(spans, spans[1:]):
+    for (_s0, e0, *_), (s1, _e1, *_) in zip(spans, spans[1:]):
         assert e0 <= s1, "two rows ran at once"
     assert spans[0][0] >= max(out[n]["ready"] for n in names), "a turn overlapped a row's start-up"
     # cycle i runs the rows in the order rotated by i, each row's turns in its own order

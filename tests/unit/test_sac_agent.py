@@ -83,17 +83,20 @@ def test_update_matches_the_soft_bellman_reference_and_moves_targets_by_tau():
 
 def test_temperature_follows_the_entropy_target():
     for target, direction in ((-10.0, -1), (10.0, 1)):  # entropy above target: alpha falls; below: rises
-        agent = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,)), SACUpdateSpec(init_alpha=0.2, target_entropy=target), 5, SPACE)
+        agent = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,)),
+                         SACUpdateSpec(init_alpha=0.2, target_entropy=target), 5, SPACE)
         for i in range(5):
             agent.update(make_batch(seed=i))
         assert direction * (float(agent.alpha) - 0.2) > 0
-    fixed = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,)), SACUpdateSpec(init_alpha=0.2, autotune_alpha=False), 5, SPACE)
+    fixed = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,)),
+                     SACUpdateSpec(init_alpha=0.2, autotune_alpha=False), 5, SPACE)
     fixed.update(make_batch())
     assert math.isclose(float(fixed.alpha), 0.2, rel_tol=1e-6)
 
 
 def test_policy_delay_and_target_period():
-    agent = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,)), SACUpdateSpec(policy_delay=2, target_update_every=3), 5, SPACE)
+    agent = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,)),
+                     SACUpdateSpec(policy_delay=2, target_update_every=3), 5, SPACE)
     actor_before = copy.deepcopy(agent.actor.state_dict())
     target_before = copy.deepcopy(agent.critic_target.state_dict())
     first = agent.update(make_batch(seed=1))
@@ -143,7 +146,8 @@ def test_sac_flow_actor_is_reparameterised_and_scores_its_own_path():
     grads = {name: p.grad for name, p in actor.named_parameters()}
     assert grads["flow.velocity_out.weight"].abs().sum() > 0 and grads["flow.noise_out.weight"].abs().sum() > 0
 
-    agent = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,), actor="flow", flow={"num_steps": 3, "hidden": (16, 16)}),
+    agent = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,), actor="flow",
+                                flow={"num_steps": 3, "hidden": (16, 16)}),
                      SACUpdateSpec(), 5, SPACE)
     before = copy.deepcopy(agent.actor.state_dict())
     metrics = agent.update(make_batch())

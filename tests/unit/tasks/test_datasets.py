@@ -98,7 +98,8 @@ def test_parquet_loader(tmp_path):
 
 def test_template_without_placeholder_is_rejected(gsm8k_like):
     with pytest.raises(ValueError, match="no \\{question\\} placeholder"):
-        load_problems(gsm8k_like, prompt_key="question", answer_key="answer", verifier="gsm8k", prompt_template="Solve it.")
+        load_problems(gsm8k_like, prompt_key="question", answer_key="answer", verifier="gsm8k",
+                      prompt_template="Solve it.")
 
 
 def test_data_dir_follows_the_environment(monkeypatch, tmp_path):

@@ -215,7 +215,8 @@ def test_problem_can_name_a_user_function(user_module):
 
 @pytest.mark.parametrize(
     ("function", "message"),
-    [("missing_reward", "without 'reward'; keys: \\['score'\\]"), ("wrong_type", "returned str"), ("raises", "user bug")],
+    [("missing_reward", "without 'reward'; keys: \\['score'\\]"), ("wrong_type", "returned str"),
+     ("raises", "user bug")],
 )
 def test_user_function_failures_become_sample_errors(user_module, function, message):
     result = safe_score("x", numeric_problem("1", verifier=f"{user_module}:{function}"))

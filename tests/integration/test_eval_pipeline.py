@@ -52,7 +52,8 @@ def test_base_model_eval_writes_results_and_one_summary_line(ray_cluster, tiny_l
 
 
 @pytest.mark.slow
-def test_checkpoint_eval_serves_the_trained_weights_and_ranks_do_not_change_results(ray_cluster, tiny_llama_dir, tmp_path):
+def test_checkpoint_eval_serves_the_trained_weights_and_ranks_do_not_change_results(ray_cluster, tiny_llama_dir,
+                                                                                    tmp_path):
     run_dir = tmp_path / "run"
     trained = run_train(to_dataclass(ReasoningConfig, {
         "iterations": 2, "prompts_per_step": 2, "eval": {"every": 2}, "save_every": 2, "loggers": [],

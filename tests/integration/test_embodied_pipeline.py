@@ -136,7 +136,8 @@ def test_stage_processes_need_the_env_on_its_own_resources(ray_cluster, tmp_path
     with pytest.raises(ConfigError, match="env.stage_processes=true needs the env on its own resources"):
         run(cfg)
     with pytest.raises(ConfigError, match="rollout.transport=channel is not supported with it"):
-        make_cfg(tmp_path, 1, PLACEMENTS["pipelined"][0], 2, env=env, rollout={"pipeline_stages": 2, "transport": "channel"})
+        make_cfg(tmp_path, 1, PLACEMENTS["pipelined"][0], 2, env=env,
+                 rollout={"pipeline_stages": 2, "transport": "channel"})
 
 
 def test_bad_names_fail_before_workers_start():

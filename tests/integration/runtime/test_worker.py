@@ -143,6 +143,7 @@ def test_launch_env_vars_are_set_from_the_process_start(ray_cluster):
         start = group.initial_environ().wait()[0]
         assert start["GOMP_SPINCOUNT"] == "12345"
         assert start["OMP_WAIT_POLICY"] == "PASSIVE"  # the workers' defaults stay
+        assert start["HF_HUB_DISABLE_PROGRESS_BARS"] == "1"  # no worker progress bar in the driver's terminal
     finally:
         group.shutdown()
 

@@ -49,7 +49,8 @@ def test_runs_logs_and_resumes_exactly(ray_cluster, tiny_llama_dir, tmp_path):
     resumed_rows = [json.loads(line) for line in (tmp_path / "resumed" / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in resumed_rows] == [0, 1, 2, 3, 4]
     for a, b in zip(rows[1:], resumed_rows[1:]):
-        assert a["rollout/reward_mean"] == b["rollout/reward_mean"] and a["train/loss"] == pytest.approx(b["train/loss"], abs=1e-7)
+        assert (a["rollout/reward_mean"] == b["rollout/reward_mean"]
+                and a["train/loss"] == pytest.approx(b["train/loss"], abs=1e-7))
     assert (tmp_path / "straight" / "curves.png").exists()
     assert list((tmp_path / "straight" / "tensorboard").iterdir())
 
@@ -146,4 +147,5 @@ def test_streamed_chunks_give_the_same_run_on_one_or_two_rollout_ranks(ray_clust
     two = run(make_cfg(tiny_llama_dir, tmp_path / "two", iterations=1, **common,
                        placement={"actor": "0", "rollout": "0-1", "reward": "0-1"}))
     assert one["actor_weights_sha256"] == two["actor_weights_sha256"]
-    assert read_rows(tmp_path / "one")[1]["rollout/reward_mean"] == read_rows(tmp_path / "two")[1]["rollout/reward_mean"]
+    assert (read_rows(tmp_path / "one")[1]["rollout/reward_mean"]
+            == read_rows(tmp_path / "two")[1]["rollout/reward_mean"])

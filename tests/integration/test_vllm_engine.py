@@ -2,7 +2,7 @@
 
 Slow suite, and only where vLLM is installed (its own venv: ``bash scripts/setup_vllm_venv.sh``):
 
-    ~/.cache/infinirl/vllm-venv/bin/python -m pytest -m slow tests/unit/engines/test_vllm_engine.py
+    ~/.cache/infinirl/vllm-venv/bin/python -m pytest -m slow tests/integration/test_vllm_engine.py
 
 One in-process engine serves the direct tests (vLLM's teardown resets process-wide state, so a
 second one per process is avoided): tests that load other weights put the original ones back. The
