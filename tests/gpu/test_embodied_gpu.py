@@ -11,7 +11,7 @@ import torch
 pytest.importorskip("gymnasium")
 
 from infinirl.components.embodied_actor import ppo_update  # noqa: E402
-from tests.e2e.test_embodied_pipeline import make_cfg, straight_and_resumed  # noqa: E402
+from tests.integration.test_embodied_pipeline import make_cfg, straight_and_resumed  # noqa: E402
 from tests.unit.test_compiled_step import fixed_shape_updates_step_like_eager  # noqa: E402
 from tests.unit.test_embodied_ppo_update import PPO, flat, policy_and_batch  # noqa: E402
 

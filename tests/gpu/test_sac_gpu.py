@@ -12,7 +12,7 @@ pytest.importorskip("gymnasium")
 pytest.importorskip("mujoco")
 
 from infinirl.components.sac_learner import SACAgent, SACNetSpec, SACUpdateSpec  # noqa: E402
-from tests.e2e.test_sac_pipeline import make_cfg  # noqa: E402
+from tests.integration.test_sac_pipeline import make_cfg  # noqa: E402
 from tests.unit.test_sac_agent import SPACE, make_batch  # noqa: E402
 
 pytestmark = pytest.mark.gpu
