@@ -218,13 +218,13 @@ class Channel:
 
     async def get_async(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
         self._register("consumer")
-        envelope, _ = await self._acall(self._actor.get.remote(key, os.getpid(), _peer_id(), timeout))
+        envelope, _ = await self._aget(self._actor.get.remote(key, os.getpid(), _peer_id(), timeout), key)
         return unpack(envelope)
 
     async def get_batch_async(self, target_weight: float, key=DEFAULT_KEY, timeout=None) -> list:
         target = self._check_target(target_weight)
         self._register("consumer")
-        taken = await self._acall(self._actor.get_batch.remote(target, key, os.getpid(), _peer_id(), timeout))
+        taken = await self._aget(self._actor.get_batch.remote(target, key, os.getpid(), _peer_id(), timeout), key)
         return [unpack(envelope) for envelope, _ in taken]
 
     # ------------------------------------------------------------------ internals
@@ -278,6 +278,21 @@ class Channel:
             raise _unwrap(exc) from None
         except ray.exceptions.RayActorError:
             raise self._gone() from None
+
+    async def _aget(self, ref, key):
+        """A get's result. When the awaiting task is cancelled, the actor's get is cancelled too
+        (:meth:`_acall`); if it had already taken items before the cancel reached it, they go back
+        to the front of their queue, so a cancelled get never swallows an item."""
+        try:
+            return await self._acall(ref)
+        except asyncio.CancelledError:
+            try:
+                taken = await asyncio.wait_for(ref, timeout=30)
+            except BaseException:  # cancelled in time (nothing taken), or the actor is gone
+                raise asyncio.CancelledError from None
+            items = taken if isinstance(taken, list) else [taken]
+            await self._actor.give_back.remote(key, items)
+            raise
 
     def _gone(self) -> ChannelError:
         return ChannelError(f"channel '{self.name}' is gone: its actor was destroyed or died")

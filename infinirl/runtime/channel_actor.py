@@ -208,6 +208,12 @@ class ChannelActor:
         self.stats["get"] -= len(items)
         self.cond.notify_all()
 
+    async def give_back(self, key, taken: list[tuple[Envelope, float]]) -> None:
+        """Items a get took for a caller that was cancelled before it received them."""
+        async with self.cond:
+            self._give_back(key, [_Item(envelope, weight, envelope.producer_pid if envelope.path == "local" else None)
+                                  for envelope, weight in taken])
+
     async def get(self, key, pid: int, peer_id: str, timeout: float | None):
         self.consumer_pids.add(pid)
         async with self.cond:

@@ -100,7 +100,7 @@ def _trajectory(t=5, n=4):
 
 
 def test_grpo_batch_carries_the_episode_mask_and_group_advantages():
-    flow = EmbodiedFlow(grpo_cfg(), None, None, None, 0.0)
+    flow = EmbodiedFlow(grpo_cfg(), None, None, None)
     traj = _trajectory()
     traj["rewards"][:, 3] = traj["rewards"][:, 2]  # group (2, 3): equal returns, no signal
     batch, metrics = flow.advantages(traj)
@@ -118,7 +118,7 @@ def test_grpo_batch_carries_the_episode_mask_and_group_advantages():
     assert "train/reward_scale" not in metrics  # no reward scaling for grpo
     assert flow.return_norm.rms.count == pytest.approx(1e-4)  # the PPO return normaliser was not fed
 
-    ppo = EmbodiedFlow(grpo_cfg(algorithm={"name": "ppo", "mini_batches": 2}), None, None, None, 0.0)
+    ppo = EmbodiedFlow(grpo_cfg(algorithm={"name": "ppo", "mini_batches": 2}), None, None, None)
     batch, _ = ppo.advantages(_trajectory())
     assert batch["advantage_mask"].all()  # GAE trains on every decision
 
@@ -188,7 +188,7 @@ def test_grpo_action_level_with_chunks_masks_per_action_and_trains():
     traj.update(step_rewards=step_rewards, rewards=step_rewards.sum(-1), actions=np.zeros((5, 4, 2, 1), np.float32),
                 logprobs=np.zeros((5, 4, 2), np.float32), step_mask=np.ones((5, 4, 2), bool))
     traj["step_mask"][2, 1, 1] = False  # env 1's episode ended after the chunk's first action
-    batch, _ = EmbodiedFlow(cfg, None, None, None, 0.0).advantages(traj)
+    batch, _ = EmbodiedFlow(cfg, None, None, None).advantages(traj)
     mask = batch["advantage_mask"].reshape(5, 4, 2)
     assert batch["advantages"].shape == (20, 2) and mask[:3, 1].all() and not mask[3:, 1].any()
 

@@ -142,3 +142,24 @@ def test_a_dead_consumers_pending_get_takes_nothing(ray_cluster, deliberate_deat
         assert ch.get(key="k", timeout=30) == "not lost"
     finally:
         group.shutdown()
+
+
+def test_a_cancelled_async_get_gives_back_what_it_took(ray_cluster):
+    """The actor hands an item to a waiting get whose caller is cancelled before it receives it: the
+    item goes back to the front of its queue instead of vanishing with the cancelled call."""
+    ch = Channel.create(f"give-back-{time.time_ns()}")
+
+    async def scenario():
+        getter = asyncio.ensure_future(ch.get_async())
+        await asyncio.sleep(1.0)  # the get now waits on the channel's actor
+        ch.put("kept")  # blocking: the actor hands "kept" to that get before this loop runs again
+        ch.put("second")
+        getter.cancel()  # ...and the caller is cancelled before it received it
+        with pytest.raises(asyncio.CancelledError):
+            await getter
+
+    try:
+        asyncio.run(scenario())
+        assert [ch.get(timeout=10), ch.get(timeout=10)] == ["kept", "second"]  # in order, nothing lost
+    finally:
+        ch.destroy()

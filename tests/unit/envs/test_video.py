@@ -34,13 +34,14 @@ def test_without_ffmpeg_it_names_the_package_and_writes_nothing(tmp_path, monkey
 
 
 def test_a_failed_encode_leaves_neither_the_video_nor_a_stub(tmp_path, monkeypatch):
-    import imageio.v3 as iio
+    import imageio.v2 as imageio
 
-    def fail(handle, *args, **kwargs):
-        handle.write(b"partial")
+    def fail(path, *args, **kwargs):
+        with open(path, "wb") as handle:  # the encoder got as far as a stub before the disk filled
+            handle.write(b"partial")
         raise OSError("disk full")
 
-    monkeypatch.setattr(iio, "imwrite", fail)
+    monkeypatch.setattr(imageio, "mimsave", fail)
     with pytest.raises(OSError, match="disk full"):
         write_mp4(str(tmp_path / "eval.mp4"), frames())
     assert list(tmp_path.iterdir()) == []
