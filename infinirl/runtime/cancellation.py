@@ -3,21 +3,23 @@
 ``GroupHandle.cancel()`` cancels the rank's Ray task. An ``async def`` method is cancelled by
 asyncio itself; a synchronous method runs on the rank's compute thread, which Python cannot
 interrupt. Its host therefore runs it with a ``CancelToken``, and the runtime's own blocking
-waits (``Channel`` gets and puts) wait through ``wait_ref``: cancelling the token cancels the Ray
-call they wait on, and they raise ``CallCancelled`` at once, so the compute thread is free for the
-rank's next call. Code that blocks elsewhere (a long computation, ``time.sleep``) runs to its end.
+waits (``Channel`` gets and puts) wait through ``wait_ref``: cancelling the token ends the Ray
+call they wait on (by ``ray.cancel``, or by the call's own ``on_cancel``, such as a channel get's
+abandon), and they raise ``CallCancelled``, so the compute thread is free for the rank's next
+call. Code that blocks elsewhere (a long computation, ``time.sleep``) runs to its end.
 """
 
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import ray
 
 from infinirl.runtime.errors import CallCancelled
 
-__all__ = ["CancelToken", "cancel_quietly", "current_token", "run_with_token", "wait_ref"]
+__all__ = ["CancelToken", "cancel_quietly", "current_token", "is_cancelled", "run_with_token", "wait_ref"]
 
 _local = threading.local()
 
@@ -28,26 +30,27 @@ class CancelToken:
     def __init__(self, label: str):
         self.label = label
         self.cancelled = False
-        self._refs: set = set()
+        self._refs: dict = {}  # ref -> how to end it when cancelled
         self._lock = threading.Lock()
 
     def cancel(self) -> None:
         with self._lock:
             self.cancelled = True
-            refs = list(self._refs)
-        for ref in refs:
-            cancel_quietly(ref)
+            enders = list(self._refs.values())
+        for end in enders:
+            end()
 
-    def track(self, ref) -> None:
+    def track(self, ref, on_cancel: Callable[[], Any] | None = None) -> None:
+        end = on_cancel or (lambda: cancel_quietly(ref))
         with self._lock:
-            self._refs.add(ref)
+            self._refs[ref] = end
             cancelled = self.cancelled
         if cancelled:
-            cancel_quietly(ref)
+            end()
 
     def untrack(self, ref) -> None:
         with self._lock:
-            self._refs.discard(ref)
+            self._refs.pop(ref, None)
 
 
 def current_token() -> CancelToken | None:
@@ -64,17 +67,25 @@ def run_with_token(token: CancelToken, fn, args: tuple, kwargs: dict) -> Any:
         _local.token = None
 
 
-def wait_ref(ref) -> Any:
-    """``ray.get(ref)``, which a cancel of the current call interrupts with ``CallCancelled``."""
+def is_cancelled() -> bool:
+    """Whether the call running on this thread has been cancelled."""
+    token = current_token()
+    return token is not None and token.cancelled
+
+
+def wait_ref(ref, on_cancel: Callable[[], Any] | None = None) -> Any:
+    """``ray.get(ref)``, which a cancel of the current call interrupts with ``CallCancelled``.
+    The cancel ends the call by ``ray.cancel(ref)``, or by ``on_cancel()`` when given (then the
+    call itself ends soon after, and its result or error comes back as usual)."""
     token = current_token()
     if token is None:
         return ray.get(ref)
-    token.track(ref)
+    token.track(ref, on_cancel)
     try:
         return ray.get(ref)
     except ray.exceptions.TaskCancelledError:
         if token.cancelled:
-            raise CallCancelled(f"{token.label} was cancelled") from None
+            raise cancelled_error() from None
         raise
     finally:
         token.untrack(ref)
@@ -86,3 +97,9 @@ def cancel_quietly(ref) -> None:
         ray.cancel(ref)
     except Exception:
         pass  # finished already, or its actor is gone: nothing left to cancel
+
+
+def cancelled_error() -> CallCancelled:
+    """The error that ends the current call once it has been cancelled."""
+    token = current_token()
+    return CallCancelled(f"{token.label if token else 'the call'} was cancelled")

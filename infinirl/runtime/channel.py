@@ -43,6 +43,8 @@ from infinirl.runtime.transport import Envelope, pack, unpack
 
 DEFAULT_KEY = "default"
 _ACTOR_PREFIX = "infinirl.channel."
+# An abandoned get ends at once; this only bounds the wait if its actor is stuck or gone.
+ABANDON_WAIT_S = 60.0
 
 
 class Channel:
@@ -161,16 +163,16 @@ class Channel:
         if self.prefetch > 1:
             buffered = self._prefetched.setdefault(key, deque())
             if not buffered:
-                buffered.extend(self._call(self._actor.get_many.remote(key, os.getpid(), _peer_id(), self.prefetch,
-                                                                       timeout)))
+                buffered.extend(self._get(self._actor.get_many, key, os.getpid(), _peer_id(), self.prefetch,
+                                          timeout))
             envelope, _ = buffered.popleft()
             return unpack(envelope)
-        envelope, _ = self._call(self._actor.get.remote(key, os.getpid(), _peer_id(), timeout))
+        envelope, _ = self._get(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope)
 
     def get_with_weight(self, key=DEFAULT_KEY, timeout: float | None = None) -> tuple[Any, float]:
         self._register("consumer")
-        envelope, weight = self._call(self._actor.get.remote(key, os.getpid(), _peer_id(), timeout))
+        envelope, weight = self._get(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope), weight
 
     def get_batch(self, target_weight: float, key=DEFAULT_KEY, timeout: float | None = None) -> list:
@@ -183,7 +185,7 @@ class Channel:
         """
         target = self._check_target(target_weight)
         self._register("consumer")
-        taken = self._call(self._actor.get_batch.remote(target, key, os.getpid(), _peer_id(), timeout))
+        taken = self._get(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
         return [unpack(envelope) for envelope, _ in taken]
 
     def close(self) -> None:
@@ -218,13 +220,13 @@ class Channel:
 
     async def get_async(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
         self._register("consumer")
-        envelope, _ = await self._aget(self._actor.get.remote(key, os.getpid(), _peer_id(), timeout), key)
+        envelope, _ = await self._aget(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope)
 
     async def get_batch_async(self, target_weight: float, key=DEFAULT_KEY, timeout=None) -> list:
         target = self._check_target(target_weight)
         self._register("consumer")
-        taken = await self._aget(self._actor.get_batch.remote(target, key, os.getpid(), _peer_id(), timeout), key)
+        taken = await self._aget(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
         return [unpack(envelope) for envelope, _ in taken]
 
     # ------------------------------------------------------------------ internals
@@ -258,9 +260,9 @@ class Channel:
             raise ValueError(f"channel '{self.name}': target_weight must be a number > 0, got {target_weight!r}")
         return float(target_weight)
 
-    def _call(self, ref):
+    def _call(self, ref, on_cancel=None):
         try:
-            return cancellation.wait_ref(ref)
+            return cancellation.wait_ref(ref, on_cancel)
         except CallCancelled:
             raise
         except ray.exceptions.RayTaskError as exc:
@@ -268,31 +270,56 @@ class Channel:
         except ray.exceptions.RayActorError:
             raise self._gone() from None
 
-    async def _acall(self, ref):
+    async def _acall(self, ref, cancel_in_actor: bool = True):
         try:
             return await ref
         except asyncio.CancelledError:
-            cancellation.cancel_quietly(ref)  # else the actor's wait goes on, and could take an item nobody receives
+            if cancel_in_actor:  # else the actor's wait goes on, and could still put the item
+                cancellation.cancel_quietly(ref)
             raise
         except ray.exceptions.RayTaskError as exc:
             raise _unwrap(exc) from None
         except ray.exceptions.RayActorError:
             raise self._gone() from None
 
-    async def _aget(self, ref, key):
-        """A get's result. When the awaiting task is cancelled, the actor's get is cancelled too
-        (:meth:`_acall`); if it had already taken items before the cancel reached it, they go back
-        to the front of their queue, so a cancelled get never swallows an item."""
+    def _get(self, method, *args, key=None):
+        """Call the actor's get ``method`` (``key``: its first argument unless given). If this
+        call is cancelled, the get is abandoned: it ends without taking anything, or, if it had
+        taken items already, they go back to the front of their queue."""
+        key = args[0] if key is None else key
+        request = uuid.uuid4().hex
+        ref = method.remote(*args, request=request)
+        taken = self._call(ref, on_cancel=lambda: self._actor.abandon.remote(request))
+        if cancellation.is_cancelled():
+            if taken is not None:
+                self._actor.give_back.remote(key, _as_list(taken))
+            raise cancellation.cancelled_error()
+        return taken
+
+    async def _aget(self, method, *args, key=None):
+        """As :meth:`_get`, for a caller that awaits: a cancel of the awaiting task abandons the
+        get; the clean-up runs shielded, so a second cancel cannot cut it short."""
+        key = args[0] if key is None else key
+        request = uuid.uuid4().hex
+        ref = method.remote(*args, request=request)
         try:
-            return await self._acall(ref)
+            return await self._acall(ref, cancel_in_actor=False)
         except asyncio.CancelledError:
+            cleanup = asyncio.ensure_future(self._abandon(ref, request, key))
             try:
-                taken = await asyncio.wait_for(ref, timeout=30)
-            except BaseException:  # cancelled in time (nothing taken), or the actor is gone
-                raise asyncio.CancelledError from None
-            items = taken if isinstance(taken, list) else [taken]
-            await self._actor.give_back.remote(key, items)
+                await asyncio.shield(cleanup)
+            except asyncio.CancelledError:
+                pass  # cancelled again: the clean-up goes on by itself
             raise
+
+    async def _abandon(self, ref, request: str, key) -> None:
+        await self._actor.abandon.remote(request)
+        try:
+            taken = await asyncio.wait_for(ref, timeout=ABANDON_WAIT_S)
+        except Exception:  # the get failed (timeout, closed, dead peers) or the actor is gone: nothing taken
+            return
+        if taken is not None:
+            await self._actor.give_back.remote(key, _as_list(taken))
 
     def _gone(self) -> ChannelError:
         return ChannelError(f"channel '{self.name}' is gone: its actor was destroyed or died")
@@ -303,6 +330,11 @@ def _unwrap(exc: ray.exceptions.RayTaskError) -> BaseException:
     if isinstance(cause, (ChannelClosed, ChannelError, TimeoutError)):
         return cause
     return exc
+
+
+def _as_list(taken) -> list[tuple[Envelope, float]]:
+    """A get's result as a list of ``(envelope, weight)``: ``get`` returns one pair, the others lists."""
+    return taken if isinstance(taken, list) else [taken]
 
 
 def _as_float(value) -> float:

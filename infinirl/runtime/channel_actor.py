@@ -37,6 +37,8 @@ __all__ = ["ChannelActor"]
 WATCH_RENEW_S = 30.0
 # How often a process without a host (the driver, a plain Ray task) on this node is checked.
 PID_POLL_S = 1.0
+# An abandoned request id whose get never arrives (it had finished already) is forgotten after this.
+ABANDONED_KEEP_S = 600.0
 
 
 class _Item:
@@ -75,6 +77,7 @@ class ChannelActor:
         self.watches: set[asyncio.Task] = set()
         self.node_id = ray.get_runtime_context().get_node_id()
         self.stats = {"put": 0, "get": 0}
+        self.abandoned: dict[str, float] = {}  # request id -> when it was abandoned
 
     # ------------------------------------------------------------------ peers
     async def register(self, peer_id: str, role: str, description: str, host, node_id: str, pid: int,
@@ -173,9 +176,9 @@ class ChannelActor:
                 return index
         return None
 
-    def _can_end_get(self, key, pid: int, peer_id: str) -> bool:
-        return (self._eligible(key, pid) is not None or self.closed or self._is_dead(peer_id)
-                or bool(self._all_dead("producer")))
+    def _can_end_get(self, key, pid: int, peer_id: str, request: str | None) -> bool:
+        return (request in self.abandoned or self._eligible(key, pid) is not None or self.closed
+                or self._is_dead(peer_id) or bool(self._all_dead("producer")))
 
     def _takeable(self, key, pid: int, peer_id: str) -> int:
         """The index of the item to take, once a get's wait ended; else the error that ends it."""
@@ -203,6 +206,8 @@ class ChannelActor:
     def _give_back(self, key, items: list[_Item]) -> None:
         """Return taken items to the front of their queue, in their order (a get that cannot
         deliver them must not lose them)."""
+        if not items:
+            return
         self.queues.setdefault(key, deque()).extendleft(reversed(items))
         self.weight_by_key[key] = self.weight_by_key.get(key, 0.0) + sum(i.weight for i in items)
         self.stats["get"] -= len(items)
@@ -214,32 +219,51 @@ class ChannelActor:
             self._give_back(key, [_Item(envelope, weight, envelope.producer_pid if envelope.path == "local" else None)
                                   for envelope, weight in taken])
 
-    async def get(self, key, pid: int, peer_id: str, timeout: float | None):
+    async def abandon(self, request: str) -> None:
+        """The caller of get ``request`` was cancelled: that get ends without taking anything."""
+        now = time.monotonic()
+        async with self.cond:
+            for old in [r for r, since in self.abandoned.items() if now - since > ABANDONED_KEEP_S]:
+                del self.abandoned[old]
+            self.abandoned[request] = now
+            self.cond.notify_all()
+
+    def _was_abandoned(self, request: str | None) -> bool:
+        return self.abandoned.pop(request, None) is not None if request is not None else False
+
+    async def get(self, key, pid: int, peer_id: str, timeout: float | None, request: str | None = None):
+        """The oldest eligible item of ``key`` as ``(envelope, weight)``; ``None`` if abandoned."""
         self.consumer_pids.add(pid)
         async with self.cond:
-            await self._wait_for(lambda: self._can_end_get(key, pid, peer_id), _deadline(timeout),
+            await self._wait_for(lambda: self._can_end_get(key, pid, peer_id, request), _deadline(timeout),
                                  f"get on key {key!r}", timeout)
+            if self._was_abandoned(request):
+                return None
             item = self._take(key, self._takeable(key, pid, peer_id))
             self.cond.notify_all()
             return item.envelope, item.weight
 
-    async def get_many(self, key, pid: int, peer_id: str, max_items: int, timeout: float | None):
+    async def get_many(self, key, pid: int, peer_id: str, max_items: int, timeout: float | None,
+                       request: str | None = None):
         """Wait for one item, then also take up to ``max_items - 1`` more already waiting (prefetch)."""
         self.consumer_pids.add(pid)
         async with self.cond:
-            await self._wait_for(lambda: self._can_end_get(key, pid, peer_id), _deadline(timeout),
+            await self._wait_for(lambda: self._can_end_get(key, pid, peer_id, request), _deadline(timeout),
                                  f"get on key {key!r}", timeout)
+            if self._was_abandoned(request):
+                return None
             taken = [self._take(key, self._takeable(key, pid, peer_id))]
             while len(taken) < max_items and (index := self._eligible(key, pid)) is not None:
                 taken.append(self._take(key, index))
             self.cond.notify_all()
             return [(item.envelope, item.weight) for item in taken]
 
-    async def get_batch(self, target_weight: float, key, pid: int, peer_id: str, timeout: float | None):
+    async def get_batch(self, target_weight: float, key, pid: int, peer_id: str, timeout: float | None,
+                        request: str | None = None):
         """Items of ``key`` in FIFO order while their total weight stays within ``target_weight``;
         returns once the total equals it, once the next item would exceed it, or (with what it
         has) once the channel is closed and drained, every producer died, or the timeout expired.
-        An item heavier than the target comes alone."""
+        An item heavier than the target comes alone. ``None`` if abandoned (nothing taken)."""
         self.consumer_pids.add(pid)
         deadline = _deadline(timeout)
         taken: list[_Item] = []
@@ -248,8 +272,11 @@ class ChannelActor:
             try:
                 while total < target_weight:
                     try:
-                        await self._wait_for(lambda: self._can_end_get(key, pid, peer_id), deadline,
+                        await self._wait_for(lambda: self._can_end_get(key, pid, peer_id, request), deadline,
                                              f"get_batch on key {key!r}", timeout)
+                        if self._was_abandoned(request):
+                            self._give_back(key, taken)
+                            return None
                         index = self._takeable(key, pid, peer_id)
                     except (TimeoutError, ChannelClosed, ChannelPeerDied):
                         if taken and not self._is_dead(peer_id):

@@ -148,6 +148,26 @@ def test_get_timeout_names_channel_and_key(ray_cluster):
     assert ch.get_batch(3, key="k", timeout=0.5) == ["only"]  # the timeout ends a short batch
 
 
+def test_an_abandoned_get_takes_nothing(ray_cluster):
+    """A cancelled caller abandons its get: an abandon that arrives first makes the get end
+    without taking anything; a get_batch abandoned halfway puts back what it had taken."""
+    import ray
+
+    ch = fresh()
+    ch.put("a")
+    ray.get(ch._actor.abandon.remote("early"))
+    assert ray.get(ch._actor.get.remote("default", 0, "nobody", 30, request="early"), timeout=30) is None
+    partial = ch._actor.get_batch.remote(3, "default", 0, "nobody", None, request="halfway")
+    deadline = time.monotonic() + 30
+    while ch.qsize() and time.monotonic() < deadline:  # it took "a" and waits for more
+        time.sleep(0.05)
+    assert ch.qsize() == 0
+    ray.get(ch._actor.abandon.remote("halfway"))
+    assert ray.get(partial, timeout=30) is None
+    assert ch.get(timeout=5) == "a"
+    assert ch.info()["get"] == 1
+
+
 def test_duplicate_create_and_missing_connect(ray_cluster):
     ch = fresh()
     with pytest.raises(ChannelError, match="already exists"):

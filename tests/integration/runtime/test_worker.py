@@ -168,17 +168,19 @@ def test_cancel_frees_ranks_blocked_in_a_channel_for_later_calls(ray_cluster):
     ch, started = Channel.create(f"cancel-{tag}"), Channel.create(f"cancel-started-{tag}")
     group = WorkerGroup.launch(Echo, "cancel", num_ranks=2)
     try:
-        for take in (group.take, group.take_async):
-            blocked = take(ch, started)
-            assert sorted(started.get(timeout=60) for _ in range(2)) == [0, 1]  # both ranks wait in ch.get
-            queued = group.add(1)  # on each rank's compute thread, behind a blocked sync call
-            blocked.cancel()
-            with pytest.raises(CallCancelled, match=r"cancel\[rank \d\]\.take(_async)?\(\) was cancelled"):
-                blocked.wait(timeout=60)
-            assert queued.wait(timeout=60) == [1, 2]
-            assert group.add(5).wait(timeout=60) == [5, 6]
-        ch.put("kept")
-        assert ch.get(timeout=30) == "kept"
+        # Rounds, because the cancel can reach a get before or after the get reaches the channel.
+        for round_ in range(4):
+            for method in ("take", "take_async"):
+                blocked = group.call(method, ch, started)
+                assert sorted(started.get(timeout=60) for _ in range(2)) == [0, 1]  # both ranks wait in ch.get
+                queued = group.add(1)  # on each rank's compute thread, behind a blocked sync call
+                blocked.cancel()
+                with pytest.raises(CallCancelled, match=r"cancel\[rank \d\]\.take(_async)?\(\) was cancelled"):
+                    blocked.wait(timeout=60)
+                assert queued.wait(timeout=60) == [1, 2]
+                assert group.add(5).wait(timeout=60) == [5, 6]
+                ch.put(f"kept {round_}")
+                assert ch.get(timeout=30) == f"kept {round_}", f"a cancelled {method} took the item"
         assert ch.qsize() == 0
     finally:
         group.shutdown()
