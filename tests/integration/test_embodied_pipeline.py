@@ -13,6 +13,8 @@ pytest.importorskip("gymnasium")
 from infinirl.config import ConfigError, to_dataclass  # noqa: E402
 from infinirl.runners.embodied import run  # noqa: E402
 from infinirl.runners.embodied_config import EmbodiedConfig, find_cxx_compiler  # noqa: E402
+from tests.integration.pins import check_pinned  # noqa: E402
+from tests.integration.resume import killed_after_checkpoint  # noqa: E402
 
 PLACEMENTS = {
     "collocated": ({"env": "0", "rollout": "0", "actor": "0"}, 1),
@@ -34,12 +36,14 @@ def make_cfg(output_dir, iterations, placement, stages, **extra):
 
 
 def straight_and_resumed(tmp_path, iterations, placement, stages, **extra):
-    """``iterations`` in one run, and half of them + a resumed run to ``iterations``: training moved
-    the weights, and the resumed run ends bit for bit where the straight one did."""
+    """``iterations`` in one run, and the same run resumed from its checkpoint halfway: the resumed
+    half trains (moves the weights) and ends bit for bit where the straight run did."""
+    extra = {"save_every": iterations // 2, **extra}
     straight = run(make_cfg(tmp_path / "straight", iterations, placement, stages, **extra))
-    half = run(make_cfg(tmp_path / "resumed", iterations // 2, placement, stages, **extra))
+    killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", iterations // 2)
     resumed = run(make_cfg(tmp_path / "resumed", iterations, placement, stages, **extra))
-    assert half["actor_weights_sha256"] != straight["actor_weights_sha256"]
+    rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
+    assert all(r["train/grad_norm"] > 0 for r in rows[iterations // 2 + 1:]), "the resumed half must train"
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
     return straight, resumed
 
@@ -69,6 +73,10 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, mode):
         assert a["eval/return_mean"] == b["eval/return_mean"]
     assert (tmp_path / "straight" / "curves.png").exists()
     assert list((tmp_path / "straight" / "tensorboard").iterdir())
+    if mode == "collocated":
+        check_pinned("embodied", tmp_path / "straight", [
+            "rollout/reward_mean", "train/policy_loss", "train/value_loss", "train/approx_kl", "train/grad_norm",
+            "train/advantage_std", "eval/return_mean"])
 
 
 def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):

@@ -1,6 +1,6 @@
 """The SAC runner end to end on InvertedPendulum-v5 (MuJoCo, fast): collector and learner as
 components, replay buffer, weight sync, eval, video, checkpoints; and exact resume: 4 iterations
-straight and 2 + resume + 2 give the same weights, the same replay buffer and the same metrics,
+straight and the same run resumed from iteration 3 give the same weights, the same replay buffer and the same metrics,
 with collection and learning alternating or pipelined (collect_ahead).
 
 Episodes deliberately span iteration boundaries (2 envs, 40 steps per iteration), the buffer wraps
@@ -17,6 +17,8 @@ pytest.importorskip("mujoco")
 from infinirl.config import ConfigError, to_dataclass  # noqa: E402
 from infinirl.runners.sac import run  # noqa: E402
 from infinirl.runners.sac_config import SACConfig  # noqa: E402
+from tests.integration.pins import check_pinned  # noqa: E402
+from tests.integration.resume import killed_after_checkpoint  # noqa: E402
 
 
 def make_cfg(output_dir, iterations, **extra):
@@ -42,9 +44,11 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, collect_ahead):
              "video_env_kwargs": {"width": 64, "height": 64}}
     straight = run(make_cfg(tmp_path / "straight", 4, collect_ahead=collect_ahead,
                             eval={"every": 2, "episodes": 2, "num_envs": 2, **video}))
-    half = run(make_cfg(tmp_path / "resumed", 2, collect_ahead=collect_ahead))
-    resumed = run(make_cfg(tmp_path / "resumed", 4, collect_ahead=collect_ahead))
-    assert half["weights_sha256"] != straight["weights_sha256"]  # training moved the weights
+    # keep_checkpoints=2 leaves iterations 3 and 4: the resumed run replays the collector's open
+    # episodes and the wrapped-around buffer of iteration 3, and trains the last iteration.
+    killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", 3)
+    resumed = run(make_cfg(tmp_path / "resumed", 4, collect_ahead=collect_ahead,
+                           eval={"every": 2, "episodes": 2, "num_envs": 2, **video}))
     for key in ("weights_sha256", "actor_weights_sha256", "buffer_sha256", "env_steps"):
         assert resumed[key] == straight[key], key
     assert straight["env_steps"] == 4 * 2 * 40
@@ -63,6 +67,7 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, collect_ahead):
     else:
         assert rows[2]["train/logprob_mismatch"] < 1e-4  # collector and learner hold the same actor
         assert rows[2]["rollout/max_staleness"] == 0.0
+    assert rows[4]["train/critic_loss"] > 0  # the resumed iteration trains
     assert rows[4]["train/buffer_size"] == 100 and rows[4]["train/updates"] == (320 - 50) // 4
     assert "eval/return_mean" in rows[0] and "eval/return_mean" in rows[2] and "eval/return_mean" not in rows[1]
     resumed_rows = rows_of(tmp_path / "resumed" / "metrics.jsonl")
@@ -78,6 +83,9 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, collect_ahead):
     assert straight["video"] and (out / "eval.mp4").stat().st_size > 0
     checkpoints = sorted(p.name for p in (out / "checkpoints").iterdir())
     assert checkpoints == ["iter_000003", "iter_000004"]  # keep_checkpoints=2, no temporary folders
+    if not collect_ahead:
+        check_pinned("sac", out, ["rollout/reward_mean", "train/critic_loss", "train/actor_loss", "train/alpha",
+                                  "eval/return_mean"])
     files = sorted(p.relative_to(out / "checkpoints" / "iter_000004").as_posix()
                    for p in (out / "checkpoints" / "iter_000004").rglob("*") if p.is_file())
     expected = ["collector/collector.pt", "driver_rng.pt", "learner/learner.pt", "learner/replay_buffer.npz",
