@@ -313,13 +313,13 @@ class Channel:
             raise
 
     async def _abandon(self, ref, request: str, key) -> None:
-        await self._actor.abandon.remote(request)
         try:
+            await self._actor.abandon.remote(request)
             taken = await asyncio.wait_for(ref, timeout=ABANDON_WAIT_S)
+            if taken is not None:
+                await self._actor.give_back.remote(key, _as_list(taken))
         except Exception:  # the get failed (timeout, closed, dead peers) or the actor is gone: nothing taken
-            return
-        if taken is not None:
-            await self._actor.give_back.remote(key, _as_list(taken))
+            pass
 
     def _gone(self) -> ChannelError:
         return ChannelError(f"channel '{self.name}' is gone: its actor was destroyed or died")
