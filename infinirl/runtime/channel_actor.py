@@ -233,19 +233,13 @@ class ChannelActor:
 
     async def get(self, key, pid: int, peer_id: str, timeout: float | None, request: str | None = None):
         """The oldest eligible item of ``key`` as ``(envelope, weight)``; ``None`` if abandoned."""
-        self.consumer_pids.add(pid)
-        async with self.cond:
-            await self._wait_for(lambda: self._can_end_get(key, pid, peer_id, request), _deadline(timeout),
-                                 f"get on key {key!r}", timeout)
-            if self._was_abandoned(request):
-                return None
-            item = self._take(key, self._takeable(key, pid, peer_id))
-            self.cond.notify_all()
-            return item.envelope, item.weight
+        taken = await self.get_many(key, pid, peer_id, 1, timeout, request)
+        return None if taken is None else taken[0]
 
     async def get_many(self, key, pid: int, peer_id: str, max_items: int, timeout: float | None,
                        request: str | None = None):
-        """Wait for one item, then also take up to ``max_items - 1`` more already waiting (prefetch)."""
+        """Wait for one item, then also take up to ``max_items - 1`` more already waiting (prefetch);
+        ``None`` if abandoned."""
         self.consumer_pids.add(pid)
         async with self.cond:
             await self._wait_for(lambda: self._can_end_get(key, pid, peer_id, request), _deadline(timeout),
