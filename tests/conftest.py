@@ -8,8 +8,15 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see i
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+# pyproject's timeout (600 s) bounds every test of the default suite; a learning run of the slow
+# tier takes minutes on two cores and more on a busy host, so it gets this much instead.
+SLOW_TEST_TIMEOUT_S = 2400
+
 
 def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if "slow" in item.keywords and item.get_closest_marker("timeout") is None:
+            item.add_marker(pytest.mark.timeout(SLOW_TEST_TIMEOUT_S))
     if torch.cuda.is_available():
         return
     skip_gpu = pytest.mark.skip(reason="needs CUDA (run on a GPU machine: pytest -m gpu)")
