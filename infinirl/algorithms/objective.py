@@ -4,11 +4,19 @@ Every term is aggregated with the same mode and the same mini-batch-global norma
 gradient of a mini-batch does not depend on how it is split into micro-batches or ranks (see
 ``aggregation``). When ``old_logprobs`` are absent the batch is on-policy for a single update and
 the current log-probs (detached) serve as the old ones: that saves a whole forward pass per step.
+
+Off-policy correction (asynchronous training, or rollout-engine numerics): ``is_cap`` reweights
+every token by ``w = pi_old / pi_behaviour`` (the rollout engine's log-probs), capped. ``pi_old``
+is the *proximal* policy: the trainer's weights at the start of the step, so PPO's trust region is
+centred on them and ``w`` corrects for the version (or engine) that actually sampled the token
+(decoupled PPO, Fu et al. 2025). ``is_cap_mode=truncate`` is TIS (``min(w, cap)``),
+``mask`` is MIS / AReaL's choice (tokens with ``w > cap`` are dropped).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 
@@ -35,19 +43,23 @@ class PolicyObjectiveConfig:
     kl_estimator: str = "k3"
     entropy_coef: float = 0.0
     """Entropy bonus weight (adds -coef * H)."""
-    tis_cap: float | None = None
-    """Truncated importance sampling cap between rollout and trainer log-probs, or None."""
+    is_cap: float | None = None
+    """Cap on the per-token importance weight pi_old / pi_rollout (behaviour-policy correction:
+    stale weights in asynchronous training, engine numerics); None applies no correction."""
+    is_cap_mode: Literal["truncate", "mask"] = "truncate"
+    """truncate: TIS, min(w, is_cap). mask: MIS (AReaL's decoupled PPO), tokens with w > is_cap
+    get no gradient."""
 
 
 def policy_objective(micro_batch, logprobs: torch.Tensor, entropy: torch.Tensor | None,
                      cfg: PolicyObjectiveConfig, normaliser: float) -> tuple[torch.Tensor, dict]:
     mask = micro_batch["response_mask"]
     old = micro_batch["old_logprobs"] if "old_logprobs" in micro_batch.keys() else logprobs.detach()
-    behaviour = micro_batch["rollout_logprobs"] if cfg.tis_cap is not None else None
+    behaviour = micro_batch["rollout_logprobs"] if cfg.is_cap is not None else None
     out = ppo_clip_loss(
         logprobs=logprobs, old_logprobs=old, advantages=micro_batch["advantages"], response_mask=mask,
         clip_low=cfg.clip_low, clip_high=cfg.clip_high, clip_c=cfg.clip_c,
-        behaviour_logprobs=behaviour, is_cap=cfg.tis_cap,
+        behaviour_logprobs=behaviour, is_cap=cfg.is_cap, is_cap_mode=cfg.is_cap_mode,
     )
     loss = aggregate(out.loss_mat, mask, cfg.aggregation, normaliser)
     metrics = {f"train/{k}": float(v) for k, v in out.metrics.items()}

@@ -31,12 +31,13 @@ class RewardWorker(Worker):
         texts = self.tokenizer.batch_decode([r.response_ids for r in results], skip_special_tokens=True)
         return list(self.pool.map(lambda tp: safe_score(tp[0], tp[1], self.verifier), zip(texts, problems)))
 
-    def score_stream(self, source, sink, problems: dict[int, list[Problem]], count: int) -> int:
-        """Take ``count`` generated chunks ``(index, results)`` from ``source`` (whichever arrive
-        first: several reward ranks share one source), score them, put ``(index, results,
-        rewards)`` into ``sink``. ``problems[index]`` lists the problem of each result of a chunk."""
+    def score_stream(self, source, sink, problems: dict[int, list[Problem]], count: int, key: str = "default") -> int:
+        """Take ``count`` generated chunks ``(index, results)`` from ``source`` under ``key``
+        (whichever arrive first: several reward ranks share one source), score them, put ``(index,
+        results, rewards)`` into ``sink`` under the same key. ``problems[index]`` lists the problem of
+        each result of a chunk."""
         for _ in range(count):
-            index, results = source.get()
-            sink.put((index, results, self.score(results, problems[index])), weight=len(results))
+            index, results = source.get(key=key)
+            sink.put((index, results, self.score(results, problems[index])), key=key, weight=len(results))
         sink.flush()
         return count

@@ -25,9 +25,11 @@ class RolloutWorker(Worker, WeightSink):
     def generate(self, prompt_ids: list[list[int]], sampling: SamplingParams) -> list[GenerationResult]:
         return self.engine.generate(prompt_ids, sampling)
 
-    def generate_to(self, channel, chunks: list[tuple[int, list[list[int]]]], sampling: SamplingParams) -> int:
-        """Generate chunk after chunk and put each ``(index, results)`` into ``channel`` as soon as it
-        is done, so the next stage (reward) works on chunk i while this rank generates chunk i+1.
+    def generate_to(self, channel, chunks: list[tuple[int, list[list[int]]]], sampling: SamplingParams,
+                    key: str = "default") -> int:
+        """Generate chunk after chunk and put each ``(index, results)`` into ``channel`` (under
+        ``key``: one per generation, so several can be in flight) as soon as it is done, so the next
+        stage (reward) works on chunk i while this rank generates chunk i+1.
 
         Each chunk is sampled with a seed derived from its *index*, not from this rank, so a batch's
         samples are the same however the chunks are spread over rollout ranks.
@@ -36,7 +38,7 @@ class RolloutWorker(Worker, WeightSink):
             chunk_sampling = sampling if sampling.seed is None else replace(
                 sampling, seed=(sampling.seed + 7919 * index) % (2**31))
             results = self.engine.generate(prompt_ids, chunk_sampling)
-            channel.put((index, results), weight=len(results))
+            channel.put((index, results), key=key, weight=len(results))
         channel.flush()
         return len(chunks)
 

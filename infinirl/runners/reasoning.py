@@ -5,14 +5,21 @@ them, runs the forward passes the update needs (reference log-probs for KL, crit
 PPO), turns rewards into advantages, updates the actor (and the critic), and syncs the actor's
 weights into the rollout engine with a new version. Where components run (collocated or not) is
 placement, not code.
+
+Asynchronous (``algorithm.asynchronous.max_staleness`` = eta): the batches of the next eta
+iterations are generated and scored while the trainer works (:mod:`infinirl.runners.async_rollout`);
+the weight sync only publishes, and the rollout ranks load the new version between requests.
 """
 
 from __future__ import annotations
 
+import itertools
 import os
+import pickle
+import sys
 import time
 import uuid
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -37,11 +44,13 @@ from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONS
 from infinirl.engines.base import SamplingParams
 from infinirl.runners import register_runner
 from infinirl.runners.curves import Panel
+from infinirl.runners.async_rollout import RolloutAhead, staleness_metrics
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
 from infinirl.runners.run_support import run_components, run_start_time
-from infinirl.runtime import Channel, Tracer, sync_weights
+from infinirl.runtime import Channel, Tracer, start_weight_sync, sync_weights
+from infinirl.utils.atomic import atomic_open
 
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
 # reference (KL), and the critic's values and regression targets.
@@ -49,10 +58,33 @@ OLD_LOGPROBS, REF_LOGPROBS, VALUES, RETURNS = "old_logprobs", "ref_logprobs", "v
 # What a forward-only pass needs of a batch (the rest stays in the driver); the response mask lets
 # the engine skip the LM head over prompt positions.
 _FORWARD_KEYS = (INPUT_IDS, ATTENTION_MASK, POSITION_IDS, RESPONSE_MASK)
+# Batches generated ahead of the trainer (asynchronous mode), saved with a checkpoint.
+AHEAD_BATCHES_FILE = "ahead_batches.pkl"
+
+
+@dataclass
+class _Generation:
+    """A generation + scoring in flight: its stream key, chunk count and workers' handles."""
+
+    key: str
+    chunks: int
+    handles: list
+
+
+@dataclass
+class _AheadBatch:
+    """One iteration's batch on its way (asynchronous mode): the prompts and their generation."""
+
+    problems: list
+    generation: _Generation
 
 
 @register_runner("reasoning", ReasoningConfig, "GRPO/PPO-family RL with verifiable rewards on an HF causal LM")
 def run(cfg: ReasoningConfig) -> dict:
+    if cfg.algorithm.asynchronous.max_staleness and cfg.algorithm.objective.is_cap is None:
+        print(f"infinirl: algorithm.asynchronous.max_staleness={cfg.algorithm.asynchronous.max_staleness} trains on "
+              "samples from older weights without an importance-weight correction; set algorithm.objective.is_cap "
+              "(e.g. 2.0) to correct for it", file=sys.stderr, flush=True)
     with RunLoop(cfg, run_start_time()) as loop:
         train_stream, eval_problems, tokenizer = build_problem_sources(cfg)
         # Bad input fails before any worker starts: every eval prompt must fit (train prompts are
@@ -101,6 +133,11 @@ class ReasoningFlow:
         self.tracer = Tracer()
         self.pad_id = tokenizer.pad_token_id if tokenizer.pad_token_id is not None else 0
         self._channels: dict[str, Channel] = {}
+        self._generation_ids = itertools.count()
+        self._syncs: list = []  # weight loads still on their way to the rollout ranks (asynchronous)
+        eta = cfg.algorithm.asynchronous.max_staleness
+        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_ahead,
+                                                           self._collect_ahead)
         self.spec = LoopSpec(
             name="reasoning", title="reasoning RL", headline="eval/greedy_accuracy",
             progress=(ProgressField(label="reward", key="rollout/reward_mean"),
@@ -115,7 +152,10 @@ class ReasoningFlow:
 
     def step(self, step: int) -> dict:
         t0 = time.perf_counter()
-        problems, results, rewards, gen_metrics = self.generate_batch(step)
+        if self.ahead is not None:
+            problems, results, rewards, gen_metrics = self.ahead.take(step)
+        else:
+            problems, results, rewards, gen_metrics = self.generate_batch(step)
         t_gen = time.perf_counter()
         batch = pack_sequences([r.prompt_ids for r in results], [r.response_ids for r in results],
                                self.pad_id, [r.response_logprobs for r in results])
@@ -124,10 +164,12 @@ class ReasoningFlow:
         adv_metrics = self.add_advantages(batch, rewards)
         train_metrics = self.update(batch)
         t_train = time.perf_counter()
-        sync = sync_weights(self.actor, self.rollout, version=step + 1)
+        sync_s, async_metrics = self._sync(step + 1), {}
+        if self.ahead is not None:
+            async_metrics = staleness_metrics(step, [r.weight_version for r in results])
         lengths = [len(r.response_ids) for r in results]
         return {
-            **gen_metrics, **adv_metrics, **train_metrics,
+            **gen_metrics, **adv_metrics, **train_metrics, **async_metrics,
             "rollout/response_length_mean": float(np.mean(lengths)),
             "rollout/truncated_fraction": float(np.mean([r.finish_reason == "length" for r in results])),
             "rollout/tokens_per_s": sum(lengths) / max(t_gen - t0, 1e-9),
@@ -135,9 +177,32 @@ class ReasoningFlow:
             "time/generate_and_score_s": t_gen - t0,
             "time/logprobs_and_values_s": t_score - t_gen,
             "time/train_s": t_train - t_score,
-            "time/weight_sync_s": sync.seconds,
+            "time/weight_sync_s": sync_s,
             "time/step_s": time.perf_counter() - t0,
         }
+
+    def _sync(self, version: int) -> float:
+        """Weights to the rollout ranks as ``version``; seconds the trainer spent on it. Asynchronous:
+        only the publishing (the rollout ranks load the weights after their queued requests)."""
+        if self.ahead is None:
+            return sync_weights(self.actor, self.rollout, version=version).seconds
+        for pending in self._syncs:  # an earlier load that failed raises its root cause here
+            if pending.done():
+                pending.wait()
+        self._syncs = [p for p in self._syncs if not p.done()]
+        start = time.perf_counter()
+        self._syncs.append(start_weight_sync(self.actor, self.rollout, version=version))
+        return time.perf_counter() - start
+
+    # ------------------------------------------------------------------ asynchronous batches
+    def _submit_ahead(self, step: int) -> _AheadBatch:
+        problems = self.train_stream.next_batch(self.cfg.prompts_per_step)
+        return _AheadBatch(problems, self.submit_generation(problems, self._sampling(step, 0)))
+
+    def _collect_ahead(self, batch: _AheadBatch):
+        results, scored = self.collect_generation(batch.generation)
+        rewards = torch.tensor([s.reward for s in scored], dtype=torch.float32)
+        return batch.problems, results, rewards, self._reward_metrics(rewards.tolist(), scored, rounds=1, dropped=0)
 
     # ------------------------------------------------------------------ stages
     def generate_batch(self, step: int):
@@ -166,45 +231,62 @@ class ReasoningFlow:
             rounds += 1
             if not cfg.algorithm.dynamic_sampling:
                 break
-        metrics = {
-            "rollout/reward_mean": float(np.mean(all_rewards)),
-            "rollout/accuracy": float(np.mean([r > 0.5 for r in all_rewards])),
+        metrics = self._reward_metrics(all_rewards, errors, rounds, dropped)
+        return kept_problems, kept_results, torch.tensor(kept_rewards), metrics
+
+    @staticmethod
+    def _reward_metrics(rewards: list[float], errors, rounds: int, dropped: int) -> dict:
+        if not isinstance(errors, int):  # the scored results
+            errors = sum(s.error is not None for s in errors)
+        return {
+            "rollout/reward_mean": float(np.mean(rewards)),
+            "rollout/accuracy": float(np.mean([r > 0.5 for r in rewards])),
             "rollout/reward_errors": float(errors),
             "rollout/generation_rounds": float(rounds),
             "rollout/dropped_groups": float(dropped),
         }
-        return kept_problems, kept_results, torch.tensor(kept_rewards), metrics
 
     def generate_and_score(self, problems, sampling: SamplingParams, split: str = "train"):
         """Rollout -> reward -> driver, streamed through two channels: prompts are cut into chunks,
         rollout ranks put each generated chunk into ``generated`` as soon as it is done, reward ranks
         score chunks as they arrive and put them into ``scored``; the driver restores prompt order.
         The same code serves one process or many (placement only changes who runs what)."""
+        return self.collect_generation(self.submit_generation(problems, sampling, split))
+
+    def submit_generation(self, problems, sampling: SamplingParams, split: str = "train") -> _Generation:
+        """Start :meth:`generate_and_score` without waiting. Each generation streams under its own
+        channel key, so several can be in flight (batches ahead, an evaluation)."""
         prompt_ids = encode_checked(problems, self.tokenizer, self.cfg.task.system_prompt,
                                     self.cfg.rollout.max_prompt_length, split)
+        key = f"{split}-{next(self._generation_ids)}"
         per_chunk = self.cfg.rollout.stream_chunk_prompts or -(-len(problems) // self.rollout.world_size)
         chunks = [list(range(s, min(s + per_chunk, len(problems)))) for s in range(0, len(problems), per_chunk)]
         by_rank = _split(list(enumerate(chunks)), self.rollout.world_size)
         handles = [self.rollout.call("generate_to", self.channels["generated"],
-                                     [(i, [prompt_ids[j] for j in chunk]) for i, chunk in work], sampling, ranks=[r])
+                                     [(i, [prompt_ids[j] for j in chunk]) for i, chunk in work], sampling, key,
+                                     ranks=[r])
                    for r, work in enumerate(by_rank) if work]
         chunk_problems = {i: [problems[j] for j in chunk for _ in range(sampling.n)] for i, chunk in enumerate(chunks)}
         counts = [len(part) for part in _split(list(range(len(chunks))), self.reward.world_size)]
         handles += [self.reward.call("score_stream", self.channels["generated"], self.channels["scored"],
-                                     chunk_problems, count, ranks=[r]) for r, count in enumerate(counts) if count]
+                                     chunk_problems, count, key, ranks=[r]) for r, count in enumerate(counts) if count]
+        return _Generation(key, len(chunks), handles)
+
+    def collect_generation(self, generation: _Generation):
+        """Wait for a generation's scored chunks; results and scores in prompt order."""
         done: dict[int, tuple] = {}
-        while len(done) < len(chunks):
+        while len(done) < generation.chunks:
             try:
-                index, results, scored = self.channels["scored"].get(timeout=1.0)
+                index, results, scored = self.channels["scored"].get(key=generation.key, timeout=1.0)
                 done[index] = (results, scored)
             except TimeoutError:
-                for handle in handles:  # a failed stage raises its root cause here instead of hanging
+                for handle in generation.handles:  # a failed stage raises its root cause here instead of hanging
                     if handle.done():
                         handle.wait()
-        for handle in handles:
+        for handle in generation.handles:
             handle.wait()
-        results = [r for i in range(len(chunks)) for r in done[i][0]]
-        scored = [s for i in range(len(chunks)) for s in done[i][1]]
+        results = [r for i in range(generation.chunks) for r in done[i][0]]
+        scored = [s for i in range(generation.chunks) for s in done[i][1]]
         return results, scored
 
     def score_tokens(self, batch) -> None:
@@ -309,6 +391,9 @@ class ReasoningFlow:
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, folder: str) -> dict:
+        if self.ahead is not None:  # the batches generated ahead are part of the run's state
+            with atomic_open(os.path.join(folder, AHEAD_BATCHES_FILE)) as f:
+                pickle.dump(self.ahead.drain(), f)
         saving = [self.actor.save_checkpoint(os.path.join(folder, "actor"))]
         if self.critic is not None:
             saving.append(self.critic.save_checkpoint(os.path.join(folder, "critic")))
@@ -329,8 +414,12 @@ class ReasoningFlow:
         for handle in loading:
             handle.wait()
         self.train_stream.load_state_dict(state["data"])
+        if self.ahead is not None:
+            self.ahead.restore(_read_ahead_batches(folder))
 
     def finish(self, output_dir: str) -> dict:
+        for pending in self._syncs:
+            pending.wait()
         summary = {"actor_weights_sha256": self.actor.weights_digest().wait()[0]}
         if self.critic is not None:
             summary["critic_weights_sha256"] = self.critic.weights_digest().wait()[0]
@@ -349,6 +438,16 @@ class ReasoningFlow:
         for channel in self._channels.values():
             channel.destroy()
         self._channels = {}
+
+
+def _read_ahead_batches(folder: str) -> dict:
+    """The batches a checkpoint of an asynchronous run holds (none: it was written synchronously,
+    so the next batches are generated with the resumed weights)."""
+    path = os.path.join(folder, AHEAD_BATCHES_FILE)
+    if not os.path.exists(path):
+        return {}
+    with open(path, "rb") as f:
+        return pickle.load(f)
 
 
 def _split(items: list, parts: int) -> list[list]:

@@ -14,6 +14,7 @@ from infinirl.algorithms.objective import PolicyObjectiveConfig
 from infinirl.config import ConfigError, bounded
 from infinirl.engines.train_base import TrainEngineConfig
 from infinirl.models.model_paths import check_model_path
+from infinirl.runners.async_rollout import AsyncConfig
 from infinirl.runners.run_config import EvalSchedule, RunConfig
 from infinirl.tasks.config import TaskConfig
 
@@ -81,6 +82,9 @@ class AlgorithmConfig:
     overlong_buffer: int = bounded(0, ge=0)
     """DAPO overlong shaping: soft penalty over the last N tokens before max_new_tokens (0 = off)."""
     overlong_penalty: float = 1.0
+    asynchronous: AsyncConfig = field(default_factory=AsyncConfig)
+    """Rollout ahead of the trainer by up to `max_staleness` weight versions (see
+    docs/reasoning.md#asynchronous-training)."""
 
 
 @dataclass(kw_only=True)
@@ -125,7 +129,8 @@ class ReasoningConfig(RunConfig):
     RUNNER: ClassVar[str] = "reasoning"
     DEFAULT_PLACEMENT: ClassVar[dict[str, str]] = {"actor": "0", "rollout": "0", "reward": "0"}
     OPTIONAL_COMPONENTS: ClassVar[dict[str, str]] = {"critic": "actor", "reference": "actor"}
-    RENAMED_KEYS: ClassVar[dict[str, str]] = {"steps": "iterations", "eval_every": "eval.every"}
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {"steps": "iterations", "eval_every": "eval.every",
+                                              "algorithm.objective.tis_cap": "algorithm.objective.is_cap"}
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = (
         "num_threads", "rollout.num_threads", "rollout.max_batch_size", "rollout.stream_chunk_prompts",
         "actor.micro_batch_size", "actor.logprob_chunk_tokens", "actor.max_packed_tokens",
@@ -195,6 +200,19 @@ class ReasoningConfig(RunConfig):
                 raise ConfigError(f"{key}={value!r} is not registered; registered: {', '.join(registry.names())}")
         self._check_kl_and_reference()
         self._check_critic()
+        self._check_off_policy()
+
+    def _check_off_policy(self) -> None:
+        objective, eta = self.algorithm.objective, self.algorithm.asynchronous.max_staleness
+        if objective.is_cap is not None and objective.is_cap <= 0:
+            raise ConfigError(f"algorithm.objective.is_cap={objective.is_cap} must be > 0 (e.g. 2.0), or null for no "
+                              "importance-weight correction")
+        if eta is not None and self.algorithm.dynamic_sampling:
+            raise ConfigError(
+                "algorithm.dynamic_sampling with algorithm.asynchronous: DAPO's extra generation rounds depend on "
+                "the rewards of the batch being trained, which the asynchronous pipeline has not seen yet; set "
+                "algorithm.asynchronous.max_staleness=null or algorithm.dynamic_sampling=false"
+            )
 
     def _check_kl_and_reference(self) -> None:
         """KL keys that would silently do nothing, and a reference that cannot be the initial policy."""

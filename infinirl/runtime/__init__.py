@@ -15,7 +15,14 @@ from infinirl.runtime.inventory import Accelerator, ClusterInventory, NodeInvent
 from infinirl.runtime.memory import device_turn
 from infinirl.runtime.placement import PlacementError, PlacementPlan, RankPlacement, place
 from infinirl.runtime.tracing import Tracer
-from infinirl.runtime.weights import WeightSink, WeightSource, WeightSyncGroup, sync_weights
+from infinirl.runtime.weights import (
+    PendingSync,
+    WeightSink,
+    WeightSource,
+    WeightSyncGroup,
+    start_weight_sync,
+    sync_weights,
+)
 from infinirl.runtime.worker import GroupHandle, RankContext, RestartPolicy, Worker, WorkerGroup
 
 __all__ = [
@@ -23,5 +30,5 @@ __all__ = [
     "Cluster", "ClusterConfig", "ClusterError", "ClusterInventory", "GroupHandle", "InfiniRLError", "NodeInventory",
     "PlacementError", "PlacementPlan", "RankContext", "RankPlacement", "RestartPolicy", "Robot",
     "Tracer", "WeightSink", "WeightSource", "WeightSyncGroup", "Worker", "WorkerError",
-    "WorkerGroup", "device_turn", "place", "sync_weights",
+    "WorkerGroup", "device_turn", "place", "sync_weights", "start_weight_sync", "PendingSync",
 ]

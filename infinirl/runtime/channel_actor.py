@@ -200,6 +200,8 @@ class ChannelActor:
             item = queue[index]
             del queue[index]
         self.weight_by_key[key] -= item.weight
+        if not queue:  # keys may be one-off (one per generation): an empty one holds nothing
+            del self.queues[key], self.weight_by_key[key]
         self.stats["get"] += 1
         return item
 

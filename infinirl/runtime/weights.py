@@ -216,6 +216,44 @@ def sync_weights(
     group: WeightSyncGroup | None = None,
 ) -> SyncStats:
     """Copy the trainer's weights into every rollout rank and stamp them with ``version``."""
+    return start_weight_sync(source, sink, version, method, bucket_bytes, group).wait()
+
+
+@dataclass
+class PendingSync:
+    """A weight sync on its way to the rollout ranks. The trainer's part (publishing) is done when
+    this exists; each rollout rank applies the weights after the calls queued on it before (a
+    rank's synchronous methods run in call order), so generation requests sent after this use them."""
+
+    version: int
+    method: str
+    buckets: int
+    started: float
+    handles: list  # the receivers' handle (its result: bytes received), and the sender's, if any
+    bytes_from: int = 0  # which handle's first result is the byte count
+
+    def done(self) -> bool:
+        return all(handle.done() for handle in self.handles)
+
+    def wait(self, timeout: float | None = None) -> SyncStats:
+        results = [handle.wait(timeout) for handle in self.handles]
+        return SyncStats(self.version, self.method, results[self.bytes_from][0], self.buckets,
+                         time.perf_counter() - self.started)
+
+
+def start_weight_sync(
+    source,
+    sink,
+    version: int,
+    method: str = "auto",
+    bucket_bytes: int = DEFAULT_BUCKET_BYTES,
+    group: WeightSyncGroup | None = None,
+) -> PendingSync:
+    """:func:`sync_weights` without waiting for the receivers: returns once the trainer has
+    published its weights, so it can train on while the rollout ranks finish their queued requests
+    and then load them (asynchronous RL). The object-store path is fully detached (the buckets are
+    copies); ``cuda_ipc`` waits for the receivers (the handles point at live trainer memory), and
+    ``collective`` blocks the trainer's next call until the receivers join the broadcast."""
     start = time.perf_counter()
     if method == "auto":
         method = "collective" if group is not None else ("cuda_ipc" if _share_a_gpu(source, sink) else "object_store")
@@ -225,14 +263,16 @@ def sync_weights(
         metas = source.call("_infinirl_broadcast_weights", bucket_bytes).wait()[0]
         send = source.call("_infinirl_send_buckets", ranks=[0])
         received = sink.call("_infinirl_receive_broadcast", metas, version)
-        nbytes = send.wait()[0]
-        received.wait()
-        return SyncStats(version, method, nbytes, len(metas), time.perf_counter() - start)
+        return PendingSync(version, method, len(metas), start, [send, received], bytes_from=0)
     if method not in ("object_store", "cuda_ipc"):
         raise ValueError(f"unknown weight-sync method {method!r}; use auto, object_store, cuda_ipc or collective")
     published = source.call("_infinirl_publish_weights", bucket_bytes, method == "cuda_ipc").wait()[0]
-    nbytes = sink.call("_infinirl_receive_weights", published, version).wait()[0]
-    return SyncStats(version, method, nbytes, len(published), time.perf_counter() - start)
+    received = sink.call("_infinirl_receive_weights", published, version)
+    if method == "cuda_ipc":
+        # IPC handles point at the trainer's own memory, which the next optimizer step overwrites
+        # (or frees): the receivers must have copied it before the trainer goes on.
+        received.wait()
+    return PendingSync(version, method, len(published), start, [received])
 
 
 def _share_a_gpu(source, sink) -> bool:

@@ -1,0 +1,111 @@
+"""The asynchronous core shared by the runners: rollout batches produced ahead of the trainer,
+within a staleness bound.
+
+With ``max_staleness`` = η the batch of iteration ``k`` is *submitted* to the rollout side as soon
+as the trainer has published weights version ``max(0, k - η)``, and before it publishes the next
+version. A rollout rank runs its calls in submission order, so batch ``k`` is produced by exactly
+version ``max(0, k - η)`` (its samples carry that version): the schedule, and hence the run, is
+deterministic however fast either side is, and a sample is never older than η versions when the
+trainer uses it. Producers never wait for the trainer inside that bound; they wait (throttle) only
+when they would run more than η versions ahead.
+
+* η = 0 submits batch ``k`` after the weights of step ``k - 1`` are in: the synchronous run, exactly.
+* η = 1 generates batch ``k + 1`` while the trainer trains on batch ``k`` (one step off-policy).
+* η >= 2 keeps η batches queued on the rollout side, which absorbs slow batches (long tails).
+
+The trainer's loss corrects for the version gap (``algorithm.objective.is_cap``: decoupled PPO's
+proximal policy is the trainer's own version at the start of the step, and each token is
+reweighted by ``pi_proximal / pi_behaviour``).
+
+Checkpoints: :meth:`RolloutAhead.drain` waits for the batches in flight and returns them with the
+ones already done; they are saved with the checkpoint and :meth:`RolloutAhead.restore` puts them
+back, so a resumed run uses each sample exactly once, with the version that produced it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from infinirl.config import bounded
+
+
+@dataclass(kw_only=True)
+class AsyncConfig:
+    """Asynchronous (off-policy) training: rollout runs ahead of the trainer by up to
+    ``max_staleness`` weight versions."""
+
+    max_staleness: int | None = bounded(None, ge=0)
+    """eta: a batch used at trainer version v was produced by weights version >= v - eta. None
+    (default): the synchronous loop. 0: the same run through the asynchronous pipeline (same
+    weights, bit for bit). 1: rollout of the next batch overlaps training on this one; 2+: more
+    batches queued ahead. Pair eta >= 1 with `algorithm.objective.is_cap` (off-policy correction)."""
+
+    @property
+    def enabled(self) -> bool:
+        return self.max_staleness is not None
+
+
+def producing_version(batch: int, max_staleness: int) -> int:
+    """The weights version that produces the batch of iteration ``batch`` under the schedule."""
+    return max(0, batch - max_staleness)
+
+
+def staleness_metrics(iteration: int, versions: list[int]) -> dict[str, float]:
+    """How many versions behind the trainer (at ``iteration``) the samples' weights were."""
+    gaps = [iteration - version for version in versions]
+    return {
+        "async/staleness_mean": sum(gaps) / max(len(gaps), 1),
+        "async/staleness_max": float(max(gaps, default=0)),
+    }
+
+
+class RolloutAhead:
+    """Batches submitted up to ``max_staleness`` iterations ahead of the one being trained.
+
+    ``submit(k)`` starts producing the batch of iteration ``k`` and returns a pending object;
+    ``collect(pending)`` waits for it (raising a producer's failure) and returns the batch. The
+    caller publishes weights version ``v`` *before* calling :meth:`take` for iteration ``v``,
+    which is what fixes each batch's producing version (module doc).
+    """
+
+    def __init__(self, max_staleness: int, iterations: int, submit: Callable[[int], Any],
+                 collect: Callable[[Any], Any]):
+        if max_staleness < 0:
+            raise ValueError(f"max_staleness must be >= 0, got {max_staleness}")
+        self.max_staleness, self.iterations = max_staleness, iterations
+        self._submit, self._collect = submit, collect
+        self._pending: dict[int, Any] = {}
+        self._ready: dict[int, Any] = {}
+
+    def take(self, iteration: int) -> Any:
+        """The batch of ``iteration``; first submits every batch the bound now allows."""
+        self._fill(iteration)
+        if iteration in self._ready:
+            return self._ready.pop(iteration)
+        return self._collect(self._pending.pop(iteration))
+
+    def _fill(self, iteration: int) -> None:
+        stale = [k for k in (*self._pending, *self._ready) if k < iteration]
+        if stale:
+            raise RuntimeError(f"batches {sorted(stale)} were produced but never used before iteration {iteration}")
+        for k in range(iteration, min(iteration + self.max_staleness + 1, self.iterations)):
+            if k not in self._pending and k not in self._ready:
+                self._pending[k] = self._submit(k)
+
+    def drain(self) -> dict[int, Any]:
+        """Wait for every batch in flight; return all produced, unused batches by iteration."""
+        for k in sorted(self._pending):
+            self._ready[k] = self._collect(self._pending.pop(k))
+        return dict(self._ready)
+
+    def restore(self, ready: dict[int, Any]) -> None:
+        """Put back the batches a checkpoint saved (see :meth:`drain`)."""
+        if self._pending:
+            raise RuntimeError("restore() with batches in flight")
+        self._ready = {int(k): v for k, v in ready.items()}
+
+    @property
+    def in_flight(self) -> list[int]:
+        return sorted(self._pending)

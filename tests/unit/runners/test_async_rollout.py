@@ -1,0 +1,83 @@
+"""The asynchronous schedule: which weights version produces each batch, whatever the timing."""
+
+import pytest
+
+from infinirl.runners.async_rollout import RolloutAhead, producing_version, staleness_metrics
+
+
+class FakeRollout:
+    """A rollout rank that runs calls in submission order: a batch sees the last version loaded."""
+
+    def __init__(self):
+        self.version, self.log = 0, []
+
+    def load(self, version):
+        self.version = version
+        self.log.append(("load", version))
+
+    def submit(self, k):
+        self.log.append(("submit", k))
+        return (k, self.version)
+
+    @staticmethod
+    def collect(pending):
+        return pending
+
+
+def train(rollout, eta, iterations, start=0, ahead=None):
+    """The trainer's loop: take batch k, train, publish version k + 1."""
+    ahead = ahead or RolloutAhead(eta, iterations, rollout.submit, rollout.collect)
+    used = []
+    for k in range(start, iterations):
+        used.append(ahead.take(k))
+        rollout.load(k + 1)
+    return used, ahead
+
+
+@pytest.mark.parametrize("eta", [0, 1, 2, 3])
+def test_each_batch_is_produced_by_version_k_minus_eta(eta):
+    used, _ = train(FakeRollout(), eta, iterations=8)
+    assert used == [(k, producing_version(k, eta)) for k in range(8)]
+    assert all(k - version <= eta for k, version in used)
+
+
+def test_eta_zero_is_the_synchronous_order():
+    rollout = FakeRollout()
+    train(rollout, 0, iterations=3)
+    assert rollout.log == [("submit", 0), ("load", 1), ("submit", 1), ("load", 2), ("submit", 2), ("load", 3)]
+
+
+def test_nothing_is_produced_past_the_last_iteration():
+    rollout = FakeRollout()
+    train(rollout, 2, iterations=3)
+    assert sorted(k for what, k in rollout.log if what == "submit") == [0, 1, 2]
+
+
+def test_drain_and_restore_resume_the_same_batches():
+    rollout = FakeRollout()
+    straight, _ = train(rollout, 2, iterations=6)
+
+    rollout = FakeRollout()
+    ahead = RolloutAhead(2, 6, rollout.submit, rollout.collect)
+    first, ahead = train(rollout, 2, iterations=3, ahead=ahead)
+    saved = ahead.drain()  # a checkpoint after iteration 2: batches 3 and 4 were produced ahead
+    assert sorted(saved) == [3, 4]
+
+    resumed_rollout = FakeRollout()
+    resumed_rollout.version = 3  # the resumed run loads the checkpoint's weights
+    resumed = RolloutAhead(2, 6, resumed_rollout.submit, resumed_rollout.collect)
+    resumed.restore(saved)
+    rest, _ = train(resumed_rollout, 2, iterations=6, start=3, ahead=resumed)
+    assert first + rest == straight
+
+
+def test_a_skipped_batch_is_an_error_not_a_silent_loss():
+    rollout = FakeRollout()
+    ahead = RolloutAhead(1, 5, rollout.submit, rollout.collect)
+    ahead.take(0)
+    with pytest.raises(RuntimeError, match="never used"):
+        ahead.take(2)
+
+
+def test_staleness_metrics():
+    assert staleness_metrics(5, [5, 4, 4, 3]) == {"async/staleness_mean": 1.0, "async/staleness_max": 2.0}
