@@ -43,8 +43,8 @@ from infinirl.components.rollout import RolloutWorker
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.runners import register_runner
-from infinirl.runners.curves import Panel
 from infinirl.runners.async_rollout import RolloutAhead, staleness_metrics
+from infinirl.runners.curves import Panel
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
