@@ -54,6 +54,14 @@ class PPOSpec:
     seed: int = 0
     critic: bool = True
     """Train the value head (PPO). False (GRPO): no value loss is computed, the head stays as built."""
+    is_cap: float | None = None
+    """Off-policy correction (asynchronous training): before the epochs, the log-probs of the batch
+    under the current weights are recomputed (the *proximal* policy, PPO's trust-region centre) and
+    every decision is reweighted by ``pi_proximal / pi_behaviour`` (the rollout's version), capped
+    at ``is_cap``: decoupled PPO, per action chunk at chunk level (a chunk's log-prob is the sum over
+    its actions; for flow policies, the path likelihood) or per action at action level."""
+    is_cap_mode: str = "truncate"
+    """truncate (TIS, min(w, cap)) | mask (MIS: decisions with w > cap get no policy gradient)."""
     compile: bool = False
     """Compile each mini-batch's optimizer step where the strategy allows it (the whole step,
     :class:`~infinirl.engines.compiled_step.CompiledAdamStep`), else the forward pass and loss
@@ -103,6 +111,9 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     keep_all = (batch["advantage_mask"].to(torch.float32) if "advantage_mask" in batch
                 else torch.ones(batch["advantages"].shape, dtype=torch.float32, device=device))
     params = [p for p in model.parameters() if p.requires_grad]
+    if ppo.is_cap is not None:  # decoupled PPO: clip around the trainer's own (proximal) policy
+        batch = {**batch, "behaviour_logprobs": batch["logprobs"],
+                 "logprobs": proximal_logprobs(model, batch, per_mini)}
     minibatch_loss = compiled_minibatch_loss(ppo.compile)
     stepper = (whole_step(model, optimizer, ppo_objective_of_outputs, ppo.max_grad_norm,
                           all_reduce_grads if world_size > 1 else None)
@@ -116,6 +127,10 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                "values": batch["values"], "returns": batch["returns"],
                "advantages": batch["advantages"].to(torch.float32), "keep": keep_all,
                "step_mask": batch["step_mask"].to(torch.float32)}
+    row_keys = ("logprobs", "values", "returns")
+    if "behaviour_logprobs" in batch:
+        columns["behaviour_logprobs"] = batch["behaviour_logprobs"]
+        row_keys += ("behaviour_logprobs",)
     if "extras" in batch:
         columns["extras"] = batch["extras"]
     for _ in range(ppo.epochs):
@@ -126,7 +141,7 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
             start = m * per_mini
             mine = slice(start + rank * per_mini // world_size, start + (rank + 1) * per_mini // world_size)
             whole = {key: shuffled[key][start:start + per_mini] for key in ("advantages", "keep", "step_mask")}
-            rows = {key: shuffled[key][mine] for key in ("logprobs", "values", "returns")}
+            rows = {key: shuffled[key][mine] for key in row_keys}
             model_args = (_rows(shuffled["obs"], mine), shuffled["actions"][mine],
                           _rows(shuffled["extras"], mine) if "extras" in shuffled else None, True,
                           normalize is not None)
@@ -146,6 +161,19 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
             for key, value in metrics.items():
                 step_metrics.setdefault(key, []).append(value)
     return _update_metrics(step_metrics, batch, ppo, optimizer)
+
+
+@torch.no_grad()
+def proximal_logprobs(model, batch: dict, rows_per_pass: int) -> torch.Tensor:
+    """Log-probs ``[B, C]`` of the batch's actions under ``model``'s current weights (in slices of
+    ``rows_per_pass`` rows, so memory stays that of one mini-batch)."""
+    size, parts = batch["actions"].shape[0], []
+    for start in range(0, size, max(rows_per_pass, 1)):
+        rows = slice(start, start + rows_per_pass)
+        extras = _rows(batch["extras"], rows) if "extras" in batch else None
+        logprobs, _, _ = model(_rows(batch["obs"], rows), batch["actions"][rows], extras, False, False)
+        parts.append(logprobs.detach())
+    return torch.cat(parts).to(batch["logprobs"].dtype)
 
 
 def _update_metrics(step_metrics: dict[str, list[torch.Tensor]], batch: dict, ppo: PPOSpec, optimizer) -> dict:
@@ -192,15 +220,22 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
     share = slice(rank * size // world_size, (rank + 1) * size // world_size)
     adv, mask, weights = adv[share], mask[share], weights[share]
     old = mine["logprobs"]
+    behaviour = mine.get("behaviour_logprobs")
     metrics = {"train/logprob_mismatch": ((logprobs.detach() - old).abs() * mask).sum() / mask.sum().clamp(min=1)}
+    correction = {} if behaviour is None else {"is_cap": ppo.is_cap, "is_cap_mode": ppo.is_cap_mode}
     if action_level:
         pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=weights,
-                           clip_low=ppo.clip)
+                           clip_low=ppo.clip, behaviour_logprobs=behaviour, **correction)
         returns = mine["returns"][:, 0]
     else:
         pg = ppo_clip_loss(logprobs=(logprobs * mask).sum(-1), old_logprobs=(old * mask).sum(-1),
-                           advantages=adv, response_mask=weights, clip_low=ppo.clip)
+                           advantages=adv, response_mask=weights, clip_low=ppo.clip,
+                           behaviour_logprobs=None if behaviour is None else (behaviour * mask).sum(-1),
+                           **correction)
         returns = mine["returns"]
+    for key in ("is_weight_mean", "is_capped_fraction", "behaviour_logprob_abs_diff"):
+        if key in pg.metrics:
+            metrics[f"train/{key}"] = pg.metrics[key]
     loss = pg_loss = aggregate(pg.loss_mat, weights, "token-mean", n_pg)
     metrics.update({"train/policy_loss": pg_loss.detach(), "train/approx_kl": pg.metrics["approx_kl"],
                     "train/clip_fraction": pg.metrics["clip_fraction"]})

@@ -24,11 +24,17 @@ back, so a resumed run uses each sample exactly once, with the version that prod
 
 from __future__ import annotations
 
+import os
+import pickle
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from infinirl.config import bounded
+from infinirl.utils.atomic import atomic_open
+
+#: The batches produced ahead of the trainer, in a checkpoint folder.
+AHEAD_BATCHES_FILE = "ahead_batches.pkl"
 
 
 @dataclass(kw_only=True)
@@ -109,3 +115,18 @@ class RolloutAhead:
     @property
     def in_flight(self) -> list[int]:
         return sorted(self._pending)
+
+
+def save_ahead_batches(folder: str, batches: dict[int, Any]) -> None:
+    with atomic_open(os.path.join(folder, AHEAD_BATCHES_FILE)) as f:
+        pickle.dump(batches, f)
+
+
+def load_ahead_batches(folder: str) -> dict[int, Any]:
+    """The batches a checkpoint holds; none if it was written by a synchronous run (the next
+    batches are then produced by the resumed weights)."""
+    path = os.path.join(folder, AHEAD_BATCHES_FILE)
+    if not os.path.exists(path):
+        return {}
+    with open(path, "rb") as f:
+        return pickle.load(f)

@@ -19,6 +19,10 @@ How it runs is placement, not code:
   rollout; with ``rollout.pipeline_stages: K >= 2`` the env batch is split into K stages so
   simulation of one stage overlaps inference of another (hybrid, with the actor time-sharing the
   same CPUs/devices between rollouts).
+
+Asynchronous (``algorithm.asynchronous.max_staleness`` = eta): the next eta iterations'
+trajectories are collected while the actor trains (:mod:`infinirl.runners.async_rollout`), and
+``algorithm.is_cap`` corrects for the version gap (decoupled PPO).
 """
 
 from __future__ import annotations
@@ -38,12 +42,13 @@ from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySp
 from infinirl.components.env_worker import EnvSpec, EnvWorker, iteration_seeds, probe_env_specs
 from infinirl.config import ConfigError
 from infinirl.runners import register_runner
+from infinirl.runners.async_rollout import RolloutAhead, load_ahead_batches, save_ahead_batches, staleness_metrics
 from infinirl.runners.curves import Panel
 from infinirl.runners.embodied_config import ALGORITHMS, EmbodiedConfig
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.run_support import run_components, run_start_time
 from infinirl.runners.sim_config import check_env_options, episode_metrics, eval_seeds
-from infinirl.runtime import sync_weights
+from infinirl.runtime import start_weight_sync, sync_weights
 
 
 @register_runner("embodied", EmbodiedConfig, "PPO / embodied GRPO for robot policies in vectorised simulators "
@@ -107,7 +112,8 @@ def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
                    value_coef=alg.value_coef, entropy_coef=alg.entropy_coef, max_grad_norm=alg.max_grad_norm,
                    normalize_advantages=alg.normalize_advantages and not algorithm.grouped,
                    gae_level=alg.gae_level, adam_eps=cfg.actor.adam_eps, strategy=cfg.actor.strategy,
-                   seed=cfg.seed, critic=algorithm.critic, compile=cfg.actor.compile)
+                   seed=cfg.seed, critic=algorithm.critic, compile=cfg.actor.compile, is_cap=alg.is_cap,
+                   is_cap_mode=alg.is_cap_mode)
 
 
 def _check_one_task_per_group(cfg: EmbodiedConfig) -> None:
@@ -186,6 +192,10 @@ class EmbodiedFlow:
         self.group_size = cfg.algorithm.group_size if self.algorithm.grouped else 1
         self.return_norm = ReturnNormalizer(cfg.env.num_envs, cfg.algorithm.gamma)
         self.env_steps = 0
+        eta = cfg.algorithm.asynchronous.max_staleness
+        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_collect,
+                                                           self._finish_collect)
+        self._syncs: list = []  # weight loads still on their way to the rollout ranks (asynchronous)
         self.spec = LoopSpec(
             name="embodied", title=f"{cfg.algorithm.name.upper()} {cfg.env.name}", headline="eval/success_rate",
             target=cfg.eval.target,
@@ -232,35 +242,62 @@ class EmbodiedFlow:
 
     def step(self, iteration: int) -> dict:
         t0 = time.perf_counter()
-        trajectory, rollout_metrics = self.collect(iteration)
+        if self.ahead is not None:
+            trajectory, rollout_metrics = self.ahead.take(iteration)
+        else:
+            trajectory, rollout_metrics = self.collect(iteration)
         t1 = time.perf_counter()
         batch, advantage_metrics = self.advantages(trajectory)
         train_metrics = self.actor.update(batch, iteration).wait()[0]
         t2 = time.perf_counter()
-        sync = sync_weights(self.actor, self.rollout, version=iteration + 1)
+        sync_s = self._sync(iteration + 1)
         steps = int(trajectory["step_mask"].sum())
         self.env_steps += steps
+        if self.ahead is not None:
+            rollout_metrics.update(staleness_metrics(iteration, [int(trajectory["version"])]))
         return {
             **rollout_metrics, **advantage_metrics, **train_metrics,
             "env/steps": self.env_steps,
             "rollout/max_staleness": float(iteration - trajectory["version"]),
             "time/collect_s": t1 - t0,
             "time/train_s": t2 - t1,
-            "time/weight_sync_s": sync.seconds,
+            "time/weight_sync_s": sync_s,
             "time/iteration_s": time.perf_counter() - t0,
             "time/env_steps_per_s": steps / max(t1 - t0, 1e-9),
         }
 
+    def _sync(self, version: int) -> float:
+        """Weights to the rollout ranks as ``version``; seconds the trainer spent on it. Asynchronous:
+        only the publishing (the rollout ranks load the weights after their queued collections)."""
+        if self.ahead is None:
+            return sync_weights(self.actor, self.rollout, version=version).seconds
+        for pending in self._syncs:  # an earlier load that failed raises its root cause here
+            if pending.done():
+                pending.wait()
+        self._syncs = [p for p in self._syncs if not p.done()]
+        start = time.perf_counter()
+        self._syncs.append(start_weight_sync(self.actor, self.rollout, version=version))
+        return time.perf_counter() - start
+
     # ------------------------------------------------------------------ stages
     def collect(self, iteration: int) -> tuple[dict, dict]:
         """Every env rank runs ``rollout_steps`` decisions with its rollout rank; one trajectory."""
+        return self._finish_collect(self._submit_collect(iteration))
+
+    def _submit_collect(self, iteration: int) -> tuple:
+        """Start :meth:`collect` without waiting: the env ranks' and rollout ranks' handles."""
         cfg, ranks = self.cfg, self.rollout.world_size
         seeds = iteration_seeds(cfg.seed, iteration, cfg.env.num_envs, self.group_size)
         per = cfg.env.num_envs // ranks
         shards = [seeds[r * per:(r + 1) * per] for r in range(ranks)]
         serving = self.env.call_each("serve", [(s, cfg.rollout_steps) for s in shards]) if self.env else None
+        collecting = self.rollout.call_each("collect", [(iteration, s, cfg.rollout_steps) for s in shards])
+        return serving, collecting
+
+    def _finish_collect(self, pending: tuple) -> tuple[dict, dict]:
+        serving, collecting = pending
         try:
-            parts = self.rollout.call_each("collect", [(iteration, s, cfg.rollout_steps) for s in shards]).wait()
+            parts = collecting.wait()
         except BaseException as rollout_error:
             _raise_env_root_cause(serving, rollout_error)
             raise
@@ -341,6 +378,8 @@ class EmbodiedFlow:
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, folder: str) -> dict:
+        if self.ahead is not None:  # the trajectories collected ahead are part of the run's state
+            save_ahead_batches(folder, self.ahead.drain())
         self.actor.save_checkpoint(os.path.join(folder, "actor")).wait()
         return {"env_steps": self.env_steps, "return_normalizer": self.return_norm.state_dict()}
 
@@ -348,9 +387,13 @@ class EmbodiedFlow:
         self.actor.load_checkpoint(os.path.join(folder, "actor")).wait()
         self.return_norm.load_state_dict(state["return_normalizer"])
         self.env_steps = int(state["env_steps"])
+        if self.ahead is not None:
+            self.ahead.restore(load_ahead_batches(folder))
 
     def finish(self, output_dir: str) -> dict:
         cfg = self.cfg
+        for pending in self._syncs:
+            pending.wait()
         video = None
         if cfg.eval.video_episodes:
             try:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 from infinirl.config import ConfigError, bounded
+from infinirl.runners.async_rollout import AsyncConfig
 from infinirl.runners.run_config import RunConfig
 from infinirl.runners.sim_config import SimEnvConfig, SimEvalConfig
 
@@ -88,6 +89,15 @@ class AlgorithmConfig:
     normalize_advantages: bool = True
     """Per mini-batch (statistics of the whole mini-batch over all ranks). ppo only: grpo's
     advantages are already normalised within each group, and are used as they are."""
+    asynchronous: AsyncConfig = field(default_factory=AsyncConfig)
+    """Collect the next iterations' trajectories while the actor trains, up to `max_staleness`
+    weight versions ahead (docs/embodied.md#asynchronous-training)."""
+    is_cap: float | None = bounded(None, gt=0)
+    """Decoupled PPO: recompute the batch's log-probs under the actor's current weights (the
+    proximal policy) and weight each decision by pi_proximal / pi_rollout, capped here; None: the
+    rollout's log-probs are PPO's old policy (on-policy)."""
+    is_cap_mode: Literal["truncate", "mask"] = "truncate"
+    """truncate: TIS, min(w, is_cap). mask: decisions with w > is_cap get no policy gradient."""
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import itertools
 import os
-import pickle
 import sys
 import time
 import uuid
@@ -43,14 +42,13 @@ from infinirl.components.rollout import RolloutWorker
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.runners import register_runner
-from infinirl.runners.async_rollout import RolloutAhead, staleness_metrics
+from infinirl.runners.async_rollout import RolloutAhead, load_ahead_batches, save_ahead_batches, staleness_metrics
 from infinirl.runners.curves import Panel
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
 from infinirl.runners.run_support import run_components, run_start_time
 from infinirl.runtime import Channel, Tracer, start_weight_sync, sync_weights
-from infinirl.utils.atomic import atomic_open
 
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
 # reference (KL), and the critic's values and regression targets.
@@ -58,8 +56,6 @@ OLD_LOGPROBS, REF_LOGPROBS, VALUES, RETURNS = "old_logprobs", "ref_logprobs", "v
 # What a forward-only pass needs of a batch (the rest stays in the driver); the response mask lets
 # the engine skip the LM head over prompt positions.
 _FORWARD_KEYS = (INPUT_IDS, ATTENTION_MASK, POSITION_IDS, RESPONSE_MASK)
-# Batches generated ahead of the trainer (asynchronous mode), saved with a checkpoint.
-AHEAD_BATCHES_FILE = "ahead_batches.pkl"
 
 
 @dataclass
@@ -392,8 +388,7 @@ class ReasoningFlow:
     # ------------------------------------------------------------------ checkpoints
     def save(self, folder: str) -> dict:
         if self.ahead is not None:  # the batches generated ahead are part of the run's state
-            with atomic_open(os.path.join(folder, AHEAD_BATCHES_FILE)) as f:
-                pickle.dump(self.ahead.drain(), f)
+            save_ahead_batches(folder, self.ahead.drain())
         saving = [self.actor.save_checkpoint(os.path.join(folder, "actor"))]
         if self.critic is not None:
             saving.append(self.critic.save_checkpoint(os.path.join(folder, "critic")))
@@ -415,7 +410,7 @@ class ReasoningFlow:
             handle.wait()
         self.train_stream.load_state_dict(state["data"])
         if self.ahead is not None:
-            self.ahead.restore(_read_ahead_batches(folder))
+            self.ahead.restore(load_ahead_batches(folder))
 
     def finish(self, output_dir: str) -> dict:
         for pending in self._syncs:
@@ -438,16 +433,6 @@ class ReasoningFlow:
         for channel in self._channels.values():
             channel.destroy()
         self._channels = {}
-
-
-def _read_ahead_batches(folder: str) -> dict:
-    """The batches a checkpoint of an asynchronous run holds (none: it was written synchronously,
-    so the next batches are generated with the resumed weights)."""
-    path = os.path.join(folder, AHEAD_BATCHES_FILE)
-    if not os.path.exists(path):
-        return {}
-    with open(path, "rb") as f:
-        return pickle.load(f)
 
 
 def _split(items: list, parts: int) -> list[list]:

@@ -38,6 +38,11 @@ def test_defaults_validate():
     ({"placement": {"actor": "0", "rollout": "0", "reward": "0", "critc": "0"}},
      r"placement.critc: the reasoning runner has no such component; its components are actor, rollout, reward"),
     ({"rollout": {"group_size": 0}}, r"rollout.group_size=0 must be >= 1"),
+    ({"algorithm": {"asynchronous": {"max_staleness": -1}}}, r"algorithm.asynchronous.max_staleness=-1 must be >= 0"),
+    ({"algorithm": {"asynchronous": {"max_staleness": 1}, "dynamic_sampling": True}},
+     r"algorithm.dynamic_sampling with algorithm.asynchronous.*max_staleness=null"),
+    ({"algorithm": {"objective": {"is_cap": 0}}}, r"algorithm.objective.is_cap=0.0 must be > 0"),
+    ({"algorithm": {"objective": {"is_cap_mode": "clip"}}}, r"is_cap_mode='clip' is not allowed.*truncate, mask"),
     ({"loggers": ["tensorbord"]}, r"unknown logger 'tensorbord'"),
     ({"placement": {"actor": "0", "rollout": "0", "reward": "x"}}, r"placement.reward"),
     ({"task": {"source": "hub"}}, r"task.source='hub' is not registered; registered: dataset, reasoning_gym"),
@@ -81,3 +86,10 @@ def test_reference_mode_resolves_explicitly(raw, mode, components):
 def test_placement_keys_may_name_several_components():
     cfg = build(algorithm={"advantage": "gae"}, placement={"actor,critic": "0", "rollout,reward": "1"})
     assert cfg.placement_spec() == {"actor": "0", "rollout": "1", "reward": "1", "critic": "0"}
+
+
+def test_the_old_tis_cap_key_still_sets_is_cap():
+    from infinirl.config import upgrade_renamed_overrides
+
+    assert upgrade_renamed_overrides(ReasoningConfig, ["algorithm.objective.tis_cap=2"]) == [
+        "algorithm.objective.is_cap=2"]
