@@ -6,7 +6,11 @@ each in its own subprocess (so neither sees the other's memory or threads). Repo
 median seconds per step (first step excluded as warm-up when there are >= 3), generated tokens/s
 and the final training reward. ``--precision`` applies to both (fp32 = TRL's CPU default).
 
-When vLLM is installed, a third row ``infinirl_vllm`` runs InfiniRL with ``rollout.engine=vllm``.
+The row ``infinirl_async`` runs InfiniRL asynchronously (``algorithm.asynchronous.max_staleness=1``,
+decoupled PPO with ``is_cap=2, is_cap_mode=mask``; actor and rollout then run at the same time, so
+each gets half the cores): the next batch is generated while the actor trains on this one.
+
+When vLLM is installed, a row ``infinirl_vllm`` runs InfiniRL with ``rollout.engine=vllm``.
 vLLM lives in its own venv (``bash scripts/setup_vllm_venv.sh``), so that row runs under the first
 interpreter that can import it: this one, ``$INFINIRL_VLLM_PYTHON``, or the script's default venv.
 
@@ -15,8 +19,9 @@ interpreter that can import it: this one, ``$INFINIRL_VLLM_PYTHON``, or the scri
     python benchmarks/grpo_vs_trl.py --steps 4 --impls infinirl,infinirl_vllm   # skip TRL
 
 Last stdout line: {"benchmark": "grpo_vs_trl", "ratios": {"step_speed_vs_trl": TRL s/step / ours},
-"targets": {"step_speed_vs_trl": 1.5}, "device": ..., "results": {...}}; with the vLLM row, ratios
-also has "step_speed_vllm_vs_trl" and "step_speed_vllm_vs_hf" (HF-engine s/step / vLLM-engine).
+"targets": {"step_speed_vs_trl": 1.5, "step_speed_vs_trl_async": 2.5}, "device": ..., "results": {...}};
+ratios also has "step_speed_vs_trl_async" (TRL s/step / the asynchronous row's), and with the vLLM
+row "step_speed_vllm_vs_trl" and "step_speed_vllm_vs_hf" (HF-engine s/step / vLLM-engine).
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ from _bench_common import add_record_argument, record_result
 TASK = {"min_terms": 2, "max_terms": 2, "min_digits": 1, "max_digits": 1}
 PROMPTS, GROUP, MAX_NEW, LR = 8, 8, 48, 1e-5
 MICRO_BATCH = int(os.environ.get("INFINIRL_BENCH_MICRO_BATCH", 16))  # sequences per forward/backward (ours)
-IMPLS = ("infinirl", "trl", "infinirl_vllm")
+IMPLS = ("infinirl", "infinirl_async", "trl", "infinirl_vllm")
 DEFAULT_VLLM_VENV = Path(os.environ.get("INFINIRL_CACHE", Path.home() / ".cache" / "infinirl")) / "vllm-venv"
 
 
@@ -57,19 +62,25 @@ def vllm_python() -> str | None:
     return None
 
 
-def run_infinirl(steps: int, precision: str, out: str, engine: str = "hf") -> dict:
+def run_infinirl(steps: int, precision: str, out: str, engine: str = "hf", asynchronous: bool = False) -> dict:
     from infinirl.config import to_dataclass
     from infinirl.runners.reasoning import run
     from infinirl.runners.reasoning_config import ReasoningConfig
 
+    threads = os.cpu_count()
+    algorithm = {}
+    if asynchronous:  # actor and rollout run at the same time: half the cores each
+        threads = max(1, threads // 2)
+        algorithm = {"asynchronous": {"max_staleness": 1}, "objective": {"is_cap": 2.0, "is_cap_mode": "mask"}}
     cfg = to_dataclass(ReasoningConfig, {
-        "steps": steps, "prompts_per_step": PROMPTS, "eval_every": 10_000, "output_dir": out,
-        "resume": False, "loggers": [], "num_threads": os.cpu_count(),
+        "iterations": steps, "prompts_per_step": PROMPTS, "eval": {"every": 10_000}, "output_dir": out,
+        "resume": False, "loggers": [], "num_threads": threads,
         "model": {"rollout_dtype": precision},
         "task": {"config": TASK, "eval_size": 1},
         "rollout": {"group_size": GROUP, "max_new_tokens": MAX_NEW, "max_batch_size": PROMPTS * GROUP,
                     "engine": engine},
         "actor": {"lr": LR, "micro_batch_size": MICRO_BATCH, "param_dtype": precision},
+        "algorithm": algorithm,
         "cluster": {"log_to_driver": False},
     })
     run(cfg)
@@ -150,14 +161,16 @@ def main() -> int:
         if args.only == "trl":
             result = run_trl(args.steps, args.precision, out)
         else:
-            result = run_infinirl(args.steps, args.precision, out, "vllm" if args.only == "infinirl_vllm" else "hf")
+            result = run_infinirl(args.steps, args.precision, out, "vllm" if args.only == "infinirl_vllm" else "hf",
+                                  asynchronous=args.only == "infinirl_async")
         print("RESULT " + json.dumps(result), flush=True)
         return 0
     wanted = [impl.strip() for impl in args.impls.split(",") if impl.strip()]
     unknown = sorted(set(wanted) - set(IMPLS))
     if unknown:
         parser.error(f"--impls: unknown {unknown}; choose from {', '.join(IMPLS)}")
-    pythons = {"infinirl": sys.executable, "trl": sys.executable, "infinirl_vllm": vllm_python()}
+    pythons = {"infinirl": sys.executable, "infinirl_async": sys.executable, "trl": sys.executable,
+               "infinirl_vllm": vllm_python()}
     if pythons["infinirl_vllm"] is None and "infinirl_vllm" in wanted:
         wanted.remove("infinirl_vllm")  # vLLM not installed: no row (see scripts/setup_vllm_venv.sh)
     results = {}
@@ -183,10 +196,13 @@ def main() -> int:
         return round(median(slow) / median(fast), 3) if median(slow) and median(fast) else None
 
     ratios = {"step_speed_vs_trl": speedup("trl", "infinirl")}
+    if "infinirl_async" in results:
+        ratios["step_speed_vs_trl_async"] = speedup("trl", "infinirl_async")
+        ratios["step_speed_async_vs_sync"] = speedup("infinirl", "infinirl_async")
     if "infinirl_vllm" in results:
         ratios["step_speed_vllm_vs_trl"] = speedup("trl", "infinirl_vllm")
         ratios["step_speed_vllm_vs_hf"] = speedup("infinirl", "infinirl_vllm")
-    final = {"benchmark": "grpo_vs_trl", "ratios": ratios, "targets": {"step_speed_vs_trl": 1.5},
+    final = {"benchmark": "grpo_vs_trl", "ratios": ratios, "targets": {"step_speed_vs_trl": 1.5, "step_speed_vs_trl_async": 2.5},
              "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
              "precision": args.precision, "results": results}
     print(json.dumps(final))
