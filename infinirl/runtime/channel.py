@@ -39,7 +39,7 @@ from infinirl.runtime import cancellation, processes
 from infinirl.runtime.channel_actor import ChannelActor
 from infinirl.runtime.errors import CallCancelled, ChannelClosed, ChannelError
 from infinirl.runtime.ray_defaults import NAMESPACE
-from infinirl.runtime.transport import Envelope, pack, unpack
+from infinirl.runtime.transport import Envelope, pack, unpack, unpack_many
 
 DEFAULT_KEY = "default"
 _ACTOR_PREFIX = "infinirl.channel."
@@ -163,10 +163,9 @@ class Channel:
         if self.prefetch > 1:
             buffered = self._prefetched.setdefault(key, deque())
             if not buffered:
-                buffered.extend(self._get(self._actor.get_many, key, os.getpid(), _peer_id(), self.prefetch,
-                                          timeout))
-            envelope, _ = buffered.popleft()
-            return unpack(envelope)
+                taken = self._get(self._actor.get_many, key, os.getpid(), _peer_id(), self.prefetch, timeout)
+                buffered.extend(unpack_many([envelope for envelope, _ in taken]))
+            return buffered.popleft()
         envelope, _ = self._get(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope)
 
@@ -186,7 +185,7 @@ class Channel:
         target = self._check_target(target_weight)
         self._register("consumer")
         taken = self._get(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
-        return [unpack(envelope) for envelope, _ in taken]
+        return unpack_many([envelope for envelope, _ in taken])
 
     def close(self) -> None:
         self.flush()
@@ -227,7 +226,7 @@ class Channel:
         target = self._check_target(target_weight)
         self._register("consumer")
         taken = await self._aget(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
-        return [unpack(envelope) for envelope, _ in taken]
+        return unpack_many([envelope for envelope, _ in taken])
 
     # ------------------------------------------------------------------ internals
     def _pack(self, item: Any) -> Envelope:

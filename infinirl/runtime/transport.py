@@ -99,3 +99,12 @@ def unpack(envelope: Envelope) -> Any:
     if envelope.path == "p2p":
         return p2p.take(envelope.body)
     raise ValueError(f"unknown transport path {envelope.path!r}")
+
+
+def unpack_many(envelopes: list[Envelope]) -> list[Any]:
+    """``unpack`` of several envelopes, fetching every object-store payload in one ``ray.get``
+    (one round trip to the object store instead of one per item)."""
+    refs = [e.body[0] for e in envelopes if e.path == "object_store"]
+    fetched = iter(ray.get(refs)) if len(refs) > 1 else None
+    return [unbox(next(fetched)) if fetched is not None and e.path == "object_store" else unpack(e)
+            for e in envelopes]
