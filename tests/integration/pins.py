@@ -4,8 +4,9 @@ without running the slow learning tests.
 
 Each runner's end-to-end test (``test_*_pipeline.py``) runs a tiny problem from fixed seeds and
 compares the metrics of its straight run with ``pinned_metrics.json``. A deliberate change of
-learning behaviour re-pins them: ``INFINIRL_REPIN=1 pytest tests/integration -k resumes_exactly``
-rewrites the file, and the diff of that file shows in review what changed.
+learning behaviour re-pins them: ``INFINIRL_REPIN=1 pytest tests/integration -k "resumes_exactly or
+asynchronous"`` rewrites the file (the asynchronous modes are pinned by their own tests), and the
+diff of that file shows in review what changed.
 """
 
 from __future__ import annotations

@@ -194,3 +194,7 @@ def test_asynchronous_eta_1_with_decoupled_ppo_resumes_exactly(ray_cluster, tmp_
     # the proximal policy is the trainer's own: batch 0 is on-policy, later ones carry a version gap
     assert trained[0]["train/behaviour_logprob_abs_diff"] < 1e-5 < trained[2]["train/behaviour_logprob_abs_diff"]
     assert all(0 < r["train/is_weight_mean"] for r in trained)
+    if mode == "collocated":
+        check_pinned("embodied_async", tmp_path / "straight", [
+            "rollout/reward_mean", "train/policy_loss", "train/value_loss", "train/is_weight_mean",
+            "eval/success_rate"])

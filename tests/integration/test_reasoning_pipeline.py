@@ -175,6 +175,8 @@ def test_asynchronous_eta_1_trains_one_version_stale_corrected_and_resumes_exact
     assert [r["async/staleness_max"] for r in rows] == [0.0, 1.0, 1.0, 1.0]
     assert all("train/is_weight_mean" in r and "train/is_capped_fraction" in r for r in rows)
     assert rows[2]["train/behaviour_logprob_abs_diff"] > rows[0]["train/behaviour_logprob_abs_diff"]
+    check_pinned("reasoning_async", tmp_path / "straight", [
+        "rollout/reward_mean", "train/loss", "train/grad_norm", "train/is_weight_mean", "eval/greedy_accuracy"])
 
     killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", 2)
     assert (tmp_path / "resumed" / "checkpoints" / "iter_000002" / "ahead_batches.pkl").exists()
