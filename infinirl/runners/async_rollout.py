@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -115,6 +116,38 @@ class RolloutAhead:
     @property
     def in_flight(self) -> list[int]:
         return sorted(self._pending)
+
+
+class WeightPusher:
+    """The trainer's weights to the rollout ranks after each update, stamped with the version.
+
+    Synchronous runs wait for the rollout ranks to load them. Asynchronous runs only publish
+    (:func:`~infinirl.runtime.start_weight_sync`): each rollout rank loads them after the requests
+    queued on it before, which is what fixes every batch's producing version."""
+
+    def __init__(self, trainer, rollout, asynchronous: bool):
+        self.trainer, self.rollout, self.asynchronous = trainer, rollout, asynchronous
+        self._loading: list = []  # published versions the rollout ranks have not loaded yet
+
+    def push(self, version: int) -> float:
+        """Send ``version``; the seconds the trainer spent on it."""
+        from infinirl.runtime import start_weight_sync, sync_weights
+
+        if not self.asynchronous:
+            return sync_weights(self.trainer, self.rollout, version=version).seconds
+        for pending in self._loading:  # an earlier load that failed raises its root cause here
+            if pending.done():
+                pending.wait()
+        self._loading = [p for p in self._loading if not p.done()]
+        start = time.perf_counter()
+        self._loading.append(start_weight_sync(self.trainer, self.rollout, version=version))
+        return time.perf_counter() - start
+
+    def wait(self) -> None:
+        """Until every version sent has been loaded (raises a failed load's error)."""
+        for pending in self._loading:
+            pending.wait()
+        self._loading = []
 
 
 def save_ahead_batches(folder: str, batches: dict[int, Any]) -> None:

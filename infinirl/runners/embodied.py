@@ -42,13 +42,19 @@ from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySp
 from infinirl.components.env_worker import EnvSpec, EnvWorker, iteration_seeds, probe_env_specs
 from infinirl.config import ConfigError
 from infinirl.runners import register_runner
-from infinirl.runners.async_rollout import RolloutAhead, load_ahead_batches, save_ahead_batches, staleness_metrics
+from infinirl.runners.async_rollout import (
+    RolloutAhead,
+    WeightPusher,
+    load_ahead_batches,
+    save_ahead_batches,
+    staleness_metrics,
+)
 from infinirl.runners.curves import Panel
 from infinirl.runners.embodied_config import ALGORITHMS, EmbodiedConfig
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.run_support import run_components, run_start_time
 from infinirl.runners.sim_config import check_env_options, episode_metrics, eval_seeds
-from infinirl.runtime import start_weight_sync, sync_weights
+from infinirl.runtime import sync_weights
 
 
 @register_runner("embodied", EmbodiedConfig, "PPO / embodied GRPO for robot policies in vectorised simulators "
@@ -195,7 +201,7 @@ class EmbodiedFlow:
         eta = cfg.algorithm.asynchronous.max_staleness
         self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_collect,
                                                            self._finish_collect)
-        self._syncs: list = []  # weight loads still on their way to the rollout ranks (asynchronous)
+        self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None)
         self.spec = LoopSpec(
             name="embodied", title=f"{cfg.algorithm.name.upper()} {cfg.env.name}", headline="eval/success_rate",
             target=cfg.eval.target,
@@ -250,7 +256,7 @@ class EmbodiedFlow:
         batch, advantage_metrics = self.advantages(trajectory)
         train_metrics = self.actor.update(batch, iteration).wait()[0]
         t2 = time.perf_counter()
-        sync_s = self._sync(iteration + 1)
+        sync_s = self.weights.push(iteration + 1)
         steps = int(trajectory["step_mask"].sum())
         self.env_steps += steps
         if self.ahead is not None:
@@ -265,19 +271,6 @@ class EmbodiedFlow:
             "time/iteration_s": time.perf_counter() - t0,
             "time/env_steps_per_s": steps / max(t1 - t0, 1e-9),
         }
-
-    def _sync(self, version: int) -> float:
-        """Weights to the rollout ranks as ``version``; seconds the trainer spent on it. Asynchronous:
-        only the publishing (the rollout ranks load the weights after their queued collections)."""
-        if self.ahead is None:
-            return sync_weights(self.actor, self.rollout, version=version).seconds
-        for pending in self._syncs:  # an earlier load that failed raises its root cause here
-            if pending.done():
-                pending.wait()
-        self._syncs = [p for p in self._syncs if not p.done()]
-        start = time.perf_counter()
-        self._syncs.append(start_weight_sync(self.actor, self.rollout, version=version))
-        return time.perf_counter() - start
 
     # ------------------------------------------------------------------ stages
     def collect(self, iteration: int) -> tuple[dict, dict]:
@@ -392,8 +385,7 @@ class EmbodiedFlow:
 
     def finish(self, output_dir: str) -> dict:
         cfg = self.cfg
-        for pending in self._syncs:
-            pending.wait()
+        self.weights.wait()
         video = None
         if cfg.eval.video_episodes:
             try:

@@ -42,13 +42,19 @@ from infinirl.components.rollout import RolloutWorker
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.runners import register_runner
-from infinirl.runners.async_rollout import RolloutAhead, load_ahead_batches, save_ahead_batches, staleness_metrics
+from infinirl.runners.async_rollout import (
+    RolloutAhead,
+    WeightPusher,
+    load_ahead_batches,
+    save_ahead_batches,
+    staleness_metrics,
+)
 from infinirl.runners.curves import Panel
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
 from infinirl.runners.run_support import run_components, run_start_time
-from infinirl.runtime import Channel, Tracer, start_weight_sync, sync_weights
+from infinirl.runtime import Channel, Tracer, sync_weights
 
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
 # reference (KL), and the critic's values and regression targets.
@@ -130,10 +136,10 @@ class ReasoningFlow:
         self.pad_id = tokenizer.pad_token_id if tokenizer.pad_token_id is not None else 0
         self._channels: dict[str, Channel] = {}
         self._generation_ids = itertools.count()
-        self._syncs: list = []  # weight loads still on their way to the rollout ranks (asynchronous)
         eta = cfg.algorithm.asynchronous.max_staleness
         self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_ahead,
                                                            self._collect_ahead)
+        self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None)
         self.spec = LoopSpec(
             name="reasoning", title="reasoning RL", headline="eval/greedy_accuracy",
             progress=(ProgressField(label="reward", key="rollout/reward_mean"),
@@ -160,7 +166,7 @@ class ReasoningFlow:
         adv_metrics = self.add_advantages(batch, rewards)
         train_metrics = self.update(batch)
         t_train = time.perf_counter()
-        sync_s, async_metrics = self._sync(step + 1), {}
+        sync_s, async_metrics = self.weights.push(step + 1), {}
         if self.ahead is not None:
             async_metrics = staleness_metrics(step, [r.weight_version for r in results])
         lengths = [len(r.response_ids) for r in results]
@@ -177,19 +183,6 @@ class ReasoningFlow:
             "time/step_s": time.perf_counter() - t0,
         }
 
-    def _sync(self, version: int) -> float:
-        """Weights to the rollout ranks as ``version``; seconds the trainer spent on it. Asynchronous:
-        only the publishing (the rollout ranks load the weights after their queued requests)."""
-        if self.ahead is None:
-            return sync_weights(self.actor, self.rollout, version=version).seconds
-        for pending in self._syncs:  # an earlier load that failed raises its root cause here
-            if pending.done():
-                pending.wait()
-        self._syncs = [p for p in self._syncs if not p.done()]
-        start = time.perf_counter()
-        self._syncs.append(start_weight_sync(self.actor, self.rollout, version=version))
-        return time.perf_counter() - start
-
     # ------------------------------------------------------------------ asynchronous batches
     def _submit_ahead(self, step: int) -> _AheadBatch:
         problems = self.train_stream.next_batch(self.cfg.prompts_per_step)
@@ -198,7 +191,8 @@ class ReasoningFlow:
     def _collect_ahead(self, batch: _AheadBatch):
         results, scored = self.collect_generation(batch.generation)
         rewards = torch.tensor([s.reward for s in scored], dtype=torch.float32)
-        return batch.problems, results, rewards, self._reward_metrics(rewards.tolist(), scored, rounds=1, dropped=0)
+        errors = sum(s.error is not None for s in scored)
+        return batch.problems, results, rewards, self._reward_metrics(rewards.tolist(), errors, rounds=1, dropped=0)
 
     # ------------------------------------------------------------------ stages
     def generate_batch(self, step: int):
@@ -231,9 +225,7 @@ class ReasoningFlow:
         return kept_problems, kept_results, torch.tensor(kept_rewards), metrics
 
     @staticmethod
-    def _reward_metrics(rewards: list[float], errors, rounds: int, dropped: int) -> dict:
-        if not isinstance(errors, int):  # the scored results
-            errors = sum(s.error is not None for s in errors)
+    def _reward_metrics(rewards: list[float], errors: int, rounds: int, dropped: int) -> dict:
         return {
             "rollout/reward_mean": float(np.mean(rewards)),
             "rollout/accuracy": float(np.mean([r > 0.5 for r in rewards])),
@@ -413,8 +405,7 @@ class ReasoningFlow:
             self.ahead.restore(load_ahead_batches(folder))
 
     def finish(self, output_dir: str) -> dict:
-        for pending in self._syncs:
-            pending.wait()
+        self.weights.wait()
         summary = {"actor_weights_sha256": self.actor.weights_digest().wait()[0]}
         if self.critic is not None:
             summary["critic_weights_sha256"] = self.critic.weights_digest().wait()[0]
