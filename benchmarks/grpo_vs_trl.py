@@ -202,7 +202,8 @@ def main() -> int:
     if "infinirl_vllm" in results:
         ratios["step_speed_vllm_vs_trl"] = speedup("trl", "infinirl_vllm")
         ratios["step_speed_vllm_vs_hf"] = speedup("infinirl", "infinirl_vllm")
-    final = {"benchmark": "grpo_vs_trl", "ratios": ratios, "targets": {"step_speed_vs_trl": 1.5, "step_speed_vs_trl_async": 2.5},
+    targets = {"step_speed_vs_trl": 1.5, "step_speed_vs_trl_async": 2.5}
+    final = {"benchmark": "grpo_vs_trl", "ratios": ratios, "targets": targets,
              "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
              "precision": args.precision, "results": results}
     print(json.dumps(final))
