@@ -47,11 +47,8 @@ class AsyncConfig:
     """eta: a batch used at trainer version v was produced by weights version >= v - eta. None
     (default): the synchronous loop. 0: the same run through the asynchronous pipeline (same
     weights, bit for bit). 1: rollout of the next batch overlaps training on this one; 2+: more
-    batches queued ahead. Pair eta >= 1 with `algorithm.objective.is_cap` (off-policy correction)."""
-
-    @property
-    def enabled(self) -> bool:
-        return self.max_staleness is not None
+    batches queued ahead. Pair eta >= 1 with the off-policy correction: `algorithm.objective.is_cap`
+    (reasoning), `algorithm.is_cap` (embodied)."""
 
 
 def producing_version(batch: int, max_staleness: int) -> int:
