@@ -3,7 +3,15 @@
 import pytest
 import torch
 
-from infinirl.runtime import WeightSink, WeightSource, WeightSyncGroup, Worker, WorkerGroup, sync_weights
+from infinirl.runtime import (
+    WeightSink,
+    WeightSource,
+    WeightSyncGroup,
+    Worker,
+    WorkerGroup,
+    start_weight_sync,
+    sync_weights,
+)
 from infinirl.runtime.weights import make_buckets, split_bucket
 from tests.conftest import ship_by_value
 
@@ -37,6 +45,13 @@ class Trainer(Worker, WeightSource):
 class Rollout(Worker, WeightSink):
     def __init__(self):
         self.model = build_model(seed=2)
+
+    def generate(self, seconds: float) -> int:
+        """A request that keeps the rank busy; returns the version it ran with."""
+        import time
+
+        time.sleep(seconds)
+        return self.weight_version
 
     def load_weights(self, named_tensors, version):
         own = self.model.state_dict()
@@ -90,3 +105,27 @@ def test_sync_is_bit_exact_and_versioned(ray_cluster, method):
 def test_collective_needs_group(ray_cluster):
     with pytest.raises(ValueError, match="needs group"):
         sync_weights(None, None, version=1, method="collective")
+
+
+def test_a_started_sync_frees_the_trainer_and_lands_between_requests(ray_cluster):
+    """The asynchronous runners' contract: the trainer is free once it has published; each rollout
+    rank loads the new version after the requests queued before the sync, and before later ones."""
+    trainer = WorkerGroup.launch(Trainer, "actor", num_ranks=1)
+    rollout = WorkerGroup.launch(Rollout, "rollout", num_ranks=1)
+    try:
+        sync_weights(trainer, rollout, version=1)
+        before = rollout.generate(3.0)  # queued ahead of the sync
+        trainer.train_a_bit().wait()
+        pending = start_weight_sync(trainer, rollout, version=2)
+        after = rollout.generate(0.0)  # queued behind it
+        published = trainer.state().wait()[0]
+        trainer.train_a_bit().wait()  # the trainer steps on at once: the published copy must not move
+        assert not pending.done()  # the rank is still busy with the earlier request
+        assert before.wait() == [1] and after.wait() == [2]
+        assert pending.wait().version == 2
+        received = rollout.state().wait()[0]
+        for name, tensor in published.items():
+            assert torch.equal(received[name], tensor), name
+    finally:
+        trainer.shutdown()
+        rollout.shutdown()
