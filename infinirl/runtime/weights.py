@@ -40,14 +40,19 @@ class TensorMeta:
     nbytes: int
 
 
-def make_buckets(named_tensors: Iterable[tuple[str, torch.Tensor]],
-                 bucket_bytes: int) -> Iterator[tuple[torch.Tensor, list[TensorMeta]]]:
-    """Group tensors by dtype into flat uint8 buffers of at most ``bucket_bytes`` (one big tensor alone)."""
+def make_buckets(named_tensors: Iterable[tuple[str, torch.Tensor]], bucket_bytes: int,
+                 copy: bool = False) -> Iterator[tuple[torch.Tensor, list[TensorMeta]]]:
+    """Group tensors by dtype into flat uint8 buffers of at most ``bucket_bytes`` (one big tensor alone).
+
+    A bucket of several tensors is always a new buffer; one of a single tensor is a view of it
+    unless ``copy`` (a buffer the trainer's next step must not overwrite)."""
     open_buckets: dict[torch.dtype, tuple[list[torch.Tensor], list[TensorMeta], int]] = {}
 
     def flush(dtype):
         parts, metas, _ = open_buckets.pop(dtype)
-        return torch.cat(parts) if len(parts) > 1 else parts[0], metas
+        if len(parts) > 1:
+            return torch.cat(parts), metas
+        return (parts[0].clone() if copy else parts[0]), metas
 
     for name, tensor in named_tensors:
         tensor = tensor.detach().contiguous()
@@ -80,13 +85,16 @@ class WeightSource:
         raise NotImplementedError(f"{type(self).__name__} must implement weights_for_sync()")
 
     def _infinirl_publish_weights(self, bucket_bytes: int, cuda_ipc: bool) -> list | None:
+        """Rank 0's buckets: object-store copies, or (``cuda_ipc``) IPC handles to private GPU
+        copies. Torch keeps a sent CUDA block alive until every receiver has released it, so the
+        trainer may step on (and drop its references) before the receivers have loaded."""
         named = self.weights_for_sync()  # every rank runs this (a sharded gather needs all ranks)
         if self.rank != 0:
             for _ in named:  # drain generators so collective gathers complete on every rank
                 pass
             return None
         published = []
-        for flat, metas in make_buckets(named, bucket_bytes):
+        for flat, metas in make_buckets(named, bucket_bytes, copy=cuda_ipc):
             if cuda_ipc and flat.is_cuda:
                 published.append(("cuda_ipc", box(flat, cuda_ipc=True), metas))
             else:
@@ -251,9 +259,10 @@ def start_weight_sync(
 ) -> PendingSync:
     """:func:`sync_weights` without waiting for the receivers: returns once the trainer has
     published its weights, so it can train on while the rollout ranks finish their queued requests
-    and then load them (asynchronous RL). The object-store path is fully detached (the buckets are
-    copies); ``cuda_ipc`` waits for the receivers (the handles point at live trainer memory), and
-    ``collective`` blocks the trainer's next call until the receivers join the broadcast."""
+    and then load them (asynchronous RL). Fully detached for the object store and ``cuda_ipc``
+    alike: the buckets are copies (on the object store, or private GPU buffers
+    that stay allocated until every receiver has loaded them, one model's worth of GPU memory per
+    sync in flight); ``collective`` blocks the trainer's next call until the receivers join the broadcast."""
     start = time.perf_counter()
     if method == "auto":
         method = "collective" if group is not None else ("cuda_ipc" if _share_a_gpu(source, sink) else "object_store")
@@ -268,10 +277,6 @@ def start_weight_sync(
         raise ValueError(f"unknown weight-sync method {method!r}; use auto, object_store, cuda_ipc or collective")
     published = source.call("_infinirl_publish_weights", bucket_bytes, method == "cuda_ipc").wait()[0]
     received = sink.call("_infinirl_receive_weights", published, version)
-    if method == "cuda_ipc":
-        # IPC handles point at the trainer's own memory, which the next optimizer step overwrites
-        # (or frees): the receivers must have copied it before the trainer goes on.
-        received.wait()
     return PendingSync(version, method, len(published), start, [received])
 
 

@@ -11,6 +11,7 @@ from infinirl.runtime import (
     WorkerGroup,
     device_turn,
     place,
+    start_weight_sync,
     sync_weights,
 )
 from infinirl.runtime.transport import pack
@@ -54,6 +55,18 @@ class GpuWorker(Worker, WeightSource, WeightSink):
     def get_cuda(self, ch: Channel):
         item = ch.get(timeout=120)
         return item["t"].device.type, float(item["t"].sum().item())
+
+    def busy(self, seconds: float):
+        """A generation stand-in: the weight version it ran with, after ``seconds``."""
+        import time
+
+        time.sleep(seconds)
+        return self.weight_version
+
+    def step_in_place(self):
+        with torch.no_grad():
+            for p in self.model.parameters():
+                p.add_(1.0)
 
     def weights_for_sync(self):
         return self.model.state_dict().items()
@@ -101,6 +114,34 @@ def test_cuda_ipc_channel_and_weight_sync_on_one_gpu(ray_cluster):
         assert stats.method == "cuda_ipc"
         expected, received = trainer.state().wait()[0], rollout.state().wait()[0]
         assert all(torch.equal(expected[k], received[k]) for k in expected)
+    finally:
+        trainer.shutdown()
+        rollout.shutdown()
+
+
+def test_a_started_cuda_ipc_sync_frees_the_trainer_before_the_rollout_loads(ray_cluster):
+    """Asynchronous training on one GPU: the trainer publishes private GPU copies and steps on at
+    once (overwriting its weights in place) while the rollout rank is still busy; the rank then
+    loads the published weights, not the stepped ones."""
+    plan = place(ray_cluster.inventory, {"trainer": "0", "rollout": "0"})
+    trainer = WorkerGroup.launch(GpuWorker, "trainer", placement=plan.ranks("trainer"), args=(1,))
+    rollout = WorkerGroup.launch(GpuWorker, "rollout", placement=plan.ranks("rollout"), args=(2,))
+    try:
+        sync_weights(trainer, rollout, version=1)
+        before = rollout.busy(3.0)
+        published = trainer.state().wait()[0]
+        # small buckets: the weight matrix alone in one (the bucket that could alias the weights)
+        pending = start_weight_sync(trainer, rollout, version=2, bucket_bytes=1024)
+        assert pending.method == "cuda_ipc"
+        after = rollout.busy(0.0)
+        trainer.step_in_place().wait(timeout=60)  # the trainer is free while the rank is busy
+        assert not pending.done()
+        assert before.wait(timeout=60) == [1] and after.wait(timeout=60) == [2]
+        assert pending.wait(timeout=60).version == 2
+        received, stepped = rollout.state().wait()[0], trainer.state().wait()[0]
+        for name, tensor in published.items():
+            assert torch.equal(received[name], tensor), name
+            assert not torch.equal(stepped[name], tensor), name
     finally:
         trainer.shutdown()
         rollout.shutdown()

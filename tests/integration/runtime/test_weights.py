@@ -78,6 +78,16 @@ def test_buckets_split_by_dtype_and_size_and_roundtrip():
         assert torch.equal(restored[name], tensor) and restored[name].dtype == tensor.dtype
 
 
+def test_a_bucket_of_one_tensor_is_a_view_unless_copied():
+    big = torch.randn(1000)
+    before = big.clone()
+    (view, _), = make_buckets([("w", big)], bucket_bytes=64)
+    (copy, _), = make_buckets([("w", big)], bucket_bytes=64, copy=True)
+    big.add_(1.0)  # a trainer's next step
+    assert torch.equal(view.view(torch.float32), big)
+    assert torch.equal(copy.view(torch.float32), before)
+
+
 @pytest.mark.parametrize("method", ["object_store", "collective"])
 def test_sync_is_bit_exact_and_versioned(ray_cluster, method):
     trainer = WorkerGroup.launch(Trainer, "actor", num_ranks=1)
