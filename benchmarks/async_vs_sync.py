@@ -1,4 +1,4 @@
-"""Benchmark: synchronous vs asynchronous training (max_staleness 1 and 2), side by side.
+"""Benchmark: synchronous vs asynchronous training (max_staleness 1, 2, 1 with partial rollouts), side by side.
 
 Two jobs (``--jobs``):
 
@@ -20,8 +20,8 @@ and the training time until it first reaches the synchronous run's final value.
 
 Last stdout line: {"benchmark": "async_vs_sync", "ratios": {"grpo_async_vs_sync": sync training
 time / eta=1 training time (same samples: the throughput ratio), "grpo_async2_vs_sync": eta=2's,
-"ppo_async_vs_sync", "ppo_async2_vs_sync"}, "metric_gap_points": {job: {row: sync final - row
-final, in points}}, "targets": ..., "results": {job: {row: ...}}}.
+"grpo_async_partial_vs_sync" / "grpo_async2_partial_vs_sync": with partial rollouts, "ppo_async_vs_sync", "ppo_async2_vs_sync"},
+"metric_gap_points": {job: {row: sync final - row final, in points}}, "targets": ..., "results": {job: {row: ...}}}.
 """
 
 from __future__ import annotations
@@ -39,11 +39,19 @@ from dataclasses import dataclass
 
 from _bench_common import add_record_argument, record_result
 
-ROWS = {  # name -> max_staleness (None: the synchronous loop)
-    "sync": None,
-    "eta1": 1,
-    "eta2": 2,
-}
+
+@dataclass(frozen=True)
+class Row:
+    max_staleness: int | None  # None: the synchronous loop
+    partial_rollout: bool = False  # language models only: weight updates interrupt generations in flight
+
+    def ratio_key(self, job: str) -> str:
+        eta = "" if self.max_staleness == 1 else str(self.max_staleness)
+        return f"{job}_async{eta}{'_partial' if self.partial_rollout else ''}_vs_sync"
+
+
+ROWS = {"sync": Row(None), "eta1": Row(1), "eta2": Row(2), "eta1_partial": Row(1, partial_rollout=True),
+        "eta2_partial": Row(2, partial_rollout=True)}
 
 
 @dataclass(frozen=True)
@@ -73,11 +81,13 @@ def overrides(job: Job, row: str, iterations: int | None, out: str, async_thread
         args.append(f"iterations={iterations}")
     if job.config == "grpo_arithmetic":
         args.remove("eval.video_episodes=0")  # no video in the reasoning runner
-    eta = ROWS[row]
+    eta = ROWS[row].max_staleness
     if eta is not None:
         args += [f"algorithm.asynchronous.max_staleness={eta}", *job.correction]
         if job.threads:
             args += [f"{key}={n}" for key, n in zip(job.threads, async_threads)]
+    if ROWS[row].partial_rollout:
+        args.append("algorithm.asynchronous.partial_rollout=true")
     return args
 
 
@@ -92,11 +102,15 @@ def summarise(job: Job, out: str) -> dict:
     for r in rows:
         if job.metric in r:
             curve.append({"step": r["step"], "train_s": round(clock.get(r["step"], 0.0), 1), "metric": r[job.metric]})
+    partial = [r["async/interrupted_fraction"] for r in steps if "async/interrupted_fraction" in r]
     return {
         "iterations": len(steps),
         "train_s": round(train_s, 1),
         "median_iteration_s": round(statistics.median(r[job.time_key] for r in steps[1:] or steps), 2),
         "staleness_mean": statistics.mean(r.get("async/staleness_mean", 0.0) for r in steps),
+        **({"interrupted_fraction_mean": statistics.mean(partial),
+            "token_staleness_mean": statistics.mean(r["async/token_staleness_mean"] for r in steps)}
+           if partial else {}),
         "eval": curve,
         "final_metric": curve[-1]["metric"] if curve else None,
     }
@@ -129,6 +143,9 @@ def main() -> int:
     for name in jobs:
         job, results[name] = JOBS[name], {}
         for row in wanted:
+            if ROWS[row].partial_rollout and not job.threads:
+                results[name][row] = {"skipped": "partial rollouts interrupt language-model generation only"}
+                continue
             out = tempfile.mkdtemp(prefix=f"bench-async-{name}-{row}-")
             command = [sys.executable, "-m", "infinirl.cli", "train", job.config,
                        *overrides(job, row, args.iterations, out, async_threads)]
@@ -143,8 +160,8 @@ def main() -> int:
         sync = results[name].get("sync", {})
         for row, res in results[name].items():
             if row != "sync" and sync.get("train_s") and res.get("train_s"):
-                key = f"{name}_async{'' if ROWS[row] == 1 else ROWS[row]}_vs_sync"
-                ratios[key] = round(sync["train_s"] / res["train_s"], 3)  # same samples: the throughput ratio
+                # same samples: the throughput ratio
+                ratios[ROWS[row].ratio_key(name)] = round(sync["train_s"] / res["train_s"], 3)
             if sync.get("final_metric") is not None and res.get("final_metric") is not None:
                 gaps.setdefault(name, {})[row] = round(100 * (sync["final_metric"] - res["final_metric"]), 1)
                 to_final.setdefault(name, {})[row] = time_to(res["eval"], sync["final_metric"])

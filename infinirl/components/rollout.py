@@ -21,8 +21,11 @@ class RolloutWorker(Worker, WeightSink):
             torch.set_num_threads(num_threads)
         device = "cuda" if self.device == "cuda" else "cpu"
         self.engine = build_rollout_engine(engine, model, dtype, device, max_batch_size, engine_options)
+        if hasattr(self.engine, "weight_refresh"):  # partial rollouts: staged weights load between decode steps
+            self.engine.weight_refresh = self.apply_staged_weights
 
     def generate(self, prompt_ids: list[list[int]], sampling: SamplingParams) -> list[GenerationResult]:
+        self.apply_staged_weights()
         return self.engine.generate(prompt_ids, sampling)
 
     def generate_to(self, channel, chunks: list[tuple[int, list[list[int]]]], sampling: SamplingParams,
@@ -35,6 +38,7 @@ class RolloutWorker(Worker, WeightSink):
         samples are the same however the chunks are spread over rollout ranks.
         """
         for index, prompt_ids in chunks:
+            self.apply_staged_weights()
             chunk_sampling = sampling if sampling.seed is None else replace(
                 sampling, seed=(sampling.seed + 7919 * index) % (2**31))
             results = self.engine.generate(prompt_ids, chunk_sampling)

@@ -104,6 +104,9 @@ class GenerationResult:
     """Which of the ``n`` samples of its prompt this is."""
     extra: dict = field(default_factory=dict)
     """Engine-specific details (e.g. which stop string matched); never required by the trainer."""
+    response_versions: list[int] | None = None
+    """Partial rollouts only: the weights version that sampled each response id (non-decreasing;
+    ``weight_version`` is the first one). None: every id came from ``weight_version``."""
 
 
 class InferenceEngine(ABC):

@@ -22,6 +22,11 @@ factor, the more so the smaller the model.
 Prompts are left-padded so every row's next token sits in the last column; position ids are
 derived from the attention mask so padding never shifts a sequence's positions. The result is
 therefore the same as generating each prompt alone, up to float rounding.
+
+Partial rollouts: ``weight_refresh`` (set by the rollout worker) is asked between decode steps
+whether new weights were just loaded. If so, the unfinished rows' KV caches (computed by the old
+weights) are rebuilt by one prefill over prompt + tokens so far with the new weights, and decoding
+goes on; every token keeps the log-prob and the version of the weights that sampled it.
 """
 
 from __future__ import annotations
@@ -37,6 +42,36 @@ from infinirl.engines.sampling import sample_next_tokens
 from infinirl.engines.stop_strings import StopStringMatcher
 
 __all__ = ["HFGenerateEngine"]
+
+class _VersionLog:
+    """Which weights version sampled each row's tokens: the version at the start, and the steps
+    at which a row switched (partial rollouts; usually none)."""
+
+    def __init__(self, version: int):
+        self._start = version
+        self._switches: dict[int, list[tuple[int, int]]] = {}
+
+    def switch(self, rows: list[int], step: int, version: int) -> None:
+        for row in rows:
+            self._switches.setdefault(row, []).append((step, version))
+
+    def first(self, row: int) -> int:
+        return self._start
+
+    def per_token(self, row: int, length: int) -> list[int] | None:
+        switches = self._switches.get(row)
+        if not switches:
+            return None
+        out, version = [], self._start
+        pending = iter(switches)
+        upcoming = next(pending, None)
+        for step in range(length):
+            while upcoming is not None and upcoming[0] == step:
+                version = upcoming[1]
+                upcoming = next(pending, None)
+            out.append(version)
+        return out
+
 
 class HFGenerateEngine(InferenceEngine):
     """``InferenceEngine`` over a transformers causal LM (any device; tuned for CPU rollouts).
@@ -74,6 +109,8 @@ class HFGenerateEngine(InferenceEngine):
         self._vocab_size = model.get_input_embeddings().weight.shape[0]
         self._max_positions = getattr(model.config, "max_position_embeddings", None)
         self._weight_version = 0
+        self.weight_refresh = None
+        """Partial rollouts: called between decode steps; True when it has just loaded new weights."""
         self._offloaded = False
         self._cache_keyword = cache_keyword(model)
 
@@ -187,14 +224,20 @@ class HFGenerateEngine(InferenceEngine):
         matcher: StopStringMatcher | None,
     ) -> list[GenerationResult]:
         device, num_rows, max_new = self._home_device, len(requests), sampling.max_new_tokens
+        self._refreshed()
         state, logits = self._prefill(prompts, requests, max_new)
         token_buf = torch.zeros((num_rows, max_new), dtype=torch.long, device=device)
         logprob_buf = torch.zeros((num_rows, max_new), dtype=torch.float32, device=device)
+        versions = _VersionLog(self._weight_version)
         lengths, finish = [max_new] * num_rows, ["length"] * num_rows
         stop_strings: dict[int, str] = {}
         stop_id_tensor = torch.tensor(stop_ids, dtype=torch.long, device=device)
 
         for step in range(max_new):
+            if step and self._refreshed():
+                state, logits = self._prefill_continuations(prompts, requests, state, token_buf[:, :step],
+                                                            max_new - step)
+                versions.switch(state.active.tolist(), step, self._weight_version)
             tokens, token_logprobs = sample_next_tokens(logits, sampling, generator)
             token_buf[state.active, step] = tokens
             logprob_buf[state.active, step] = token_logprobs
@@ -222,13 +265,32 @@ class HFGenerateEngine(InferenceEngine):
                 response_ids=token_lists[row][: lengths[row]],
                 response_logprobs=logprob_lists[row][: lengths[row]],
                 finish_reason=finish[row],
-                weight_version=self._weight_version,
+                weight_version=versions.first(row),
                 prompt_index=prompt_index,
                 sample_index=sample_index,
                 extra={"stop_string": stop_strings[row]} if row in stop_strings else {},
+                response_versions=versions.per_token(row, lengths[row]),
             )
             for row, (prompt_index, sample_index) in enumerate(requests)
         ]
+
+    def _refreshed(self) -> bool:
+        return self.weight_refresh is not None and bool(self.weight_refresh())
+
+    def _prefill_continuations(self, prompts, requests, state: DecodeState, generated: torch.Tensor,
+                               remaining: int) -> tuple[DecodeState, torch.Tensor]:
+        """A fresh decode state for the unfinished rows: their prompts plus the ``generated`` ids so
+        far, prefilled by the current weights; the logits of each row's next token."""
+        rows = state.active.tolist()
+        sequences = [list(prompts[requests[row][0]]) + generated[row].tolist() for row in rows]
+        input_ids, attention_mask = self._left_pad(sequences)
+        position_ids = (attention_mask.cumsum(-1) - 1).clamp(min=0)
+        cache = new_kv_cache(self.model, input_ids.shape[1] + remaining)
+        out = self.model(input_ids=input_ids, attention_mask=attention_mask, position_ids=position_ids,
+                         use_cache=True, logits_to_keep=1, **{self._cache_keyword: cache})
+        fresh = DecodeState(cache=cache, attention_mask=attention_mask, next_position=position_ids[:, -1] + 1,
+                            active=state.active)
+        return fresh, out.logits[:, -1, :].float()
 
     # ---------------------------------------------------------------------------- weight sync
 

@@ -50,10 +50,29 @@ class AsyncConfig:
     batches queued ahead. Pair eta >= 1 with the off-policy correction: `algorithm.objective.is_cap`
     (reasoning), `algorithm.is_cap` (embodied)."""
 
+    partial_rollout: bool = False
+    """Language models, eta >= 1, the hf rollout engine: each weight update reaches the rollout
+    ranks at once and interrupts the generations in flight, which go on with the new weights
+    (their KV caches rebuilt) instead of finishing with the old ones; every token keeps the
+    log-prob and version of the weights that sampled it. Samples are fresher, but where the switch
+    falls depends on timing, so runs are no longer bit-reproducible."""
+
 
 def producing_version(batch: int, max_staleness: int) -> int:
     """The weights version that produces the batch of iteration ``batch`` under the schedule."""
     return max(0, batch - max_staleness)
+
+
+def partial_rollout_metrics(iteration: int, results) -> dict[str, float]:
+    """Per-token staleness and the share of samples a weight update interrupted."""
+    tokens, gaps, interrupted = 0, 0, 0
+    for result in results:
+        versions = result.response_versions or [result.weight_version] * len(result.response_ids)
+        tokens += len(versions)
+        gaps += sum(iteration - v for v in versions)
+        interrupted += result.response_versions is not None
+    return {"async/token_staleness_mean": gaps / max(tokens, 1),
+            "async/interrupted_fraction": interrupted / max(len(results), 1)}
 
 
 def staleness_metrics(iteration: int, versions: list[int]) -> dict[str, float]:
@@ -122,8 +141,9 @@ class WeightPusher:
     (:func:`~infinirl.runtime.start_weight_sync`): each rollout rank loads them after the requests
     queued on it before, which is what fixes every batch's producing version."""
 
-    def __init__(self, trainer, rollout, asynchronous: bool):
+    def __init__(self, trainer, rollout, asynchronous: bool, interrupt: bool = False):
         self.trainer, self.rollout, self.asynchronous = trainer, rollout, asynchronous
+        self.interrupt = interrupt  # partial rollouts: staged beside the running generations
         self._loading: list = []  # published versions the rollout ranks have not loaded yet
 
     def push(self, version: int) -> float:
@@ -137,7 +157,13 @@ class WeightPusher:
                 pending.wait()
         self._loading = [p for p in self._loading if not p.done()]
         start = time.perf_counter()
-        self._loading.append(start_weight_sync(self.trainer, self.rollout, version=version))
+        pending = start_weight_sync(self.trainer, self.rollout, version=version, interrupt=self.interrupt)
+        if self.interrupt:
+            # Staged on every rank before the next batch is submitted, so that batch starts on
+            # this version (the staleness bound holds); staging does not wait for the generations.
+            pending.wait()
+        else:
+            self._loading.append(pending)
         return time.perf_counter() - start
 
     def wait(self) -> None:

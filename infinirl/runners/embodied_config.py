@@ -227,6 +227,9 @@ class EmbodiedConfig(RunConfig):
         for key, wanted in (("actor.compile", self.actor.compile), ("rollout.compile", self.rollout.compile)):
             if wanted:
                 _check_compile(key)
+        if self.algorithm.asynchronous.partial_rollout:
+            raise ConfigError("algorithm.asynchronous.partial_rollout is for language-model generation (a policy "
+                              "decision has no generation to interrupt); remove it")
         batch = self.env.num_envs * self.rollout_steps
         if batch % self.algorithm.mini_batches:
             raise ConfigError(f"algorithm.mini_batches={self.algorithm.mini_batches} does not divide the batch of "

@@ -46,6 +46,7 @@ from infinirl.runners.async_rollout import (
     RolloutAhead,
     WeightPusher,
     load_ahead_batches,
+    partial_rollout_metrics,
     save_ahead_batches,
     staleness_metrics,
 )
@@ -139,7 +140,8 @@ class ReasoningFlow:
         eta = cfg.algorithm.asynchronous.max_staleness
         self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_ahead,
                                                            self._collect_ahead)
-        self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None)
+        self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None,
+                                    interrupt=cfg.algorithm.asynchronous.partial_rollout)
         self.spec = LoopSpec(
             name="reasoning", title="reasoning RL", headline="eval/greedy_accuracy",
             progress=(ProgressField(label="reward", key="rollout/reward_mean"),
@@ -166,9 +168,11 @@ class ReasoningFlow:
         adv_metrics = self.add_advantages(batch, rewards)
         train_metrics = self.update(batch)
         t_train = time.perf_counter()
-        sync_s, async_metrics = self.weights.push(step + 1), {}
+        sync_s, async_metrics, cfg_async = self.weights.push(step + 1), {}, self.cfg.algorithm.asynchronous
         if self.ahead is not None:
             async_metrics = staleness_metrics(step, [r.weight_version for r in results])
+            if cfg_async.partial_rollout:
+                async_metrics.update(partial_rollout_metrics(step, results))
         lengths = [len(r.response_ids) for r in results]
         return {
             **gen_metrics, **adv_metrics, **train_metrics, **async_metrics,

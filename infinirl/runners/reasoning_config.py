@@ -207,6 +207,12 @@ class ReasoningConfig(RunConfig):
         if objective.is_cap is not None and objective.is_cap <= 0:
             raise ConfigError(f"algorithm.objective.is_cap={objective.is_cap} must be > 0 (e.g. 2.0), or null for no "
                               "importance-weight correction")
+        if self.algorithm.asynchronous.partial_rollout and (not eta or self.rollout.engine != "hf"):
+            raise ConfigError(
+                f"algorithm.asynchronous.partial_rollout=true needs max_staleness >= 1 (got {eta}) and "
+                f"rollout.engine=hf (got {self.rollout.engine!r}): only then does a weight update meet generations "
+                "in flight that it can interrupt; set max_staleness and rollout.engine, or partial_rollout=false"
+            )
         if eta is not None and self.algorithm.dynamic_sampling:
             raise ConfigError(
                 "algorithm.dynamic_sampling with algorithm.asynchronous: DAPO's extra generation rounds depend on "

@@ -18,6 +18,7 @@ staleness of each sample is measurable and boundable.
 from __future__ import annotations
 
 import datetime
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -121,7 +122,13 @@ class WeightSource:
 
 
 class WeightSink:
-    """Mixin for the rollout's Worker. Implement ``load_weights``; read ``weight_version``."""
+    """Mixin for the rollout's Worker. Implement ``load_weights``; read ``weight_version``.
+
+    Weights arrive in one of two ways. Received (:func:`start_weight_sync`): loaded by a call
+    queued behind the rank's earlier calls. Staged (``interrupt=True``, partial rollouts): fetched
+    at once beside whatever the rank is running, and loaded by the rank itself the next time it
+    calls :meth:`apply_staged_weights` (its generation loop does between decode steps); a newer
+    staged version replaces an older one not yet loaded."""
 
     weight_version: int = -1
 
@@ -139,7 +146,37 @@ class WeightSink:
 
         self.load_weights(tensors(), version)
         self.weight_version = version
+        self._take_staged(newer_than=version)  # an older staged version must not come back later
         return received[0]
+
+    async def _infinirl_stage_weights(self, published: list, version: int) -> int:
+        """Runs on the rank's event loop beside its running method: fetch, then stage."""
+        buckets = []
+        for path, body, metas in published:
+            buckets.append((unbox(await body[0]) if path == "object_store" else unbox(body), metas))
+        with _staging_lock(self):
+            staged = getattr(self, "_staged_weights", None)
+            if staged is None or staged[1] < version:
+                self._staged_weights = (buckets, version)
+        return sum(flat.numel() for flat, _ in buckets)
+
+    def apply_staged_weights(self) -> bool:
+        """Load the newest staged version, if it is newer than the loaded one. Call it only where
+        a weight change is allowed (between requests, or between decode steps of a partial
+        rollout). True when new weights were loaded."""
+        staged = self._take_staged(newer_than=self.weight_version)
+        if staged is None:
+            return False
+        buckets, version = staged
+        self.load_weights((kv for flat, metas in buckets for kv in split_bucket(flat, metas)), version)
+        self.weight_version = version
+        return True
+
+    def _take_staged(self, newer_than: int):
+        with _staging_lock(self):
+            staged = getattr(self, "_staged_weights", None)
+            self._staged_weights = None
+        return staged if staged is not None and staged[1] > newer_than else None
 
     def _infinirl_receive_broadcast(self, bucket_metas: list[list[TensorMeta]], version: int) -> int:
         device = "cuda" if self._sync_backend == "nccl" else "cpu"
@@ -256,17 +293,24 @@ def start_weight_sync(
     method: str = "auto",
     bucket_bytes: int = DEFAULT_BUCKET_BYTES,
     group: WeightSyncGroup | None = None,
+    interrupt: bool = False,
 ) -> PendingSync:
     """:func:`sync_weights` without waiting for the receivers: returns once the trainer has
     published its weights, so it can train on while the rollout ranks finish their queued requests
     and then load them (asynchronous RL). Fully detached for the object store and ``cuda_ipc``
     alike: the buckets are copies (on the object store, or private GPU buffers
     that stay allocated until every receiver has loaded them, one model's worth of GPU memory per
-    sync in flight); ``collective`` blocks the trainer's next call until the receivers join the broadcast."""
+    sync in flight); ``collective`` blocks the trainer's next call until the receivers join the broadcast.
+
+    ``interrupt``: stage the weights on each rank beside its running calls instead of queueing
+    them behind (see :class:`WeightSink`); the pending sync is done once every rank has them."""
     start = time.perf_counter()
     if method == "auto":
         method = "collective" if group is not None else ("cuda_ipc" if _share_a_gpu(source, sink) else "object_store")
     if method == "collective":
+        if interrupt:
+            raise ValueError("start_weight_sync(interrupt=True) stages object-store or CUDA IPC buckets; "
+                             "the collective path cannot run beside the receivers' calls")
         if group is None:
             raise ValueError("sync_weights(method='collective') needs group=WeightSyncGroup(trainer, rollout)")
         metas = source.call("_infinirl_broadcast_weights", bucket_bytes).wait()[0]
@@ -276,8 +320,21 @@ def start_weight_sync(
     if method not in ("object_store", "cuda_ipc"):
         raise ValueError(f"unknown weight-sync method {method!r}; use auto, object_store, cuda_ipc or collective")
     published = source.call("_infinirl_publish_weights", bucket_bytes, method == "cuda_ipc").wait()[0]
-    received = sink.call("_infinirl_receive_weights", published, version)
+    receive = "_infinirl_stage_weights" if interrupt else "_infinirl_receive_weights"
+    received = sink.call(receive, published, version)
     return PendingSync(version, method, len(published), start, [received])
+
+
+_STAGING_LOCKS_GUARD = threading.Lock()
+
+
+def _staging_lock(sink) -> threading.Lock:
+    """The lock between a sink's event loop (staging) and its compute thread (loading)."""
+    with _STAGING_LOCKS_GUARD:
+        lock = sink.__dict__.get("_staging_lock")
+        if lock is None:
+            lock = sink.__dict__["_staging_lock"] = threading.Lock()
+    return lock
 
 
 def _share_a_gpu(source, sink) -> bool:

@@ -53,6 +53,17 @@ class Rollout(Worker, WeightSink):
         time.sleep(seconds)
         return self.weight_version
 
+    def generate_partially(self, seconds: float) -> list[int]:
+        """A partial rollout's shape: a step, staged weights loaded if any, another step."""
+        import time
+
+        versions = [self.weight_version]
+        for _ in range(2):
+            time.sleep(seconds / 2)
+            self.apply_staged_weights()
+            versions.append(self.weight_version)
+        return versions
+
     def load_weights(self, named_tensors, version):
         own = self.model.state_dict()
         for name, tensor in named_tensors:
@@ -139,3 +150,36 @@ def test_a_started_sync_frees_the_trainer_and_lands_between_requests(ray_cluster
     finally:
         trainer.shutdown()
         rollout.shutdown()
+
+
+def test_staged_weights_arrive_beside_a_running_request_and_load_between_its_steps(ray_cluster):
+    """Partial rollouts: ``interrupt=True`` stages the weights while the rank is busy (the sync is
+    done before the request is); the request loads them at its next step; the newest staged
+    version wins; a later received (queued) version is never undone by an older staged one."""
+    trainer = WorkerGroup.launch(Trainer, "actor", num_ranks=1)
+    rollout = WorkerGroup.launch(Rollout, "rollout", num_ranks=1)
+    try:
+        sync_weights(trainer, rollout, version=1)
+        running = rollout.generate_partially(6.0)
+        trainer.train_a_bit().wait()
+        start_weight_sync(trainer, rollout, version=2, interrupt=True).wait(timeout=30)
+        trainer.train_a_bit().wait()
+        published = trainer.state().wait()[0]
+        start_weight_sync(trainer, rollout, version=3, interrupt=True).wait(timeout=30)
+        assert not running.done()  # staged beside the request, not queued behind it
+        assert running.wait(timeout=60) == [[1, 3, 3]]
+        received = rollout.state().wait()[0]
+        assert all(torch.equal(received[name], tensor) for name, tensor in published.items())
+
+        trainer.train_a_bit().wait()
+        start_weight_sync(trainer, rollout, version=4, interrupt=True).wait(timeout=30)
+        sync_weights(trainer, rollout, version=5)  # queued: loads 5 and drops the staged 4
+        assert rollout.generate_partially(0.0).wait() == [[5, 5, 5]]
+    finally:
+        trainer.shutdown()
+        rollout.shutdown()
+
+
+def test_interrupt_needs_a_path_that_can_stage():
+    with pytest.raises(ValueError, match="interrupt=True"):
+        start_weight_sync(None, None, version=1, method="collective", interrupt=True)

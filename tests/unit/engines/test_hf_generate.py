@@ -387,3 +387,61 @@ def test_temperature_zero_means_greedy_with_t1_logprobs():
     assert SamplingParams(temperature=0.0).is_greedy
     assert SamplingParams(temperature=0.0).logprob_temperature == 1.0
     assert SamplingParams(temperature=0.5).logprob_temperature == 0.5
+
+
+def per_token_reference(model, result, temperature: float, pad_token_id: int) -> torch.Tensor:
+    reference, _ = recompute_logprobs(model, [result], temperature, pad_token_id)
+    return reference
+
+
+@pytest.mark.parametrize("switch_at", [1, 5])
+def test_a_weight_update_mid_generation_switches_every_unfinished_row(tiny, switch_at):
+    """Partial rollouts: new weights loaded between decode steps. Every token's log-prob is the
+    slow full-forward log-prob under the weights that sampled it (old before the switch, new from
+    it: the KV cache is rebuilt, not reused), and each token carries that version."""
+    old_model, tokenizer = tiny
+    new_model = tiny_causal_lm(tokenizer="byte", seed=1)[0]
+    engine = HFGenerateEngine(tiny_causal_lm(tokenizer="byte", seed=0)[0], tokenizer, eos_token_ids=[])
+    calls = []
+
+    def refresh():
+        calls.append(1)
+        if len(calls) == 1 + switch_at:  # one call before the prefill, then one per decode step
+            engine.load_weights(new_model.named_parameters(), version=7)
+            return True
+        return False
+
+    engine.weight_refresh = refresh
+    sampling = SamplingParams(n=2, max_new_tokens=9, temperature=0.8, seed=11)
+    results = engine.generate(PROMPTS, sampling)
+    for r in results:
+        assert r.weight_version == 0
+        assert r.response_versions == [0] * switch_at + [7] * (9 - switch_at)
+        old = per_token_reference(old_model, r, 0.8, tokenizer.pad_token_id)
+        new = per_token_reference(new_model, r, 0.8, tokenizer.pad_token_id)
+        returned = torch.tensor(r.response_logprobs)
+        torch.testing.assert_close(returned[:switch_at], old[:switch_at], atol=1e-5, rtol=0)
+        torch.testing.assert_close(returned[switch_at:], new[switch_at:], atol=1e-5, rtol=0)
+    engine.weight_refresh = None
+    assert all(r.response_versions is None and r.weight_version == 7 for r in engine.generate(PROMPTS, sampling))
+
+
+def test_rows_finished_before_the_switch_keep_one_version(tiny):
+    model, tokenizer = tiny
+    engine = HFGenerateEngine(tiny_causal_lm(tokenizer="byte", seed=0)[0], tokenizer, eos_token_ids=[])
+    first = engine.generate(PROMPTS, SamplingParams(max_new_tokens=6, greedy=True))
+    stop = first[1].response_ids[1]  # the second prompt stops after two tokens
+    steps = []
+
+    def refresh():
+        steps.append(1)
+        if len(steps) == 5:
+            engine.load_weights(tiny_causal_lm(tokenizer="byte", seed=1)[0].named_parameters(), version=1)
+            return True
+        return False
+
+    engine.weight_refresh = refresh
+    results = engine.generate(PROMPTS, SamplingParams(max_new_tokens=6, greedy=True, stop_token_ids=(stop,)))
+    short = [r for r in results if r.finish_reason == "stop" and len(r.response_ids) <= 4]
+    assert short and all(r.response_versions is None and r.weight_version == 0 for r in short)
+    assert any(r.response_versions is not None for r in results)
