@@ -20,7 +20,8 @@ and the training time until it first reaches the synchronous run's final value.
 
 Last stdout line: {"benchmark": "async_vs_sync", "ratios": {"grpo_async_vs_sync": sync training
 time / eta=1 training time (same samples: the throughput ratio), "grpo_async2_vs_sync": eta=2's,
-"grpo_async_partial_vs_sync" / "grpo_async2_partial_vs_sync": with partial rollouts, "ppo_async_vs_sync", "ppo_async2_vs_sync"},
+"grpo_async_partial_vs_sync" / "grpo_async2_partial_vs_sync": with partial rollouts, "ppo_async_vs_sync",
+"ppo_async2_vs_sync"},
 "metric_gap_points": {job: {row: sync final - row final, in points}}, "targets": ..., "results": {job: {row: ...}}}.
 """
 
