@@ -7,8 +7,9 @@ median seconds per step (first step excluded as warm-up when there are >= 3), ge
 and the final training reward. ``--precision`` applies to both (fp32 = TRL's CPU default).
 
 The row ``infinirl_async`` runs InfiniRL asynchronously (``algorithm.asynchronous.max_staleness=1``,
-decoupled PPO with ``is_cap=2, is_cap_mode=mask``; actor and rollout then run at the same time, so
-each gets half the cores): the next batch is generated while the actor trains on this one.
+decoupled PPO with ``is_cap=2, is_cap_mode=mask``): the next batch is generated while the actor
+trains on this one. Actor and rollout then run at the same time; ``--async-threads A,R`` sets their
+torch threads (default: half the cores each).
 
 When vLLM is installed, a row ``infinirl_vllm`` runs InfiniRL with ``rollout.engine=vllm``.
 vLLM lives in its own venv (``bash scripts/setup_vllm_venv.sh``), so that row runs under the first
@@ -62,15 +63,17 @@ def vllm_python() -> str | None:
     return None
 
 
-def run_infinirl(steps: int, precision: str, out: str, engine: str = "hf", asynchronous: bool = False) -> dict:
+def run_infinirl(steps: int, precision: str, out: str, engine: str = "hf",
+                 async_threads: tuple[int, int] | None = None) -> dict:
+    """``async_threads``: run asynchronously, with these torch threads for the actor and the rollout."""
     from infinirl.config import to_dataclass
     from infinirl.runners.reasoning import run
     from infinirl.runners.reasoning_config import ReasoningConfig
 
-    threads = os.cpu_count()
+    threads = rollout_threads = os.cpu_count()
     algorithm = {}
-    if asynchronous:  # actor and rollout run at the same time: half the cores each
-        threads = max(1, threads // 2)
+    if async_threads:
+        threads, rollout_threads = async_threads
         algorithm = {"asynchronous": {"max_staleness": 1}, "objective": {"is_cap": 2.0, "is_cap_mode": "mask"}}
     cfg = to_dataclass(ReasoningConfig, {
         "iterations": steps, "prompts_per_step": PROMPTS, "eval": {"every": 10_000}, "output_dir": out,
@@ -78,7 +81,7 @@ def run_infinirl(steps: int, precision: str, out: str, engine: str = "hf", async
         "model": {"rollout_dtype": precision},
         "task": {"config": TASK, "eval_size": 1},
         "rollout": {"group_size": GROUP, "max_new_tokens": MAX_NEW, "max_batch_size": PROMPTS * GROUP,
-                    "engine": engine},
+                    "engine": engine, "num_threads": rollout_threads},
         "actor": {"lr": LR, "micro_batch_size": MICRO_BATCH, "param_dtype": precision},
         "algorithm": algorithm,
         "cluster": {"log_to_driver": False},
@@ -147,22 +150,52 @@ def _median_step(step_s: list[float]) -> float:
     return statistics.median(body)
 
 
+def _async_threads(parser, text: str | None) -> tuple[int, int]:
+    half = max(1, (os.cpu_count() or 2) // 2)
+    threads = tuple(int(n) for n in text.split(",")) if text else (half, half)
+    if len(threads) != 2 or min(threads) < 1:
+        parser.error(f"--async-threads {text!r}: give two positive counts, actor and rollout (e.g. 2,1)")
+    return threads
+
+
+def _run_row(impl: str, python: str, args, async_threads) -> dict:
+    start = time.perf_counter()
+    proc = subprocess.run([python, __file__, "--only", impl, "--steps", str(args.steps),
+                           "--precision", args.precision, "--async-threads", ",".join(map(str, async_threads))],
+                          capture_output=True, text=True)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+    if proc.returncode or not lines:
+        result = {"skipped": f"exit {proc.returncode}: {proc.stderr[-1500:]}"}
+    else:
+        result = json.loads(lines[-1][7:])
+        result["median_step_s"] = _median_step(result["step_s"])
+    result["wall_s"] = round(time.perf_counter() - start, 1)
+    if impl == "infinirl_vllm":
+        result["python"] = python
+    print(f"[{impl}] {json.dumps(result)[:400]}", file=sys.stderr, flush=True)
+    return result
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--precision", choices=["float32", "bfloat16"], default="float32")
     parser.add_argument("--impls", default=",".join(IMPLS),
                         help="comma-separated rows to run (infinirl_vllm only runs where vLLM is installed)")
+    parser.add_argument("--async-threads", default=None,
+                        help="A,R: torch threads of the actor and the rollout in the infinirl_async row "
+                             "(default: half the cores each)")
     parser.add_argument("--only", choices=IMPLS, help=argparse.SUPPRESS)
     add_record_argument(parser)
     args = parser.parse_args()
+    async_threads = _async_threads(parser, args.async_threads)
     if args.only:
         out = tempfile.mkdtemp(prefix=f"bench-{args.only}-")
         if args.only == "trl":
             result = run_trl(args.steps, args.precision, out)
         else:
             result = run_infinirl(args.steps, args.precision, out, "vllm" if args.only == "infinirl_vllm" else "hf",
-                                  asynchronous=args.only == "infinirl_async")
+                                  async_threads=async_threads if args.only == "infinirl_async" else None)
         print("RESULT " + json.dumps(result), flush=True)
         return 0
     wanted = [impl.strip() for impl in args.impls.split(",") if impl.strip()]
@@ -173,21 +206,7 @@ def main() -> int:
                "infinirl_vllm": vllm_python()}
     if pythons["infinirl_vllm"] is None and "infinirl_vllm" in wanted:
         wanted.remove("infinirl_vllm")  # vLLM not installed: no row (see scripts/setup_vllm_venv.sh)
-    results = {}
-    for impl in wanted:
-        start = time.perf_counter()
-        proc = subprocess.run([pythons[impl], __file__, "--only", impl, "--steps", str(args.steps),
-                               "--precision", args.precision], capture_output=True, text=True)
-        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
-        if proc.returncode or not lines:
-            results[impl] = {"skipped": f"exit {proc.returncode}: {proc.stderr[-1500:]}"}
-        else:
-            results[impl] = json.loads(lines[-1][7:])
-            results[impl]["median_step_s"] = _median_step(results[impl]["step_s"])
-        results[impl]["wall_s"] = round(time.perf_counter() - start, 1)
-        if impl == "infinirl_vllm":
-            results[impl]["python"] = pythons[impl]
-        print(f"[{impl}] {json.dumps(results[impl])[:400]}", file=sys.stderr, flush=True)
+    results = {impl: _run_row(impl, pythons[impl], args, async_threads) for impl in wanted}
 
     def median(impl):
         return results.get(impl, {}).get("median_step_s")
@@ -205,7 +224,7 @@ def main() -> int:
     targets = {"step_speed_vs_trl": 1.5, "step_speed_vs_trl_async": 2.5}
     final = {"benchmark": "grpo_vs_trl", "ratios": ratios, "targets": targets,
              "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
-             "precision": args.precision, "results": results}
+             "precision": args.precision, "async_threads": list(async_threads), "results": results}
     print(json.dumps(final))
     record_result(args.record, "GRPO step against TRL", final)
     return 0
