@@ -49,3 +49,9 @@ def test_embodied_eta_1_on_one_gpu_resumes_exactly(ray_cluster, tmp_path):
     trained = trained_rows(tmp_path / "straight", "train/policy_loss")
     assert [r["async/staleness_max"] for r in trained] == [0.0, 1.0, 1.0, 1.0]
     assert trained[0]["train/behaviour_logprob_abs_diff"] < 1e-4 < trained[2]["train/behaviour_logprob_abs_diff"]
+
+
+def test_partial_rollout_switch_on_cuda_matches_per_version_references():
+    from tests.unit.engines.test_hf_generate import switch_mid_generation
+
+    switch_mid_generation("cuda", 4)

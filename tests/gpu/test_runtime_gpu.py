@@ -63,6 +63,9 @@ class GpuWorker(Worker, WeightSource, WeightSink):
         time.sleep(seconds)
         return self.weight_version
 
+    def load_staged(self):
+        return self.apply_staged_weights(), self.weight_version
+
     def step_in_place(self):
         with torch.no_grad():
             for p in self.model.parameters():
@@ -142,6 +145,29 @@ def test_a_started_cuda_ipc_sync_frees_the_trainer_before_the_rollout_loads(ray_
         for name, tensor in published.items():
             assert torch.equal(received[name], tensor), name
             assert not torch.equal(stepped[name], tensor), name
+    finally:
+        trainer.shutdown()
+        rollout.shutdown()
+
+
+def test_cuda_ipc_weights_staged_beside_a_busy_rank_load_at_its_next_step(ray_cluster):
+    """Partial rollouts on one GPU: the weights are staged (CUDA IPC handles rebuilt on the rank's
+    event loop) while it is busy, then loaded by the rank itself."""
+    plan = place(ray_cluster.inventory, {"trainer": "0", "rollout": "0"})
+    trainer = WorkerGroup.launch(GpuWorker, "trainer", placement=plan.ranks("trainer"), args=(1,))
+    rollout = WorkerGroup.launch(GpuWorker, "rollout", placement=plan.ranks("rollout"), args=(2,))
+    try:
+        sync_weights(trainer, rollout, version=1)
+        busy = rollout.busy(3.0)
+        trainer.step_in_place().wait(timeout=60)
+        published = trainer.state().wait()[0]
+        start_weight_sync(trainer, rollout, version=2, interrupt=True).wait(timeout=60)
+        assert not busy.done()
+        trainer.step_in_place().wait(timeout=60)  # the staged copies are private: this must not leak in
+        assert busy.wait(timeout=60) == [1]
+        assert rollout.load_staged().wait(timeout=60) == [(True, 2)]
+        received = rollout.state().wait()[0]
+        assert all(torch.equal(received[name], tensor) for name, tensor in published.items())
     finally:
         trainer.shutdown()
         rollout.shutdown()

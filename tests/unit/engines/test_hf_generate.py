@@ -394,14 +394,13 @@ def per_token_reference(model, result, temperature: float, pad_token_id: int) ->
     return reference
 
 
-@pytest.mark.parametrize("switch_at", [1, 5])
-def test_a_weight_update_mid_generation_switches_every_unfinished_row(tiny, switch_at):
+def switch_mid_generation(device: str, switch_at: int) -> None:
     """Partial rollouts: new weights loaded between decode steps. Every token's log-prob is the
     slow full-forward log-prob under the weights that sampled it (old before the switch, new from
     it: the KV cache is rebuilt, not reused), and each token carries that version."""
-    old_model, tokenizer = tiny
-    new_model = tiny_causal_lm(tokenizer="byte", seed=1)[0]
-    engine = HFGenerateEngine(tiny_causal_lm(tokenizer="byte", seed=0)[0], tokenizer, eos_token_ids=[])
+    old_model, tokenizer = tiny_causal_lm(tokenizer="byte", seed=0)
+    new_model = tiny_causal_lm(tokenizer="byte", seed=1)[0].to(device)
+    engine = HFGenerateEngine(tiny_causal_lm(tokenizer="byte", seed=0)[0].to(device), tokenizer, eos_token_ids=[])
     calls = []
 
     def refresh():
@@ -418,12 +417,18 @@ def test_a_weight_update_mid_generation_switches_every_unfinished_row(tiny, swit
         assert r.weight_version == 0
         assert r.response_versions == [0] * switch_at + [7] * (9 - switch_at)
         old = per_token_reference(old_model, r, 0.8, tokenizer.pad_token_id)
-        new = per_token_reference(new_model, r, 0.8, tokenizer.pad_token_id)
+        new = per_token_reference(new_model.cpu(), r, 0.8, tokenizer.pad_token_id)
+        new_model.to(device)
         returned = torch.tensor(r.response_logprobs)
         torch.testing.assert_close(returned[:switch_at], old[:switch_at], atol=1e-5, rtol=0)
         torch.testing.assert_close(returned[switch_at:], new[switch_at:], atol=1e-5, rtol=0)
     engine.weight_refresh = None
     assert all(r.response_versions is None and r.weight_version == 7 for r in engine.generate(PROMPTS, sampling))
+
+
+@pytest.mark.parametrize("switch_at", [1, 5])
+def test_a_weight_update_mid_generation_switches_every_unfinished_row(switch_at):
+    switch_mid_generation("cpu", switch_at)
 
 
 def test_rows_finished_before_the_switch_keep_one_version(tiny):
