@@ -2,7 +2,8 @@
 
 import pytest
 
-from infinirl.runners.async_rollout import RolloutAhead, producing_version, staleness_metrics
+from infinirl.engines.base import GenerationResult
+from infinirl.runners.async_rollout import RolloutAhead, partial_rollout_metrics, producing_version, staleness_metrics
 
 
 class FakeRollout:
@@ -81,3 +82,13 @@ def test_a_skipped_batch_is_an_error_not_a_silent_loss():
 
 def test_staleness_metrics():
     assert staleness_metrics(5, [5, 4, 4, 3]) == {"async/staleness_mean": 1.0, "async/staleness_max": 2.0}
+
+
+def test_partial_rollout_metrics_weigh_each_token_by_its_own_version():
+    def result(version, n, versions=None):
+        return GenerationResult(prompt_ids=[1], response_ids=[2] * n, response_logprobs=[0.0] * n,
+                                finish_reason="length", weight_version=version, response_versions=versions)
+
+    results = [result(3, 2), result(3, 4, [3, 3, 4, 4])]  # at iteration 4: gaps 1,1 and 1,1,0,0
+    assert partial_rollout_metrics(4, results) == {"async/token_staleness_mean": 4 / 6,
+                                                   "async/interrupted_fraction": 0.5}
