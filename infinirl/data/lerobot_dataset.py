@@ -22,6 +22,8 @@ The writer builds everything in a hidden folder beside ``root`` and renames it i
 
 Video: H.264 (libx264), yuv420p, through the ffmpeg binary of ``imageio-ffmpeg``. A keyframe
 every ``gop`` frames (2, LeRobot's choice) keeps decoding one frame at a random timestamp cheap.
+Each episode is encoded on its own and the episodes of a file are joined without re-encoding
+(as LeRobot does), so a file's size is exact at every episode boundary.
 Statistics follow LeRobot's ``compute_episode_stats``/``aggregate_stats``, except that episode
 quantiles are exact (``numpy.quantile``) where LeRobot estimates them from a histogram.
 """
@@ -183,30 +185,71 @@ def _ffmpeg() -> Any:
     return imageio_ffmpeg
 
 
-class _Mp4Writer:
-    """One growing mp4 file: frames go to an ffmpeg process as they come."""
+def encode_mp4(path: Path, frames: np.ndarray, fps: int, settings: VideoSettings) -> None:
+    """Encode ``frames`` ``[T, H, W, 3]`` uint8 as one H.264 (yuv420p) mp4 at ``path``."""
+    ffmpeg = _ffmpeg()
+    height, width = frames.shape[1:3]
+    stream = ffmpeg.write_frames(
+        str(path), (width, height), fps=fps, codec="libx264", pix_fmt_in="rgb24", pix_fmt_out="yuv420p",
+        quality=None, macro_block_size=1, ffmpeg_log_level="error",
+        output_params=["-crf", str(settings.crf), "-g", str(settings.gop), "-preset", settings.preset],
+    )
+    stream.send(None)  # starts ffmpeg
+    for frame in frames:
+        stream.send(np.ascontiguousarray(frame))
+    stream.close()
 
-    def __init__(self, path: Path, height: int, width: int, fps: int, settings: VideoSettings) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
+
+def join_mp4(parts: Sequence[Path], path: Path) -> None:
+    """Concatenate mp4 files of one encoding into ``path`` without re-encoding: frame ``k`` of
+    part ``j`` keeps its pixels and lands at (frames of parts before ``j`` + ``k``) / fps."""
+    import subprocess
+
+    if len(parts) == 1:
+        os.replace(parts[0], path)
+        return
+    listing = path.with_name(path.name + ".parts.txt")
+    listing.write_text("".join(f"file '{part.resolve()}'\n" for part in parts))
+    command = [_ffmpeg().get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f", "concat", "-safe", "0",
+               "-i", str(listing), "-c", "copy", "-f", "mp4", str(path)]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    if done.returncode:
+        raise LeRobotDatasetError(f"joining {len(parts)} episode videos into {path} failed: "
+                                  f"{' '.join(done.stderr.split())[:300]}")
+    listing.unlink()
+    for part in parts:
+        part.unlink()
+
+
+class _VideoFile:
+    """One video file of the dataset while it is being written: each episode is encoded to a part
+    of its own (so the file's size is known exactly after every episode, and where the dataset
+    rolls over to a new file does not depend on encoder buffering), and the parts are joined,
+    without re-encoding, when the file is closed."""
+
+    def __init__(self, path: Path, fps: int, settings: VideoSettings) -> None:
         self.path = path
         self.frames = 0
-        self._stream = _ffmpeg().write_frames(
-            str(path), (width, height), fps=fps, codec="libx264", pix_fmt_in="rgb24", pix_fmt_out="yuv420p",
-            quality=None, macro_block_size=1, ffmpeg_log_level="error",
-            output_params=["-crf", str(settings.crf), "-g", str(settings.gop), "-preset", settings.preset],
-        )
-        self._stream.send(None)  # starts ffmpeg
+        self._fps = fps
+        self._settings = settings
+        self._parts: list[Path] = []
+        self._bytes = 0
 
     def write(self, frames: np.ndarray) -> None:
-        for frame in frames:
-            self._stream.send(np.ascontiguousarray(frame))
+        part = self.path.with_name(f".{self.path.stem}.part-{len(self._parts):06d}.mp4")
+        part.parent.mkdir(parents=True, exist_ok=True)
+        encode_mp4(part, frames, self._fps, self._settings)
+        self._parts.append(part)
+        self._bytes += part.stat().st_size
         self.frames += len(frames)
 
     def size_mb(self) -> float:
-        return self.path.stat().st_size / _MB if self.path.exists() else 0.0
+        return self._bytes / _MB
 
     def close(self) -> None:
-        self._stream.close()
+        if self._parts:
+            join_mp4(self._parts, self.path)
+            self._parts = []
 
 
 def read_video_frames(path: Path, start_s: float, count: int, fps: int) -> np.ndarray:
@@ -294,8 +337,8 @@ class LeRobotDatasetWriter:
         video: VideoSettings | None = None,
         overwrite: bool = False,
         chunks_size: int = 1000,
-        data_files_size_in_mb: int = 100,
-        video_files_size_in_mb: int = 200,
+        data_files_size_in_mb: float = 100,
+        video_files_size_in_mb: float = 200,
     ) -> None:
         self.root = Path(root)
         if self.root.exists() and not overwrite:
@@ -322,7 +365,7 @@ class LeRobotDatasetWriter:
         self._data_bytes = 0
         self._data_writer: Any = None
         self._video_files = {key: (0, 0) for key in self.video_keys}
-        self._video_writers: dict[str, _Mp4Writer] = {}
+        self._video_writers: dict[str, _VideoFile] = {}
         self._closed = False
 
     @property
@@ -459,9 +502,8 @@ class LeRobotDatasetWriter:
             self._video_files[key] = _update_chunk_file(*self._video_files[key], self._limits["chunks_size"])
         chunk, file = self._video_files[key]
         if writer is None:
-            height, width, _ = self.features[key]["shape"]
             path = self._tmp / VIDEO_PATH.format(video_key=key, chunk_index=chunk, file_index=file)
-            writer = self._video_writers[key] = _Mp4Writer(path, height, width, self.fps, self.video)
+            writer = self._video_writers[key] = _VideoFile(path, self.fps, self.video)
         start = writer.frames / self.fps
         writer.write(frames)
         return {f"videos/{key}/chunk_index": chunk, f"videos/{key}/file_index": file,
