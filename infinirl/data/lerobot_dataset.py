@@ -77,6 +77,7 @@ NUMERIC_DTYPES = ("float32", "float64", "int32", "int64", "bool")
 VIDEO_DTYPE = "video"
 _MB = 1024 * 1024
 _PANDAS_INDEX_COLUMN = "__index_level_0__"  # where pandas keeps an unnamed index in a parquet file
+_FFMPEG_TIMEOUT_S = 600  # one episode's video; far above what encoding or joining takes, so only a hang hits it
 FFMPEG_HINT = "pip install imageio-ffmpeg (it comes with `pip install 'infinirl[sim]'`)"
 
 
@@ -189,15 +190,20 @@ def encode_mp4(path: Path, frames: np.ndarray, fps: int, settings: VideoSettings
     """Encode ``frames`` ``[T, H, W, 3]`` uint8 as one H.264 (yuv420p) mp4 at ``path``."""
     ffmpeg = _ffmpeg()
     height, width = frames.shape[1:3]
-    stream = ffmpeg.write_frames(
-        str(path), (width, height), fps=fps, codec="libx264", pix_fmt_in="rgb24", pix_fmt_out="yuv420p",
-        quality=None, macro_block_size=1, ffmpeg_log_level="error",
-        output_params=["-crf", str(settings.crf), "-g", str(settings.gop), "-preset", settings.preset],
-    )
-    stream.send(None)  # starts ffmpeg
-    for frame in frames:
-        stream.send(np.ascontiguousarray(frame))
-    stream.close()
+    try:
+        stream = ffmpeg.write_frames(
+            str(path), (width, height), fps=fps, codec="libx264", pix_fmt_in="rgb24", pix_fmt_out="yuv420p",
+            quality=None, macro_block_size=1, ffmpeg_log_level="error", ffmpeg_timeout=_FFMPEG_TIMEOUT_S,
+            output_params=["-crf", str(settings.crf), "-g", str(settings.gop), "-preset", settings.preset],
+        )
+        stream.send(None)  # starts ffmpeg
+        for frame in frames:
+            stream.send(np.ascontiguousarray(frame))
+        stream.close()
+    except OSError as exc:
+        raise LeRobotDatasetError(f"encoding {path} failed: {' '.join(str(exc).split())[:300]}") from None
+    if not path.is_file() or not path.stat().st_size:
+        raise LeRobotDatasetError(f"encoding {path} produced no file: ffmpeg stopped early (a full disk?)")
 
 
 def join_mp4(parts: Sequence[Path], path: Path) -> None:
@@ -212,7 +218,7 @@ def join_mp4(parts: Sequence[Path], path: Path) -> None:
     listing.write_text("".join(f"file '{part.resolve()}'\n" for part in parts))
     command = [_ffmpeg().get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f", "concat", "-safe", "0",
                "-i", str(listing), "-c", "copy", "-f", "mp4", str(path)]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    done = subprocess.run(command, capture_output=True, text=True, timeout=_FFMPEG_TIMEOUT_S)
     if done.returncode:
         raise LeRobotDatasetError(f"joining {len(parts)} episode videos into {path} failed: "
                                   f"{' '.join(done.stderr.split())[:300]}")
@@ -670,9 +676,11 @@ class LeRobotDatasetReader:
     """Read a LeRobotDataset v3.0 folder (ours or LeRobot's, with video features).
 
     ``reader[i]``: frame ``i`` as a dict: every feature as a numpy array of its shape (scalars
-    ``(1,)`` as 0-d arrays), video frames as uint8 ``[H, W, 3]``, and ``"task"`` (the instruction).
-    ``reader.episode(e)``: the whole episode, every feature stacked over time ``[T, ...]``.
-    Frames of the ``episode_cache`` most recently decoded episodes are kept, so reading the frames
+    ``(1,)`` as numpy scalars), video frames as uint8 ``[H, W, 3]``, and ``"task"`` (the
+    instruction). ``reader.episode(e)``: the whole episode, every feature stacked over time
+    ``[T, ...]``. Arrays are read-only views. The numeric columns of all frames are loaded when
+    the reader opens (a few hundred bytes a frame); videos are decoded per episode when asked
+    for, and the ``episode_cache`` most recently decoded episodes are kept, so reading the frames
     of one episode in turn decodes its video once.
     """
 
@@ -767,6 +775,7 @@ class LeRobotDatasetReader:
         for key in keys:
             shape = tuple(self.features[key]["shape"])
             data[key] = _numpy_column(table.column(key), () if shape == (1,) else shape)
+            data[key].flags.writeable = False
         if not np.array_equal(data["index"], np.arange(len(data["index"]))):
             raise LeRobotDatasetError(f"{self.root / 'data'}: the frames' index column is not 0, 1, 2, ... in file "
                                       "order; the dataset is corrupt")
@@ -800,6 +809,8 @@ class LeRobotDatasetReader:
         for key in self.video_keys:
             start = float(self._episodes[f"videos/{key}/from_timestamp"][episode])
             frames[key] = read_video_frames(self._video_path(key, episode), start, length, self.fps)
+        for array in frames.values():
+            array.flags.writeable = False
         self._cache[episode] = frames
         if len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)
