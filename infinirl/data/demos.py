@@ -35,6 +35,7 @@ from infinirl.registry import Registry
 __all__ = [
     "DEMO_SOURCES",
     "INSTRUCTION_STYLES",
+    "METAWORLD_CAMERAS",
     "METAWORLD_FPS",
     "METAWORLD_INSTRUCTIONS",
     "DemoReport",
@@ -66,6 +67,9 @@ METAWORLD_INSTRUCTIONS = {
     "window-close-v3": "push and close a window",
 }
 """The Meta-World paper's one-line description of each MT10 task."""
+
+METAWORLD_CAMERAS = ("topview", "corner", "corner2", "corner3", "corner4", "behindGripper", "gripperPOV")
+"""The cameras every MetaWorld v3 scene has."""
 
 _HAND = ["hand_x", "hand_y", "hand_z", "gripper_opening"]
 _OBJECTS = [f"{obj}_{part}" for obj in ("obj1", "obj2") for part in ("x", "y", "z", "qw", "qx", "qy", "qz")]
@@ -247,6 +251,8 @@ def collect_metaworld_demos(spec: DemoSpec) -> DemoReport:
     from infinirl.envs.experts import make_expert
     from infinirl.envs.registry import make_env
 
+    if spec.camera not in METAWORLD_CAMERAS:
+        raise ValueError(f"unknown MetaWorld camera {spec.camera!r}; cameras: {', '.join(METAWORLD_CAMERAS)}")
     if spec.instructions == "natural":
         for task in spec.tasks:
             _instruction(task, "", "natural")  # refuse before any episode runs

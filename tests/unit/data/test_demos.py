@@ -10,6 +10,7 @@ pytest.importorskip("pyarrow")
 
 from infinirl.cli import main  # noqa: E402
 from infinirl.data.demos import (  # noqa: E402
+    METAWORLD_CAMERAS,
     METAWORLD_FPS,
     METAWORLD_INSTRUCTIONS,
     METAWORLD_STATE_NAMES,
@@ -64,6 +65,8 @@ def test_metaworld_tables_match_the_simulator():
     try:
         assert METAWORLD_FPS == round(1.0 / env._sim.dt)  # the rate the dataset's timestamps claim
         assert len(METAWORLD_STATE_NAMES) == env.observation_spec["state"].shape[0] == 39
+        model = env._sim.model
+        assert METAWORLD_CAMERAS == tuple(model.camera(i).name for i in range(model.ncam))
     finally:
         env.close()
 
@@ -99,6 +102,7 @@ def test_demos_command_refuses_bad_arguments_in_one_line(tmp_path, capsys):
     base = ["--episodes-per-task", "1", "--out", str(tmp_path / "x")]
     assert "unknown MetaWorld task 'reach-v9'" in error("metaworld", "--tasks", "reach-v9", *base)
     assert "unknown demonstration source 'metaworlds'" in error("metaworlds", "--tasks", "reach-v3", *base)
+    assert "unknown MetaWorld camera 'nope'" in error("metaworld", "--tasks", "reach-v3", "--camera", "nope", *base)
     assert "image_size must be even" in error("metaworld", "--tasks", "reach-v3", "--image-size", "33", *base)
     assert "'natural' has sentences for the MT10 tasks only" in error(
         "metaworld", "--tasks", "reach-wall-v3", "--instructions", "natural", *base)
