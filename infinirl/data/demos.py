@@ -38,6 +38,7 @@ __all__ = [
     "METAWORLD_CAMERAS",
     "METAWORLD_FPS",
     "METAWORLD_INSTRUCTIONS",
+    "METAWORLD_STATE_NAMES",
     "DemoReport",
     "DemoSource",
     "DemoSpec",
@@ -46,6 +47,7 @@ __all__ = [
     "collect_metaworld_demos",
     "demos_command",
     "metaworld_features",
+    "record_episode",
     "resolve_metaworld_tasks",
 ]
 

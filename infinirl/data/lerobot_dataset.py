@@ -51,8 +51,12 @@ __all__ = [
     "LeRobotDatasetReader",
     "LeRobotDatasetWriter",
     "VideoSettings",
-    "episode_stats",
     "aggregate_stats",
+    "encode_mp4",
+    "episode_stats",
+    "join_mp4",
+    "load_info",
+    "read_video_frames",
 ]
 
 CODEBASE_VERSION = "v3.0"
