@@ -1,4 +1,5 @@
-"""`infinirl` command line: train / eval / validate / list, on Hydra configs validated before anything starts."""
+"""`infinirl` command line: train / eval / validate / list, on Hydra configs validated before anything starts;
+`demos` records demonstration datasets."""
 
 from __future__ import annotations
 
@@ -111,6 +112,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"infinirl: record: {exc}", file=sys.stderr)
             return 2
         return 0
+    if args.command == "demos":
+        from infinirl.data.demos import demos_command
+
+        return demos_command(args)
     if args.command == "list":
         runners = _runners()
         print("configs:", ", ".join(available_configs()))
@@ -162,6 +167,23 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
     record.add_argument("source", help="a run's output_dir (its summary.json) or a JSON file")
     record.add_argument("--to", default="docs/results.md", help="the results file (default: docs/results.md)")
     record.add_argument("--title", default=None, help="the entry's title (default: the run's)")
+    demos = sub.add_parser("demos", help="record scripted-expert demonstrations as a LeRobotDataset (v3.0) for "
+                                         "behaviour cloning (docs/datasets.md)")
+    demos.add_argument("source", help="where the experts come from: metaworld")
+    demos.add_argument("--tasks", required=True, help="comma-separated task names or a benchmark, e.g. "
+                                                      "reach-v3,push-v3 or MT10")
+    demos.add_argument("--episodes-per-task", type=int, required=True, help="successful episodes to keep per task")
+    demos.add_argument("--out", required=True, help="the dataset folder to create")
+    demos.add_argument("--image-size", type=int, default=64, help="camera frames are SIZE x SIZE (even; default 64)")
+    demos.add_argument("--camera", default="corner", help="the camera recorded (default: corner)")
+    demos.add_argument("--seed", type=int, default=0, help="seeds the task layouts and the action noise")
+    demos.add_argument("--noise-std", type=float, default=0.0,
+                       help="Gaussian noise added to the expert's actions, for more varied states (default 0)")
+    demos.add_argument("--instructions", choices=["env", "natural"], default="env",
+                       help="task strings: the env's own instruction (what a policy sees when evaluated) or the "
+                            "Meta-World paper's sentence (MT10 tasks)")
+    demos.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
+    demos.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
 
