@@ -63,12 +63,6 @@ class PrefixCache:
     pad_mask: torch.Tensor
     hidden: torch.Tensor
 
-    def repeat_interleave(self, repeats: int) -> PrefixCache:
-        """Each sample's cache ``repeats`` times in a row (to evaluate many steps in one batch)."""
-        kv = [(k.repeat_interleave(repeats, 0), v.repeat_interleave(repeats, 0)) for k, v in self.kv]
-        return PrefixCache(kv=kv, pad_mask=self.pad_mask.repeat_interleave(repeats, 0),
-                           hidden=self.hidden.repeat_interleave(repeats, 0))
-
 
 class PiZero(nn.Module):
     """π0 (``config.family == "pi0"``) or π0.5 (``"pi05"``); weights named as :mod:`.checkpoint` maps."""

@@ -43,12 +43,12 @@ class VLAInputs:
     token_mask: torch.Tensor
     state: torch.Tensor | None
 
-    def repeat_interleave(self, repeats: int) -> VLAInputs:
-        def rep(x):
-            return None if x is None else x.repeat_interleave(repeats, 0)
+    def to(self, device) -> VLAInputs:
+        def move(x):
+            return None if x is None else x.to(device)
 
-        return VLAInputs(images=[rep(i) for i in self.images], image_masks=[rep(m) for m in self.image_masks],
-                         tokens=rep(self.tokens), token_mask=rep(self.token_mask), state=rep(self.state))
+        return VLAInputs(images=[move(i) for i in self.images], image_masks=[move(m) for m in self.image_masks],
+                         tokens=move(self.tokens), token_mask=move(self.token_mask), state=move(self.state))
 
 
 def resize_with_pad(images: torch.Tensor, height: int, width: int) -> torch.Tensor:

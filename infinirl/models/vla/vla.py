@@ -44,7 +44,8 @@ class VLA(nn.Module):
         return self.model.config
 
     def inputs(self, observation: dict[str, Any]) -> VLAInputs:
-        return self.processor.inputs(observation)
+        """The model's inputs, on the model's device (observations may arrive in host memory)."""
+        return self.processor.inputs(observation).to(self.model.action_in_proj.weight.device)
 
     @torch.no_grad()
     def predict_action_chunk(self, observation: dict[str, Any], noise: torch.Tensor | None = None,

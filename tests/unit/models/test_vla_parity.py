@@ -91,3 +91,14 @@ def test_resize_with_pad_keeps_aspect_and_pads_black():
     assert out.shape == (1, 3, 8, 8)
     assert torch.equal(out[:, :, 2:6], torch.ones(1, 3, 4, 8))
     assert torch.equal(out[:, :, :2], torch.zeros(1, 3, 2, 8)) and torch.equal(out[:, :, 6:], torch.zeros(1, 3, 2, 8))
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_bfloat16_runs_near_the_float32_reference(family):
+    """bfloat16 weights (statistics and the denoising state stay float32): same actions to bf16 precision."""
+    vla = load(family, dtype=torch.bfloat16)
+    ref = reference(family)
+    actions = vla.predict_action_chunk(raw_observation(family), noise=ref["noise"])
+    assert actions.dtype == torch.float32
+    scale = ref["sampled_actions"].abs().max().item()
+    assert (actions - ref["sampled_actions"]).abs().max().item() <= 0.05 * scale
