@@ -102,7 +102,7 @@ class PiZeroPolicy(Policy):
 
     def inputs(self, obs: Mapping[str, Any]) -> VLAInputs:
         observation = {camera: obs[key] for key, camera in self.cameras.items()}
-        observation[STATE] = obs[self.state_key][:, :self.vla.config.state_dim]
+        observation[STATE] = obs[self.state_key]
         instructions = obs[self.instruction_key]
         observation[TASK] = [instructions] if isinstance(instructions, str) else list(instructions)
         return self.vla.inputs(observation)

@@ -116,3 +116,11 @@ def test_checkpoint_and_env_must_agree():
         policy("pi0", chunk=5)
     with pytest.raises(ValueError, match="does not have"):
         policy("pi0", cameras={"rgb": "observation.images.top"})
+
+
+def test_env_state_of_another_width_is_refused(case):
+    family, pi = case
+    obs = env_obs(family)
+    obs["state"] = torch.zeros(2, 9)
+    with pytest.raises(ValueError, match=r"expects \[B, 5\]"):
+        pi.act(obs)
