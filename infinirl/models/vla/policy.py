@@ -1,0 +1,211 @@
+"""π0 / π0.5 as a :class:`~infinirl.models.policies.base.Policy`: flow-SDE log-probs for PPO/GRPO.
+
+Registered names: ``pi0`` and ``pi05`` (:class:`PiZeroPolicy`; the checkpoint folder must be of
+that family). The denoising loop is the flow head's (:mod:`infinirl.models.policies.flow`): ``N``
+steps ``tau_k = k / N`` from ``x_0 ~ N(0, I)``, each a Gaussian transition from
+:func:`~infinirl.models.policies.flow.flow_sde_transition` (marginal-preserving flow SDE,
+Flow-GRPO's ``sigma_k``), with π0's network as the velocity: π0 time ``t = 1 - tau`` and velocity
+``v = -v_pi0``. Deterministic acting is π0's own Euler sampler, step for step.
+
+The chain lives in the model's space (normalised, padded ``[chunk_size, max_action_dim]``); the
+env receives the first ``chunk`` rows and ``action_dim`` dims, unnormalised. Log-probs sum the
+transition densities of exactly those executed coordinates (the padding and the unexecuted tail
+are sampled but not credited, as in pi_RL): ``[B, chunk]``, one per executed action.
+:meth:`PiZeroPolicy.evaluate` recomputes them from the recorded chain (``extras["chain"]``,
+``extras["sde_mask"]``), with gradients through the action expert and the VLM prefix.
+
+Observations: the env's dict (``rgb`` uint8 ``[B, H, W, 3]``, ``state``, ``instruction``: list of
+str) is renamed to the checkpoint's keys by ``cameras`` (env key -> checkpoint camera key),
+``state_key`` and ``instruction_key``. An optional critic (``value_head``) reads the mean of the
+VLM's prefix hidden states.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import nn
+
+from infinirl.models.policies.base import POLICIES, Policy, PolicyEval, PolicyStep
+from infinirl.models.policies.flow import flow_sde_sigmas, flow_sde_transition, flow_timesteps
+from infinirl.models.policies.heads import gaussian_entropy
+from infinirl.models.policies.mlp import gaussian_logprob
+from infinirl.models.vla.config import VLAArchitecture
+from infinirl.models.vla.processor import STATE, TASK, VLAInputs
+
+if TYPE_CHECKING:
+    from infinirl.models.vla.model import PrefixCache
+
+__all__ = ["PiZeroFivePolicy", "PiZeroPolicy"]
+
+SDE_STEPS = ("all", "one")
+
+
+@POLICIES.register("pi0")
+class PiZeroPolicy(Policy):
+    """A LeRobot π0/π0.5 checkpoint acting in an env with flow-SDE exploration.
+
+    Args:
+        checkpoint: the LeRobot checkpoint folder (:func:`~infinirl.models.vla.load_vla`).
+        action_dim / chunk: the env's action dims and actions per decision (at most the
+            checkpoint's ``action_dim`` / ``chunk_size``).
+        tokenizer: the tokenizer's local folder (PaliGemma's), unless the checkpoint has ``tokenizer/``.
+        architecture: an ``architecture.json`` path for checkpoints of non-published sizes.
+        cameras: env observation key -> checkpoint camera key (default: ``rgb`` -> the first camera).
+        state_key / instruction_key: the env's state and instruction fields.
+        num_steps: denoising steps (default: the checkpoint's ``num_inference_steps``).
+        noise_level: Flow-SDE's ``a``; sde_steps: ``"all"`` or ``"one"`` stochastic step(s).
+        value_head: add a critic on the pooled prefix; value_hidden: its hidden width.
+    """
+
+    family: str | None = "pi0"
+
+    def __init__(self, checkpoint: str, action_dim: int, chunk: int = 1, tokenizer: str | None = None,
+                 architecture: str | None = None, cameras: Mapping[str, str] | None = None,
+                 state_key: str = "state", instruction_key: str = "instruction", num_steps: int | None = None,
+                 noise_level: float = 0.5, sde_steps: str = "all", value_head: bool = True, value_hidden: int = 256,
+                 dtype: str = "float32"):
+        # Imported here, not at the top: the policy registry imports this module in every process
+        # that builds any policy, and transformers' model classes take seconds to import.
+        from infinirl.models.vla.vla import load_vla
+
+        super().__init__()
+        if sde_steps not in SDE_STEPS:
+            raise ValueError(f"sde_steps must be one of {SDE_STEPS}, got {sde_steps!r}")
+        if noise_level <= 0:
+            raise ValueError("flow_sde needs noise_level > 0 (its log-probs are Gaussian densities)")
+        arch = VLAArchitecture.from_json(architecture) if architecture else None
+        self.vla = load_vla(Path(checkpoint), family=self.family, architecture=arch, tokenizer=tokenizer,
+                            dtype=getattr(torch, dtype))
+        config = self.vla.config
+        if action_dim > config.action_dim or chunk > config.chunk_size:
+            raise ValueError(f"the env wants chunks of {chunk} x {action_dim}, the checkpoint gives "
+                             f"{config.chunk_size} x {config.action_dim} (chunk_size x action dims)")
+        self.action_dim, self.chunk = action_dim, chunk
+        self.num_steps = num_steps or config.num_inference_steps
+        self.noise_level, self.sde_steps = float(noise_level), sde_steps
+        self.cameras = dict(cameras or {"rgb": config.camera_keys[0]})
+        unknown = sorted(set(self.cameras.values()) - set(config.camera_keys))
+        if unknown:
+            raise ValueError(f"cameras maps to {unknown}, which the checkpoint does not have: "
+                             f"{list(config.camera_keys)}")
+        self.state_key, self.instruction_key = state_key, instruction_key
+        self.has_value_head = value_head
+        width = config.architecture.vlm.width
+        self.value_net = (nn.Sequential(nn.Linear(width, value_hidden), nn.SiLU(), nn.Linear(value_hidden, 1))
+                          if value_head else None)
+
+    # --- observations ------------------------------------------------------------------------
+
+    def inputs(self, obs: Mapping[str, Any]) -> VLAInputs:
+        observation = {camera: obs[key] for key, camera in self.cameras.items()}
+        observation[STATE] = obs[self.state_key]
+        instructions = obs[self.instruction_key]
+        observation[TASK] = [instructions] if isinstance(instructions, str) else list(instructions)
+        return self.vla.inputs(observation)
+
+    def _prefix(self, x: VLAInputs) -> PrefixCache:
+        return self.vla.model.encode_prefix(x.images, x.image_masks, x.tokens, x.token_mask)
+
+    def _values(self, prefix: PrefixCache) -> torch.Tensor | None:
+        if self.value_net is None:
+            return None
+        weight = prefix.pad_mask.to(prefix.hidden.dtype)[..., None]
+        pooled = (prefix.hidden * weight).sum(1) / weight.sum(1).clamp_min(1.0)
+        return self.value_net(pooled.float()).squeeze(-1)
+
+    # --- denoising ---------------------------------------------------------------------------
+
+    def transition(self, prefix: PrefixCache, state: torch.Tensor | None, x: torch.Tensor,
+                   k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Step ``k`` from ``x`` (model space): the SDE transition's ``(mean, std)`` and the ODE step."""
+        timesteps = flow_timesteps(self.num_steps, torch.float32, x.device)
+        tau, dtau = timesteps[k], timesteps[k + 1] - timesteps[k]
+        time = torch.full((x.shape[0],), 1.0, device=x.device) - tau
+        v = -self.vla.model.velocity(prefix, state, x, time).float()
+        sigma = flow_sde_sigmas(timesteps, self.noise_level)[k]
+        mean, std = flow_sde_transition(x, v, tau, dtau, sigma)
+        return mean, std.expand_as(mean), x + v * dtau
+
+    def _credited(self, values: torch.Tensor) -> torch.Tensor:
+        """``[B, chunk_size, max_action_dim]`` -> the executed coordinates summed over dims ``[B, chunk]``."""
+        return values[:, :self.chunk, :self.action_dim].sum(-1)
+
+    def sde_mask(self, batch: int, deterministic: bool, device) -> torch.Tensor:
+        if deterministic or self.sde_steps == "all":
+            return torch.ones(batch, self.num_steps, dtype=torch.bool, device=device)
+        chosen = torch.randint(self.num_steps, (batch,), device=device)
+        return torch.nn.functional.one_hot(chosen, self.num_steps).bool()
+
+    @torch.no_grad()
+    def denoise(self, x: VLAInputs, noise: torch.Tensor, deterministic: bool = False,
+                mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, PrefixCache]:
+        """The chain ``[B, N + 1, chunk_size, max_action_dim]`` from ``noise``, its log-probs
+        ``[B, chunk]``, the SDE mask ``[B, N]`` and the prefix (ODE steps when ``deterministic``)."""
+        prefix = self._prefix(x)
+        batch = noise.shape[0]
+        mask = self.sde_mask(batch, deterministic, noise.device) if mask is None else mask
+        chain, logprobs = [noise.float()], torch.zeros(batch, self.chunk, device=noise.device)
+        current = chain[0]
+        for k in range(self.num_steps):
+            mean, std, ode = self.transition(prefix, x.state, current, k)
+            stochastic = mask[:, k, None, None]
+            sampled = ode if deterministic else mean + std * torch.randn_like(mean)
+            current = torch.where(stochastic, sampled, ode)
+            step = self._credited(gaussian_logprob(current, mean, std.log()))
+            logprobs = logprobs + torch.where(mask[:, k, None], step, torch.zeros_like(step))
+            chain.append(current)
+        return torch.stack(chain, dim=1), logprobs, mask, prefix
+
+    # --- the Policy interface ----------------------------------------------------------------
+
+    def act(self, obs, deterministic: bool = False) -> PolicyStep:
+        x = self.inputs(obs)
+        config = self.vla.config
+        device = x.tokens.device
+        noise = torch.randn(x.tokens.shape[0], config.chunk_size, config.max_action_dim, device=device)
+        chain, logprobs, mask, prefix = self.denoise(x, noise, deterministic)
+        actions = self.vla.processor.actions_out(chain[:, -1])[:, :self.chunk, :self.action_dim]
+        with torch.no_grad():
+            values = self._values(prefix)
+        return PolicyStep(actions=actions, logprobs=logprobs, values=values,
+                          extras={"chain": chain, "sde_mask": mask})
+
+    def evaluate(self, obs, actions, extras=None, with_entropy: bool = True) -> PolicyEval:
+        """Differentiable log-probs of the recorded chains (the actions are their executed part)."""
+        if not extras or "chain" not in extras:
+            raise ValueError("pi0.evaluate needs extras['chain'] (and 'sde_mask') from act()")
+        chain = extras["chain"].detach().float()
+        if chain.shape[1] != self.num_steps + 1:
+            raise ValueError(f"extras['chain'] has {chain.shape[1] - 1} denoising steps, the policy {self.num_steps}")
+        mask = extras.get("sde_mask")
+        if mask is None:
+            mask = torch.ones(chain.shape[0], self.num_steps, dtype=torch.bool, device=chain.device)
+        x = self.inputs(obs)
+        prefix = self._prefix(x)
+        logprobs = torch.zeros(chain.shape[0], self.chunk, device=chain.device)
+        entropy = torch.zeros_like(logprobs)
+        for k in range(self.num_steps):
+            mean, std, _ = self.transition(prefix, x.state, chain[:, k], k)
+            keep = mask[:, k, None].bool()
+            step = self._credited(gaussian_logprob(chain[:, k + 1], mean, std.log()))
+            logprobs = logprobs + torch.where(keep, step, torch.zeros_like(step))
+            if with_entropy:
+                ent = self._credited(gaussian_entropy(std.log()))
+                entropy = entropy + torch.where(keep, ent, torch.zeros_like(ent))
+        return PolicyEval(logprobs=logprobs, entropy=entropy if with_entropy else None, values=self._values(prefix))
+
+    def value(self, obs) -> torch.Tensor:
+        if self.value_net is None:
+            raise NotImplementedError("this pi0 policy was built with value_head=False")
+        return self._values(self._prefix(self.inputs(obs)))
+
+
+@POLICIES.register("pi05")
+class PiZeroFivePolicy(PiZeroPolicy):
+    """:class:`PiZeroPolicy` insisting on a π0.5 checkpoint."""
+
+    family = "pi05"

@@ -1,0 +1,126 @@
+"""π0 / π0.5 as RL policies: flow-SDE log-probs of the denoising chain, and the ODE path is
+LeRobot's own sampler (checked against the reference chunk)."""
+
+import math
+
+import pytest
+import torch
+
+from infinirl.models.policies.base import build_policy
+from infinirl.models.policies.flow import flow_sde_sigmas, flow_timesteps
+from tests.unit.models.vla_fixtures import FAMILIES, FIXTURES, TOKENIZER, raw_observation, reference
+
+CAMERAS = {"rgb": "observation.images.base_0_rgb", "wrist_rgb": "observation.images.left_wrist_0_rgb"}
+
+
+def policy(family, **kwargs):
+    options = dict(checkpoint=str(FIXTURES / family), architecture=str(FIXTURES / "architecture.json"),
+                   tokenizer=str(TOKENIZER), action_dim=3, chunk=2, cameras=CAMERAS, value_hidden=16)
+    options.update(kwargs)
+    return build_policy(family, **options)
+
+
+def env_obs(family):
+    """The reference's raw inputs under env keys (float CHW images are accepted as well as uint8 HWC)."""
+    raw = raw_observation(family)
+    return {"rgb": raw["observation.images.base_0_rgb"], "wrist_rgb": raw["observation.images.left_wrist_0_rgb"],
+            "state": raw["observation.state"], "instruction": raw["task"]}
+
+
+@pytest.fixture(scope="module", params=FAMILIES)
+def case(request):
+    torch.manual_seed(0)
+    return request.param, policy(request.param)
+
+
+def test_ode_path_is_the_reference_sampler(case):
+    family, pi = case
+    ref = reference(family)
+    chain, _, _, _ = pi.denoise(pi.inputs(env_obs(family)), ref["noise"], deterministic=True)
+    error = (chain[:, -1] - ref["sampled_normalized"]).abs().max().item()
+    assert error <= 1e-5 * max(ref["sampled_normalized"].abs().max().item(), 1.0)
+
+
+def reference_logprob(pi, obs, chain, mask):
+    """Float64 loop: each step's Gaussian written out (Flow-GRPO's SDE step in tau = 1 - t, with
+    velocity -v_pi0), summed over the executed rows/dims and the stochastic steps."""
+    inputs = pi.inputs(obs)
+    prefix = pi.vla.model.encode_prefix(inputs.images, inputs.image_masks, inputs.tokens, inputs.token_mask)
+    steps = pi.num_steps
+    taus = flow_timesteps(steps, torch.float64)
+    sigmas = flow_sde_sigmas(taus, pi.noise_level)
+    total = torch.zeros(chain.shape[0], pi.chunk, dtype=torch.float64)
+    for k in range(steps):
+        x = chain[:, k].double()
+        t = torch.full((x.shape[0],), 1.0 - k / steps)
+        v = -pi.vla.model.velocity(prefix, inputs.state, x.float(), t).double()
+        tau, dtau, sigma = taus[k].item(), 1.0 / steps, sigmas[k].item()
+        mean = x + v * dtau - sigma**2 * dtau / (2 * (1 - tau)) * (x - tau * v)
+        std = sigma * math.sqrt(dtau)
+        logp = torch.distributions.Normal(mean, std).log_prob(chain[:, k + 1].double())
+        total += logp[:, :pi.chunk, :pi.action_dim].sum(-1) * mask[:, k, None]
+    return total
+
+
+def test_act_logprobs_match_evaluate_and_a_float64_loop(case):
+    family, pi = case
+    obs = env_obs(family)
+    torch.manual_seed(1)
+    step = pi.act(obs)
+    assert step.actions.shape == (2, 2, 3) and step.logprobs.shape == (2, 2) and step.values.shape == (2,)
+    assert step.extras["chain"].shape == (2, pi.num_steps + 1, 4, 8)
+    evaluated = pi.evaluate(obs, step.actions, step.extras)
+    torch.testing.assert_close(evaluated.logprobs, step.logprobs, atol=1e-4, rtol=1e-5)
+    with torch.no_grad():
+        expected = reference_logprob(pi, obs, step.extras["chain"], step.extras["sde_mask"])
+    torch.testing.assert_close(evaluated.logprobs.double(), expected, atol=1e-3, rtol=1e-5)
+    assert evaluated.entropy.shape == (2, 2) and evaluated.values.shape == (2,)
+
+
+def test_actions_are_the_chain_end_in_env_units(case):
+    family, pi = case
+    torch.manual_seed(2)
+    step = pi.act(env_obs(family), deterministic=True)
+    expected = pi.vla.processor.actions_out(step.extras["chain"][:, -1])[:, :2, :3]
+    torch.testing.assert_close(step.actions, expected)
+
+
+def test_evaluate_is_differentiable(case):
+    family, pi = case
+    obs = env_obs(family)
+    torch.manual_seed(3)
+    step = pi.act(obs)
+    pi.zero_grad()
+    evaluated = pi.evaluate(obs, step.actions, step.extras)
+    (evaluated.logprobs.sum() + evaluated.values.sum()).backward()
+    model = pi.vla.model
+    for name, module in (("expert", model.expert), ("vlm", model.vlm), ("critic", pi.value_net)):
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in module.parameters()), name
+    pi.zero_grad()
+
+
+def test_one_stochastic_step():
+    pi = policy("pi0", sde_steps="one", value_head=False)
+    obs = env_obs("pi0")
+    torch.manual_seed(4)
+    step = pi.act(obs)
+    assert step.values is None and step.extras["sde_mask"].sum(1).tolist() == [1, 1]
+    evaluated = pi.evaluate(obs, step.actions, step.extras, with_entropy=False)
+    torch.testing.assert_close(evaluated.logprobs, step.logprobs, atol=1e-4, rtol=1e-5)
+
+
+def test_checkpoint_and_env_must_agree():
+    with pytest.raises(ValueError, match="'pi0' checkpoint, not 'pi05'"):
+        policy("pi05", checkpoint=str(FIXTURES / "pi0"))
+    with pytest.raises(ValueError, match="chunks of 5 x 3"):
+        policy("pi0", chunk=5)
+    with pytest.raises(ValueError, match="does not have"):
+        policy("pi0", cameras={"rgb": "observation.images.top"})
+
+
+def test_env_state_of_another_width_is_refused(case):
+    family, pi = case
+    obs = env_obs(family)
+    obs["state"] = torch.zeros(2, 9)
+    with pytest.raises(ValueError, match=r"expects \[B, 5\]"):
+        pi.act(obs)
