@@ -355,7 +355,7 @@ class LiberoSubEnv:
 
         An init state holds the joint positions, so it places the robot and the movable objects;
         the fixtures (cabinets, stoves, racks: bodies without joints) are placed by LIBERO's
-        sampler at every reset, up to about a centimetre apart, from numpy's global generator. That
+        sampler at every reset, each time slightly elsewhere, from numpy's global generator. That
         draw is seeded with ``seed``, or with the state id when no seed is given, so resets from
         the same state id start identically; the global generator is left as it was."""
         if state_id is None:
