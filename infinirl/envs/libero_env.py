@@ -39,6 +39,7 @@ from infinirl.envs.base import ActionSpace, ArraySpec, Obs, SubStep
 from infinirl.envs.gymnasium_env import use_headless_gl
 from infinirl.envs.options import EnvOptions
 from infinirl.utils.atomic import write_text_atomic
+from infinirl.utils.cache import cache_root
 
 __all__ = [
     "ASSETS_ENV",
@@ -191,10 +192,6 @@ def prepare_assets() -> Path:
     return assets
 
 
-def _cache_root() -> Path:
-    return Path(os.environ.get("INFINIRL_CACHE", Path.home() / ".cache" / "infinirl")).expanduser()
-
-
 def config_paths(assets: Path) -> dict[str, Path]:
     """The paths LIBERO's config names: the installed package's BDDL files and init states (its
     own defaults) and the asset folder in use."""
@@ -212,7 +209,7 @@ def private_config_dir() -> Path:
     """InfiniRL's LIBERO config folder for this install: ``$INFINIRL_CACHE/libero/<install>``, one
     per installed package folder, so two environments never rewrite each other's."""
     install = hashlib.sha256(str(package_dir()).encode()).hexdigest()[:16]
-    return _cache_root() / "libero" / install
+    return cache_root() / "libero" / install
 
 
 def ensure_config(assets: Path) -> Path:

