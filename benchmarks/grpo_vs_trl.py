@@ -9,7 +9,8 @@ and the final training reward. ``--precision`` applies to both (fp32 = TRL's CPU
 The row ``infinirl_async`` runs InfiniRL asynchronously (``algorithm.asynchronous.max_staleness=1``,
 decoupled PPO with ``is_cap=2, is_cap_mode=mask``): the next batch is generated while the actor
 trains on this one. Actor and rollout then run at the same time; ``--async-threads A,R`` sets their
-torch threads (default: half the cores each).
+torch threads (default: all the cores for the actor, whose update fills most of the step, and half
+for the rollout).
 
 When vLLM is installed, a row ``infinirl_vllm`` runs InfiniRL with ``rollout.engine=vllm``.
 vLLM lives in its own venv (``bash scripts/setup_vllm_venv.sh``), so that row runs under the first
@@ -151,8 +152,9 @@ def _median_step(step_s: list[float]) -> float:
 
 
 def _async_threads(parser, text: str | None) -> tuple[int, int]:
-    half = max(1, (os.cpu_count() or 2) // 2)
-    threads = tuple(int(n) for n in text.split(",")) if text else (half, half)
+    cores = os.cpu_count() or 2
+    # The update fills most of the step: it keeps every core, generation beside it takes half.
+    threads = tuple(int(n) for n in text.split(",")) if text else (cores, max(1, cores // 2))
     if len(threads) != 2 or min(threads) < 1:
         parser.error(f"--async-threads {text!r}: give two positive counts, actor and rollout (e.g. 2,1)")
     return threads
@@ -184,7 +186,7 @@ def main() -> int:
                         help="comma-separated rows to run (infinirl_vllm only runs where vLLM is installed)")
     parser.add_argument("--async-threads", default=None,
                         help="A,R: torch threads of the actor and the rollout in the infinirl_async row "
-                             "(default: half the cores each)")
+                             "(default: all the cores, and half)")
     parser.add_argument("--only", choices=IMPLS, help=argparse.SUPPRESS)
     add_record_argument(parser)
     args = parser.parse_args()
