@@ -146,7 +146,7 @@ class WeightSink:
 
         self.load_weights(tensors(), version)
         self.weight_version = version
-        self._take_staged(newer_than=version)  # an older staged version must not come back later
+        self._drop_staged(up_to=version)  # an older staged version must not come back later
         return received[0]
 
     async def _infinirl_stage_weights(self, published: list, version: int) -> int:
@@ -171,6 +171,12 @@ class WeightSink:
         self.load_weights((kv for flat, metas in buckets for kv in split_bucket(flat, metas)), version)
         self.weight_version = version
         return True
+
+    def _drop_staged(self, up_to: int) -> None:
+        with _staging_lock(self):
+            staged = getattr(self, "_staged_weights", None)
+            if staged is not None and staged[1] <= up_to:
+                self._staged_weights = None
 
     def _take_staged(self, newer_than: int):
         with _staging_lock(self):

@@ -175,6 +175,9 @@ def test_staged_weights_arrive_beside_a_running_request_and_load_between_its_ste
         start_weight_sync(trainer, rollout, version=4, interrupt=True).wait(timeout=30)
         sync_weights(trainer, rollout, version=5)  # queued: loads 5 and drops the staged 4
         assert rollout.generate_partially(0.0).wait() == [[5, 5, 5]]
+        start_weight_sync(trainer, rollout, version=7, interrupt=True).wait(timeout=30)
+        sync_weights(trainer, rollout, version=6)  # an older queued version keeps the newer staged one
+        assert rollout.generate_partially(0.0).wait() == [[6, 7, 7]]
     finally:
         trainer.shutdown()
         rollout.shutdown()
