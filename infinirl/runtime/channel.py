@@ -1,8 +1,10 @@
 """Channel: a named, keyed, weighted, bounded queue between worker groups.
 
 The queue lives in a small async Ray actor (``channel_actor``) and holds *metadata only* (an
-``Envelope``: path, producer, weight, and a ref or a small inline payload). Payloads move from
-producer to consumer by the cheapest path (see ``transport``), never through the channel actor.
+``Envelope``: path, producer, weight, and a ref, a shared-memory descriptor or a small inline
+payload). Payloads move from producer to consumer by the cheapest path (see ``transport``), never
+through the channel actor: a producer picks shared memory while every consumer the channel knows
+runs on its node, which the replies to its registration and puts tell it.
 
 - ``put(item, key=, weight=)`` blocks while the item's key is full: ``maxsize`` is a capacity
   *per key*, in weight units (weight defaults to 1, so by default it counts items). Keys never
@@ -38,8 +40,17 @@ import ray
 from infinirl.runtime import cancellation, processes
 from infinirl.runtime.channel_actor import ChannelActor
 from infinirl.runtime.errors import CallCancelled, ChannelClosed, ChannelError
+from infinirl.runtime.payload import tensor_bytes
 from infinirl.runtime.ray_defaults import NAMESPACE
-from infinirl.runtime.transport import Envelope, discard, pack, shared_memory_reaches, unpack, unpack_many
+from infinirl.runtime.transport import (
+    INLINE_LIMIT_BYTES,
+    Envelope,
+    discard,
+    pack,
+    shared_memory_reaches,
+    unpack,
+    unpack_many,
+)
 
 DEFAULT_KEY = "default"
 _ACTOR_PREFIX = "infinirl.channel."
@@ -220,6 +231,9 @@ class Channel:
     async def put_async(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout=None) -> None:
         weight = self._check_weight(weight, "weight")
         self._register("producer")
+        if self._registration is not None and not self._consumers_known and tensor_bytes(item) >= INLINE_LIMIT_BYTES:
+            registration, self._registration = self._registration, None  # awaited here, not blocking the loop
+            self._note_consumers(await self._acall(registration))
         envelope = self._pack(item)
         try:
             self._note_consumers(await self._acall(self._actor.put.remote(envelope, key, weight, timeout)))
@@ -302,6 +316,10 @@ class Channel:
             return cancellation.wait_ref(ref, on_cancel)
         except CallCancelled:
             raise
+        except ray.exceptions.TaskCancelledError:
+            # Ray cancels the calls a cancelled call made (recursively), possibly before this
+            # call's own cancel token is set: the enclosing call is being cancelled.
+            raise cancellation.cancelled_error() from None
         except ray.exceptions.RayTaskError as exc:
             raise _unwrap(exc) from None
         except ray.exceptions.RayActorError:
@@ -314,6 +332,8 @@ class Channel:
             if cancel_in_actor:  # else the actor's wait goes on, and could still put the item
                 cancellation.cancel_quietly(ref)
             raise
+        except ray.exceptions.TaskCancelledError:  # as in _call: the awaiting task is being cancelled
+            raise asyncio.CancelledError() from None
         except ray.exceptions.RayTaskError as exc:
             raise _unwrap(exc) from None
         except ray.exceptions.RayActorError:

@@ -229,16 +229,20 @@ class ChannelActor:
         return (request in self.abandoned or self._eligible(key, pid, node) is not None or self.closed
                 or self._is_dead(peer_id) or bool(self._all_dead("producer")) or bool(self._stranded(key, node)))
 
-    def _takeable(self, key, pid: int, node: str | None, peer_id: str) -> int:
-        """The index of the item to take, once a get's wait ended; else the error that ends it."""
+    def _takeable(self, key, pid: int, node: str | None, peer_id: str, drop_stranded: bool = True) -> int:
+        """The index of the item to take, once a get's wait ended; else the error that ends it.
+        ``drop_stranded=False``: a get that returns with items already taken leaves stranded items
+        to the next get, which drops them and reports it."""
         if self._is_dead(peer_id):
             raise self._died(f"the consumer waiting for key {key!r} died", [self.peers[peer_id]])
         index = self._eligible(key, pid, node)
         if index is not None:
             return index
         stranded = self._stranded(key, node)
-        if stranded:
+        if stranded and drop_stranded:
             raise self._drop_stranded(key, node, stranded)
+        if stranded:
+            raise ChannelPeerDied(f"channel '{self.name}': items of key {key!r} are stranded on another node")
         if self.closed:
             raise ChannelClosed(f"channel '{self.name}' is closed and has no more items for key {key!r}")
         raise self._died(f"no item for key {key!r} and every producer of the channel has died",
@@ -326,7 +330,7 @@ class ChannelActor:
                         if self._was_abandoned(request):
                             self._give_back(key, taken)
                             return None
-                        index = self._takeable(key, pid, node, peer_id)
+                        index = self._takeable(key, pid, node, peer_id, drop_stranded=not taken)
                     except (TimeoutError, ChannelClosed, ChannelPeerDied):
                         if taken and not self._is_dead(peer_id):
                             break

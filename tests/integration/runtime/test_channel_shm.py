@@ -12,7 +12,7 @@ import ray
 import torch
 
 from infinirl.runtime import Channel, ChannelError, ChannelPeerDied, Worker, WorkerGroup
-from infinirl.runtime.transport import Envelope
+from infinirl.runtime.transport import Envelope, unpack
 from tests.conftest import ship_by_value
 
 ship_by_value(__name__)
@@ -189,15 +189,29 @@ def test_pinned_items_nobody_on_their_node_can_take_are_dropped_loudly(ray_clust
     """Every consumer on the producer's node died: a getter elsewhere is told and the items go,
     instead of waiting forever (and holding the key's capacity) for items it cannot map."""
     here = ray.get_runtime_context().get_node_id()
-    ch = fresh(maxsize=2)
+    ch = fresh(maxsize=3)
     gone = subprocess.Popen([sys.executable, "-c", "pass"])
     gone.wait(timeout=60)
     _register_consumer(ch, here, gone.pid, "a consumer that exited")
+    ch.put("for anyone")
     pinned = Envelope("shm", os.getpid(), here, body=None, nbytes=MIB)
     ray.get(ch._actor.put.remote(pinned, "default", 1.0, 30))
     ray.get(ch._actor.put.remote(pinned, "default", 1.0, 30))  # the key is full
+    batch = ray.get(ch._actor.get_batch.remote(5, "default", 1, "test-getter", 30, node=OTHER_NODE), timeout=60)
+    assert [envelope.body for envelope, _ in batch] == ["for anyone"], "a batch returns what it took"
+    assert ch.qsize() == 2, "the next get reports the stranded items"
     with pytest.raises(ChannelPeerDied, match=r"2 item\(s\) of key 'default' were put in shared memory on node"):
         _raw_get(ch, OTHER_NODE)
     assert ch.qsize() == 0
     ch.put("room again", timeout=5)
     assert _raw_get(ch, OTHER_NODE).body == "room again"
+
+
+def test_an_async_producer_learns_the_consumers_from_its_registration(ray_cluster):
+    here = ray.get_runtime_context().get_node_id()
+    ch = fresh()
+    _register_consumer(ch, here, os.getpid(), "consumer on this node")
+    asyncio.run(ch.put_async({"x": torch.arange(MIB)}))  # its first item: shared memory already
+    envelope = _raw_get(ch, here)
+    assert envelope.path == "shm"
+    assert torch.equal(unpack(envelope)["x"], torch.arange(MIB))
