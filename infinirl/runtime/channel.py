@@ -56,6 +56,12 @@ DEFAULT_KEY = "default"
 _ACTOR_PREFIX = "infinirl.channel."
 # An abandoned get ends at once; this only bounds the wait if its actor is stuck or gone.
 ABANDON_WAIT_S = 60.0
+# Ray cancels the calls a cancelled call made along with it, and in a race of its actor-task
+# cancellation the reply of such a call may never come (ray-project/ray#46157). A cancelled
+# synchronous get therefore waits at most this long for its reply: an abandoned get that
+# received nothing took nothing.
+CANCELLED_GET_WAIT_S = 30.0
+_WAIT_SLICE_S = 1.0
 
 
 class Channel:
@@ -313,7 +319,7 @@ class Channel:
 
     def _call(self, ref, on_cancel=None):
         try:
-            return cancellation.wait_ref(ref, on_cancel)
+            return cancellation.wait_ref(ref) if on_cancel is None else _wait_get(ref, on_cancel)
         except CallCancelled:
             raise
         except ray.exceptions.TaskCancelledError:
@@ -380,6 +386,27 @@ class Channel:
 
     def _gone(self) -> ChannelError:
         return ChannelError(f"channel '{self.name}' is gone: its actor was destroyed or died")
+
+
+def _wait_get(ref, on_cancel):
+    """``cancellation.wait_ref(ref, on_cancel)`` for a get, except that once the call is cancelled
+    it waits at most ``CANCELLED_GET_WAIT_S`` more for the reply (see there)."""
+    token = cancellation.current_token()
+    if token is None:
+        return ray.get(ref)
+    token.track(ref, on_cancel)
+    give_up_at = None
+    try:
+        while True:
+            try:
+                return ray.get(ref, timeout=_WAIT_SLICE_S)
+            except ray.exceptions.GetTimeoutError:
+                if token.cancelled:
+                    give_up_at = give_up_at or time.monotonic() + CANCELLED_GET_WAIT_S
+                    if time.monotonic() > give_up_at:
+                        raise cancellation.cancelled_error() from None
+    finally:
+        token.untrack(ref)
 
 
 def _unwrap(exc: ray.exceptions.RayTaskError) -> BaseException:
