@@ -56,10 +56,11 @@ DEFAULT_KEY = "default"
 _ACTOR_PREFIX = "infinirl.channel."
 # An abandoned get ends at once; this only bounds the wait if its actor is stuck or gone.
 ABANDON_WAIT_S = 60.0
-# Ray cancels the calls a cancelled call made along with it, and in a race of its actor-task
-# cancellation the reply of such a call may never come (ray-project/ray#46157). A cancelled
-# synchronous get therefore waits at most this long for its reply: an abandoned get that
-# received nothing took nothing.
+# A cancelled synchronous get is abandoned from the host's event loop, inside the cancelled call,
+# and Ray cancels the calls a cancelled call makes: that abandon can be cancelled before it runs.
+# So the waiting thread abandons the get again once it sees the cancel (within a slice), and then
+# waits at most CANCELLED_GET_WAIT_S for the reply, which Ray can also lose when it cancels an
+# actor call in a race (ray-project/ray#46157).
 CANCELLED_GET_WAIT_S = 30.0
 _WAIT_SLICE_S = 1.0
 
@@ -390,7 +391,8 @@ class Channel:
 
 def _wait_get(ref, on_cancel):
     """``cancellation.wait_ref(ref, on_cancel)`` for a get, except that once the call is cancelled
-    it waits at most ``CANCELLED_GET_WAIT_S`` more for the reply (see there)."""
+    it abandons the get again from this thread and waits at most ``CANCELLED_GET_WAIT_S`` more
+    for the reply (see there)."""
     token = cancellation.current_token()
     if token is None:
         return ray.get(ref)
@@ -401,10 +403,11 @@ def _wait_get(ref, on_cancel):
             try:
                 return ray.get(ref, timeout=_WAIT_SLICE_S)
             except ray.exceptions.GetTimeoutError:
-                if token.cancelled:
-                    give_up_at = give_up_at or time.monotonic() + CANCELLED_GET_WAIT_S
-                    if time.monotonic() > give_up_at:
-                        raise cancellation.cancelled_error() from None
+                if token.cancelled and give_up_at is None:
+                    on_cancel()
+                    give_up_at = time.monotonic() + CANCELLED_GET_WAIT_S
+                elif token.cancelled and time.monotonic() > give_up_at:
+                    raise cancellation.cancelled_error() from None
     finally:
         token.untrack(ref)
 
