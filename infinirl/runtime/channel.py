@@ -1,8 +1,10 @@
 """Channel: a named, keyed, weighted, bounded queue between worker groups.
 
 The queue lives in a small async Ray actor (``channel_actor``) and holds *metadata only* (an
-``Envelope``: path, producer, weight, and a ref or a small inline payload). Payloads move from
-producer to consumer by the cheapest path (see ``transport``), never through the channel actor.
+``Envelope``: path, producer, weight, and a ref, a shared-memory descriptor or a small inline
+payload). Payloads move from producer to consumer by the cheapest path (see ``transport``), never
+through the channel actor: a producer picks shared memory while every consumer the channel knows
+runs on its node, which the replies to its registration and puts tell it.
 
 - ``put(item, key=, weight=)`` blocks while the item's key is full: ``maxsize`` is a capacity
   *per key*, in weight units (weight defaults to 1, so by default it counts items). Keys never
@@ -38,13 +40,29 @@ import ray
 from infinirl.runtime import cancellation, processes
 from infinirl.runtime.channel_actor import ChannelActor
 from infinirl.runtime.errors import CallCancelled, ChannelClosed, ChannelError
+from infinirl.runtime.payload import tensor_bytes
 from infinirl.runtime.ray_defaults import NAMESPACE
-from infinirl.runtime.transport import Envelope, pack, unpack, unpack_many
+from infinirl.runtime.transport import (
+    INLINE_LIMIT_BYTES,
+    Envelope,
+    discard,
+    pack,
+    shared_memory_reaches,
+    unpack,
+    unpack_many,
+)
 
 DEFAULT_KEY = "default"
 _ACTOR_PREFIX = "infinirl.channel."
 # An abandoned get ends at once; this only bounds the wait if its actor is stuck or gone.
 ABANDON_WAIT_S = 60.0
+# A cancelled synchronous get is abandoned from the host's event loop, inside the cancelled call,
+# and Ray cancels the calls a cancelled call makes: that abandon can be cancelled before it runs.
+# So the waiting thread abandons the get again once it sees the cancel (within a slice), and then
+# waits at most CANCELLED_GET_WAIT_S for the reply, which Ray can also lose when it cancels an
+# actor call in a race (ray-project/ray#46157).
+CANCELLED_GET_WAIT_S = 30.0
+_WAIT_SLICE_S = 1.0
 
 
 class Channel:
@@ -58,6 +76,9 @@ class Channel:
         self.prefetch = prefetch
         self._prefetched: dict[Any, deque] = {}
         self._consumers_here_only = False
+        self._consumers_on_this_node = False
+        self._consumers_known = False  # a reply of the channel said who the consumers are
+        self._registration = None  # the producer registration's reply, until it is read
         self._producer = uuid.uuid4().hex  # per client: a pickled copy in a worker is a new producer
         self._seq = 0
         self._inflight: deque = deque()
@@ -131,20 +152,20 @@ class Channel:
     def put(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout: float | None = None) -> None:
         weight = self._check_weight(weight, "weight")
         self._register("producer")
+        envelope = self._pack(item)
         if not self.pipeline_depth:
-            self._note_consumers(self._call(self._actor.put.remote(self._pack(item), key, weight, timeout)))
+            self._settle_put(self._actor.put.remote(envelope, key, weight, timeout), envelope)
             return
-        self._inflight.append(
-            self._actor.put.remote(self._pack(item), key, weight, timeout, self._producer, self._seq)
-        )
+        self._inflight.append((self._actor.put.remote(envelope, key, weight, timeout, self._producer, self._seq),
+                               envelope))
         self._seq += 1
         while len(self._inflight) > self.pipeline_depth:
-            self._note_consumers(self._call(self._inflight.popleft()))
+            self._settle_put(*self._inflight.popleft())
 
     def flush(self) -> None:
         """Wait until every pipelined ``put`` of this client has been accepted (raises its error)."""
         while self._inflight:
-            self._note_consumers(self._call(self._inflight.popleft()))
+            self._settle_put(*self._inflight.popleft())
 
     def put_many(self, items: list, key=DEFAULT_KEY, weights: list[float] | None = None, timeout=None) -> None:
         """Put several items with one round trip (they stay in order)."""
@@ -154,6 +175,8 @@ class Channel:
             raise ValueError(f"channel '{self.name}': put_many got {len(items)} items but {len(weights)} weights")
         weights = [self._check_weight(w, "weights") for w in weights]
         self._register("producer")
+        # On a failure, some of the items may be queued already: none is discarded (a segment
+        # of this process's shared memory stays busy until the process exits, within its cap).
         consumers = self._call(self._actor.put_many.remote([self._pack(i) for i in items], key, weights, timeout))
         self._note_consumers(consumers)
 
@@ -215,7 +238,15 @@ class Channel:
     async def put_async(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout=None) -> None:
         weight = self._check_weight(weight, "weight")
         self._register("producer")
-        self._note_consumers(await self._acall(self._actor.put.remote(self._pack(item), key, weight, timeout)))
+        if self._registration is not None and not self._consumers_known and tensor_bytes(item) >= INLINE_LIMIT_BYTES:
+            registration, self._registration = self._registration, None  # awaited here, not blocking the loop
+            self._note_consumers(await self._acall(registration))
+        envelope = self._pack(item)
+        try:
+            self._note_consumers(await self._acall(self._actor.put.remote(envelope, key, weight, timeout)))
+        except Exception:  # refused, or its actor is gone: the item is not queued (a cancel may have queued it)
+            discard(envelope)
+            raise
 
     async def get_async(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
         self._register("consumer")
@@ -230,21 +261,49 @@ class Channel:
 
     # ------------------------------------------------------------------ internals
     def _pack(self, item: Any) -> Envelope:
-        return pack(item, same_process=self._consumers_here_only, force_p2p=self.transport == "p2p")
+        return pack(item, same_process=self._consumers_here_only, force_p2p=self.transport == "p2p",
+                    shared_memory=self._shared_memory_reaches_consumers)
 
-    def _note_consumers(self, consumer_pids: list[int]) -> None:
-        # By-reference hand-over is only safe when every consumer seen so far is this process.
-        self._consumers_here_only = bool(consumer_pids) and set(consumer_pids) == {os.getpid()}
+    def _shared_memory_reaches_consumers(self) -> bool:
+        """Whether every consumer is on this node; a producer's first item that could go by shared
+        memory waits for the registration's reply (one round trip per client) to know it."""
+        if not self._consumers_known and self._registration is not None:
+            registration, self._registration = self._registration, None
+            self._note_consumers(self._call(registration))
+        return self._consumers_on_this_node
+
+    def _note_consumers(self, consumers: tuple[list[int], list[str]]) -> None:
+        """Learn the consumers from a reply of the channel: their pids, their nodes."""
+        pids, nodes = consumers
+        # By-reference hand-over is only safe when every consumer seen so far is this process,
+        # shared memory only while every live consumer is on this node.
+        self._consumers_here_only = bool(pids) and set(pids) == {os.getpid()}
+        self._consumers_on_this_node = shared_memory_reaches(_node_id(), nodes)
+        self._consumers_known = True
+
+    def _settle_put(self, ref, envelope: Envelope) -> None:
+        """Wait for a put's reply; a put the channel refused (or lost with its actor) queued
+        nothing, so its envelope is discarded (a cancelled wait may still have queued it)."""
+        try:
+            self._note_consumers(self._call(ref))
+        except CallCancelled:
+            raise
+        except Exception:
+            discard(envelope)
+            raise
 
     def _register(self, role: str, wait: bool = False) -> None:
         """Announce this process as a producer or consumer, once per client and role. Not waited
-        for (one more message, sent ahead of the call that needs it) unless ``wait``."""
+        for (one more message, sent ahead of the call that needs it) unless ``wait``; a producer's
+        reply is read when its first item needs it (see ``_shared_memory_reaches_consumers``)."""
         if role in self._roles:
             return
         self._roles.add(role)
         pid = os.getpid()
         ref = self._actor.register.remote(_peer_id(), role, processes.describe_self(), processes.host_handle(),
                                           _node_id(), pid, processes.start_ticks(pid))
+        if role == "producer":
+            self._registration = ref
         if wait:
             self._call(ref)
 
@@ -261,9 +320,13 @@ class Channel:
 
     def _call(self, ref, on_cancel=None):
         try:
-            return cancellation.wait_ref(ref, on_cancel)
+            return cancellation.wait_ref(ref) if on_cancel is None else _wait_get(ref, on_cancel)
         except CallCancelled:
             raise
+        except ray.exceptions.TaskCancelledError:
+            # Ray cancels the calls a cancelled call made (recursively), possibly before this
+            # call's own cancel token is set: the enclosing call is being cancelled.
+            raise cancellation.cancelled_error() from None
         except ray.exceptions.RayTaskError as exc:
             raise _unwrap(exc) from None
         except ray.exceptions.RayActorError:
@@ -276,6 +339,8 @@ class Channel:
             if cancel_in_actor:  # else the actor's wait goes on, and could still put the item
                 cancellation.cancel_quietly(ref)
             raise
+        except ray.exceptions.TaskCancelledError:  # as in _call: the awaiting task is being cancelled
+            raise asyncio.CancelledError() from None
         except ray.exceptions.RayTaskError as exc:
             raise _unwrap(exc) from None
         except ray.exceptions.RayActorError:
@@ -287,7 +352,7 @@ class Channel:
         taken items already, they go back to the front of their queue."""
         key = args[0] if key is None else key
         request = uuid.uuid4().hex
-        ref = method.remote(*args, request=request)
+        ref = method.remote(*args, request=request, node=_node_id())
         taken = self._call(ref, on_cancel=lambda: self._actor.abandon.remote(request))
         if cancellation.is_cancelled():
             if taken is not None:
@@ -300,7 +365,7 @@ class Channel:
         get; the clean-up runs shielded, so a second cancel cannot cut it short."""
         key = args[0] if key is None else key
         request = uuid.uuid4().hex
-        ref = method.remote(*args, request=request)
+        ref = method.remote(*args, request=request, node=_node_id())
         try:
             return await self._acall(ref, cancel_in_actor=False)
         except asyncio.CancelledError:
@@ -322,6 +387,29 @@ class Channel:
 
     def _gone(self) -> ChannelError:
         return ChannelError(f"channel '{self.name}' is gone: its actor was destroyed or died")
+
+
+def _wait_get(ref, on_cancel):
+    """``cancellation.wait_ref(ref, on_cancel)`` for a get, except that once the call is cancelled
+    it abandons the get again from this thread and waits at most ``CANCELLED_GET_WAIT_S`` more
+    for the reply (see there)."""
+    token = cancellation.current_token()
+    if token is None:
+        return ray.get(ref)
+    token.track(ref, on_cancel)
+    give_up_at = None
+    try:
+        while True:
+            try:
+                return ray.get(ref, timeout=_WAIT_SLICE_S)
+            except ray.exceptions.GetTimeoutError:
+                if token.cancelled and give_up_at is None:
+                    on_cancel()
+                    give_up_at = time.monotonic() + CANCELLED_GET_WAIT_S
+                elif token.cancelled and time.monotonic() > give_up_at:
+                    raise cancellation.cancelled_error() from None
+    finally:
+        token.untrack(ref)
 
 
 def _unwrap(exc: ray.exceptions.RayTaskError) -> BaseException:

@@ -12,6 +12,14 @@ when it can never succeed because the processes on the other side are gone:
 - a getter that finds no item once every producer has died, or a putter waiting for space once
   every consumer has died, gets ``ChannelPeerDied`` naming the channel, the key and the dead
   processes; a pending get of a consumer that died takes nothing (nobody would receive it).
+
+Items in a producer's shared memory (``transport`` path ``shm``) are pinned to its node: they are
+served only to getters on that node, as same-process items are served only to their process. A
+producer learns from every put's reply which consumers are registered and on which nodes, and
+puts an item in shared memory only while all of them are on its node; a consumer that registers
+later on another node gets the items put after its registration is known. Pinned items that no
+consumer on their node is left to take (every one of them died) are dropped, and a getter from
+another node that finds nothing else is told so (``ChannelPeerDied``) instead of waiting forever.
 """
 
 from __future__ import annotations
@@ -28,7 +36,7 @@ import ray
 from infinirl.runtime import processes
 from infinirl.runtime.call_order import CallOrder
 from infinirl.runtime.errors import ChannelClosed, ChannelError, ChannelPeerDied
-from infinirl.runtime.transport import Envelope
+from infinirl.runtime.transport import Envelope, pinned_node, pinned_pid
 
 __all__ = ["ChannelActor"]
 
@@ -42,17 +50,23 @@ ABANDONED_KEEP_S = 600.0
 
 
 class _Item:
-    __slots__ = ("envelope", "weight", "pinned_pid")
+    __slots__ = ("envelope", "weight", "pinned_pid", "pinned_node")
 
-    def __init__(self, envelope: Envelope, weight: float, pinned_pid: int | None):
+    def __init__(self, envelope: Envelope, weight: float):
         self.envelope = envelope
         self.weight = weight
-        self.pinned_pid = pinned_pid
+        self.pinned_pid = pinned_pid(envelope)  # only this process can unpack it
+        self.pinned_node = pinned_node(envelope)  # only processes on this node can
+
+    def serves(self, pid: int, node: str | None) -> bool:
+        return (self.pinned_pid is None or self.pinned_pid == pid) and (
+            self.pinned_node is None or self.pinned_node == node)
 
 
 @dataclass
 class _Peer:
     description: str
+    node: str
     roles: set[str] = field(default_factory=set)
     death: str = ""  # why it is dead, once it is
 
@@ -81,15 +95,26 @@ class ChannelActor:
 
     # ------------------------------------------------------------------ peers
     async def register(self, peer_id: str, role: str, description: str, host, node_id: str, pid: int,
-                       start: int) -> None:
-        """A producer or consumer announces itself (once per role); its death is watched from now."""
+                       start: int) -> tuple[list[int], list[str]]:
+        """A producer or consumer announces itself (once per role); its death is watched from now.
+        Returns what a put returns: the consumers known so far."""
         peer = self.peers.get(peer_id)
         if peer is None:
-            peer = self.peers[peer_id] = _Peer(description)
+            peer = self.peers[peer_id] = _Peer(description, node_id)
             task = asyncio.ensure_future(self._watch(peer_id, host, node_id, pid, start))
             self.watches.add(task)
             task.add_done_callback(self.watches.discard)
+        peer.node = node_id  # a rank that Ray restarted may run on another node now
         peer.roles.add(role)
+        return self._consumers()
+
+    def _consumers(self) -> tuple[list[int], list[str]]:
+        """What a producer needs to pick an item's path: the pids of the consumers seen so far (for
+        same-process items), the nodes of the live registered consumers (for shared memory)."""
+        return sorted(self.consumer_pids), sorted(self._live_consumer_nodes())
+
+    def _live_consumer_nodes(self) -> set[str]:
+        return {p.node for p in self.peers.values() if "consumer" in p.roles and not p.death}
 
     async def register_consumer(self, pid: int) -> None:
         self.consumer_pids.add(pid)
@@ -141,7 +166,6 @@ class ChannelActor:
                 f"channel '{self.name}': an item of weight {weight} can never fit maxsize={self.maxsize} "
                 f"(key {key!r}); raise maxsize or split the item"
             )
-        pinned = envelope.producer_pid if envelope.path == "local" else None
         async with self.cond:
             if self.maxsize:
                 await self._wait_for(
@@ -152,11 +176,11 @@ class ChannelActor:
                 if not self._fits(key, weight):
                     raise self._died(f"a put on key {key!r} waits for space (maxsize={self.maxsize} per key) and "
                                      "every consumer of the channel has died", self._all_dead("consumer"))
-            self.queues.setdefault(key, deque()).append(_Item(envelope, weight, pinned))
+            self.queues.setdefault(key, deque()).append(_Item(envelope, weight))
             self.weight_by_key[key] = self.weight_by_key.get(key, 0.0) + weight
             self.stats["put"] += 1
             self.cond.notify_all()
-        return sorted(self.consumer_pids)
+        return self._consumers()
 
     def _fits(self, key, weight: float) -> bool:
         return self.weight_by_key.get(key, 0.0) + weight <= self.maxsize
@@ -164,29 +188,61 @@ class ChannelActor:
     async def put_many(self, envelopes: list[Envelope], key, weights: list[float], timeout):
         for envelope, weight in zip(envelopes, weights):
             await self.put(envelope, key, weight, timeout)
-        return sorted(self.consumer_pids)
+        return self._consumers()
 
     # ------------------------------------------------------------------ get
-    def _eligible(self, key, pid: int) -> int | None:
+    def _eligible(self, key, pid: int, node: str | None) -> int | None:
+        """The index of the oldest item of ``key`` that the getter ``pid`` on ``node`` can unpack."""
         queue = self.queues.get(key)
         if not queue:
             return None
         for index, item in enumerate(queue):
-            if item.pinned_pid is None or item.pinned_pid == pid:
+            if item.serves(pid, node):
                 return index
         return None
 
-    def _can_end_get(self, key, pid: int, peer_id: str, request: str | None) -> bool:
-        return (request in self.abandoned or self._eligible(key, pid) is not None or self.closed
-                or self._is_dead(peer_id) or bool(self._all_dead("producer")))
+    def _stranded(self, key, node: str | None) -> list[_Item]:
+        """The items of ``key`` pinned to another node than ``node`` where no live consumer is left."""
+        queue = self.queues.get(key)
+        pinned = [item for item in queue or () if item.pinned_node is not None and item.pinned_node != node]
+        if not pinned:
+            return []
+        live = self._live_consumer_nodes()
+        return [item for item in pinned if item.pinned_node not in live]
 
-    def _takeable(self, key, pid: int, peer_id: str) -> int:
-        """The index of the item to take, once a get's wait ended; else the error that ends it."""
+    def _drop_stranded(self, key, node: str | None, stranded: list[_Item]) -> ChannelPeerDied:
+        """Remove ``stranded`` items from their queue; the error that tells the getter on ``node``."""
+        queue = self.queues[key]
+        for item in stranded:
+            queue.remove(item)
+            self.weight_by_key[key] -= item.weight
+        if not queue:
+            del self.queues[key], self.weight_by_key[key]
+        self.cond.notify_all()  # room for waiting putters
+        nodes = sorted({item.pinned_node for item in stranded})
+        return ChannelPeerDied(
+            f"channel '{self.name}': {len(stranded)} item(s) of key {key!r} were put in shared memory on node(s) "
+            f"{nodes} for the consumers there, and every consumer on those nodes has died; a getter on node {node} "
+            "cannot read them: they are dropped")
+
+    def _can_end_get(self, key, pid: int, node: str | None, peer_id: str, request: str | None) -> bool:
+        return (request in self.abandoned or self._eligible(key, pid, node) is not None or self.closed
+                or self._is_dead(peer_id) or bool(self._all_dead("producer")) or bool(self._stranded(key, node)))
+
+    def _takeable(self, key, pid: int, node: str | None, peer_id: str, drop_stranded: bool = True) -> int:
+        """The index of the item to take, once a get's wait ended; else the error that ends it.
+        ``drop_stranded=False``: a get that returns with items already taken leaves stranded items
+        to the next get, which drops them and reports it."""
         if self._is_dead(peer_id):
             raise self._died(f"the consumer waiting for key {key!r} died", [self.peers[peer_id]])
-        index = self._eligible(key, pid)
+        index = self._eligible(key, pid, node)
         if index is not None:
             return index
+        stranded = self._stranded(key, node)
+        if stranded and drop_stranded:
+            raise self._drop_stranded(key, node, stranded)
+        if stranded:
+            raise ChannelPeerDied(f"channel '{self.name}': items of key {key!r} are stranded on another node")
         if self.closed:
             raise ChannelClosed(f"channel '{self.name}' is closed and has no more items for key {key!r}")
         raise self._died(f"no item for key {key!r} and every producer of the channel has died",
@@ -218,8 +274,7 @@ class ChannelActor:
     async def give_back(self, key, taken: list[tuple[Envelope, float]]) -> None:
         """Items a get took for a caller that was cancelled before it received them."""
         async with self.cond:
-            self._give_back(key, [_Item(envelope, weight, envelope.producer_pid if envelope.path == "local" else None)
-                                  for envelope, weight in taken])
+            self._give_back(key, [_Item(envelope, weight) for envelope, weight in taken])
 
     async def abandon(self, request: str) -> None:
         """The caller of get ``request`` was cancelled: that get ends without taking anything."""
@@ -233,29 +288,31 @@ class ChannelActor:
     def _was_abandoned(self, request: str | None) -> bool:
         return self.abandoned.pop(request, None) is not None if request is not None else False
 
-    async def get(self, key, pid: int, peer_id: str, timeout: float | None, request: str | None = None):
-        """The oldest eligible item of ``key`` as ``(envelope, weight)``; ``None`` if abandoned."""
-        taken = await self.get_many(key, pid, peer_id, 1, timeout, request)
+    async def get(self, key, pid: int, peer_id: str, timeout: float | None, request: str | None = None,
+                  node: str | None = None):
+        """The oldest item of ``key`` that the getter (``pid`` on ``node``) can unpack, as
+        ``(envelope, weight)``; ``None`` if abandoned."""
+        taken = await self.get_many(key, pid, peer_id, 1, timeout, request, node)
         return None if taken is None else taken[0]
 
     async def get_many(self, key, pid: int, peer_id: str, max_items: int, timeout: float | None,
-                       request: str | None = None):
+                       request: str | None = None, node: str | None = None):
         """Wait for one item, then also take up to ``max_items - 1`` more already waiting (prefetch);
         ``None`` if abandoned."""
         self.consumer_pids.add(pid)
         async with self.cond:
-            await self._wait_for(lambda: self._can_end_get(key, pid, peer_id, request), _deadline(timeout),
+            await self._wait_for(lambda: self._can_end_get(key, pid, node, peer_id, request), _deadline(timeout),
                                  f"get on key {key!r}", timeout)
             if self._was_abandoned(request):
                 return None
-            taken = [self._take(key, self._takeable(key, pid, peer_id))]
-            while len(taken) < max_items and (index := self._eligible(key, pid)) is not None:
+            taken = [self._take(key, self._takeable(key, pid, node, peer_id))]
+            while len(taken) < max_items and (index := self._eligible(key, pid, node)) is not None:
                 taken.append(self._take(key, index))
             self.cond.notify_all()
             return [(item.envelope, item.weight) for item in taken]
 
     async def get_batch(self, target_weight: float, key, pid: int, peer_id: str, timeout: float | None,
-                        request: str | None = None):
+                        request: str | None = None, node: str | None = None):
         """Items of ``key`` in FIFO order while their total weight stays within ``target_weight``;
         returns once the total equals it, once the next item would exceed it, or (with what it
         has) once the channel is closed and drained, every producer died, or the timeout expired.
@@ -268,12 +325,12 @@ class ChannelActor:
             try:
                 while total < target_weight:
                     try:
-                        await self._wait_for(lambda: self._can_end_get(key, pid, peer_id, request), deadline,
-                                             f"get_batch on key {key!r}", timeout)
+                        await self._wait_for(lambda: self._can_end_get(key, pid, node, peer_id, request),
+                                             deadline, f"get_batch on key {key!r}", timeout)
                         if self._was_abandoned(request):
                             self._give_back(key, taken)
                             return None
-                        index = self._takeable(key, pid, peer_id)
+                        index = self._takeable(key, pid, node, peer_id, drop_stranded=not taken)
                     except (TimeoutError, ChannelClosed, ChannelPeerDied):
                         if taken and not self._is_dead(peer_id):
                             break

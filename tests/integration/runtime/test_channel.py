@@ -386,3 +386,39 @@ def test_pipelined_puts_keep_order_and_backpressure(ray_cluster):
         Channel.create("bad-depth", pipeline_depth=-1)
     with pytest.raises(ChannelError, match="prefetch must be >= 1"):
         Channel.create("bad-prefetch", prefetch=0)
+
+
+def test_a_cancelled_get_whose_reply_never_comes_still_ends(ray_cluster, monkeypatch):
+    """A synchronous get whose call is cancelled is abandoned by the cancel and again by the waiting
+    thread (Ray may cancel the first abandon, made inside the cancelled call); then it waits a
+    bounded time for the reply, which Ray may never send, not forever."""
+    import ray
+
+    from infinirl.runtime import CallCancelled, channel
+    from infinirl.runtime.cancellation import CancelToken, run_with_token
+
+    monkeypatch.setattr(channel, "CANCELLED_GET_WAIT_S", 0.5)
+
+    @ray.remote(num_cpus=0)
+    class Silent:
+        async def never(self):
+            await asyncio.sleep(3600)
+
+    silent = Silent.remote()
+    token, abandoned, out = CancelToken("test[rank 0].take()"), [], {}
+
+    def take():
+        try:
+            run_with_token(token, channel._wait_get, (silent.never.remote(), lambda: abandoned.append(True)), {})
+        except CallCancelled as exc:
+            out["error"] = exc
+
+    thread = threading.Thread(target=take, daemon=True)
+    thread.start()
+    time.sleep(1.0)
+    assert thread.is_alive(), "an uncancelled get waits for its reply"
+    token.cancel()
+    thread.join(timeout=30)
+    assert not thread.is_alive() and abandoned == [True, True]
+    assert "test[rank 0].take() was cancelled" in str(out["error"])
+    ray.kill(silent)
