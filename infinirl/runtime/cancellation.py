@@ -12,6 +12,7 @@ call. Code that blocks elsewhere (a long computation, ``time.sleep``) runs to it
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -73,20 +74,41 @@ def is_cancelled() -> bool:
     return token is not None and token.cancelled
 
 
-def wait_ref(ref, on_cancel: Callable[[], Any] | None = None) -> Any:
+# Ray cancels the calls a cancelled call makes, and can lose the reply of an actor call it cancels
+# in a race (ray-project/ray#46157); so a waiter that sees its call cancelled repeats the cancel
+# (``on_cancel``, or ``ray.cancel``) from its own thread, then waits at most CANCELLED_WAIT_S.
+CANCELLED_WAIT_S = 30.0
+WAIT_SLICE_S = 1.0
+
+
+def wait_ref(ref, on_cancel: Callable[[], Any] | None = None, cancelled_wait_s: float | None = None) -> Any:
     """``ray.get(ref)``, which a cancel of the current call interrupts with ``CallCancelled``.
     The cancel ends the call by ``ray.cancel(ref)``, or by ``on_cancel()`` when given (then the
-    call itself ends soon after, and its result or error comes back as usual)."""
+    call itself ends soon after, and its result or error comes back as usual). Once cancelled, the
+    wait repeats the cancel and lasts at most ``cancelled_wait_s`` (default ``CANCELLED_WAIT_S``)
+    more, so a reply Ray loses cannot hang the rank."""
     token = current_token()
     if token is None:
         return ray.get(ref)
     token.track(ref, on_cancel)
+    give_up_at = None
     try:
-        return ray.get(ref)
-    except ray.exceptions.TaskCancelledError:
-        if token.cancelled:
-            raise cancelled_error() from None
-        raise
+        while True:
+            try:
+                return ray.get(ref, timeout=WAIT_SLICE_S)
+            except ray.exceptions.GetTimeoutError:
+                if not token.cancelled:
+                    continue
+                if give_up_at is None:
+                    (on_cancel or (lambda: cancel_quietly(ref)))()
+                    limit = CANCELLED_WAIT_S if cancelled_wait_s is None else cancelled_wait_s
+                    give_up_at = time.monotonic() + limit
+                elif time.monotonic() > give_up_at:
+                    raise cancelled_error() from None
+            except ray.exceptions.TaskCancelledError:
+                if token.cancelled:
+                    raise cancelled_error() from None
+                raise
     finally:
         token.untrack(ref)
 

@@ -58,11 +58,9 @@ _ACTOR_PREFIX = "infinirl.channel."
 ABANDON_WAIT_S = 60.0
 # A cancelled synchronous get is abandoned from the host's event loop, inside the cancelled call,
 # and Ray cancels the calls a cancelled call makes: that abandon can be cancelled before it runs.
-# So the waiting thread abandons the get again once it sees the cancel (within a slice), and then
-# waits at most CANCELLED_GET_WAIT_S for the reply, which Ray can also lose when it cancels an
-# actor call in a race (ray-project/ray#46157).
-CANCELLED_GET_WAIT_S = 30.0
-_WAIT_SLICE_S = 1.0
+# So the waiting thread abandons the get again once it sees the cancel (cancellation.wait_ref), and
+# then waits at most CANCELLED_GET_WAIT_S for the reply, which Ray can also lose.
+CANCELLED_GET_WAIT_S = cancellation.CANCELLED_WAIT_S
 
 
 class Channel:
@@ -390,26 +388,9 @@ class Channel:
 
 
 def _wait_get(ref, on_cancel):
-    """``cancellation.wait_ref(ref, on_cancel)`` for a get, except that once the call is cancelled
-    it abandons the get again from this thread and waits at most ``CANCELLED_GET_WAIT_S`` more
-    for the reply (see there)."""
-    token = cancellation.current_token()
-    if token is None:
-        return ray.get(ref)
-    token.track(ref, on_cancel)
-    give_up_at = None
-    try:
-        while True:
-            try:
-                return ray.get(ref, timeout=_WAIT_SLICE_S)
-            except ray.exceptions.GetTimeoutError:
-                if token.cancelled and give_up_at is None:
-                    on_cancel()
-                    give_up_at = time.monotonic() + CANCELLED_GET_WAIT_S
-                elif token.cancelled and time.monotonic() > give_up_at:
-                    raise cancellation.cancelled_error() from None
-    finally:
-        token.untrack(ref)
+    """``cancellation.wait_ref`` for a get: once the call is cancelled it abandons the get again
+    from this thread and waits at most ``CANCELLED_GET_WAIT_S`` more for the reply (see there)."""
+    return cancellation.wait_ref(ref, on_cancel, cancelled_wait_s=CANCELLED_GET_WAIT_S)
 
 
 def _unwrap(exc: ray.exceptions.RayTaskError) -> BaseException:

@@ -422,3 +422,43 @@ def test_a_cancelled_get_whose_reply_never_comes_still_ends(ray_cluster, monkeyp
     assert not thread.is_alive() and abandoned == [True, True]
     assert "test[rank 0].take() was cancelled" in str(out["error"])
     ray.kill(silent)
+
+
+def test_a_cancelled_wait_without_its_own_cancel_ends_with_call_cancelled(ray_cluster, monkeypatch):
+    """A synchronous put waits through ``cancellation.wait_ref`` with no ``on_cancel``: the cancel
+    is ``ray.cancel`` of the awaited call, which ends the wait with ``CallCancelled`` even when the
+    call itself ignores the cancel (the bounded wait for a lost reply is the get test's above)."""
+    import ray
+
+    from infinirl.runtime import CallCancelled, cancellation
+    from infinirl.runtime.cancellation import CancelToken, run_with_token
+
+    monkeypatch.setattr(cancellation, "CANCELLED_WAIT_S", 0.5)
+
+    @ray.remote(num_cpus=0)
+    class Deaf:
+        async def never(self):
+            while True:
+                try:
+                    await asyncio.sleep(3600)
+                except asyncio.CancelledError:
+                    continue  # ignores the cancel: no reply ever comes
+
+    deaf = Deaf.remote()
+    token, out = CancelToken("test[rank 0].put()"), {}
+
+    def put():
+        try:
+            run_with_token(token, cancellation.wait_ref, (deaf.never.remote(),), {})
+        except CallCancelled as exc:
+            out["error"] = exc
+
+    thread = threading.Thread(target=put, daemon=True)
+    thread.start()
+    time.sleep(1.0)
+    assert thread.is_alive(), "an uncancelled wait waits for its reply"
+    token.cancel()
+    thread.join(timeout=30)
+    assert not thread.is_alive()
+    assert "test[rank 0].put() was cancelled" in str(out["error"])
+    ray.kill(deaf)
