@@ -14,6 +14,14 @@ from infinirl.tasks.problem import Problem
 from infinirl.tasks.verifiers import RewardResult, build_verifier, safe_score
 
 
+def sampled_ids(result: GenerationResult) -> list[int]:
+    """The response ids the model wrote: an agent's answer is judged on its own words, not on a
+    tool output between its turns (which may well contain the right number)."""
+    if result.response_mask is None:
+        return result.response_ids
+    return [token for token, sampled in zip(result.response_ids, result.response_mask) if sampled]
+
+
 class RewardWorker(Worker):
     def __init__(self, tokenizer_source: str, verifier: str, format_bonus: float = 0.0, threads: int = 4):
         from transformers import AutoTokenizer
@@ -28,7 +36,7 @@ class RewardWorker(Worker):
         """``problems[i]`` is the problem of ``results[i]`` (the caller repeats per sample)."""
         if len(results) != len(problems):
             raise ValueError(f"score: {len(results)} results but {len(problems)} problems")
-        texts = self.tokenizer.batch_decode([r.response_ids for r in results], skip_special_tokens=True)
+        texts = self.tokenizer.batch_decode([sampled_ids(r) for r in results], skip_special_tokens=True)
         return list(self.pool.map(lambda tp: safe_score(tp[0], tp[1], self.verifier), zip(texts, problems)))
 
     def score_stream(self, source, sink, problems: dict[int, list[Problem]], count: int, key: str = "default") -> int:

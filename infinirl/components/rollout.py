@@ -14,7 +14,7 @@ class RolloutWorker(Worker, WeightSink):
     """One rank of the inference engine. Rollout ranks are data-parallel over prompts."""
 
     def __init__(self, model: str, dtype: str = "float32", max_batch_size: int = 64, num_threads: int = 0,
-                 engine: str = "hf", engine_options: dict | None = None):
+                 engine: str = "hf", engine_options: dict | None = None, agent=None):
         from infinirl.engines.registry import build_rollout_engine
 
         if num_threads:
@@ -23,10 +23,32 @@ class RolloutWorker(Worker, WeightSink):
         self.engine = build_rollout_engine(engine, model, dtype, device, max_batch_size, engine_options)
         if hasattr(self.engine, "weight_refresh"):  # partial rollouts: staged weights load between decode steps
             self.engine.weight_refresh = self.apply_staged_weights
+        self.agent = None if agent is None else self._agent_rollout(agent, model)
+
+    def _agent_rollout(self, agent, model: str):
+        """Multi-turn trajectories (``rollout.agent``): the engine generates each turn, the agent
+        environment acts between turns (:mod:`infinirl.agents.loop`)."""
+        from infinirl.agents.loop import AgentRollout
+        from infinirl.agents.registered import load_agent_envs
+
+        load_agent_envs()
+        tokenizer = getattr(self.engine, "tokenizer", None)
+        if tokenizer is None:
+            from transformers import AutoTokenizer
+
+            from infinirl.models.hf_causal_lm import resolve_model_source
+
+            tokenizer = AutoTokenizer.from_pretrained(resolve_model_source(model))
+        return AgentRollout(self.engine, tokenizer, agent.make_env_factory(), agent.budget())
+
+    def _generate(self, prompt_ids: list[list[int]], sampling: SamplingParams) -> list[GenerationResult]:
+        if self.agent is not None:
+            return self.agent.generate(prompt_ids, sampling)
+        return self.engine.generate(prompt_ids, sampling)
 
     def generate(self, prompt_ids: list[list[int]], sampling: SamplingParams) -> list[GenerationResult]:
         self.apply_staged_weights()
-        return self.engine.generate(prompt_ids, sampling)
+        return self._generate(prompt_ids, sampling)
 
     def generate_to(self, channel, chunks: list[tuple[int, list[list[int]]]], sampling: SamplingParams,
                     key: str = "default") -> int:
@@ -41,7 +63,7 @@ class RolloutWorker(Worker, WeightSink):
             self.apply_staged_weights()
             chunk_sampling = sampling if sampling.seed is None else replace(
                 sampling, seed=(sampling.seed + 7919 * index) % (2**31))
-            results = self.engine.generate(prompt_ids, chunk_sampling)
+            results = self._generate(prompt_ids, chunk_sampling)
             channel.put((index, results), key=key, weight=len(results))
         channel.flush()
         return len(chunks)

@@ -107,6 +107,15 @@ class GenerationResult:
     response_versions: list[int] | None = None
     """Partial rollouts only: the weights version that sampled each response id (non-decreasing;
     ``weight_version`` is the first one). None: every id came from ``weight_version``."""
+    response_mask: list[int] | None = None
+    """Multi-turn (agent) rollouts only: 1 where the model sampled the response id, 0 where the
+    environment inserted it (a tool's output, the env's text between turns). Inserted ids have
+    log-prob 0 and are never trained on. None: every response id was sampled."""
+
+    @property
+    def sampled_count(self) -> int:
+        """How many response ids the model sampled (all of them unless the env inserted some)."""
+        return len(self.response_ids) if self.response_mask is None else sum(self.response_mask)
 
 
 class InferenceEngine(ABC):

@@ -41,8 +41,8 @@ class PassResult:
 
 class Evaluator:
     def __init__(self, rollout, reward, tokenizer, system_prompt: str | None, max_batch_size: int,
-                 progress: bool = True):
-        self.rollout, self.reward, self.tokenizer = rollout, reward, tokenizer
+                 progress: bool = True, few_shot=()):
+        self.rollout, self.reward, self.tokenizer, self.few_shot = rollout, reward, tokenizer, few_shot
         self.system_prompt, self.max_batch_size, self.progress = system_prompt, max_batch_size, progress
 
     def run(self, problems: list[Problem], passes: dict[str, SamplingParams]) -> dict[str, PassResult]:
@@ -51,7 +51,7 @@ class Evaluator:
 
         from infinirl.tasks.prompts import encode_prompts
 
-        self._prompt_ids = encode_prompts(problems, self.tokenizer, self.system_prompt)
+        self._prompt_ids = encode_prompts(problems, self.tokenizer, self.system_prompt, few_shot=self.few_shot)
         self._problems = problems
         self._out = {name: PassResult(s.n, [[] for _ in problems], [[] for _ in problems], [[] for _ in problems],
                                       0, 0) for name, s in passes.items()}

@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from infinirl.agents.loop import agent_metrics
 from infinirl.algorithms import (
     TokenAdvantageInputs,
     aggregation_normaliser,
@@ -92,7 +93,8 @@ def run(cfg: ReasoningConfig) -> dict:
         train_stream, eval_problems, tokenizer = build_problem_sources(cfg)
         # Bad input fails before any worker starts: every eval prompt must fit (train prompts are
         # checked as they are drawn).
-        encode_checked(eval_problems, tokenizer, cfg.task.system_prompt, cfg.rollout.max_prompt_length, "eval")
+        encode_checked(eval_problems, tokenizer, cfg.task.system_prompt, cfg.rollout.max_prompt_length, "eval",
+                       cfg.task.few_shot)
         return run_components(
             cfg, loop, lambda plan: _launches(cfg),
             lambda groups, plan: ReasoningFlow(cfg, groups["actor"], groups["rollout"], groups["reward"], tokenizer,
@@ -107,7 +109,7 @@ def _launches(cfg: ReasoningConfig) -> dict:
         "actor": (ActorWorker, (cfg.model.path, cfg.actor, cfg.algorithm.objective, cfg.num_threads)),
         "rollout": (RolloutWorker, (cfg.model.path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
                                     cfg.rollout.num_threads or cfg.num_threads, cfg.rollout.engine,
-                                    cfg.rollout.engine_options)),
+                                    cfg.rollout.engine_options, cfg.rollout.agent)),
         "reward": (RewardWorker, (cfg.model.path, cfg.task.verifier, cfg.task.format_bonus)),
         "critic": (CriticWorker, (cfg.critic_model_path, cfg.critic, cfg.critic.value_clip, cfg.num_threads)),
         "reference": (ReferenceWorker, (cfg.model.path, _reference_engine(cfg), cfg.num_threads)),
@@ -162,7 +164,8 @@ class ReasoningFlow:
             problems, results, rewards, gen_metrics = self.generate_batch(step)
         t_gen = time.perf_counter()
         batch = pack_sequences([r.prompt_ids for r in results], [r.response_ids for r in results],
-                               self.pad_id, [r.response_logprobs for r in results])
+                               self.pad_id, [r.response_logprobs for r in results],
+                               [r.response_mask for r in results])
         self.score_tokens(batch)
         t_score = time.perf_counter()
         adv_metrics = self.add_advantages(batch, rewards)
@@ -175,10 +178,10 @@ class ReasoningFlow:
                 async_metrics.update(partial_rollout_metrics(step, results))
         lengths = [len(r.response_ids) for r in results]
         return {
-            **gen_metrics, **adv_metrics, **train_metrics, **async_metrics,
+            **gen_metrics, **adv_metrics, **train_metrics, **async_metrics, **agent_metrics(results),
             "rollout/response_length_mean": float(np.mean(lengths)),
             "rollout/truncated_fraction": float(np.mean([r.finish_reason == "length" for r in results])),
-            "rollout/tokens_per_s": sum(lengths) / max(t_gen - t0, 1e-9),
+            "rollout/tokens_per_s": sum(r.sampled_count for r in results) / max(t_gen - t0, 1e-9),
             "rollout/max_staleness": float(step - min(r.weight_version for r in results)),
             "time/generate_and_score_s": t_gen - t0,
             "time/logprobs_and_values_s": t_score - t_gen,
@@ -249,7 +252,7 @@ class ReasoningFlow:
         """Start :meth:`generate_and_score` without waiting. Each generation streams under its own
         channel key, so several can be in flight (batches ahead, an evaluation)."""
         prompt_ids = encode_checked(problems, self.tokenizer, self.cfg.task.system_prompt,
-                                    self.cfg.rollout.max_prompt_length, split)
+                                    self.cfg.rollout.max_prompt_length, split, self.cfg.task.few_shot)
         key = f"{split}-{next(self._generation_ids)}"
         per_chunk = self.cfg.rollout.stream_chunk_prompts or -(-len(problems) // self.rollout.world_size)
         chunks = [list(range(s, min(s + per_chunk, len(problems)))) for s in range(0, len(problems), per_chunk)]

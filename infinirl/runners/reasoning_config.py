@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
+from infinirl.agents.loop import AgentConfig
 from infinirl.algorithms.objective import PolicyObjectiveConfig
 from infinirl.config import ConfigError, bounded
 from infinirl.engines.train_base import TrainEngineConfig
@@ -53,6 +54,10 @@ class RolloutConfig:
     """Longest prompt (tokens, chat template and system prompt included) the run accepts. A longer
     training or eval prompt stops the run with an error naming it, rather than silently eating
     the context window (prompt + max_new_tokens must fit the model) or the KV-cache memory."""
+    agent: AgentConfig | None = None
+    """Multi-turn rollouts with tools between the model's turns (docs/agents.md); null = one turn.
+    With an agent, ``max_new_tokens`` bounds each turn and ``agent.max_response_tokens`` the whole
+    trajectory."""
 
 
 @dataclass(kw_only=True)
@@ -201,6 +206,22 @@ class ReasoningConfig(RunConfig):
         self._check_kl_and_reference()
         self._check_critic()
         self._check_off_policy()
+        self._check_agent()
+
+    def _check_agent(self) -> None:
+        agent = self.rollout.agent
+        if agent is None:
+            return
+        from infinirl.agents.registered import AGENT_ENVS, load_agent_envs
+
+        load_agent_envs()
+        if agent.env not in AGENT_ENVS:
+            raise ConfigError(f"rollout.agent.env={agent.env!r} is not registered; registered: "
+                              f"{', '.join(AGENT_ENVS.names())} (plugins: the infinirl.agent_envs entry point)")
+        try:
+            AGENT_ENVS.get(agent.env)(**agent.env_options).close()
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"rollout.agent.env_options for env {agent.env!r}: {exc}") from None
 
     def _check_off_policy(self) -> None:
         objective, eta = self.algorithm.objective, self.algorithm.asynchronous.max_staleness

@@ -27,6 +27,10 @@ class TaskConfig:
     """Held-out problems, excluded from training by question text (a data file: its first rows)."""
     eval_seed: int = 1_000_003
     system_prompt: str | None = None
+    few_shot: list[dict[str, str]] = field(default_factory=list)
+    """Worked examples shown before every question as earlier chat turns, each
+    ``{user: ..., assistant: ...}`` (e.g. how to call a tool, for a model too small to follow a
+    description of it)."""
     prompt_key: str = "question"
     answer_key: str = "answer"
 
@@ -34,6 +38,9 @@ class TaskConfig:
         from infinirl.tasks.sources import TASK_SOURCES
         from infinirl.tasks.verifiers import check_verifier
 
+        for i, example in enumerate(self.few_shot):
+            if set(example) != {"user", "assistant"} or not all(isinstance(v, str) for v in example.values()):
+                raise ConfigError(f"task.few_shot[{i}] must be {{user: <text>, assistant: <text>}}, got {example!r}")
         if self.source not in TASK_SOURCES:
             raise ConfigError(f"task.source={self.source!r} is not registered; registered: "
                               f"{', '.join(TASK_SOURCES.names())}")

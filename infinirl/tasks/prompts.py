@@ -12,7 +12,7 @@ Templates use the single placeholder ``{question}``, substituted with `str.repla
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from infinirl.tasks.problem import Problem
@@ -38,13 +38,18 @@ def render_prompt(question: str, template: str = NUMBER_ANSWER_TEMPLATE) -> str:
     return template.replace(QUESTION_PLACEHOLDER, question)
 
 
-def build_messages(problem: Problem, system_prompt: str | None = None) -> list[dict[str, str]]:
+def build_messages(problem: Problem, system_prompt: str | None = None,
+                   few_shot: Sequence[Mapping[str, str]] = ()) -> list[dict[str, str]]:
     """Chat messages for one problem.
 
     ``system_prompt=None`` sends no system turn, so the tokenizer's chat template decides (some,
     like SmolLM2's, insert their own default system message); pass a string to control it.
+    ``few_shot`` examples (``{"user": ..., "assistant": ...}``) come first, as earlier turns.
     """
     messages = [] if system_prompt is None else [{"role": "system", "content": system_prompt}]
+    for example in few_shot:
+        messages += [{"role": "user", "content": example["user"]},
+                     {"role": "assistant", "content": example["assistant"]}]
     messages.append({"role": "user", "content": problem.prompt})
     return messages
 
@@ -54,6 +59,7 @@ def encode_prompt(
     tokenizer: Any,
     system_prompt: str | None = None,
     use_chat_template: bool = True,
+    few_shot: Sequence[Mapping[str, str]] = (),
 ) -> list[int]:
     """Prompt token ids for ``problem``, ending where the assistant's reply begins.
 
@@ -68,7 +74,7 @@ def encode_prompt(
             "tokenizer.chat_template, or pass use_chat_template=False to encode the raw prompt."
         )
     encoded = tokenizer.apply_chat_template(
-        build_messages(problem, system_prompt), add_generation_prompt=True, tokenize=True
+        build_messages(problem, system_prompt, few_shot), add_generation_prompt=True, tokenize=True
     )
     # transformers >= 5 returns a BatchEncoding here; older versions a plain list of ids.
     ids = encoded["input_ids"] if hasattr(encoded, "keys") else encoded
@@ -80,6 +86,7 @@ def encode_prompts(
     tokenizer: Any,
     system_prompt: str | None = None,
     use_chat_template: bool = True,
+    few_shot: Sequence[Mapping[str, str]] = (),
 ) -> list[list[int]]:
     """`encode_prompt` for each problem (unpadded; packing pads later)."""
-    return [encode_prompt(p, tokenizer, system_prompt, use_chat_template) for p in problems]
+    return [encode_prompt(p, tokenizer, system_prompt, use_chat_template, few_shot) for p in problems]

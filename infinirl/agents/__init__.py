@@ -1,0 +1,1 @@
+"""Agents: multi-turn rollouts in which the model calls tools between its turns."""

@@ -1,0 +1,192 @@
+"""The multi-turn agent loop on the real HF engine and a tiny random Llama (byte tokenizer).
+
+Single characters serve as the environment's stop strings, so the random model really ends turns
+at them and the loop really runs several turns per trajectory."""
+
+import threading
+import time
+
+import pytest
+import torch
+
+from infinirl.agents.loop import AgentBudget, AgentEnv, AgentRollout, AgentStep, agent_metrics
+from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, ROLLOUT_LOGPROBS, pack_sequences
+from infinirl.engines.base import SamplingParams
+from infinirl.engines.hf_generate import HFGenerateEngine
+from infinirl.models.hf_causal_lm import tiny_causal_lm
+
+PROMPTS = [[5, 6, 7, 8, 9], [20, 21], [30, 31, 32]]
+STOPS = tuple("abcdefghijklmnopqrstuvwxyz0123456789")
+
+
+class CountingEnv(AgentEnv):
+    """Answers each turn with a fixed observation; ends the trajectory at its ``done_after``-th step."""
+
+    stop_strings = STOPS
+
+    def __init__(self, observation="<r>ok</r>", done_after=99, delay=0.0, fail_at=None):
+        self.observation, self.done_after, self.delay, self.fail_at = observation, done_after, delay, fail_at
+        self.turns: list[str] = []
+        self.closed = False
+
+    def reset(self, problem):
+        self.problem = problem
+
+    def step(self, turn):
+        self.turns.append(turn)
+        time.sleep(self.delay)
+        if self.fail_at == len(self.turns):
+            raise RuntimeError("tool broke")
+        return AgentStep(observation=self.observation, done=len(self.turns) >= self.done_after)
+
+    def close(self):
+        self.closed = True
+
+
+@pytest.fixture(scope="module", autouse=True)
+def single_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return tiny_causal_lm(tokenizer="byte", seed=0)
+
+
+@pytest.fixture
+def engine(tiny):
+    model, tokenizer = tiny
+    return HFGenerateEngine(model, tokenizer, max_batch_size=64, eos_token_ids=[])
+
+
+def rollout(tiny, engine, budget, make_env=CountingEnv, prompts=PROMPTS, sampling=None, problems=None):
+    _, tokenizer = tiny
+    sampling = sampling or SamplingParams(n=2, max_new_tokens=16, seed=3)
+    return AgentRollout(engine, tokenizer, make_env, budget).generate(prompts, sampling, problems)
+
+
+def test_multi_turn_logprobs_equal_the_trainers_on_model_tokens_only(tiny, engine):
+    model, tokenizer = tiny
+    results = rollout(tiny, engine, AgentBudget(max_turns=4, max_response_tokens=80, schedule="lockstep"))
+    assert len(results) == len(PROMPTS) * 2
+    assert max(r.extra["agent"]["turns"] for r in results) >= 2
+    assert any(0 in r.response_mask for r in results)
+    batch = pack_sequences([r.prompt_ids for r in results], [r.response_ids for r in results],
+                           tokenizer.pad_token_id, [r.response_logprobs for r in results],
+                           [r.response_mask for r in results])
+    with torch.no_grad():
+        logits = model(input_ids=batch[INPUT_IDS], attention_mask=batch[ATTENTION_MASK],
+                       position_ids=batch[POSITION_IDS]).logits.float()
+    scored = torch.zeros_like(batch[ROLLOUT_LOGPROBS])
+    scored[:, 1:] = torch.log_softmax(logits[:, :-1], dim=-1).gather(-1, batch[INPUT_IDS][:, 1:, None]).squeeze(-1)
+    mask = batch[RESPONSE_MASK].bool()
+    torch.testing.assert_close(batch[ROLLOUT_LOGPROBS][mask], scored[mask], atol=1e-5, rtol=0)
+    observation = tokenizer.encode("<r>ok</r>", add_special_tokens=False)
+    for r in results:
+        inserted = [i for i, m in zip(r.response_ids, r.response_mask) if not m]
+        assert inserted == observation * (len(inserted) // len(observation))
+        assert len(inserted) <= len(observation) * r.extra["agent"]["env_steps"]
+        assert all(lp == 0.0 for lp, m in zip(r.response_logprobs, r.response_mask) if not m)
+        assert r.response_mask[-1] == 1  # a trajectory ends with the model's turn
+
+
+def test_each_turn_continues_from_the_exact_ids_so_far(tiny, engine):
+    """The env sees the decoded turn; the next turn's context is prompt + every id, none re-tokenised."""
+    _, tokenizer = tiny
+    envs = []
+
+    def make_env():
+        envs.append(CountingEnv(done_after=2))
+        return envs[-1]
+
+    results = rollout(tiny, engine, AgentBudget(max_turns=4, max_response_tokens=200, schedule="lockstep"),
+                      make_env=make_env, sampling=SamplingParams(n=1, max_new_tokens=16, seed=5))
+    for env, result in zip(envs, results):
+        model_turns, run = [], []
+        for token, m in zip(result.response_ids, result.response_mask):
+            if m:
+                run.append(token)
+            elif run:
+                model_turns.append(run)
+                run = []
+        model_turns.append(run)
+        assert [tokenizer.decode(t, skip_special_tokens=False) for t in model_turns][:len(env.turns)] == env.turns
+        assert env.closed
+
+
+def test_lockstep_is_reproducible_and_async_greedy_matches_it(tiny, engine):
+    budget = AgentBudget(max_turns=3, max_response_tokens=60, schedule="lockstep")
+    def sampled(results):  # everything but the timings
+        return [(r.response_ids, r.response_logprobs, r.response_mask, r.finish_reason) for r in results]
+
+    assert sampled(rollout(tiny, engine, budget)) == sampled(rollout(tiny, engine, budget))
+    greedy = SamplingParams(n=1, max_new_tokens=12, greedy=True)
+    lockstep = rollout(tiny, engine, budget, sampling=greedy)
+    asynchronous = rollout(tiny, engine, AgentBudget(max_turns=3, max_response_tokens=60, schedule="async"),
+                           make_env=lambda: CountingEnv(delay=0.01), sampling=greedy)
+    strip = [(r.response_ids, r.response_mask) for r in lockstep]
+    assert [(r.response_ids, r.response_mask) for r in asynchronous] == strip
+
+
+def test_budgets_bound_turns_tokens_and_observations(tiny, engine):
+    results = rollout(tiny, engine, AgentBudget(max_turns=2, max_response_tokens=40, max_observation_tokens=6),
+                      make_env=lambda: CountingEnv(observation="x" * 50))
+    for r in results:
+        assert r.extra["agent"]["turns"] <= 2
+        assert len(r.response_ids) <= 40
+        inserted = len(r.response_mask) - sum(r.response_mask)
+        assert inserted <= 6 * r.extra["agent"]["env_steps"]
+    assert any(r.finish_reason == "length" for r in results)
+
+
+def test_a_raising_tool_is_shown_to_the_model_and_counted(tiny, engine):
+    _, tokenizer = tiny
+    results = rollout(tiny, engine, AgentBudget(max_turns=4, max_response_tokens=120),
+                      make_env=lambda: CountingEnv(fail_at=1))
+    called = [r for r in results if r.extra["agent"]["env_steps"]]
+    assert called and all(r.extra["agent"]["env_errors"] == 1 for r in called)
+    text = tokenizer.decode([i for i, m in zip(called[0].response_ids, called[0].response_mask) if not m])
+    assert "tool broke" in text
+    assert agent_metrics(results)["agent/env_error_rate"] > 0
+
+
+def test_async_overlaps_environment_steps_with_generation(tiny, engine):
+    """While one trajectory's tool runs, others are generated: more than one env step is in
+    flight at a time, and every trajectory completes."""
+    running, peak, lock = [0], [0], threading.Lock()
+
+    class SlowEnv(CountingEnv):
+        def step(self, turn):
+            with lock:
+                running[0] += 1
+                peak[0] = max(peak[0], running[0])
+            try:
+                return super().step(turn)
+            finally:
+                with lock:
+                    running[0] -= 1
+
+    results = rollout(tiny, engine, AgentBudget(max_turns=3, max_response_tokens=60, concurrency=8),
+                      make_env=lambda: SlowEnv(delay=0.05))
+    assert len(results) == 6 and peak[0] > 1
+    metrics = agent_metrics(results)
+    assert metrics["agent/turns_mean"] >= 1 and metrics["agent/env_s_total"] > 0
+
+
+def test_pack_sequences_masks_inserted_tokens_and_checks_lengths():
+    batch = pack_sequences([[1, 2]], [[3, 4, 5]], 0, [[-1.0, 0.0, -2.0]], [[1, 0, 1]])
+    assert batch[RESPONSE_MASK].tolist() == [[0, 0, 1, 0, 1]]
+    with pytest.raises(ValueError, match="response mask of 2"):
+        pack_sequences([[1]], [[3, 4, 5]], 0, None, [[1, 0]])
+    with pytest.raises(ValueError, match="one entry"):
+        pack_sequences([[1]], [[3]], 0, None, [])
+
+
+def test_budget_rejects_nonsense():
+    with pytest.raises(ValueError, match="max_turns"):
+        AgentBudget(max_turns=0)
+    with pytest.raises(ValueError, match="schedule"):
+        AgentBudget(schedule="parallel")
