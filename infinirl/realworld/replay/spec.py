@@ -64,10 +64,13 @@ class EpisodeSpec:
         shape, dtype = self.fields[name]
         return int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
 
+    def batch_fields(self) -> dict[str, FieldSpec]:
+        """The rows of a sampled batch: ``obs.<name>``, ``next_obs.<name>``, then every step field."""
+        return ({f"obs.{n}": spec for n, spec in self.observations.items()}
+                | {f"next_obs.{n}": spec for n, spec in self.observations.items()} | dict(self.steps))
+
     def batch_keys(self) -> list[str]:
-        """The keys of a sampled batch: ``obs.<name>``, ``next_obs.<name>``, then every step field."""
-        return ([f"obs.{n}" for n in self.observations] + [f"next_obs.{n}" for n in self.observations]
-                + list(self.steps))
+        return list(self.batch_fields())
 
     def check_episode(self, episode: Mapping[str, Any]) -> tuple[int, dict[str, np.ndarray]]:
         """``(T, contiguous arrays)`` of a valid episode; a ``ValueError`` naming the field otherwise.
@@ -78,12 +81,13 @@ class EpisodeSpec:
             raise ValueError(f"replay episode fields differ from the store's: missing {sorted(missing)}, unknown "
                              f"{sorted(extra)} (declared: observations {list(self.observations)}, steps "
                              f"{list(self.steps)})")
-        first = next(iter(self.observations))
-        obs = np.asarray(episode[first])
-        if obs.ndim == 0 or obs.shape[0] < 2:
-            raise ValueError(f"replay observation field {first!r}: an episode needs T + 1 >= 2 rows (T steps plus the "
-                             f"final observation), got an array of shape {obs.shape}")
-        steps = obs.shape[0] - 1
+        implied = {name: (np.shape(episode[name])[0] - self.rows(name, 0) if np.ndim(episode[name]) else -1)
+                   for name in self.fields}  # the steps each field's row count says
+        steps = max(set(implied.values()), key=list(implied.values()).count)  # the majority
+        odd = {name: n for name, n in implied.items() if n != steps}
+        if steps < 1 or odd:
+            raise ValueError(f"replay episode: fields {sorted(odd) or sorted(implied)} disagree on the number of steps "
+                             f"({implied}; observation fields hold T + 1 rows, step fields T, T >= 1)")
         arrays = {}
         for name, (shape, dtype) in self.fields.items():
             array = np.asarray(episode[name])

@@ -304,12 +304,7 @@ class ReplayStore:
         positions = np.asarray(positions, np.int64)
         loc = self.table.locate(positions)
         n = len(positions)
-        out = {}
-        for name, (shape, dtype) in self.spec.observations.items():
-            out[f"obs.{name}"] = np.empty((n, *shape), dtype)
-            out[f"next_obs.{name}"] = np.empty((n, *shape), dtype)
-        for name, (shape, dtype) in self.spec.steps.items():
-            out[name] = np.empty((n, *shape), dtype)
+        out = {key: np.empty((n, *shape), dtype) for key, (shape, dtype) in self.spec.batch_fields().items()}
         cuts = np.concatenate([[0], np.flatnonzero(np.diff(loc.segment)) + 1, [n]])
         for a, b in zip(cuts[:-1], cuts[1:]):
             number = int(loc.segment[a])
