@@ -154,7 +154,7 @@ class Segment:
         self.sealed = True
 
     def _cut_torn_tail(self, log_path: str, span: int) -> None:
-        if os.path.getsize(log_path) > span:
+        if os.path.exists(log_path) and os.path.getsize(log_path) > span:
             os.truncate(log_path, span)
         for name in self.names:
             committed = self.rows(name) * self.spec.row_bytes(name)
