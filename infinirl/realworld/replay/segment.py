@@ -53,6 +53,16 @@ def _write_all(fd: int, data) -> None:
         view = view[os.write(fd, view):]
 
 
+class _Shifted:
+    """Rows ``offset..`` of a field, addressed by their row number in the file."""
+
+    def __init__(self, array: np.ndarray, offset: int):
+        self.array, self.offset = array, offset
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        return self.array[rows.start - self.offset:rows.stop - self.offset]
+
+
 class Segment:
     """The committed episodes of one segment folder and views of their rows."""
 
@@ -224,6 +234,10 @@ class Segment:
             fsync_directory(self.path)
         self.sealed = True
 
+    def unmap(self) -> None:
+        """Drop this process's memory maps of the field files (remapped on the next read)."""
+        self._maps.clear()
+
     def close(self) -> None:
         for fd in (self._fds or {}).values():
             os.close(fd)
@@ -255,13 +269,16 @@ class Segment:
             os.close(fd)  # the map keeps the file alive, even once the writer evicts it
         return np.frombuffer(buffer, dtype=dtype).reshape(rows, *shape)
 
-    def load(self) -> dict[str, np.ndarray]:
-        """Every committed row read into RAM and checked against the commit log (for the cache)."""
+    def load(self, first_episode: int = 0) -> dict[str, np.ndarray]:
+        """The committed rows of the episodes from ``first_episode`` on, read into RAM and checked
+        against the commit log (for the cache)."""
         arrays = {}
         for name in self.names:
             shape, dtype = self.spec.fields[name]
-            array = np.empty((self.rows(name), *shape), dtype)
+            start = int(self.row_starts(name)[first_episode]) if first_episode < self.num_episodes else self.rows(name)
+            array = np.empty((self.rows(name) - start, *shape), dtype)
             with open(self.file(name), "rb", buffering=0) as handle:
+                handle.seek(start * self.spec.row_bytes(name))
                 view, done = memoryview(array.reshape(-1).view(np.uint8)), 0
                 while done < len(view):
                     got = handle.readinto(view[done:])
@@ -269,8 +286,16 @@ class Segment:
                         raise ReplayCorruptionError(f"{self.file(name)}: shorter than its commit log says")
                     done += got
             arrays[name] = array
-        self.verify(np.arange(self.num_episodes), arrays)
+        self._verify_from(first_episode, arrays)
         return arrays
+
+    def _verify_from(self, first_episode: int, arrays: Mapping[str, np.ndarray]) -> None:
+        """Check the episodes from ``first_episode`` on against rows that start at that episode."""
+        full = {}
+        for name in self.names:  # index as if the rows began at row 0 of the file
+            offset = int(self.row_starts(name)[first_episode]) if first_episode < self.num_episodes else 0
+            full[name] = _Shifted(arrays[name], offset)
+        self.verify(np.arange(first_episode, self.num_episodes), full)
 
     def verify(self, episodes: np.ndarray, arrays: Mapping[str, np.ndarray]) -> None:
         """Check the crc32 of every field of the local ``episodes`` not checked yet; raises naming the file."""

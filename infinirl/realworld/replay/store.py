@@ -43,6 +43,7 @@ import numpy as np
 
 from infinirl.realworld.replay.cache import ByteLRU
 from infinirl.realworld.replay.log import ReplayCorruptionError
+from infinirl.realworld.replay.ram import RowArrays
 from infinirl.realworld.replay.sampler import SamplingSpec, TransitionSampler
 from infinirl.realworld.replay.segment import Segment, fsync_directory
 from infinirl.realworld.replay.spec import EpisodeSpec
@@ -61,7 +62,7 @@ _READER_RETRIES = 20  # a reader's listing races the writer's evictions; each re
 class StoreOptions:
     segment_bytes: int = 256 * MIB  # a segment is sealed once its field data reaches this size
     max_bytes: int | None = None  # disk bound; None: keep every episode
-    cache_bytes: int = 1024 * MIB  # RAM for copies of the newest sealed segments
+    cache_bytes: int = 1024 * MIB  # RAM for copies of the newest segments (the open one included)
     durable: bool = True  # fsync each episode before it counts as committed (survives power loss)
     verify_reads: bool = True  # check an episode's crc32 before its first read through a memory map
 
@@ -192,7 +193,7 @@ class ReplayStore:
                 old = newest.num_episodes
                 newest.refresh()
                 self._index(newest, old)
-                if newest.sealed:
+                if self._grow_cached(newest, old, None) is None and newest.sealed:
                     self._admit(newest)
         last = max(self.segments) if self.segments else -1
         for number in sorted(n for n in listed if n > last):
@@ -219,17 +220,33 @@ class ReplayStore:
         self.next_episode_id = int(segment.episode_ids[-1]) + 1
 
     def _warm_cache(self) -> None:
-        """Load the newest sealed segments into the cache, as many as fit."""
+        """Load the newest segments (the open one first) into the cache, as many as fit."""
         for number in sorted(self.segments, reverse=True):
             segment = self.segments[number]
-            if segment.sealed:
-                if not self.cache.fits(segment.data_bytes):
-                    break
-                self._admit(segment)
+            if not self.cache.fits(segment.data_bytes):
+                break
+            self._admit(segment)
 
     def _admit(self, segment: Segment) -> None:
         if 0 < segment.data_bytes <= self.cache.capacity_bytes:
-            self.cache.put(segment.number, segment.load(), segment.data_bytes)
+            self.cache.put(segment.number, RowArrays(segment.load()), segment.data_bytes)
+
+    def _grow_cached(self, segment: Segment, old: int, rows: Mapping[str, np.ndarray] | None) -> RowArrays | None:
+        """Add the episodes from local index ``old`` on (``rows``, or read from disk) to the
+        segment's cached copy: the open segment is the newest, so the hottest under recency."""
+        entry = self.cache.get(segment.number)
+        if entry is None and (old > 0 or self.cache.capacity_bytes == 0):
+            return None  # evicted earlier (or no cache): read through the memory maps
+        if old < segment.num_episodes:
+            rows = rows if rows is not None else segment.load(old)
+            if entry is None:
+                entry = RowArrays({name: array[:0] for name, array in rows.items()})  # its own copy of the rows
+            entry.extend(rows)
+        if entry is not None and segment.sealed:
+            entry.trim()
+        if entry is not None and not self.cache.put(segment.number, entry, entry.nbytes):
+            return None
+        return entry
 
     # ------------------------------------------------------------------ writing
     def append(self, episode: Mapping[str, Any]) -> int:
@@ -244,7 +261,8 @@ class ReplayStore:
         self._index(active, active.num_episodes - 1)
         if active.data_bytes >= self.options.segment_bytes:
             active.seal(self.options.durable)
-            self._admit(active)
+        self._grow_cached(active, active.num_episodes - 1, arrays)
+        if active.sealed:
             self._evict()
         return episode_id
 
@@ -319,7 +337,7 @@ class ReplayStore:
     def _arrays(self, number: int, episodes: np.ndarray) -> dict[str, np.ndarray]:
         cached = self.cache.get(number)
         if cached is not None:
-            return cached
+            return cached.view()
         segment = self.segments[number]
         arrays = segment.mapped()
         if self.options.verify_reads:
@@ -331,7 +349,8 @@ class ReplayStore:
         for segment in self.segments.values():
             local = int(np.searchsorted(segment.episode_ids, episode_id))
             if local < segment.num_episodes and segment.episode_ids[local] == episode_id:
-                return segment.episode(local, self.cache.get(segment.number) or segment.mapped())
+                cached = self.cache.get(segment.number)
+                return segment.episode(local, cached.view() if cached is not None else segment.mapped())
         raise KeyError(f"episode {episode_id} is not in the replay store (evicted or never appended)")
 
     def verify(self) -> None:
@@ -339,6 +358,16 @@ class ReplayStore:
         for segment in self.segments.values():
             segment.verified[:] = False
             segment.verify(np.arange(segment.num_episodes), segment.mapped())
+
+    def release_maps(self) -> None:
+        """Drop the memory maps of uncached segments (address space; lets ``posix_fadvise`` drop
+        their pages); the next read maps them again."""
+        for segment in self.segments.values():
+            segment.unmap()
+
+    def files(self) -> list[str]:
+        """The field files of the live segments."""
+        return [segment.file(name) for segment in self.segments.values() for name in segment.names]
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:

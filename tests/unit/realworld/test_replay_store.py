@@ -38,8 +38,12 @@ def test_round_trip_across_segments_and_reopen(tmp_path):
         assert again.spec == SPEC and len(again) == total and again.next_episode_id == 30
         for i in range(30):
             assert_episode_equal(again.episode(i), make_episode(i))
-        again.append(make_episode(30))
+        appended = make_episode(30)
+        again.append(appended)
+        for array in appended.values():
+            array[...] = 0  # the caller reuses its arrays: the store kept its own copy
         assert_episode_equal(again.episode(30), make_episode(30))
+        check_batch(again.gather(np.arange(len(again) - 5, len(again))))
         again.verify()
 
 
@@ -152,8 +156,8 @@ def test_store_cache_holds_the_newest_segments_within_its_bytes_and_changes_no_b
         batch, other = cached.sample(16), uncached.sample(16)
         for key in batch:
             np.testing.assert_array_equal(batch[key], other[key])
-    sealed = sorted(n for n, s in cached.segments.items() if s.sealed)
-    assert sorted(cached.cache.keys()) == sealed[-len(cached.cache):] and len(cached.cache) >= 2
+    newest = sorted(cached.segments)  # the open segment included
+    assert sorted(cached.cache.keys()) == newest[-len(cached.cache):] and len(cached.cache) >= 2
     assert len(uncached.cache) == 0
     cached.close()
     uncached.close()
