@@ -320,6 +320,9 @@ class ReplayStore:
     def gather(self, positions: np.ndarray) -> dict[str, np.ndarray]:
         """The transitions at sorted absolute ``positions`` (each live)."""
         positions = np.asarray(positions, np.int64)
+        if len(positions) and (positions.min() < self.table.first_live or positions.max() >= self.table.end_position):
+            raise IndexError(f"replay positions must lie in the live range [{self.table.first_live}, "
+                             f"{self.table.end_position}), got [{positions.min()}, {positions.max()}]")
         loc = self.table.locate(positions)
         n = len(positions)
         out = {key: np.empty((n, *shape), dtype) for key, (shape, dtype) in self.spec.batch_fields().items()}
@@ -327,11 +330,12 @@ class ReplayStore:
         for a, b in zip(cuts[:-1], cuts[1:]):
             number = int(loc.segment[a])
             arrays = self._arrays(number, loc.local[a:b])
+            # mode="clip": the rows are in range by construction, and numpy buffers `out` in mode="raise"
             for name in self.spec.observations:
-                np.take(arrays[name], loc.obs_row[a:b], axis=0, out=out[f"obs.{name}"][a:b])
-                np.take(arrays[name], loc.obs_row[a:b] + 1, axis=0, out=out[f"next_obs.{name}"][a:b])
+                np.take(arrays[name], loc.obs_row[a:b], axis=0, out=out[f"obs.{name}"][a:b], mode="clip")
+                np.take(arrays[name], loc.obs_row[a:b] + 1, axis=0, out=out[f"next_obs.{name}"][a:b], mode="clip")
             for name in self.spec.steps:
-                np.take(arrays[name], loc.step_row[a:b], axis=0, out=out[name][a:b])
+                np.take(arrays[name], loc.step_row[a:b], axis=0, out=out[name][a:b], mode="clip")
         return out
 
     def _arrays(self, number: int, episodes: np.ndarray) -> dict[str, np.ndarray]:

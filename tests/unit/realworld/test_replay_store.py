@@ -44,6 +44,8 @@ def test_round_trip_across_segments_and_reopen(tmp_path):
             array[...] = 0  # the caller reuses its arrays: the store kept its own copy
         assert_episode_equal(again.episode(30), make_episode(30))
         check_batch(again.gather(np.arange(len(again) - 5, len(again))))
+        with pytest.raises(IndexError, match=rf"live range \[0, {len(again)}\)"):
+            again.gather(np.array([len(again)]))
         again.verify()
 
 
