@@ -26,11 +26,11 @@ class PromptTooLongError(ConfigError):
 
 
 def encode_checked(problems, tokenizer, system_prompt: str | None, max_prompt_length: int,
-                   split: str) -> list[list[int]]:
+                   split: str, few_shot=()) -> list[list[int]]:
     """Prompt ids of ``problems``, refusing any longer than ``max_prompt_length`` tokens."""
     from infinirl.tasks.prompts import encode_prompts
 
-    prompt_ids = encode_prompts(problems, tokenizer, system_prompt)
+    prompt_ids = encode_prompts(problems, tokenizer, system_prompt, few_shot=few_shot)
     check_prompt_lengths(prompt_ids, problems, max_prompt_length, split)
     return prompt_ids
 
