@@ -109,7 +109,8 @@ class SandboxResult:
     cpu_time_s: float | None = None
     stdout_truncated: bool = False
     stderr_truncated: bool = False
-    isolation: str = ""
+    isolation: str = ""  # "namespaces" or "process"
+    isolation_note: str = ""  # why namespaces were not used, under "process"
     error: str | None = None
 
     @property
@@ -339,6 +340,7 @@ class Sandbox:
             cpu_time_s=status.get("cpu_time_s"),
             stdout_truncated=out.truncated, stderr_truncated=err.truncated,
             isolation=status.get("isolation", ""),
+            isolation_note=status.get("reason", ""),
             error=status.get("error"),
         )
 

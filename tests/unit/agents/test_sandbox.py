@@ -96,7 +96,10 @@ def test_normal_code_prints_its_output(any_sandbox):
     assert result.ok, result
     assert result.stdout == "45\n" and result.stderr == "warn\n"
     assert result.exit_code == 0 and result.limit is None
-    assert result.isolation == ("namespaces" if any_sandbox.limits.isolation == "namespaces" else "process")
+    if any_sandbox.limits.isolation == "namespaces":
+        assert result.isolation == "namespaces" and result.isolation_note == ""
+    else:
+        assert result.isolation == "process" and "requested" in result.isolation_note
 
 
 def test_stdin_files_and_exit_code(any_sandbox):
@@ -266,3 +269,10 @@ def test_cancelled_run_leaves_nothing(sandbox):
     asyncio.run(main())
     assert sandbox_dirs() == before_dirs
     assert set(processes_of(uid)) <= before_pids
+
+
+def test_code_cannot_undo_the_mounts(isolated):
+    code = ("import ctypes, os\nlibc = ctypes.CDLL(None, use_errno=True)\n"
+            "print([libc.umount2(p, 2) for p in (b'/tmp', b'/', b'/usr')], os.path.exists('/home'))")
+    result = isolated.run_sync(code)
+    assert result.stdout == "[-1, -1, -1] False\n", result
