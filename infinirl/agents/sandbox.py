@@ -1,0 +1,391 @@
+"""Run model-written Python code in a separate, limited, isolated process.
+
+``await Sandbox().run(code, stdin=..., files=...)`` returns a :class:`SandboxResult`; it never raises
+for anything the code does. Limits (:class:`SandboxLimits`): CPU time (RLIMIT_CPU), wall time (the
+whole sandbox is killed), address space (RLIMIT_AS), output size (each stream read concurrently and
+cut at the limit, which ends the run), processes (RLIMIT_NPROC counted in a user namespace of the
+run's own), file size and disk (a size-limited tmpfs), open files. Isolation, where Linux namespaces
+are available (as root, or as a user with unprivileged user namespaces): no network (a fresh network
+namespace), a private PID namespace, a root filesystem holding only the system directories and the
+Python installation read-only, a fresh /tmp as the working directory, and an unprivileged uid. Where
+they are not, the code runs as an unprivileged uid (when root) with sockets refused in Python; the
+result names the isolation it got. ``docs/agents.md`` has the details.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import enum
+import json
+import math
+import os
+import shutil
+import signal
+import sys
+import tempfile
+import time
+import weakref
+from collections.abc import Mapping
+from pathlib import Path
+
+from infinirl.agents.sandbox_runner import MEMORY_EXIT_CODE
+
+__all__ = ["ISOLATIONS", "LimitHit", "Sandbox", "SandboxLimits", "SandboxResult"]
+
+ISOLATIONS = ("auto", "namespaces", "process")
+LAUNCHER = Path(__file__).with_name("sandbox_launch.py")
+RUNNER_SOURCE = Path(__file__).with_name("sandbox_runner.py").read_text(encoding="utf-8")
+CODE_NAME = "main.py"
+NOBODY = 65534
+READ_CHUNK = 65536
+DRAIN_AFTER_EXIT_S = 5.0  # after the sandbox is dead its pipes close at once; this only bounds a bug
+# Numeric libraries start one thread per core by default, each reserving address space.
+CODE_ENV = {
+    "PATH": "/usr/local/bin:/usr/bin:/bin",
+    "LANG": "C.UTF-8",
+    "PYTHONDONTWRITEBYTECODE": "1",
+    "PYTHONIOENCODING": "utf-8",
+    "PYTHONUNBUFFERED": "1",
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+}
+
+
+class LimitHit(enum.StrEnum):
+    """The limit that ended (or, for processes, constrained) a run."""
+
+    WALL_TIME = "wall_time"
+    CPU_TIME = "cpu_time"
+    MEMORY = "memory"
+    OUTPUT = "output"
+    PROCESSES = "processes"
+
+
+@dataclasses.dataclass(kw_only=True, frozen=True)
+class SandboxLimits:
+    """What one run may use. Sizes in bytes, times in seconds."""
+
+    wall_time_s: float = 10.0
+    cpu_time_s: float = 5.0
+    memory_bytes: int = 1 << 30  # address space: an interpreter with numpy needs a few hundred MiB
+    max_output_bytes: int = 64 << 10  # per stream
+    max_processes: int = 32
+    max_file_bytes: int = 16 << 20
+    disk_bytes: int = 64 << 20  # the working directory's tmpfs (namespaces isolation)
+    max_open_files: int = 256
+    isolation: str = "auto"  # "namespaces" refuses to run without them; "process" never tries them
+    sandbox_uid: int = NOBODY  # the uid the code runs as when the sandbox is started by root
+    sandbox_gid: int = NOBODY
+
+    def __post_init__(self) -> None:
+        for name in ("wall_time_s", "cpu_time_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"SandboxLimits.{name} must be > 0 seconds, got {getattr(self, name)!r}")
+        for name in ("memory_bytes", "max_output_bytes", "max_processes", "max_file_bytes", "disk_bytes",
+                     "max_open_files"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"SandboxLimits.{name} must be a positive integer, got {value!r}")
+        if self.isolation not in ISOLATIONS:
+            raise ValueError(f"SandboxLimits.isolation must be one of {ISOLATIONS}, got {self.isolation!r}")
+        if self.sandbox_uid == 0 or self.sandbox_gid == 0:
+            raise ValueError("SandboxLimits.sandbox_uid/sandbox_gid must not be 0 (root); use e.g. 65534")
+
+
+@dataclasses.dataclass(kw_only=True, frozen=True)
+class SandboxResult:
+    """What a run produced. ``exit_code`` is None when the process was killed (``signal`` says by
+    what, when known); ``limit`` names the limit hit, if any; ``error`` is set when the sandbox
+    itself could not run the code (then nothing ran)."""
+
+    stdout: str
+    stderr: str
+    exit_code: int | None
+    signal: int | None = None
+    limit: LimitHit | None = None
+    wall_time_s: float
+    cpu_time_s: float | None = None
+    stdout_truncated: bool = False
+    stderr_truncated: bool = False
+    isolation: str = ""  # "namespaces" or "process"
+    isolation_note: str = ""  # why namespaces were not used, under "process"
+    error: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        """Ran to completion with exit code 0 and within every limit."""
+        return self.exit_code == 0 and self.limit is None and self.error is None
+
+
+class BoundedReader:
+    """Reads a pipe to EOF, keeping the first ``limit`` bytes; ``overflow`` is set past it."""
+
+    def __init__(self, stream: asyncio.StreamReader, limit: int, overflow: asyncio.Event) -> None:
+        self.stream, self.limit, self.overflow = stream, limit, overflow
+        self.data = bytearray()
+        self.truncated = False
+
+    async def read(self) -> None:
+        while chunk := await self.stream.read(READ_CHUNK):
+            room = self.limit - len(self.data)
+            self.data += chunk[:room]
+            if len(chunk) > room:
+                self.truncated = True
+                self.overflow.set()
+
+    def text(self) -> str:
+        return self.data.decode("utf-8", errors="replace")
+
+
+def python_paths(python: str) -> list[str]:
+    """The interpreter installation the code needs visible (read-only) inside the new root: the
+    prefix above ``bin/`` of the interpreter, of its symlink target (a virtual environment's base
+    Python), and this process's prefixes when it is this process's interpreter."""
+    paths = {os.path.dirname(os.path.dirname(p)) for p in (os.path.abspath(python), os.path.realpath(python))}
+    if os.path.realpath(python) == os.path.realpath(sys.executable):
+        paths |= {os.path.realpath(p) for p in (sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix)}
+    return sorted(path for path in paths if path != "/")
+
+
+def check_file_name(name: str) -> str:
+    parts = Path(name).parts
+    if not name or Path(name).is_absolute() or ".." in parts or name == CODE_NAME:
+        raise ValueError(f"sandbox file name {name!r} must be a relative path inside the working directory "
+                         f"(no '..', not {CODE_NAME!r})")
+    return name
+
+
+def write_files(work_dir: Path, code: str, files: Mapping[str, str | bytes]) -> None:
+    (work_dir / CODE_NAME).write_text(code, encoding="utf-8")
+    for name, content in files.items():
+        target = work_dir / check_file_name(name)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if isinstance(content, str):
+            content = content.encode("utf-8")
+        target.write_bytes(content)
+
+
+def give_to(path: Path, uid: int, gid: int) -> None:
+    for folder, dirs, files in os.walk(path):
+        for name in [folder] + [os.path.join(folder, entry) for entry in dirs + files]:
+            os.lchown(name, uid, gid)
+
+
+def remove_tree(path: Path) -> None:
+    def make_writable(function, failed_path, _):
+        os.chmod(os.path.dirname(failed_path), 0o700)
+        function(failed_path)
+
+    shutil.rmtree(path, onerror=make_writable)
+
+
+async def read_status(fd: int) -> dict:
+    """Merge the JSON lines the launcher wrote. Its writers are dead or dying by now; the deadline
+    only bounds a bug, so a stuck writer cannot hang the caller."""
+    os.set_blocking(fd, False)
+    chunks = []
+    deadline = time.monotonic() + DRAIN_AFTER_EXIT_S
+    while time.monotonic() < deadline:
+        try:
+            chunk = os.read(fd, READ_CHUNK)
+        except BlockingIOError:
+            await asyncio.sleep(0.01)
+            continue
+        if not chunk:
+            break
+        chunks.append(chunk)
+    status: dict = {}
+    for line in b"".join(chunks).decode("utf-8", errors="replace").splitlines():
+        try:
+            status.update(json.loads(line))
+        except json.JSONDecodeError:
+            status.setdefault("error", f"unreadable sandbox status line {line[:200]!r}")
+    return status
+
+
+def limit_from(status: dict, limits: SandboxLimits, killed_for: LimitHit | None, truncated: bool) -> LimitHit | None:
+    """The limit to report: the one the run was killed for, except that a process limit reached
+    on the way explains a fork bomb's wall-time kill better."""
+    if killed_for is not None:
+        return LimitHit.PROCESSES if status.get("limit") == "processes" else killed_for
+    if truncated:
+        return LimitHit.OUTPUT
+    if status.get("returncode") == MEMORY_EXIT_CODE:
+        return LimitHit.MEMORY
+    sig = status.get("signal")
+    if sig == signal.SIGXCPU or (sig == signal.SIGKILL and status.get("cpu_time_s", 0) >= limits.cpu_time_s):
+        return LimitHit.CPU_TIME
+    if status.get("limit") == "processes":
+        return LimitHit.PROCESSES
+    return None
+
+
+class Sandbox:
+    """Runs code with :class:`SandboxLimits`; at most ``max_concurrent`` runs at once (per event loop).
+    ``python`` is the interpreter for the code (default: this one); with the "process" isolation
+    under root, the sandbox uid must be able to execute it.
+
+    Safe to share between coroutines; each run gets its own folder, processes and namespaces.
+    """
+
+    def __init__(
+        self, limits: SandboxLimits | None = None, *, max_concurrent: int = 4, python: str | None = None
+    ) -> None:
+        if max_concurrent < 1:
+            raise ValueError(f"Sandbox max_concurrent must be >= 1, got {max_concurrent}")
+        self.python = python or sys.executable  # the interpreter that runs the code
+        if not (os.path.isfile(self.python) and os.access(self.python, os.X_OK)):
+            raise ValueError(f"Sandbox python {self.python!r} is not an executable file")
+        self.limits = limits or SandboxLimits()
+        self.max_concurrent = max_concurrent
+        self._slots: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+    def _semaphore(self) -> asyncio.Semaphore:
+        loop = asyncio.get_running_loop()
+        if loop not in self._slots:
+            self._slots[loop] = asyncio.Semaphore(self.max_concurrent)
+        return self._slots[loop]
+
+    async def run(
+        self,
+        code: str,
+        *,
+        stdin: str | bytes | None = None,
+        files: Mapping[str, str | bytes] | None = None,
+        limits: SandboxLimits | None = None,
+    ) -> SandboxResult:
+        """Run ``code`` as a Python program; ``files`` (relative names) are written into its working
+        directory first. Raises ValueError only for a bad file name; whatever the code does is in the
+        result."""
+        limits = limits or self.limits
+        for name in files or {}:
+            check_file_name(name)
+        async with self._semaphore():
+            folder = Path(tempfile.mkdtemp(prefix="infinirl-sandbox-"))
+            try:
+                return await self._run_in(folder, code, stdin, files or {}, limits)
+            finally:
+                remove_tree(folder)
+
+    def run_sync(self, code: str, **kwargs) -> SandboxResult:
+        """:meth:`run` from synchronous code (not from inside a running event loop)."""
+        return asyncio.run(self.run(code, **kwargs))
+
+    def _config(self, folder: Path, limits: SandboxLimits, status_fd: int) -> dict:
+        return {
+            "status_fd": status_fd,
+            "isolation": limits.isolation,
+            "limits": {
+                "cpu_time_s": math.ceil(limits.cpu_time_s),
+                "memory_bytes": limits.memory_bytes,
+                "max_file_bytes": limits.max_file_bytes,
+                "max_open_files": limits.max_open_files,
+                "max_processes": limits.max_processes,
+                "disk_bytes": limits.disk_bytes,
+            },
+            "sandbox_uid": limits.sandbox_uid if os.getuid() == 0 else os.getuid(),
+            "sandbox_gid": limits.sandbox_gid if os.getuid() == 0 else os.getgid(),
+            "host_work_dir": str(folder / "work"),
+            "host_root_dir": str(folder / "root"),
+            "read_only_paths": python_paths(self.python),
+            "python": os.path.abspath(self.python),
+            "runner": RUNNER_SOURCE,
+            "code_name": CODE_NAME,
+            "env": CODE_ENV,
+        }
+
+    def _prepare(self, folder: Path, code: str, files: Mapping[str, str | bytes], limits: SandboxLimits) -> None:
+        work = folder / "work"
+        work.mkdir()
+        (folder / "root").mkdir()
+        write_files(work, code, files)
+        if os.getuid() == 0:  # the "process" fallback runs the code as the sandbox uid in this folder
+            folder.chmod(0o711)
+            give_to(work, limits.sandbox_uid, limits.sandbox_gid)
+
+    async def _run_in(self, folder, code, stdin, files, limits) -> SandboxResult:
+        started = time.monotonic()
+        try:
+            self._prepare(folder, code, files, limits)
+        except OSError as error:
+            return SandboxResult(stdout="", stderr="", exit_code=None, wall_time_s=0.0,
+                                 error=f"sandbox could not prepare the run: {error}")
+        status_read, status_write = os.pipe()
+        try:
+            config_path = folder / "config.json"
+            config_path.write_text(json.dumps(self._config(folder, limits, status_write)))
+            process = await asyncio.create_subprocess_exec(
+                sys.executable, "-I", "-S", str(LAUNCHER), str(config_path),
+                stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+                pass_fds=(status_write,), start_new_session=True, env=CODE_ENV,
+            )
+            os.close(status_write)
+            status_write = -1
+            outcome = await self._supervise(process, stdin, limits)
+            status = await read_status(status_read)
+        finally:
+            os.close(status_read)
+            if status_write >= 0:
+                os.close(status_write)
+        killed_for, out, err = outcome
+        return SandboxResult(
+            stdout=out.text(), stderr=err.text(),
+            exit_code=status.get("returncode") if killed_for is None else None,
+            signal=status.get("signal") if killed_for is None else signal.SIGKILL,
+            limit=limit_from(status, limits, killed_for, out.truncated or err.truncated),
+            wall_time_s=time.monotonic() - started,
+            cpu_time_s=status.get("cpu_time_s"),
+            stdout_truncated=out.truncated, stderr_truncated=err.truncated,
+            isolation=status.get("isolation", ""),
+            isolation_note=status.get("reason", ""),
+            error=status.get("error"),
+        )
+
+    async def _supervise(self, process, stdin, limits: SandboxLimits):
+        """Feed stdin, read both streams, and kill the sandbox's session at the wall-time limit or
+        when an output stream passes its limit."""
+        overflow = asyncio.Event()
+        out = BoundedReader(process.stdout, limits.max_output_bytes, overflow)
+        err = BoundedReader(process.stderr, limits.max_output_bytes, overflow)
+        readers = [asyncio.ensure_future(out.read()), asyncio.ensure_future(err.read())]
+        feeder = asyncio.ensure_future(feed(process, stdin)) if stdin is not None else None
+        waiter = asyncio.ensure_future(process.wait())
+        overflowed = asyncio.ensure_future(overflow.wait())
+        killed_for = None
+        try:
+            await asyncio.wait([waiter, overflowed], timeout=limits.wall_time_s,
+                               return_when=asyncio.FIRST_COMPLETED)
+            if not waiter.done():
+                killed_for = LimitHit.OUTPUT if overflow.is_set() else LimitHit.WALL_TIME
+                kill_session(process)
+                await waiter
+            await asyncio.wait_for(asyncio.gather(*readers), DRAIN_AFTER_EXIT_S)
+        finally:
+            for task in [*readers, overflowed] + ([feeder] if feeder else []):
+                task.cancel()
+            if not waiter.done():  # cancelled from outside: leave nothing running, and reap it
+                kill_session(process)
+                await asyncio.wait([waiter], timeout=DRAIN_AFTER_EXIT_S)
+        return killed_for, out, err
+
+
+async def feed(process, stdin: str | bytes) -> None:
+    data = stdin.encode("utf-8") if isinstance(stdin, str) else stdin
+    try:
+        process.stdin.write(data)
+        await process.stdin.drain()
+        process.stdin.close()
+    except (BrokenPipeError, ConnectionResetError):
+        pass  # the code exited without reading all of it
+
+
+def kill_session(process) -> None:
+    """SIGKILL the launcher's session (its init follows by PDEATHSIG and takes the PID namespace)."""
+    if process.returncode is None:
+        try:
+            os.killpg(process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass

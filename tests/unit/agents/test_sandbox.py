@@ -1,0 +1,278 @@
+"""The sandbox with real processes: every escape the agent issue lists ends in a clean, reported
+failure, the parent keeps running, and nothing of a run is left behind.
+
+Runs are small on purpose (a few seconds of wall time, a handful of processes): the machine running
+the suite is shared, and a limit that failed to apply must not be able to take it down.
+"""
+
+import asyncio
+import os
+import shutil
+import socket
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from infinirl.agents.sandbox import NOBODY, LimitHit, Sandbox, SandboxLimits
+
+SMALL = SandboxLimits(wall_time_s=4.0, cpu_time_s=2.0, memory_bytes=512 << 20, max_processes=8,
+                      max_output_bytes=4096)
+FORK_BOMB = """
+import os
+while True:
+    try:
+        os.fork()
+    except OSError:
+        pass
+"""
+REPO = Path(__file__).resolve().parents[3]
+
+
+def sandbox_dirs() -> set[str]:
+    return {name for name in os.listdir(tempfile.gettempdir()) if name.startswith("infinirl-sandbox-")}
+
+
+def processes_of(uid: int) -> list[int]:
+    """Live processes of ``uid`` (zombies are dead already; whoever inherits them reaps them)."""
+    pids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                if os.stat(f"/proc/{entry}").st_uid == uid:
+                    state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
+                    if state != "Z":
+                        pids.append(int(entry))
+            except OSError:
+                pass
+    return pids
+
+
+@pytest.fixture(scope="module")
+def sandbox():
+    return Sandbox(SMALL)
+
+
+@pytest.fixture(scope="module")
+def isolated(sandbox):
+    """The namespaces isolation, or a skip saying why this machine cannot make it."""
+    result = sandbox.run_sync("pass", limits=SandboxLimits(isolation="namespaces"))
+    if result.error:
+        pytest.skip(f"no namespaces here: {result.error}")
+    return Sandbox(SandboxLimits(**{**SMALL.__dict__, "isolation": "namespaces"}))
+
+
+def interpreter_for_process_mode() -> str | None:
+    """An interpreter the sandbox uid can execute (under root, the project's may live in a folder
+    closed to it); None if there is none."""
+    candidates = [sys.executable, shutil.which("python3") or "", "/usr/bin/python3"]
+    for python in candidates:
+        if python and os.path.isfile(python):
+            probe = Sandbox(SandboxLimits(isolation="process"), python=python).run_sync("print(1)")
+            if probe.ok:
+                return python
+    return None
+
+
+@pytest.fixture(scope="module")
+def process_mode():
+    python = interpreter_for_process_mode()
+    if python is None:
+        pytest.skip("no interpreter the sandbox uid can execute for the 'process' isolation")
+    return Sandbox(SandboxLimits(**{**SMALL.__dict__, "isolation": "process"}), python=python)
+
+
+@pytest.fixture(params=["namespaces", "process"])
+def any_sandbox(request):
+    return request.getfixturevalue("isolated" if request.param == "namespaces" else "process_mode")
+
+
+# ----------------------------------------------------------------------------- ordinary code
+
+
+def test_normal_code_prints_its_output(any_sandbox):
+    result = any_sandbox.run_sync("import sys\nprint(sum(range(10)))\nprint('warn', file=sys.stderr)")
+    assert result.ok, result
+    assert result.stdout == "45\n" and result.stderr == "warn\n"
+    assert result.exit_code == 0 and result.limit is None
+    if any_sandbox.limits.isolation == "namespaces":
+        assert result.isolation == "namespaces" and result.isolation_note == ""
+    else:
+        assert result.isolation == "process" and "requested" in result.isolation_note
+
+
+def test_stdin_files_and_exit_code(any_sandbox):
+    code = "import sys\nname = input()\nprint(name, open('data/x.txt').read())\nsys.exit(3)"
+    result = any_sandbox.run_sync(code, stdin="ada\n", files={"data/x.txt": "abc"})
+    assert result.stdout == "ada abc\n"
+    assert result.exit_code == 3 and result.limit is None and not result.ok
+
+
+def test_exception_traceback_names_only_the_code(any_sandbox):
+    result = any_sandbox.run_sync("x = 1\nraise ValueError('bad')")
+    assert result.exit_code == 1
+    assert "ValueError: bad" in result.stderr and 'main.py", line 2' in result.stderr
+    assert "runner" not in result.stderr
+
+
+def test_bad_file_name_is_a_value_error(sandbox):
+    with pytest.raises(ValueError, match="relative path"):
+        sandbox.run_sync("pass", files={"../escape": "x"})
+
+
+def test_bad_limits_are_refused():
+    with pytest.raises(ValueError, match="SandboxLimits.wall_time_s"):
+        SandboxLimits(wall_time_s=0)
+    with pytest.raises(ValueError, match="isolation"):
+        SandboxLimits(isolation="docker")
+    with pytest.raises(ValueError, match="root"):
+        SandboxLimits(sandbox_uid=0)
+
+
+# ----------------------------------------------------------------------------- limits
+
+
+def test_infinite_loop_hits_cpu_time(any_sandbox):
+    # A wall-time budget far above the CPU one: on a busy machine a second of CPU takes longer.
+    limits = SandboxLimits(**{**any_sandbox.limits.__dict__, "cpu_time_s": 1.0, "wall_time_s": 60.0})
+    result = any_sandbox.run_sync("while True:\n    pass", limits=limits)
+    assert result.limit == LimitHit.CPU_TIME, result
+    assert result.exit_code is None
+
+
+def test_sleeping_forever_hits_wall_time(any_sandbox):
+    limits = SandboxLimits(**{**any_sandbox.limits.__dict__, "wall_time_s": 1.0})
+    result = any_sandbox.run_sync("import time\ntime.sleep(3600)", limits=limits)
+    assert result.limit == LimitHit.WALL_TIME, result
+    assert result.exit_code is None
+
+
+def test_memory_hog_hits_memory(any_sandbox):
+    result = any_sandbox.run_sync("blocks = []\nwhile True:\n    blocks.append(bytearray(64 << 20))")
+    assert result.limit == LimitHit.MEMORY, result
+    assert "MemoryError" in result.stderr
+
+
+def test_huge_output_is_truncated(any_sandbox):
+    result = any_sandbox.run_sync("import sys\nsys.stdout.write('x' * 10**7)\nsys.stderr.write('y' * 10**7)")
+    assert result.limit == LimitHit.OUTPUT, result
+    assert result.stdout_truncated and len(result.stdout) == SMALL.max_output_bytes
+    assert set(result.stdout) == {"x"}
+
+
+def test_fork_bomb_is_contained(any_sandbox):
+    uid = NOBODY if os.getuid() == 0 else os.getuid()
+    before = set(processes_of(uid))
+    result = any_sandbox.run_sync(FORK_BOMB)
+    assert result.limit in (LimitHit.PROCESSES, LimitHit.WALL_TIME, LimitHit.CPU_TIME), result
+    if any_sandbox.limits.isolation == "namespaces":
+        assert result.limit == LimitHit.PROCESSES
+    assert set(processes_of(uid)) <= before  # nothing of the bomb survives its run
+    assert any_sandbox.run_sync("print('fine')").stdout == "fine\n"
+
+
+def test_process_count_is_bounded(isolated):
+    code = ("import os, time\nchildren = 0\nwhile True:\n    try:\n        pid = os.fork()\n"
+            "    except OSError:\n        break\n    if pid == 0:\n        time.sleep(2)\n        os._exit(0)\n"
+            "    children += 1\nprint(children)")
+    result = isolated.run_sync(code)
+    # RLIMIT_NPROC counted in the run's own user namespace; the kernel admits a process or two more.
+    assert 1 <= int(result.stdout) <= SMALL.max_processes + 1, result
+
+
+# ----------------------------------------------------------------------------- isolation
+
+
+def test_network_is_unreachable(any_sandbox):
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+        code = f"import socket\nsocket.create_connection(('127.0.0.1', {port}), timeout=2)\nprint('connected')"
+        result = any_sandbox.run_sync(code)
+    assert result.exit_code == 1 and "connected" not in result.stdout, result
+    assert "Error" in result.stderr
+
+
+def test_secrets_and_project_files_are_unreadable(any_sandbox):
+    targets = [os.path.expanduser("~/.ssh/id_rsa"), os.path.expanduser("~/.ssh")]
+    if any_sandbox.limits.isolation == "namespaces":  # "process" leaves world-readable files readable
+        targets += [str(REPO / "pyproject.toml"), str(REPO)]
+    for target in targets:
+        code = f"import os\np = {target!r}\nprint(os.listdir(p) if os.path.isdir(p) else open(p).read())"
+        result = any_sandbox.run_sync(code)
+        assert result.exit_code == 1, (target, result)
+        assert "FileNotFoundError" in result.stderr or "PermissionError" in result.stderr, result
+
+
+def test_writing_outside_the_work_dir_fails(any_sandbox):
+    outside = ["/etc/infinirl-sandbox-probe", "/usr/infinirl-sandbox-probe", str(REPO / "sandbox-probe")]
+    for target in outside:
+        result = any_sandbox.run_sync(f"open({target!r}, 'w').write('x')")
+        assert result.exit_code == 1, (target, result)
+        assert not os.path.exists(target)
+    inside = any_sandbox.run_sync("open('mine.txt', 'w').write('x')\nprint(open('mine.txt').read())")
+    assert inside.stdout == "x\n"
+
+
+def test_work_dir_is_private_and_removed(any_sandbox):
+    before = sandbox_dirs()
+    first = any_sandbox.run_sync("import os\nopen('left.txt', 'w').write('x')\nprint(os.getcwd())")
+    second = any_sandbox.run_sync("import os\nprint(os.path.exists('left.txt'))")
+    assert first.ok and second.stdout == "False\n"
+    assert sandbox_dirs() == before
+
+
+def test_namespaces_hide_the_host(isolated):
+    result = isolated.run_sync("import os\nprint(os.getpid(), sorted(os.listdir('/')), os.getcwd())")
+    pid, rest = result.stdout.split(" ", 1)
+    assert int(pid) == 2  # PID 1 is the sandbox's init: no host process is visible
+    assert "'work'" not in rest and "'home'" not in rest
+
+
+# ----------------------------------------------------------------------------- concurrency
+
+
+class CountingSandbox(Sandbox):
+    """Records how many runs are inside the concurrency limit at once."""
+
+    active = 0
+    most = 0
+
+    async def _run_in(self, *args, **kwargs):
+        CountingSandbox.active += 1
+        CountingSandbox.most = max(CountingSandbox.most, CountingSandbox.active)
+        try:
+            return await super()._run_in(*args, **kwargs)
+        finally:
+            CountingSandbox.active -= 1
+
+
+def test_concurrent_runs_respect_the_limit():
+    sandbox = CountingSandbox(SMALL, max_concurrent=2)
+
+    async def main():
+        return await asyncio.gather(*(sandbox.run(f"print({i} * 2)") for i in range(6)))
+
+    results = asyncio.run(main())
+    assert [r.stdout for r in results] == [f"{i * 2}\n" for i in range(6)]
+    assert CountingSandbox.most == 2
+
+
+def test_cancelled_run_leaves_nothing(sandbox):
+    uid = NOBODY if os.getuid() == 0 else os.getuid()
+    before_dirs, before_pids = sandbox_dirs(), set(processes_of(uid))
+
+    async def main():
+        with pytest.raises(asyncio.TimeoutError):
+            await asyncio.wait_for(sandbox.run("import time\ntime.sleep(3600)"), timeout=1.0)
+
+    asyncio.run(main())
+    assert sandbox_dirs() == before_dirs
+    assert set(processes_of(uid)) <= before_pids
+
+
+def test_code_cannot_undo_the_mounts(isolated):
+    code = ("import ctypes, os\nlibc = ctypes.CDLL(None, use_errno=True)\n"
+            "print([libc.umount2(p, 2) for p in (b'/tmp', b'/', b'/usr')], os.path.exists('/home'))")
+    result = isolated.run_sync(code)
+    assert result.stdout == "[-1, -1, -1] False\n", result
