@@ -242,9 +242,21 @@ class FeetechBus:
         address, size = register
         self._port.discard_input()
         self._port.write(encode_packet(BROADCAST_ID, Instruction.SYNC_READ, bytes([address, size, *servo_ids])))
-        values = {}
-        for servo_id in servo_ids:
-            values[servo_id] = self._answer(servo_id, time.monotonic() + self.timeout_s, size)
+        values: dict[int, bytes] = {}
+        waiting = list(servo_ids)
+        while waiting:  # a servo that does not answer is skipped by the next one's answer
+            try:
+                answered_id, params = self._status(time.monotonic() + self.timeout_s, f"servo {waiting[0]}", size)
+            except FeetechTimeoutError:
+                break
+            if answered_id not in waiting:
+                raise FeetechError(f"servo {answered_id} on {self.path} answered a sync read of {list(servo_ids)}")
+            values[answered_id] = params
+            waiting = waiting[waiting.index(answered_id) + 1:]
+        missing = [servo_id for servo_id in servo_ids if servo_id not in values]
+        if missing:
+            raise FeetechTimeoutError(f"no answer from servos {missing} on {self.path} to a sync read; check their "
+                                      "ids, power and wiring")
         return values
 
     def _transact(self, servo_id: int, instruction: int, params: bytes, expect: int = 0) -> bytes:
@@ -253,16 +265,19 @@ class FeetechBus:
         return self._answer(servo_id, time.monotonic() + self.timeout_s, expect)
 
     def _answer(self, servo_id: int, deadline: float, expect: int) -> bytes:
-        what = f"servo {servo_id}"
-        answered_id, error, params = read_packet(self._port, deadline, what)
+        answered_id, params = self._status(deadline, f"servo {servo_id}", expect)
         if answered_id != servo_id:
             raise FeetechError(f"expected an answer from servo {servo_id} on {self.path}, got one from {answered_id}")
+        return params
+
+    def _status(self, deadline: float, what: str, expect: int) -> tuple[int, bytes]:
+        answered_id, error, params = read_packet(self._port, deadline, what)
         if error:
             bits = [name for bit, name in _STATUS_BITS.items() if error >> bit & 1] or [f"{error:#04x}"]
-            raise FeetechStatusError(f"servo {servo_id} on {self.path} reports: {', '.join(bits)}")
+            raise FeetechStatusError(f"servo {answered_id} on {self.path} reports: {', '.join(bits)}")
         if len(params) != expect:
-            raise FeetechError(f"servo {servo_id} on {self.path} answered {len(params)} bytes, expected {expect}")
-        return params
+            raise FeetechError(f"servo {answered_id} on {self.path} answered {len(params)} bytes, expected {expect}")
+        return answered_id, params
 
 
 def _check_size(register: tuple[int, int], data: bytes) -> tuple[int, int]:
