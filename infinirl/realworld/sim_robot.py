@@ -184,13 +184,10 @@ class SimulatedRobot(RobotDriver):
     def close(self) -> None:
         with self._lock:
             thread, self._thread = self._thread, None
-            camera_thread, self._camera_thread = self._camera_thread, None
             self._closing = True
             self._mode = "closed"
             self._lock.notify_all()
-        if camera_thread is not None:
-            camera_thread.join(_JOIN_TIMEOUT_S)
-        if thread is not None:
+        if thread is not None:  # it closes the plant once the camera thread has finished its frame
             thread.join(_JOIN_TIMEOUT_S + self.reset_s)
         else:
             self._plant.close()
@@ -228,6 +225,11 @@ class SimulatedRobot(RobotDriver):
                 self._lock.notify_all()
             self._reset_done.set()
         finally:
+            with self._lock:
+                self._closing = True  # a failed loop also ends the camera thread
+                self._lock.notify_all()
+            if self._camera_thread is not None:
+                self._camera_thread.join(_JOIN_TIMEOUT_S)
             self._plant.close()
 
     def _loop(self) -> None:

