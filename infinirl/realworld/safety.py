@@ -1,0 +1,243 @@
+"""The safety layer every command passes before it reaches a robot driver.
+
+:class:`SafetyFilter` (a pure function of the command, the last target and the spec) clips
+
+* non-finite entries: replaced by the last target's value (a NaN from a diverged policy must not
+  reach a servo);
+* position limits: joint angles to the spec's joint limits (``joint_position`` robots), the
+  end-effector target to the workspace box (``ee_position`` robots), the gripper to 0 .. 1;
+* velocity: each joint (or the end effector) moves at most ``velocity_scale`` times the spec's
+  top speed per control period from the last target.
+
+Each clipped entry is a :class:`ClipRecord`, logged as a warning and counted.
+
+:class:`SafeRobot` wraps a driver with the filter and a monitor thread:
+
+* **watchdog**: no command for ``command_deadline_s`` -> ``hold()`` (the commander stalled; the
+  robot must not keep following a stale target). The next command resumes;
+* **heartbeat**: the pipeline calls :meth:`SafeRobot.heartbeat` while it is alive (the learner's
+  or the link's progress); none for ``heartbeat_deadline_s`` -> ``stop()``, and commands are
+  refused until ``reset()``. A stall this long is a failure, not a pause.
+
+Both deadlines restart when ``connect`` or ``reset`` returns (a reset may take as long as it needs).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from infinirl.realworld.driver import RobotDriver, RobotObservation, RobotSpec, RobotStoppedError
+
+__all__ = ["ClipRecord", "SafeRobot", "SafetyConfig", "SafetyEvent", "SafetyFilter"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SafetyConfig:
+    """Safety defaults: half the robot's top speed, hold after 0.5 s without a command, stop after
+    2 s without a heartbeat. A deadline of ``None`` turns that check off."""
+
+    velocity_scale: float = 0.5
+    command_deadline_s: float | None = 0.5
+    heartbeat_deadline_s: float | None = 2.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.velocity_scale <= 1:
+            raise ValueError(f"SafetyConfig.velocity_scale must be in (0, 1], got {self.velocity_scale}")
+        for name in ("command_deadline_s", "heartbeat_deadline_s"):
+            value = getattr(self, name)
+            if value is not None and value <= 0:
+                raise ValueError(f"SafetyConfig.{name} must be positive or None, got {value}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ClipRecord:
+    """One command entry the filter changed: ``kind`` is ``non_finite``, ``joint_limit``,
+    ``workspace``, ``gripper`` or ``velocity``."""
+
+    kind: str
+    index: int
+    requested: float
+    allowed: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class SafetyEvent:
+    """``watchdog_hold`` or ``heartbeat_stop``, at ``time`` (``time.monotonic()``)."""
+
+    kind: str
+    time: float
+    detail: str
+
+
+class SafetyFilter:
+    """Clips commands for one robot (see the module docstring); keeps no state between calls."""
+
+    def __init__(self, spec: RobotSpec, config: SafetyConfig | None = None) -> None:
+        self.spec = spec
+        self.config = config or SafetyConfig()
+        size = spec.target_size
+        if spec.control_mode == "joint_position":
+            self._low, self._high, self._limit_kind = spec.joint_low, spec.joint_high, "joint_limit"
+            self._max_step = spec.max_joint_velocity * self.config.velocity_scale * spec.control_period_s
+        else:
+            self._low, self._high, self._limit_kind = spec.workspace_low, spec.workspace_high, "workspace"
+            self._max_step = np.full(size, spec.max_ee_speed * self.config.velocity_scale * spec.control_period_s)
+
+    def __call__(self, command: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, list[ClipRecord]]:
+        """``command`` made safe to send after ``reference`` (the last target sent, or the present
+        pose), and a record of each entry changed."""
+        requested = self.spec.check_command(command)
+        reference = self.spec.check_command(reference)
+        safe = requested.copy()
+        records: list[ClipRecord] = []
+        bad = ~np.isfinite(safe)
+        safe[bad] = reference[bad]
+        records += [ClipRecord(kind="non_finite", index=int(i), requested=float(requested[i]),
+                               allowed=float(safe[i])) for i in np.flatnonzero(bad)]
+        size = self.spec.target_size
+        self._clip(safe, slice(0, size), self._low, self._high, self._limit_kind, records)
+        if self.spec.has_gripper:
+            self._clip(safe, slice(size, size + 1), np.zeros(1), np.ones(1), "gripper", records)
+        low = reference[:size] - self._max_step
+        high = reference[:size] + self._max_step
+        self._clip(safe, slice(0, size), low, high, "velocity", records)
+        return safe, records
+
+    @staticmethod
+    def _clip(values: np.ndarray, part: slice, low: np.ndarray, high: np.ndarray, kind: str,
+              records: list[ClipRecord]) -> None:
+        before = values[part].copy()
+        values[part] = np.clip(before, low, high)
+        for offset in np.flatnonzero(values[part] != before):
+            records.append(ClipRecord(kind=kind, index=part.start + int(offset), requested=float(before[offset]),
+                                      allowed=float(values[part][offset])))
+
+
+class SafeRobot(RobotDriver):
+    """``driver`` behind a :class:`SafetyFilter`, a command watchdog and a heartbeat monitor.
+
+    ``clip_counts`` / ``event_counts`` count clips and events by kind; ``clips`` / ``events`` keep
+    the latest ``history`` of each.
+    """
+
+    def __init__(self, driver: RobotDriver, config: SafetyConfig | None = None, *, history: int = 1000) -> None:
+        self.driver = driver
+        self.config = config or SafetyConfig()
+        self.filter = SafetyFilter(driver.spec, self.config)
+        self.clip_counts: Counter[str] = Counter()
+        self.event_counts: Counter[str] = Counter()
+        self.clips: deque[ClipRecord] = deque(maxlen=history)
+        self.events: deque[SafetyEvent] = deque(maxlen=history)
+        self._lock = threading.RLock()
+        self._reference: np.ndarray | None = None
+        self._last_command = self._last_heartbeat = time.monotonic()
+        self._holding = self._stopped = self._stop_confirmed = self._busy = False
+        self._closing = threading.Event()
+        self._monitor: threading.Thread | None = None
+
+    @property
+    def spec(self) -> RobotSpec:
+        return self.driver.spec
+
+    def connect(self) -> None:
+        self.driver.connect()
+        self._rearm(self.driver.observe())
+        if self._monitor is None and (self.config.command_deadline_s or self.config.heartbeat_deadline_s):
+            self._closing.clear()
+            self._monitor = threading.Thread(target=self._watch, name=f"{self.spec.kind}-safety", daemon=True)
+            self._monitor.start()
+
+    def observe(self) -> RobotObservation:
+        return self.driver.observe()
+
+    def act(self, command: np.ndarray) -> None:
+        with self._lock:
+            if self._stopped:
+                raise RobotStoppedError(f"{self.spec.kind} was stopped by the safety layer; reset() re-arms it")
+            if self._reference is None:
+                self._reference = self.driver.observe().current_target(self.spec)
+            safe, records = self.filter(command, self._reference)
+            for record in records:
+                self.clips.append(record)
+                self.clip_counts[record.kind] += 1
+                logger.warning("%s command clipped (%s): entry %d %.6g -> %.6g", self.spec.kind, record.kind,
+                               record.index, record.requested, record.allowed)
+            self.driver.act(safe)
+            self._reference = safe
+            self._last_command = time.monotonic()
+            self._holding = False
+
+    def heartbeat(self) -> None:
+        """The pipeline is alive; call it at least every ``heartbeat_deadline_s``."""
+        self._last_heartbeat = time.monotonic()
+
+    def reset(self) -> RobotObservation:
+        with self._lock:
+            self._busy = True
+        try:
+            observation = self.driver.reset()
+        finally:
+            with self._lock:
+                self._busy = False
+        self._rearm(observation)
+        return observation
+
+    def hold(self) -> None:
+        with self._lock:
+            self.driver.hold()
+            self._holding = True
+            self._reference = None  # the next command is limited from where the robot stopped
+
+    def stop(self) -> None:
+        with self._lock:
+            self._stopped = True  # commands refused from now on, even if the driver's stop fails
+            self.driver.stop()
+            self._stop_confirmed = True
+
+    def close(self) -> None:
+        self._closing.set()
+        if self._monitor is not None:
+            self._monitor.join(5.0)
+            self._monitor = None
+        self.driver.close()
+
+    def _rearm(self, observation: RobotObservation) -> None:
+        with self._lock:
+            self._reference = observation.current_target(self.spec)
+            self._last_command = self._last_heartbeat = time.monotonic()
+            self._holding = self._stopped = self._stop_confirmed = False
+
+    def _event(self, kind: str, detail: str) -> None:
+        self.events.append(SafetyEvent(kind=kind, time=time.monotonic(), detail=detail))
+        self.event_counts[kind] += 1
+        logger.warning("%s safety: %s (%s)", self.spec.kind, kind, detail)
+
+    def _watch(self) -> None:
+        deadlines = [d for d in (self.config.command_deadline_s, self.config.heartbeat_deadline_s) if d]
+        interval = min(deadlines) / 5
+        while not self._closing.wait(interval):
+            with self._lock:
+                if self._busy or self._stop_confirmed:  # a stop that failed is tried again
+                    continue
+                now = time.monotonic()
+                heartbeat_age = now - self._last_heartbeat
+                command_age = now - self._last_command
+                try:
+                    if self._stopped or (self.config.heartbeat_deadline_s
+                                         and heartbeat_age > self.config.heartbeat_deadline_s):
+                        self._event("heartbeat_stop", f"no heartbeat for {heartbeat_age:.3f} s")
+                        self.stop()
+                    elif (self.config.command_deadline_s and not self._holding
+                          and command_age > self.config.command_deadline_s):
+                        self._event("watchdog_hold", f"no command for {command_age:.3f} s")
+                        self.hold()
+                except Exception:  # a failed hold/stop is logged and retried at the next check
+                    logger.exception("%s safety: hold/stop failed", self.spec.kind)

@@ -1,0 +1,308 @@
+"""The real SO-100/SO-101 arm: six Feetech STS3215 servos (ids 1-5 the joints, 6 the gripper) on one
+half-duplex serial bus (the arm's USB adapter, e.g. ``/dev/ttyACM0`` at 1 Mbaud).
+
+``act`` is one ``SYNC_WRITE`` of the goal positions (unanswered, so it does not wait for the arm);
+``observe`` one ``SYNC_READ`` of present position and speed; ``stop`` turns torque off on every
+servo; ``reset`` drives to the home pose and waits until the servos report it (or fails after
+``reset_timeout_s`` naming the joints that did not get there).
+
+A servo position is 0..4095 ticks per turn. :class:`ServoCalibration` maps it to the joint angle
+(``angle = drive_sign * (ticks - homing_offset) * 2 pi / 4096``) and bounds it (``range_min`` ..
+``range_max`` ticks); the gripper maps ``range_min`` (closed) .. ``range_max`` (open) to 0 .. 1. The
+defaults assume an arm calibrated so that ticks 2048 is each joint's zero, as the LeRobot model's;
+a JSON file (``calibration_file``) overrides them per servo.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from infinirl.realworld.driver import (
+    AttachedRobot,
+    RobotDriver,
+    RobotError,
+    RobotObservation,
+    RobotSpec,
+    RobotStoppedError,
+)
+from infinirl.realworld.feetech import (
+    STS3215_MODEL_NUMBER,
+    TICKS_PER_TURN,
+    FeetechBus,
+    FeetechError,
+    Register,
+    decode_sign_magnitude,
+    u16,
+)
+from infinirl.realworld.so101 import SO101_JOINT_HIGH, SO101_JOINT_LOW, so101_spec
+
+__all__ = ["DEFAULT_CALIBRATION", "SO101_SERVO_IDS", "SO101FeetechArm", "ServoCalibration", "attached_so101_arms",
+           "load_calibration"]
+
+logger = logging.getLogger(__name__)
+
+SO101_SERVO_IDS = (1, 2, 3, 4, 5, 6)
+_RADIANS_PER_TICK = 2.0 * math.pi / TICKS_PER_TURN
+_CENTER = TICKS_PER_TURN // 2
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServoCalibration:
+    """One servo: its id, the ticks at joint angle 0, the direction, and the allowed tick range."""
+
+    id: int
+    homing_offset: int = _CENTER
+    drive_sign: int = 1
+    range_min: int = 0
+    range_max: int = TICKS_PER_TURN - 1
+
+    def __post_init__(self) -> None:
+        if self.drive_sign not in (1, -1):
+            raise ValueError(f"servo {self.id}: drive_sign must be 1 or -1, got {self.drive_sign}")
+        if not 0 <= self.range_min < self.range_max < TICKS_PER_TURN:
+            raise ValueError(f"servo {self.id}: need 0 <= range_min < range_max < {TICKS_PER_TURN}, got "
+                             f"{self.range_min}..{self.range_max}")
+
+    def to_angle(self, ticks: int) -> float:
+        return self.drive_sign * (ticks - self.homing_offset) * _RADIANS_PER_TICK
+
+    def to_ticks(self, angle: float) -> int:
+        ticks = round(self.homing_offset + self.drive_sign * angle / _RADIANS_PER_TICK)
+        return min(max(ticks, self.range_min), self.range_max)
+
+    def angle_range(self) -> tuple[float, float]:
+        ends = sorted((self.to_angle(self.range_min), self.to_angle(self.range_max)))
+        return ends[0], ends[1]
+
+    def to_opening(self, ticks: int) -> float:
+        """Gripper ticks -> 0 (closed, ``range_min``) .. 1 (open, ``range_max``)."""
+        return min(max((ticks - self.range_min) / (self.range_max - self.range_min), 0.0), 1.0)
+
+    def opening_to_ticks(self, opening: float) -> int:
+        return round(self.range_min + min(max(opening, 0.0), 1.0) * (self.range_max - self.range_min))
+
+
+def _default_calibration() -> tuple[ServoCalibration, ...]:
+    joints = tuple(
+        ServoCalibration(id=servo_id, range_min=_CENTER + math.ceil(low / _RADIANS_PER_TICK),
+                         range_max=_CENTER + math.floor(high / _RADIANS_PER_TICK))
+        for servo_id, low, high in zip(SO101_SERVO_IDS[:5], SO101_JOINT_LOW, SO101_JOINT_HIGH, strict=True)
+    )
+    # The LeRobot model's gripper joint spans -10 to 100 degrees, closed at the low end.
+    gripper = ServoCalibration(id=SO101_SERVO_IDS[5], range_min=_CENTER - round(math.radians(10) / _RADIANS_PER_TICK),
+                               range_max=_CENTER + round(math.radians(100) / _RADIANS_PER_TICK))
+    return (*joints, gripper)
+
+
+DEFAULT_CALIBRATION = _default_calibration()
+
+
+def load_calibration(path: str) -> tuple[ServoCalibration, ...]:
+    """Six :class:`ServoCalibration` from a JSON list of objects (joints 1-5, then the gripper), each
+    with the fields of :class:`ServoCalibration`; a bad file fails naming the file and the entry."""
+    try:
+        with open(path) as file:
+            entries = json.load(file)
+    except (OSError, json.JSONDecodeError) as error:
+        raise ValueError(f"cannot read SO-101 calibration {path}: {error}") from error
+    if not isinstance(entries, list) or len(entries) != len(SO101_SERVO_IDS):
+        raise ValueError(f"SO-101 calibration {path} must be a list of {len(SO101_SERVO_IDS)} servo entries")
+    names = {field.name for field in fields(ServoCalibration)}
+    calibration = []
+    for index, entry in enumerate(entries):
+        unknown = sorted(set(entry) - names) if isinstance(entry, dict) else ["(not an object)"]
+        if unknown:
+            raise ValueError(f"SO-101 calibration {path} entry {index}: unknown keys {unknown}; keys: {sorted(names)}")
+        try:
+            calibration.append(ServoCalibration(**entry))
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"SO-101 calibration {path} entry {index}: {error}") from error
+    return tuple(calibration)
+
+
+class SO101FeetechArm(RobotDriver):
+    """The real SO-101 arm on servo bus ``port`` (see the module docstring).
+
+    ``home`` is the pose ``reset`` drives to (a command: five angles and the gripper); ``reset_speed``
+    (ticks/s) caps the servos' speed on the way there, ``reset_tolerance`` (ticks) says when a servo is
+    there. ``timeout_s`` bounds each answer on the bus.
+    """
+
+    def __init__(self, *, port: str, control_hz: float = 20.0, baudrate: int = 1_000_000, timeout_s: float = 0.1,
+                 calibration_file: str | None = None, home: Sequence[float] | None = None,
+                 reset_speed: int = 600, reset_tolerance: int = 20, reset_timeout_s: float = 10.0) -> None:
+        self.port = port
+        self._baudrate = baudrate
+        self._timeout_s = timeout_s
+        self.calibration = load_calibration(calibration_file) if calibration_file else DEFAULT_CALIBRATION
+        ranges = np.array([servo.angle_range() for servo in self.calibration[:5]])
+        self._spec = so101_spec(kind="so101_feetech", control_hz=control_hz, joint_low=ranges[:, 0],
+                                joint_high=ranges[:, 1])
+        self._ids = tuple(servo.id for servo in self.calibration)
+        self.home = self._spec.check_command(np.append(np.zeros(5), 1.0) if home is None else home)
+        self.reset_speed = int(reset_speed)
+        self.reset_tolerance = int(reset_tolerance)
+        self.reset_timeout_s = float(reset_timeout_s)
+        self._bus: FeetechBus | None = None
+        self._stopped = False
+        self._connected_at = 0.0
+
+    @property
+    def spec(self) -> RobotSpec:
+        return self._spec
+
+    def connect(self) -> None:
+        """Open the port, check every servo answers and is an STS3215, then turn torque on with each
+        goal set to where the servo already is (so nothing jumps)."""
+        if self._bus is not None:
+            return
+        bus = FeetechBus(self.port, baudrate=self._baudrate, timeout_s=self._timeout_s)
+        try:
+            missing = [servo_id for servo_id in self._ids if not _answers(bus, servo_id)]
+            if missing:
+                raise RobotError(f"SO-101 on {self.port}: servos {missing} do not answer; check their ids, the "
+                                 f"power supply and the daisy chain")
+            models = bus.sync_read(Register.MODEL_NUMBER, self._ids)
+            wrong = {servo_id: int.from_bytes(raw, "little") for servo_id, raw in models.items()
+                     if int.from_bytes(raw, "little") != STS3215_MODEL_NUMBER}
+            if wrong:
+                raise RobotError(f"SO-101 on {self.port}: servos {wrong} (id: model number) are not STS3215 "
+                                 f"({STS3215_MODEL_NUMBER})")
+        except BaseException:
+            bus.close()
+            raise
+        self._bus = bus
+        self._connected_at = time.monotonic()
+        self._arm_at_present_pose()
+
+    def observe(self) -> RobotObservation:
+        bus = self._require_bus()
+        raw = bus.sync_read((Register.PRESENT_POSITION[0], 4), self._ids)  # position then speed
+        ticks = {servo_id: int.from_bytes(data[:2], "little") for servo_id, data in raw.items()}
+        speeds = {servo_id: decode_sign_magnitude(data[2:]) for servo_id, data in raw.items()}
+        joints = self.calibration[:5]
+        now = time.monotonic()
+        return RobotObservation(
+            joint_positions=np.array([servo.to_angle(ticks[servo.id]) for servo in joints]),
+            joint_velocities=np.array([servo.drive_sign * speeds[servo.id] * _RADIANS_PER_TICK for servo in joints]),
+            gripper=self.calibration[5].to_opening(ticks[self.calibration[5].id]),
+            timestamp=now,
+            tick=int((now - self._connected_at) * self._spec.control_hz),
+        )
+
+    def act(self, command: np.ndarray) -> None:
+        command = self._spec.check_command(command)
+        bus = self._require_bus()
+        if self._stopped:
+            raise RobotStoppedError(f"SO-101 on {self.port} is stopped (torque off); reset() re-arms it")
+        bus.sync_write(Register.GOAL_POSITION, self.goal_ticks(command))
+
+    def goal_ticks(self, command: np.ndarray) -> dict[int, bytes]:
+        """A command -> each servo's goal position register value (clipped to its calibrated range)."""
+        goals = {servo.id: u16(servo.to_ticks(angle)) for servo, angle in zip(self.calibration[:5], command[:5],
+                                                                               strict=True)}
+        gripper = self.calibration[5]
+        goals[gripper.id] = u16(gripper.opening_to_ticks(float(command[5])))
+        return goals
+
+    def reset(self) -> RobotObservation:
+        """Torque on (re-arms a stopped arm), drive to ``home`` at ``reset_speed``, wait until there."""
+        bus = self._require_bus()
+        self._arm_at_present_pose()
+        bus.sync_write(Register.GOAL_SPEED, {servo_id: u16(self.reset_speed) for servo_id in self._ids})
+        goals = self.goal_ticks(self.home)
+        bus.sync_write(Register.GOAL_POSITION, goals)
+        deadline = time.monotonic() + self.reset_timeout_s
+        try:
+            while True:
+                present = bus.sync_read(Register.PRESENT_POSITION, self._ids)
+                away = [servo_id for servo_id in self._ids if abs(int.from_bytes(present[servo_id], "little")
+                                                                 - int.from_bytes(goals[servo_id], "little"))
+                        > self.reset_tolerance]
+                if not away:
+                    break
+                if time.monotonic() > deadline:
+                    raise RobotError(f"SO-101 on {self.port}: servos {away} did not reach the home pose within "
+                                     f"{self.reset_timeout_s} s (blocked, or reset_speed too low)")
+                time.sleep(self._spec.control_period_s)
+        finally:
+            bus.sync_write(Register.GOAL_SPEED, {servo_id: u16(0) for servo_id in self._ids})  # 0: full speed
+        return self.observe()
+
+    def hold(self) -> None:
+        """Goal := present position, so the arm stays where it is."""
+        bus = self._require_bus()
+        present = bus.sync_read(Register.PRESENT_POSITION, self._ids)
+        bus.sync_write(Register.GOAL_POSITION, present)
+
+    def stop(self) -> None:
+        """Torque off on every servo (the arm goes limp: it cannot move itself)."""
+        bus = self._require_bus()
+        self._stopped = True
+        bus.sync_write(Register.TORQUE_ENABLE, {servo_id: b"\x00" for servo_id in self._ids})
+
+    def close(self) -> None:
+        """Torque off, then release the port (as LeRobot does on disconnect)."""
+        if self._bus is None:
+            return
+        try:
+            self.stop()
+        finally:
+            self._bus.close()
+            self._bus = None
+
+    def _arm_at_present_pose(self) -> None:
+        bus = self._require_bus()
+        present = bus.sync_read(Register.PRESENT_POSITION, self._ids)
+        bus.sync_write(Register.GOAL_POSITION, present)
+        bus.sync_write(Register.TORQUE_ENABLE, {servo_id: b"\x01" for servo_id in self._ids})
+        self._stopped = False
+
+    def _require_bus(self) -> FeetechBus:
+        if self._bus is None:
+            raise RobotError(f"SO-101 on {self.port} is not connected: call connect() first")
+        return self._bus
+
+
+def _answers(bus: FeetechBus, servo_id: int) -> bool:
+    try:
+        bus.ping(servo_id)
+    except FeetechError:
+        return False
+    return True
+
+
+def attached_so101_arms(*, ports: Sequence[str] = (), baudrate: int = 1_000_000, timeout_s: float = 0.05,
+                        **options: Any) -> list[AttachedRobot]:
+    """SO-101 arms on the configured ``ports`` (paths or globs such as ``/dev/ttyACM*``): a port is an
+    arm when all six servos answer a ping. A port that cannot be opened, or with some servos missing, is
+    reported in the log and left out; no port is scanned unless configured."""
+    arms = []
+    for pattern in ports:
+        for path in sorted(glob.glob(pattern)) or [pattern]:
+            try:
+                bus = FeetechBus(path, baudrate=baudrate, timeout_s=timeout_s)
+            except FeetechError as error:
+                logger.warning("SO-101 discovery: %s", error)
+                continue
+            try:
+                missing = [servo_id for servo_id in SO101_SERVO_IDS if not _answers(bus, servo_id)]
+            finally:
+                bus.close()
+            if missing:
+                logger.warning("SO-101 discovery: %s has no servos %s; not an SO-101 arm, or one not powered",
+                               path, missing)
+                continue
+            arms.append(AttachedRobot(kind="so101_feetech", name=path,
+                                      options={**options, "port": path, "baudrate": baudrate},
+                                      description="SO-101 arm (Feetech STS3215 bus)"))
+    return arms

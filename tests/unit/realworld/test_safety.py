@@ -1,0 +1,111 @@
+"""The safety layer with each fault injected: out-of-range and too-fast commands, a silent commander,
+a stalled heartbeat. Real robots underneath (the simulated SO-101, the SO-101 driver on the emulated
+bus); outcomes are asserted, with generous deadlines, never timings."""
+
+import logging
+import time
+
+import numpy as np
+import pytest
+
+from infinirl.realworld.driver import RobotSpec, RobotStoppedError, make_robot
+from infinirl.realworld.feetech import Register
+from infinirl.realworld.feetech_emulator import FeetechBusEmulator
+from infinirl.realworld.safety import SafeRobot, SafetyConfig, SafetyFilter
+from infinirl.realworld.sim_so101 import SimSO101
+from infinirl.realworld.so101 import SO101_JOINT_HIGH, SO101_MAX_JOINT_VELOCITY, so101_spec
+
+
+def wait_until(predicate, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return predicate()
+
+
+SPEC = so101_spec(kind="test_so101", control_hz=20.0)
+
+
+def test_out_of_range_and_too_fast_commands_are_clipped_and_recorded():
+    safety = SafetyFilter(SPEC, SafetyConfig(velocity_scale=0.5))
+    reference = np.zeros(6)
+    step = 0.5 * SO101_MAX_JOINT_VELOCITY[0] / 20.0
+    command = np.array([10.0, 0.01, -step * 3, np.nan, 0.0, 1.7])
+    safe, records = safety(command, reference)
+    np.testing.assert_allclose(safe, [step, 0.01, -step, 0.0, 0.0, 1.0])
+    kinds = sorted((record.kind, record.index) for record in records)
+    assert kinds == [("gripper", 5), ("joint_limit", 0), ("non_finite", 3), ("velocity", 0), ("velocity", 2)]
+    # near a limit, the limit wins over the velocity bound
+    reference = np.append(SO101_JOINT_HIGH, 0.5)
+    safe, _ = safety(reference + 1.0, reference)
+    np.testing.assert_allclose(safe[:5], SO101_JOINT_HIGH)
+
+
+def test_workspace_box_for_end_effector_commands():
+    robot_spec = RobotSpec(
+        kind="ee_arm", dof=2, control_hz=10.0, control_mode="ee_position", action_low=[-1, -1, 0, 0],
+        action_high=[1, 1, 1, 1], joint_low=[-1, -1], joint_high=[1, 1], max_joint_velocity=[1, 1],
+        workspace_low=[-0.5, -0.5, 0.0], workspace_high=[0.5, 0.5, 0.5], max_ee_speed=100.0, has_gripper=True)
+    safe, records = SafetyFilter(robot_spec)(np.array([0.9, 0.0, -0.2, 0.5]), np.array([0.4, 0.0, 0.1, 0.5]))
+    np.testing.assert_allclose(safe, [0.5, 0.0, 0.0, 0.5])
+    assert [record.kind for record in records] == ["workspace", "workspace"]
+
+
+@pytest.fixture
+def sim_arm():
+    robot = SafeRobot(SimSO101(control_hz=50.0, image_size=None),
+                      SafetyConfig(command_deadline_s=0.2, heartbeat_deadline_s=None))
+    robot.connect()
+    yield robot
+    robot.close()
+
+
+def test_clip_reaches_the_robot_and_is_logged(sim_arm, caplog):
+    start = sim_arm.observe().joint_positions
+    with caplog.at_level(logging.WARNING, logger="infinirl.realworld.safety"):
+        sim_arm.act(np.append(start + np.array([5.0, 0, 0, 0, 0]), 1.0))
+    assert sim_arm.clip_counts["velocity"] == 1 and sim_arm.clip_counts["joint_limit"] == 1
+    assert any("clipped (velocity)" in message for message in caplog.messages)
+    time.sleep(0.3)  # the arm went to the clipped target (0.03 rad), nowhere near the joint limit it was sent
+    assert sim_arm.observe().joint_positions[0] - start[0] < 0.2
+
+
+def test_silent_commander_makes_the_watchdog_hold(sim_arm):
+    sim_arm.act(sim_arm.observe().current_target(sim_arm.spec))
+    assert wait_until(lambda: sim_arm.event_counts["watchdog_hold"] == 1)
+    assert sim_arm.driver.mode == "holding" and sim_arm.driver.stats.holds == 1
+    sim_arm.act(sim_arm.observe().current_target(sim_arm.spec))  # a command resumes
+    assert wait_until(lambda: sim_arm.driver.mode == "running" or sim_arm.event_counts["watchdog_hold"] == 2)
+
+
+def test_stalled_heartbeat_stops_the_sim_arm():
+    robot = SafeRobot(SimSO101(control_hz=50.0, image_size=None),
+                      SafetyConfig(command_deadline_s=None, heartbeat_deadline_s=0.2))
+    robot.connect()
+    try:
+        assert wait_until(lambda: robot.event_counts["heartbeat_stop"] == 1)
+        assert robot.driver.mode == "stopped"
+        with pytest.raises(RobotStoppedError):
+            robot.act(robot.observe().current_target(robot.spec))
+        robot.reset()
+        assert robot.driver.mode == "running"
+        robot.act(robot.observe().current_target(robot.spec))
+    finally:
+        robot.close()
+
+
+def test_stalled_heartbeat_turns_the_real_arms_torque_off():
+    with FeetechBusEmulator() as emulator:
+        robot = SafeRobot(make_robot("so101_feetech", port=emulator.path),
+                          SafetyConfig(command_deadline_s=None, heartbeat_deadline_s=0.3))
+        robot.connect()
+        try:
+            torque = lambda: [emulator.register(i, Register.TORQUE_ENABLE) for i in range(1, 7)]  # noqa: E731
+            assert wait_until(lambda: torque() == [1] * 6)
+            for _ in range(5):  # a live pipeline keeps the arm on
+                robot.heartbeat()
+                time.sleep(0.02)
+            assert wait_until(lambda: robot.event_counts["heartbeat_stop"] == 1)
+            assert wait_until(lambda: torque() == [0] * 6)
+        finally:
+            robot.close()

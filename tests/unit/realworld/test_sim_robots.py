@@ -1,0 +1,78 @@
+"""Simulated robots behave like real ones: wall-clock pacing that never speeds up, command
+latency, resets that take time, camera frames; both embodiments behind one interface."""
+
+import time
+
+import numpy as np
+import pytest
+
+from infinirl.realworld.driver import RobotError, RobotStoppedError, make_robot
+
+
+def wait_until(predicate, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return predicate()
+
+
+def test_so101_follows_joint_targets_at_wall_clock_pace():
+    robot = make_robot("sim_so101", control_hz=20.0, image_size=32)
+    with robot:
+        first = robot.observe()
+        assert first.frames["front"].shape == (32, 32, 3) and first.frames["front"].dtype == np.uint8
+        target = first.current_target(robot.spec)
+        target[0] += 0.3
+        started, start_tick = time.monotonic(), robot.observe().tick
+        robot.act(target)
+        assert wait_until(lambda: abs(robot.observe().joint_positions[0] - target[0]) < 0.05)
+        time.sleep(0.2)
+        ticks = robot.observe().tick - start_tick
+        elapsed = time.monotonic() - started
+        assert ticks <= elapsed * 20.0 + 2  # never faster than real time, however fast the simulator is
+        assert robot.stats.commands_applied == 1 and robot.stats.frames >= 1
+        assert robot.observe().info["success"] is False
+
+
+def test_latency_delays_a_command_and_reset_takes_its_time():
+    robot = make_robot("sim_so101", control_hz=50.0, image_size=None, latency_s=0.3, reset_s=0.2)
+    started = time.monotonic()
+    robot.connect()
+    try:
+        assert time.monotonic() - started >= 0.2  # the first episode's reset
+        robot.act(robot.observe().current_target(robot.spec))
+        assert robot.stats.commands_applied == 0  # not before its latency has passed
+        assert wait_until(lambda: robot.stats.commands_applied == 1)
+        started = time.monotonic()
+        robot.reset()
+        assert time.monotonic() - started >= 0.2 and robot.stats.resets == 2
+    finally:
+        robot.close()
+
+
+def test_stop_refuses_commands_until_reset_and_close_is_final():
+    robot = make_robot("sim_so101", control_hz=50.0, image_size=None)
+    with pytest.raises(RobotError, match="not connected"):
+        robot.observe()
+    robot.connect()
+    robot.stop()
+    with pytest.raises(RobotStoppedError):
+        robot.act(robot.observe().current_target(robot.spec))
+    robot.reset()
+    robot.act(robot.observe().current_target(robot.spec))
+    with pytest.raises(ValueError, match=r"expects a command of shape \(6,\)"):
+        robot.act(np.zeros(4))
+    robot.close()
+    with pytest.raises(RobotError, match="closed"):
+        robot.connect()
+
+
+def test_sawyer_moves_its_hand_to_an_end_effector_target():
+    robot = make_robot("sim_sawyer", task="reach-v3", control_hz=20.0, image_size=32)
+    with robot:
+        first = robot.observe()
+        assert first.joint_positions is None and first.frames["corner"].shape == (32, 32, 3)
+        target = first.current_target(robot.spec)
+        target[0] += 0.1
+        robot.act(target)
+        assert wait_until(lambda: np.linalg.norm(robot.observe().ee_position - target[:3]) < 0.02)
