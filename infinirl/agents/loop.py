@@ -314,7 +314,7 @@ class AgentConfig:
 
     env: str = "tools"
     """Environment by registered name (``AGENT_ENVS``; plugins through the ``infinirl.agent_envs``
-    entry point)."""
+    entry point), or ``package.module:Class`` of one of your own."""
     env_options: dict[str, Any] = field(default_factory=dict)
     """Keyword options of the environment's constructor (e.g. ``tools``, ``call_format``)."""
     max_turns: int = bounded(4, ge=1)
@@ -335,6 +335,8 @@ class AgentConfig:
                            schedule=self.schedule)
 
     def make_env_factory(self) -> Callable[[], AgentEnv]:
-        factory = AGENT_ENVS.get(self.env)
+        from infinirl.agents.registered import resolve_agent_env
+
+        factory = resolve_agent_env(self.env)
         options = dict(self.env_options)
         return lambda: factory(**options)

@@ -212,15 +212,18 @@ class ReasoningConfig(RunConfig):
         agent = self.rollout.agent
         if agent is None:
             return
-        from infinirl.agents.registered import AGENT_ENVS, load_agent_envs
+        from infinirl.agents.registered import AGENT_ENVS, resolve_agent_env
 
-        load_agent_envs()
-        if agent.env not in AGENT_ENVS:
-            raise ConfigError(f"rollout.agent.env={agent.env!r} is not registered; registered: "
-                              f"{', '.join(AGENT_ENVS.names())} (plugins: the infinirl.agent_envs entry point)")
         try:
-            AGENT_ENVS.get(agent.env)(**agent.env_options).close()
-        except (TypeError, ValueError) as exc:
+            factory = resolve_agent_env(agent.env)
+        except KeyError:
+            raise ConfigError(f"rollout.agent.env={agent.env!r} is not registered; registered: "
+                              f"{', '.join(AGENT_ENVS.names())}, or give package.module:Class") from None
+        except (ImportError, AttributeError, TypeError) as exc:
+            raise ConfigError(f"rollout.agent.env: {exc}") from None
+        try:
+            factory(**agent.env_options).close()
+        except (TypeError, ValueError, KeyError) as exc:
             raise ConfigError(f"rollout.agent.env_options for env {agent.env!r}: {exc}") from None
 
     def _check_off_policy(self) -> None:

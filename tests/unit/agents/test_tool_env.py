@@ -1,0 +1,74 @@
+"""The tool-calling agent environment and the agent config's checks."""
+
+import pytest
+
+from infinirl.agents.registered import resolve_agent_env
+from infinirl.agents.tool_env import ToolEnv
+from infinirl.config import ConfigError, to_dataclass
+from infinirl.runners.reasoning_config import ReasoningConfig
+
+
+def test_a_call_runs_and_its_result_comes_back():
+    env = ToolEnv(tools=["calculator"])
+    assert env.stop_strings == ("</calculator>",)
+    step = env.step("I will compute <calculator>378 * 937</calculator><")
+    assert not step.done and not step.error and "354186" in step.observation
+    assert step.info["tool_calls"] == 1
+
+
+def test_a_turn_without_a_call_is_the_answer():
+    assert ToolEnv().step("The answer is 354186.").done
+
+
+def test_malformed_calls_and_tool_errors_are_observations_not_crashes():
+    env = ToolEnv(tools=["calculator"])
+    step = env.step("<calculator>378 * </calculator>")
+    assert step.error and not step.done and "Error" in step.observation
+    empty = env.step("<calculator></calculator>")
+    assert empty.error and "empty" in empty.observation
+
+
+def test_calls_beyond_the_per_turn_limit_are_refused_with_a_message():
+    env = ToolEnv(tools=["calculator"], max_calls_per_turn=1)
+    step = env.step("<calculator>1+1</calculator><calculator>2+2</calculator>")
+    assert step.error and "2" in step.observation and "at most 1 tool calls" in step.observation
+
+
+def test_hermes_format():
+    env = ToolEnv(tools=["calculator"], call_format="hermes")
+    step = env.step('<tool_call>{"name": "calculator", "arguments": {"expression": "6*7"}}</tool_call>')
+    assert "42" in step.observation and not step.error
+
+
+def test_bad_options_are_one_line_errors():
+    with pytest.raises(ValueError, match="at least one"):
+        ToolEnv(tools=[])
+    with pytest.raises(ValueError, match="not in tools"):
+        ToolEnv(tools=["calculator"], tool_options={"python": {}})
+
+
+def test_envs_resolve_by_name_or_dotted_path():
+    assert resolve_agent_env("tools") is ToolEnv
+    assert resolve_agent_env("infinirl.agents.toy_envs:EchoEnv").__name__ == "EchoEnv"
+    with pytest.raises(ImportError, match="no_such_module"):
+        resolve_agent_env("no_such_module:Env")
+
+
+def _cfg(agent):
+    return to_dataclass(ReasoningConfig, {"rollout": {"agent": agent}})
+
+
+@pytest.mark.parametrize("agent, message", [
+    ({"env": "nope"}, "rollout.agent.env='nope' is not registered"),
+    ({"env": "tools", "env_options": {"tools": ["abacus"]}}, "rollout.agent.env_options"),
+    ({"env": "tools", "env_options": {"colour": 1}}, "rollout.agent.env_options"),
+    ({"env": "missing.module:Env"}, "rollout.agent.env: agent environment"),
+])
+def test_config_refuses_bad_agents_before_any_worker(agent, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        _cfg(agent)
+
+
+def test_config_bounds_are_checked_when_built():
+    with pytest.raises(ConfigError, match="max_turns"):
+        _cfg({"max_turns": 0})
