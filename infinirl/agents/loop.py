@@ -31,7 +31,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
-from infinirl.config import bounded
+from infinirl.config import ConfigError, bounded
 from infinirl.engines.base import GenerationResult, InferenceEngine, SamplingParams
 from infinirl.registry import Registry
 
@@ -333,6 +333,22 @@ class AgentConfig:
         return AgentBudget(max_turns=self.max_turns, max_response_tokens=self.max_response_tokens,
                            max_observation_tokens=self.max_observation_tokens, concurrency=self.concurrency,
                            schedule=self.schedule)
+
+    def check(self, key: str) -> None:
+        """Raise ``ConfigError`` naming ``key`` if the environment cannot be built as configured."""
+        from infinirl.agents.registered import AGENT_ENVS, resolve_agent_env
+
+        try:
+            factory = resolve_agent_env(self.env)
+        except KeyError:
+            raise ConfigError(f"{key}.env={self.env!r} is not registered; registered: "
+                              f"{', '.join(AGENT_ENVS.names())}, or give package.module:Class") from None
+        except (ImportError, AttributeError, TypeError) as exc:
+            raise ConfigError(f"{key}.env: {exc}") from None
+        try:
+            factory(**self.env_options).close()
+        except (TypeError, ValueError, KeyError) as exc:
+            raise ConfigError(f"{key}.env_options for env {self.env!r}: {exc}") from None
 
     def make_env_factory(self) -> Callable[[], AgentEnv]:
         from infinirl.agents.registered import resolve_agent_env

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from infinirl.agents.loop import AgentConfig
 from infinirl.config import ConfigError, bounded, to_dataclass
 from infinirl.engines.train_base import TrainEngineConfig
 from infinirl.models.model_paths import check_model_path
@@ -43,6 +44,9 @@ class EvalRolloutConfig:
     engine_options: dict[str, Any] = field(default_factory=dict)
     max_batch_size: int = bounded(64, ge=1)
     """Sequences decoded together per rollout rank; one call carries max_batch_size // n prompts."""
+    agent: AgentConfig | None = None
+    """Multi-turn rollouts with tools (as training's ``rollout.agent``). None: the run's agent with
+    run_dir, else single-turn; ``single_turn=true`` turns it off (the no-tools baseline)."""
 
 
 @dataclass(kw_only=True)
@@ -79,6 +83,8 @@ class EvalConfig:
     """Sampling seed: the same config gives the same samples whatever the number of rollout ranks."""
     output: str | None = None
     """Results JSON. None: <run_dir>/eval/<task>-iter_<N>.json, or runs/eval/<task>-<model>.json."""
+    single_turn: bool = False
+    """Evaluate without any agent loop, even a run's: one turn, no tools."""
     per_problem: bool = True
     """Write each problem's counts, greedy correctness and greedy response into the results."""
     progress: bool = True
@@ -118,6 +124,8 @@ class EvalConfig:
         if missing:
             raise ConfigError(f"placement must place {', '.join(sorted(needed))}; missing {sorted(missing)}")
         validate_placement(self.placement, ("actor", "rollout", "reward"), "eval")
+        if plan.agent is not None:
+            plan.agent.check("rollout.agent")
 
     def resolve(self) -> EvalPlan:
         """The run, checkpoint, model, task and output this config names; ConfigError if one is missing."""
@@ -137,6 +145,11 @@ class EvalConfig:
         max_new = self.max_new_tokens or (run_rollout.get("max_new_tokens") if run else None) or 256
         stops = self.stop_strings if self.stop_strings is not None else list(run_rollout.get("stop_strings", []))
         actor = _convert(TrainEngineConfig, run.get("actor"), f"{run_dir / RUN_CONFIG_FILE}: actor") if run else None
+        agent = self.rollout.agent
+        if agent is None and run_rollout.get("agent"):
+            agent = _convert(AgentConfig, run_rollout["agent"], f"{run_dir / RUN_CONFIG_FILE}: rollout.agent")
+        if self.single_turn:
+            agent = None
         numbered = _CHECKPOINT_DIR.match(checkpoint.name) if checkpoint else None
         step = int(numbered.group(1)) if numbered else None
         label = task_label(task, self.split)
@@ -148,7 +161,7 @@ class EvalConfig:
             output = Path("runs") / "eval" / f"{label}-{Path(model_path).name}.json"
         return EvalPlan(run_dir=run_dir, checkpoint=checkpoint, step=step, model_path=model_path, actor=actor,
                         task=task, verifier=verifier, max_new_tokens=max_new, stop_strings=stops, output=output,
-                        task_from_run=self.task is None and run is not None)
+                        task_from_run=self.task is None and run is not None, agent=agent)
 
 
 @dataclass(kw_only=True)
@@ -167,6 +180,8 @@ class EvalPlan:
     max_new_tokens: int
     stop_strings: list[str]
     output: Path
+    agent: AgentConfig | None = None
+    """Multi-turn rollouts with this agent (None: single-turn)."""
     task_from_run: bool = False
     """The task is the run's: a data file then contributes only its held-out rows (the first
     task.eval_size; the run trained on the rest)."""

@@ -37,7 +37,8 @@ def run(cfg: EvalConfig) -> dict:
         print(placement.describe(), flush=True)
         rollout = WorkerGroup.launch(RolloutWorker, "rollout", placement=placement.ranks("rollout"),
                                      args=(plan.model_path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
-                                           cfg.num_threads, cfg.rollout.engine, cfg.rollout.engine_options))
+                                           cfg.num_threads, cfg.rollout.engine, cfg.rollout.engine_options,
+                                           plan.agent))
         reward = WorkerGroup.launch(RewardWorker, "reward", placement=placement.ranks("reward"),
                                     args=(plan.model_path, plan.verifier, 0.0))
         try:

@@ -209,22 +209,8 @@ class ReasoningConfig(RunConfig):
         self._check_agent()
 
     def _check_agent(self) -> None:
-        agent = self.rollout.agent
-        if agent is None:
-            return
-        from infinirl.agents.registered import AGENT_ENVS, resolve_agent_env
-
-        try:
-            factory = resolve_agent_env(agent.env)
-        except KeyError:
-            raise ConfigError(f"rollout.agent.env={agent.env!r} is not registered; registered: "
-                              f"{', '.join(AGENT_ENVS.names())}, or give package.module:Class") from None
-        except (ImportError, AttributeError, TypeError) as exc:
-            raise ConfigError(f"rollout.agent.env: {exc}") from None
-        try:
-            factory(**agent.env_options).close()
-        except (TypeError, ValueError, KeyError) as exc:
-            raise ConfigError(f"rollout.agent.env_options for env {agent.env!r}: {exc}") from None
+        if self.rollout.agent is not None:
+            self.rollout.agent.check("rollout.agent")
 
     def _check_off_policy(self) -> None:
         objective, eta = self.algorithm.objective, self.algorithm.asynchronous.max_staleness
