@@ -20,9 +20,14 @@ class EchoEnv(AgentEnv):
             raise ValueError("stops: give at least one non-empty stop string")
         self.stop_strings = tuple(stops)
         self.observation, self.answers, self.answered = observation, answers, 0
+        self.problem = None
+
+    def reset(self, problem) -> None:
+        self.problem = problem
 
     def step(self, turn: str) -> AgentStep:
         if self.answered >= self.answers:
             return AgentStep(done=True)
         self.answered += 1
-        return AgentStep(observation=self.observation, info={"echoes": 1})
+        knows = int(self.problem is not None)
+        return AgentStep(observation=self.observation, info={"echoes": 1, "knows_problem": knows})

@@ -41,29 +41,32 @@ class RolloutWorker(Worker, WeightSink):
             tokenizer = AutoTokenizer.from_pretrained(resolve_model_source(model))
         return AgentRollout(self.engine, tokenizer, agent.make_env_factory(), agent.budget())
 
-    def _generate(self, prompt_ids: list[list[int]], sampling: SamplingParams) -> list[GenerationResult]:
+    def _generate(self, prompt_ids: list[list[int]], sampling: SamplingParams, problems=None) -> list[GenerationResult]:
         if self.agent is not None:
-            return self.agent.generate(prompt_ids, sampling)
+            return self.agent.generate(prompt_ids, sampling, problems)
         return self.engine.generate(prompt_ids, sampling)
 
-    def generate(self, prompt_ids: list[list[int]], sampling: SamplingParams) -> list[GenerationResult]:
+    def generate(self, prompt_ids: list[list[int]], sampling: SamplingParams,
+                 problems: list | None = None) -> list[GenerationResult]:
+        """``problems`` (agent rollouts only): the problem of each prompt, for the environments."""
         self.apply_staged_weights()
-        return self._generate(prompt_ids, sampling)
+        return self._generate(prompt_ids, sampling, problems)
 
     def generate_to(self, channel, chunks: list[tuple[int, list[list[int]]]], sampling: SamplingParams,
-                    key: str = "default") -> int:
+                    key: str = "default", problems: list[list] | None = None) -> int:
         """Generate chunk after chunk and put each ``(index, results)`` into ``channel`` (under
         ``key``: one per generation, so several can be in flight) as soon as it is done, so the next
         stage (reward) works on chunk i while this rank generates chunk i+1.
 
         Each chunk is sampled with a seed derived from its *index*, not from this rank, so a batch's
-        samples are the same however the chunks are spread over rollout ranks.
+        samples are the same however the chunks are spread over rollout ranks. ``problems[c]`` (agent
+        rollouts only) lists the problems of chunk ``c``'s prompts, for the agent environments.
         """
-        for index, prompt_ids in chunks:
+        for position, (index, prompt_ids) in enumerate(chunks):
             self.apply_staged_weights()
             chunk_sampling = sampling if sampling.seed is None else replace(
                 sampling, seed=(sampling.seed + 7919 * index) % (2**31))
-            results = self._generate(prompt_ids, chunk_sampling)
+            results = self._generate(prompt_ids, chunk_sampling, None if problems is None else problems[position])
             channel.put((index, results), key=key, weight=len(results))
         channel.flush()
         return len(chunks)

@@ -41,8 +41,9 @@ class PassResult:
 
 class Evaluator:
     def __init__(self, rollout, reward, tokenizer, system_prompt: str | None, max_batch_size: int,
-                 progress: bool = True, few_shot=()):
+                 progress: bool = True, few_shot=(), with_problems: bool = False):
         self.rollout, self.reward, self.tokenizer, self.few_shot = rollout, reward, tokenizer, few_shot
+        self.with_problems = with_problems  # agent rollouts: the environments get each prompt's problem
         self.system_prompt, self.max_batch_size, self.progress = system_prompt, max_batch_size, progress
 
     def run(self, problems: list[Problem], passes: dict[str, SamplingParams]) -> dict[str, PassResult]:
@@ -74,7 +75,8 @@ class Evaluator:
             while work:
                 name, sampling, indices = work.popleft()
                 prompts = [self._prompt_ids[i] for i in indices]
-                results = (await self.rollout.call("generate", prompts, sampling, ranks=[rank]))[0]
+                problems = [self._problems[i] for i in indices] if self.with_problems else None
+                results = (await self.rollout.call("generate", prompts, sampling, problems, ranks=[rank]))[0]
                 scoring.append(asyncio.ensure_future(self._score(name, indices, sampling.n, results, rank)))
 
         await asyncio.gather(*(rank_loop(r) for r in range(self.rollout.world_size)))

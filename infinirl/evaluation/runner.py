@@ -44,7 +44,8 @@ def run(cfg: EvalConfig) -> dict:
         try:
             digest = load_checkpoint_into(rollout, plan, placement, cfg.num_threads) if plan.checkpoint else None
             evaluator = Evaluator(rollout, reward, tokenizer, plan.task.system_prompt, cfg.rollout.max_batch_size,
-                                  progress=cfg.progress, few_shot=plan.task.few_shot)
+                                  progress=cfg.progress, few_shot=plan.task.few_shot,
+                                  with_problems=plan.agent is not None)
             passes = evaluator.run(problems, sampling_passes(cfg, plan))
         finally:
             for group in (rollout, reward):

@@ -257,8 +257,10 @@ class ReasoningFlow:
         per_chunk = self.cfg.rollout.stream_chunk_prompts or -(-len(problems) // self.rollout.world_size)
         chunks = [list(range(s, min(s + per_chunk, len(problems)))) for s in range(0, len(problems), per_chunk)]
         by_rank = _split(list(enumerate(chunks)), self.rollout.world_size)
+        with_problems = self.cfg.rollout.agent is not None  # agent environments may need the problem
         handles = [self.rollout.call("generate_to", self.channels["generated"],
                                      [(i, [prompt_ids[j] for j in chunk]) for i, chunk in work], sampling, key,
+                                     [[problems[j] for j in chunk] for _, chunk in work] if with_problems else None,
                                      ranks=[r])
                    for r, work in enumerate(by_rank) if work]
         chunk_problems = {i: [problems[j] for j in chunk for _ in range(sampling.n)] for i, chunk in enumerate(chunks)}

@@ -24,6 +24,7 @@ def test_agent_rollouts_train_on_model_tokens_and_resume_exactly(ray_cluster, ti
     assert all(r["agent/turns_mean"] > 1 for r in train), "trajectories take several turns"
     assert all(r["agent/observation_tokens_mean"] > 0 for r in train)
     assert all(r["agent/echoes_mean"] > 0 for r in train)
+    assert all(r["agent/knows_problem_mean"] == r["agent/echoes_mean"] for r in train), "envs get their problem"
     # the trainer scores the model's tokens as the rollout sampled them, environment tokens excluded
     assert all(r["train/logprob_mismatch_mean"] < 1e-3 for r in train)
     assert any(r["train/grad_norm"] > 0 for r in train)
