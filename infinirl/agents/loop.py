@@ -15,7 +15,8 @@ response tokens (model and observation ids together) or the tokens of one turn.
 Scheduling (``AgentBudget.schedule``):
 
 * ``async``: while the environment works on some trajectories, the engine generates the next turn
-  of every other trajectory that is ready; nothing waits for the slowest tool of a turn. Which
+  of every other trajectory that is ready; nothing waits for the slowest tool of a turn (steps that
+  finish within ``batch_window_s`` of each other share a generate call). Which
   trajectories share a generate call depends on the tools' timing, so sampled runs are not
   bit-reproducible (greedy ones are).
 * ``lockstep``: every active trajectory generates its turn in one call, then every environment
@@ -90,11 +91,16 @@ class AgentBudget:
     concurrency: int = 8
     """Environment steps running at once (threads)."""
     schedule: Schedule = "async"
+    batch_window_s: float = 0.02
+    """``async``: once a step finishes, keep waiting while others finish less than this apart, so
+    steps that finish together (tools of similar latency) share one generate call."""
 
     def __post_init__(self) -> None:
         for name in ("max_turns", "max_response_tokens", "max_observation_tokens", "concurrency"):
             if getattr(self, name) < 1:
                 raise ValueError(f"AgentBudget.{name}={getattr(self, name)}: must be >= 1")
+        if self.batch_window_s < 0:
+            raise ValueError(f"AgentBudget.batch_window_s={self.batch_window_s}: must be >= 0")
         if self.schedule not in ("async", "lockstep"):
             raise ValueError(f"AgentBudget.schedule={self.schedule!r}: use 'async' or 'lockstep'")
 
@@ -196,14 +202,24 @@ class AgentRollout:
                     pending[pool.submit(self._env_step, trajectory)] = trajectory
                 call += 1
                 ready = []
-            if pending:  # wait for the first environment step, then take every other finished one too
-                futures.wait(list(pending), return_when=futures.FIRST_COMPLETED)
+            if pending:
+                self._wait_for_burst(list(pending))
             for future in [f for f in pending if f.done()]:
                 trajectory = pending.pop(future)
                 self._observe(trajectory, future.result())
                 if not trajectory.done:
                     ready.append(trajectory)
             ready.sort(key=lambda t: (t.prompt_index, t.sample_index))
+
+    def _wait_for_burst(self, pending: list[futures.Future]) -> None:
+        """Until a step finishes, then while others keep finishing less than ``batch_window_s``
+        apart: steps that end together share the next generate call."""
+        done, waiting = futures.wait(pending, return_when=futures.FIRST_COMPLETED)
+        while waiting:
+            done, waiting = futures.wait(waiting, timeout=self.budget.batch_window_s,
+                                         return_when=futures.FIRST_COMPLETED)
+            if not done:
+                return
 
     # ------------------------------------------------------------------ one turn
     def _start(self, prompt_index: int, sample_index: int, prompt_ids: list[int], problem) -> _Trajectory:
@@ -328,11 +344,13 @@ class AgentConfig:
     schedule: Schedule = "async"
     """async: generate other trajectories' turns while tools run; lockstep: every turn waits for the
     slowest tool (reproducible with a seed)."""
+    batch_window_s: float = bounded(0.02, ge=0)
+    """async: tool calls finishing within this window of each other share one generate call."""
 
     def budget(self) -> AgentBudget:
         return AgentBudget(max_turns=self.max_turns, max_response_tokens=self.max_response_tokens,
                            max_observation_tokens=self.max_observation_tokens, concurrency=self.concurrency,
-                           schedule=self.schedule)
+                           schedule=self.schedule, batch_window_s=self.batch_window_s)
 
     def check(self, key: str) -> None:
         """Raise ``ConfigError`` naming ``key`` if the environment cannot be built as configured."""

@@ -16,6 +16,7 @@ from infinirl.engines.hf_generate import HFGenerateEngine
 from infinirl.models.hf_causal_lm import tiny_causal_lm
 
 PROMPTS = [[5, 6, 7, 8, 9], [20, 21], [30, 31, 32]]
+MANY = [[10 + i, 40 + 2 * i, 7] for i in range(16)]
 STOPS = tuple("abcdefghijklmnopqrstuvwxyz0123456789")
 
 
@@ -190,3 +191,27 @@ def test_budget_rejects_nonsense():
         AgentBudget(max_turns=0)
     with pytest.raises(ValueError, match="schedule"):
         AgentBudget(schedule="parallel")
+
+
+def test_async_steps_that_finish_together_share_a_generate_call(tiny, engine):
+    """Tools of similar latency (here 50-100 ms, 10 ms apart) finish together: the async schedule
+    batches their next turns as lock-step does, instead of one generate call per trajectory."""
+    calls = {"lockstep": 0, "async": 0}
+
+    class Counting(HFGenerateEngine):
+        schedule = "lockstep"
+
+        def generate(self, prompts, sampling):
+            calls[self.schedule] += 1
+            return super().generate(prompts, sampling)
+
+    model, tokenizer = tiny
+    for schedule in calls:
+        counting = Counting(model, tokenizer, max_batch_size=64, eos_token_ids=[])
+        counting.schedule = schedule
+        budget = AgentBudget(max_turns=3, max_response_tokens=200, schedule=schedule, batch_window_s=0.5)
+        delays = iter([0.05 + 0.01 * (i % 6) for i in range(len(MANY))])
+        results = AgentRollout(counting, tokenizer, lambda: CountingEnv(delay=next(delays), done_after=2),
+                               budget).generate(MANY, SamplingParams(n=1, max_new_tokens=8, greedy=True))
+        assert sum(r.extra["agent"]["env_steps"] for r in results) >= 8  # enough trajectories call the env
+    assert calls["async"] <= calls["lockstep"] + 1
