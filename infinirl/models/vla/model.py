@@ -193,6 +193,20 @@ class PiZero(nn.Module):
         time = beta.sample((batch,)) * config.time_sampling_scale + config.time_sampling_offset
         return time.to(device=device, dtype=torch.float32)
 
+    def joint_velocity(self, images, image_masks, tokens, token_mask, state: torch.Tensor | None,
+                       x_t: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """``v(x_t, t)`` with prefix and suffix in one joint pass (no cache; gradients reach both
+        stacks): what :meth:`velocity` computes against a cached prefix."""
+        prefix, prefix_pad = self.embed_prefix(images, image_masks, tokens, token_mask)
+        suffix, starts, cond = self.embed_suffix(state, x_t, time)
+        suffix_pad = torch.ones(suffix.shape[:2], dtype=torch.bool, device=suffix.device)
+        pad_mask = torch.cat([prefix_pad, suffix_pad], dim=1)
+        mask = block_mask(pad_mask, torch.cat([torch.zeros_like(prefix_pad, dtype=torch.long), starts], dim=1))
+        positions = torch.cumsum(pad_mask.long(), dim=1) - 1
+        streams = [Stream(self.vlm, prefix), Stream(self.expert, suffix, cond)]
+        (_, out), _ = mixture_forward(streams, attention_bias(mask, prefix.dtype), positions, self.rotary)
+        return self.action_out_proj(out[:, -self.config.chunk_size:])
+
     def loss_elements(self, images, image_masks, tokens, token_mask, state: torch.Tensor | None,
                       actions: torch.Tensor, noise: torch.Tensor | None = None,
                       time: torch.Tensor | None = None) -> torch.Tensor:
@@ -205,13 +219,5 @@ class PiZero(nn.Module):
         t = time[:, None, None]
         x_t = t * noise + (1 - t) * actions
         target = noise - actions
-        prefix, prefix_pad = self.embed_prefix(images, image_masks, tokens, token_mask)
-        suffix, starts, cond = self.embed_suffix(state, x_t, time)
-        suffix_pad = torch.ones(suffix.shape[:2], dtype=torch.bool, device=suffix.device)
-        pad_mask = torch.cat([prefix_pad, suffix_pad], dim=1)
-        mask = block_mask(pad_mask, torch.cat([torch.zeros_like(prefix_pad, dtype=torch.long), starts], dim=1))
-        positions = torch.cumsum(pad_mask.long(), dim=1) - 1
-        streams = [Stream(self.vlm, prefix), Stream(self.expert, suffix, cond)]
-        (_, out), _ = mixture_forward(streams, attention_bias(mask, prefix.dtype), positions, self.rotary)
-        v_t = self.action_out_proj(out[:, -self.config.chunk_size:]).float()
+        v_t = self.joint_velocity(images, image_masks, tokens, token_mask, state, x_t, time).float()
         return F.mse_loss(target.float(), v_t, reduction="none")
