@@ -58,6 +58,8 @@ class PiZeroPolicy(Policy):
         architecture: an ``architecture.json`` path for checkpoints of non-published sizes.
         cameras: env observation key -> checkpoint camera key (default: ``rgb`` -> the first camera).
         state_key / instruction_key: the env's state and instruction fields.
+        instruction: the instruction when an observation has no ``instruction_key`` (the embodied
+            runner hands policies only the array fields; one task per env makes it fixed).
         num_steps: denoising steps (default: the checkpoint's ``num_inference_steps``).
         noise_level: Flow-SDE's ``a``; sde_steps: ``"all"`` or ``"one"`` stochastic step(s).
         value_head: add a critic on the pooled prefix; value_hidden: its hidden width.
@@ -69,7 +71,7 @@ class PiZeroPolicy(Policy):
                  architecture: str | None = None, cameras: Mapping[str, str] | None = None,
                  state_key: str = "state", instruction_key: str = "instruction", num_steps: int | None = None,
                  noise_level: float = 0.5, sde_steps: str = "all", value_head: bool = True, value_hidden: int = 256,
-                 dtype: str = "float32"):
+                 dtype: str = "float32", instruction: str | None = None):
         # Imported here, not at the top: the policy registry imports this module in every process
         # that builds any policy, and transformers' model classes take seconds to import.
         from infinirl.models.vla.vla import VLA, load_vla
@@ -99,7 +101,7 @@ class PiZeroPolicy(Policy):
         if unknown:
             raise ValueError(f"cameras maps to {unknown}, which the checkpoint does not have: "
                              f"{list(config.camera_keys)}")
-        self.state_key, self.instruction_key = state_key, instruction_key
+        self.state_key, self.instruction_key, self.instruction = state_key, instruction_key, instruction
         self.has_value_head = value_head
         width = config.architecture.vlm.width
         self.value_net = (nn.Sequential(nn.Linear(width, value_hidden), nn.SiLU(), nn.Linear(value_hidden, 1))
@@ -110,9 +112,17 @@ class PiZeroPolicy(Policy):
     def inputs(self, obs: Mapping[str, Any]) -> VLAInputs:
         observation = {camera: obs[key] for key, camera in self.cameras.items()}
         observation[STATE] = obs[self.state_key]
-        instructions = obs[self.instruction_key]
-        observation[TASK] = [instructions] if isinstance(instructions, str) else list(instructions)
+        observation[TASK] = self._instructions(obs, len(observation[STATE]))
         return self.vla.inputs(observation)
+
+    def _instructions(self, obs: Mapping[str, Any], batch: int) -> list[str]:
+        if self.instruction_key in obs:
+            instructions = obs[self.instruction_key]
+            return [instructions] if isinstance(instructions, str) else list(instructions)
+        if self.instruction is None:
+            raise ValueError(f"the observation has no {self.instruction_key!r} (keys: {sorted(obs)}): give the policy "
+                             "instruction=... for envs whose observations carry none")
+        return [self.instruction] * batch
 
     def _prefix(self, x: VLAInputs) -> PrefixCache:
         return self.vla.model.encode_prefix(x.images, x.image_masks, x.tokens, x.token_mask)

@@ -195,6 +195,19 @@ def test_policy_act_and_evaluate_logprobs_agree(policy):
     assert policy.vla.model.vision_tower.stages[0].weight.grad is not None
 
 
+def test_policy_without_instruction_field_uses_its_own(policy):
+    obs = env_obs()
+    del obs["instruction"]
+    with pytest.raises(ValueError) as error:
+        policy.inputs(obs)
+    assert "instruction=..." in one_line(error)
+    policy.instruction = "reach"
+    try:
+        assert torch.equal(policy.inputs(obs).tokens, policy.inputs({**obs, "instruction": ["reach"] * 2}).tokens)
+    finally:
+        policy.instruction = None
+
+
 def test_policy_deterministic_act_is_the_ode_sampler(policy):
     torch.manual_seed(2)
     step = policy.act(env_obs(), deterministic=True)
