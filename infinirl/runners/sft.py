@@ -53,9 +53,8 @@ def run(cfg: SFTConfig) -> dict:
         torch.set_num_threads(cfg.num_threads)
     with RunLoop(cfg, run_start_time()) as loop:
         reader = open_dataset(cfg)
-        demos = DemoFrames.read(reader, cfg.data.camera_key)
-        tasks = list(cfg.eval.tasks or cfg.data.generate.tasks)
-        flow = SFTFlow(cfg, demos, task_instructions(tasks, reader.tasks))
+        tasks = task_instructions(list(cfg.eval.tasks or cfg.data.generate.tasks), reader.tasks)
+        flow = SFTFlow(cfg, DemoFrames.read(reader, cfg.data.camera_key), tasks)
         try:
             return loop.run(flow)
         finally:
