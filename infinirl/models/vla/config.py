@@ -137,7 +137,8 @@ SIGLIP_SO400M = SiglipSpec(hidden_size=1152, intermediate_size=4304, num_hidden_
 
 @dataclass(kw_only=True, frozen=True)
 class VLAArchitecture:
-    """Every size the weights depend on: the VLM and expert Gemmas, SigLIP, the vocabulary."""
+    """Every size the weights depend on: the VLM and expert stacks (Gemma or Llama), the vision
+    encoder (SigLIP or a conv stem), the vocabulary."""
 
     vlm: GemmaSpec | LlamaSpec
     expert: GemmaSpec | LlamaSpec
