@@ -1,7 +1,8 @@
-"""Vision-language-action models: the π0 / π0.5 family (docs/vla.md).
+"""Vision-language-action models: the π0 / π0.5 family and the small ``pi0_smollm2`` (docs/vla.md).
 
-Our own modules on transformers' SigLIP / PaliGemma / Gemma classes, loading LeRobot's published
-π0/π0.5 checkpoint folders (and openpi's PyTorch key names) from a local path.
+Our own modules on transformers' SigLIP / PaliGemma / Gemma / Llama classes, loading LeRobot's
+published π0/π0.5 checkpoint folders (and openpi's PyTorch key names) from a local path, and
+SmolLM2's first layers for the small family.
 
 Names are exported lazily: importing the package (as the policy registry does, through
 :mod:`.policy`) does not import transformers' model classes until a model is used.
@@ -29,6 +30,15 @@ _EXPORTS = {
     "load_vla": "vla",
     "PiZeroPolicy": "policy",
     "PiZeroFivePolicy": "policy",
+    "PiZeroSmolLM2Policy": "policy",
+    "LlamaSpec": "config",
+    "ConvStemSpec": "config",
+    "STACK_KINDS": "layers",
+    "VISION_TOWERS": "vision",
+    "save_vla": "save",
+    "SmolVLASpec": "smollm2_vla",
+    "build_pi0_smollm2": "smollm2_vla",
+    "build_vla": "smollm2_vla",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from infinirl.registry import Registry
 
@@ -32,12 +32,18 @@ __all__ = [
     "NORMALIZATION_MODES",
     "PALIGEMMA_VOCAB",
     "SIGLIP_SO400M",
+    "STACK_SPECS",
+    "VISION_SPECS",
+    "ConvStemSpec",
     "FamilySwitches",
     "GemmaSpec",
+    "LlamaSpec",
     "SiglipSpec",
     "VLAArchitecture",
     "VLAConfig",
     "read_vla_config",
+    "spec_from_dict",
+    "spec_to_dict",
 ]
 
 PALIGEMMA_VOCAB = 257152
@@ -49,6 +55,7 @@ DEFAULT_NORMALIZATION = {"VISUAL": "IDENTITY", "STATE": "MEAN_STD", "ACTION": "M
 class GemmaSpec:
     """Sizes of one Gemma stack (openpi's ``gemma.Config``)."""
 
+    kind: ClassVar[str] = "gemma"
     width: int
     depth: int
     mlp_dim: int
@@ -58,14 +65,65 @@ class GemmaSpec:
 
 
 @dataclass(kw_only=True, frozen=True)
+class LlamaSpec:
+    """Sizes of one Llama stack (SmolLM2's layout: plain RMSNorm, SiLU MLP, grouped-query attention)."""
+
+    kind: ClassVar[str] = "llama"
+    width: int
+    depth: int
+    mlp_dim: int
+    num_heads: int
+    num_kv_heads: int
+    head_dim: int
+    rope_theta: float = 10_000.0
+    rms_norm_eps: float = 1e-5
+
+
+@dataclass(kw_only=True, frozen=True)
 class SiglipSpec:
     """Sizes of the SigLIP vision tower (its image size is the checkpoint's ``image_resolution``)."""
 
+    kind: ClassVar[str] = "siglip"
     hidden_size: int
     intermediate_size: int
     num_hidden_layers: int
     num_attention_heads: int
     patch_size: int
+
+
+@dataclass(kw_only=True, frozen=True)
+class ConvStemSpec:
+    """A small convolutional image encoder (:class:`~.vision.ConvStem`): one stride-2 stage per
+    entry of ``channels`` (3x3 conv, GroupNorm, SiLU), the last feature map's cells as tokens."""
+
+    kind: ClassVar[str] = "conv"
+    channels: tuple[int, ...] = (32, 64, 128, 256)
+    groups: int = 8
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "channels", tuple(int(c) for c in self.channels))
+        if not self.channels or any(c % self.groups for c in self.channels):
+            raise ValueError(f"ConvStemSpec.channels {list(self.channels)}: give at least one stage, each a "
+                             f"multiple of groups={self.groups} (GroupNorm)")
+
+
+STACK_SPECS: Registry[type] = Registry("decoder stack kind")
+STACK_SPECS.add("gemma", GemmaSpec)
+STACK_SPECS.add("llama", LlamaSpec)
+VISION_SPECS: Registry[type] = Registry("vision encoder kind")
+VISION_SPECS.add("siglip", SiglipSpec)
+VISION_SPECS.add("conv", ConvStemSpec)
+
+
+def spec_from_dict(registry: Registry[type], data: dict[str, Any], default_kind: str):
+    """A spec from its JSON form: ``{"kind": ..., sizes...}`` (no ``kind``: ``default_kind``)."""
+    data = dict(data)
+    return registry.get(data.pop("kind", default_kind))(**data)
+
+
+def spec_to_dict(spec) -> dict[str, Any]:
+    """The JSON form :func:`spec_from_dict` reads (lists for tuples)."""
+    return {"kind": spec.kind, **{k: list(v) if isinstance(v, tuple) else v for k, v in asdict(spec).items()}}
 
 
 GEMMA_VARIANTS: Registry[GemmaSpec] = Registry("gemma variant")
@@ -79,18 +137,20 @@ SIGLIP_SO400M = SiglipSpec(hidden_size=1152, intermediate_size=4304, num_hidden_
 
 @dataclass(kw_only=True, frozen=True)
 class VLAArchitecture:
-    """Every size the weights depend on: the VLM and expert Gemmas, SigLIP, the vocabulary."""
+    """Every size the weights depend on: the VLM and expert stacks (Gemma or Llama), the vision
+    encoder (SigLIP or a conv stem), the vocabulary."""
 
-    vlm: GemmaSpec
-    expert: GemmaSpec
-    vision: SiglipSpec = SIGLIP_SO400M
+    vlm: GemmaSpec | LlamaSpec
+    expert: GemmaSpec | LlamaSpec
+    vision: SiglipSpec | ConvStemSpec = SIGLIP_SO400M
     vocab_size: int = PALIGEMMA_VOCAB
 
     def __post_init__(self) -> None:
-        if (self.vlm.num_heads, self.vlm.head_dim) != (self.expert.num_heads, self.expert.head_dim):
+        heads = [(s.num_heads, s.num_kv_heads, s.head_dim) for s in (self.vlm, self.expert)]
+        if heads[0] != heads[1]:
             raise ValueError(
-                f"the VLM and the action expert attend jointly, so they need the same heads and head_dim; got "
-                f"{self.vlm.num_heads}x{self.vlm.head_dim} and {self.expert.num_heads}x{self.expert.head_dim}"
+                f"the VLM and the action expert attend jointly, so they need the same heads, kv heads and head_dim; "
+                f"got {'x'.join(map(str, heads[0]))} and {'x'.join(map(str, heads[1]))}"
             )
         if self.vlm.depth != self.expert.depth:
             raise ValueError(f"the VLM and the action expert need the same depth, got {self.vlm.depth} and "
@@ -98,10 +158,17 @@ class VLAArchitecture:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> VLAArchitecture:
-        """From ``{"vlm": {...}, "expert": {...}, "vision": {...}, "vocab_size": n}``."""
-        return cls(vlm=GemmaSpec(**data["vlm"]), expert=GemmaSpec(**data["expert"]),
-                   vision=SiglipSpec(**data.get("vision", asdict(SIGLIP_SO400M))),
+        """From ``{"vlm": {...}, "expert": {...}, "vision": {...}, "vocab_size": n}``; each spec may
+        name its ``kind`` (stacks: ``gemma``, the default, or ``llama``; vision: ``siglip``, the
+        default, or ``conv``)."""
+        return cls(vlm=spec_from_dict(STACK_SPECS, data["vlm"], "gemma"),
+                   expert=spec_from_dict(STACK_SPECS, data["expert"], "gemma"),
+                   vision=spec_from_dict(VISION_SPECS, data.get("vision", asdict(SIGLIP_SO400M)), "siglip"),
                    vocab_size=int(data.get("vocab_size", PALIGEMMA_VOCAB)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"vlm": spec_to_dict(self.vlm), "expert": spec_to_dict(self.expert),
+                "vision": spec_to_dict(self.vision), "vocab_size": self.vocab_size}
 
     @classmethod
     def from_json(cls, path: str | Path) -> VLAArchitecture:
@@ -119,6 +186,8 @@ class FamilySwitches:
 FAMILY_SWITCHES: Registry[FamilySwitches] = Registry("VLA family")
 FAMILY_SWITCHES.add("pi0", FamilySwitches(discrete_state=False, adarms_time=False))
 FAMILY_SWITCHES.add("pi05", FamilySwitches(discrete_state=True, adarms_time=True))
+# π0's design on SmolLM2's first layers (infinirl.models.vla.smollm2_vla): π0's switches, its own sizes.
+FAMILY_SWITCHES.add("pi0_smollm2", FamilySwitches(discrete_state=False, adarms_time=False))
 
 
 @dataclass(kw_only=True)
@@ -144,6 +213,9 @@ class VLAConfig:
     image_resolution: tuple[int, int] = (224, 224)
     tokenizer_max_length: int = 48
     normalization: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_NORMALIZATION))
+    instructions: dict[str, str] = field(default_factory=dict)
+    """An env's instruction -> the wording the model was trained with (e.g. ``"reach"`` ->
+    ``"reach a goal position"``); an instruction not listed is used as it is."""
 
     def __post_init__(self) -> None:
         FAMILY_SWITCHES.get(self.family)
@@ -190,6 +262,8 @@ def read_vla_config(folder: str | Path, family: str | None = None,
                          f"{' or '.join(repr(n) for n in FAMILY_SWITCHES.names())}")
     if family is not None and kind != family:
         raise ValueError(f"{path} is a '{kind}' checkpoint, not '{family}': load it as family='{kind}'")
+    if architecture is None and "architecture" in raw:
+        architecture = VLAArchitecture.from_dict(raw["architecture"])
     if architecture is None:
         architecture = VLAArchitecture(vlm=GEMMA_VARIANTS.get(raw.get("paligemma_variant", "gemma_2b")),
                                        expert=GEMMA_VARIANTS.get(raw.get("action_expert_variant", "gemma_300m")))
@@ -207,4 +281,4 @@ def read_vla_config(folder: str | Path, family: str | None = None,
                      action_dim=int(action["shape"][0]),
                      image_resolution=tuple(raw.get("image_resolution", (224, 224))),
                      normalization=dict(raw.get("normalization_mapping") or DEFAULT_NORMALIZATION),
-                     **options)
+                     instructions=dict(raw.get("instructions") or {}), **options)

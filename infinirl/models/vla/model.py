@@ -1,5 +1,9 @@
 """The π0 / π0.5 network: SigLIP + PaliGemma prefix, Gemma action expert, flow-matching head.
 
+The same network, with the stack and vision kinds its architecture names (:mod:`.layers`,
+:mod:`.vision`), is the small ``pi0_smollm2`` family: SmolLM2's first layers (Llama) as the
+language model, a conv stem for the images, a narrow Llama action expert.
+
 Conventions are π0's (openpi, LeRobot): flow time ``t`` runs from 1 (noise) to 0 (action),
 ``x_t = t * noise + (1 - t) * action``, and the network predicts ``v = noise - action``; sampling
 integrates ``x <- x + dt * v`` with ``dt = -1 / num_steps`` from ``x_1 = noise``. (The repo's flow
@@ -27,19 +31,17 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F  # noqa: N812
 from torch import nn
-from transformers import PaliGemmaConfig, SiglipVisionConfig, SiglipVisionModel
-from transformers.models.gemma.modeling_gemma import GemmaRotaryEmbedding
-from transformers.models.paligemma.modeling_paligemma import PaliGemmaMultiModalProjector
 
 from infinirl.models.vla.config import VLAConfig
 from infinirl.models.vla.layers import (
-    GemmaStack,
+    DecoderStack,
     KVCache,
     Stream,
     attention_bias,
     block_mask,
     mixture_forward,
 )
+from infinirl.models.vla.vision import VISION_TOWERS
 
 __all__ = ["PiZero", "PrefixCache", "time_embedding"]
 
@@ -71,22 +73,13 @@ class PiZero(nn.Module):
         super().__init__()
         self.config = config
         arch, switches = config.architecture, config.switches
-        resolution = config.image_resolution[0]
-        vision = SiglipVisionConfig(hidden_size=arch.vision.hidden_size,
-                                    intermediate_size=arch.vision.intermediate_size,
-                                    num_hidden_layers=arch.vision.num_hidden_layers,
-                                    num_attention_heads=arch.vision.num_attention_heads,
-                                    patch_size=arch.vision.patch_size, image_size=resolution,
-                                    hidden_act="gelu_pytorch_tanh", layer_norm_eps=1e-6, vision_use_head=False)
-        self.vision_tower = SiglipVisionModel(vision)
-        projector = PaliGemmaConfig(vision_config=vision.to_dict(), projection_dim=arch.vlm.width)
-        projector.vision_config.projection_dim = arch.vlm.width
-        self.projector = PaliGemmaMultiModalProjector(projector)
+        build_vision = VISION_TOWERS.get(arch.vision.kind)
+        self.vision_tower, self.projector = build_vision(arch.vision, config.image_resolution[0], arch.vlm.width)
         width = arch.expert.width
-        self.vlm = GemmaStack(arch.vlm, arch.vocab_size, embed=True)
-        self.expert = GemmaStack(arch.expert, arch.vocab_size, embed=False,
-                                 cond_dim=width if switches.adarms_time else None)
-        self.rotary = GemmaRotaryEmbedding(self.vlm.config)
+        self.vlm = DecoderStack(arch.vlm, arch.vocab_size, embed=True)
+        self.expert = DecoderStack(arch.expert, arch.vocab_size, embed=False,
+                                   cond_dim=width if switches.adarms_time else None)
+        self.rotary = self.vlm.rotary_embedding()
         self.action_in_proj = nn.Linear(config.max_action_dim, width)
         self.action_out_proj = nn.Linear(width, config.max_action_dim)
         if switches.adarms_time:
@@ -105,7 +98,8 @@ class PiZero(nn.Module):
     # --- prefix ------------------------------------------------------------------------------
 
     def embed_images(self, images: torch.Tensor) -> torch.Tensor:
-        """SigLIP tokens projected to the VLM width: ``[B, 3, R, R]`` in ``[-1, 1]`` -> ``[B, N, W]``."""
+        """Image tokens (SigLIP's or the conv stem's) projected to the VLM width: ``[B, 3, R, R]`` in
+        ``[-1, 1]`` -> ``[B, N, W]``."""
         resolution = self.config.image_resolution[0]
         if images.dim() != 4 or tuple(images.shape[1:]) != (3, resolution, resolution):
             raise ValueError(f"the vision tower takes images [B, 3, {resolution}, {resolution}] in [-1, 1], got "
@@ -124,8 +118,7 @@ class PiZero(nn.Module):
         if tokens.shape[1] > self.config.tokenizer_max_length:
             raise ValueError(f"{tokens.shape[1]} instruction tokens exceed the checkpoint's tokenizer_max_length "
                              f"{self.config.tokenizer_max_length}")
-        language = self.vlm.embed_tokens(tokens)
-        embeddings.append(language * math.sqrt(language.shape[-1]))
+        embeddings.append(self.vlm.embed(tokens))
         masks.append(token_mask.bool())
         return torch.cat(embeddings, dim=1), torch.cat(masks, dim=1)
 
@@ -200,6 +193,20 @@ class PiZero(nn.Module):
         time = beta.sample((batch,)) * config.time_sampling_scale + config.time_sampling_offset
         return time.to(device=device, dtype=torch.float32)
 
+    def joint_velocity(self, images, image_masks, tokens, token_mask, state: torch.Tensor | None,
+                       x_t: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """``v(x_t, t)`` with prefix and suffix in one joint pass (no cache; gradients reach both
+        stacks): what :meth:`velocity` computes against a cached prefix."""
+        prefix, prefix_pad = self.embed_prefix(images, image_masks, tokens, token_mask)
+        suffix, starts, cond = self.embed_suffix(state, x_t, time)
+        suffix_pad = torch.ones(suffix.shape[:2], dtype=torch.bool, device=suffix.device)
+        pad_mask = torch.cat([prefix_pad, suffix_pad], dim=1)
+        mask = block_mask(pad_mask, torch.cat([torch.zeros_like(prefix_pad, dtype=torch.long), starts], dim=1))
+        positions = torch.cumsum(pad_mask.long(), dim=1) - 1
+        streams = [Stream(self.vlm, prefix), Stream(self.expert, suffix, cond)]
+        (_, out), _ = mixture_forward(streams, attention_bias(mask, prefix.dtype), positions, self.rotary)
+        return self.action_out_proj(out[:, -self.config.chunk_size:])
+
     def loss_elements(self, images, image_masks, tokens, token_mask, state: torch.Tensor | None,
                       actions: torch.Tensor, noise: torch.Tensor | None = None,
                       time: torch.Tensor | None = None) -> torch.Tensor:
@@ -212,13 +219,5 @@ class PiZero(nn.Module):
         t = time[:, None, None]
         x_t = t * noise + (1 - t) * actions
         target = noise - actions
-        prefix, prefix_pad = self.embed_prefix(images, image_masks, tokens, token_mask)
-        suffix, starts, cond = self.embed_suffix(state, x_t, time)
-        suffix_pad = torch.ones(suffix.shape[:2], dtype=torch.bool, device=suffix.device)
-        pad_mask = torch.cat([prefix_pad, suffix_pad], dim=1)
-        mask = block_mask(pad_mask, torch.cat([torch.zeros_like(prefix_pad, dtype=torch.long), starts], dim=1))
-        positions = torch.cumsum(pad_mask.long(), dim=1) - 1
-        streams = [Stream(self.vlm, prefix), Stream(self.expert, suffix, cond)]
-        (_, out), _ = mixture_forward(streams, attention_bias(mask, prefix.dtype), positions, self.rotary)
-        v_t = self.action_out_proj(out[:, -self.config.chunk_size:]).float()
+        v_t = self.joint_velocity(images, image_masks, tokens, token_mask, state, x_t, time).float()
         return F.mse_loss(target.float(), v_t, reduction="none")

@@ -1,7 +1,7 @@
 """π0 / π0.5 as a :class:`~infinirl.models.policies.base.Policy`: flow-SDE log-probs for PPO/GRPO.
 
-Registered names: ``pi0`` and ``pi05`` (:class:`PiZeroPolicy`; the checkpoint folder must be of
-that family). The denoising loop is the flow head's (:mod:`infinirl.models.policies.flow`): ``N``
+Registered names: ``pi0``, ``pi05`` and ``pi0_smollm2`` (:class:`PiZeroPolicy`; the checkpoint
+folder must be of that family). The denoising loop is the flow head's (:mod:`infinirl.models.policies.flow`): ``N``
 steps ``tau_k = k / N`` from ``x_0 ~ N(0, I)``, each a Gaussian transition from
 :func:`~infinirl.models.policies.flow.flow_sde_transition` (marginal-preserving flow SDE,
 Flow-GRPO's ``sigma_k``), with π0's network as the velocity: π0 time ``t = 1 - tau`` and velocity
@@ -38,8 +38,9 @@ from infinirl.models.vla.processor import STATE, TASK, VLAInputs
 
 if TYPE_CHECKING:
     from infinirl.models.vla.model import PrefixCache
+    from infinirl.models.vla.vla import VLA
 
-__all__ = ["PiZeroFivePolicy", "PiZeroPolicy"]
+__all__ = ["PiZeroFivePolicy", "PiZeroPolicy", "PiZeroSmolLM2Policy"]
 
 SDE_STEPS = ("all", "one")
 
@@ -49,13 +50,16 @@ class PiZeroPolicy(Policy):
     """A LeRobot π0/π0.5 checkpoint acting in an env with flow-SDE exploration.
 
     Args:
-        checkpoint: the LeRobot checkpoint folder (:func:`~infinirl.models.vla.load_vla`).
+        checkpoint: the LeRobot checkpoint folder (:func:`~infinirl.models.vla.load_vla`), or a
+            loaded :class:`~infinirl.models.vla.VLA` of the policy's family (shared, not copied).
         action_dim / chunk: the env's action dims and actions per decision (at most the
             checkpoint's ``action_dim`` / ``chunk_size``).
         tokenizer: the tokenizer's local folder (PaliGemma's), unless the checkpoint has ``tokenizer/``.
         architecture: an ``architecture.json`` path for checkpoints of non-published sizes.
         cameras: env observation key -> checkpoint camera key (default: ``rgb`` -> the first camera).
         state_key / instruction_key: the env's state and instruction fields.
+        instruction: the instruction when an observation has no ``instruction_key`` (the embodied
+            runner hands policies only the array fields; one task per env makes it fixed).
         num_steps: denoising steps (default: the checkpoint's ``num_inference_steps``).
         noise_level: Flow-SDE's ``a``; sde_steps: ``"all"`` or ``"one"`` stochastic step(s).
         value_head: add a critic on the pooled prefix; value_hidden: its hidden width.
@@ -63,23 +67,28 @@ class PiZeroPolicy(Policy):
 
     family: str | None = "pi0"
 
-    def __init__(self, checkpoint: str, action_dim: int, chunk: int = 1, tokenizer: str | None = None,
+    def __init__(self, checkpoint: str | VLA, action_dim: int, chunk: int = 1, tokenizer: str | None = None,
                  architecture: str | None = None, cameras: Mapping[str, str] | None = None,
                  state_key: str = "state", instruction_key: str = "instruction", num_steps: int | None = None,
                  noise_level: float = 0.5, sde_steps: str = "all", value_head: bool = True, value_hidden: int = 256,
-                 dtype: str = "float32"):
+                 dtype: str = "float32", instruction: str | None = None):
         # Imported here, not at the top: the policy registry imports this module in every process
         # that builds any policy, and transformers' model classes take seconds to import.
-        from infinirl.models.vla.vla import load_vla
+        from infinirl.models.vla.vla import VLA, load_vla
 
         super().__init__()
         if sde_steps not in SDE_STEPS:
             raise ValueError(f"sde_steps must be one of {SDE_STEPS}, got {sde_steps!r}")
         if noise_level <= 0:
             raise ValueError("flow_sde needs noise_level > 0 (its log-probs are Gaussian densities)")
-        arch = VLAArchitecture.from_json(architecture) if architecture else None
-        self.vla = load_vla(Path(checkpoint), family=self.family, architecture=arch, tokenizer=tokenizer,
-                            dtype=getattr(torch, dtype))
+        if isinstance(checkpoint, VLA):
+            if checkpoint.config.family != self.family:
+                raise ValueError(f"the VLA given is a '{checkpoint.config.family}' model, not '{self.family}'")
+            self.vla = checkpoint
+        else:
+            arch = VLAArchitecture.from_json(architecture) if architecture else None
+            self.vla = load_vla(Path(checkpoint), family=self.family, architecture=arch, tokenizer=tokenizer,
+                                dtype=getattr(torch, dtype))
         config = self.vla.config
         if action_dim > config.action_dim or chunk > config.chunk_size:
             raise ValueError(f"the env wants chunks of {chunk} x {action_dim}, the checkpoint gives "
@@ -92,7 +101,7 @@ class PiZeroPolicy(Policy):
         if unknown:
             raise ValueError(f"cameras maps to {unknown}, which the checkpoint does not have: "
                              f"{list(config.camera_keys)}")
-        self.state_key, self.instruction_key = state_key, instruction_key
+        self.state_key, self.instruction_key, self.instruction = state_key, instruction_key, instruction
         self.has_value_head = value_head
         width = config.architecture.vlm.width
         self.value_net = (nn.Sequential(nn.Linear(width, value_hidden), nn.SiLU(), nn.Linear(value_hidden, 1))
@@ -103,9 +112,17 @@ class PiZeroPolicy(Policy):
     def inputs(self, obs: Mapping[str, Any]) -> VLAInputs:
         observation = {camera: obs[key] for key, camera in self.cameras.items()}
         observation[STATE] = obs[self.state_key]
-        instructions = obs[self.instruction_key]
-        observation[TASK] = [instructions] if isinstance(instructions, str) else list(instructions)
+        observation[TASK] = self._instructions(obs, len(observation[STATE]))
         return self.vla.inputs(observation)
+
+    def _instructions(self, obs: Mapping[str, Any], batch: int) -> list[str]:
+        if self.instruction_key in obs:
+            instructions = obs[self.instruction_key]
+            return [instructions] if isinstance(instructions, str) else list(instructions)
+        if self.instruction is None:
+            raise ValueError(f"the observation has no {self.instruction_key!r} (keys: {sorted(obs)}): give the policy "
+                             "instruction=... for envs whose observations carry none")
+        return [self.instruction] * batch
 
     def _prefix(self, x: VLAInputs) -> PrefixCache:
         return self.vla.model.encode_prefix(x.images, x.image_masks, x.tokens, x.token_mask)
@@ -209,3 +226,11 @@ class PiZeroFivePolicy(PiZeroPolicy):
     """:class:`PiZeroPolicy` insisting on a π0.5 checkpoint."""
 
     family = "pi05"
+
+
+@POLICIES.register("pi0_smollm2")
+class PiZeroSmolLM2Policy(PiZeroPolicy):
+    """:class:`PiZeroPolicy` insisting on a ``pi0_smollm2`` checkpoint (:mod:`.smollm2_vla`; its
+    folder carries its sizes and tokenizer, so ``architecture`` and ``tokenizer`` are not needed)."""
+
+    family = "pi0_smollm2"

@@ -7,7 +7,8 @@
   decides the token positions). LeRobot pads with -1 *before* its ``[0, 1] -> [-1, 1]`` map
   (bars at -3); openpi pads black, and so do we: the two agree whenever no padding is needed.
 * State: normalised (``observation.state``), zero-padded to ``max_state_dim``.
-* Instruction: π0 appends ``"\\n"``; π0.5 (``discrete_state``) writes
+* Instruction: an env's wording is first replaced by the one the model was trained with
+  (``config.instructions``, when it lists it). π0 appends ``"\\n"``; π0.5 (``discrete_state``) writes
   ``"Task: <task>, State: <256-bin ints>;\\nAction: "``. Tokenised, right-padded to
   ``tokenizer_max_length``; a longer prompt is an error, not a silent truncation.
 * Actions: the model's normalised, padded chunk -> the first ``action_dim`` dims, unnormalised.
@@ -126,6 +127,7 @@ class VLAProcessor(nn.Module):
     def prompts(self, tasks: Sequence[str], state: torch.Tensor) -> list[str]:
         if isinstance(tasks, str):
             raise ValueError(f"{TASK}: give one instruction per sample (a list of str), got a single str")
+        tasks = [self.config.instructions.get(task, task) for task in tasks]
         if not self.config.switches.discrete_state:
             return [task if task.endswith("\n") else f"{task}\n" for task in tasks]
         bins = np.linspace(-1, 1, 256 + 1)[:-1]

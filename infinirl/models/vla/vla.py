@@ -57,13 +57,23 @@ class VLA(nn.Module):
         return self.processor.actions_out(sampled)
 
     def loss(self, observation: dict[str, Any], actions: torch.Tensor, noise: torch.Tensor | None = None,
-             time: torch.Tensor | None = None, reduction: str = "mean") -> torch.Tensor:
+             time: torch.Tensor | None = None, reduction: str = "mean",
+             action_mask: torch.Tensor | None = None) -> torch.Tensor:
         """Flow-matching loss on demonstrations (env units ``[B, chunk, action_dim]``), averaged over the
-        real action dims (padding excluded) and the chunk: a scalar, or ``[B]`` with ``reduction="none"``."""
+        real action dims (padding excluded) and the chunk: a scalar, or ``[B]`` with ``reduction="none"``.
+
+        ``action_mask`` ``[B, chunk]`` (bool): the rows that are real actions; a chunk that runs past
+        its episode's end is padded, and its padding rows are left out of the average (LeRobot's
+        ``action_is_pad``)."""
         x = self.inputs(observation)
         elements = self.model.loss_elements(x.images, x.image_masks, x.tokens, x.token_mask, x.state,
                                             self.processor.actions_in(actions), noise=noise, time=time)
-        per_sample = elements[..., :self.config.action_dim].mean(dim=(1, 2))
+        if action_mask is None:
+            per_sample = elements[..., :self.config.action_dim].mean(dim=(1, 2))
+        else:
+            rows = elements[..., :self.config.action_dim].mean(dim=-1)
+            weight = action_mask.to(device=rows.device, dtype=rows.dtype)
+            per_sample = (rows * weight).sum(1) / weight.sum(1).clamp_min(1.0)
         return per_sample if reduction == "none" else per_sample.mean()
 
 

@@ -1,0 +1,390 @@
+"""SFT: behaviour cloning of a VLA on demonstrations (flow matching), evaluated in MetaWorld.
+
+Read top to bottom: the dataset (a LeRobotDataset v3.0 folder; MetaWorld scripted-expert demos are
+generated into it first when it does not exist) is read into memory once; the VLA is built
+(``pi0_smollm2``: SmolLM2's first layers, a conv stem, a narrow action expert) with the dataset's
+state/action statistics and the instruction of each evaluation task; every iteration draws a
+batch of frames, each with the chunk of actions that follows it in its episode (rows past the
+episode's end are padding, left out of the loss), shifts the images a few pixels at random, and
+takes one AdamW step on the flow-matching loss (gradients clipped, cosine or constant learning
+rate after a linear warm-up). Every ``eval.every`` iterations the policy acts deterministically
+(π0's ODE sampler, ``n_action_steps`` actions of each chunk executed) in each evaluation task's
+MetaWorld env from the rendered camera, on held-out seeds, and its success rate is logged.
+
+It runs in the driver process (one small model, no components to place). Checkpoints hold the
+model as a loadable VLA folder (``policy/``), the optimizer state, and the loop's RNG state, so a
+resumed run continues bit for bit; the final model is also written to ``<output_dir>/policy/``,
+which the ``pi0_smollm2`` policy loads for RL.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F  # noqa: N812
+
+from infinirl.config import ConfigError
+from infinirl.runners import register_runner
+from infinirl.runners.curves import Panel
+from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
+from infinirl.runners.run_support import run_start_time
+from infinirl.runners.sft_config import SFTConfig
+from infinirl.runners.sim_config import eval_seeds
+from infinirl.utils import torch_save_atomic
+
+__all__ = ["DemoFrames", "SFTFlow", "learning_rate", "rollout_episodes", "run", "task_instructions"]
+
+POLICY_DIR = "policy"
+OPTIMIZER_FILE = "optimizer.pt"
+CAMERA_PREFIX = "observation.images."
+
+
+@register_runner("sft", SFTConfig, "behaviour cloning (flow matching) of a VLA on a LeRobotDataset of "
+                                   "demonstrations, with held-out success in MetaWorld")
+def run(cfg: SFTConfig) -> dict:
+    if cfg.num_threads:
+        torch.set_num_threads(cfg.num_threads)
+    with RunLoop(cfg, run_start_time()) as loop:
+        reader = open_dataset(cfg)
+        tasks = task_instructions(list(cfg.eval.tasks or cfg.data.generate.tasks), reader.tasks)
+        flow = SFTFlow(cfg, DemoFrames.read(reader, cfg.data.camera_key), tasks)
+        try:
+            return loop.run(flow)
+        finally:
+            flow.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# Data
+
+
+def open_dataset(cfg: SFTConfig):
+    """The dataset at ``data.path``, generated from ``data.generate`` first if it does not exist."""
+    from infinirl.data.demos import DemoSpec, collect_demos, resolve_metaworld_tasks
+    from infinirl.data.lerobot_dataset import LeRobotDatasetError, LeRobotDatasetReader
+
+    path = Path(cfg.data.path)
+    if not path.exists():
+        gen = cfg.data.generate
+        try:
+            spec = DemoSpec(tasks=resolve_metaworld_tasks(",".join(gen.tasks)), episodes_per_task=gen.episodes_per_task,
+                            out=str(path), image_size=gen.image_size, camera=gen.camera, seed=gen.seed,
+                            noise_std=gen.noise_std, instructions=gen.instructions)
+        except ValueError as exc:
+            raise ConfigError(f"data.generate: {exc}") from None
+        print(f"data.path={path} does not exist: generating MetaWorld demonstrations", flush=True)
+        print("\n".join(collect_demos("metaworld", spec).lines()), flush=True)
+    try:
+        return LeRobotDatasetReader(path)
+    except LeRobotDatasetError as exc:
+        raise ConfigError(f"data.path: {exc}") from None
+
+
+def task_instructions(tasks: list[str], dataset_tasks: list[str]) -> dict[str, tuple[str, str]]:
+    """Each evaluation task -> (the env's instruction, the dataset's wording of it): the dataset
+    must hold the task's natural sentence or the env's own name for it."""
+    from infinirl.data.demos import METAWORLD_INSTRUCTIONS
+    from infinirl.envs.metaworld_env import task_instruction
+
+    if not tasks:
+        raise ConfigError("eval.tasks is empty and so is data.generate.tasks: name the MetaWorld tasks to evaluate")
+    found = {}
+    for task in tasks:
+        env_text = task_instruction(task)
+        wordings = [w for w in (METAWORLD_INSTRUCTIONS.get(task), env_text) if w in dataset_tasks]
+        if not wordings:
+            raise ConfigError(f"eval.tasks: {task!r} has no instruction in the dataset (its tasks: {dataset_tasks}); "
+                              "evaluate tasks the demonstrations cover")
+        found[task] = (env_text, wordings[0])
+    return found
+
+
+@dataclass(kw_only=True)
+class DemoFrames:
+    """Every frame of a dataset in memory: camera images, state, action, and where its episode ends."""
+
+    camera_key: str
+    images: torch.Tensor
+    """uint8 ``[N, H, W, 3]``."""
+    state: torch.Tensor
+    action: torch.Tensor
+    episode_end: torch.Tensor
+    """The (exclusive) index of the last frame of each frame's episode."""
+    task_index: torch.Tensor
+    tasks: list[str]
+    stats: dict[str, dict[str, np.ndarray]]
+
+    @classmethod
+    def read(cls, reader, camera_key: str | None = None) -> DemoFrames:
+        cameras = [key for key in reader.video_keys if key.startswith(CAMERA_PREFIX)]
+        if camera_key is None:
+            if len(cameras) != 1:
+                raise ConfigError(f"data.camera_key: the dataset at {reader.root} has cameras {cameras}; name one")
+            camera_key = cameras[0]
+        elif camera_key not in cameras:
+            raise ConfigError(f"data.camera_key={camera_key!r}: the dataset at {reader.root} has cameras {cameras}")
+        for key in ("observation.state", "action"):
+            if key not in reader.features or key not in reader.stats:
+                raise ConfigError(f"data.path: the dataset at {reader.root} has no {key!r} (with statistics in "
+                                  "meta/stats.json); SFT needs states and actions")
+        images, state, action, end, task = [], [], [], [], []
+        frames_so_far = 0
+        for episode in range(reader.num_episodes):
+            frames = reader.episode(episode)
+            length = len(frames["action"])
+            frames_so_far += length
+            images.append(torch.from_numpy(np.array(frames[camera_key])))
+            state.append(torch.from_numpy(np.array(frames["observation.state"], dtype=np.float32)))
+            action.append(torch.from_numpy(np.array(frames["action"], dtype=np.float32)))
+            end.append(torch.full((length,), frames_so_far, dtype=torch.long))
+            task.append(torch.from_numpy(np.array(frames["task_index"], dtype=np.int64)))
+        return cls(camera_key=camera_key, images=torch.cat(images), state=torch.cat(state), action=torch.cat(action),
+                   episode_end=torch.cat(end), task_index=torch.cat(task), tasks=list(reader.tasks),
+                   stats=reader.stats)
+
+    def __len__(self) -> int:
+        return len(self.action)
+
+    @property
+    def image_size(self) -> int:
+        return int(self.images.shape[1])
+
+    def normalization_stats(self, min_std: float) -> dict[str, dict[str, torch.Tensor]]:
+        """MEAN_STD statistics of state and action, each std floored at ``min_std``."""
+        def vector(key: str, name: str) -> torch.Tensor:
+            return torch.as_tensor(self.stats[key][name], dtype=torch.float32).reshape(-1)
+
+        return {key: {"mean": vector(key, "mean"), "std": vector(key, "std").clamp_min(min_std)}
+                for key in ("observation.state", "action")}
+
+    def batch(self, indices: torch.Tensor, chunk: int, shift: int = 0) -> tuple[dict, torch.Tensor, torch.Tensor]:
+        """Observations, action chunks ``[B, chunk, A]`` and their validity ``[B, chunk]`` for frames
+        ``indices``; a chunk past its episode's end repeats the last action (masked)."""
+        steps = indices[:, None] + torch.arange(chunk)[None]
+        last = self.episode_end[indices][:, None] - 1
+        valid = steps <= last
+        actions = self.action[torch.minimum(steps, last)]
+        images = self.images[indices].permute(0, 3, 1, 2).float() / 255.0
+        if shift:
+            images = random_shift(images, shift)
+        observation = {self.camera_key: images, "observation.state": self.state[indices],
+                       "task": [self.tasks[i] for i in self.task_index[indices].tolist()]}
+        return observation, actions, valid
+
+
+def random_shift(images: torch.Tensor, pad: int) -> torch.Tensor:
+    """DrQ's augmentation: pad ``[B, C, H, W]`` by replicating the border, crop back at a random offset."""
+    height, width = images.shape[-2:]
+    padded = F.pad(images, (pad, pad, pad, pad), mode="replicate")
+    offsets = torch.randint(0, 2 * pad + 1, (images.shape[0], 2))
+    return torch.stack([padded[i, :, y:y + height, x:x + width] for i, (y, x) in enumerate(offsets.tolist())])
+
+
+# ---------------------------------------------------------------------------------------------
+# Training
+
+
+def learning_rate(step: int, cfg: SFTConfig) -> float:
+    """The learning rate of optimizer step ``step`` (0-based): linear warm-up, then constant or cosine."""
+    optim = cfg.optim
+    if step < optim.warmup_steps:
+        return optim.lr * (step + 1) / optim.warmup_steps
+    if optim.lr_schedule == "constant":
+        return optim.lr
+    span = max(cfg.iterations - optim.warmup_steps - 1, 1)
+    progress = min((step - optim.warmup_steps) / span, 1.0)
+    floor = optim.lr * optim.min_lr_ratio
+    return floor + (optim.lr - floor) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def build_model(cfg: SFTConfig, demos: DemoFrames, instructions: dict[str, str]):
+    """The VLA to train: a new ``pi0_smollm2`` (SmolLM2's first layers), or ``model.init``'s."""
+    from infinirl.models.vla.config import ConvStemSpec
+    from infinirl.models.vla.smollm2_vla import SmolVLASpec, build_pi0_smollm2
+    from infinirl.models.vla.vla import load_vla
+
+    model = cfg.model
+    if model.init:
+        try:
+            vla = load_vla(model.init, family=model.family)
+        except (ValueError, FileNotFoundError) as exc:
+            raise ConfigError(f"model.init: {exc}") from None
+        vla.config.instructions.update(instructions)
+        return vla
+    try:
+        spec = SmolVLASpec(language_layers=model.language_layers, expert_width=model.expert_width,
+                           expert_mlp_dim=model.expert_mlp_dim,
+                           vision=ConvStemSpec(channels=tuple(model.vision_channels)), image_size=demos.image_size,
+                           chunk_size=model.chunk_size, n_action_steps=model.n_action_steps,
+                           num_inference_steps=model.num_inference_steps,
+                           tokenizer_max_length=model.tokenizer_max_length)
+        stats = demos.normalization_stats(cfg.data.min_std)
+        return build_pi0_smollm2(spec, camera_keys=(demos.camera_key,), state_dim=int(demos.state.shape[1]),
+                                 action_dim=int(demos.action.shape[1]), stats=stats, instructions=instructions,
+                                 smollm2=model.smollm2, seed=cfg.seed)
+    except ValueError as exc:
+        raise ConfigError(f"model: {exc}") from None
+
+
+def trainable_parameters(vla, cfg: SFTConfig) -> list[torch.nn.Parameter]:
+    """Freeze what the config keeps fixed; the rest, in a stable order, for the optimizer."""
+    vlm = vla.model.vlm
+    for parameter in vlm.parameters():
+        parameter.requires_grad_(cfg.model.train_language_model)
+    vlm.embed_tokens.weight.requires_grad_(cfg.model.train_embeddings)
+    return [p for p in vla.model.parameters() if p.requires_grad]
+
+
+def weights_digest(module: torch.nn.Module) -> str:
+    digest = hashlib.sha256()
+    for name, tensor in module.state_dict().items():
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluation
+
+
+def rollout_episodes(policy, env, seeds: list[int]) -> dict[str, list]:
+    """One episode per seed (rounds of ``env.num_envs``), acting deterministically; the instruction
+    travels with the observation."""
+    from infinirl.models.policies.base import prepare_obs
+
+    out: dict[str, list] = {"success": [], "return": [], "length": []}
+    num_envs = env.num_envs
+    for start in range(0, len(seeds), num_envs):
+        batch = [int(s) for s in seeds[start:start + num_envs]]
+        obs = env.reset(seeds=batch + [batch[-1]] * (num_envs - len(batch)))
+        active = np.arange(num_envs) < len(batch)
+        while active.any():
+            step = policy.act(prepare_obs(obs), deterministic=True)
+            result = env.step(step.actions.numpy(), env_mask=active, autoreset=False)
+            for i in np.flatnonzero(result.done & active):
+                out["success"].append(bool(result.info["episode_success"][i]))
+                out["return"].append(float(result.info["episode_return"][i]))
+                out["length"].append(int(result.info["episode_length"][i]))
+            active &= ~result.done
+            obs = result.obs
+    return out
+
+
+class SFTFlow:
+    """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
+
+    def __init__(self, cfg: SFTConfig, demos: DemoFrames, tasks: dict[str, tuple[str, str]]):
+        from infinirl.models.policies.base import build_policy
+
+        self.cfg, self.demos, self.tasks = cfg, demos, tasks
+        self.vla = build_model(cfg, demos, {env_text: wording for env_text, wording in tasks.values()})
+        self.vla.train()
+        self.parameters = trainable_parameters(self.vla, cfg)
+        optim = cfg.optim
+        self.optimizer = torch.optim.AdamW(self.parameters, lr=optim.lr, betas=tuple(optim.betas),
+                                           weight_decay=optim.weight_decay)
+        self.policy = build_policy(cfg.model.family, checkpoint=self.vla, action_dim=self.vla.config.action_dim,
+                                   chunk=cfg.model.n_action_steps,
+                                   cameras={"rgb": demos.camera_key}, state_key="proprio", value_head=False)
+        self.envs: dict[str, object] = {}
+        self.samples = 0
+        self.spec = LoopSpec(
+            name="sft", title=f"SFT {cfg.model.family} on {Path(cfg.data.path).name}", headline="eval/success_rate",
+            target=cfg.eval.target,
+            progress=(ProgressField(label="loss", key="train/loss", format=".4f"),
+                      ProgressField(label="lr", key="train/lr", format=".1e"),
+                      ProgressField(label="success", key="eval/success_rate", format=".2f")),
+            panels=(Panel(title="flow-matching loss", y=("train/loss",), x="step", x_label="optimizer steps"),
+                    Panel(title="held-out success rate", y=("eval/success_rate",), x="step",
+                          x_label="optimizer steps"),
+                    Panel(title="learning rate", y=("train/lr",), x="step", x_label="optimizer steps")))
+
+    def start(self, iteration: int) -> None:
+        """Nothing to sync: the model lives in this process."""
+
+    def step(self, iteration: int) -> dict:
+        cfg, t0 = self.cfg, time.perf_counter()
+        lr = learning_rate(iteration, cfg)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        indices = torch.randint(len(self.demos), (cfg.optim.batch_size,))
+        observation, actions, valid = self.demos.batch(indices, self.vla.config.chunk_size, cfg.data.augment_shift)
+        loss = self.vla.loss(observation, actions, action_mask=valid)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.parameters, cfg.optim.grad_clip)
+        self.optimizer.step()
+        self.samples += len(indices)
+        seconds = time.perf_counter() - t0
+        return {"train/loss": float(loss.detach()), "train/grad_norm": float(grad_norm), "train/lr": lr,
+                "train/samples": self.samples, "time/step_s": seconds,
+                "time/samples_per_s": len(indices) / max(seconds, 1e-9)}
+
+    # ------------------------------------------------------------------ evaluation
+    def _env(self, task: str):
+        from infinirl.envs.registry import make_env
+
+        if task not in self.envs:
+            cfg = self.cfg.eval
+            self.envs[task] = make_env(f"metaworld:{task}", min(cfg.num_envs, cfg.episodes_per_task), seed=cfg.seed,
+                                       num_workers=0, chunk_size=self.cfg.model.n_action_steps,
+                                       max_episode_steps=cfg.max_episode_steps, obs_mode="state+rgb",
+                                       camera=self.demos.camera_key[len(CAMERA_PREFIX):],
+                                       image_size=self.demos.image_size, terminate_on_success=True)
+        return self.envs[task]
+
+    def evaluate(self) -> dict:
+        cfg = self.cfg.eval
+        seeds = eval_seeds(cfg.seed, cfg.episodes_per_task)
+        metrics: dict[str, float] = {}
+        episodes: dict[str, list] = {"success": [], "return": [], "length": []}
+        self.vla.eval()
+        try:
+            with torch.random.fork_rng(), torch.no_grad():
+                torch.manual_seed(cfg.seed)  # the same initial noise at every evaluation
+                for task in self.tasks:
+                    result = rollout_episodes(self.policy, self._env(task), seeds)
+                    metrics[f"eval/success/{task}"] = float(np.mean(result["success"]))
+                    for key, values in result.items():
+                        episodes[key] += values
+        finally:
+            self.vla.train()
+        return {"eval/success_rate": float(np.mean(episodes["success"])),
+                "eval/return_mean": float(np.mean(episodes["return"])),
+                "eval/episode_length_mean": float(np.mean(episodes["length"])), **metrics}
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, folder: str) -> dict:
+        from infinirl.models.vla.save import write_vla_files
+
+        policy = Path(folder) / POLICY_DIR
+        policy.mkdir()
+        write_vla_files(self.vla, policy)  # inside the checkpoint's temporary folder: renamed whole
+        torch_save_atomic(self.optimizer.state_dict(), os.path.join(folder, OPTIMIZER_FILE))
+        return {"samples": self.samples}
+
+    def load(self, folder: str, state: dict) -> None:
+        from infinirl.models.vla.checkpoint import load_weights
+
+        load_weights(self.vla.model, Path(folder) / POLICY_DIR / "model.safetensors")
+        self.optimizer.load_state_dict(torch.load(os.path.join(folder, OPTIMIZER_FILE), weights_only=True))
+        self.samples = int(state["samples"])
+
+    # ------------------------------------------------------------------ the end
+    def finish(self, output_dir: str) -> dict:
+        from infinirl.models.vla.save import save_vla
+
+        path = save_vla(self.vla, Path(output_dir) / POLICY_DIR)
+        return {"policy": str(path), "samples": self.samples, "weights_sha256": weights_digest(self.vla.model)}
+
+    def close(self) -> None:
+        for env in self.envs.values():
+            env.close()
+        self.envs = {}

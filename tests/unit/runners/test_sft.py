@@ -1,0 +1,113 @@
+"""The SFT runner's pieces on a tiny synthetic LeRobotDataset: action chunks and their padding,
+the learning-rate schedule, the loss going down, and the config's one-line errors."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("pyarrow")
+
+from infinirl.config import ConfigError, to_dataclass  # noqa: E402
+from infinirl.data.lerobot_dataset import LeRobotDatasetReader, LeRobotDatasetWriter  # noqa: E402
+from infinirl.runners.sft import DemoFrames, learning_rate, random_shift, task_instructions  # noqa: E402
+from infinirl.runners.sft_config import SFTConfig  # noqa: E402
+from tests.unit.models.test_vla_smollm2 import CAMERA, tiny_vla  # noqa: E402
+
+
+def synthetic_dataset(root, episodes=(5, 3)) -> LeRobotDatasetReader:
+    """Episodes whose action is a fixed function of the state; the image brightness encodes the task."""
+    features = {"observation.state": {"dtype": "float32", "shape": (4,), "names": None},
+                "action": {"dtype": "float32", "shape": (4,), "names": None},
+                CAMERA: {"dtype": "video", "shape": (16, 16, 3), "names": ["height", "width", "channels"]}}
+    rng = np.random.default_rng(0)
+    with LeRobotDatasetWriter(root, fps=10, features=features) as writer:
+        for number, length in enumerate(episodes):
+            state = rng.normal(size=(length, 4)).astype(np.float32)
+            frames = {"observation.state": state, "action": np.tanh(state[:, ::-1] + number).astype(np.float32),
+                      CAMERA: np.full((length, 16, 16, 3), 60 + 120 * number, dtype=np.uint8)}
+            writer.add_episode(frames, task=["pick up the cube", "open the top drawer"][number])
+    return LeRobotDatasetReader(root)
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    return DemoFrames.read(synthetic_dataset(tmp_path_factory.mktemp("data") / "ds"))
+
+
+def test_chunks_stop_at_the_episode_end(demos):
+    assert len(demos) == 8 and demos.image_size == 16 and demos.camera_key == CAMERA
+    observation, actions, valid = demos.batch(torch.tensor([0, 3, 4, 5]), chunk=3)
+    assert valid.tolist() == [[True, True, True], [True, True, False], [True, False, False], [True, True, True]]
+    assert torch.equal(actions[1], demos.action[[3, 4, 4]])  # the last action repeated, masked
+    assert torch.equal(actions[3], demos.action[5:8])
+    assert observation["task"] == ["pick up the cube"] * 3 + ["open the top drawer"]
+    assert observation[CAMERA].shape == (4, 3, 16, 16) and observation[CAMERA].max() <= 1.0
+
+
+def test_normalisation_stats_floor_the_std(demos):
+    stats = demos.normalization_stats(min_std=10.0)
+    assert torch.equal(stats["action"]["std"], torch.full((4,), 10.0))
+    assert torch.allclose(stats["observation.state"]["mean"],
+                          torch.as_tensor(demos.state.double().mean(0), dtype=torch.float32), atol=1e-5)
+
+
+def test_random_shift_moves_whole_images():
+    image = torch.arange(2 * 3 * 8 * 8, dtype=torch.float32).reshape(2, 3, 8, 8)
+    torch.manual_seed(0)
+    shifted = random_shift(image, 2)
+    assert shifted.shape == image.shape
+    # every output pixel comes from the padded input: interior pixels keep their horizontal neighbours' step
+    assert torch.all(torch.isin(shifted[..., 1:] - shifted[..., :-1], torch.tensor([0.0, 1.0])))
+
+
+def test_sft_loss_decreases_in_a_few_steps(demos):
+    vla = tiny_vla(seed=1)
+    vla.train()
+    optimizer = torch.optim.AdamW(vla.model.parameters(), lr=3e-3)
+    torch.manual_seed(0)
+    indices = torch.arange(len(demos))
+    observation, actions, valid = demos.batch(indices, chunk=vla.config.chunk_size)
+    noise = torch.randn(len(indices), vla.config.chunk_size, 4)
+    time = torch.linspace(0.1, 0.9, len(indices))
+
+    def loss():
+        return vla.loss(observation, actions, noise=noise, time=time, action_mask=valid)
+
+    first = loss()
+    for _ in range(8):
+        optimizer.zero_grad()
+        loss().backward()
+        optimizer.step()
+    assert loss().item() < 0.7 * first.item()
+
+
+def test_learning_rate_schedule():
+    cfg = to_dataclass(SFTConfig, {"iterations": 12, "optim": {"lr": 1.0, "warmup_steps": 1, "min_lr_ratio": 0.1}})
+    assert learning_rate(0, cfg) == 1.0  # the warm-up's only step
+    assert learning_rate(1, cfg) == 1.0 and math.isclose(learning_rate(11, cfg), 0.1)
+    assert math.isclose(learning_rate(6, cfg), 0.55)  # half-way down the cosine
+    constant = to_dataclass(SFTConfig, {"iterations": 11, "optim": {"lr": 1.0, "warmup_steps": 4,
+                                                                     "lr_schedule": "constant"}})
+    assert [learning_rate(i, constant) for i in (0, 3, 10)] == [0.25, 1.0, 1.0]
+
+
+def test_eval_tasks_need_an_instruction_in_the_dataset():
+    found = task_instructions(["reach-v3"], ["reach a goal position", "push the puck to a goal"])
+    assert found == {"reach-v3": ("reach", "reach a goal position")}
+    assert task_instructions(["reach-v3"], ["reach"]) == {"reach-v3": ("reach", "reach")}
+    with pytest.raises(ConfigError, match=r"^eval.tasks: 'push-v3' has no instruction in the dataset"):
+        task_instructions(["push-v3"], ["reach a goal position"])
+
+
+@pytest.mark.parametrize("raw, message", [
+    ({"model": {"n_action_steps": 9, "chunk_size": 8}}, "model.n_action_steps=9 must be <= model.chunk_size=8"),
+    ({"model": {"expert_width": 100}}, "model.expert_width=100 must be a multiple of 18"),
+    ({"optim": {"betas": [0.9]}}, "optim.betas=[0.9]: give two numbers"),
+    ({"iterations": 10, "optim": {"warmup_steps": 10}}, "optim.warmup_steps=10 must be below iterations=10"),
+])
+def test_config_errors_name_the_key(raw, message):
+    with pytest.raises(ConfigError) as error:
+        to_dataclass(SFTConfig, raw)
+    assert message in str(error.value) and "\n" not in str(error.value)
