@@ -45,7 +45,7 @@ def build_config(name: str, overrides: list[str], command: str = "train"):
     overrides = upgrade_renamed_overrides(spec.config_cls, overrides)
     _refuse_runner_change(name, runner_name, overrides)
     check_override_keys(spec.config_cls, overrides)
-    return spec, to_dataclass(spec.config_cls, compose(name, hydra_overrides(base, overrides)))
+    return spec, to_dataclass(spec.config_cls, compose(name, hydra_overrides(base, overrides), complete=True))
 
 
 def _refuse_runner_change(name: str, runner_name: str, overrides: list[str]) -> None:

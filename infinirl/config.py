@@ -82,8 +82,10 @@ def available_configs() -> list[str]:
     return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
 
 
-def compose(name: str, overrides: list[str] | None = None, config_dir: Path | None = None) -> dict:
-    """Compose a Hydra config into a plain dict (no Hydra run directory, no logging side effects)."""
+def compose(name: str, overrides: list[str] | None = None, config_dir: Path | None = None,
+            complete: bool = False) -> dict:
+    """Compose a Hydra config into a plain dict (no Hydra run directory, no logging side effects).
+    ``complete``: refuse a value still missing (``???`` in the YAML, not given as an override)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.errors import HydraException
@@ -100,6 +102,10 @@ def compose(name: str, overrides: list[str] | None = None, config_dir: Path | No
             cfg = hydra_compose(config_name=name, overrides=list(overrides or []))
     except HydraException as exc:
         raise ConfigError(f"config '{name}' with overrides {overrides}: {exc}") from None
+    missing = sorted(OmegaConf.missing_keys(cfg)) if complete else []
+    if missing:  # `???` in a YAML: a value only the user can give (a local checkpoint folder)
+        raise ConfigError(f"config '{name}' needs {', '.join(missing)}: set {missing[0]}=<value> on the command line "
+                          "(the config's header says what it expects)")
     return OmegaConf.to_container(cfg, resolve=True)
 
 

@@ -71,6 +71,8 @@ class PPOSpec:
 def _rows(value: Any, index: torch.Tensor | slice) -> Any:
     if isinstance(value, dict):
         return {k: _rows(v, index) for k, v in value.items()}
+    if not isinstance(value, torch.Tensor):  # a text field (numpy strings, one per row): index on the host
+        return value[index.cpu().numpy() if isinstance(index, torch.Tensor) else index]
     return value[index]
 
 

@@ -72,6 +72,8 @@ def _to_tensor(value: Any, device: torch.device | str = "cpu") -> Any:
     """Numpy arrays (nested in dicts) -> tensors on ``device``; anything else is left alone."""
     if isinstance(value, dict):
         return {k: _to_tensor(v, device) for k, v in value.items()}
+    if isinstance(value, np.ndarray) and value.dtype.kind in "USO":  # text (instructions) stays as it is
+        return value
     if isinstance(value, np.ndarray):  # arrays from Ray's object store are read-only: copy once
         return torch.from_numpy(np.array(value, copy=True)).to(device)
     if isinstance(value, torch.Tensor):

@@ -96,8 +96,16 @@ def env_actions(actions: torch.Tensor | np.ndarray, chunk: int) -> np.ndarray:
 
 
 def array_obs(obs: dict) -> dict:
-    """The array fields of an observation (text fields such as ``instruction`` are dropped)."""
-    return {key: value for key, value in obs.items() if isinstance(value, np.ndarray)}
+    """The observation's fields as arrays: text fields (``instruction``, one string per env) become
+    string arrays, so they are recorded, batched and sliced like every other field and reach the
+    policy (a VLA reads its instruction) at acting and at the update alike."""
+    out = {}
+    for key, value in obs.items():
+        if isinstance(value, np.ndarray):
+            out[key] = value
+        elif isinstance(value, (list, tuple)) and value and all(isinstance(v, str) for v in value):
+            out[key] = np.asarray(value, dtype=np.str_)
+    return out
 
 
 class _LocalEndpoint:

@@ -102,7 +102,7 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
                                  normalize_obs=cfg.policy.normalize_obs,
                                  normalize_keys=tuple(cfg.policy.normalize_keys) or None, obs_clip=cfg.policy.obs_clip)
         policy_spec.build(observation_spec, action_space)
-    except (ValueError, TypeError, KeyError) as exc:
+    except (ValueError, TypeError, KeyError, OSError) as exc:  # OSError: a checkpoint folder or file missing
         raise ConfigError(f"{cfg.env.name} / policy {cfg.policy.name}: {exc}") from exc
     if ALGORITHMS[cfg.algorithm.name].grouped:
         _check_one_task_per_group(cfg)

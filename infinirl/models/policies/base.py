@@ -73,7 +73,9 @@ def prepare_obs(obs: dict[str, Any], device: torch.device | str = "cpu") -> dict
     """Env numpy observations -> tensors (text fields such as ``instruction`` are left as lists)."""
     out: dict[str, Any] = {}
     for key, value in obs.items():
-        if isinstance(value, np.ndarray):
+        if isinstance(value, np.ndarray) and value.dtype.kind in "USO":  # text: one string per env
+            out[key] = value.tolist()
+        elif isinstance(value, np.ndarray):
             out[key] = torch.as_tensor(value, device=device)
         elif isinstance(value, torch.Tensor):
             out[key] = value.to(device)
