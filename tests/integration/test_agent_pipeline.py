@@ -4,6 +4,7 @@ environment's tokens are in the trajectories but not trained on, and the run res
 import json
 
 from infinirl.runners.reasoning import run
+from tests.integration.pins import check_pinned
 from tests.integration.resume import killed_after_checkpoint
 from tests.integration.test_reasoning_pipeline import make_cfg
 
@@ -28,3 +29,6 @@ def test_agent_rollouts_train_on_model_tokens_and_resume_exactly(ray_cluster, ti
     # the trainer scores the model's tokens as the rollout sampled them, environment tokens excluded
     assert all(r["train/logprob_mismatch_mean"] < 1e-3 for r in train)
     assert any(r["train/grad_norm"] > 0 for r in train)
+    check_pinned("reasoning_agent", tmp_path / "straight", [
+        "rollout/reward_mean", "rollout/response_length_mean", "agent/turns_mean", "agent/observation_tokens_mean",
+        "train/loss", "train/grad_norm"])

@@ -14,6 +14,7 @@ from infinirl.models import smollm2  # noqa: E402
 from infinirl.models.policies.base import build_policy  # noqa: E402
 from infinirl.runners.sft import run  # noqa: E402
 from infinirl.runners.sft_config import SFTConfig  # noqa: E402
+from tests.integration.pins import check_pinned  # noqa: E402
 from tests.integration.resume import killed_after_checkpoint  # noqa: E402
 
 pytestmark = pytest.mark.skipif(
@@ -48,6 +49,7 @@ def test_sft_trains_evaluates_and_resumes_exactly(tmp_path):
     assert all(r["train/loss"] > 0 for r in rows)
     assert "eval/success/reach-v3" in rows[1] and "eval/success_rate" in rows[2]
     assert straight["samples"] == 12
+    check_pinned("sft", tmp_path / "straight", ["train/loss", "eval/success_rate"])
 
     killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", 2)
     resumed = run(make_cfg(tmp_path / "resumed", data))

@@ -211,7 +211,7 @@ def test_async_steps_that_finish_together_share_a_generate_call(tiny, engine):
         counting.schedule = schedule
         budget = AgentBudget(max_turns=3, max_response_tokens=200, schedule=schedule, batch_window_s=0.5)
         delays = iter([0.05 + 0.01 * (i % 6) for i in range(len(MANY))])
-        results = AgentRollout(counting, tokenizer, lambda: CountingEnv(delay=next(delays), done_after=2),
+        results = AgentRollout(counting, tokenizer, lambda d=delays: CountingEnv(delay=next(d), done_after=2),
                                budget).generate(MANY, SamplingParams(n=1, max_new_tokens=8, greedy=True))
         assert sum(r.extra["agent"]["env_steps"] for r in results) >= 8  # enough trajectories call the env
     assert calls["async"] <= calls["lockstep"] + 1
