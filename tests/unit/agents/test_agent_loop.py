@@ -13,7 +13,6 @@ from infinirl.agents.loop import AgentBudget, AgentEnv, AgentRollout, AgentStep,
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, ROLLOUT_LOGPROBS, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.engines.hf_generate import HFGenerateEngine
-from infinirl.models.hf_causal_lm import tiny_causal_lm
 
 PROMPTS = [[5, 6, 7, 8, 9], [20, 21], [30, 31, 32]]
 MANY = [[10 + i, 40 + 2 * i, 7] for i in range(16)]
@@ -45,16 +44,13 @@ class CountingEnv(AgentEnv):
 
 
 @pytest.fixture(scope="module", autouse=True)
-def single_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+def single_thread(one_torch_thread):
+    """Every test here runs on one torch thread (see the fixture)."""
 
 
 @pytest.fixture(scope="module")
-def tiny():
-    return tiny_causal_lm(tokenizer="byte", seed=0)
+def tiny(tiny_byte_llama):
+    return tiny_byte_llama
 
 
 @pytest.fixture

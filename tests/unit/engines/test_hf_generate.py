@@ -25,18 +25,13 @@ PROMPTS = [[5, 6, 7, 8, 9, 10, 11], [20, 21], [30, 31, 32, 33]]
 
 
 @pytest.fixture(scope="module", autouse=True)
-def single_thread():
-    """A tiny model gains nothing from threads, and on a shared CPU every extra thread's
-    synchronisation costs far more than its share of the arithmetic: run these tests on one thread."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+def single_thread(one_torch_thread):
+    """Every test here runs on one torch thread (see the fixture)."""
 
 
 @pytest.fixture(scope="module")
-def tiny():
-    return tiny_causal_lm(tokenizer="byte", seed=0)
+def tiny(tiny_byte_llama):
+    return tiny_byte_llama
 
 
 @pytest.fixture
