@@ -72,8 +72,10 @@ def visible_tests_from_docstring(stub: str, entry_point: str, skip: Iterable[str
     docstring gets wrong). "" when there are none."""
     examples: dict[str, str] = {}
     for example in doctest.DocTestParser().get_examples(stub):
-        want = "\n".join(line for line in example.want.splitlines() if not line.strip().startswith(('"""', "'''")))
-        _add_example(examples, example.source.strip(), want.strip(), entry_point)
+        lines = [line for line in example.want.splitlines() if not line.strip().startswith(('"""', "'''"))]
+        # The value is its lines up to a blank one; prose right below it joins them in doctest's reading.
+        if lines and not _add_example(examples, example.source.strip(), "\n".join(lines), entry_point):
+            _add_example(examples, example.source.strip(), lines[0], entry_point)
     for line in stub.splitlines():
         text = line.strip().removeprefix(">>>").removeprefix("*").strip().removeprefix("for ").strip()
         for separator in EXAMPLE_SEPARATORS:
