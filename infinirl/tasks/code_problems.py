@@ -229,10 +229,11 @@ def make_stub(task: FunctionTask, examples: Sequence[tuple[tuple, Any]]) -> str:
     return "\n".join(lines + ['    """', ""])
 
 
-def make_tests(cases: Sequence[tuple[tuple, Any]]) -> str:
-    """``check(candidate)`` asserting each ``candidate(*args) == expected``."""
+def make_tests(cases: Sequence[tuple[tuple, Any]], call: str = "candidate") -> str:
+    """``check(candidate)`` asserting each ``<call>(*args) == expected`` (``call``: ``candidate``, or
+    the function's own name, which reads better in the feedback a model gets)."""
     lines = ["def check(candidate):"]
-    lines += [f"    assert {_call('candidate', args)} == {expected!r}" for args, expected in cases]
+    lines += [f"    assert {_call(call, args)} == {expected!r}" for args, expected in cases]
     return "\n".join(lines) + "\n"
 
 
@@ -256,4 +257,4 @@ def generate_function(rng: random.Random, families: Sequence[str] | None = None,
     examples, hidden = ordered[:num_examples], ordered[num_examples:]
     return GeneratedFunction(family=family, entry_point=task.name, stub=make_stub(task, examples),
                              solution=task.solution(), tests=make_tests(examples + hidden),
-                             visible_tests=make_tests(examples) if examples else "")
+                             visible_tests=make_tests(examples, task.name) if examples else "")
