@@ -4,7 +4,8 @@ import random
 
 from infinirl.agents.coding.extract import code_blocks, extract_code, stub_preamble
 
-STUB = 'from typing import List\n\n\ndef helper(x):\n    return x\n\n\ndef total(xs: List[int]) -> int:\n    """Sum."""\n'
+STUB = ('from typing import List\n\n\ndef helper(x):\n    return x\n\n\n'
+        'def total(xs: List[int]) -> int:\n    """Sum."""\n')
 
 
 def test_the_last_python_block_defining_the_entry_point_wins():
