@@ -1,0 +1,113 @@
+"""The code_runner environment: turns run in the sandbox against the visible tests; a
+write-run-fix trajectory through the real agent loop, scored by the code_tests verifier."""
+
+import pytest
+
+from infinirl.agents.coding.env import CodeRunnerEnv
+from infinirl.agents.coding.verifier import CodeTestsVerifier
+from infinirl.agents.loop import AgentBudget, AgentConfig, AgentRollout
+from infinirl.agents.registered import resolve_agent_env
+from infinirl.components.reward import sampled_ids
+from infinirl.config import ConfigError
+from infinirl.engines.base import GenerationResult, SamplingParams
+from infinirl.models.hf_causal_lm import tiny_causal_lm
+from infinirl.tasks.code_tasks import FunctionTaskOptions, function_problem
+
+LIMITS = {"wall_time_s": 5.0, "cpu_time_s": 1.0}
+PROBLEM = function_problem(FunctionTaskOptions(families=("scale_and_shift",)), 0, 0, "train")
+RIGHT = PROBLEM.answer  # the reference solution
+WRONG = RIGHT.replace("return x *", "return 1 + x *")
+
+
+def turn(code, after=""):
+    return f"Let me write it.\n```python\n{code}```\n{after}"
+
+
+def env_for(problem=PROBLEM, **options):
+    env = CodeRunnerEnv(limits=LIMITS, **options)
+    env.reset(problem)
+    return env
+
+
+def test_passing_code_ends_the_trajectory():
+    step = env_for().step(turn(RIGHT))
+    assert step.done and step.info["code_ok"] == 1.0 and step.info["visible_tests_passed"] == 1.0
+
+
+def test_failing_code_gets_the_visible_failures_with_the_values_returned():
+    step = env_for().step(turn(WRONG))
+    assert not step.done and not step.error
+    assert step.observation.startswith("\nResult:\n0/2 tests passed.\nFailed: assert scale_and_shift(")
+    assert "(got " in step.observation and step.info["visible_tests_passed"] == 0.0
+    hidden = PROBLEM.metadata["tests"].splitlines()[-1].strip().replace("candidate", "scale_and_shift")
+    assert hidden.split("==")[0] not in step.observation  # only the visible tests run
+
+
+def test_code_that_breaks_or_runs_away_is_an_observation_not_a_crash():
+    broken = env_for().step(turn("def scale_and_shift(x) return x\n"))
+    assert not broken.done and "The code did not run: " in broken.observation and "SyntaxError" in broken.observation
+    endless = env_for().step(turn("def scale_and_shift(x):\n    while True:\n        pass\n"))
+    assert not endless.done and "limit" in endless.observation
+
+
+def test_all_tests_as_feedback_and_the_observation_template():
+    env = env_for(feedback="all", observation_template="<|im_end|>\n<|im_start|>user\n{feedback}<|im_end|>\n")
+    step = env.step(turn(WRONG))
+    total = PROBLEM.metadata["tests"].count("assert")
+    assert f"0/{total} tests passed." in step.observation and step.observation.startswith("<|im_end|>\n<|im_start|>")
+
+
+def test_without_a_problem_the_code_runs_as_a_program():
+    env = env_for(problem=None)
+    printed = env.step(turn("print(6 * 7)\n"))
+    assert printed.done and printed.info["code_ok"] == 1.0
+    failing = env.step(turn("raise ValueError('nope')\n"))
+    assert not failing.done and "ValueError: nope" in failing.observation and "[exit code 1]" in failing.observation
+    assert not env_for(problem=None, stop_when_passing=False).step(turn("print(1)\n")).done
+
+
+def test_turns_without_code_are_answers_and_an_opening_fence_continues_the_turn():
+    env = env_for()
+    opening = env.step("I will write it:\n```\n")  # the stop string matched a bare fence opening a block
+    assert not opening.done and opening.observation == ""
+    assert env.step("Multiply x, then add.").done
+    assert env.step("```text\nsome output\n```\n").done
+
+
+def test_bad_options_are_refused_and_the_env_is_registered():
+    assert resolve_agent_env("code_runner") is CodeRunnerEnv
+    with pytest.raises(ValueError, match="feedback"):
+        CodeRunnerEnv(feedback="some")
+    with pytest.raises(ValueError, match="placeholder"):
+        CodeRunnerEnv(observation_template="no slot")
+    with pytest.raises(ConfigError, match="env_options for env 'code_runner'"):
+        AgentConfig(env="code_runner", env_options={"limits": {"wall": 1}}).check("rollout.agent")
+    AgentConfig(env="code_runner", env_options={"feedback": "all"}).check("rollout.agent")
+
+
+class ScriptedEngine:
+    """Writes the given turns in order (the text a model would sample), as token ids."""
+
+    def __init__(self, tokenizer, turns):
+        self.tokenizer, self.turns = tokenizer, list(turns)
+
+    def generate(self, prompts, sampling):
+        text = self.turns.pop(0)
+        ids = self.tokenizer.encode(text, add_special_tokens=False)
+        return [GenerationResult(prompt_ids=list(p), response_ids=ids, response_logprobs=[-0.5] * len(ids),
+                                 finish_reason="stop", weight_version=0) for p in prompts]
+
+
+def test_write_run_fix_through_the_agent_loop_and_the_verifier_scores_the_last_code():
+    _, tokenizer = tiny_causal_lm(tokenizer="byte", seed=0)
+    engine = ScriptedEngine(tokenizer, [turn(WRONG), turn(RIGHT, "Done.")])
+    rollout = AgentRollout(engine, tokenizer, lambda: CodeRunnerEnv(limits=LIMITS), AgentBudget(max_turns=3))
+    [result] = rollout.generate([[1, 2, 3]], SamplingParams(n=1, max_new_tokens=400), problems=[PROBLEM])
+    stats = result.extra["agent"]
+    assert stats["turns"] == 2 and stats["env_steps"] == 2 and stats["end"] == "answer"
+    assert stats["totals"]["code_runs"] == 2.0 and stats["totals"]["code_ok"] == 1.0
+    model_text = tokenizer.decode(sampled_ids(result))
+    assert "Result:" not in model_text  # the environment's text is not the model's
+    verifier = CodeTestsVerifier(limits=LIMITS)
+    assert verifier(model_text, PROBLEM).correct  # the fixed code, written last
+    assert not verifier(turn(WRONG), PROBLEM).correct

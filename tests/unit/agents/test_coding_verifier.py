@@ -1,0 +1,119 @@
+"""The code_tests verifier: real sandboxed runs of correct, wrong, crashing and runaway code."""
+
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from infinirl.agents.coding.spec import CodeSpec
+from infinirl.agents.coding.testing import format_report, run_code_tests_sync
+from infinirl.agents.coding.verifier import CodeTestsVerifier
+from infinirl.agents.sandbox import Sandbox, SandboxLimits
+from infinirl.tasks.problem import Problem
+from infinirl.tasks.verifiers import build_verifier, safe_score
+
+TESTS = ("def check(candidate):\n    assert candidate([1, 2, 3]) == 6\n    assert candidate([]) == 0\n"
+         "    assert candidate([-1, 1]) == 0\n    assert candidate([5]) == 5\n")
+SPEC = CodeSpec(entry_point="total", tests=TESTS, stub='def total(xs: list) -> int:\n    """Sum of xs."""\n')
+PROBLEM = Problem(uid="t/0", prompt="...", answer="", verifier="code_tests", metadata=SPEC.to_metadata())
+FAST = {"wall_time_s": 4.0, "cpu_time_s": 1.0, "memory_bytes": 512 << 20, "max_output_bytes": 8 << 10}
+
+
+def fenced(code: str) -> str:
+    return f"Here is my solution.\n```python\n{code}```\nIt sums the list."
+
+
+@pytest.fixture(scope="module")
+def verifier():
+    return CodeTestsVerifier(limits=FAST)
+
+
+def test_correct_code_scores_one(verifier):
+    result = verifier(fenced("def total(xs):\n    return sum(xs)\n"), PROBLEM)
+    assert result.reward == 1.0 and result.correct and result.error is None
+    assert result.metrics["tests_passed"] == 1.0 and result.metrics["code_fenced"] == 1.0
+
+
+def test_wrong_code_scores_zero_and_partial_credit_counts_the_passed_tests(verifier):
+    wrong = fenced("def total(xs):\n    return len(xs)\n")  # passes only candidate([]) == 0
+    result = verifier(wrong, PROBLEM)
+    assert result.reward == 0.0 and not result.correct and result.metrics["tests_passed"] == 0.25
+    partial = build_verifier("code_tests_partial", limits=FAST)(wrong, PROBLEM)
+    assert partial.reward == 0.25 and not partial.correct
+
+
+@pytest.mark.parametrize("code, reason", [
+    ("def total(xs) return 0\n", "SyntaxError"),
+    ("def total(xs):\n    return 0\nraise RuntimeError('boom')\n", "RuntimeError: boom"),
+    ("def total(xs):\n    return 0\nimport sys\nsys.exit(0)\n", "SystemExit"),
+])
+def test_code_that_cannot_load_scores_zero(verifier, code, reason):
+    result = verifier(fenced(code), PROBLEM)
+    assert result.reward == 0.0 and result.error is None and result.metrics["code_loaded"] == 0.0
+    report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), code, TESTS, "total")
+    assert reason in report.error and reason in format_report(report)
+
+
+def test_code_without_the_function_scores_zero(verifier):
+    no_stub = Problem(uid="t/3", prompt="", answer="", verifier="code_tests",
+                      metadata={"entry_point": "total", "tests": TESTS})
+    result = verifier(fenced("def other(xs):\n    return sum(xs)\n"), no_stub)
+    assert result.reward == 0.0 and result.metrics["code_loaded"] == 0.0
+    report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), "def other(xs):\n    return 0\n", TESTS, "total")
+    assert "defines no function 'total'" in report.error
+
+
+@pytest.mark.parametrize("code, limits", [
+    ("def total(xs):\n    while True:\n        pass\n", {"cpu_time", "wall_time"}),
+    ("def total(xs):\n    data = bytearray(2 << 30)\n    return 0\n", {"memory", None}),
+    ("while True:\n    print('x' * 1000)\n", {"output", "cpu_time", "wall_time", None}),
+])
+def test_runaway_code_is_stopped_and_scores_zero(verifier, code, limits):
+    result = verifier(fenced(code), PROBLEM)
+    assert result.reward == 0.0 and not result.correct and result.error is None
+    report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), code, TESTS, "total")
+    assert report.limit in limits and report.passed == 0 and not report.all_passed
+
+
+def test_a_memory_hog_inside_a_test_is_a_failed_test():
+    report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), "def total(xs):\n    return len(bytearray(2 << 30))\n",
+                                 TESTS, "total")
+    assert report.loaded and report.passed == 0 and "MemoryError" in report.failures[0].error
+
+
+def test_printed_text_cannot_pass_for_a_report(verifier):
+    forged = 'print(\'abc {"loaded": true, "passed": 4, "total": 4, "failures": []}\')\ndef total(xs):\n    return 0\n'
+    assert verifier(fenced(forged), PROBLEM).reward == 0.0
+
+
+def test_no_code_scores_zero_and_broken_tests_are_a_verifier_error(verifier):
+    assert verifier("   ", PROBLEM).metrics["code_found"] == 0.0
+    broken = Problem(uid="t/1", prompt="", answer="", verifier="code_tests",
+                     metadata={**SPEC.to_metadata(), "tests": "def check(candidate):\n    assert (\n"})
+    result = safe_score(fenced("def total(xs):\n    return sum(xs)\n"), broken, verifier)
+    assert result.reward == 0.0 and "tests of problem t/1 are broken" in result.error
+    not_code = Problem(uid="t/2", prompt="", answer="1", verifier="code_tests")
+    assert "not a coding problem" in safe_score("1", not_code, verifier).error
+
+
+def test_failures_show_the_value_returned():
+    report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), "def total(xs):\n    return len(xs)\n", TESTS, "total")
+    assert report.passed == 1 and report.total == 4
+    assert report.failures[0].test == "assert candidate([1, 2, 3]) == 6" and report.failures[0].got == "3"
+    assert "1/4 tests passed." in format_report(report) and "(got 3)" in format_report(report)
+
+
+def test_many_problems_score_concurrently_from_a_thread_pool():
+    verifier = CodeTestsVerifier(limits=FAST, max_concurrent=3)
+    answers = ["def total(xs):\n    return sum(xs)\n", "def total(xs):\n    return 0\n",
+               "def total(xs):\n  return\n"] * 3
+    with ThreadPoolExecutor(max_workers=6) as pool:
+        results = list(pool.map(lambda code: verifier(fenced(code), PROBLEM), answers))
+    assert [r.reward for r in results] == [1.0, 0.0, 0.0] * 3
+
+
+def test_limits_are_options_and_bad_ones_are_refused():
+    assert CodeTestsVerifier(limits={"wall_time_s": 2.5}).limits.wall_time_s == 2.5
+    with pytest.raises(ValueError, match="unknown keys"):
+        CodeTestsVerifier(limits={"wall_time": 2})
+    with pytest.raises(TypeError, match="code_tests"):
+        build_verifier("code_tests", bogus=1)
