@@ -181,6 +181,7 @@ class RobotEnv:
             raise ValueError(f"{self.robot_spec.kind} has cameras {sorted(cameras)}; it has no {missing}")
         self.max_step = max_target_step(self.robot_spec, safety or getattr(robot, "config", SafetyConfig()))
         self._reference: np.ndarray | None = None
+        self.last_observation: RobotObservation | None = None
         self._next_step_at = 0.0
         self.steps = 0
         self.episode_return = 0.0
@@ -195,7 +196,7 @@ class RobotEnv:
         return int(self._state(self.robot.observe()).shape[0])
 
     def reset(self) -> dict[str, np.ndarray]:
-        observation = self.robot.reset()
+        observation = self.last_observation = self.robot.reset()
         self._heartbeat()
         self._reference = observation.current_target(self.robot_spec)
         self._next_step_at = time.monotonic() + self.robot_spec.control_period_s
@@ -210,7 +211,7 @@ class RobotEnv:
         self._reference = command
         self._heartbeat()
         late = self._wait_for_period()
-        observation = self.robot.observe()
+        observation = self.last_observation = self.robot.observe()
         reward = sum(weight * REWARDS.get(name).reward(observation) for name, weight in self.spec.rewards.items())
         success = bool(observation.info.get("success", False))
         self.steps += 1
