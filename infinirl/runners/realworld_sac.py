@@ -50,7 +50,9 @@ def run(cfg: RealWorldSACConfig) -> dict:
 
     with RunLoop(cfg, run_start_time()) as loop:
         setup, env, net = _robot_setup(cfg), _env_spec(cfg), _net_spec(cfg)
-        with Cluster(cfg.cluster) as cluster:
+        from infinirl.realworld.discovery import with_driver_discovery
+
+        with Cluster(with_driver_discovery(cfg.cluster)) as cluster:
             plan = plan_placement(cluster.inventory, cfg)
             print(plan.describe(), flush=True)
             from infinirl.realworld.robot_worker import RobotActorWorker
