@@ -7,7 +7,8 @@ filter) and gives the learning code what it expects of an environment:
 * **observation**: ``{"state": float32 vector, "pixels.<camera>": uint8 HxWx3, ...}``. The state
   concatenates the :data:`OBSERVATIONS` sources the spec names, in order (``proprio``: the robot's
   present target, joints or end effector, then the gripper; ``sim_state``: what a simulator alone
-  knows, e.g. MetaWorld's object and goal positions). Cameras the spec names come as pixels;
+  knows, e.g. MetaWorld's object and goal positions; ``last_action``: the previous action).
+  Cameras the spec names come as pixels;
 * **action**: a vector in ``[-1, 1]`` of ``spec.command_size`` entries. ``action_mode="delta"``
   moves the arm's target (joints or end effector) by ``action * max_step`` from the last target,
   where ``max_step`` is the motion the safety filter allows per control period; ``"absolute"``
@@ -42,9 +43,10 @@ __all__ = ["OBSERVATIONS", "REWARDS", "ObservationSource", "RewardComponent", "R
 
 @dataclass(frozen=True, kw_only=True)
 class ObservationSource:
-    """One part of the state vector: ``size(spec, first_observation)`` entries read by ``read``."""
+    """One part of the state vector: ``read(env, observation)`` (``env`` is the :class:`RobotEnv`:
+    its ``robot_spec``, and ``last_action``, the normalised action of the previous step)."""
 
-    read: Callable[[RobotSpec, RobotObservation], np.ndarray]
+    read: Callable[[Any, RobotObservation], np.ndarray]
     description: str = ""
 
 
@@ -67,7 +69,8 @@ def _info(observation: RobotObservation, key: str, what: str) -> Any:
     return observation.info[key]
 
 
-def _proprio(spec: RobotSpec, observation: RobotObservation) -> np.ndarray:
+def _proprio(env: RobotEnv, observation: RobotObservation) -> np.ndarray:
+    spec = env.robot_spec
     target = observation.current_target(spec)
     if target is None:
         raise KeyError(f"{spec.kind} reports no {spec.control_mode} state, so observation 'proprio' is unknown")
@@ -76,14 +79,18 @@ def _proprio(spec: RobotSpec, observation: RobotObservation) -> np.ndarray:
 
 OBSERVATIONS.add("proprio", ObservationSource(read=_proprio, description="present target (joints or ee) + gripper"))
 OBSERVATIONS.add("ee_position", ObservationSource(
-    read=lambda spec, o: np.asarray(o.ee_position if o.ee_position is not None else _info(o, "ee_position", "ee"),
+    read=lambda env, o: np.asarray(o.ee_position if o.ee_position is not None else _info(o, "ee_position", "ee"),
                                     np.float64), description="end-effector xyz"))
 OBSERVATIONS.add("sim_state", ObservationSource(
-    read=lambda spec, o: np.asarray(_info(o, "state", "observation 'sim_state'"), np.float64),
+    read=lambda env, o: np.asarray(_info(o, "state", "observation 'sim_state'"), np.float64),
     description="the simulator's task state (MetaWorld: hand, objects, goal)"))
 OBSERVATIONS.add("block_position", ObservationSource(
-    read=lambda spec, o: np.asarray(_info(o, "block_position", "observation 'block_position'"), np.float64),
+    read=lambda env, o: np.asarray(_info(o, "block_position", "observation 'block_position'"), np.float64),
     description="the SO-101 scene's cube position"))
+OBSERVATIONS.add("last_action", ObservationSource(
+    read=lambda env, o: env.last_action,
+    description="the previous step's normalised action (zeros after a reset): a command's effect shows a "
+                "control period or more later, so the policy needs to know what it already asked for"))
 
 
 def _goal_distance(observation: RobotObservation) -> float:
@@ -182,6 +189,7 @@ class RobotEnv:
         self.max_step = max_target_step(self.robot_spec, safety or getattr(robot, "config", SafetyConfig()))
         self._reference: np.ndarray | None = None
         self.last_observation: RobotObservation | None = None
+        self.last_action = np.zeros(self.robot_spec.command_size)
         self._next_step_at = 0.0
         self.steps = 0
         self.episode_return = 0.0
@@ -201,6 +209,7 @@ class RobotEnv:
         self._reference = observation.current_target(self.robot_spec)
         self._next_step_at = time.monotonic() + self.robot_spec.control_period_s
         self.steps, self.episode_return = 0, 0.0
+        self.last_action = np.zeros(self.robot_spec.command_size)
         return self._obs(observation)
 
     def step(self, action: np.ndarray) -> RobotStep:
@@ -209,6 +218,7 @@ class RobotEnv:
         command = action_to_command(action, self._reference, self.robot_spec, self.spec.action_mode, self.max_step)
         self.robot.act(command)
         self._reference = command
+        self.last_action = np.clip(np.asarray(action, np.float64).reshape(-1), -1.0, 1.0)
         self._heartbeat()
         late = self._wait_for_period()
         observation = self.last_observation = self.robot.observe()
@@ -239,7 +249,7 @@ class RobotEnv:
             beat()
 
     def _state(self, observation: RobotObservation) -> np.ndarray:
-        parts = [np.asarray(OBSERVATIONS.get(name).read(self.robot_spec, observation), np.float64).reshape(-1)
+        parts = [np.asarray(OBSERVATIONS.get(name).read(self, observation), np.float64).reshape(-1)
                  for name in self.spec.observations]
         return np.concatenate(parts).astype(np.float32)
 

@@ -60,6 +60,11 @@ def test_sawyer_reach_episode_ends_on_success_at_the_robots_pace():
         for _ in range(3):
             step = env.step(np.zeros(4))
         assert env.steps == 3 and not step.terminated
+
+        with_action = RobotEnv(robot, RobotEnvSpec(observations=("proprio", "last_action")))
+        assert np.all(with_action.reset()["state"][4:] == 0)
+        step = with_action.step(np.array([0.5, -2.0, 0.0, 1.0]))
+        np.testing.assert_allclose(step.obs["state"][4:], [0.5, -1.0, 0.0, 1.0])  # as applied: clipped to [-1, 1]
     finally:
         robot.close()
 
