@@ -65,8 +65,8 @@ def run_mode(config: str, mode: str, args, folder: str) -> dict:
         if reached is None and row.get("rollout/success_rate", 0.0) >= args.success:
             reached = round(elapsed, 1)
     last = rows[-1]
-    return {"updates": summary["updates"], "train_s": round(train_s, 1),
-            "updates_per_s": round(summary["updates"] / max(train_s, 1e-9), 2),
+    updates = last["train/updates"]  # logged at the end of the last window, before the final evaluation
+    return {"updates": updates, "train_s": round(train_s, 1), "updates_per_s": round(updates / max(train_s, 1e-9), 2),
             "env_steps": last.get("env/steps"), "replay_transitions": summary["replay_transitions"],
             "time_to_success_s": reached, "final_eval_success_rate": last.get("eval/success_rate"),
             "last_window_success_rate": last.get("rollout/success_rate"),

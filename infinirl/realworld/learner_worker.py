@@ -93,6 +93,7 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         self._lock = threading.RLock()  # one of: an update, an ingest, a checkpoint, a snapshot read
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._channel = None
         self._error: BaseException | None = None
         self._counts: dict[str, float] = defaultdict(float)
         self._metric_sums: dict[str, float] = defaultdict(float)
@@ -162,10 +163,11 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         state = [(name, tensor.detach().clone()) for name, tensor in self.agent.actor.state_dict().items()]
         return [*state, (VERSION_TENSOR, torch.tensor([self.version], dtype=torch.int64))]
 
-    def add_and_update(self, episodes: list[dict], num_updates: int, publish: bool = False) -> dict:
+    def add_and_update(self, episodes: list[dict], num_updates: int, publish: bool = False) -> int:
         """Synchronous mode: store ``episodes``, then run up to ``num_updates`` updates (none before
         ``learning_starts``); with ``publish``, the actor after them becomes a new version (the
-        next collection uses exactly these weights). Returns :meth:`status`."""
+        next collection uses exactly these weights). Returns the published version (the metrics
+        accumulate for :meth:`status`)."""
         self._ingest(episodes)
         done = 0
         for _ in range(num_updates):
@@ -175,7 +177,7 @@ class RealWorldLearnerWorker(Worker, WeightSource):
             done += 1
         if publish and done:
             self.publish()
-        return self.status()
+        return self.version
 
     def publish(self) -> int:
         """Snapshot the actor as a new version now; returns the version."""
@@ -193,6 +195,7 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         if self._threads:
             return
         self._stop.clear()
+        self._channel = (channel, key)
         self._threads = [threading.Thread(target=self._guarded, args=(self._ingest_loop, channel, key),
                                           name="learner-ingest", daemon=True),
                          threading.Thread(target=self._guarded, args=(self._train_loop,), name="learner-train",
@@ -230,6 +233,13 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         for thread in self._threads:
             thread.join(60.0)
         self._threads = []
+        if self._channel is not None:  # what the robots sent before they stopped is stored, not lost
+            channel, key = self._channel
+            self._channel = None
+            try:
+                self._ingest(channel.get_batch(_TAKE_ALL, key=key, timeout=_INGEST_WAIT_S))
+            except (TimeoutError, ChannelClosed):
+                pass
         return self.status()
 
     # ---------------------------------------------------------------- reporting

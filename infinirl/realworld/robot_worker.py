@@ -147,8 +147,10 @@ class RobotActorWorker(Worker, WeightSink):
         action, _, _ = self.actor.sample(state, self.generator, deterministic=deterministic)
         return action[0].numpy(), self.policy_version
 
-    def _episode(self, policy=None, deterministic: bool = False, between_steps=None) -> dict | None:
-        """One episode; ``policy(observation) -> action`` replaces the actor (demonstrations)."""
+    def _episode(self, policy=None, deterministic: bool = False, between_steps=None,
+                 training: bool = True) -> tuple[dict | None, bool]:
+        """One episode and whether it succeeded; ``policy(observation) -> action`` replaces the
+        actor (demonstrations). Training episodes are counted and reported by :meth:`stats`."""
         obs = self.env.reset()
         recorder = EpisodeRecorder(obs)
         while not self._stop.is_set():
@@ -170,14 +172,14 @@ class RobotActorWorker(Worker, WeightSink):
             if step.terminated or step.truncated:
                 break
         episode = recorder.finish()
-        if episode is not None:
+        if episode is not None and training:
             self.counts["episodes"] += 1
             self.counts["steps"] += len(recorder)
             self.counts["successes"] += int(recorder.success)
             with self._lock:
                 self.recent.append({"return": float(episode["reward"].sum()), "length": len(recorder),
                                     "success": recorder.success})
-        return episode
+        return episode, recorder.success
 
     # ---------------------------------------------------------------- asynchronous
     def start(self, channel, key: str = "episodes") -> None:
@@ -197,7 +199,7 @@ class RobotActorWorker(Worker, WeightSink):
                 if request is not None:
                     request[1].put(self._evaluate(request[0]))
                     continue
-                episode = self._episode(between_steps=self.apply_staged_weights)
+                episode, _ = self._episode(between_steps=self.apply_staged_weights)
                 if episode is not None:
                     self._outbox.put(episode)
         except BaseException as exc:  # reported by the next stats() / stop() call
@@ -231,7 +233,8 @@ class RobotActorWorker(Worker, WeightSink):
     # ---------------------------------------------------------------- synchronous
     def collect(self, num_episodes: int) -> list[dict]:
         """Run ``num_episodes`` training episodes here and return them (synchronous mode)."""
-        return [e for e in (self._episode() for _ in range(num_episodes)) if e is not None]
+        episodes = [self._episode()[0] for _ in range(num_episodes)]
+        return [e for e in episodes if e is not None]
 
     def demonstrations(self, num_episodes: int, policy: str, seed: int = 0, noise_std: float = 0.0,
                        options: Mapping[str, Any] | None = None) -> list[dict]:
@@ -239,9 +242,7 @@ class RobotActorWorker(Worker, WeightSink):
         from infinirl.realworld.demos import make_demo_policy
 
         demo = make_demo_policy(policy, self.env, seed=seed, noise_std=noise_std, **dict(options or {}))
-        episodes = [self._episode(policy=demo.act) for _ in range(num_episodes)]
-        with self._lock:
-            self.recent.clear()  # demonstrations are not training episodes
+        episodes = [self._episode(policy=demo.act, training=False)[0] for _ in range(num_episodes)]
         return [e for e in episodes if e is not None]
 
     # ---------------------------------------------------------------- evaluation
@@ -260,17 +261,13 @@ class RobotActorWorker(Worker, WeightSink):
 
     def _evaluate(self, num_episodes: int) -> dict:
         returns, successes, lengths = [], [], []
-        stash, self.recent = self.recent, []
         for _ in range(num_episodes):
-            episode = self._episode(deterministic=True)
+            episode, success = self._episode(deterministic=True, training=False)
             if episode is None:
                 break
             returns.append(float(episode["reward"].sum()))
             lengths.append(len(episode["action"]))
-            successes.append(float(self.recent[-1]["success"]))
-        self.counts["episodes"] -= len(returns)  # evaluation episodes are not training episodes
-        self.counts["steps"] -= int(sum(lengths))
-        self.recent = stash
+            successes.append(float(success))
         if not returns:
             return {}
         return {"eval/success_rate": float(np.mean(successes)), "eval/return_mean": float(np.mean(returns)),

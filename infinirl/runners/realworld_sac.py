@@ -205,17 +205,15 @@ class RealWorldSACFlow:
 
     def _sync_turns(self, deadline: float) -> dict:
         """Collect one episode per robot, then update on it, until the window ends."""
-        updates = 0
-        status = None
-        while time.perf_counter() < deadline or status is None:
+        while True:
             episodes = [e for batch in self.robots.collect(1).wait(timeout=600) for e in batch]
             self.owed_updates += self.cfg.algorithm.utd_ratio * sum(len(e["action"]) for e in episodes)
             num = math.floor(self.owed_updates)
             self.owed_updates -= num
-            status = self.learner.add_and_update(episodes, num, publish=True).wait(timeout=600)[0]
-            updates += num
-            self._sync(status["version"], wait=True)
-        return {**status, "updates_per_s": self.learner.status().wait()[0]["updates_per_s"]}
+            version = self.learner.add_and_update(episodes, num, publish=True).wait(timeout=600)[0]
+            self._sync(version, wait=True)
+            if time.perf_counter() >= deadline:
+                return self.learner.status().wait(timeout=60)[0]
 
     def _metrics(self, status: dict, robots: list[dict], seconds: float) -> dict:
         counts = status["counts"]

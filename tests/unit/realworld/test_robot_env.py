@@ -9,6 +9,9 @@ from infinirl.realworld.driver import make_robot
 from infinirl.realworld.robot_env import REWARDS, RobotEnv, RobotEnvSpec, action_to_command, max_target_step
 from infinirl.realworld.safety import SafeRobot, SafetyConfig
 
+# The safety deadlines have tests of their own; here a loaded machine must not stop the robot mid-test.
+NO_DEADLINES = SafetyConfig(command_deadline_s=None, heartbeat_deadline_s=None)
+
 
 def test_action_to_command_matches_a_float64_reference():
     spec = make_robot("sim_sawyer", image_size=None).spec  # not connected: the spec alone
@@ -38,7 +41,7 @@ def test_spec_refuses_unknown_names_listing_the_registered_ones():
 
 
 def test_sawyer_reach_episode_ends_on_success_at_the_robots_pace():
-    robot = SafeRobot(make_robot("sim_sawyer", control_hz=20.0, image_size=None))
+    robot = SafeRobot(make_robot("sim_sawyer", control_hz=20.0, image_size=None), NO_DEADLINES)
     robot.connect()
     try:
         env = RobotEnv(robot, RobotEnvSpec(observations=("proprio", "sim_state"),
@@ -70,7 +73,7 @@ def test_sawyer_reach_episode_ends_on_success_at_the_robots_pace():
 
 
 def test_step_limit_truncates_and_so101_gives_pixels():
-    robot = SafeRobot(make_robot("sim_so101", control_hz=20.0, image_size=32))
+    robot = SafeRobot(make_robot("sim_so101", control_hz=20.0, image_size=32), NO_DEADLINES)
     robot.connect()
     try:
         env = RobotEnv(robot, RobotEnvSpec(observations=("proprio", "block_position"), cameras=("front",),
