@@ -54,9 +54,9 @@ def test_discovery_overrides_parse_and_refuse_bad_items():
 
 
 def test_cluster_inventory_and_robot_placement_build_the_discovered_robot(ray_cluster, capsys):
+    from infinirl.components.sac_learner import SACNetSpec
     from infinirl.realworld.robot_env import RobotEnvSpec
     from infinirl.realworld.robot_worker import RobotActorWorker
-    from infinirl.components.sac_learner import SACNetSpec
     from infinirl.runtime import Cluster, WorkerGroup, place
 
     config = with_driver_discovery(ClusterConfig(robot_plugins={"drivers": {
