@@ -17,6 +17,7 @@ asynchronous run saw.
 
     python benchmarks/realworld_async.py                  # 2 x 60 s of training, a few minutes in all
     python benchmarks/realworld_async.py --seconds 300    # long enough for both to learn the reach
+    python benchmarks/realworld_async.py demos.episodes=10   # config overrides apply to both runs (RLPD here)
 
 The last stdout line is ONE JSON object: {"benchmark": "realworld_async", "ratios":
 {"async_vs_sync_updates": async updates/s / sync updates/s}, "targets": {...}, "results": {...}}.
@@ -43,17 +44,15 @@ TARGETS = {"async_vs_sync_updates": 5.0}
 
 
 def run_mode(config: str, mode: str, args, folder: str) -> dict:
-    from infinirl.config import compose, to_dataclass
+    from infinirl.cli import build_config
     from infinirl.runners.realworld_sac import run
-    from infinirl.runners.realworld_sac_config import RealWorldSACConfig
 
     iterations = max(1, math.ceil(args.seconds / args.iteration_s))
     output = os.path.join(folder, mode)
-    raw = compose(config, [f"pipeline.mode={mode}", f"iterations={iterations}",
-                           f"pipeline.iteration_s={args.iteration_s}",
-                           f"output_dir={output}", "loggers=[]", "save_every=0", "keep_checkpoints=1", "eval.every=0",
-                           f"eval.episodes={args.eval_episodes}", f"seed={args.seed}", "cluster.log_to_driver=false"])
-    cfg = to_dataclass(RealWorldSACConfig, raw)
+    overrides = [f"pipeline.mode={mode}", f"iterations={iterations}", f"pipeline.iteration_s={args.iteration_s}",
+                 f"output_dir={output}", "loggers=[]", "save_every=0", "keep_checkpoints=1", "eval.every=0",
+                 f"eval.episodes={args.eval_episodes}", f"seed={args.seed}", "cluster.log_to_driver=false"]
+    _, cfg = build_config(config, [*overrides, *args.overrides])
     cfg.validate()
     summary = run(cfg)
     with open(os.path.join(output, "metrics.jsonl")) as handle:
@@ -82,6 +81,7 @@ def main() -> int:
     parser.add_argument("--success", type=float, default=0.8, help="training success rate of 'time to success'")
     parser.add_argument("--eval-episodes", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("overrides", nargs="*", help="config overrides for both runs, e.g. demos.episodes=10")
     parser.add_argument("--dir", default=None, help="folder for the runs (default: a temporary one, removed)")
     add_record_argument(parser)
     args = parser.parse_args()

@@ -91,3 +91,39 @@ def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
                        ({"pipeline": {"mode": "fast"}}, "pipeline.mode")):
         with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
             make_cfg(tmp_path / "bad", 1, **extra).validate()
+
+
+def test_killed_run_resumes_with_every_stored_episode(tmp_path):
+    """kill -9 of the whole run (driver, robot and learner processes) between checkpoints; the same
+    command again resumes from the newest checkpoint and keeps every episode the store committed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "killed"
+    command = [sys.executable, "-m", "infinirl.cli", "train", "realworld_sac_sawyer_reach", f"output_dir={out}",
+               "loggers=[]", "save_every=1", "pipeline.iteration_s=2", "task.max_episode_steps=20",
+               "robot.options.control_hz=50.0", "algorithm.batch_size=32", "algorithm.learning_starts=40",
+               "network.actor_hidden=[32,32]", "network.critic_hidden=[32,32]", "pipeline.durable=false",
+               "eval.every=0", "eval.episodes=1", "cluster.log_to_driver=false"]
+    first = subprocess.Popen([*command, "iterations=50"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             start_new_session=True)  # its own process group: the kill takes its Ray processes too
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and first.poll() is None:
+            if len(list((out / "checkpoints").glob("iter_*"))) >= 2:
+                break
+            time.sleep(0.5)
+        assert first.poll() is None, "the run ended before it could be killed"
+    finally:
+        os.killpg(first.pid, signal.SIGKILL)
+        first.wait(60)
+    _, at_kill = versions_in(out / "replay")
+    assert at_kill >= 1
+    resumed = subprocess.run([*command, "iterations=4"], capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert "resumed from" in resumed.stdout
+    summary = json.loads(resumed.stdout.strip().splitlines()[-1])
+    assert summary["replay_episodes"] >= at_kill  # every committed episode is still there
