@@ -24,7 +24,7 @@ import logging
 import queue
 import threading
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import SimpleNamespace
 from typing import Any
@@ -39,7 +39,8 @@ from infinirl.realworld.safety import SafeRobot, SafetyConfig
 from infinirl.runtime import WeightSink, Worker
 from infinirl.utils.threads import limit_threads
 
-__all__ = ["VERSION_TENSOR", "RobotActorWorker", "RobotSetup", "resolve_robot", "unit_box"]
+__all__ = ["VERSION_TENSOR", "PolicyLayout", "RobotActorWorker", "RobotSetup", "policy_layouts", "resolve_robot",
+           "unit_box"]
 
 logger = logging.getLogger(__name__)
 
@@ -69,6 +70,44 @@ def resolve_robot(setup: RobotSetup, placed: Any) -> tuple[str, dict]:
     return setup.kind, dict(setup.options)
 
 
+@dataclass(frozen=True, kw_only=True)
+class PolicyLayout:
+    """How one robot's observations and actions sit in the shared policy's vectors.
+
+    Robots of different embodiments feed one policy: its observation is the robot's state, zeros up
+    to ``obs_dim - num_embodiments``, then a one-hot of ``embodiment`` (absent with one embodiment);
+    its action has ``action_dim`` entries, of which a robot executes its own first ``command_size``
+    (the rest are ignored by that robot, and stored as drawn, so the critic sees what the actor did).
+    """
+
+    obs_dim: int
+    action_dim: int
+    embodiment: int = 0
+    num_embodiments: int = 1
+
+    def pad_state(self, state: np.ndarray) -> np.ndarray:
+        if self.num_embodiments == 1 and len(state) == self.obs_dim:
+            return state
+        padded = np.zeros(self.obs_dim, np.float32)
+        padded[:len(state)] = state
+        if self.num_embodiments > 1:
+            padded[self.obs_dim - self.num_embodiments + self.embodiment] = 1.0
+        return padded
+
+
+def policy_layouts(described: list[dict]) -> list[PolicyLayout]:
+    """One layout per robot rank from their :meth:`RobotActorWorker.describe`: identity when every
+    robot has the same shape, else padded to the largest with one embodiment per robot kind."""
+    kinds = sorted({d["kind"] for d in described})
+    same = len({(d["obs_dim"], d["action_dim"]) for d in described}) == 1
+    if same and len(kinds) == 1:
+        return [PolicyLayout(obs_dim=d["obs_dim"], action_dim=d["action_dim"]) for d in described]
+    obs = max(d["obs_dim"] for d in described) + len(kinds)
+    action = max(d["action_dim"] for d in described)
+    return [PolicyLayout(obs_dim=obs, action_dim=action, embodiment=kinds.index(d["kind"]), num_embodiments=len(kinds))
+            for d in described]
+
+
 def unit_box(action_dim: int) -> SimpleNamespace:
     """The ``[-1, 1]^A`` action space the SAC networks are built for."""
     return SimpleNamespace(low=-np.ones(action_dim, np.float32), high=np.ones(action_dim, np.float32),
@@ -95,14 +134,17 @@ def _connected(kind: str, options: dict, safety: SafetyConfig, tries: int = _CON
 class RobotActorWorker(Worker, WeightSink):
     """One robot + its policy copy (see the module docstring)."""
 
-    def __init__(self, setup: RobotSetup, env: RobotEnvSpec, net, seed: int, num_threads: int = 1):
+    def __init__(self, setup: RobotSetup | Sequence[RobotSetup], env: RobotEnvSpec | Sequence[RobotEnvSpec], net,
+                 seed: int, num_threads: int = 1):
         limit_threads(num_threads)
+        if not isinstance(setup, RobotSetup):  # a fleet: one entry per rank
+            setup, env = setup[self.rank], env[self.rank]
         kind, options = resolve_robot(setup, self.ctx.robot)
         self.robot = _connected(kind, options, setup.safety)
         self.env = RobotEnv(self.robot, env, setup.safety)
-        self.kind = kind
+        self.kind, self.net = kind, net
         self.obs_dim, self.action_dim = self.env.observation_size(), self.env.action_dim
-        self.actor = net.build_actor(self.obs_dim, unit_box(self.action_dim)).eval()
+        self.configure(PolicyLayout(obs_dim=self.obs_dim, action_dim=self.action_dim))
         self.policy_version = RANDOM_VERSION
         self.rng = np.random.default_rng([seed, self.rank, 0xAC7])
         self.generator = torch.Generator().manual_seed(int(np.random.SeedSequence([seed, self.rank, 0x7A])
@@ -124,6 +166,11 @@ class RobotActorWorker(Worker, WeightSink):
                 "control_hz": spec.control_hz,
                 "cameras": {c.name: (c.height, c.width) for c in spec.cameras if c.name in self.env.spec.cameras}}
 
+    def configure(self, layout: PolicyLayout) -> None:
+        """Build the policy copy for ``layout`` (before the first weights arrive)."""
+        self.layout = layout
+        self.actor = self.net.build_actor(layout.obs_dim, unit_box(layout.action_dim)).eval()
+
     # ---------------------------------------------------------------- weights
     def load_weights(self, named_tensors, version: int) -> None:
         own = self.actor.state_dict()
@@ -142,7 +189,7 @@ class RobotActorWorker(Worker, WeightSink):
     @torch.no_grad()
     def _act(self, obs: dict, deterministic: bool = False) -> tuple[np.ndarray, int]:
         if self.policy_version == RANDOM_VERSION and not deterministic:
-            return self.rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32), RANDOM_VERSION
+            return self.rng.uniform(-1.0, 1.0, self.layout.action_dim).astype(np.float32), RANDOM_VERSION
         state = torch.from_numpy(np.asarray(obs["state"], np.float32)[None])
         action, _, _ = self.actor.sample(state, self.generator, deterministic=deterministic)
         return action[0].numpy(), self.policy_version
@@ -151,24 +198,26 @@ class RobotActorWorker(Worker, WeightSink):
                  training: bool = True) -> tuple[dict | None, bool]:
         """One episode and whether it succeeded; ``policy(observation) -> action`` replaces the
         actor (demonstrations). Training episodes are counted and reported by :meth:`stats`."""
-        obs = self.env.reset()
+        obs = self._padded(self.env.reset())
         recorder = EpisodeRecorder(obs)
         while not self._stop.is_set():
             if between_steps is not None:
                 between_steps()
             if policy is not None:
-                action, version = policy(self.env.last_observation), RANDOM_VERSION
+                action = np.zeros(self.layout.action_dim, np.float32)
+                action[:self.action_dim] = policy(self.env.last_observation)
+                version = RANDOM_VERSION
             else:
                 action, version = self._act(obs, deterministic)
             try:
-                step = self.env.step(action)
+                step = self.env.step(action[:self.action_dim])
             except RobotStoppedError as exc:  # the safety layer stopped the robot: keep what was collected
                 logger.warning("%s: episode ended by a safety stop (%s)", self.kind, exc)
                 self.counts["safety_aborts"] += 1
                 break
-            recorder.add(action, step.obs, step.reward, step.terminated, version, step.success)
+            obs = self._padded(step.obs)
+            recorder.add(action, obs, step.reward, step.terminated, version, step.success)
             self.counts["late_steps"] += int(step.late)
-            obs = step.obs
             if step.terminated or step.truncated:
                 break
         episode = recorder.finish()
@@ -180,6 +229,9 @@ class RobotActorWorker(Worker, WeightSink):
                 self.recent.append({"return": float(episode["reward"].sum()), "length": len(recorder),
                                     "success": recorder.success})
         return episode, recorder.success
+
+    def _padded(self, obs: dict) -> dict:
+        return {**obs, "state": self.layout.pad_state(obs["state"])}
 
     # ---------------------------------------------------------------- asynchronous
     def start(self, channel, key: str = "episodes") -> None:
@@ -280,7 +332,8 @@ class RobotActorWorker(Worker, WeightSink):
         self._raise_if_failed()
         with self._lock:
             recent, self.recent = self.recent, []
-        return {"counts": dict(self.counts), "episodes": recent, "policy_version": self.policy_version,
+        return {"kind": self.kind, "counts": dict(self.counts), "episodes": recent,
+                "policy_version": self.policy_version,
                 "safety_clips": dict(self.robot.clip_counts), "safety_events": dict(self.robot.event_counts)}
 
     def _raise_if_failed(self) -> None:

@@ -63,7 +63,7 @@ def run(cfg: RealWorldSACConfig) -> dict:
             try:
                 groups.update(launch_all(plan, {"robot": (RobotActorWorker, (setup, env, net, cfg.seed,
                                                                              cfg.actor.num_threads))}))
-                shape = _robot_shape(groups["robot"].describe().wait())
+                shape = _robot_shape(cfg, groups["robot"])
                 groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, shape)}))
                 channel.qsize()  # returns once the channel's actor is up
                 flow = RealWorldSACFlow(cfg, groups["robot"], groups["learner"], channel)
@@ -78,22 +78,29 @@ def run(cfg: RealWorldSACConfig) -> dict:
 
 
 def _robot_setup(cfg: RealWorldSACConfig):
+    """The robot every rank drives, or with ``robot.fleet`` one per rank."""
     from infinirl.realworld.robot_worker import RobotSetup
     from infinirl.realworld.safety import SafetyConfig
 
     robot = cfg.robot
     safety = SafetyConfig(velocity_scale=robot.velocity_scale, command_deadline_s=robot.command_deadline_s,
                           heartbeat_deadline_s=robot.heartbeat_deadline_s)
+    if robot.fleet:
+        return tuple(RobotSetup(kind=e.kind, options=dict(e.options), safety=safety) for e in robot.fleet)
     return RobotSetup(kind=robot.kind, options=dict(robot.options), safety=safety)
 
 
 def _env_spec(cfg: RealWorldSACConfig):
     from infinirl.realworld.robot_env import RobotEnvSpec
 
-    task = cfg.task
-    return RobotEnvSpec(observations=tuple(task.observations), cameras=tuple(task.cameras), rewards=dict(task.rewards),
-                        max_episode_steps=task.max_episode_steps, action_mode=task.action_mode,
-                        terminate_on_success=task.terminate_on_success)
+    def spec(task):
+        return RobotEnvSpec(observations=tuple(task.observations), cameras=tuple(task.cameras),
+                            rewards=dict(task.rewards), max_episode_steps=task.max_episode_steps,
+                            action_mode=task.action_mode, terminate_on_success=task.terminate_on_success)
+
+    if cfg.robot.fleet:
+        return tuple(spec(cfg.task_of(index)) for index in range(len(cfg.robot.fleet)))
+    return spec(cfg.task)
 
 
 def _net_spec(cfg: RealWorldSACConfig) -> SACNetSpec:
@@ -103,15 +110,26 @@ def _net_spec(cfg: RealWorldSACConfig) -> SACNetSpec:
                       log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key="state")
 
 
-def _robot_shape(described: list[dict]) -> dict:
-    """The robots' observation and action sizes; robots of one run must agree on them."""
-    shapes = {(d["obs_dim"], d["action_dim"], tuple(sorted(d["cameras"].items()))) for d in described}
-    if len(shapes) > 1:
-        listed = "; ".join(f"rank {i} {d['kind']}: obs {d['obs_dim']}, action {d['action_dim']}"
-                           for i, d in enumerate(described))
-        raise ConfigError(f"placement.robot: the robots differ in observation or action size ({listed}); one "
-                          "policy needs robots of one shape")
-    return described[0]
+def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
+    """Lay the robots out in the shared policy (:func:`~infinirl.realworld.robot_worker.policy_layouts`)
+    and return the policy's observation and action sizes and the recorded cameras."""
+    from infinirl.realworld.robot_worker import policy_layouts
+
+    if cfg.robot.fleet and len(cfg.robot.fleet) != robots.world_size:
+        raise ConfigError(f"robot.fleet has {len(cfg.robot.fleet)} entries but placement.robot="
+                          f"{cfg.placement['robot']!r} gives {robots.world_size} robot ranks; give one rank per entry")
+    described = robots.describe().wait()
+    if len({tuple(sorted(d["cameras"].items())) for d in described}) > 1:
+        raise ConfigError("task.cameras: the robots record different cameras; a run stores one set of camera fields")
+    layouts = policy_layouts(described)
+    robots.call_each("configure", [(layout,) for layout in layouts]).wait()
+    if layouts[0].num_embodiments > 1:
+        print("one policy for " + ", ".join(f"rank {i} {d['kind']} (obs {d['obs_dim']}, action {d['action_dim']})"
+                                            for i, d in enumerate(described))
+              + f": observations padded to {layouts[0].obs_dim} with a kind one-hot, actions to "
+                f"{layouts[0].action_dim}", flush=True)
+    return {"obs_dim": layouts[0].obs_dim, "action_dim": layouts[0].action_dim, "cameras": described[0]["cameras"],
+            "kinds": [d["kind"] for d in described]}
 
 
 def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
@@ -132,6 +150,19 @@ def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
     return RealWorldLearnerWorker, (net, update, loop, shape["obs_dim"], shape["action_dim"], cfg.learner.num_threads)
 
 
+def _per_kind(robots: list[dict]) -> dict:
+    """``rollout/<kind>/success_rate`` of the window's training episodes, when the run has several kinds."""
+    kinds = sorted({r["kind"] for r in robots})
+    if len(kinds) < 2:
+        return {}
+    metrics = {}
+    for kind in kinds:
+        episodes = [e for r in robots if r["kind"] == kind for e in r["episodes"]]
+        if episodes:
+            metrics[f"rollout/{kind}/success_rate"] = float(np.mean([e["success"] for e in episodes]))
+    return metrics
+
+
 class RealWorldSACFlow:
     """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
 
@@ -142,7 +173,8 @@ class RealWorldSACFlow:
         self.running = False
         self.owed_updates = 0.0  # sync mode: fractional updates carried to the next turn
         self.spec = LoopSpec(
-            name="realworld_sac", title=f"SAC ({cfg.pipeline.mode}) {cfg.robot.kind}", headline="eval/success_rate",
+            name="realworld_sac", headline="eval/success_rate",
+            title=f"SAC ({cfg.pipeline.mode}) {'+'.join(e.kind for e in cfg.robot.fleet) or cfg.robot.kind}",
             target=cfg.eval.target,
             progress=(ProgressField(label="succ", key="rollout/success_rate", format=".2f"),
                       ProgressField(label="eval", key="eval/success_rate", format=".2f"),
@@ -168,8 +200,8 @@ class RealWorldSACFlow:
                 held = self.learner.add_demonstrations(episodes).wait()[0]
                 print(f"recorded {len(episodes)} demonstration episodes ({held} in {self.cfg.output_dir}/demos)",
                       flush=True)
-        self.learner.status().wait()  # the rate of the first iteration counts from here
-        self._sync(self.learner.status().wait()[0]["version"], wait=True)
+        status = self.learner.status().wait()[0]  # the rate of the first iteration counts from here
+        self._sync(status["version"], wait=True)
         if self.cfg.pipeline.mode == "async":
             self.learner.start(self.channel).wait()
             self.robots.start(self.channel).wait()
@@ -201,7 +233,7 @@ class RealWorldSACFlow:
         else:
             status = self._sync_turns(deadline)
         robots = self.robots.stats().wait(timeout=60)
-        return self._metrics(status, robots, time.perf_counter() - started)
+        return {**self._metrics(status, robots, time.perf_counter() - started), **_per_kind(robots)}
 
     def _sync_turns(self, deadline: float) -> dict:
         """Collect one episode per robot, then update on it, until the window ends."""
@@ -248,8 +280,16 @@ class RealWorldSACFlow:
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self) -> dict:
-        result = self.robots.call("evaluate", self.cfg.eval.episodes, ranks=[0]).wait()[0]
-        return dict(result)
+        """``eval.episodes`` deterministic episodes on every robot at once; means over all of them
+        (and per robot kind when the run has several)."""
+        results = self.robots.evaluate(self.cfg.eval.episodes).wait()
+        kinds = self.robots.describe().wait()
+        merged = {key: float(np.mean([r[key] for r in results if key in r])) for key in results[0]}
+        if len({k["kind"] for k in kinds}) > 1:
+            for kind in sorted({k["kind"] for k in kinds}):
+                ours = [r for r, k in zip(results, kinds) if k["kind"] == kind and r]
+                merged[f"eval/{kind}/success_rate"] = float(np.mean([r["eval/success_rate"] for r in ours]))
+        return merged
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, folder: str) -> dict:

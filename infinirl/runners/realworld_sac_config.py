@@ -18,6 +18,16 @@ __all__ = ["RealWorldSACConfig"]
 
 
 @dataclass(kw_only=True)
+class FleetEntry:
+    kind: str
+    """Driver kind of this robot rank."""
+    options: dict[str, Any] = field(default_factory=dict)
+    """Keyword options of its driver."""
+    task: dict[str, Any] = field(default_factory=dict)
+    """Its task keys over the shared ``task`` section (e.g. its own observations and rewards)."""
+
+
+@dataclass(kw_only=True)
 class RobotConfig:
     kind: str = "sim_sawyer"
     """Driver kind (``infinirl robots --kinds``: sim_sawyer, sim_so101, so101_feetech, plugins). A rank
@@ -31,6 +41,11 @@ class RobotConfig:
     """Safety: hold the robot when no command came within this (None: off)."""
     heartbeat_deadline_s: float | None = bounded(2.0, gt=0)
     """Safety: stop the robot when its control loop gave no sign of life within this (None: off)."""
+    fleet: list[FleetEntry] = field(default_factory=list)
+    """Heterogeneous runs: one entry per robot rank (placement.robot gives as many ranks), each its own
+    kind, options and task keys; kind/options above are then unused. Robots of different shapes share
+    one policy: observations padded to the largest plus a one-hot of the robot kind, actions padded to
+    the largest (each robot executes its own first entries)."""
 
 
 @dataclass(kw_only=True)
@@ -89,7 +104,7 @@ class EvalConfig(EvalSchedule):
     at_start: bool = False
     """An evaluation of the untrained policy costs robot time; off by default."""
     episodes: int = bounded(5, ge=1)
-    """Episodes of the deterministic policy on robot rank 0 per evaluation (not stored, not trained on)."""
+    """Episodes of the deterministic policy on every robot per evaluation (not stored, not trained on)."""
     target: float | None = bounded(0.8, ge=0, le=1)
     """Success rate the summary reports the first evaluation reaching."""
 
@@ -132,6 +147,11 @@ class RealWorldSACConfig(RunConfig):
         from infinirl.realworld.robot_env import OBSERVATIONS, REWARDS
 
         _known(ROBOT_DRIVERS, [self.robot.kind], "robot.kind")
+        for index, entry in enumerate(self.robot.fleet):
+            _known(ROBOT_DRIVERS, [entry.kind], f"robot.fleet[{index}].kind")
+            task = self.task_of(index)
+            _known(OBSERVATIONS, task.observations, f"robot.fleet[{index}].task.observations")
+            _known(REWARDS, list(task.rewards), f"robot.fleet[{index}].task.rewards")
         _known(OBSERVATIONS, self.task.observations, "task.observations")
         _known(REWARDS, list(self.task.rewards), "task.rewards")
         if not self.task.observations:
@@ -151,6 +171,15 @@ class RealWorldSACConfig(RunConfig):
         if self.network.obs_key != "state":
             raise ConfigError(f"network.obs_key={self.network.obs_key!r}: robot observations are read from 'state'")
         self._check_placement()
+
+    def task_of(self, index: int) -> TaskConfig:
+        """The task of fleet entry ``index``: the shared section with the entry's keys over it."""
+        from dataclasses import asdict
+
+        from infinirl.config import to_dataclass
+
+        return to_dataclass(TaskConfig, {**asdict(self.task), **self.robot.fleet[index].task},
+                            f"robot.fleet[{index}].task")
 
     def _check_placement(self) -> None:
         from infinirl.runtime.placement import parse_spec

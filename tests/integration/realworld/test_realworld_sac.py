@@ -127,3 +127,36 @@ def test_killed_run_resumes_with_every_stored_episode(tmp_path):
     assert "resumed from" in resumed.stdout
     summary = json.loads(resumed.stdout.strip().splitlines()[-1])
     assert summary["replay_episodes"] >= at_kill  # every committed episode is still there
+
+
+def test_two_embodiments_feed_one_policy_and_one_store(ray_cluster, tmp_path):
+    fleet = [{"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 50.0, "image_size": None}},
+             {"kind": "sim_so101", "options": {"control_hz": 50.0, "image_size": None},
+              "task": {"observations": ["proprio", "block_position", "last_action"],
+                       "rewards": {"block_distance": 1.0, "success": 1.0}}}]
+    summary = run(make_cfg(tmp_path / "fleet", 1, robot={"fleet": fleet},
+                           task={"observations": ["proprio", "sim_state", "last_action"], "max_episode_steps": 20},
+                           placement={"robot": "0-1"}, eval={"every": 0, "episodes": 1}))
+    assert summary["replay_episodes"] >= 2
+    store = ReplayStore(str(tmp_path / "fleet" / "replay"), writable=False)
+    try:
+        states = np.concatenate([store.episode(i)["state"] for i in range(store.num_episodes)])
+        actions = np.concatenate([store.episode(i)["action"] for i in range(store.num_episodes)])
+    finally:
+        store.close()
+    # Sawyer: 4 proprio + 39 sim state + 4 last action = 47; SO-101: 6 + 3 + 6 = 15; padded to 47 + a 2-kind one-hot.
+    assert states.shape[1] == 49 and actions.shape[1] == 6
+    kinds = {tuple(row) for row in states[:, -2:]}
+    assert kinds == {(1.0, 0.0), (0.0, 1.0)}  # both robots' steps, each marked with its kind
+    sawyer_rows = states[states[:, -2] == 1.0]
+    assert np.all(sawyer_rows[:, 47:] == [1.0, 0.0])
+    so101_rows = states[states[:, -1] == 1.0]
+    assert np.all(so101_rows[:, 15:47] == 0.0)  # zeros between the SO-101's own entries and the one-hot
+    row = rows_of(tmp_path / "fleet" / "metrics.jsonl")[-1]
+    assert "eval/sim_sawyer/success_rate" in row and "eval/sim_so101/success_rate" in row
+
+
+def test_fleet_size_must_match_the_robot_ranks(ray_cluster, tmp_path):
+    with pytest.raises(ConfigError, match="robot.fleet has 1 entries"):
+        run(make_cfg(tmp_path / "bad_fleet", 1, robot={"fleet": [{"kind": "sim_sawyer", "options": {
+            "image_size": None}}]}, placement={"robot": "0-1"}))
