@@ -107,7 +107,7 @@ def test_killed_run_resumes_with_every_stored_episode(tmp_path):
                "loggers=[]", "save_every=1", "pipeline.iteration_s=2", "task.max_episode_steps=20",
                "robot.options.control_hz=50.0", "algorithm.batch_size=32", "algorithm.learning_starts=40",
                "network.actor_hidden=[32,32]", "network.critic_hidden=[32,32]", "pipeline.durable=false",
-               "eval.every=0", "eval.episodes=1", "cluster.log_to_driver=false"]
+               "eval.every=0", "eval.episodes=1", "demos.episodes=2", "cluster.log_to_driver=false"]
     first = subprocess.Popen([*command, "iterations=50"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                              start_new_session=True)  # its own process group: the kill takes its Ray processes too
     try:
@@ -125,6 +125,7 @@ def test_killed_run_resumes_with_every_stored_episode(tmp_path):
     resumed = subprocess.run([*command, "iterations=4"], capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert "resumed from" in resumed.stdout
+    assert "recorded" not in resumed.stdout  # the demonstrations store survived the kill too
     summary = json.loads(resumed.stdout.strip().splitlines()[-1])
     assert summary["replay_episodes"] >= at_kill  # every committed episode is still there
 
