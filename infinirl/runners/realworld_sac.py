@@ -55,6 +55,7 @@ def run(cfg: RealWorldSACConfig) -> dict:
         with Cluster(with_driver_discovery(cfg.cluster)) as cluster:
             plan = plan_placement(cluster.inventory, cfg)
             print(plan.describe(), flush=True)
+            _check_fleet(cfg, len(plan.ranks("robot")))
             from infinirl.realworld.robot_worker import RobotActorWorker
 
             # Created first: its actor starts while the robots connect, not on a robot's time.
@@ -75,6 +76,13 @@ def run(cfg: RealWorldSACConfig) -> dict:
                 for group in groups.values():
                     group.shutdown()
                 channel.destroy()
+
+
+def _check_fleet(cfg: RealWorldSACConfig, robot_ranks: int) -> None:
+    fleet = cfg.robot.fleet
+    if fleet and len(fleet) != robot_ranks:
+        raise ConfigError(f"robot.fleet has {len(fleet)} entries but placement.robot={cfg.placement['robot']!r} gives "
+                          f"{robot_ranks} robot ranks; give one rank per entry")
 
 
 def _robot_setup(cfg: RealWorldSACConfig):
@@ -115,9 +123,6 @@ def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
     and return the policy's observation and action sizes and the recorded cameras."""
     from infinirl.realworld.robot_worker import policy_layouts
 
-    if cfg.robot.fleet and len(cfg.robot.fleet) != robots.world_size:
-        raise ConfigError(f"robot.fleet has {len(cfg.robot.fleet)} entries but placement.robot="
-                          f"{cfg.placement['robot']!r} gives {robots.world_size} robot ranks; give one rank per entry")
     described = robots.describe().wait()
     if len({tuple(sorted(d["cameras"].items())) for d in described}) > 1:
         raise ConfigError("task.cameras: the robots record different cameras; a run stores one set of camera fields")
