@@ -116,6 +116,10 @@ def main(argv: list[str] | None = None) -> int:
         from infinirl.data.demos import demos_command
 
         return demos_command(args)
+    if args.command == "robots":
+        from infinirl.realworld.discovery import robots_command
+
+        return robots_command(args.overrides, args.address, args.kinds)
     if args.command == "list":
         runners = _runners()
         print("configs:", ", ".join(available_configs()))
@@ -162,6 +166,11 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
                        help=f"config name (default: {default}). Available: {', '.join(names)}")
         p.add_argument("overrides", nargs="*", help=f"key=value overrides, e.g. {example}")
     sub.add_parser("list", help="list configs and runners")
+    robots = sub.add_parser("robots", help="the robots each node of the cluster reaches (robot:N of placements)")
+    robots.add_argument("overrides", nargs="*", help="where to look, kind.option=value: sim_sawyer.instances=2, "
+                                                     "so101_feetech.ports=[/dev/ttyACM0]")
+    robots.add_argument("--address", default=None, help="join this Ray cluster (default: a local one)")
+    robots.add_argument("--kinds", action="store_true", help="list the registered driver kinds and exit")
     record = sub.add_parser("record", help="append a finished run's summary (or a benchmark's JSON file) to the "
                                            "results file, with its command, host and date")
     record.add_argument("source", help="a run's output_dir (its summary.json) or a JSON file")

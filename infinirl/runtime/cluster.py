@@ -57,6 +57,9 @@ class ClusterConfig:
     """TCP probe timeout for ``address=host:port``: an unreachable head fails fast instead of hanging."""
     robot_plugins: dict[str, dict] = field(default_factory=dict)
     """Robot discovery plugins to run on every node, e.g. ``{"simulated": {"count": 1}}``. None by default."""
+    robot_plugin_modules: list[str] = field(default_factory=list)
+    """Modules imported on every node before discovery, to register robot plugins defined outside the
+    runtime (e.g. ``infinirl.realworld.discovery`` for the ``drivers`` plugin)."""
     log_to_driver: bool = True
     """Stream worker stdout/stderr to the driver (progress of remote components)."""
 
@@ -164,7 +167,7 @@ class Cluster:
                 scheduling_strategy=NodeAffinitySchedulingStrategy(node["NodeID"], soft=False),
                 runtime_env={"env_vars": worker_env()},
             )
-            probes.append(task.remote(self.config.robot_plugins))
+            probes.append(task.remote(self.config.robot_plugins, list(self.config.robot_plugin_modules)))
         found = ray.get(probes)
         inventory_nodes = []
         seen_robot_names: set[str] = set()

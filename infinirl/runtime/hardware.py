@@ -7,7 +7,8 @@ driver adds one function here or in its own module, never an if/elif in the clus
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import importlib
+from collections.abc import Callable, Iterable
 
 from infinirl.runtime.inventory import Accelerator, Robot
 
@@ -16,6 +17,8 @@ RobotDiscoverer = Callable[[dict], list[Robot]]
 
 _ACCELERATOR_DISCOVERERS: dict[str, AcceleratorDiscoverer] = {}
 _ROBOT_DISCOVERERS: dict[str, RobotDiscoverer] = {}
+ROBOT_DISCOVERER_ENTRY_POINTS = "infinirl.robot_discoverers"
+"""Entry-point group of robot discoverers: installed packages register one without an import here."""
 
 
 def register_accelerator_discoverer(name: str):
@@ -66,19 +69,37 @@ def _discover_simulated_robots(options: dict) -> list[Robot]:
     ]
 
 
-def discover_node(robot_plugins: dict[str, dict] | None = None) -> dict:
-    """Run every accelerator discoverer and the requested robot plugins on *this* node."""
+def _load_robot_discoverer(name: str) -> None:
+    """Import the entry point named ``name`` in :data:`ROBOT_DISCOVERER_ENTRY_POINTS`, if any (its
+    module registers the discoverer on import)."""
+    from importlib import metadata
+
+    for entry in metadata.entry_points(group=ROBOT_DISCOVERER_ENTRY_POINTS):
+        if entry.name == name:
+            entry.load()
+
+
+def discover_node(robot_plugins: dict[str, dict] | None = None, plugin_modules: Iterable[str] = ()) -> dict:
+    """Run every accelerator discoverer and the requested robot plugins on *this* node.
+
+    ``plugin_modules`` are imported first: modules that register robot discoverers (this runs in a
+    fresh task process on each node, where nothing above the runtime has been imported)."""
     import os
     import socket
 
+    for module in plugin_modules:
+        importlib.import_module(module)
     accelerators: list[Accelerator] = []
     for discover in _ACCELERATOR_DISCOVERERS.values():
         accelerators.extend(discover())
     robots: list[Robot] = []
     for name, options in (robot_plugins or {}).items():
         if name not in _ROBOT_DISCOVERERS:
+            _load_robot_discoverer(name)
+        if name not in _ROBOT_DISCOVERERS:
             raise KeyError(
-                f"unknown robot plugin '{name}'; registered: {', '.join(robot_discoverer_names())}"
+                f"unknown robot plugin '{name}'; registered: {', '.join(robot_discoverer_names())} (a plugin "
+                f"from another package: add its module to cluster.robot_plugin_modules)"
             )
         for robot in _ROBOT_DISCOVERERS[name](options or {}):
             robots.append(

@@ -1,0 +1,294 @@
+"""The real-world learner: SAC updates from a persistent replay store, weights published by version.
+
+:class:`RealWorldLearnerWorker` owns a :class:`~infinirl.components.sac_learner.SACAgent` and the
+run's :class:`~infinirl.realworld.replay.ReplayStore` (on disk under the run's output folder, so no
+episode that reached the learner is lost by a crash), and optionally a second store of
+demonstrations (RLPD: each mini-batch is ``demo_fraction`` demonstrations, the rest online data).
+
+* **asynchronous** (:meth:`start`): an ingest thread takes the episodes the robots put on the
+  channel and appends them to the store; a training thread updates continuously once
+  ``learning_starts`` transitions are stored, never waiting for new data (``max_updates_per_step`` optionally caps the
+  updates per stored transition). Every ``publish_every`` updates it snapshots the actor as a new
+  version; the driver moves the newest snapshot to the robots (:meth:`weights_for_sync`);
+* **synchronous** (:meth:`add_and_update`): the same ingest and update code, called by the driver
+  between collections.
+
+**Staleness.** When an episode arrives, the lag of each policy step is the number of versions
+published since the one that chose it. With ``max_staleness`` set, an episode whose largest lag
+exceeds it is dropped (``staleness_action="drop"``, counted) or kept and only counted (``"log"``).
+
+**Checkpoints** hold the agent (weights, optimisers, generator, update count), the store's sampler
+state and the version; the store itself is already on disk and is reopened on resume, with every
+episode appended after the checkpoint still in it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from infinirl.components.sac_learner import SACAgent, SACNetSpec, SACUpdateSpec
+from infinirl.realworld.episodes import episode_spec, staleness_of
+from infinirl.realworld.replay import ReplayStore, SamplingSpec, StoreOptions
+from infinirl.realworld.robot_worker import VERSION_TENSOR, unit_box
+from infinirl.runtime import ChannelClosed, WeightSource, Worker
+from infinirl.utils.atomic import torch_save_atomic
+
+__all__ = ["LearnerLoopSpec", "RealWorldLearnerWorker"]
+
+logger = logging.getLogger(__name__)
+
+_CHECKPOINT = "learner.pt"
+_TAKE_ALL = 1e12  # channel weight target: every waiting episode
+_INGEST_WAIT_S = 0.1  # one look for episodes gathers what arrives within this
+_IDLE_WAIT_S = 0.02  # nothing to update yet: how long the training thread waits before it looks again
+
+
+@dataclass(frozen=True, kw_only=True)
+class LearnerLoopSpec:
+    """How the learner trains between the robots (documented on the runner's config fields)."""
+
+    replay_dir: str
+    demo_dir: str | None = None
+    demo_fraction: float = 0.0
+    learning_starts: int = 500
+    publish_every: int = 20
+    max_staleness: int | None = None
+    staleness_action: Literal["drop", "log"] = "drop"
+    max_updates_per_step: float | None = None
+    durable: bool = True
+    cameras: dict | None = None
+
+
+class RealWorldLearnerWorker(Worker, WeightSource):
+    """SAC on a persistent replay store (see the module docstring)."""
+
+    def __init__(self, net: SACNetSpec, update: SACUpdateSpec, loop: LearnerLoopSpec, obs_dim: int, action_dim: int,
+                 num_threads: int = 1):
+        if num_threads:
+            torch.set_num_threads(num_threads)
+        torch.set_flush_denormal(True)  # see SACLearnerWorker: denormals take a slow path on x86
+        self.loop, self.spec = loop, update
+        self.agent = SACAgent(net, update, obs_dim, unit_box(action_dim))
+        fields = episode_spec(obs_dim, action_dim, loop.cameras)
+        options = StoreOptions(durable=loop.durable)
+        self.store = ReplayStore(loop.replay_dir, fields, options=options,
+                                 sampling=SamplingSpec(seed=int(np.random.SeedSequence([update.seed, 0x5A]).
+                                                                generate_state(1)[0])))
+        self.demos = None
+        if loop.demo_dir is not None:
+            self.demos = ReplayStore(loop.demo_dir, fields, options=options,
+                                     sampling=SamplingSpec(seed=int(np.random.SeedSequence([update.seed, 0xDE]).
+                                                                    generate_state(1)[0])))
+        self.version = 0
+        self._snapshot = self._snap()
+        self._lock = threading.RLock()  # one of: an update, an ingest, a checkpoint, a snapshot read
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._channel = None
+        self._error: BaseException | None = None
+        self._counts: dict[str, float] = defaultdict(float)
+        self._metric_sums: dict[str, float] = defaultdict(float)
+        self._metric_counts: dict[str, int] = defaultdict(int)
+        self._updates_reported = 0
+        self._reported_at = time.perf_counter()
+
+    # ---------------------------------------------------------------- data in
+    def _ingest(self, episodes: list[dict]) -> None:
+        with self._lock:
+            for episode in episodes:
+                lag = staleness_of(episode["version"], self.version)
+                self._counts["policy_steps"] += lag.policy_steps
+                self._counts["lag_sum"] += lag.lag_sum
+                self._counts["lag_max"] = max(self._counts["lag_max"], lag.lag_max)
+                if lag.exceeds(self.loop.max_staleness):
+                    self._counts["stale_episodes"] += 1
+                    self._counts["stale_steps"] += len(episode["action"])
+                    if self.loop.staleness_action == "drop":
+                        self._counts["dropped_episodes"] += 1
+                        self._counts["dropped_steps"] += len(episode["action"])
+                        continue
+                self.store.append(episode)
+                self._counts["episodes"] += 1
+                self._counts["steps"] += len(episode["action"])
+
+    def add_demonstrations(self, episodes: list[dict]) -> int:
+        """Append demonstrations to the demo store; returns how many it holds."""
+        if self.demos is None:
+            raise RuntimeError("this learner has no demonstrations store (demos are off in the config)")
+        with self._lock:
+            for episode in episodes:
+                self.demos.append(episode)
+            return self.demos.num_episodes
+
+    def demo_episodes(self) -> int:
+        return 0 if self.demos is None else self.demos.num_episodes
+
+    # ---------------------------------------------------------------- updates
+    def _can_update(self) -> bool:
+        if len(self.store) < max(self.loop.learning_starts, 1):
+            return False
+        cap = self.loop.max_updates_per_step
+        return cap is None or self.agent.updates < cap * len(self.store)
+
+    def _sample(self) -> dict[str, torch.Tensor]:
+        size = self.spec.batch_size
+        n_demo = int(round(size * self.loop.demo_fraction)) if self.demos is not None and len(self.demos) else 0
+        parts = [self.store.sample(size - n_demo)]
+        if n_demo:
+            parts.append(self.demos.sample(n_demo))
+        rows = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+        return {"obs": torch.from_numpy(rows["obs.state"]), "next_obs": torch.from_numpy(rows["next_obs.state"]),
+                "action": torch.from_numpy(rows["action"]), "reward": torch.from_numpy(rows["reward"]),
+                "terminated": torch.from_numpy(rows["terminated"])}
+
+    def _update_once(self) -> None:
+        with self._lock:
+            metrics = self.agent.update(self._sample())
+            for key, value in metrics.items():
+                self._metric_sums[key] += float(value)
+                self._metric_counts[key] += 1
+            if self.agent.updates % self.loop.publish_every == 0:
+                self.publish()
+
+    def _snap(self) -> list[tuple[str, torch.Tensor]]:
+        state = [(name, tensor.detach().clone()) for name, tensor in self.agent.actor.state_dict().items()]
+        return [*state, (VERSION_TENSOR, torch.tensor([self.version], dtype=torch.int64))]
+
+    def add_and_update(self, episodes: list[dict], num_updates: int, publish: bool = False) -> int:
+        """Synchronous mode: store ``episodes``, then run up to ``num_updates`` updates (none before
+        ``learning_starts``); with ``publish``, the actor after them becomes a new version (the
+        next collection uses exactly these weights). Returns the published version (the metrics
+        accumulate for :meth:`status`)."""
+        self._ingest(episodes)
+        done = 0
+        for _ in range(num_updates):
+            if len(self.store) < max(self.loop.learning_starts, 1):
+                break
+            self._update_once()
+            done += 1
+        if publish and done:
+            self.publish()
+        return self.version
+
+    def publish(self) -> int:
+        """Snapshot the actor as a new version now; returns the version."""
+        with self._lock:
+            self.version += 1
+            self._snapshot = self._snap()
+            return self.version
+
+    def published_version(self) -> int:
+        return self.version
+
+    # ---------------------------------------------------------------- asynchronous
+    def start(self, channel, key: str = "episodes") -> None:
+        """Train on a thread of its own while an ingest thread stores what arrives on ``channel``."""
+        if self._threads:
+            return
+        self._stop.clear()
+        self._channel = (channel, key)
+        self._threads = [threading.Thread(target=self._guarded, args=(self._ingest_loop, channel, key),
+                                          name="learner-ingest", daemon=True),
+                         threading.Thread(target=self._guarded, args=(self._train_loop,), name="learner-train",
+                                          daemon=True)]
+        for thread in self._threads:
+            thread.start()
+
+    def _guarded(self, loop, *args) -> None:
+        try:
+            loop(*args)
+        except BaseException as exc:
+            logger.exception("learner thread %s failed", threading.current_thread().name)
+            self._error = self._error or exc
+            self._stop.set()
+
+    def _ingest_loop(self, channel, key: str) -> None:
+        while not self._stop.is_set():
+            try:  # every episode waiting, and those arriving within the wait
+                episodes = channel.get_batch(_TAKE_ALL, key=key, timeout=_INGEST_WAIT_S)
+            except TimeoutError:
+                continue
+            except ChannelClosed:
+                return
+            self._ingest(episodes)
+
+    def _train_loop(self) -> None:
+        while not self._stop.is_set():
+            if self._can_update():
+                self._update_once()
+            else:
+                self._stop.wait(_IDLE_WAIT_S)
+
+    def stop(self) -> dict:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(60.0)
+        self._threads = []
+        if self._channel is not None:  # what the robots sent before they stopped is stored, not lost
+            channel, key = self._channel
+            self._channel = None
+            try:
+                self._ingest(channel.get_batch(_TAKE_ALL, key=key, timeout=_INGEST_WAIT_S))
+            except (TimeoutError, ChannelClosed):
+                pass
+        return self.status()
+
+    # ---------------------------------------------------------------- reporting
+    def status(self) -> dict:
+        """Version, counters and the updates' mean metrics since the last call."""
+        if self._error is not None:
+            raise RuntimeError(f"learner training thread failed: {self._error!r}") from self._error
+        with self._lock:
+            now = time.perf_counter()
+            updates = self.agent.updates
+            metrics = {key: self._metric_sums[key] / self._metric_counts[key] for key in self._metric_sums}
+            self._metric_sums.clear()
+            self._metric_counts.clear()
+            counts = dict(self._counts)
+            rate = (updates - self._updates_reported) / max(now - self._reported_at, 1e-9)
+            self._updates_reported, self._reported_at = updates, now
+            return {"version": self.version, "updates": updates, "updates_per_s": rate,
+                    "store_transitions": len(self.store), "store_episodes": self.store.num_episodes,
+                    "demo_transitions": 0 if self.demos is None else len(self.demos), "counts": counts,
+                    "metrics": metrics}
+
+    # ---------------------------------------------------------------- weights / state
+    def weights_for_sync(self):
+        with self._lock:
+            return list(self._snapshot)
+
+    def save_checkpoint(self, path: str) -> None:
+        with self._lock:
+            state: dict[str, Any] = {"agent": self.agent.state_dict(), "store": self.store.state_dict(),
+                                     "version": self.version, "counts": dict(self._counts)}
+            if self.demos is not None:
+                state["demos"] = self.demos.state_dict()
+            torch_save_atomic(state, os.path.join(path, _CHECKPOINT))
+
+    def load_checkpoint(self, path: str) -> None:
+        state = torch.load(os.path.join(path, _CHECKPOINT), map_location="cpu", weights_only=False)
+        with self._lock:
+            self.agent.load_state_dict(state["agent"])
+            self.store.load_state_dict(state["store"])
+            if self.demos is not None and "demos" in state:
+                self.demos.load_state_dict(state["demos"])
+            self.version = int(state["version"])
+            self._counts.update(state["counts"])
+            self._snapshot = self._snap()
+            self._updates_reported = self.agent.updates
+
+    def close(self) -> None:
+        self.stop()
+        with self._lock:
+            self.store.close()
+            if self.demos is not None:
+                self.demos.close()

@@ -1,0 +1,260 @@
+"""A robot driver as an RL environment: observations, normalised actions, rewards, episode ends.
+
+:class:`RobotEnv` wraps one :class:`~infinirl.realworld.driver.RobotDriver` (simulated or real;
+normally a :class:`~infinirl.realworld.safety.SafeRobot`, so every command passes the safety
+filter) and gives the learning code what it expects of an environment:
+
+* **observation**: ``{"state": float32 vector, "pixels.<camera>": uint8 HxWx3, ...}``. The state
+  concatenates the :data:`OBSERVATIONS` sources the spec names, in order (``proprio``: the robot's
+  present target, joints or end effector, then the gripper; ``sim_state``: what a simulator alone
+  knows, e.g. MetaWorld's object and goal positions; ``last_action``: the previous action).
+  Cameras the spec names come as pixels;
+* **action**: a vector in ``[-1, 1]`` of ``spec.command_size`` entries. ``action_mode="delta"``
+  moves the arm's target (joints or end effector) by ``action * max_step`` from the last target,
+  where ``max_step`` is the motion the safety filter allows per control period; ``"absolute"``
+  maps the action affinely onto the spec's command bounds. The gripper entry is always absolute
+  (``-1`` closed, ``1`` open). The command is clipped to the spec's command bounds;
+* **pace**: one :meth:`RobotEnv.step` is one control period in wall-clock time: the env sleeps
+  until the period after the previous step ends (a late step is not made up for), then observes;
+* **reward**: a weighted sum of :data:`REWARDS` components over the observation after the step
+  (``success``: the simulator's ``info["success"]``; ``goal_distance`` / ``block_distance``: minus
+  the end effector's distance to the goal or the cube, where the simulator reports them);
+* **episode end**: success (``terminated``, when ``terminate_on_success``) or
+  ``max_episode_steps`` (``truncated``: the value still bootstraps). ``reset`` goes through the
+  driver and takes its wall-clock time.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from infinirl.realworld.driver import RobotDriver, RobotObservation, RobotSpec
+from infinirl.realworld.safety import SafetyConfig
+from infinirl.registry import Registry
+
+__all__ = ["OBSERVATIONS", "REWARDS", "ObservationSource", "RewardComponent", "RobotEnv", "RobotEnvSpec",
+           "RobotStep", "action_to_command"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ObservationSource:
+    """One part of the state vector: ``read(env, observation)`` (``env`` is the :class:`RobotEnv`:
+    its ``robot_spec``, and ``last_action``, the normalised action of the previous step)."""
+
+    read: Callable[[Any, RobotObservation], np.ndarray]
+    description: str = ""
+
+
+@dataclass(frozen=True, kw_only=True)
+class RewardComponent:
+    """``reward(observation) -> float``; ``needs`` names the ``info`` key a simulator must report."""
+
+    reward: Callable[[RobotObservation], float]
+    needs: str | None = None
+    description: str = ""
+
+
+OBSERVATIONS: Registry[ObservationSource] = Registry("robot observation source")
+REWARDS: Registry[RewardComponent] = Registry("robot reward component")
+
+
+def _info(observation: RobotObservation, key: str, what: str) -> Any:
+    if key not in observation.info:
+        raise KeyError(f"{what} needs info[{key!r}], which this robot does not report (a simulator-only fact)")
+    return observation.info[key]
+
+
+def _proprio(env: RobotEnv, observation: RobotObservation) -> np.ndarray:
+    spec = env.robot_spec
+    target = observation.current_target(spec)
+    if target is None:
+        raise KeyError(f"{spec.kind} reports no {spec.control_mode} state, so observation 'proprio' is unknown")
+    return target
+
+
+OBSERVATIONS.add("proprio", ObservationSource(read=_proprio, description="present target (joints or ee) + gripper"))
+OBSERVATIONS.add("ee_position", ObservationSource(
+    read=lambda env, o: np.asarray(o.ee_position if o.ee_position is not None else _info(o, "ee_position", "ee"),
+                                    np.float64), description="end-effector xyz"))
+OBSERVATIONS.add("sim_state", ObservationSource(
+    read=lambda env, o: np.asarray(_info(o, "state", "observation 'sim_state'"), np.float64),
+    description="the simulator's task state (MetaWorld: hand, objects, goal)"))
+OBSERVATIONS.add("block_position", ObservationSource(
+    read=lambda env, o: np.asarray(_info(o, "block_position", "observation 'block_position'"), np.float64),
+    description="the SO-101 scene's cube position"))
+OBSERVATIONS.add("last_action", ObservationSource(
+    read=lambda env, o: env.last_action,
+    description="the previous step's normalised action (zeros after a reset): a command's effect shows a "
+                "control period or more later, so the policy needs to know what it already asked for"))
+
+
+def _goal_distance(observation: RobotObservation) -> float:
+    state = np.asarray(_info(observation, "state", "reward 'goal_distance'"), np.float64)
+    return -float(np.linalg.norm(state[:3] - state[-3:]))  # MetaWorld: hand first, goal last
+
+
+def _block_distance(observation: RobotObservation) -> float:
+    block = np.asarray(_info(observation, "block_position", "reward 'block_distance'"), np.float64)
+    return -float(np.linalg.norm(np.asarray(observation.ee_position, np.float64) - block))
+
+
+REWARDS.add("success", RewardComponent(reward=lambda o: float(bool(_info(o, "success", "reward 'success'"))),
+                                       needs="success", description="1 when the simulator reports success"))
+REWARDS.add("goal_distance", RewardComponent(reward=_goal_distance, needs="state",
+                                             description="minus the hand-goal distance (MetaWorld state)"))
+REWARDS.add("block_distance", RewardComponent(reward=_block_distance, needs="block_position",
+                                              description="minus the gripper-cube distance (SO-101 scene)"))
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobotEnvSpec:
+    """How a robot becomes an environment (see the module docstring)."""
+
+    observations: tuple[str, ...] = ("proprio",)
+    cameras: tuple[str, ...] = ()
+    rewards: Mapping[str, float] = field(default_factory=lambda: {"success": 1.0})
+    max_episode_steps: int = 100
+    action_mode: Literal["delta", "absolute"] = "delta"
+    terminate_on_success: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "observations", tuple(self.observations))
+        object.__setattr__(self, "cameras", tuple(self.cameras))
+        object.__setattr__(self, "rewards", dict(self.rewards))
+        for name in self.observations:
+            OBSERVATIONS.get(name)  # unknown names fail listing the registered ones
+        for name in self.rewards:
+            REWARDS.get(name)
+        if not self.observations:
+            raise ValueError("RobotEnvSpec.observations: name at least one source, e.g. ['proprio']")
+        if self.max_episode_steps < 1:
+            raise ValueError(f"RobotEnvSpec.max_episode_steps must be >= 1, got {self.max_episode_steps}")
+        if self.action_mode not in ("delta", "absolute"):
+            raise ValueError(f"RobotEnvSpec.action_mode must be 'delta' or 'absolute', got {self.action_mode!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobotStep:
+    """What one :meth:`RobotEnv.step` returns."""
+
+    obs: dict[str, np.ndarray]
+    reward: float
+    terminated: bool
+    truncated: bool
+    success: bool
+    late: bool
+    """The step ran past its control period (the policy or the link was too slow)."""
+
+
+def max_target_step(spec: RobotSpec, safety: SafetyConfig) -> np.ndarray:
+    """The largest move of the target entries per control period that the safety filter lets through."""
+    if spec.control_mode == "joint_position":
+        return spec.max_joint_velocity * safety.velocity_scale * spec.control_period_s
+    return np.full(spec.target_size, spec.max_ee_speed * safety.velocity_scale * spec.control_period_s)
+
+
+def action_to_command(action: np.ndarray, reference: np.ndarray, spec: RobotSpec, mode: str,
+                      max_step: np.ndarray) -> np.ndarray:
+    """The command for a normalised ``action`` in ``[-1, 1]`` (see the module docstring); ``reference``
+    is the last command sent (or the present target)."""
+    action = np.clip(np.asarray(action, np.float64).reshape(-1), -1.0, 1.0)
+    if action.shape != (spec.command_size,):
+        raise ValueError(f"{spec.kind}: an action has {spec.command_size} entries in [-1, 1], got {action.shape}")
+    low, high = spec.action_low, spec.action_high
+    absolute = low + (action + 1.0) / 2.0 * (high - low)
+    if mode == "absolute":
+        return absolute
+    size = spec.target_size
+    command = absolute.copy()  # the gripper stays absolute
+    command[:size] = np.clip(reference[:size] + action[:size] * max_step, low[:size], high[:size])
+    return command
+
+
+class RobotEnv:
+    """One robot as an episodic environment (see the module docstring). Not thread-safe: one
+    thread steps it. ``robot`` must be connected."""
+
+    def __init__(self, robot: RobotDriver, spec: RobotEnvSpec, safety: SafetyConfig | None = None) -> None:
+        self.robot, self.spec = robot, spec
+        self.robot_spec = robot.spec
+        cameras = {camera.name for camera in self.robot_spec.cameras}
+        missing = [name for name in spec.cameras if name not in cameras]
+        if missing:
+            raise ValueError(f"{self.robot_spec.kind} has cameras {sorted(cameras)}; it has no {missing}")
+        self.max_step = max_target_step(self.robot_spec, safety or getattr(robot, "config", SafetyConfig()))
+        self._reference: np.ndarray | None = None
+        self.last_observation: RobotObservation | None = None
+        self.last_action = np.zeros(self.robot_spec.command_size)
+        self._next_step_at = 0.0
+        self.steps = 0
+        self.episode_return = 0.0
+        self.late_steps = 0
+
+    @property
+    def action_dim(self) -> int:
+        return self.robot_spec.command_size
+
+    def observation_size(self) -> int:
+        """Entries of ``obs["state"]`` (reads the robot's present observation)."""
+        return int(self._state(self.robot.observe()).shape[0])
+
+    def reset(self) -> dict[str, np.ndarray]:
+        observation = self.last_observation = self.robot.reset()
+        self._heartbeat()
+        self._reference = observation.current_target(self.robot_spec)
+        self._next_step_at = time.monotonic() + self.robot_spec.control_period_s
+        self.steps, self.episode_return = 0, 0.0
+        self.last_action = np.zeros(self.robot_spec.command_size)
+        return self._obs(observation)
+
+    def step(self, action: np.ndarray) -> RobotStep:
+        if self._reference is None:
+            raise RuntimeError("RobotEnv.step before reset()")
+        command = action_to_command(action, self._reference, self.robot_spec, self.spec.action_mode, self.max_step)
+        self.robot.act(command)
+        self._reference = command
+        self.last_action = np.clip(np.asarray(action, np.float64).reshape(-1), -1.0, 1.0)
+        self._heartbeat()
+        late = self._wait_for_period()
+        observation = self.last_observation = self.robot.observe()
+        reward = sum(weight * REWARDS.get(name).reward(observation) for name, weight in self.spec.rewards.items())
+        success = bool(observation.info.get("success", False))
+        self.steps += 1
+        self.episode_return += reward
+        terminated = success and self.spec.terminate_on_success
+        truncated = not terminated and self.steps >= self.spec.max_episode_steps
+        return RobotStep(obs=self._obs(observation), reward=float(reward), terminated=terminated, truncated=truncated,
+                         success=success, late=late)
+
+    def _wait_for_period(self) -> bool:
+        period = self.robot_spec.control_period_s
+        now = time.monotonic()
+        late = now > self._next_step_at
+        if late:  # never catch up: the next period starts now
+            self.late_steps += 1
+            self._next_step_at = now + period
+            return True
+        time.sleep(self._next_step_at - now)
+        self._next_step_at += period
+        return False
+
+    def _heartbeat(self) -> None:
+        beat = getattr(self.robot, "heartbeat", None)
+        if beat is not None:
+            beat()
+
+    def _state(self, observation: RobotObservation) -> np.ndarray:
+        parts = [np.asarray(OBSERVATIONS.get(name).read(self, observation), np.float64).reshape(-1)
+                 for name in self.spec.observations]
+        return np.concatenate(parts).astype(np.float32)
+
+    def _obs(self, observation: RobotObservation) -> dict[str, np.ndarray]:
+        obs = {"state": self._state(observation)}
+        for name in self.spec.cameras:
+            obs[f"pixels.{name}"] = np.asarray(observation.frames[name], np.uint8)
+        return obs

@@ -1,0 +1,345 @@
+"""The robot worker: one robot, the policy's inference copy, and the control loop that never waits.
+
+:class:`RobotActorWorker` is one rank of the ``robot`` component. It builds its driver where it
+runs (with ``make_robot(kind, **options)``: the kind and options of the robot its placement gave it
+when the cluster discovered one, else the config's), wraps it in the safety layer and a
+:class:`~infinirl.realworld.robot_env.RobotEnv`, and acts in one of two ways:
+
+* **asynchronous** (:meth:`start`): a control thread runs episodes back to back at the robot's own
+  rate. Before each step it loads the newest weights the learner has staged on this rank (a sync
+  with ``interrupt=True`` lands beside the running loop, never in its way), so it acts with the
+  latest policy it has and never waits for one. Each finished episode goes to a sender thread that
+  puts it on the learner's channel: a slow channel delays delivery, not the robot;
+* **synchronous** (:meth:`collect`): the call runs whole episodes and returns them (collect, then
+  update: the baseline the asynchronous pipeline is measured against).
+
+Every step records the policy version that chose its action (:mod:`~infinirl.realworld.episodes`);
+until the first trained weights arrive, actions are uniform in ``[-1, 1]`` (warm-up, version -1).
+A safety stop during an episode ends it (kept, not terminated) and the next reset re-arms the robot.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import torch
+
+from infinirl.realworld.driver import RobotError, RobotStoppedError, make_robot
+from infinirl.realworld.episodes import RANDOM_VERSION, EpisodeRecorder
+from infinirl.realworld.robot_env import RobotEnv, RobotEnvSpec
+from infinirl.realworld.safety import SafeRobot, SafetyConfig
+from infinirl.runtime import WeightSink, Worker
+from infinirl.utils.threads import limit_threads
+
+__all__ = ["VERSION_TENSOR", "PolicyLayout", "RobotActorWorker", "RobotSetup", "policy_layouts", "resolve_robot",
+           "unit_box"]
+
+logger = logging.getLogger(__name__)
+
+VERSION_TENSOR = "policy_version"
+"""A one-element int64 tensor sent with the weights: the version they are, stamped where they were
+snapshotted (so a robot never labels its steps with a version other than the one it acts with)."""
+_SEND_TIMEOUT_S = 60.0
+_JOIN_TIMEOUT_S = 30.0
+_CONNECT_TRIES = 3
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobotSetup:
+    """Which robot a rank drives when its placement gives it none, and its safety settings."""
+
+    kind: str
+    options: Mapping[str, Any] = field(default_factory=dict)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+
+
+def resolve_robot(setup: RobotSetup, placed: Any) -> tuple[str, dict]:
+    """``(kind, options)`` for ``make_robot``: the placed robot's when discovery found it through a
+    driver kind (its properties carry ``driver_kind`` and ``options``), else ``setup``'s."""
+    properties = getattr(placed, "properties", None) or {}
+    if "driver_kind" in properties:
+        return str(properties["driver_kind"]), dict(properties.get("options", {}))
+    return setup.kind, dict(setup.options)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PolicyLayout:
+    """How one robot's observations and actions sit in the shared policy's vectors.
+
+    Robots of different embodiments feed one policy: its observation is the robot's state, zeros up
+    to ``obs_dim - num_embodiments``, then a one-hot of ``embodiment`` (absent with one embodiment);
+    its action has ``action_dim`` entries, of which a robot executes its own first ``command_size``
+    (the rest are ignored by that robot, and stored as drawn, so the critic sees what the actor did).
+    """
+
+    obs_dim: int
+    action_dim: int
+    embodiment: int = 0
+    num_embodiments: int = 1
+
+    def pad_state(self, state: np.ndarray) -> np.ndarray:
+        if self.num_embodiments == 1 and len(state) == self.obs_dim:
+            return state
+        padded = np.zeros(self.obs_dim, np.float32)
+        padded[:len(state)] = state
+        if self.num_embodiments > 1:
+            padded[self.obs_dim - self.num_embodiments + self.embodiment] = 1.0
+        return padded
+
+
+def policy_layouts(described: list[dict]) -> list[PolicyLayout]:
+    """One layout per robot rank from their :meth:`RobotActorWorker.describe`: identity when every
+    robot has the same shape, else padded to the largest with one embodiment per robot kind."""
+    kinds = sorted({d["kind"] for d in described})
+    same = len({(d["obs_dim"], d["action_dim"]) for d in described}) == 1
+    if same and len(kinds) == 1:
+        return [PolicyLayout(obs_dim=d["obs_dim"], action_dim=d["action_dim"]) for d in described]
+    obs = max(d["obs_dim"] for d in described) + len(kinds)
+    action = max(d["action_dim"] for d in described)
+    return [PolicyLayout(obs_dim=obs, action_dim=action, embodiment=kinds.index(d["kind"]), num_embodiments=len(kinds))
+            for d in described]
+
+
+def unit_box(action_dim: int) -> SimpleNamespace:
+    """The ``[-1, 1]^A`` action space the SAC networks are built for."""
+    return SimpleNamespace(low=-np.ones(action_dim, np.float32), high=np.ones(action_dim, np.float32),
+                           shape=(action_dim,))
+
+
+def _connected(kind: str, options: dict, safety: SafetyConfig, tries: int = _CONNECT_TRIES) -> SafeRobot:
+    """The robot behind the safety layer, connected. A simulated robot's control thread can tick
+    before ``connect`` has asked for its first reset, and a plant read before any reset fails
+    (SimulatedRobot.connect starts the thread, then requests the reset); a fresh driver is tried then."""
+    for attempt in range(1, tries + 1):
+        robot = SafeRobot(make_robot(kind, **options), safety)
+        try:
+            robot.connect()
+            return robot
+        except RobotError as exc:
+            robot.close()
+            if attempt == tries:
+                raise
+            logger.warning("%s: connect failed (%s); trying a fresh driver (%d/%d)", kind, exc, attempt + 1, tries)
+    raise AssertionError("unreachable")
+
+
+class RobotActorWorker(Worker, WeightSink):
+    """One robot + its policy copy (see the module docstring)."""
+
+    def __init__(self, setup: RobotSetup | Sequence[RobotSetup], env: RobotEnvSpec | Sequence[RobotEnvSpec], net,
+                 seed: int, num_threads: int = 1):
+        limit_threads(num_threads)
+        if not isinstance(setup, RobotSetup):  # a fleet: one entry per rank
+            setup, env = setup[self.rank], env[self.rank]
+        kind, options = resolve_robot(setup, self.ctx.robot)
+        self.robot = _connected(kind, options, setup.safety)
+        self.env = RobotEnv(self.robot, env, setup.safety)
+        self.kind, self.net = kind, net
+        self.obs_dim, self.action_dim = self.env.observation_size(), self.env.action_dim
+        self.configure(PolicyLayout(obs_dim=self.obs_dim, action_dim=self.action_dim))
+        self.policy_version = RANDOM_VERSION
+        self.rng = np.random.default_rng([seed, self.rank, 0xAC7])
+        self.generator = torch.Generator().manual_seed(int(np.random.SeedSequence([seed, self.rank, 0x7A])
+                                                           .generate_state(1)[0]))
+        self.counts: Counter[str] = Counter()
+        self.recent: list[dict] = []  # finished training episodes since the last stats() call
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._sender: threading.Thread | None = None
+        self._outbox: queue.Queue = queue.Queue()
+        self._error: BaseException | None = None
+        self._eval_request: tuple[int, queue.Queue] | None = None
+
+    # ---------------------------------------------------------------- what it is
+    def describe(self) -> dict:
+        spec = self.env.robot_spec
+        return {"kind": self.kind, "obs_dim": self.obs_dim, "action_dim": self.action_dim,
+                "control_hz": spec.control_hz,
+                "cameras": {c.name: (c.height, c.width) for c in spec.cameras if c.name in self.env.spec.cameras}}
+
+    def configure(self, layout: PolicyLayout) -> None:
+        """Build the policy copy for ``layout`` (before the first weights arrive)."""
+        self.layout = layout
+        self.actor = self.net.build_actor(layout.obs_dim, unit_box(layout.action_dim)).eval()
+
+    # ---------------------------------------------------------------- weights
+    def load_weights(self, named_tensors, version: int) -> None:
+        own = self.actor.state_dict()
+        stamped = version
+        with torch.no_grad():
+            for name, tensor in named_tensors:
+                if name == VERSION_TENSOR:
+                    stamped = int(tensor.reshape(-1)[0])
+                    continue
+                if name not in own:
+                    raise KeyError(f"weight {name!r} from the learner has no place in the robot's actor")
+                own[name].copy_(tensor)
+        self.policy_version = stamped
+
+    # ---------------------------------------------------------------- acting
+    @torch.no_grad()
+    def _act(self, obs: dict, deterministic: bool = False) -> tuple[np.ndarray, int]:
+        if self.policy_version == RANDOM_VERSION and not deterministic:
+            return self.rng.uniform(-1.0, 1.0, self.layout.action_dim).astype(np.float32), RANDOM_VERSION
+        state = torch.from_numpy(np.asarray(obs["state"], np.float32)[None])
+        action, _, _ = self.actor.sample(state, self.generator, deterministic=deterministic)
+        return action[0].numpy(), self.policy_version
+
+    def _episode(self, policy=None, deterministic: bool = False, between_steps=None,
+                 training: bool = True) -> tuple[dict | None, bool]:
+        """One episode and whether it succeeded; ``policy(observation) -> action`` replaces the
+        actor (demonstrations). Training episodes are counted and reported by :meth:`stats`."""
+        obs = self._padded(self.env.reset())
+        recorder = EpisodeRecorder(obs)
+        while not self._stop.is_set():
+            if between_steps is not None:
+                between_steps()
+            if policy is not None:
+                action = np.zeros(self.layout.action_dim, np.float32)
+                action[:self.action_dim] = policy(self.env.last_observation)
+                version = RANDOM_VERSION
+            else:
+                action, version = self._act(obs, deterministic)
+            try:
+                step = self.env.step(action[:self.action_dim])
+            except RobotStoppedError as exc:  # the safety layer stopped the robot: keep what was collected
+                logger.warning("%s: episode ended by a safety stop (%s)", self.kind, exc)
+                self.counts["safety_aborts"] += 1
+                break
+            obs = self._padded(step.obs)
+            recorder.add(action, obs, step.reward, step.terminated, version, step.success)
+            self.counts["late_steps"] += int(step.late)
+            if step.terminated or step.truncated:
+                break
+        episode = recorder.finish()
+        if episode is not None and training:
+            self.counts["episodes"] += 1
+            self.counts["steps"] += len(recorder)
+            self.counts["successes"] += int(recorder.success)
+            with self._lock:
+                self.recent.append({"return": float(episode["reward"].sum()), "length": len(recorder),
+                                    "success": recorder.success})
+        return episode, recorder.success
+
+    def _padded(self, obs: dict) -> dict:
+        return {**obs, "state": self.layout.pad_state(obs["state"])}
+
+    # ---------------------------------------------------------------- asynchronous
+    def start(self, channel, key: str = "episodes") -> None:
+        """Run episodes back to back on a control thread; each finished one is put on ``channel``."""
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._sender = threading.Thread(target=self._send_loop, args=(channel, key), name="robot-sender", daemon=True)
+        self._thread = threading.Thread(target=self._control_loop, name="robot-control", daemon=True)
+        self._sender.start()
+        self._thread.start()
+
+    def _control_loop(self) -> None:
+        try:
+            while not self._stop.is_set():
+                request, self._eval_request = self._eval_request, None
+                if request is not None:
+                    request[1].put(self._evaluate(request[0]))
+                    continue
+                episode, _ = self._episode(between_steps=self.apply_staged_weights)
+                if episode is not None:
+                    self._outbox.put(episode)
+        except BaseException as exc:  # reported by the next stats() / stop() call
+            logger.exception("%s control loop failed", self.kind)
+            self._error = exc
+        finally:
+            self._outbox.put(None)
+
+    def _send_loop(self, channel, key: str) -> None:
+        while True:
+            episode = self._outbox.get()
+            if episode is None:
+                return
+            try:
+                channel.put(episode, key=key, timeout=_SEND_TIMEOUT_S)
+                self.counts["episodes_sent"] += 1
+            except BaseException as exc:
+                logger.exception("%s: sending an episode failed", self.kind)
+                self._error = self._error or exc
+                return
+
+    def stop(self) -> dict:
+        """Stop the control loop after its present step (the running episode is sent as it is)."""
+        self._stop.set()
+        for thread in (self._thread, self._sender):
+            if thread is not None:
+                thread.join(_JOIN_TIMEOUT_S)
+        self._thread = self._sender = None
+        return self.stats()
+
+    # ---------------------------------------------------------------- synchronous
+    def collect(self, num_episodes: int) -> list[dict]:
+        """Run ``num_episodes`` training episodes here and return them (synchronous mode)."""
+        episodes = [self._episode()[0] for _ in range(num_episodes)]
+        return [e for e in episodes if e is not None]
+
+    def demonstrations(self, num_episodes: int, policy: str, seed: int = 0, noise_std: float = 0.0,
+                       options: Mapping[str, Any] | None = None) -> list[dict]:
+        """``num_episodes`` episodes of the scripted demo policy ``policy`` (their versions read -1)."""
+        from infinirl.realworld.demos import make_demo_policy
+
+        demo = make_demo_policy(policy, self.env, seed=seed, noise_std=noise_std, **dict(options or {}))
+        episodes = [self._episode(policy=demo.act, training=False)[0] for _ in range(num_episodes)]
+        return [e for e in episodes if e is not None]
+
+    # ---------------------------------------------------------------- evaluation
+    def evaluate(self, num_episodes: int) -> dict:
+        """``num_episodes`` episodes of the deterministic policy ``tanh(mean)``, not sent to the
+        learner; while the control loop runs they take its turn between two training episodes."""
+        if self._thread is None:
+            return self._evaluate(num_episodes)
+        answer: queue.Queue = queue.Queue()
+        self._eval_request = (num_episodes, answer)
+        while True:
+            try:
+                return answer.get(timeout=1.0)
+            except queue.Empty:
+                self._raise_if_failed()
+
+    def _evaluate(self, num_episodes: int) -> dict:
+        returns, successes, lengths = [], [], []
+        for _ in range(num_episodes):
+            episode, success = self._episode(deterministic=True, training=False)
+            if episode is None:
+                break
+            returns.append(float(episode["reward"].sum()))
+            lengths.append(len(episode["action"]))
+            successes.append(float(success))
+        if not returns:
+            return {}
+        return {"eval/success_rate": float(np.mean(successes)), "eval/return_mean": float(np.mean(returns)),
+                "eval/length_mean": float(np.mean(lengths)), "eval/episodes": float(len(returns)),
+                "eval/policy_version": float(self.policy_version)}
+
+    # ---------------------------------------------------------------- reporting
+    def stats(self) -> dict:
+        """Counters and the training episodes finished since the last call."""
+        self._raise_if_failed()
+        with self._lock:
+            recent, self.recent = self.recent, []
+        return {"kind": self.kind, "counts": dict(self.counts), "episodes": recent,
+                "policy_version": self.policy_version,
+                "safety_clips": dict(self.robot.clip_counts), "safety_events": dict(self.robot.event_counts)}
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None:
+            raise RobotError(f"{self.kind} robot worker failed: {self._error!r}") from self._error
+
+    def close(self) -> None:
+        self.stop()
+        self.robot.close()

@@ -1,0 +1,330 @@
+"""SAC on robots that run in real time: the fully asynchronous pipeline, and its synchronous twin.
+
+Read top to bottom. Components: ``robot`` (one rank per robot: the driver behind the safety layer,
+the policy's inference copy, :class:`~infinirl.realworld.robot_worker.RobotActorWorker`) and
+``learner`` (SAC on a persistent replay store under ``<output_dir>/replay``,
+:class:`~infinirl.realworld.learner_worker.RealWorldLearnerWorker`). Time on a robot cannot be
+sped up, so an iteration is a wall-clock window (``pipeline.iteration_s``).
+
+* ``pipeline.mode=async``: each robot runs episodes back to back at its own rate with the newest
+  weights it has and streams finished episodes (every step stamped with the policy version that
+  chose it) over a channel; the learner stores them and updates continuously, publishing a new
+  version every ``publish_every`` updates; the driver only moves each new version to the robots
+  (staged beside their control loops) and reads counters. Nothing waits for anything else.
+* ``pipeline.mode=sync``: the same components take turns: every robot collects one episode, the
+  learner stores them and runs ``utd_ratio`` updates per collected step, the weights go to the
+  robots, and so on (the robot idles while the learner updates).
+
+RLPD (``demos.episodes > 0``): robot rank 0 records scripted demonstrations into
+``<output_dir>/demos`` once, and every mini-batch draws ``demos.fraction`` of its rows from them.
+
+Checkpoints hold the learner (agent, sampler state, version); the replay store is on disk already
+and is reopened on resume with everything appended after the checkpoint, so a killed run resumes
+with its experience intact.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+import uuid
+
+import numpy as np
+
+from infinirl.components.sac_learner import SACNetSpec, SACUpdateSpec
+from infinirl.config import ConfigError
+from infinirl.runners import register_runner
+from infinirl.runners.curves import Panel
+from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
+from infinirl.runners.realworld_sac_config import RealWorldSACConfig
+from infinirl.runners.run_support import launch_all, plan_placement, run_start_time
+
+__all__ = ["RealWorldSACFlow", "run"]
+
+
+@register_runner("realworld_sac", RealWorldSACConfig,
+                 "SAC / RLPD on robots in real time (simulated or real): asynchronous robot and learner workers")
+def run(cfg: RealWorldSACConfig) -> dict:
+    from infinirl.runtime import Channel, Cluster
+
+    with RunLoop(cfg, run_start_time()) as loop:
+        setup, env, net = _robot_setup(cfg), _env_spec(cfg), _net_spec(cfg)
+        from infinirl.realworld.discovery import with_driver_discovery
+
+        with Cluster(with_driver_discovery(cfg.cluster)) as cluster:
+            plan = plan_placement(cluster.inventory, cfg)
+            print(plan.describe(), flush=True)
+            _check_fleet(cfg, len(plan.ranks("robot")))
+            from infinirl.realworld.robot_worker import RobotActorWorker
+
+            # Created first: its actor starts while the robots connect, not on a robot's time.
+            channel = Channel.create(f"realworld-{uuid.uuid4().hex[:12]}")
+            groups = {}
+            try:
+                groups.update(launch_all(plan, {"robot": (RobotActorWorker, (setup, env, net, cfg.seed,
+                                                                             cfg.actor.num_threads))}))
+                shape = _robot_shape(cfg, groups["robot"])
+                groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, shape)}))
+                channel.qsize()  # returns once the channel's actor is up
+                flow = RealWorldSACFlow(cfg, groups["robot"], groups["learner"], channel)
+                try:
+                    return loop.run(flow)
+                finally:
+                    flow.close()
+            finally:
+                for group in groups.values():
+                    group.shutdown()
+                channel.destroy()
+
+
+def _check_fleet(cfg: RealWorldSACConfig, robot_ranks: int) -> None:
+    fleet = cfg.robot.fleet
+    if fleet and len(fleet) != robot_ranks:
+        raise ConfigError(f"robot.fleet has {len(fleet)} entries but placement.robot={cfg.placement['robot']!r} gives "
+                          f"{robot_ranks} robot ranks; give one rank per entry")
+
+
+def _robot_setup(cfg: RealWorldSACConfig):
+    """The robot every rank drives, or with ``robot.fleet`` one per rank."""
+    from infinirl.realworld.robot_worker import RobotSetup
+    from infinirl.realworld.safety import SafetyConfig
+
+    robot = cfg.robot
+    safety = SafetyConfig(velocity_scale=robot.velocity_scale, command_deadline_s=robot.command_deadline_s,
+                          heartbeat_deadline_s=robot.heartbeat_deadline_s)
+    if robot.fleet:
+        return tuple(RobotSetup(kind=e.kind, options=dict(e.options), safety=safety) for e in robot.fleet)
+    return RobotSetup(kind=robot.kind, options=dict(robot.options), safety=safety)
+
+
+def _env_spec(cfg: RealWorldSACConfig):
+    from infinirl.realworld.robot_env import RobotEnvSpec
+
+    def spec(task):
+        return RobotEnvSpec(observations=tuple(task.observations), cameras=tuple(task.cameras),
+                            rewards=dict(task.rewards), max_episode_steps=task.max_episode_steps,
+                            action_mode=task.action_mode, terminate_on_success=task.terminate_on_success)
+
+    if cfg.robot.fleet:
+        return tuple(spec(cfg.task_of(index)) for index in range(len(cfg.robot.fleet)))
+    return spec(cfg.task)
+
+
+def _net_spec(cfg: RealWorldSACConfig) -> SACNetSpec:
+    network = cfg.network
+    return SACNetSpec(actor_hidden=tuple(network.actor_hidden), critic_hidden=tuple(network.critic_hidden),
+                      num_critics=network.num_critics, activation=network.activation,
+                      log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key="state")
+
+
+def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
+    """Lay the robots out in the shared policy (:func:`~infinirl.realworld.robot_worker.policy_layouts`)
+    and return the policy's observation and action sizes and the recorded cameras."""
+    from infinirl.realworld.robot_worker import policy_layouts
+
+    described = robots.describe().wait()
+    if len({tuple(sorted(d["cameras"].items())) for d in described}) > 1:
+        raise ConfigError("task.cameras: the robots record different cameras; a run stores one set of camera fields")
+    layouts = policy_layouts(described)
+    robots.call_each("configure", [(layout,) for layout in layouts]).wait()
+    if layouts[0].num_embodiments > 1:
+        print("one policy for " + ", ".join(f"rank {i} {d['kind']} (obs {d['obs_dim']}, action {d['action_dim']})"
+                                            for i, d in enumerate(described))
+              + f": observations padded to {layouts[0].obs_dim} with a kind one-hot, actions to "
+                f"{layouts[0].action_dim}", flush=True)
+    return {"obs_dim": layouts[0].obs_dim, "action_dim": layouts[0].action_dim, "cameras": described[0]["cameras"],
+            "kinds": [d["kind"] for d in described]}
+
+
+def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
+    from infinirl.realworld.learner_worker import LearnerLoopSpec, RealWorldLearnerWorker
+
+    alg, pipeline = cfg.algorithm, cfg.pipeline
+    update = SACUpdateSpec(gamma=alg.gamma, tau=alg.tau, batch_size=alg.batch_size, actor_lr=alg.actor_lr,
+                           critic_lr=alg.critic_lr, alpha_lr=alg.alpha_lr, init_alpha=alg.init_alpha,
+                           autotune_alpha=alg.autotune_alpha, target_entropy=alg.target_entropy,
+                           policy_delay=alg.policy_delay, target_update_every=alg.target_update_every, seed=cfg.seed)
+    replay = os.path.abspath(cfg.replay.path or os.path.join(cfg.output_dir, "replay"))
+    demos = os.path.abspath(os.path.join(cfg.output_dir, "demos")) if cfg.demos.episodes else None
+    loop = LearnerLoopSpec(replay_dir=replay, demo_dir=demos, demo_fraction=cfg.demos.fraction,
+                           learning_starts=alg.learning_starts, publish_every=pipeline.publish_every,
+                           max_staleness=pipeline.max_staleness, staleness_action=pipeline.staleness_action,
+                           max_updates_per_step=pipeline.max_updates_per_step, durable=pipeline.durable,
+                           cameras=dict(shape["cameras"]))
+    return RealWorldLearnerWorker, (net, update, loop, shape["obs_dim"], shape["action_dim"], cfg.learner.num_threads)
+
+
+def _per_kind(robots: list[dict]) -> dict:
+    """``rollout/<kind>/success_rate`` of the window's training episodes, when the run has several kinds."""
+    kinds = sorted({r["kind"] for r in robots})
+    if len(kinds) < 2:
+        return {}
+    metrics = {}
+    for kind in kinds:
+        episodes = [e for r in robots if r["kind"] == kind for e in r["episodes"]]
+        if episodes:
+            metrics[f"rollout/{kind}/success_rate"] = float(np.mean([e["success"] for e in episodes]))
+    return metrics
+
+
+class RealWorldSACFlow:
+    """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
+
+    def __init__(self, cfg: RealWorldSACConfig, robots, learner, channel):
+        self.cfg, self.robots, self.learner, self.channel = cfg, robots, learner, channel
+        self.synced_version = 0
+        self.pending_sync = None
+        self.running = False
+        self.owed_updates = 0.0  # sync mode: fractional updates carried to the next turn
+        self.spec = LoopSpec(
+            name="realworld_sac", headline="eval/success_rate",
+            title=f"SAC ({cfg.pipeline.mode}) {'+'.join(e.kind for e in cfg.robot.fleet) or cfg.robot.kind}",
+            target=cfg.eval.target,
+            progress=(ProgressField(label="succ", key="rollout/success_rate", format=".2f"),
+                      ProgressField(label="eval", key="eval/success_rate", format=".2f"),
+                      ProgressField(label="upd/s", key="train/updates_per_s", format=".0f"),
+                      ProgressField(label="ver", key="pipeline/version", format=".0f")),
+            panels=(Panel(title="success rate (eval, deterministic)", y=("eval/success_rate",), x="time/elapsed_s",
+                          x_label="wall time (s)"),
+                    Panel(title="training episodes", y=("rollout/success_rate",), x="time/elapsed_s",
+                          x_label="wall time (s)"),
+                    Panel(title="learner updates per second", y=("train/updates_per_s",), x="time/elapsed_s",
+                          x_label="wall time (s)"),
+                    Panel(title="staleness (versions)", y=("pipeline/staleness_mean", "pipeline/staleness_max"),
+                          x="time/elapsed_s", x_label="wall time (s)")))
+
+    # ------------------------------------------------------------------ start
+    def start(self, iteration: int) -> None:
+        demos = self.cfg.demos
+        if demos.episodes:
+            have = self.learner.demo_episodes().wait()[0]
+            if have < demos.episodes:  # a resumed run keeps the demonstrations it recorded
+                episodes = self.robots.call("demonstrations", demos.episodes - have, demos.policy, self.cfg.seed,
+                                            demos.noise_std, dict(demos.options), ranks=[0]).wait()[0]
+                held = self.learner.add_demonstrations(episodes).wait()[0]
+                print(f"recorded {len(episodes)} demonstration episodes ({held} in {self.cfg.output_dir}/demos)",
+                      flush=True)
+        status = self.learner.status().wait()[0]  # the rate of the first iteration counts from here
+        self._sync(status["version"], wait=True)
+        if self.cfg.pipeline.mode == "async":
+            self.learner.start(self.channel).wait()
+            self.robots.start(self.channel).wait()
+            self.running = True
+
+    def _sync(self, version: int, wait: bool = False) -> None:
+        """Send the learner's published weights to the robots when they are newer than theirs."""
+        from infinirl.runtime import start_weight_sync
+
+        if version <= self.synced_version:
+            return
+        if self.pending_sync is not None and not self.pending_sync.done():
+            return  # one sync in flight at a time; the next poll sends the newest version
+        self.pending_sync = start_weight_sync(self.learner, self.robots, version, interrupt=self.running)
+        self.synced_version = version
+        if wait:
+            self.pending_sync.wait(timeout=60)
+
+    # ------------------------------------------------------------------ one iteration
+    def step(self, iteration: int) -> dict:
+        cfg = self.cfg
+        started = time.perf_counter()
+        deadline = started + cfg.pipeline.iteration_s
+        if cfg.pipeline.mode == "async":
+            while time.perf_counter() < deadline:
+                time.sleep(min(cfg.pipeline.sync_poll_s, max(0.0, deadline - time.perf_counter())))
+                self._sync(self.learner.published_version().wait(timeout=60)[0])
+            status = self.learner.status().wait(timeout=60)[0]
+        else:
+            status = self._sync_turns(deadline)
+        robots = self.robots.stats().wait(timeout=60)
+        return {**self._metrics(status, robots, time.perf_counter() - started), **_per_kind(robots)}
+
+    def _sync_turns(self, deadline: float) -> dict:
+        """Collect one episode per robot, then update on it, until the window ends."""
+        while True:
+            episodes = [e for batch in self.robots.collect(1).wait(timeout=600) for e in batch]
+            self.owed_updates += self.cfg.algorithm.utd_ratio * sum(len(e["action"]) for e in episodes)
+            num = math.floor(self.owed_updates)
+            self.owed_updates -= num
+            version = self.learner.add_and_update(episodes, num, publish=True).wait(timeout=600)[0]
+            self._sync(version, wait=True)
+            if time.perf_counter() >= deadline:
+                return self.learner.status().wait(timeout=60)[0]
+
+    def _metrics(self, status: dict, robots: list[dict], seconds: float) -> dict:
+        counts = status["counts"]
+        episodes = [e for r in robots for e in r["episodes"]]
+        policy_steps = max(counts.get("policy_steps", 0.0), 1.0)
+        metrics = {
+            **status["metrics"],
+            "train/updates": float(status["updates"]),
+            "train/updates_per_s": float(status["updates_per_s"]),
+            "pipeline/version": float(status["version"]),
+            "pipeline/robot_versions_min": float(min(r["policy_version"] for r in robots)),
+            "pipeline/staleness_mean": counts.get("lag_sum", 0.0) / policy_steps,
+            "pipeline/staleness_max": float(counts.get("lag_max", 0.0)),
+            "pipeline/stale_episodes": float(counts.get("stale_episodes", 0.0)),
+            "pipeline/dropped_episodes": float(counts.get("dropped_episodes", 0.0)),
+            "replay/transitions": float(status["store_transitions"]),
+            "replay/episodes": float(status["store_episodes"]),
+            "replay/demo_transitions": float(status["demo_transitions"]),
+            "env/steps": float(sum(r["counts"].get("steps", 0) for r in robots)),
+            "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots)),
+            "robot/safety_aborts": float(sum(r["counts"].get("safety_aborts", 0) for r in robots)),
+            "robot/safety_clips": float(sum(sum(r["safety_clips"].values()) for r in robots)),
+            "robot/safety_events": float(sum(sum(r["safety_events"].values()) for r in robots)),
+            "time/iteration_s": seconds,
+        }
+        if episodes:
+            metrics.update({"rollout/success_rate": float(np.mean([e["success"] for e in episodes])),
+                            "rollout/episode_return_mean": float(np.mean([e["return"] for e in episodes])),
+                            "rollout/episode_length_mean": float(np.mean([e["length"] for e in episodes])),
+                            "rollout/episodes": float(len(episodes))})
+        return metrics
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self) -> dict:
+        """``eval.episodes`` deterministic episodes on every robot at once; means over all of them
+        (and per robot kind when the run has several)."""
+        results = self.robots.evaluate(self.cfg.eval.episodes).wait()
+        kinds = self.robots.describe().wait()
+        merged = {key: float(np.mean([r[key] for r in results if key in r])) for key in results[0]}
+        if len({k["kind"] for k in kinds}) > 1:
+            for kind in sorted({k["kind"] for k in kinds}):
+                ours = [r for r, k in zip(results, kinds) if k["kind"] == kind and r]
+                merged[f"eval/{kind}/success_rate"] = float(np.mean([r["eval/success_rate"] for r in ours]))
+        return merged
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, folder: str) -> dict:
+        self.learner.save_checkpoint(os.path.join(folder, "learner")).wait()
+        return {"mode": self.cfg.pipeline.mode}
+
+    def load(self, folder: str, state: dict) -> None:
+        self.learner.load_checkpoint(os.path.join(folder, "learner")).wait()
+        status = self.learner.status().wait()[0]
+        print(f"restored the learner at version {status['version']} ({status['updates']} updates); the replay "
+              f"store holds {status['store_episodes']} episodes ({status['store_transitions']} transitions)",
+              flush=True)
+
+    # ------------------------------------------------------------------ the end
+    def finish(self, output_dir: str) -> dict:
+        self._stop()
+        status = self.learner.status().wait()[0]
+        return {"updates": status["updates"], "version": status["version"],
+                "replay_transitions": status["store_transitions"], "replay_episodes": status["store_episodes"]}
+
+    def _stop(self) -> None:
+        if self.running:
+            self.running = False
+            self.robots.stop().wait(timeout=120)
+            self.learner.stop().wait(timeout=120)
+
+    def close(self) -> None:
+        try:
+            self._stop()
+            self.robots.close().wait(timeout=60)
+            self.learner.close().wait(timeout=60)
+        except Exception:  # best effort: the groups are shut down right after
+            pass

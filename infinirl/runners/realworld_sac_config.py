@@ -1,0 +1,197 @@
+"""Typed configuration of the real-world SAC runner (every field is a ``key=value`` CLI override).
+
+Names (driver kind, observation sources, reward components, demo policy) are checked against
+their registries in :meth:`RealWorldSACConfig.check`, before any worker starts; the robot's
+observation size is known only once a robot worker has connected to its robot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal
+
+from infinirl.config import ConfigError, bounded
+from infinirl.runners.run_config import EvalSchedule, RunConfig
+from infinirl.runners.sac_config import AlgorithmConfig, NetworkConfig, WorkerConfig
+
+__all__ = ["RealWorldSACConfig"]
+
+
+@dataclass(kw_only=True)
+class FleetEntry:
+    kind: str
+    """Driver kind of this robot rank."""
+    options: dict[str, Any] = field(default_factory=dict)
+    """Keyword options of its driver."""
+    task: dict[str, Any] = field(default_factory=dict)
+    """Its task keys over the shared ``task`` section (e.g. its own observations and rewards)."""
+
+
+@dataclass(kw_only=True)
+class RobotConfig:
+    kind: str = "sim_sawyer"
+    """Driver kind (``infinirl robots --kinds``: sim_sawyer, sim_so101, so101_feetech, plugins). A rank
+    placed on a discovered robot (``placement.robot: robot:0``) drives that robot instead."""
+    options: dict[str, Any] = field(default_factory=lambda: {"task": "reach-v3", "control_hz": 20.0,
+                                                              "image_size": None})
+    """Keyword options of the driver (``make_robot(kind, **options)``)."""
+    velocity_scale: float = bounded(0.5, gt=0, le=1)
+    """Safety: fraction of the robot's top speed a command may ask for."""
+    command_deadline_s: float | None = bounded(0.5, gt=0)
+    """Safety: hold the robot when no command came within this (None: off)."""
+    heartbeat_deadline_s: float | None = bounded(2.0, gt=0)
+    """Safety: stop the robot when its control loop gave no sign of life within this (None: off)."""
+    fleet: list[FleetEntry] = field(default_factory=list)
+    """Heterogeneous runs: one entry per robot rank (placement.robot gives as many ranks), each its own
+    kind, options and task keys; kind/options above are then unused. Robots of different shapes share
+    one policy: observations padded to the largest plus a one-hot of the robot kind, actions padded to
+    the largest (each robot executes its own first entries)."""
+
+
+@dataclass(kw_only=True)
+class TaskConfig:
+    observations: list[str] = field(default_factory=lambda: ["proprio", "sim_state"])
+    """State vector sources, concatenated in order: proprio, ee_position, sim_state, block_position."""
+    cameras: list[str] = field(default_factory=list)
+    """Cameras recorded as pixels into the replay store (the state-based networks do not read them)."""
+    rewards: dict[str, float] = field(default_factory=lambda: {"goal_distance": 1.0, "success": 1.0})
+    """Reward component -> weight: success, goal_distance, block_distance."""
+    max_episode_steps: int = bounded(50, ge=1)
+    """Steps (control periods) before an episode is cut (it still bootstraps)."""
+    action_mode: Literal["delta", "absolute"] = "delta"
+    """delta: actions move the target by up to the safe step per period; absolute: actions span the command bounds."""
+    terminate_on_success: bool = True
+
+
+@dataclass(kw_only=True)
+class PipelineConfig:
+    mode: Literal["async", "sync"] = "async"
+    """async: robots act at their own rate with the latest weights while the learner updates
+    continuously; sync: the same components take turns (collect an episode, then update)."""
+    iteration_s: float = bounded(10.0, gt=0)
+    """Wall-clock seconds of one iteration (robot time cannot be sped up; iterations are time windows)."""
+    publish_every: int = bounded(20, ge=1)
+    """async: the learner publishes its actor as a new version every N updates."""
+    max_updates_per_step: float | None = bounded(None, gt=0)
+    """async: cap of learner updates per stored transition (None: update as fast as the learner can)."""
+    max_staleness: int | None = bounded(None, ge=0)
+    """Versions a step may lag the learner when it arrives (None: no bound)."""
+    staleness_action: Literal["drop", "log"] = "drop"
+    """What happens to an episode whose steps lag more than max_staleness: drop it (counted) or keep and log it."""
+    sync_poll_s: float = bounded(0.2, gt=0)
+    """async: how often the driver looks for a newer published version to send to the robots."""
+    durable: bool = True
+    """fsync every stored episode (survives power loss); false still survives a killed process."""
+
+
+@dataclass(kw_only=True)
+class DemoConfig:
+    episodes: int = bounded(0, ge=0)
+    """RLPD: demonstrations recorded once (by robot rank 0, with the scripted policy) into
+    <output_dir>/demos before training; 0 turns demonstrations off."""
+    policy: str = "sawyer_goal"
+    """Scripted demo policy: sawyer_goal, metaworld_expert (infinirl/realworld/demos.py)."""
+    options: dict[str, Any] = field(default_factory=dict)
+    """Options of the demo policy (metaworld_expert: task)."""
+    noise_std: float = bounded(0.1, ge=0)
+    """Gaussian noise on the demo actions (in [-1, 1] units), for coverage around the expert's path."""
+    fraction: float = bounded(0.5, ge=0, le=1)
+    """Share of each mini-batch drawn from the demonstrations (RLPD: 0.5)."""
+
+
+@dataclass(kw_only=True)
+class EvalConfig(EvalSchedule):
+    at_start: bool = False
+    """An evaluation of the untrained policy costs robot time; off by default."""
+    episodes: int = bounded(5, ge=1)
+    """Episodes of the deterministic policy on every robot per evaluation (not stored, not trained on)."""
+    target: float | None = bounded(0.8, ge=0, le=1)
+    """Success rate the summary reports the first evaluation reaching."""
+
+
+@dataclass(kw_only=True)
+class ReplayConfig:
+    path: str | None = None
+    """Replay store folder; None: <output_dir>/replay."""
+    cache_mb: int = bounded(1024, ge=0)
+
+
+@dataclass(kw_only=True)
+class RealWorldSACConfig(RunConfig):
+    RUNNER: ClassVar[str] = "realworld_sac"
+    DEFAULT_PLACEMENT: ClassVar[dict[str, str]] = {"robot": "0", "learner": "0"}
+    RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("pipeline.mode", "pipeline.iteration_s", "pipeline.sync_poll_s",
+                                                    "pipeline.max_updates_per_step", "robot.command_deadline_s",
+                                                    "robot.heartbeat_deadline_s", "robot.velocity_scale",
+                                                    "learner.num_threads", "actor.num_threads")
+
+    output_dir: str = "runs/realworld_sac"
+    iterations: int = bounded(20, ge=1)
+    save_every: int = bounded(1, ge=0)
+    keep_checkpoints: int = bounded(2, ge=0)
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
+    demos: DemoConfig = field(default_factory=DemoConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    actor: WorkerConfig = field(default_factory=WorkerConfig)
+    """The robot workers' policy inference threads."""
+    learner: WorkerConfig = field(default_factory=WorkerConfig)
+
+    def check(self) -> None:
+        from infinirl.realworld.demos import DEMO_POLICIES
+        from infinirl.realworld.driver import ROBOT_DRIVERS
+        from infinirl.realworld.robot_env import OBSERVATIONS, REWARDS
+
+        _known(ROBOT_DRIVERS, [self.robot.kind], "robot.kind")
+        for index, entry in enumerate(self.robot.fleet):
+            _known(ROBOT_DRIVERS, [entry.kind], f"robot.fleet[{index}].kind")
+            task = self.task_of(index)
+            _known(OBSERVATIONS, task.observations, f"robot.fleet[{index}].task.observations")
+            _known(REWARDS, list(task.rewards), f"robot.fleet[{index}].task.rewards")
+        _known(OBSERVATIONS, self.task.observations, "task.observations")
+        _known(REWARDS, list(self.task.rewards), "task.rewards")
+        if not self.task.observations:
+            raise ConfigError("task.observations is empty; name at least one source, e.g. [proprio]")
+        if self.demos.episodes:
+            _known(DEMO_POLICIES, [self.demos.policy], "demos.policy")
+            if self.task.action_mode != "delta":
+                raise ConfigError("demos.episodes > 0 needs task.action_mode=delta (the scripted demo policies "
+                                  "emit delta actions)")
+        alg = self.algorithm
+        if alg.learning_starts < alg.batch_size:
+            raise ConfigError(f"algorithm.learning_starts={alg.learning_starts} must be >= algorithm.batch_size="
+                              f"{alg.batch_size} (the first mini-batch needs that many transitions)")
+        if self.network.actor != "gaussian":
+            raise ConfigError(f"network.actor={self.network.actor!r}: the real-world runner trains the gaussian "
+                              "actor (state-based); use network.actor=gaussian")
+        if self.network.obs_key != "state":
+            raise ConfigError(f"network.obs_key={self.network.obs_key!r}: robot observations are read from 'state'")
+        self._check_placement()
+
+    def task_of(self, index: int) -> TaskConfig:
+        """The task of fleet entry ``index``: the shared section with the entry's keys over it."""
+        from dataclasses import asdict
+
+        from infinirl.config import to_dataclass
+
+        return to_dataclass(TaskConfig, {**asdict(self.task), **self.robot.fleet[index].task},
+                            f"robot.fleet[{index}].task")
+
+    def _check_placement(self) -> None:
+        from infinirl.runtime.placement import parse_spec
+
+        learner = parse_spec(self.placement["learner"], "learner")
+        if learner.kind == "robots" or (learner.num_processes or 1) > 1 or (learner.num_processes is None
+                                                                             and len(learner.indices) > 1):
+            raise ConfigError(f"placement.learner={self.placement['learner']!r}: the learner is one rank on one "
+                              "device or CPU slot (e.g. '0')")
+
+
+def _known(registry, names, key: str) -> None:
+    for name in names:
+        if name not in registry:
+            raise ConfigError(f"{key}: unknown {registry.kind} {name!r}; registered: {', '.join(registry.names())}")

@@ -1,0 +1,166 @@
+"""The real-world SAC runner end to end on a simulated Sawyer running in real time: the robot worker
+acts at its own rate while the learner updates from the persistent replay store, every step stamped
+with the policy version that chose it; a run resumed from an earlier checkpoint reopens the store
+with every episode in it and continues; the synchronous mode runs the same components in turns."""
+
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+# Not imported here: MetaWorld loads MuJoCo, which picks its GL backend once per process, and the
+# simulated robots choose a headless one before they import it (tests of cameras share this process).
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("metaworld") is None, reason="needs metaworld")
+
+from infinirl.config import ConfigError, to_dataclass  # noqa: E402
+from infinirl.realworld.replay import ReplayStore  # noqa: E402
+from infinirl.runners.realworld_sac import run  # noqa: E402
+from infinirl.runners.realworld_sac_config import RealWorldSACConfig  # noqa: E402
+from tests.integration.resume import killed_after_checkpoint  # noqa: E402
+
+
+def make_cfg(output_dir, iterations, **extra):
+    raw = {
+        "iterations": iterations, "output_dir": str(output_dir), "save_every": 1, "keep_checkpoints": 0,
+        "loggers": [],
+        "robot": {"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 50.0, "image_size": None}},
+        "task": {"max_episode_steps": 20},
+        "pipeline": {"iteration_s": 3.0, "publish_every": 5, "max_staleness": 0, "staleness_action": "log",
+                     "durable": False},
+        "network": {"actor_hidden": [32, 32], "critic_hidden": [32, 32]},
+        "algorithm": {"batch_size": 32, "learning_starts": 40},
+        "eval": {"every": 0, "episodes": 1},
+        "cluster": {"log_to_driver": False}, **extra,
+    }
+    return to_dataclass(RealWorldSACConfig, raw)
+
+
+def rows_of(path):
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def versions_in(replay):
+    store = ReplayStore(str(replay), writable=False)
+    try:
+        return np.concatenate([store.episode(i)["version"] for i in range(store.num_episodes)]), store.num_episodes
+    finally:
+        store.close()
+
+
+def test_async_run_streams_versioned_episodes_and_resumes_with_the_store(ray_cluster, tmp_path):
+    first = run(make_cfg(tmp_path / "run", 2))
+    assert first["updates"] > 0 and first["version"] >= 1 and first["replay_episodes"] >= 1
+    rows = rows_of(tmp_path / "run" / "metrics.jsonl")
+    assert [r["step"] for r in rows] == [1, 2]
+    last = rows[-1]
+    for key in ("pipeline/staleness_mean", "pipeline/staleness_max", "pipeline/stale_episodes",
+                "train/updates_per_s", "replay/transitions", "eval/success_rate"):
+        assert key in last, key
+    assert last["pipeline/version"] >= 1 and last["train/critic_loss"] == last["train/critic_loss"]
+    versions, episodes = versions_in(tmp_path / "run" / "replay")
+    assert episodes == first["replay_episodes"]
+    assert versions.min() == -1  # warm-up: uniform actions before any trained weights arrived
+    assert versions.max() >= 1  # then the robot acted with the versions the learner published
+    assert np.all(np.diff(versions) >= 0)  # one robot, episodes stored in the order it ran them: versions only grow
+
+    # Killed after iteration 1's checkpoint: the store on disk holds more episodes than that
+    # checkpoint saw (those appended later), and the resumed run continues with all of them.
+    killed_after_checkpoint(tmp_path / "run", tmp_path / "resumed", 1)
+    resumed = run(make_cfg(tmp_path / "resumed", 3))
+    assert resumed["replay_episodes"] > first["replay_episodes"]  # nothing appended before the kill is lost
+    resumed_rows = rows_of(tmp_path / "resumed" / "metrics.jsonl")
+    assert [r["step"] for r in resumed_rows] == [1, 2, 3]
+    assert resumed_rows[1]["train/updates"] >= rows[0]["train/updates"]  # updates continue from the checkpoint
+
+
+def test_sync_mode_collects_then_updates_with_no_staleness(ray_cluster, tmp_path):
+    summary = run(make_cfg(tmp_path / "sync", 1, pipeline={"mode": "sync", "iteration_s": 3.0, "max_staleness": 0,
+                                                            "staleness_action": "drop", "durable": False},
+                           algorithm={"batch_size": 32, "learning_starts": 40, "utd_ratio": 0.5}))
+    row = rows_of(tmp_path / "sync" / "metrics.jsonl")[-1]
+    assert row["pipeline/staleness_max"] == 0 and row["pipeline/dropped_episodes"] == 0
+    assert summary["updates"] == pytest.approx(0.5 * (row["replay/transitions"] - 40), abs=20)
+    versions, _ = versions_in(tmp_path / "sync" / "replay")
+    assert versions.max() >= 1
+
+
+def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
+    for extra, key in (({"robot": {"kind": "sim_sawyr"}}, "robot.kind"),
+                       ({"task": {"rewards": {"sucess": 1.0}}}, "task.rewards"),
+                       ({"task": {"observations": ["pixels"]}}, "task.observations"),
+                       ({"algorithm": {"batch_size": 64, "learning_starts": 10}}, "algorithm.learning_starts"),
+                       ({"demos": {"episodes": 2, "policy": "nope"}}, "demos.policy"),
+                       ({"pipeline": {"mode": "fast"}}, "pipeline.mode")):
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            make_cfg(tmp_path / "bad", 1, **extra).validate()
+
+
+def test_killed_run_resumes_with_every_stored_episode(tmp_path):
+    """kill -9 of the whole run (driver, robot and learner processes) between checkpoints; the same
+    command again resumes from the newest checkpoint and keeps every episode the store committed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "killed"
+    command = [sys.executable, "-m", "infinirl.cli", "train", "realworld_sac_sawyer_reach", f"output_dir={out}",
+               "loggers=[]", "save_every=1", "pipeline.iteration_s=2", "task.max_episode_steps=20",
+               "robot.options.control_hz=50.0", "algorithm.batch_size=32", "algorithm.learning_starts=40",
+               "network.actor_hidden=[32,32]", "network.critic_hidden=[32,32]", "pipeline.durable=false",
+               "eval.every=0", "eval.episodes=1", "demos.episodes=2", "cluster.log_to_driver=false"]
+    first = subprocess.Popen([*command, "iterations=50"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             start_new_session=True)  # its own process group: the kill takes its Ray processes too
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and first.poll() is None:
+            if len(list((out / "checkpoints").glob("iter_*"))) >= 2:
+                break
+            time.sleep(0.5)
+        assert first.poll() is None, "the run ended before it could be killed"
+    finally:
+        os.killpg(first.pid, signal.SIGKILL)
+        first.wait(60)
+    _, at_kill = versions_in(out / "replay")
+    assert at_kill >= 1
+    resumed = subprocess.run([*command, "iterations=4"], capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert "resumed from" in resumed.stdout
+    assert "demonstration episodes" not in resumed.stdout  # none recorded again: the demos store survived
+    summary = json.loads(resumed.stdout.strip().splitlines()[-1])
+    assert summary["replay_episodes"] >= at_kill  # every committed episode is still there
+
+
+def test_two_embodiments_feed_one_policy_and_one_store(ray_cluster, tmp_path):
+    fleet = [{"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 50.0, "image_size": None}},
+             {"kind": "sim_so101", "options": {"control_hz": 50.0, "image_size": None},
+              "task": {"observations": ["proprio", "block_position", "last_action"],
+                       "rewards": {"block_distance": 1.0, "success": 1.0}}}]
+    summary = run(make_cfg(tmp_path / "fleet", 1, robot={"fleet": fleet},
+                           task={"observations": ["proprio", "sim_state", "last_action"], "max_episode_steps": 20},
+                           placement={"robot": "0-1"}, eval={"every": 0, "episodes": 1}))
+    assert summary["replay_episodes"] >= 2
+    store = ReplayStore(str(tmp_path / "fleet" / "replay"), writable=False)
+    try:
+        states = np.concatenate([store.episode(i)["state"] for i in range(store.num_episodes)])
+        actions = np.concatenate([store.episode(i)["action"] for i in range(store.num_episodes)])
+    finally:
+        store.close()
+    # Sawyer: 4 proprio + 39 sim state + 4 last action = 47; SO-101: 6 + 3 + 6 = 15; padded to 47 + a 2-kind one-hot.
+    assert states.shape[1] == 49 and actions.shape[1] == 6
+    kinds = {tuple(row) for row in states[:, -2:]}
+    assert kinds == {(1.0, 0.0), (0.0, 1.0)}  # both robots' steps, each marked with its kind
+    sawyer_rows = states[states[:, -2] == 1.0]
+    assert np.all(sawyer_rows[:, 47:] == [1.0, 0.0])
+    so101_rows = states[states[:, -1] == 1.0]
+    assert np.all(so101_rows[:, 15:47] == 0.0)  # zeros between the SO-101's own entries and the one-hot
+    row = rows_of(tmp_path / "fleet" / "metrics.jsonl")[-1]
+    assert "eval/sim_sawyer/success_rate" in row and "eval/sim_so101/success_rate" in row
+
+
+def test_fleet_size_must_match_the_robot_ranks(ray_cluster, tmp_path):
+    with pytest.raises(ConfigError, match="robot.fleet has 1 entries"):
+        run(make_cfg(tmp_path / "bad_fleet", 1, robot={"fleet": [{"kind": "sim_sawyer", "options": {
+            "image_size": None}}]}, placement={"robot": "0-1"}))

@@ -1,0 +1,74 @@
+"""Pure parts of the real-world pipeline: episode recording, staleness accounting, policy layouts of
+heterogeneous robots, and the learner's staleness bound on a real replay store."""
+
+import numpy as np
+import pytest
+
+from infinirl.realworld.episodes import RANDOM_VERSION, EpisodeRecorder, episode_spec, staleness_of
+from infinirl.realworld.robot_worker import PolicyLayout, policy_layouts
+
+
+def test_recorder_gives_a_valid_store_episode():
+    recorder = EpisodeRecorder({"state": np.zeros(3, np.float32), "pixels.front": np.zeros((2, 2, 3), np.uint8)})
+    for t in range(4):
+        recorder.add(np.full(2, t, np.float32), {"state": np.full(3, t + 1, np.float32),
+                                                 "pixels.front": np.full((2, 2, 3), t, np.uint8)},
+                     reward=float(t), terminated=t == 3, version=t - 1, success=t == 3)
+    episode = recorder.finish()
+    steps, _ = episode_spec(3, 2, {"front": (2, 2)}).check_episode(episode)
+    assert steps == 4 and recorder.success
+    np.testing.assert_array_equal(episode["version"], [-1, 0, 1, 2])
+    np.testing.assert_array_equal(episode["terminated"], [0, 0, 0, 1])
+    np.testing.assert_array_equal(episode["state"][:, 0], [0, 1, 2, 3, 4])
+    assert EpisodeRecorder({"state": np.zeros(3, np.float32)}).finish() is None
+
+
+def test_staleness_counts_policy_steps_only():
+    lag = staleness_of(np.array([RANDOM_VERSION, RANDOM_VERSION, 3, 4, 6]), learner_version=7)
+    assert (lag.policy_steps, lag.lag_sum, lag.lag_max) == (3, 4 + 3 + 1, 4)
+    assert lag.exceeds(3) and not lag.exceeds(4) and not lag.exceeds(None)
+    warmup = staleness_of(np.full(5, RANDOM_VERSION), learner_version=9)
+    assert warmup.policy_steps == 0 and not warmup.exceeds(0)
+
+
+def test_layouts_identity_for_one_shape_padded_with_a_kind_one_hot_otherwise():
+    same = policy_layouts([{"kind": "sim_sawyer", "obs_dim": 47, "action_dim": 4}] * 2)
+    assert same == [PolicyLayout(obs_dim=47, action_dim=4)] * 2
+    state = np.arange(47, dtype=np.float32)
+    assert same[0].pad_state(state) is state
+    mixed = policy_layouts([{"kind": "sim_so101", "obs_dim": 15, "action_dim": 6},
+                            {"kind": "sim_sawyer", "obs_dim": 47, "action_dim": 4}])
+    assert [(m.obs_dim, m.action_dim, m.embodiment, m.num_embodiments) for m in mixed] == [(49, 6, 1, 2),
+                                                                                         (49, 6, 0, 2)]
+    padded = mixed[0].pad_state(np.ones(15, np.float32))
+    expected = np.concatenate([np.ones(15), np.zeros(32), [0.0, 1.0]])
+    np.testing.assert_array_equal(padded, expected)
+
+
+@pytest.mark.parametrize("action", ["drop", "log"])
+def test_learner_drops_or_logs_episodes_past_the_staleness_bound(tmp_path, action):
+    from infinirl.components.sac_learner import SACNetSpec, SACUpdateSpec
+    from infinirl.realworld.learner_worker import LearnerLoopSpec, RealWorldLearnerWorker
+    from infinirl.realworld.replay import ReplayStore
+
+    loop = LearnerLoopSpec(replay_dir=str(tmp_path / "replay"), learning_starts=8, publish_every=2, max_staleness=1,
+                           staleness_action=action, durable=False)
+    # No Ray: the component's logic alone, on a real store.
+    learner = RealWorldLearnerWorker(SACNetSpec(actor_hidden=(8,), critic_hidden=(8,)), SACUpdateSpec(batch_size=4),
+                                     loop, 3, 2)
+
+    def episode(version):
+        return {"state": np.zeros((5, 3), np.float32), "action": np.zeros((4, 2), np.float32),
+                "reward": np.zeros(4, np.float32), "terminated": np.zeros(4, np.float32),
+                "version": np.full(4, version, np.int64)}
+
+    assert learner.add_and_update([episode(-1), episode(-1)], num_updates=6, publish=True) == 4  # 3 + 1 published
+    learner.add_and_update([episode(3), episode(2)], num_updates=0)  # lags 1 (kept) and 2 (past the bound)
+    status = learner.status()
+    assert status["counts"]["stale_episodes"] == 1 and status["counts"]["lag_max"] == 2
+    kept = 3 if action == "drop" else 4
+    assert status["store_episodes"] == kept and status["counts"].get("dropped_episodes", 0) == 4 - kept
+    learner.close()
+    store = ReplayStore(str(tmp_path / "replay"), writable=False)
+    assert store.num_episodes == kept
+    store.close()
