@@ -115,9 +115,9 @@ def unit_box(action_dim: int) -> SimpleNamespace:
 
 
 def _connected(kind: str, options: dict, safety: SafetyConfig, tries: int = _CONNECT_TRIES) -> SafeRobot:
-    """The robot behind the safety layer, connected. A simulated robot's control thread can tick
-    before ``connect`` has asked for its first reset, and a plant read before any reset fails
-    (SimulatedRobot.connect starts the thread, then requests the reset); a fresh driver is tried then."""
+    """The robot behind the safety layer, connected; a driver whose connect fails (a serial port
+    that does not answer yet, a simulator that fails to load) is replaced by a fresh one, up to
+    ``tries`` times, before the worker reports the failure."""
     for attempt in range(1, tries + 1):
         robot = SafeRobot(make_robot(kind, **options), safety)
         try:

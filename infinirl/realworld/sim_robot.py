@@ -130,13 +130,16 @@ class SimulatedRobot(RobotDriver):
                 raise RobotError(f"{self._spec.kind} was closed; build a new driver")
             if self._thread is not None:
                 return
+            # The first tick must find a reset requested: before any reset the plant has no state to read.
+            self._reset_done.clear()
+            self._reset_requested, self._mode = True, "resetting"
             self._thread = threading.Thread(target=self._run, name=f"{self._spec.kind}-control", daemon=True)
             self._thread.start()
             if self._capture is not None:
                 self._camera_thread = threading.Thread(target=self._run_camera, name=f"{self._spec.kind}-camera",
                                                        daemon=True)
                 self._camera_thread.start()
-        self.reset()
+        self._await_reset()
 
     def observe(self) -> RobotObservation:
         with self._lock:
@@ -167,6 +170,9 @@ class SimulatedRobot(RobotDriver):
             self._reset_requested = True
             self._mode = "resetting"
             self._lock.notify_all()
+        return self._await_reset()
+
+    def _await_reset(self) -> RobotObservation:
         # A reset takes reset_s plus one simulator reset; far longer means the control thread died.
         finished = self._reset_done.wait(self.reset_s + _JOIN_TIMEOUT_S)
         with self._lock:
