@@ -7,6 +7,7 @@
 - Answer extraction (`answers.py`) and verifiers with `safe_score` (`verifiers.py`).
 """
 
+from infinirl.tasks import exact_match, fictional_kb  # noqa: F401 (registers a verifier, a task source)
 from infinirl.tasks.answers import ANSWER_EXTRACTORS, extract_answer_auto, parse_number
 from infinirl.tasks.datasets import (
     DATA_DIR_ENV,
