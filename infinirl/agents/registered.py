@@ -11,7 +11,7 @@ from infinirl.agents.loop import AGENT_ENVS, AgentEnv
 __all__ = ["AGENT_ENVS", "load_agent_envs", "resolve_agent_env"]
 
 # Imported on first use, so a run without agents never imports tools or the sandbox.
-_ENV_MODULES = ("infinirl.agents.tool_env", "infinirl.agents.coding.env")
+_ENV_MODULES = ("infinirl.agents.tool_env", "infinirl.agents.coding.env", "infinirl.agents.search")
 
 
 def load_agent_envs():

@@ -7,7 +7,8 @@
 - Answer extraction (`answers.py`) and verifiers with `safe_score` (`verifiers.py`).
 """
 
-from infinirl.tasks import code_tasks  # noqa: F401 - registers task.source=code and the code_tests verifiers
+# Imported for their registrations: task sources (code, fictional_kb) and verifiers (code_tests, exact_match).
+from infinirl.tasks import code_tasks, exact_match, fictional_kb  # noqa: F401
 from infinirl.tasks.answers import ANSWER_EXTRACTORS, extract_answer_auto, parse_number
 from infinirl.tasks.datasets import (
     DATA_DIR_ENV,
