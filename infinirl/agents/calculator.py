@@ -18,6 +18,7 @@ from fractions import Fraction
 __all__ = ["MAX_BITS", "MAX_EXPRESSION_CHARS", "CalculatorError", "evaluate", "format_number"]
 
 MAX_EXPRESSION_CHARS = 1000
+MAX_DEPTH = 100  # operators nested in one another: checked, not left to the interpreter's recursion limit
 MAX_BITS = 9900  # about 3000 decimal digits: below Python's int-to-text limit (4300 digits)
 APPROXIMATE_DIGITS = 20
 
@@ -153,10 +154,22 @@ def evaluate(expression: str) -> Fraction:
         tree = ast.parse(text, mode="eval")
     except (SyntaxError, ValueError, RecursionError, MemoryError) as error:
         raise CalculatorError(f"cannot parse {shorten(text)!r}: {getattr(error, 'msg', error)}") from None
+    if _depth(tree) > MAX_DEPTH:
+        raise CalculatorError(f"the expression is nested too deeply (more than {MAX_DEPTH} levels)")
     try:
         return evaluate_node(tree)
     except RecursionError:
         raise CalculatorError("the expression is nested too deeply") from None
+
+
+def _depth(tree: ast.AST) -> int:
+    """How deep the expression's operators nest (iteratively: a deep tree must not recurse here)."""
+    deepest, stack = 0, [(tree, 1)]
+    while stack:
+        node, depth = stack.pop()
+        deepest = max(deepest, depth)
+        stack.extend((child, depth + 1) for child in ast.iter_child_nodes(node))
+    return deepest
 
 
 def format_number(value: Fraction) -> str:
