@@ -8,6 +8,13 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see i
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+from infinirl.envs.gymnasium_env import use_headless_gl  # noqa: E402
+
+# MuJoCo binds its GL backend when it is first imported, once per process: choose the off-screen one
+# before any test imports it, so a state-only test that runs first (MuJoCo's default is glfw, which
+# needs a display) cannot leave a later rendering test (a simulated robot's camera) without GL.
+use_headless_gl()
+
 # pyproject's timeout (600 s) bounds every test of the default suite; a learning run of the slow
 # tier takes minutes on two cores and more on a busy host, so it gets this much instead.
 SLOW_TEST_TIMEOUT_S = 2400
