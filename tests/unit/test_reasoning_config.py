@@ -49,7 +49,8 @@ def test_defaults_validate():
     ({"algorithm": {"objective": {"is_cap_mode": "clip"}}}, r"is_cap_mode='clip' is not allowed.*truncate, mask"),
     ({"loggers": ["tensorbord"]}, r"unknown logger 'tensorbord'"),
     ({"placement": {"actor": "0", "rollout": "0", "reward": "x"}}, r"placement.reward"),
-    ({"task": {"source": "hub"}}, r"task.source='hub' is not registered; registered: code, dataset, fictional_kb, reasoning_gym"),
+    ({"task": {"source": "hub"}}, r"task.source='hub' is not registered; registered: code, dataset, fictional_kb, "
+                                  r"reasoning_gym"),
     ({"task": {"verifier": "no_such"}}, r"task.verifier='no_such': unknown verifier 'no_such'; registered: .*math"),
     ({"task": {"verifier": "no.such.module:fn"}}, r"task.verifier='no.such.module:fn': cannot import module"),
     ({"actor": {"lr": -1e-3}}, r"actor.lr=-0.001 must be > 0"),

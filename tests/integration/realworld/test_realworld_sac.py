@@ -96,6 +96,7 @@ def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
             make_cfg(tmp_path / "bad", 1, **extra).validate()
 
 
+@pytest.mark.slow  # a whole run killed and run again (~90 s); the store's own kill -9 tests are in the unit tier
 def test_killed_run_resumes_with_every_stored_episode(tmp_path):
     """kill -9 of the whole run (driver, robot and learner processes) between checkpoints; the same
     command again resumes from the newest checkpoint and keeps every episode the store committed."""
@@ -133,6 +134,7 @@ def test_killed_run_resumes_with_every_stored_episode(tmp_path):
     assert summary["replay_episodes"] >= at_kill  # every committed episode is still there
 
 
+@pytest.mark.slow  # two real-time simulated arms, one of them rendering
 def test_two_embodiments_feed_one_policy_and_one_store(ray_cluster, tmp_path):
     fleet = [{"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 50.0, "image_size": None}},
              {"kind": "sim_so101", "options": {"control_hz": 50.0, "image_size": None},
