@@ -1,0 +1,87 @@
+"""The intervention device interface: how a person (or a simulated one) takes over a learning robot.
+
+Every device (keyboard, gamepad, the run's web page, the scripted simulated human) answers one
+question per control step, :meth:`InterventionDevice.poll`: does the human hold control now, and if
+so which action do they command? It also delivers the episode marks the human gave since the last
+poll (``"success"`` / ``"failure"``), which become the episode's human reward.
+
+Actions are in the policy's action space (the :class:`~infinirl.realworld.robot_env.RobotEnv`'s
+normalised ``[-1, 1]^action_dim``), so an intervened step is stored exactly like a policy step,
+with the human's action in place of the policy's and a flag saying who acted.
+
+Devices are registered by name in :data:`INTERVENTION_DEVICES` (entry-point group
+``infinirl.intervention_devices``), built by keyword: ``INTERVENTION_DEVICES.get(name)(action_dim=...,
+**options)``.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from infinirl.registry import Registry
+
+__all__ = ["EPISODE_MARKS", "INTERVENTION_DEVICES", "HumanInput", "InterventionDevice"]
+
+EPISODE_MARKS = ("success", "failure")
+
+
+@dataclass(frozen=True, kw_only=True)
+class HumanInput:
+    """What the human did since the last poll.
+
+    ``active``: the human holds control for this step. ``action``: their action (``[-1, 1]``,
+    ``action_dim`` entries) when active, else ``None``. ``marks``: episode marks given since the
+    last poll, each one of :data:`EPISODE_MARKS`, oldest first.
+    """
+
+    active: bool
+    action: np.ndarray | None = None
+    marks: tuple[str, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        if self.active and self.action is None:
+            raise ValueError("HumanInput.active needs an action")
+        unknown = [m for m in self.marks if m not in EPISODE_MARKS]
+        if unknown:
+            raise ValueError(f"HumanInput.marks: unknown mark(s) {unknown}; known: {list(EPISODE_MARKS)}")
+
+
+class InterventionDevice(abc.ABC):
+    """One source of human input for one robot."""
+
+    def __init__(self, *, action_dim: int) -> None:
+        if action_dim < 1:
+            raise ValueError(f"action_dim must be >= 1, got {action_dim}")
+        self.action_dim = action_dim
+
+    @abc.abstractmethod
+    def poll(self, *, observation: Mapping[str, np.ndarray] | None = None,
+             policy_action: np.ndarray | None = None) -> HumanInput:
+        """The human's input for the step about to be taken.
+
+        ``observation`` is the env's current observation and ``policy_action`` what the policy
+        proposes; a person does not need them, a simulated human (which decides from the state) and
+        the web page (which shows the proposal) do.
+        """
+
+    def show(self, frames: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> None:  # noqa: B027
+        """Offer the latest camera frames (uint8 ``H x W x 3`` by camera name) and status to a device
+        that displays them; devices without a screen ignore it."""
+
+    def close(self) -> None:  # noqa: B027
+        """Release what the device holds (threads, sockets, file handles)."""
+
+    def __enter__(self) -> InterventionDevice:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+INTERVENTION_DEVICES: Registry[type[InterventionDevice]] = Registry(
+    "intervention device", entry_point_group="infinirl.intervention_devices")
