@@ -52,6 +52,7 @@ class VLA(nn.Module):
                              num_steps: int | None = None) -> torch.Tensor:
         """Env-unit actions ``[B, chunk, action_dim]`` for a LeRobot-style observation (ODE sampling)."""
         x = self.inputs(observation)
+        noise = None if noise is None else noise.to(x.tokens.device)
         sampled = self.model.sample_actions(x.images, x.image_masks, x.tokens, x.token_mask, x.state,
                                             noise=noise, num_steps=num_steps)
         return self.processor.actions_out(sampled)
@@ -66,8 +67,10 @@ class VLA(nn.Module):
         its episode's end is padded, and its padding rows are left out of the average (LeRobot's
         ``action_is_pad``)."""
         x = self.inputs(observation)
+        device = x.tokens.device  # demonstrations, noise and times may arrive in host memory
+        noise, time = (None if t is None else t.to(device) for t in (noise, time))
         elements = self.model.loss_elements(x.images, x.image_masks, x.tokens, x.token_mask, x.state,
-                                            self.processor.actions_in(actions), noise=noise, time=time)
+                                            self.processor.actions_in(actions).to(device), noise=noise, time=time)
         if action_mask is None:
             per_sample = elements[..., :self.config.action_dim].mean(dim=(1, 2))
         else:

@@ -152,3 +152,22 @@ def test_unknown_platform_and_head():
         load(head="diffusion")
     assert "discrete" in one_line(excinfo)
     assert Platform(chunk_size=8, action_dim=7, proprio_dim=8).normalization == "bounds_q99"
+
+
+def test_dinov2_blocks_of_either_transformers_layout_receive_the_published_weights():
+    """Releases of transformers before its attention refactor nest DINOv2's attention (query/key/value,
+    output.dense); the key map follows the layout of the model actually built."""
+    from infinirl.models.vla.openvla_oft.checkpoint import block_layouts, vit_targets
+
+    model = load(head="l1").model
+    names = set(model.state_dict())
+    assert block_layouts(model, names) == [spec.kind for spec in model.config.vision]
+    nested = {"vision.featurizers.0.blocks.0.attention.attention.query.weight"}
+    assert block_layouts(model, nested)[0] == "dinov2_nested"
+    depth = model.config.vision[0].depth
+    assert vit_targets("blocks.0.attn.qkv.weight", "p.", "dinov2_nested", depth) == [
+        ("p.blocks.0.attention.attention.query.weight", 0), ("p.blocks.0.attention.attention.key.weight", 1),
+        ("p.blocks.0.attention.attention.value.weight", 2)]
+    assert vit_targets("blocks.0.attn.proj.bias", "p.", "dinov2_nested", depth) == [
+        ("p.blocks.0.attention.output.dense.bias", None)]
+    assert vit_targets("blocks.0.attn.proj.bias", "p.", "dinov2", depth) == [("p.blocks.0.attention.o_proj.bias", None)]

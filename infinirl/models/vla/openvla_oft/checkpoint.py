@@ -37,7 +37,8 @@ from safetensors import safe_open
 
 from infinirl.models.vla.openvla_oft.model import OpenVLAOFT
 
-__all__ = ["find_component", "load_component", "load_weights", "map_checkpoint_keys", "read_weights"]
+__all__ = ["block_layouts", "find_component", "load_component", "load_weights", "map_checkpoint_keys", "read_weights",
+           "vit_targets"]
 
 FEATURIZERS = ("vision_backbone.featurizer.", "vision_backbone.fused_featurizer.")
 BLOCK = re.compile(r"blocks\.(\d+)\.(.+)")
@@ -51,7 +52,13 @@ BLOCK_NAMES = {
     "siglip": {"norm1.": "layer_norm1.", "norm2.": "layer_norm2.", "attn.proj.": "self_attn.out_proj.",
                "mlp.fc1.": "mlp.fc1.", "mlp.fc2.": "mlp.fc2."},
 }
-QKV = {"dinov2": "attention.{}_proj.", "siglip": "self_attn.{}_proj."}
+QKV = {"dinov2": ("attention.q_proj.", "attention.k_proj.", "attention.v_proj."),
+       "siglip": ("self_attn.q_proj.", "self_attn.k_proj.", "self_attn.v_proj.")}
+# transformers before its attention refactor builds Dinov2WithRegistersLayer with a nested attention
+# (query/key/value, output.dense); the layout is read off the model actually built, so a folder
+# loads under either release.
+BLOCK_NAMES["dinov2_nested"] = {**BLOCK_NAMES["dinov2"], "attn.proj.": "attention.output.dense."}
+QKV["dinov2_nested"] = ("attention.attention.query.", "attention.attention.key.", "attention.attention.value.")
 HEAD_NAMES = (("model.mlp_resnet_blocks.", "blocks."), ("model.", ""))
 HEAD_BLOCK_PARTS = ((".ffn.0.", ".norm."), (".ffn.1.", ".linear."))
 
@@ -77,7 +84,7 @@ def read_weights(folder: Path) -> dict[str, torch.Tensor]:
     return tensors
 
 
-def _vit_targets(rest: str, prefix: str, kind: str, depth: int) -> list[tuple[str, int | None]] | None:
+def vit_targets(rest: str, prefix: str, kind: str, depth: int) -> list[tuple[str, int | None]] | None:
     """Our names for one ViT key (``[]`` when unused by design, ``None`` when unknown); the int is the
     q/k/v chunk of a fused ``qkv`` tensor."""
     for published, ours in VIT_TOP.items():
@@ -94,18 +101,28 @@ def _vit_targets(rest: str, prefix: str, kind: str, depth: int) -> list[tuple[st
     base = f"{prefix}blocks.{block}."
     if tail.startswith("attn.qkv."):
         leaf = tail[len("attn.qkv."):]
-        return [(base + QKV[kind].format(name) + leaf, i) for i, name in enumerate("qkv")]
+        return [(base + name + leaf, i) for i, name in enumerate(QKV[kind])]
     for published, ours in BLOCK_NAMES[kind].items():
         if tail.startswith(published):
             return [(base + ours + tail[len(published):], None)]
     return None
 
 
-def _targets(key: str, model: OpenVLAOFT) -> list[tuple[str, int | None]] | None:
+def block_layouts(model: OpenVLAOFT, names: set[str]) -> list[str]:
+    """The name layout of each ViT's blocks in the model as built (``names``: its state-dict keys):
+    the ViT's kind, or ``dinov2_nested``."""
+    layouts = []
+    for i, spec in enumerate(model.config.vision):
+        nested = f"vision.featurizers.{i}.blocks.0.attention.attention.query.weight" in names
+        layouts.append("dinov2_nested" if spec.kind == "dinov2" and nested else spec.kind)
+    return layouts
+
+
+def _targets(key: str, model: OpenVLAOFT, layouts: list[str]) -> list[tuple[str, int | None]] | None:
     for i, published in enumerate(FEATURIZERS):
         if key.startswith(published) and i < len(model.config.vision):
             spec = model.config.vision[i]
-            return _vit_targets(key[len(published):], f"vision.featurizers.{i}.", spec.kind, spec.depth)
+            return vit_targets(key[len(published):], f"vision.featurizers.{i}.", layouts[i], spec.depth)
     if key.startswith("projector."):
         return [(key, None)]
     if key.startswith("language_model."):
@@ -133,10 +150,11 @@ def map_checkpoint_keys(tensors: dict[str, torch.Tensor], model: OpenVLAOFT, sou
     """Our state dict (VLA part) from the published one; one-line errors for unknown/missing/misshapen keys."""
     expected = {k: v for k, v in model.state_dict().items()
                 if not k.startswith(("action_head.", "proprio_projector."))}
+    layouts = block_layouts(model, set(expected))
     mapped: dict[str, torch.Tensor] = {}
     unknown: list[str] = []
     for key, tensor in tensors.items():
-        targets = _targets(key, model)
+        targets = _targets(key, model, layouts)
         if targets is None:
             unknown.append(key)
             continue

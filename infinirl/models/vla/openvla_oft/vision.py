@@ -66,7 +66,9 @@ class ViTFeaturizer(nn.Module):
             batch = x.shape[0]
             x = torch.cat([self.cls_token.expand(batch, -1, -1), self.reg_token.expand(batch, -1, -1), x], dim=1)
         for block in self.blocks:
-            x = block(x, None)
+            # no padding inside an image: SigLIP's layer takes the (absent) mask positionally, DINOv2's
+            # takes none in some transformers releases, so it is given only where required
+            x = block(x, None) if self.spec.kind == "siglip" else block(x)
         return x[:, self.prefix:]
 
 
