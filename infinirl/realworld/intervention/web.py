@@ -246,8 +246,8 @@ class WebInterventionDevice(InterventionDevice):
                  heartbeat_timeout_s: float | None = 3.0, timeout_s: float = 10.0) -> None:
         super().__init__(action_dim=action_dim)
         self._check_options(host=host, port=port, token=token, allow_no_token=allow_no_token,
-                            axis_labels=axis_labels, pad_axes=pad_axes, jpeg_quality=jpeg_quality,
-                            heartbeat_timeout_s=heartbeat_timeout_s, timeout_s=timeout_s)
+                            jpeg_quality=jpeg_quality, heartbeat_timeout_s=heartbeat_timeout_s, timeout_s=timeout_s)
+        self._check_layout(axis_labels=axis_labels, pad_axes=pad_axes)
         self.token = token
         self.axis_labels = tuple(axis_labels) if axis_labels else tuple(f"a{i}" for i in range(action_dim))
         self.pad_axes = tuple(pad_axes) if action_dim >= 2 else ()
@@ -275,9 +275,8 @@ class WebInterventionDevice(InterventionDevice):
         logger.info("intervention page: %s", self.url)
 
     @staticmethod
-    def _check_options(*, host: str, port: int, token: str | None, allow_no_token: bool,
-                       axis_labels: Any, pad_axes: Any, jpeg_quality: int, heartbeat_timeout_s: float | None,
-                       timeout_s: float) -> None:
+    def _check_options(*, host: str, port: int, token: str | None, allow_no_token: bool, jpeg_quality: int,
+                       heartbeat_timeout_s: float | None, timeout_s: float) -> None:
         if not 0 <= port <= 65535:
             raise ValueError(f"web intervention device: port must be in [0, 65535] (0: a free one), got {port}")
         if token is not None and (not isinstance(token, str) or not token):
@@ -292,6 +291,16 @@ class WebInterventionDevice(InterventionDevice):
                              f"period {ACTION_RESEND_S} s (or be None), got {heartbeat_timeout_s}")
         if timeout_s <= 0:
             raise ValueError(f"web intervention device: timeout_s must be > 0, got {timeout_s}")
+
+    def _check_layout(self, *, axis_labels: Any, pad_axes: Any) -> None:
+        if axis_labels is not None and len(axis_labels) != self.action_dim:
+            raise ValueError(f"web intervention device: axis_labels: one label per action entry "
+                             f"({self.action_dim}), got {list(axis_labels)}")
+        pad = list(pad_axes)
+        if self.action_dim >= 2 and (len(pad) != 2 or pad[0] == pad[1]
+                                     or not all(isinstance(a, int) and 0 <= a < self.action_dim for a in pad)):
+            raise ValueError(f"web intervention device: pad_axes: two different entries of the action "
+                             f"(0..{self.action_dim - 1}), got {pad}")
 
     # -- the InterventionDevice interface ---------------------------------------------------------
     def poll(self, *, observation: Mapping[str, np.ndarray] | None = None,
