@@ -45,7 +45,7 @@ import numpy as np
 
 from infinirl.realworld.intervention.device import EPISODE_MARKS, INTERVENTION_DEVICES, HumanInput, InterventionDevice
 
-__all__ = ["ACTION_RESEND_S", "WebControlState", "WebDeviceStats", "WebInterventionDevice", "encode_jpeg",
+__all__ = ["ACTION_RESEND_S", "WebControlState", "WebDeviceStats", "WebInterventionDevice", "encode_jpeg", "jsonable",
            "parse_action", "parse_mark"]
 
 logger = logging.getLogger(__name__)
@@ -99,16 +99,20 @@ def encode_jpeg(frame: np.ndarray, quality: int) -> bytes:
     return buffer.getvalue()
 
 
-def _jsonable(value: Any) -> Any:
-    """``info`` values as JSON: numpy scalars and arrays become numbers and lists, the rest text."""
+def jsonable(value: Any) -> Any:
+    """``value`` as strict JSON for the page: numpy scalars and arrays become numbers and lists,
+    non-finite floats the text ``"nan"`` / ``"inf"`` / ``"-inf"`` (a browser's JSON parser refuses
+    ``NaN``), anything else unknown its ``str``."""
     if isinstance(value, np.ndarray | np.generic):
-        return value.tolist()
+        return jsonable(value.tolist())
+    if isinstance(value, float) and not np.isfinite(value):
+        return str(value)
     if isinstance(value, bool | int | float | str) or value is None:
         return value
     if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     return str(value)
 
 
@@ -181,7 +185,7 @@ class WebControlState:
                 "released_by": self._released_by,
                 "action": self._action.tolist(),
                 "action_dim": self.action_dim,
-                "policy_action": None if self._policy_action is None else self._policy_action.tolist(),
+                "policy_action": None if self._policy_action is None else jsonable(self._policy_action),
                 "polls": self._polls,
                 "marks_pending": list(self._marks),
                 "cameras": sorted(self._frames),
@@ -267,6 +271,7 @@ class WebInterventionDevice(InterventionDevice):
         self._thread = threading.Thread(target=self._serve, name="intervention-web", daemon=True)
         self._thread.start()
         if not self._started.wait(timeout_s):
+            self._loop.call_soon_threadsafe(self._loop.stop)  # the thread then ends as after a failed start
             raise RuntimeError(f"web intervention device: the server did not start within {timeout_s} s")
         if self._start_error is not None:
             self._thread.join(timeout_s)
@@ -312,7 +317,7 @@ class WebInterventionDevice(InterventionDevice):
 
     def show(self, frames: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> None:
         checked = {str(camera): _check_frame(str(camera), frame) for camera, frame in frames.items()}
-        self.state.show(checked, _jsonable(dict(info or {})))
+        self.state.show(checked, jsonable(dict(info or {})))
 
     @property
     def stats(self) -> WebDeviceStats:

@@ -138,6 +138,22 @@ def test_the_latest_frame_is_served_as_jpeg(device):
     assert status == 404 and "['front', 'wrist']" in answer["error"]
 
 
+def strict_json(content):
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+    return json.loads(content, parse_constant=refuse)
+
+
+def test_non_finite_numbers_reach_the_page_as_strict_json(device):
+    device.show({}, {"loss": float("nan"), "bound": np.array([np.inf, 1.0])})
+    device.poll(policy_action=np.array([np.nan, 0.5, -np.inf]))
+    with urllib.request.urlopen(f"http://127.0.0.1:{device.port}/api/state?token="
+                                + urllib.request.quote(TOKEN, safe=""), timeout=10) as response:
+        state = strict_json(response.read())  # a browser's JSON.parse refuses NaN and Infinity
+    assert state["info"] == {"loss": "nan", "bound": ["inf", 1.0]}
+    assert state["policy_action"] == ["nan", 0.5, "-inf"]
+
+
 def test_show_and_poll_refuse_wrong_shapes(device):
     with pytest.raises(ValueError, match="frame 'front' must be uint8 H x W x 3"):
         device.show({"front": np.zeros((8, 8), np.uint8)})
