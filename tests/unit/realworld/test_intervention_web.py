@@ -49,6 +49,12 @@ def test_the_registry_builds_it_and_its_url_carries_the_token():
         dev.close()
 
 
+def test_on_every_interface_the_url_names_this_node():
+    with WebInterventionDevice(action_dim=2, host="0.0.0.0", token="a b") as dev:
+        assert dev.url == f"http://{socket.gethostname()}:{dev.port}/?token=a%20b"
+        assert call(dev, "/api/state", token="a b")[0] == 200
+
+
 def test_take_over_act_and_hand_back_set_what_poll_returns(device):
     assert device.poll().active is False
     status, state = call(device, "/api/takeover", {})
