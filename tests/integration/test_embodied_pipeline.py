@@ -102,6 +102,7 @@ def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
     assert rows[1]["train/logprob_mismatch"] < 1e-5
 
 
+@pytest.mark.slow  # compiles on CPU; the compiled step and act have unit tests
 @pytest.mark.skipif(find_cxx_compiler() is None,
                     reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
 def test_compiled_actor_and_rollout_train_and_resume_exactly(ray_cluster, tmp_path):
@@ -126,6 +127,7 @@ def test_compile_without_a_compiler_fails_before_workers_start(tmp_path, monkeyp
     make_cfg(tmp_path, 1, PLACEMENTS["collocated"][0], 1)  # compile off: no compiler needed
 
 
+@pytest.mark.slow  # two whole runs compared
 def test_stage_processes_change_where_stages_run_not_what_is_learned(ray_cluster, tmp_path):
     """env.stage_processes: each stage in a process of its own, streaming to the rollout; the same
     envs, seeds and actions as the env worker simulating both stages itself, so the same weights."""
@@ -172,6 +174,7 @@ def test_unknown_task_fails_in_the_driver(tmp_path):
         run(cfg)
 
 
+@pytest.mark.slow  # two whole runs compared; the eta=1 run stays in the default tier
 def test_asynchronous_eta_0_is_the_synchronous_run(ray_cluster, tmp_path):
     placement, stages = PLACEMENTS["collocated"]
     quiet = {"eval": {"every": 100, "at_start": False, "episodes": 2, "num_envs": 2, "video_episodes": 0},

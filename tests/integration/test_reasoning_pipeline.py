@@ -144,6 +144,7 @@ def test_a_prompt_over_max_prompt_length_fails_naming_the_key(tiny_llama_dir, tm
     encode_checked(problems, tokenizer, None, longest, "train")
 
 
+@pytest.mark.slow  # two whole runs compared; streaming's own tests stay in the default tier
 def test_streamed_chunks_give_the_same_run_on_one_or_two_rollout_ranks(ray_cluster, tiny_llama_dir, tmp_path):
     """Generation streams rollout -> reward -> driver through channels in chunks; each chunk's seed
     follows its index, so spreading chunks over two rollout and two reward ranks changes nothing."""
@@ -156,6 +157,7 @@ def test_streamed_chunks_give_the_same_run_on_one_or_two_rollout_ranks(ray_clust
             == read_rows(tmp_path / "two")[1]["rollout/reward_mean"])
 
 
+@pytest.mark.slow  # two whole runs compared; the eta=1 run and its exact resume stay in the default tier
 def test_asynchronous_eta_0_is_the_synchronous_run(ray_cluster, tiny_llama_dir, tmp_path):
     quiet = {"eval": {"every": 100, "at_start": False}, "save_every": 100}
     synchronous = run(make_cfg(tiny_llama_dir, tmp_path / "sync", iterations=2, **quiet))
