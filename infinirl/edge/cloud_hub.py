@@ -137,8 +137,10 @@ class CloudHub:
             with self._lock:
                 self._links[id(link)] = link
                 state = self._edges.setdefault(link.peer, _EdgeState())
-                hello = link.peer_hello
-                if state.held is None or state.held.digest != hello.get("weights_digest"):
+                digest = link.peer_hello.get("weights_digest")
+                if state.pending is not None and state.pending.digest == digest:
+                    state.held = state.pending  # applied, but its acknowledgement was lost with the link
+                elif state.held is None or state.held.digest != digest:
                     state.held = None  # the edge holds something else (or nothing): next push in full
                 state.pending = None
             for target in (self._receive_episodes, self._push_weights):

@@ -94,6 +94,9 @@ class EdgeClient:
 
     def offline_s(self) -> float:
         """Seconds since the link went down (0 while connected)."""
+        link = self._link
+        if link is not None:
+            return 0.0 if link.alive else time.monotonic() - link.closed_at
         since = self._offline_since
         return 0.0 if since is None else time.monotonic() - since
 

@@ -211,6 +211,7 @@ class Link:
         self._inbox: dict[str, queue.Queue] = {}
         self._stalled: collections.deque[tuple[str, bytes]] = collections.deque(early or ())
         self._closed_reason: str | None = None
+        self.closed_at: float | None = None  # time.monotonic() when it closed
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._thread = threading.Thread(target=self._run, name=f"edge-link-{peer}", daemon=True)
@@ -297,7 +298,7 @@ class Link:
     def _mark_closed(self, reason: str) -> None:
         with self._space:
             if self._closed_reason is None:
-                self._closed_reason = reason
+                self._closed_reason, self.closed_at = reason, time.monotonic()
             self._space.notify_all()
         self._wake()
 
