@@ -137,7 +137,13 @@ def _edge_node(args) -> int:
     size = tuple(int(v) for v in args.frame_size.split("x")) if args.frame_size else None
     client = EdgeClient(args.cloud, TlsFiles.in_folder(args.certs, args.name), name=args.name, spool=spool,
                         frames=FrameOptions(format=args.frame_format, quality=args.jpeg_quality, size=size),
-                        options=EdgeOptions(link=_link_options(args))).start()  # dials while the robot starts
+                        options=EdgeOptions(link=_link_options(args))).start()
+    try:  # a refused certificate stops the node before the robot moves; an unreachable cloud does not
+        client.wait_connected(args.connect_wait_s)
+    except LinkAuthError as exc:
+        client.close()
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
     robot = SafeRobot(make_robot(args.robot, **json.loads(args.robot_options)), SafetyConfig())
     robot.connect()
     env = RobotEnv(robot, RobotEnvSpec(observations=tuple(args.observations.split(",")),
@@ -205,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     edge.add_argument("--max-offline-s", type=float, default=30.0, help="act on old weights this long, then hold")
     edge.add_argument("--drain-s", type=float, default=60.0, help="at the end, wait this long for acknowledgements")
     edge.add_argument("--seed", type=int, default=0)
+    edge.add_argument("--connect-wait-s", type=float, default=10.0,
+                      help="before starting the robot, wait this long for the first connection")
     _add_link_arguments(edge)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

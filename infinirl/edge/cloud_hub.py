@@ -4,7 +4,9 @@
 :attr:`CloudHub.refusals`, one line each). For each connected edge it receives episodes, hands each
 new episode id to ``on_episode(edge, episode_id, episode)`` exactly once (an id seen before, from a
 resend after an outage, is acknowledged again but not delivered), and acknowledges only after
-``on_episode`` returned, so an episode is never lost between the two ends. Seen ids are kept in
+``on_episode`` returned, so an episode is never lost between the two ends. Episode ids must start
+with the edge's certificate name and a dash (:class:`~infinirl.edge.edge_client.EdgeClient` names
+them so); an edge sending another id is disconnected, so no edge can shadow another's episodes. Seen ids are kept in
 memory; pass ``seen_ids`` (e.g. from the replay store) when the cloud restarts.
 
 :meth:`CloudHub.publish` makes a weight version the newest; every edge gets it as soon as it
@@ -157,6 +159,12 @@ class CloudHub:
                 except TimeoutError:
                     continue
                 episode_id, episode = decode_episode(payload)
+                if not episode_id.startswith(f"{link.peer}-"):  # an edge cannot shadow another's episodes
+                    link.close(f"edge {link.peer} sent episode id {episode_id!r} outside its namespace "
+                               f"'{link.peer}-...'")
+                    self.counts["foreign_ids"] += 1
+                    logger.warning("%s", link.closed_reason)
+                    return
                 self.counts["episode_bytes"] += len(payload)
                 with self._deliver_lock:  # one delivery per id, also across an old and a new connection
                     fresh = episode_id not in self._seen

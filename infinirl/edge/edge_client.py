@@ -117,6 +117,17 @@ class EdgeClient:
                 self._changed.wait(min(remaining, _POLL_S))
         return True
 
+    def wait_connected(self, timeout: float) -> bool:
+        """Wait for the link to come up; False at ``timeout`` (the cloud may be unreachable for now);
+        raises a refused certificate at once."""
+        deadline = time.monotonic() + timeout
+        while not self.connected:
+            self.check()
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.02)
+        return True
+
     def wait_weights(self, version: int, timeout: float) -> bool:
         deadline = time.monotonic() + timeout
         with self._changed:

@@ -87,6 +87,14 @@ def test_the_hub_delivers_a_resent_episode_once(cloud, credentials):
     assert list(received.episodes) == ["edge-1-a-0"] and hub.counts["duplicates"] == 1
 
 
+def test_an_edge_cannot_send_episodes_in_another_edges_name(cloud, credentials):
+    hub, _, received = cloud
+    link = dial(hub.address, client_context(credentials["edge-1"]), options=LINK)
+    link.send(protocol.EPISODES, encode_episode(an_episode(0), episode_id="edge-0-a-0"), timeout=5.0)
+    assert wait_for(lambda: not link.alive, 10.0)
+    assert received.episodes == {} and hub.counts["foreign_ids"] == 1
+
+
 def weights(step):
     rng = np.random.default_rng(0)
     return {"w": (rng.normal(0, 0.1, (128, 64)) + 1e-3 * step).astype(np.float32),
