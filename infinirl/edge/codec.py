@@ -4,8 +4,8 @@ down as compressed deltas against the version the edge holds when that is smalle
 **Episodes** (:func:`encode_episode` / :func:`decode_episode`). Every ``pixels.<camera>`` field
 (``uint8``, ``T x H x W x 3``) is sent frame by frame as JPEG or PNG (:class:`FrameOptions`),
 optionally resized to the training resolution first; every other field (state, action, reward,
-...) is sent exactly (zlib of the raw bytes). PNG is lossless; JPEG at ``quality`` 90 keeps the
-mean absolute pixel error of natural camera frames around 1 to 2 grey levels (tests bound it).
+...) is sent exactly (zlib of the raw bytes). PNG is lossless; JPEG is lossy (the tests bound the mean
+absolute pixel error of camera-like frames at ``quality`` 90 by 3 grey levels).
 
 **Weights** (:func:`encode_weights` / :func:`decode_weights`). The cloud keeps, per edge, the exact
 weights that edge holds (:class:`HeldWeights`: version, float tensors, and a SHA-256 digest of

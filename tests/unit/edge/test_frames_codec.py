@@ -67,7 +67,7 @@ def test_episode_png_is_exact_and_jpeg_within_tolerance():
         if options.format == "png":
             assert error.max() == 0
         else:
-            assert error.mean() <= 3.0  # the docstring's "1 to 2 grey levels", with margin
+            assert error.mean() <= 3.0  # the bound codec's docstring states
             assert len(payload) < episode["pixels.corner"].nbytes / 4
 
 
