@@ -108,7 +108,9 @@ class CloudHub:
         for link in links:
             link.close("the cloud is shutting down")
         self._accept_thread.join(timeout)
-        for thread in self._threads:
+        with self._lock:
+            threads = list(self._threads)
+        for thread in threads:
             thread.join(timeout)
         self._listener.close()
 
@@ -122,34 +124,45 @@ class CloudHub:
     def _accept_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                link = self._listener.accept(timeout=_POLL_S * 2)
+                raw, address = self._listener.accept_connection(timeout=_POLL_S * 2)
             except TimeoutError:
                 continue
-            except LinkAuthError as exc:
-                logger.warning("%s", exc)
-                self.refusals.append(str(exc))
-                self.counts["refused"] += 1
-                continue
-            except (LinkError, OSError) as exc:
-                if self._stop.is_set():
-                    return
-                logger.info("edge connection failed: %s", exc)
-                continue
-            self.counts["connects"] += 1
-            with self._lock:
-                self._links[id(link)] = link
-                state = self._edges.setdefault(link.peer, _EdgeState())
-                digest = link.peer_hello.get("weights_digest")
-                if state.pending is not None and state.pending.digest == digest:
-                    state.held = state.pending  # applied, but its acknowledgement was lost with the link
-                elif state.held is None or state.held.digest != digest:
-                    state.held = None  # the edge holds something else (or nothing): next push in full
-                state.pending = None
-            for target in (self._receive_episodes, self._push_weights):
-                thread = threading.Thread(target=target, args=(link,), daemon=True, name=f"hub-{link.peer}")
-                thread.start()
-                self._threads.append(thread)
-            self._threads = [t for t in self._threads if t.is_alive()]
+            except OSError:
+                return
+            self._spawn(self._admit, raw, address, name="hub-handshake")  # a slow client holds up no one
+
+    def _spawn(self, target, *args, name: str) -> None:
+        thread = threading.Thread(target=target, args=args, daemon=True, name=name)
+        thread.start()
+        with self._lock:
+            self._threads = [t for t in self._threads if t.is_alive()] + [thread]
+
+    def _admit(self, raw, address) -> None:
+        try:
+            link = self._listener.handshake(raw, address)
+        except LinkAuthError as exc:
+            logger.warning("%s", exc)
+            self.refusals.append(str(exc))
+            self.counts["refused"] += 1
+            return
+        except (LinkError, OSError) as exc:
+            logger.info("edge connection failed: %s", exc)
+            return
+        if self._stop.is_set():
+            link.close("the cloud is shutting down")
+            return
+        self.counts["connects"] += 1
+        with self._lock:
+            self._links[id(link)] = link
+            state = self._edges.setdefault(link.peer, _EdgeState())
+            digest = link.peer_hello.get("weights_digest")
+            if state.pending is not None and state.pending.digest == digest:
+                state.held = state.pending  # applied, but its acknowledgement was lost with the link
+            elif state.held is None or state.held.digest != digest:
+                state.held = None  # the edge holds something else (or nothing): next push in full
+            state.pending = None
+        for target in (self._receive_episodes, self._push_weights):
+            self._spawn(target, link, name=f"hub-{link.peer}")
 
     def _receive_episodes(self, link: Link) -> None:
         try:

@@ -120,8 +120,16 @@ class CloudListener:
     def accept(self, timeout: float) -> Link:
         """The next edge that connects and verifies, within ``timeout`` (``TimeoutError`` otherwise).
         A client that fails the handshake raises :class:`LinkAuthError` naming it; accept again."""
+        return self.handshake(*self.accept_connection(timeout))
+
+    def accept_connection(self, timeout: float) -> tuple[socket.socket, tuple]:
+        """The next TCP connection, not yet authenticated (pass it to :meth:`handshake`, e.g. on a
+        thread of its own, so a slow client does not hold up the others)."""
         self._sock.settimeout(timeout)
-        raw, address = self._sock.accept()
+        return self._sock.accept()
+
+    def handshake(self, raw: socket.socket, address: tuple) -> Link:
+        """TLS and hello on an accepted connection, within ``connect_timeout_s``."""
         who = f"edge at {address[0]}:{address[1]}"
         deadline = time.monotonic() + self.options.connect_timeout_s
         try:

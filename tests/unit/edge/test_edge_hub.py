@@ -142,3 +142,18 @@ def test_wrong_credentials_stop_the_edge_and_deliver_nothing(cloud, credentials)
         client.close()
     assert wait_for(lambda: len(hub.refusals) == 1, 10.0)
     assert "CERTIFICATE_VERIFY_FAILED" in hub.refusals[0] and received.episodes == {}
+
+
+def test_a_client_that_never_speaks_does_not_hold_up_other_edges(credentials):
+    import socket
+
+    patient = LinkOptions(connect_timeout_s=60.0, heartbeat_s=0.2, dead_after_s=1.0)
+    with CloudHub(("127.0.0.1", 0), credentials["cloud"], on_episode=Received(),
+                  options=HubOptions(link=patient)) as hub:
+        silent = socket.create_connection(hub.address)  # TCP only: its handshake waits up to 60 s
+        client = EdgeClient(hub.address, credentials["edge-0"], name="edge-0", options=EDGE).start()
+        try:
+            assert client.wait_connected(20.0)
+        finally:
+            client.close()
+            silent.close()
