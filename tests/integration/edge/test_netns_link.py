@@ -3,6 +3,7 @@ emulator (60 ms RTT, 20 Mbit/s) in between: the edge dials out (it listens on no
 reach the cloud's replay store once each although the link is cut mid-episode and restored, and an
 edge with another CA's certificate is refused with nothing stored."""
 
+import importlib.util
 import json
 import os
 import shutil
@@ -13,6 +14,9 @@ import time
 import pytest
 
 from infinirl.edge.credentials import issue_credentials
+
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("metaworld") is None,
+                                reason="needs metaworld (the edge node's simulated Sawyer)")
 
 CLOUD_IP, EDGE_IP = "10.213.0.2", "10.213.0.1"
 CLOUD_PORT, EMULATOR_PORT = 7443, 7000
