@@ -17,7 +17,7 @@ from pathlib import Path
 
 from infinirl.utils import atomic_open
 
-__all__ = ["CLOUD_NAME", "TlsFiles", "client_context", "issue_credentials", "server_context"]
+__all__ = ["CLOUD_NAME", "TlsFiles", "certificate_name", "client_context", "issue_credentials", "server_context"]
 
 #: the name the cloud's certificate is issued for and the edge checks (independent of its address,
 #: which differs behind NAT, proxies and the link emulator)
@@ -124,6 +124,18 @@ def issue_credentials(folder: str | os.PathLike, *, edges: tuple[str, ...] = ("e
         _write_pem(Path(files.cert), cert.public_bytes(serialization.Encoding.PEM), private=False)
         issued[name] = files
     return issued
+
+
+def certificate_name(path: str | os.PathLike) -> str:
+    """The common name in the PEM certificate at ``path`` (an edge's identity at the cloud)."""
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    if not names:
+        raise ValueError(f"certificate {path} has no common name; issue it with issue_credentials")
+    return str(names[0].value)
 
 
 def _context(purpose: ssl.Purpose, files: TlsFiles) -> ssl.SSLContext:

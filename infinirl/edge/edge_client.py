@@ -27,7 +27,7 @@ import numpy as np
 
 from infinirl.edge import protocol
 from infinirl.edge.codec import FrameOptions, HeldWeights, WeightBaseError, decode_weights, encode_episode
-from infinirl.edge.credentials import TlsFiles, client_context
+from infinirl.edge.credentials import TlsFiles, certificate_name, client_context
 from infinirl.edge.link import Link, LinkAuthError, LinkError, LinkOptions, dial
 from infinirl.edge.spool import EpisodeSpool
 
@@ -62,6 +62,10 @@ class EdgeClient:
         self.counts: Counter[str] = Counter()
         self.error: BaseException | None = None
         self._context = client_context(files)
+        certified = certificate_name(files.cert)
+        if certified != name:  # the cloud knows the edge by its certificate and checks its episode ids
+            raise ValueError(f"edge name {name!r} differs from the name in its certificate {files.cert} "
+                             f"({certified!r}); use --name {certified} or that edge's certificate")
         self._boot = uuid.uuid4().hex[:8]
         self._seq = 0
         self._link: Link | None = None

@@ -132,8 +132,8 @@ class _Pump:
                     if self.emulator.closing:
                         return
                     time.sleep(min(max(due - time.monotonic(), 0.0005), _POLL_S))
+                self.emulator.count(self.direction, len(data))  # before: the receiver may read at once
                 self.sink.sendall(data)
-                self.emulator.count(self.direction, len(data))
         except OSError:
             pass
         finally:

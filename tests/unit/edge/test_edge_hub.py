@@ -131,6 +131,8 @@ def test_weights_go_down_as_deltas_across_a_reconnect_and_a_wrong_base_gets_a_fu
 
 def test_wrong_credentials_stop_the_edge_and_deliver_nothing(cloud, credentials):
     hub, emulator, received = cloud
+    with pytest.raises(ValueError, match="differs from the name in its certificate"):
+        EdgeClient(emulator.address, credentials["edge-1"], name="edge-0", options=EDGE)
     impostor = TlsFiles(ca=credentials["edge-0"].ca, cert=credentials["foreign"].cert, key=credentials["foreign"].key)
     client = EdgeClient(emulator.address, impostor, name="edge-0", options=EDGE).start()
     try:

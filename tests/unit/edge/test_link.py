@@ -10,7 +10,8 @@ from infinirl.edge.credentials import TlsFiles, client_context, server_context
 from infinirl.edge.emulator import EmulatorSpec, LinkEmulator
 from infinirl.edge.link import CloudListener, LinkAuthError, LinkClosedError, LinkOptions, dial
 
-FAST = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=1.0)
+FAST = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=5.0)
+QUICK_TO_DIE = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=1.0)
 
 
 def accept_in_background(listener):
@@ -104,10 +105,11 @@ def test_connecting_to_a_silent_port_times_out(credentials):
         server.close()
 
 
-def test_a_silent_outage_closes_the_link_on_both_ends(listener, credentials):
-    with LinkEmulator(EmulatorSpec(latency_s=0.005), listener.address) as emulator:
+def test_a_silent_outage_closes_the_link_on_both_ends(credentials):
+    with CloudListener("127.0.0.1", 0, server_context(credentials["cloud"]), options=QUICK_TO_DIE) as listener, \
+            LinkEmulator(EmulatorSpec(latency_s=0.005), listener.address) as emulator:
         thread, result = accept_in_background(listener)
-        edge = dial(emulator.address, client_context(credentials["edge-0"]), options=FAST)
+        edge = dial(emulator.address, client_context(credentials["edge-0"]), options=QUICK_TO_DIE)
         thread.join()
         cloud = result["link"]
         edge.send("s", b"before", timeout=1.0)
