@@ -135,13 +135,12 @@ def _edge_node(args) -> int:
     stop = _stop_event()
     spool = EpisodeSpool(args.spool, max_bytes=int(args.spool_gib * (1 << 30)))
     size = tuple(int(v) for v in args.frame_size.split("x")) if args.frame_size else None
-    client = EdgeClient(args.cloud, TlsFiles.in_folder(args.certs, args.name), name=args.name, spool=spool,
-                        frames=FrameOptions(format=args.frame_format, quality=args.jpeg_quality, size=size),
-                        options=EdgeOptions(link=_link_options(args))).start()
-    try:  # a refused certificate stops the node before the robot moves; an unreachable cloud does not
+    try:  # bad files or a refused certificate stop the node before the robot moves; an unreachable cloud not
+        client = EdgeClient(args.cloud, TlsFiles.in_folder(args.certs, args.name), name=args.name, spool=spool,
+                            frames=FrameOptions(format=args.frame_format, quality=args.jpeg_quality, size=size),
+                            options=EdgeOptions(link=_link_options(args))).start()
         client.wait_connected(args.connect_wait_s)
-    except LinkAuthError as exc:
-        client.close()
+    except (LinkAuthError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return 2
     robot = SafeRobot(make_robot(args.robot, **json.loads(args.robot_options)), SafetyConfig())
