@@ -1,0 +1,254 @@
+"""The cloud's side of the link: accept edges, store their episodes once, push them weights.
+
+:class:`CloudHub` listens for edges (one accept thread; a refused one is logged and kept in
+:attr:`CloudHub.refusals`, one line each). For each connected edge it receives episodes, hands each
+new episode id to ``on_episode(edge, episode_id, episode)`` exactly once (an id seen before, from a
+resend after an outage, is acknowledged again but not delivered), and acknowledges only after
+``on_episode`` returned, so an episode is never lost between the two ends. Episode ids must start
+with the edge's certificate name and a dash (:class:`~infinirl.edge.edge_client.EdgeClient` names
+them so); an edge sending another id is disconnected, so no edge can shadow another's episodes. Seen ids are kept in
+memory; pass ``seen_ids`` (e.g. from the replay store) when the cloud restarts.
+
+:meth:`CloudHub.publish` makes a weight version the newest; every edge gets it as soon as it
+acknowledged the previous push (one push in flight per edge, so versions never queue up on a slow
+link: an edge that falls behind skips to the newest). The hub keeps, per edge name, the exact
+weights the edge acknowledged and encodes the next version as a delta against them when that is
+smaller (:mod:`infinirl.edge.codec`); an edge that reconnects holding them continues with deltas.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from infinirl.edge import protocol
+from infinirl.edge.codec import HeldWeights, decode_episode, encode_weights, weights_header
+from infinirl.edge.credentials import TlsFiles, server_context
+from infinirl.edge.link import CloudListener, Link, LinkAuthError, LinkError, LinkOptions
+
+__all__ = ["CloudHub", "HubOptions", "wait_for"]
+
+logger = logging.getLogger(__name__)
+_POLL_S = 0.1
+
+
+@dataclass(frozen=True, kw_only=True)
+class HubOptions:
+    send_timeout_s: float = 60.0
+    max_refusals_kept: int = 100
+    link: LinkOptions = field(default_factory=LinkOptions)
+
+
+@dataclass(kw_only=True)
+class _EdgeState:
+    held: HeldWeights | None = None  # what the edge acknowledged
+    pending: HeldWeights | None = None  # pushed, not yet acknowledged
+    pushes: Counter = field(default_factory=Counter)
+
+
+class CloudHub:
+    """See the module docstring; ``address``: where it listens (after construction)."""
+
+    def __init__(self, listen: tuple[str, int], files: TlsFiles, *,
+                 on_episode: Callable[[str, str, dict[str, np.ndarray]], None],
+                 seen_ids: Iterable[str] = (), options: HubOptions | None = None) -> None:
+        self.options = options or HubOptions()
+        self.on_episode = on_episode
+        self.counts: Counter[str] = Counter()
+        self.refusals: deque[str] = deque(maxlen=self.options.max_refusals_kept)
+        self._listener = CloudListener(*listen, server_context(files), options=self.options.link)
+        self.address = self._listener.address
+        self._seen = set(seen_ids)
+        self._lock = threading.Lock()
+        self._deliver_lock = threading.Lock()  # held while on_episode runs: the other locks stay free
+        self._changed = threading.Condition(self._lock)
+        self._latest: tuple[int, dict[str, np.ndarray]] | None = None
+        self._edges: dict[str, _EdgeState] = {}
+        self._links: dict[int, Link] = {}
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._accept_thread = threading.Thread(target=self._accept_loop, name="cloud-hub-accept", daemon=True)
+
+    def start(self) -> CloudHub:
+        self._accept_thread.start()
+        return self
+
+    def publish(self, tensors: Mapping[str, object], version: int) -> None:
+        """Make ``version`` the newest weights (float tensors as numpy arrays or torch tensors)."""
+        with self._changed:
+            self._latest = (version, dict(tensors))
+            self._changed.notify_all()
+
+    def connected_edges(self) -> list[str]:
+        with self._lock:
+            return sorted({link.peer for link in self._links.values() if link.alive})
+
+    def edge_version(self, edge: str) -> int | None:
+        with self._lock:
+            state = self._edges.get(edge)
+            return state.held.version if state is not None and state.held is not None else None
+
+    def stats(self) -> dict:
+        with self._lock:
+            edges = sorted(self._edges)
+        with self._deliver_lock:
+            return {**self.counts, "edges": edges, "episodes_seen": len(self._seen),
+                    "refusals": len(self.refusals)}
+
+    def close(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        with self._lock:
+            links = list(self._links.values())
+        for link in links:
+            link.close("the cloud is shutting down")
+        self._accept_thread.join(timeout)
+        with self._lock:
+            threads = list(self._threads)
+        for thread in threads:
+            thread.join(timeout)
+        self._listener.close()
+
+    def __enter__(self) -> CloudHub:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ internals
+    def _accept_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                raw, address = self._listener.accept_connection(timeout=_POLL_S * 2)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self._spawn(self._admit, raw, address, name="hub-handshake")  # a slow client holds up no one
+
+    def _spawn(self, target, *args, name: str) -> None:
+        thread = threading.Thread(target=target, args=args, daemon=True, name=name)
+        thread.start()
+        with self._lock:
+            self._threads = [t for t in self._threads if t.is_alive()] + [thread]
+
+    def _admit(self, raw, address) -> None:
+        try:
+            link = self._listener.handshake(raw, address)
+        except LinkAuthError as exc:
+            logger.warning("%s", exc)
+            self.refusals.append(str(exc))
+            self.counts["refused"] += 1
+            return
+        except (LinkError, OSError) as exc:
+            logger.info("edge connection failed: %s", exc)
+            return
+        if self._stop.is_set():
+            link.close("the cloud is shutting down")
+            return
+        self.counts["connects"] += 1
+        with self._lock:
+            self._links[id(link)] = link
+            state = self._edges.setdefault(link.peer, _EdgeState())
+            digest = link.peer_hello.get("weights_digest")
+            if state.pending is not None and state.pending.digest == digest:
+                state.held = state.pending  # applied, but its acknowledgement was lost with the link
+            elif state.held is None or state.held.digest != digest:
+                state.held = None  # the edge holds something else (or nothing): next push in full
+            state.pending = None
+        for target in (self._receive_episodes, self._push_weights):
+            self._spawn(target, link, name=f"hub-{link.peer}")
+
+    def _receive_episodes(self, link: Link) -> None:
+        try:
+            while link.alive and not self._stop.is_set():
+                try:
+                    payload = link.recv(protocol.EPISODES, timeout=1.0)
+                except TimeoutError:
+                    continue
+                episode_id, episode = decode_episode(payload)
+                if not episode_id.startswith(f"{link.peer}-"):  # an edge cannot shadow another's episodes
+                    link.close(f"edge {link.peer} sent episode id {episode_id!r} outside its namespace "
+                               f"'{link.peer}-...'")
+                    self.counts["foreign_ids"] += 1
+                    logger.warning("%s", link.closed_reason)
+                    return
+                self.counts["episode_bytes"] += len(payload)
+                with self._deliver_lock:  # one delivery per id, also across an old and a new connection
+                    fresh = episode_id not in self._seen
+                    if fresh:
+                        self.on_episode(link.peer, episode_id, episode)
+                        self._seen.add(episode_id)
+                self.counts["episodes" if fresh else "duplicates"] += 1
+                link.send(protocol.EPISODE_ACKS, protocol.dump({"ids": [episode_id]}),
+                          timeout=self.options.send_timeout_s)
+        except (LinkError, TimeoutError) as exc:
+            logger.info("edge %s: episode stream ended (%s)", link.peer, exc)
+        finally:
+            with self._lock:
+                self._links.pop(id(link), None)
+
+    def _next_push(self, link: Link, state: _EdgeState) -> tuple[int, dict] | None:
+        latest = self._latest
+        if latest is None or state.pending is not None:
+            return None
+        if state.held is not None and state.held.version >= latest[0]:
+            return None
+        return latest
+
+    def _push_weights(self, link: Link) -> None:
+        state = self._edges[link.peer]
+        acks = threading.Thread(target=self._receive_weight_acks, args=(link, state), daemon=True)
+        acks.start()
+        try:
+            while link.alive and not self._stop.is_set():
+                with self._changed:
+                    push = self._next_push(link, state)
+                    if push is None:
+                        self._changed.wait(_POLL_S)
+                        continue
+                    base = state.held
+                payload, result = encode_weights(push[1], push[0], base)
+                with self._lock:
+                    state.pending = result
+                kind = weights_header(payload)["kind"]
+                link.send(protocol.WEIGHTS, payload, timeout=self.options.send_timeout_s)
+                self.counts[f"weight_pushes_{kind}"] += 1
+                self.counts["weight_bytes"] += len(payload)
+        except (LinkError, TimeoutError) as exc:
+            logger.info("edge %s: weight pushes ended (%s)", link.peer, exc)
+        finally:
+            acks.join(timeout=5.0)
+
+    def _receive_weight_acks(self, link: Link, state: _EdgeState) -> None:
+        while link.alive and not self._stop.is_set():
+            try:
+                message = protocol.load(link.recv(protocol.WEIGHT_ACKS, timeout=1.0))
+            except TimeoutError:
+                continue
+            except LinkError:
+                return
+            with self._changed:
+                if "refused" in message:
+                    logger.warning("edge %s refused a weight push: %s", link.peer, message["refused"])
+                    self.counts["weight_refusals"] += 1
+                    state.held = None
+                elif state.pending is not None and message.get("digest") == state.pending.digest:
+                    state.held = state.pending
+                state.pending = None
+                self._changed.notify_all()
+
+
+def wait_for(predicate: Callable[[], bool], timeout: float) -> bool:
+    """Poll ``predicate`` until true or ``timeout`` seconds passed."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.02)
+    return True

@@ -1,0 +1,265 @@
+"""The edge's side of the link: ship collected episodes, receive weights, survive outages.
+
+:class:`EdgeClient` runs one background thread that dials the cloud, and, while connected, sends
+every episode in its :class:`~infinirl.edge.spool.EpisodeSpool` (oldest first, at most ``window``
+awaiting acknowledgement) and applies the weight versions the cloud pushes. When the link drops it
+reconnects with exponential backoff (``reconnect_min_s`` doubling to ``reconnect_max_s``, with
+jitter) and resends what was not acknowledged; the cloud drops the duplicates by episode id. A
+refused certificate is not retried: it is permanent, and :meth:`EdgeClient.check` raises it.
+
+The robot keeps acting meanwhile: :attr:`EdgeClient.weights` is the newest version received, and
+:meth:`EdgeClient.offline_s` how long the link has been down, so the control loop can use the last
+policy within a staleness bound and hold the robot beyond it (:meth:`policy_usable`).
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+import threading
+import time
+import uuid
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from infinirl.edge import protocol
+from infinirl.edge.codec import FrameOptions, HeldWeights, WeightBaseError, decode_weights, encode_episode
+from infinirl.edge.credentials import TlsFiles, certificate_name, client_context
+from infinirl.edge.link import Link, LinkAuthError, LinkError, LinkOptions, dial
+from infinirl.edge.spool import EpisodeSpool
+
+__all__ = ["EdgeClient", "EdgeOptions"]
+
+logger = logging.getLogger(__name__)
+_POLL_S = 0.1
+
+
+@dataclass(frozen=True, kw_only=True)
+class EdgeOptions:
+    """Reconnect backoff (s), episodes in flight, the per-frame send timeout, the link's options."""
+
+    reconnect_min_s: float = 0.2
+    reconnect_max_s: float = 5.0
+    window: int = 4
+    send_timeout_s: float = 60.0
+    link: LinkOptions = field(default_factory=LinkOptions)
+
+
+class EdgeClient:
+    """See the module docstring. ``name``: this edge (episode ids start with it)."""
+
+    def __init__(self, address: tuple[str, int], files: TlsFiles, *, name: str, spool: EpisodeSpool | None = None,
+                 frames: FrameOptions | None = None, options: EdgeOptions | None = None,
+                 on_weights: Callable[[HeldWeights], None] | None = None) -> None:
+        self.address, self.name = address, name
+        self.spool = spool if spool is not None else EpisodeSpool(max_bytes=1 << 30)
+        self.frames, self.options = frames or FrameOptions(), options or EdgeOptions()
+        self.on_weights = on_weights
+        self.weights: HeldWeights | None = None
+        self.counts: Counter[str] = Counter()
+        self.error: BaseException | None = None
+        self._context = client_context(files)
+        certified = certificate_name(files.cert)
+        if certified != name:  # the cloud knows the edge by its certificate and checks its episode ids
+            raise ValueError(f"edge name {name!r} differs from the name in its certificate {files.cert} "
+                             f"({certified!r}); use --name {certified} or that edge's certificate")
+        self._boot = uuid.uuid4().hex[:8]
+        self._seq = 0
+        self._link: Link | None = None
+        self._offline_since: float | None = time.monotonic()
+        self._changed = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"edge-client-{name}", daemon=True)
+
+    # ------------------------------------------------------------------ for the robot's loop
+    def start(self) -> EdgeClient:
+        self._thread.start()
+        return self
+
+    def submit(self, episode: Mapping[str, np.ndarray]) -> str:
+        """Encode and spool one episode for sending; returns its id. Raises the client's fatal error
+        (a refused certificate) and :class:`~infinirl.edge.spool.SpoolFullError`."""
+        self.check()
+        episode_id = f"{self.name}-{self._boot}-{self._seq}"
+        self._seq += 1
+        self.spool.put(episode_id, encode_episode(episode, episode_id=episode_id, frames=self.frames))
+        self.counts["episodes_submitted"] += 1
+        with self._changed:
+            self._changed.notify_all()
+        return episode_id
+
+    @property
+    def connected(self) -> bool:
+        link = self._link
+        return link is not None and link.alive
+
+    def offline_s(self) -> float:
+        """Seconds since the link went down (0 while connected)."""
+        link = self._link
+        if link is not None:
+            return 0.0 if link.alive else time.monotonic() - link.closed_at
+        since = self._offline_since
+        return 0.0 if since is None else time.monotonic() - since
+
+    def policy_usable(self, max_offline_s: float) -> bool:
+        """Whether the held weights may still act: some are held and the link has not been down for
+        longer than ``max_offline_s`` (beyond it the robot should hold)."""
+        return self.weights is not None and self.offline_s() <= max_offline_s
+
+    def wait_drained(self, timeout: float) -> bool:
+        """Wait until the cloud acknowledged every spooled episode; False at ``timeout``."""
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while len(self.spool):
+                self.check()
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._changed.wait(min(remaining, _POLL_S))
+        return True
+
+    def wait_connected(self, timeout: float) -> bool:
+        """Wait for the link to come up; False at ``timeout`` (the cloud may be unreachable for now);
+        raises a refused certificate at once."""
+        deadline = time.monotonic() + timeout
+        while not self.connected:
+            self.check()
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.02)
+        return True
+
+    def wait_weights(self, version: int, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while self.weights is None or self.weights.version < version:
+                self.check()
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._changed.wait(min(remaining, _POLL_S))
+        return True
+
+    def check(self) -> None:
+        if self.error is not None:
+            raise LinkAuthError(str(self.error)) if isinstance(self.error, LinkAuthError) else self.error
+
+    def stats(self) -> dict:
+        return {**self.counts, "spooled_episodes": len(self.spool), "spooled_bytes": self.spool.bytes,
+                "connected": self.connected, "weights_version": self.weights.version if self.weights else None}
+
+    def close(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        link = self._link
+        if link is not None:
+            link.close("the edge is shutting down")
+        self._thread.join(timeout)
+
+    # ------------------------------------------------------------------ the link's thread
+    def _hello(self) -> dict:
+        held = self.weights
+        return {"edge": self.name, "weights_version": held.version if held else None,
+                "weights_digest": held.digest if held else None}
+
+    def _run(self) -> None:
+        backoff = self.options.reconnect_min_s
+        while not self._stop.is_set():
+            try:
+                link = dial(self.address, self._context, options=self.options.link, hello=self._hello())
+            except LinkAuthError as exc:
+                logger.error("edge %s: %s", self.name, exc)
+                self.error = exc
+                return
+            except (OSError, LinkError, TimeoutError) as exc:
+                self.counts["connect_failures"] += 1
+                logger.info("edge %s: cloud unreachable (%s); retrying in %.1f s", self.name, exc, backoff)
+                self._stop.wait(backoff * random.uniform(0.8, 1.2))
+                backoff = min(backoff * 2, self.options.reconnect_max_s)
+                continue
+            backoff = self.options.reconnect_min_s
+            self.counts["connects"] += 1
+            self._link, self._offline_since = link, None
+            try:
+                self._session(link)
+            finally:
+                link.close("session ended")
+                self._offline_since = time.monotonic()
+                self._link = None
+                self.counts["disconnects"] += 1
+                logger.warning("edge %s: link lost (%s); reconnecting", self.name, link.closed_reason)
+
+    def _session(self, link: Link) -> None:
+        in_flight: set[str] = set()
+        receivers = [threading.Thread(target=self._receive_acks, args=(link, in_flight), daemon=True),
+                     threading.Thread(target=self._receive_weights, args=(link,), daemon=True)]
+        for thread in receivers:
+            thread.start()
+        sent_here: set[str] = set()
+        try:
+            while link.alive and not self._stop.is_set():
+                with self._changed:
+                    pending = [i for i in self.spool.ids() if i not in sent_here]
+                    if not pending or len(in_flight) >= self.options.window:
+                        self._changed.wait(_POLL_S)
+                        continue
+                episode_id = pending[0]
+                payload = self.spool.read(episode_id)
+                if payload is None:  # acknowledged meanwhile
+                    continue
+                link.send(protocol.EPISODES, payload, timeout=self.options.send_timeout_s)
+                sent_here.add(episode_id)
+                with self._changed:
+                    in_flight.add(episode_id)
+                self.counts["episode_sends"] += 1
+                self.counts["episode_bytes"] += len(payload)
+        except (LinkError, TimeoutError) as exc:
+            logger.info("edge %s: sending stopped (%s)", self.name, exc)
+        finally:
+            link.close("session ended")
+            for thread in receivers:
+                thread.join(timeout=5.0)
+
+    def _receive_acks(self, link: Link, in_flight: set[str]) -> None:
+        while link.alive:
+            try:
+                message = protocol.load(link.recv(protocol.EPISODE_ACKS, timeout=1.0))
+            except TimeoutError:
+                continue
+            except LinkError:
+                return
+            with self._changed:
+                for episode_id in message["ids"]:
+                    in_flight.discard(episode_id)
+                    self.counts["episodes_acked"] += int(self.spool.remove(episode_id))
+                self._changed.notify_all()
+
+    def _receive_weights(self, link: Link) -> None:
+        while link.alive:
+            try:
+                payload = link.recv(protocol.WEIGHTS, timeout=1.0)
+            except TimeoutError:
+                continue
+            except LinkError:
+                return
+            try:
+                held = decode_weights(payload, self.weights)
+            except (WeightBaseError, ValueError) as exc:
+                logger.warning("edge %s: %s", self.name, exc)
+                self.counts["weights_refused"] += 1
+                reply = {"refused": str(exc)}
+            else:
+                if self.on_weights is not None:
+                    self.on_weights(held)
+                with self._changed:
+                    self.weights = held
+                    self._changed.notify_all()
+                self.counts["weights_received"] += 1
+                self.counts["weight_bytes"] += len(payload)
+                reply = {"version": held.version, "digest": held.digest}
+            try:
+                link.send(protocol.WEIGHT_ACKS, protocol.dump(reply), timeout=self.options.send_timeout_s)
+            except (LinkError, TimeoutError):
+                return

@@ -1,0 +1,161 @@
+"""Edge client and cloud hub over the emulated link (60 ms RTT, 20 Mbit/s): episodes arrive once
+each across a link cut mid-stream, weights go down as deltas and continue after a reconnect, a
+delta against a base the edge does not hold is refused and replaced by a full push, wrong
+credentials stop the edge with a clear error and deliver nothing."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from infinirl.edge import protocol
+from infinirl.edge.cloud_hub import CloudHub, HubOptions, wait_for
+from infinirl.edge.codec import FrameOptions, HeldWeights, encode_episode
+from infinirl.edge.credentials import TlsFiles, client_context
+from infinirl.edge.edge_client import EdgeClient, EdgeOptions
+from infinirl.edge.emulator import EmulatorSpec, LinkEmulator
+from infinirl.edge.link import LinkAuthError, LinkOptions, dial
+from infinirl.edge.spool import EpisodeSpool
+
+LINK = LinkOptions(connect_timeout_s=2.0, heartbeat_s=0.2, dead_after_s=1.0)
+EDGE = EdgeOptions(reconnect_min_s=0.1, reconnect_max_s=0.5, link=LINK)
+
+
+def an_episode(index, steps=20):
+    rng = np.random.default_rng(index)
+    return {"state": rng.normal(size=(steps + 1, 9)).astype(np.float32),
+            "pixels.corner": rng.integers(0, 255, (steps + 1, 32, 32, 3), dtype=np.uint8),
+            "action": rng.uniform(-1, 1, (steps, 4)).astype(np.float32),
+            "reward": np.full(steps, float(index), np.float32)}
+
+
+class Received:
+    def __init__(self):
+        self.episodes, self.lock = {}, threading.Lock()
+
+    def __call__(self, edge, episode_id, episode):
+        with self.lock:
+            assert episode_id not in self.episodes
+            self.episodes[episode_id] = (edge, episode)
+
+
+@pytest.fixture()
+def cloud(credentials):
+    received = Received()
+    with CloudHub(("127.0.0.1", 0), credentials["cloud"], on_episode=received,
+                  options=HubOptions(link=LINK)) as hub:
+        with LinkEmulator(EmulatorSpec.from_rtt(rtt_ms=60, mbit_per_s=20), hub.address) as emulator:
+            yield hub, emulator, received
+
+
+def test_a_cut_mid_stream_loses_nothing_and_duplicates_nothing(cloud, credentials, tmp_path):
+    hub, emulator, received = cloud
+    client = EdgeClient(emulator.address, credentials["edge-0"], name="edge-0", spool=EpisodeSpool(tmp_path),
+                        frames=FrameOptions(format="png"), options=EDGE).start()
+    try:
+        ids = [client.submit(an_episode(i)) for i in range(3)]
+        assert client.wait_drained(30.0)
+        emulator.cut()  # mid-stream: the next episodes are sent into a dead link
+        ids += [client.submit(an_episode(i)) for i in range(3, 6)]
+        assert wait_for(lambda: not client.connected, 10.0)
+        assert client.offline_s() > 0 and len(client.spool) >= 1
+        emulator.restore()
+        assert client.wait_drained(30.0)
+    finally:
+        client.close()
+    assert sorted(received.episodes) == sorted(ids)
+    for index, episode_id in enumerate(ids):
+        edge, episode = received.episodes[episode_id]
+        assert edge == "edge-0"
+        for name, array in an_episode(index).items():
+            assert np.array_equal(episode[name], array)  # PNG: lossless
+    assert client.counts["disconnects"] >= 1 and client.counts["connects"] >= 2
+    assert not list(tmp_path.glob("*.episode"))
+
+
+def test_the_hub_delivers_a_resent_episode_once(cloud, credentials):
+    hub, _, received = cloud
+    link = dial(hub.address, client_context(credentials["edge-1"]), options=LINK)
+    try:
+        payload = encode_episode(an_episode(0), episode_id="edge-1-a-0")
+        for _ in range(2):
+            link.send(protocol.EPISODES, payload, timeout=5.0)
+        acks = [protocol.load(link.recv(protocol.EPISODE_ACKS, timeout=10.0)) for _ in range(2)]
+    finally:
+        link.close()
+    assert acks == [{"ids": ["edge-1-a-0"]}] * 2
+    assert list(received.episodes) == ["edge-1-a-0"] and hub.counts["duplicates"] == 1
+
+
+def test_an_edge_cannot_send_episodes_in_another_edges_name(cloud, credentials):
+    hub, _, received = cloud
+    link = dial(hub.address, client_context(credentials["edge-1"]), options=LINK)
+    link.send(protocol.EPISODES, encode_episode(an_episode(0), episode_id="edge-0-a-0"), timeout=5.0)
+    assert wait_for(lambda: not link.alive, 10.0)
+    assert received.episodes == {} and hub.counts["foreign_ids"] == 1
+
+
+def weights(step):
+    rng = np.random.default_rng(0)
+    return {"w": (rng.normal(0, 0.1, (128, 64)) + 1e-3 * step).astype(np.float32),
+            "b": np.full(64, 0.01 * step, np.float32)}
+
+
+def test_weights_go_down_as_deltas_across_a_reconnect_and_a_wrong_base_gets_a_full_push(cloud, credentials):
+    hub, emulator, _ = cloud
+    client = EdgeClient(emulator.address, credentials["edge-0"], name="edge-0", options=EDGE).start()
+    try:
+        hub.publish(weights(1), 1)
+        assert client.wait_weights(1, 20.0)
+        hub.publish(weights(2), 2)
+        assert client.wait_weights(2, 20.0)
+        assert hub.counts["weight_pushes_full"] == 1 and hub.counts["weight_pushes_delta"] == 1
+        emulator.cut("reset")
+        assert wait_for(lambda: not client.connected, 10.0)
+        assert client.policy_usable(max_offline_s=60.0) and not client.policy_usable(max_offline_s=0.0)
+        emulator.restore()
+        assert wait_for(lambda: client.connected, 20.0)
+        hub.publish(weights(3), 3)
+        assert client.wait_weights(3, 20.0)
+        assert hub.counts["weight_pushes_delta"] == 2  # the reconnected edge held version 2: still a delta
+        held = client.weights
+        client.weights = HeldWeights.of(held.version, {n: a + 1.0 for n, a in held.tensors.items()})  # not v3's bits
+        hub.publish(weights(4), 4)
+        assert client.wait_weights(4, 20.0)
+        assert client.counts["weights_refused"] == 1 and hub.counts["weight_pushes_full"] == 2, hub.counts
+        for name, array in weights(4).items():
+            assert np.array_equal(client.weights.tensors[name], array)  # a full push is exact
+    finally:
+        client.close()
+
+
+def test_wrong_credentials_stop_the_edge_and_deliver_nothing(cloud, credentials):
+    hub, emulator, received = cloud
+    with pytest.raises(ValueError, match="differs from the name in its certificate"):
+        EdgeClient(emulator.address, credentials["edge-1"], name="edge-0", options=EDGE)
+    impostor = TlsFiles(ca=credentials["edge-0"].ca, cert=credentials["foreign"].cert, key=credentials["foreign"].key)
+    client = EdgeClient(emulator.address, impostor, name="edge-0", options=EDGE).start()
+    try:
+        client.spool.put("edge-0-x-0", encode_episode(an_episode(0), episode_id="edge-0-x-0"))
+        assert wait_for(lambda: client.error is not None, 20.0)
+        with pytest.raises(LinkAuthError, match="refused this edge's certificate"):
+            client.submit(an_episode(1))
+    finally:
+        client.close()
+    assert wait_for(lambda: len(hub.refusals) == 1, 10.0)
+    assert "CERTIFICATE_VERIFY_FAILED" in hub.refusals[0] and received.episodes == {}
+
+
+def test_a_client_that_never_speaks_does_not_hold_up_other_edges(credentials):
+    import socket
+
+    patient = LinkOptions(connect_timeout_s=60.0, heartbeat_s=0.2, dead_after_s=1.0)
+    with CloudHub(("127.0.0.1", 0), credentials["cloud"], on_episode=Received(),
+                  options=HubOptions(link=patient)) as hub:
+        silent = socket.create_connection(hub.address)  # TCP only: its handshake waits up to 60 s
+        client = EdgeClient(hub.address, credentials["edge-0"], name="edge-0", options=EDGE).start()
+        try:
+            assert client.wait_connected(20.0)
+        finally:
+            client.close()
+            silent.close()

@@ -1,0 +1,144 @@
+"""The link: mutual TLS refuses wrong credentials on both ends before any frame flows; named
+streams share one connection both ways; every call has a timeout; a silent outage closes it."""
+
+import socket
+import threading
+
+import pytest
+
+from infinirl.edge.credentials import TlsFiles, client_context, server_context
+from infinirl.edge.emulator import EmulatorSpec, LinkEmulator
+from infinirl.edge.link import CloudListener, LinkAuthError, LinkClosedError, LinkOptions, dial
+
+FAST = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=5.0)
+QUICK_TO_DIE = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=1.0)
+
+
+def accept_in_background(listener):
+    result = {}
+
+    def accept():
+        try:
+            result["link"] = listener.accept(timeout=10.0)
+        except Exception as exc:  # the test inspects it
+            result["error"] = exc
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    return thread, result
+
+
+@pytest.fixture()
+def listener(credentials):
+    with CloudListener("127.0.0.1", 0, server_context(credentials["cloud"]), options=FAST) as cloud:
+        yield cloud
+
+
+def test_streams_multiplex_both_ways(listener, credentials):
+    thread, result = accept_in_background(listener)
+    edge = dial(listener.address, client_context(credentials["edge-0"]), options=FAST, hello={"weights_version": 3})
+    thread.join()
+    cloud = result["link"]
+    try:
+        assert cloud.peer == "edge-0" and cloud.peer_hello["weights_version"] == 3 and edge.peer == "infinirl-cloud"
+        big = bytes(range(256)) * 20_000
+        edge.send("episodes", big, timeout=5.0)
+        edge.send("http", b"GET /", timeout=5.0)
+        cloud.send("weights", b"w1", timeout=5.0)
+        assert cloud.recv("http", timeout=5.0) == b"GET /"  # not stuck behind the big frame's stream
+        assert cloud.recv("episodes", timeout=5.0) == big
+        assert edge.recv("weights", timeout=5.0) == b"w1"
+        with pytest.raises(TimeoutError, match="nothing on stream 'weights'"):
+            edge.recv("weights", timeout=0.2)
+    finally:
+        edge.close()
+    with pytest.raises(LinkClosedError, match="closed"):
+        cloud.recv("episodes", timeout=5.0)
+
+
+def refused(listener, context):
+    thread, result = accept_in_background(listener)
+    with pytest.raises(LinkAuthError) as edge_error:
+        dial(listener.address, context, options=FAST, hello={"secret": "must not arrive"})
+    thread.join()
+    assert "link" not in result  # the cloud never got a link, so no frame reached a service
+    assert isinstance(result["error"], LinkAuthError)
+    for error in (str(edge_error.value), str(result["error"])):
+        assert "\n" not in error
+    return str(edge_error.value), str(result["error"])
+
+
+def test_an_edge_certificate_of_another_ca_is_refused_on_both_ends(listener, credentials):
+    impostor = TlsFiles(ca=credentials["edge-0"].ca, cert=credentials["foreign"].cert, key=credentials["foreign"].key)
+    edge_error, cloud_error = refused(listener, client_context(impostor))
+    assert "refused this edge's certificate" in edge_error
+    assert "refused" in cloud_error and "CERTIFICATE_VERIFY_FAILED" in cloud_error
+
+
+def test_an_edge_without_a_certificate_is_refused(listener, credentials):
+    import ssl
+
+    context = ssl.create_default_context(cafile=credentials["edge-0"].ca)
+    context.check_hostname = False
+    edge_error, cloud_error = refused(listener, context)
+    assert "refused this edge" in edge_error and "PEER_DID_NOT_RETURN_A_CERTIFICATE" in cloud_error
+
+
+def test_an_impostor_cloud_is_refused_by_the_edge(credentials):
+    foreign_cloud = TlsFiles(ca=credentials["foreign"].ca, cert=credentials["foreign"].cert,
+                             key=credentials["foreign"].key)
+    with CloudListener("127.0.0.1", 0, server_context(foreign_cloud), options=FAST) as impostor:
+        thread, result = accept_in_background(impostor)
+        with pytest.raises(LinkAuthError, match="does not verify against this edge's CA"):
+            dial(impostor.address, client_context(credentials["edge-0"]), options=FAST)
+        thread.join()
+        assert "link" not in result
+
+
+def test_connecting_to_a_silent_port_times_out(credentials):
+    server = socket.create_server(("127.0.0.1", 0))  # accepts TCP, never speaks TLS
+    try:
+        with pytest.raises((TimeoutError, OSError)):
+            dial(server.getsockname(), client_context(credentials["edge-0"]),
+                 options=LinkOptions(connect_timeout_s=0.5, heartbeat_s=0.1, dead_after_s=1.0))
+    finally:
+        server.close()
+
+
+def test_a_silent_outage_closes_the_link_on_both_ends(credentials):
+    with CloudListener("127.0.0.1", 0, server_context(credentials["cloud"]), options=QUICK_TO_DIE) as listener, \
+            LinkEmulator(EmulatorSpec(latency_s=0.005), listener.address) as emulator:
+        thread, result = accept_in_background(listener)
+        edge = dial(emulator.address, client_context(credentials["edge-0"]), options=QUICK_TO_DIE)
+        thread.join()
+        cloud = result["link"]
+        edge.send("s", b"before", timeout=1.0)
+        assert cloud.recv("s", timeout=5.0) == b"before"
+        emulator.cut()  # no reset reaches either end: only the missing heartbeats tell
+        with pytest.raises(LinkClosedError, match="nothing received"):
+            edge.recv("s", timeout=10.0)
+        with pytest.raises(LinkClosedError, match="nothing received"):
+            cloud.recv("s", timeout=10.0)
+        with pytest.raises(LinkClosedError):
+            edge.send("s", b"after", timeout=1.0)
+
+
+def test_send_times_out_when_the_outgoing_buffer_stays_full(listener, credentials):
+    options = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=30.0, max_outgoing_bytes=1 << 20)
+    with LinkEmulator(EmulatorSpec(), listener.address) as emulator:
+        thread, result = accept_in_background(listener)
+        edge = dial(emulator.address, client_context(credentials["edge-0"]), options=options)
+        thread.join()
+        try:
+            emulator.cut()
+            with pytest.raises(TimeoutError, match="could not queue"):
+                for _ in range(64):  # more than the buffer plus what TCP's windows hold
+                    edge.send("s", b"x" * (1 << 19), timeout=0.5)
+        finally:
+            edge.close()
+            result["link"].close()
+
+
+def test_options_refuse_a_heartbeat_slower_than_the_dead_timeout():
+    with pytest.raises(ValueError, match="heartbeat_s"):
+        LinkOptions(heartbeat_s=5.0, dead_after_s=2.0)
