@@ -170,11 +170,11 @@ class RobotActorWorker(Worker, WeightSink):
         self._error: BaseException | None = None
         self._eval_request: tuple[int, queue.Queue] | None = None
         self.intervention = intervention
-        self.device = None
+        self.intervention_device = None
         self.labels = None
         if intervention is not None:
-            self.device = intervention.build(self.action_dim)
-            self.device.bind(self.env)
+            self.intervention_device = intervention.build(self.action_dim)
+            self.intervention_device.bind(self.env)
             if intervention.labels_dir is not None:
                 self.labels = SuccessLabelWriter(intervention.labels_dir, prefix=f"rank{self.rank}")
 
@@ -220,7 +220,7 @@ class RobotActorWorker(Worker, WeightSink):
         are the ones a human may intervene in."""
         obs = self._padded(self.env.reset())
         recorder = EpisodeRecorder(obs)
-        human = self.device if training and policy is None else None
+        human = self.intervention_device if training and policy is None else None
         if human is not None:
             human.reset()
         while not self._stop.is_set():
@@ -241,7 +241,7 @@ class RobotActorWorker(Worker, WeightSink):
                 break
         if human is not None and recorder.mark is None and len(recorder):
             self._apply_marks(recorder, human.poll(observation=obs).marks)  # marks given for the last step
-        episode = recorder.finish(interventions=self.device is not None)
+        episode = recorder.finish(interventions=self.intervention_device is not None)
         if episode is not None and training:
             self._count(recorder, episode)
         return episode, recorder.success
@@ -295,7 +295,7 @@ class RobotActorWorker(Worker, WeightSink):
         self.counts["steps"] += len(recorder)
         self.counts["successes"] += int(recorder.success)
         entry = {"return": float(episode["reward"].sum()), "length": len(recorder), "success": recorder.success}
-        if self.device is not None:
+        if self.intervention_device is not None:
             stats = intervention_stats(episode["intervened"])
             self.counts["intervened_steps"] += stats.intervened_steps
             self.counts["takeovers"] += stats.takeovers
@@ -416,6 +416,6 @@ class RobotActorWorker(Worker, WeightSink):
 
     def close(self) -> None:
         self.stop()
-        if self.device is not None:
-            self.device.close()
+        if self.intervention_device is not None:
+            self.intervention_device.close()
         self.robot.close()

@@ -143,10 +143,12 @@ class HGDAggerFlow:
                  for e in recent]
         metrics = {**intervention_metrics(stats),
                    "dagger/added_rows": float(added["added"]), "dagger/dataset_rows": float(added["size"]),
-                   "dagger/novice_error": novice_error, "train/bc_loss": trained["loss"],
+                   "train/bc_loss": trained["loss"],
                    "train/updates": float(trained["updates"]), "pipeline/version": float(trained["version"]),
                    "env/steps": float(sum(r["counts"].get("steps", 0) for r in robots)),
                    "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots))}
+        if novice_error == novice_error:  # NaN: the human labelled no step this iteration
+            metrics["dagger/novice_error"] = novice_error
         if recent:
             metrics.update({"rollout/success_rate": float(np.mean([e["success"] for e in recent])),
                             "rollout/episode_length_mean": float(np.mean([e["length"] for e in recent])),
