@@ -82,7 +82,7 @@ class BCLearnerWorker(Worker, WeightSource):
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()
-            total += float(loss)
+            total += float(loss.detach())
         self.updates += updates
         self.version += 1
         return {"loss": total / updates, "version": self.version, "updates": self.updates, "size": len(self.dataset)}

@@ -173,3 +173,32 @@ def test_bc_loss_gradient_reaches_only_masked_in_rows():
     assert mean.grad[0, 0] != 0 and mean.grad[1, 0] == 0
     with pytest.raises(ValueError, match="bc loss"):
         bc_loss(mean, mean, mean, kind="l1")
+
+
+@pytest.mark.parametrize("loss", ["mse", "gaussian_nll"])
+def test_bc_learner_clones_labelled_actions_and_publishes_versions(loss, tmp_path):
+    """The learner's own code (no Ray: only rank-free methods run): aggregate, train, checkpoint."""
+    from infinirl.components.sac_learner import SACNetSpec
+    from infinirl.realworld.intervention.bc_learner import BCLearnerWorker, BCSpec
+    from infinirl.realworld.robot_worker import VERSION_TENSOR
+
+    rng = np.random.default_rng(0)
+    states = rng.uniform(-1, 1, (65, 2)).astype(np.float32)
+    episode = {"state": states, "action": np.clip(0.8 * states[:64, ::-1], -1, 1).astype(np.float32),
+               "intervened": (rng.random(64) < 0.5).astype(np.float32)}
+    learner = BCLearnerWorker(SACNetSpec(actor_hidden=(32, 32), critic_hidden=(8,)), BCSpec(loss=loss, lr=3e-3,
+                              batch_size=32), obs_dim=2, action_dim=2)
+    assert learner.train(10)["version"] == 0  # nothing labelled yet: no update, no version
+    before = learner.action_error([episode])
+    assert learner.aggregate([episode]) == {"added": int(episode["intervened"].sum()), "size": len(learner.dataset)}
+    result = learner.train(400)
+    assert result["version"] == 1 and result["updates"] == 400
+    assert learner.action_error([episode]) < 0.2 * before
+    names = [name for name, _ in learner.weights_for_sync()]
+    assert names[-1] == VERSION_TENSOR and "mean.weight" in names
+    learner.save_checkpoint(str(tmp_path))
+    restored = BCLearnerWorker(SACNetSpec(actor_hidden=(32, 32), critic_hidden=(8,)), BCSpec(loss=loss),
+                               obs_dim=2, action_dim=2)
+    restored.load_checkpoint(str(tmp_path))
+    assert restored.version == 1 and restored.dataset_size() == learner.dataset_size()
+    assert restored.action_error([episode]) == learner.action_error([episode])
