@@ -64,9 +64,13 @@ class KeyboardDevice(InterventionDevice):
         self.latched = self.rest.copy()
         self.active = False
         if path is None and fd is None:
+            import os
             import sys
 
             fd = sys.stdin.fileno()
+            if not os.isatty(fd):
+                raise OSError("keyboard: this process's stdin is not a terminal (a robot worker has none); set the "
+                              "device's path option to a terminal, e.g. the /dev/pts/N that `tty` prints in it")
         self.reader = NonBlockingReader(what="keyboard", path=path, fd=fd, raw=raw)
 
     def poll(self, *, observation=None, policy_action=None) -> HumanInput:
