@@ -34,7 +34,8 @@ def episodes_in(path):
 
 def test_simulated_human_feeds_the_store_the_demos_and_the_reward(ray_cluster, tmp_path):
     out = tmp_path / "run"
-    run(make_cfg(out, 1, interventions=HUMAN, robot=ROBOT, task={"max_episode_steps": 30}, pipeline={"mode": "sync", "iteration_s": 4.0, "durable": False},
+    run(make_cfg(out, 1, interventions=HUMAN, robot=ROBOT, task={"max_episode_steps": 30},
+                 pipeline={"mode": "sync", "iteration_s": 4.0, "durable": False},
                  algorithm={"batch_size": 32, "learning_starts": 40, "utd_ratio": 0.25}))
     row = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()][-1]
     assert row["intervention/rate"] > 0  # warm-up actions are uniform: the human takes over

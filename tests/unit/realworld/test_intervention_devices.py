@@ -175,3 +175,15 @@ def test_simulated_human_reaction_jitter_is_seeded():
 
     assert delays(1) == delays(1) and all(2 <= d <= 5 for d in delays(1))
     assert delays(1) != delays(2)
+
+
+def test_intervention_spec_builds_by_name_and_refuses_unknown_names():
+    from infinirl.realworld.intervention.spec import InterventionSpec
+
+    spec = InterventionSpec(device="simulated_human", options={"threshold": 0.25, "expert": expert_towards_zero})
+    device = spec.build(action_dim=2)
+    assert device.threshold == 0.25 and device.action_dim == 2
+    with pytest.raises(KeyError, match="joystick"):
+        InterventionSpec(device="joystick")
+    with pytest.raises(ValueError, match="reward"):
+        InterventionSpec(device="keyboard", reward="crowd")
