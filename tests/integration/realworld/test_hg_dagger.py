@@ -48,3 +48,16 @@ def test_hg_dagger_success_rises_and_interventions_fall(tmp_path):
     rates = [r["intervention/rate"] for r in rows if "intervention/rate" in r]
     assert max(evals[-3:]) >= evals[0] + 0.3
     assert sum(rates[-2:]) / 2 <= 0.5 * sum(rates[:2]) / 2
+
+
+@pytest.mark.slow  # two runs of the command line
+def test_hg_dagger_resumes_with_its_dataset(tmp_path):
+    """Run again with more iterations: the learner (policy, optimiser, aggregate) comes back from the
+    checkpoint, no demonstration is recorded again, and the dataset keeps growing from where it was."""
+    small = ["dagger.episodes_per_iteration=1", "eval.episodes=1", "eval.at_start=false", "bc.updates_per_iteration=20",
+             "task.max_episode_steps=20", "robot.options.control_hz=40.0"]
+    first = train(tmp_path / "run", "iterations=1", *small, timeout=300)
+    again = train(tmp_path / "run", "iterations=2", *small, timeout=300)
+    assert [r["step"] for r in again] == [1, 2]
+    assert again[1]["dagger/dataset_rows"] == first[0]["dagger/dataset_rows"] + again[1]["dagger/added_rows"]
+    assert again[1]["pipeline/version"] == first[0]["pipeline/version"] + 1
