@@ -4,6 +4,9 @@
 run's :class:`~infinirl.realworld.replay.ReplayStore` (on disk under the run's output folder, so no
 episode that reached the learner is lost by a crash), and optionally a second store of
 demonstrations (RLPD: each mini-batch is ``demo_fraction`` demonstrations, the rest online data).
+With ``interventions_as_demos``, every run of steps a human acted in (``intervened``) is also
+appended to the demonstrations store as an episode of its own
+(:func:`~infinirl.realworld.intervention.segments.intervened_segments`).
 
 * **asynchronous** (:meth:`start`): an ingest thread takes the episodes the robots put on the
   channel and appends them to the store; a training thread updates continuously once
@@ -37,6 +40,7 @@ import torch
 
 from infinirl.components.sac_learner import SACAgent, SACNetSpec, SACUpdateSpec
 from infinirl.realworld.episodes import episode_spec, staleness_of
+from infinirl.realworld.intervention.segments import intervened_segments
 from infinirl.realworld.replay import ReplayStore, SamplingSpec, StoreOptions
 from infinirl.realworld.robot_worker import VERSION_TENSOR, unit_box
 from infinirl.runtime import ChannelClosed, WeightSource, Worker
@@ -66,6 +70,10 @@ class LearnerLoopSpec:
     max_updates_per_step: float | None = None
     durable: bool = True
     cameras: dict | None = None
+    interventions: bool = False
+    """The robots record ``intervened`` (they have an intervention device)."""
+    interventions_as_demos: bool = False
+    """Intervened stretches also go into the demonstrations store (needs ``demo_dir``)."""
 
 
 class RealWorldLearnerWorker(Worker, WeightSource):
@@ -78,7 +86,9 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         torch.set_flush_denormal(True)  # see SACLearnerWorker: denormals take a slow path on x86
         self.loop, self.spec = loop, update
         self.agent = SACAgent(net, update, obs_dim, unit_box(action_dim))
-        fields = episode_spec(obs_dim, action_dim, loop.cameras)
+        if loop.interventions_as_demos and (loop.demo_dir is None or not loop.interventions):
+            raise ValueError("LearnerLoopSpec.interventions_as_demos needs interventions=True and a demo_dir")
+        fields = episode_spec(obs_dim, action_dim, loop.cameras, interventions=loop.interventions)
         options = StoreOptions(durable=loop.durable)
         self.store = ReplayStore(loop.replay_dir, fields, options=options,
                                  sampling=SamplingSpec(seed=int(np.random.SeedSequence([update.seed, 0x5A]).
@@ -119,6 +129,10 @@ class RealWorldLearnerWorker(Worker, WeightSource):
                 self.store.append(episode)
                 self._counts["episodes"] += 1
                 self._counts["steps"] += len(episode["action"])
+                if self.loop.interventions_as_demos:
+                    for segment in intervened_segments(episode):
+                        self.demos.append(segment)
+                        self._counts["intervention_demo_steps"] += len(segment["action"])
 
     def add_demonstrations(self, episodes: list[dict]) -> int:
         """Append demonstrations to the demo store; returns how many it holds."""

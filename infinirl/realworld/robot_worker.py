@@ -16,6 +16,14 @@ when the cluster discovered one, else the config's), wraps it in the safety laye
 Every step records the policy version that chose its action (:mod:`~infinirl.realworld.episodes`);
 until the first trained weights arrive, actions are uniform in ``[-1, 1]`` (warm-up, version -1).
 A safety stop during an episode ends it (kept, not terminated) and the next reset re-arms the robot.
+
+**Interventions** (an :class:`~infinirl.realworld.intervention.spec.InterventionSpec`): before each
+training step the worker polls the device with the observation and the policy's proposal; while the
+human holds control the human's action is executed and recorded (``intervened`` = 1). A mark
+(success / failure) labels the observations up to it for a success classifier (``labels_dir``) and,
+with the reward source ``human``, becomes the reward of the step that led to the marked state and
+ends the episode (the env's own success then ends nothing). One more poll after an episode's last
+step collects the marks given for it. Evaluation and demonstration episodes run without the device.
 """
 
 from __future__ import annotations
@@ -34,6 +42,9 @@ import torch
 
 from infinirl.realworld.driver import RobotError, RobotStoppedError, make_robot
 from infinirl.realworld.episodes import RANDOM_VERSION, EpisodeRecorder
+from infinirl.realworld.intervention.human_reward import SuccessLabelWriter, human_reward
+from infinirl.realworld.intervention.metrics import intervention_stats
+from infinirl.realworld.intervention.spec import InterventionSpec
 from infinirl.realworld.robot_env import RobotEnv, RobotEnvSpec
 from infinirl.realworld.safety import SafeRobot, SafetyConfig
 from infinirl.runtime import WeightSink, Worker
@@ -135,7 +146,7 @@ class RobotActorWorker(Worker, WeightSink):
     """One robot + its policy copy (see the module docstring)."""
 
     def __init__(self, setup: RobotSetup | Sequence[RobotSetup], env: RobotEnvSpec | Sequence[RobotEnvSpec], net,
-                 seed: int, num_threads: int = 1):
+                 seed: int, num_threads: int = 1, intervention: InterventionSpec | None = None):
         limit_threads(num_threads)
         if not isinstance(setup, RobotSetup):  # a fleet: one entry per rank
             setup, env = setup[self.rank], env[self.rank]
@@ -158,6 +169,14 @@ class RobotActorWorker(Worker, WeightSink):
         self._outbox: queue.Queue = queue.Queue()
         self._error: BaseException | None = None
         self._eval_request: tuple[int, queue.Queue] | None = None
+        self.intervention = intervention
+        self.intervention_device = None
+        self.labels = None
+        if intervention is not None:
+            self.intervention_device = intervention.build(self.action_dim)
+            self.intervention_device.bind(self.env)
+            if intervention.labels_dir is not None:
+                self.labels = SuccessLabelWriter(intervention.labels_dir, prefix=f"rank{self.rank}")
 
     # ---------------------------------------------------------------- what it is
     def describe(self) -> dict:
@@ -197,18 +216,19 @@ class RobotActorWorker(Worker, WeightSink):
     def _episode(self, policy=None, deterministic: bool = False, between_steps=None,
                  training: bool = True) -> tuple[dict | None, bool]:
         """One episode and whether it succeeded; ``policy(observation) -> action`` replaces the
-        actor (demonstrations). Training episodes are counted and reported by :meth:`stats`."""
+        actor (demonstrations). Training episodes are counted and reported by :meth:`stats`, and
+        are the ones a human may intervene in."""
         obs = self._padded(self.env.reset())
         recorder = EpisodeRecorder(obs)
+        human = self.intervention_device if training and policy is None else None
+        if human is not None:
+            human.reset()
         while not self._stop.is_set():
             if between_steps is not None:
                 between_steps()
-            if policy is not None:
-                action = np.zeros(self.layout.action_dim, np.float32)
-                action[:self.action_dim] = policy(self.env.last_observation)
-                version = RANDOM_VERSION
-            else:
-                action, version = self._act(obs, deterministic)
+            action, version, given = self._choose(obs, policy, deterministic, human)
+            if given is not None and self._apply_marks(recorder, given.marks):
+                break  # the human's mark ended the episode
             try:
                 step = self.env.step(action[:self.action_dim])
             except RobotStoppedError as exc:  # the safety layer stopped the robot: keep what was collected
@@ -216,19 +236,72 @@ class RobotActorWorker(Worker, WeightSink):
                 self.counts["safety_aborts"] += 1
                 break
             obs = self._padded(step.obs)
-            recorder.add(action, obs, step.reward, step.terminated, version, step.success)
             self.counts["late_steps"] += int(step.late)
-            if step.terminated or step.truncated:
+            if self._record(recorder, action, obs, step, version, given):
                 break
-        episode = recorder.finish()
+        if human is not None and recorder.mark is None and len(recorder):
+            self._apply_marks(recorder, human.poll(observation=obs).marks)  # marks given for the last step
+        episode = recorder.finish(interventions=self.intervention_device is not None)
         if episode is not None and training:
-            self.counts["episodes"] += 1
-            self.counts["steps"] += len(recorder)
-            self.counts["successes"] += int(recorder.success)
-            with self._lock:
-                self.recent.append({"return": float(episode["reward"].sum()), "length": len(recorder),
-                                    "success": recorder.success})
+            self._count(recorder, episode)
         return episode, recorder.success
+
+    def _choose(self, obs: dict, policy, deterministic: bool, human):
+        """``(action, version, the human's input or None)`` for the next step."""
+        if policy is not None:
+            action = np.zeros(self.layout.action_dim, np.float32)
+            action[:self.action_dim] = policy(self.env.last_observation)
+            return action, RANDOM_VERSION, None
+        action, version = self._act(obs, deterministic)
+        if human is None:
+            return action, version, None
+        frames = {key.removeprefix("pixels."): value for key, value in obs.items() if key.startswith("pixels.")}
+        if frames:
+            human.show(frames, {"steps": self.env.steps, "policy_version": version})
+        given = human.poll(observation=obs, policy_action=action[:self.action_dim])
+        if given.active:
+            action = np.zeros(self.layout.action_dim, np.float32)
+            action[:self.action_dim] = given.action
+        return action, version, given
+
+    def _record(self, recorder: EpisodeRecorder, action, obs: dict, step, version: int, given) -> bool:
+        """Record one step; returns whether the episode is over."""
+        if given is not None and self.intervention.reward == "human":  # only the human's marks reward and end
+            recorder.add(action, obs, 0.0, False, version, False, intervened=given.active)
+            return self.env.steps >= self.env.spec.max_episode_steps
+        recorder.add(action, obs, step.reward, step.terminated, version, step.success,
+                     intervened=given is not None and given.active)
+        return step.terminated or step.truncated
+
+    def _apply_marks(self, recorder: EpisodeRecorder, marks: tuple[str, ...]) -> bool:
+        """Count the marks, label the observations so far, and with the human reward source reward
+        the last step and end the episode (returns True then). Marks before the first step have no
+        step to reward and are only counted."""
+        for mark in marks:
+            self.counts[f"marks_{mark}"] += 1
+        if not marks or not len(recorder) or recorder.mark is not None:
+            return False
+        recorder.mark = marks[-1]
+        if self.labels is not None:
+            self.labels.write(recorder.obs, recorder.mark)
+        if self.intervention.reward != "human":
+            return False
+        outcome = human_reward(marks)
+        recorder.relabel_last(reward=outcome.reward, terminated=outcome.terminated, success=outcome.success)
+        return True
+
+    def _count(self, recorder: EpisodeRecorder, episode: dict) -> None:
+        self.counts["episodes"] += 1
+        self.counts["steps"] += len(recorder)
+        self.counts["successes"] += int(recorder.success)
+        entry = {"return": float(episode["reward"].sum()), "length": len(recorder), "success": recorder.success}
+        if self.intervention_device is not None:
+            stats = intervention_stats(episode["intervened"])
+            self.counts["intervened_steps"] += stats.intervened_steps
+            self.counts["takeovers"] += stats.takeovers
+            entry.update(intervened_steps=stats.intervened_steps, takeovers=stats.takeovers, mark=recorder.mark)
+        with self._lock:
+            self.recent.append(entry)
 
     def _padded(self, obs: dict) -> dict:
         return {**obs, "state": self.layout.pad_state(obs["state"])}
@@ -283,9 +356,10 @@ class RobotActorWorker(Worker, WeightSink):
         return self.stats()
 
     # ---------------------------------------------------------------- synchronous
-    def collect(self, num_episodes: int) -> list[dict]:
-        """Run ``num_episodes`` training episodes here and return them (synchronous mode)."""
-        episodes = [self._episode()[0] for _ in range(num_episodes)]
+    def collect(self, num_episodes: int, deterministic: bool = False) -> list[dict]:
+        """Run ``num_episodes`` training episodes here and return them (synchronous mode);
+        ``deterministic``: the policy acts with ``tanh(mean)`` (HG-DAgger's rollouts)."""
+        episodes = [self._episode(deterministic=deterministic)[0] for _ in range(num_episodes)]
         return [e for e in episodes if e is not None]
 
     def demonstrations(self, num_episodes: int, policy: str, seed: int = 0, noise_std: float = 0.0,
@@ -342,4 +416,6 @@ class RobotActorWorker(Worker, WeightSink):
 
     def close(self) -> None:
         self.stop()
+        if self.intervention_device is not None:
+            self.intervention_device.close()
         self.robot.close()

@@ -26,7 +26,7 @@ RUNNERS: Registry[RunnerSpec] = Registry("runner", entry_point_group="infinirl.r
 # Modules that define runners; imported lazily so `infinirl --help` stays fast.
 _RUNNER_MODULES = ("infinirl.runners.runtime_demo", "infinirl.runners.reasoning", "infinirl.runners.embodied",
                   "infinirl.evaluation.runner", "infinirl.runners.sac", "infinirl.runners.sft",
-                  "infinirl.runners.realworld_sac")
+                  "infinirl.runners.realworld_sac", "infinirl.runners.hg_dagger")
 
 
 def register_runner(name: str, config_cls: type, summary: str):

@@ -17,6 +17,8 @@ sped up, so an iteration is a wall-clock window (``pipeline.iteration_s``).
 
 RLPD (``demos.episodes > 0``): robot rank 0 records scripted demonstrations into
 ``<output_dir>/demos`` once, and every mini-batch draws ``demos.fraction`` of its rows from them.
+With an intervention device (``interventions.device``) and ``interventions.as_demos``, the
+stretches of each episode where the human acted also go into the demonstrations store.
 
 Checkpoints hold the learner (agent, sampler state, version); the replay store is on disk already
 and is reopened on resume with everything appended after the checkpoint, so a killed run resumes
@@ -40,7 +42,7 @@ from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.realworld_sac_config import RealWorldSACConfig
 from infinirl.runners.run_support import launch_all, plan_placement, run_start_time
 
-__all__ = ["RealWorldSACFlow", "run"]
+__all__ = ["RealWorldSACFlow", "env_spec_of", "net_spec_of", "robot_setup_of", "run"]
 
 
 @register_runner("realworld_sac", RealWorldSACConfig,
@@ -49,8 +51,11 @@ def run(cfg: RealWorldSACConfig) -> dict:
     from infinirl.runtime import Channel, Cluster
 
     with RunLoop(cfg, run_start_time()) as loop:
-        setup, env, net = _robot_setup(cfg), _env_spec(cfg), _net_spec(cfg)
+        setup, env, net = robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg)
         from infinirl.realworld.discovery import with_driver_discovery
+        from infinirl.runners.hg_dagger import intervention_spec_of
+
+        intervention = intervention_spec_of(cfg)
 
         with Cluster(with_driver_discovery(cfg.cluster)) as cluster:
             plan = plan_placement(cluster.inventory, cfg)
@@ -63,7 +68,7 @@ def run(cfg: RealWorldSACConfig) -> dict:
             groups = {}
             try:
                 groups.update(launch_all(plan, {"robot": (RobotActorWorker, (setup, env, net, cfg.seed,
-                                                                             cfg.actor.num_threads))}))
+                                                                             cfg.actor.num_threads, intervention))}))
                 shape = _robot_shape(cfg, groups["robot"])
                 groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, shape)}))
                 channel.qsize()  # returns once the channel's actor is up
@@ -85,7 +90,7 @@ def _check_fleet(cfg: RealWorldSACConfig, robot_ranks: int) -> None:
                           f"{robot_ranks} robot ranks; give one rank per entry")
 
 
-def _robot_setup(cfg: RealWorldSACConfig):
+def robot_setup_of(cfg: RealWorldSACConfig):
     """The robot every rank drives, or with ``robot.fleet`` one per rank."""
     from infinirl.realworld.robot_worker import RobotSetup
     from infinirl.realworld.safety import SafetyConfig
@@ -98,7 +103,7 @@ def _robot_setup(cfg: RealWorldSACConfig):
     return RobotSetup(kind=robot.kind, options=dict(robot.options), safety=safety)
 
 
-def _env_spec(cfg: RealWorldSACConfig):
+def env_spec_of(cfg: RealWorldSACConfig):
     from infinirl.realworld.robot_env import RobotEnvSpec
 
     def spec(task):
@@ -111,7 +116,7 @@ def _env_spec(cfg: RealWorldSACConfig):
     return spec(cfg.task)
 
 
-def _net_spec(cfg: RealWorldSACConfig) -> SACNetSpec:
+def net_spec_of(cfg: RealWorldSACConfig) -> SACNetSpec:
     network = cfg.network
     return SACNetSpec(actor_hidden=tuple(network.actor_hidden), critic_hidden=tuple(network.critic_hidden),
                       num_critics=network.num_critics, activation=network.activation,
@@ -146,8 +151,11 @@ def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
                            autotune_alpha=alg.autotune_alpha, target_entropy=alg.target_entropy,
                            policy_delay=alg.policy_delay, target_update_every=alg.target_update_every, seed=cfg.seed)
     replay = os.path.abspath(cfg.replay.path or os.path.join(cfg.output_dir, "replay"))
-    demos = os.path.abspath(os.path.join(cfg.output_dir, "demos")) if cfg.demos.episodes else None
+    interventions = cfg.interventions.device is not None
+    as_demos = interventions and cfg.interventions.as_demos
+    demos = os.path.abspath(os.path.join(cfg.output_dir, "demos")) if cfg.demos.episodes or as_demos else None
     loop = LearnerLoopSpec(replay_dir=replay, demo_dir=demos, demo_fraction=cfg.demos.fraction,
+                           interventions=interventions, interventions_as_demos=as_demos,
                            learning_starts=alg.learning_starts, publish_every=pipeline.publish_every,
                            max_staleness=pipeline.max_staleness, staleness_action=pipeline.staleness_action,
                            max_updates_per_step=pipeline.max_updates_per_step, durable=pipeline.durable,
@@ -281,6 +289,13 @@ class RealWorldSACFlow:
                             "rollout/episode_return_mean": float(np.mean([e["return"] for e in episodes])),
                             "rollout/episode_length_mean": float(np.mean([e["length"] for e in episodes])),
                             "rollout/episodes": float(len(episodes))})
+        if self.cfg.interventions.device is not None:
+            from infinirl.realworld.intervention.metrics import InterventionStats, intervention_metrics
+
+            metrics.update(intervention_metrics([InterventionStats(steps=e["length"], takeovers=e["takeovers"],
+                                                                   intervened_steps=e["intervened_steps"])
+                                                 for e in episodes]))
+            metrics["replay/intervention_demo_steps"] = float(counts.get("intervention_demo_steps", 0.0))
         return metrics
 
     # ------------------------------------------------------------------ evaluation

@@ -14,7 +14,7 @@ from infinirl.config import ConfigError, bounded
 from infinirl.runners.run_config import EvalSchedule, RunConfig
 from infinirl.runners.sac_config import AlgorithmConfig, NetworkConfig, WorkerConfig
 
-__all__ = ["RealWorldSACConfig"]
+__all__ = ["EvalConfig", "InterventionConfig", "RealWorldSACConfig", "RobotConfig", "TaskConfig", "known_names"]
 
 
 @dataclass(kw_only=True)
@@ -100,6 +100,35 @@ class DemoConfig:
 
 
 @dataclass(kw_only=True)
+class InterventionConfig:
+    device: str | None = None
+    """Intervention device of every robot: keyboard, gamepad, simulated_human (a scripted expert that
+    takes over when the policy drifts), plugins; None: no human. Intervened steps are stored with
+    their flag and the human's (executed) action."""
+    options: dict[str, Any] = field(default_factory=dict)
+    """Keyword options of the device (keyboard: path, axis_keys; gamepad: path, axes, takeover_button;
+    simulated_human: expert, threshold, reaction_steps, correct_steps, seed; docs/realworld.md)."""
+    as_demos: bool = True
+    """RLPD: the intervened stretches of each episode also go into the demonstrations buffer (the
+    whole episode goes into the online store as always)."""
+    reward: Literal["env", "human"] = "env"
+    """env: the task's rewards; human: the human's success / failure marks are the reward (1 / 0 on
+    the step that led to the marked state, which ends the episode; 0 elsewhere)."""
+    labels: bool = False
+    """Save each marked episode's observations with success labels under <output_dir>/success_labels
+    (one .npz per episode, on the robot's node), for training a success classifier."""
+
+    def check(self) -> None:
+        from infinirl.realworld.intervention import INTERVENTION_DEVICES
+
+        if self.device is not None:
+            known_names(INTERVENTION_DEVICES, [self.device], "interventions.device")
+        elif self.reward == "human" or self.labels:
+            raise ConfigError("interventions.reward=human and interventions.labels need a device that gives marks; "
+                              "set interventions.device")
+
+
+@dataclass(kw_only=True)
 class EvalConfig(EvalSchedule):
     at_start: bool = False
     """An evaluation of the untrained policy costs robot time; off by default."""
@@ -135,6 +164,8 @@ class RealWorldSACConfig(RunConfig):
     network: NetworkConfig = field(default_factory=NetworkConfig)
     algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
     demos: DemoConfig = field(default_factory=DemoConfig)
+    interventions: InterventionConfig = field(default_factory=InterventionConfig)
+    """A human (or simulated one) who takes over the robots during training episodes."""
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     actor: WorkerConfig = field(default_factory=WorkerConfig)
@@ -146,18 +177,19 @@ class RealWorldSACConfig(RunConfig):
         from infinirl.realworld.driver import ROBOT_DRIVERS
         from infinirl.realworld.robot_env import OBSERVATIONS, REWARDS
 
-        _known(ROBOT_DRIVERS, [self.robot.kind], "robot.kind")
+        known_names(ROBOT_DRIVERS, [self.robot.kind], "robot.kind")
         for index, entry in enumerate(self.robot.fleet):
-            _known(ROBOT_DRIVERS, [entry.kind], f"robot.fleet[{index}].kind")
+            known_names(ROBOT_DRIVERS, [entry.kind], f"robot.fleet[{index}].kind")
             task = self.task_of(index)
-            _known(OBSERVATIONS, task.observations, f"robot.fleet[{index}].task.observations")
-            _known(REWARDS, list(task.rewards), f"robot.fleet[{index}].task.rewards")
-        _known(OBSERVATIONS, self.task.observations, "task.observations")
-        _known(REWARDS, list(self.task.rewards), "task.rewards")
+            known_names(OBSERVATIONS, task.observations, f"robot.fleet[{index}].task.observations")
+            known_names(REWARDS, list(task.rewards), f"robot.fleet[{index}].task.rewards")
+        known_names(OBSERVATIONS, self.task.observations, "task.observations")
+        known_names(REWARDS, list(self.task.rewards), "task.rewards")
+        self.interventions.check()
         if not self.task.observations:
             raise ConfigError("task.observations is empty; name at least one source, e.g. [proprio]")
         if self.demos.episodes:
-            _known(DEMO_POLICIES, [self.demos.policy], "demos.policy")
+            known_names(DEMO_POLICIES, [self.demos.policy], "demos.policy")
             if self.task.action_mode != "delta":
                 raise ConfigError("demos.episodes > 0 needs task.action_mode=delta (the scripted demo policies "
                                   "emit delta actions)")
@@ -191,7 +223,8 @@ class RealWorldSACConfig(RunConfig):
                               "device or CPU slot (e.g. '0')")
 
 
-def _known(registry, names, key: str) -> None:
+def known_names(registry, names, key: str) -> None:
+    """A one-line ConfigError naming ``key`` for a name ``registry`` does not hold."""
     for name in names:
         if name not in registry:
             raise ConfigError(f"{key}: unknown {registry.kind} {name!r}; registered: {', '.join(registry.names())}")

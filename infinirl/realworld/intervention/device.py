@@ -73,6 +73,14 @@ class InterventionDevice(abc.ABC):
         """Offer the latest camera frames (uint8 ``H x W x 3`` by camera name) and status to a device
         that displays them; devices without a screen ignore it."""
 
+    def bind(self, env: Any) -> None:  # noqa: B027
+        """Offer the :class:`~infinirl.realworld.robot_env.RobotEnv` the device serves, before the first
+        episode; a device that decides from the robot's state (the simulated human) reads it, others
+        ignore it."""
+
+    def reset(self) -> None:  # noqa: B027
+        """A new episode starts (a device with per-episode state clears it)."""
+
     def close(self) -> None:  # noqa: B027
         """Release what the device holds (threads, sockets, file handles)."""
 

@@ -1,0 +1,179 @@
+"""HG-DAgger on robots: the policy acts, a human (or a simulated one) takes over when it drifts, and
+the policy is cloned from every state the human ever labelled.
+
+Read top to bottom. Components: ``robot`` (one rank per robot:
+:class:`~infinirl.realworld.robot_worker.RobotActorWorker` with the run's intervention device) and
+``learner`` (:class:`~infinirl.realworld.intervention.bc_learner.BCLearnerWorker`: the aggregate
+dataset and behaviour cloning).
+
+* **start**: robot rank 0 records ``dagger.initial_demos`` episodes of a scripted demo policy; the
+  initial policy is cloned from them (every step labelled; few demonstrations: a weak policy) and
+  sent to the robots. A resumed run restores the learner (policy, optimiser, dataset) instead.
+* **one iteration**: every robot runs ``dagger.episodes_per_iteration`` episodes of the present
+  policy (deterministic by default) with the human watching; the human's steps (flag
+  ``intervened``, the human's executed action) are added to the aggregate, the policy trains
+  ``bc.updates_per_iteration`` mini-batches on the whole aggregate and the new version goes to the
+  robots. Metrics: ``rollout/success_rate`` (with the human's help), ``intervention/rate``
+  (intervened steps / steps), ``intervention/episode_rate``, ``intervention/takeovers_per_episode``,
+  ``dagger/dataset_rows``, ``train/bc_loss`` and ``dagger/novice_error`` (the policy's squared error
+  on the iteration's human labels before training on them).
+* **evaluation**: ``eval.episodes`` deterministic episodes per robot with no human
+  (``eval/success_rate``: the policy alone).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from infinirl.runners import register_runner
+from infinirl.runners.curves import Panel
+from infinirl.runners.hg_dagger_config import HGDAggerConfig
+from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
+from infinirl.runners.run_support import launch_all, plan_placement, run_start_time
+
+__all__ = ["HGDAggerFlow", "run"]
+
+
+@register_runner("hg_dagger", HGDAggerConfig,
+                 "HG-DAgger on robots: a human takes over when the policy drifts; behaviour cloning on the aggregate")
+def run(cfg: HGDAggerConfig) -> dict:
+    from infinirl.realworld.discovery import with_driver_discovery
+    from infinirl.realworld.robot_worker import RobotActorWorker
+    from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of
+    from infinirl.runtime import Cluster
+
+    with RunLoop(cfg, run_start_time()) as loop:
+        setup, env, net = robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg)
+        intervention = intervention_spec_of(cfg)
+        with Cluster(with_driver_discovery(cfg.cluster)) as cluster:
+            plan = plan_placement(cluster.inventory, cfg)
+            print(plan.describe(), flush=True)
+            groups = {}
+            try:
+                groups.update(launch_all(plan, {"robot": (RobotActorWorker, (setup, env, net, cfg.seed,
+                                                                             cfg.actor.num_threads, intervention))}))
+                described = groups["robot"].describe().wait()
+                groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, described[0])}))
+                flow = HGDAggerFlow(cfg, groups["robot"], groups["learner"])
+                try:
+                    return loop.run(flow)
+                finally:
+                    flow.close()
+            finally:
+                for group in groups.values():
+                    group.shutdown()
+
+
+def intervention_spec_of(cfg):
+    """The robots' :class:`~infinirl.realworld.intervention.spec.InterventionSpec` (None without a device)."""
+    from infinirl.realworld.intervention.spec import InterventionSpec
+
+    section = cfg.interventions
+    if section.device is None:
+        return None
+    labels = os.path.abspath(os.path.join(cfg.output_dir, "success_labels")) if section.labels else None
+    return InterventionSpec(device=section.device, options=dict(section.options), reward=section.reward,
+                            labels_dir=labels)
+
+
+def _learner_launch(cfg: HGDAggerConfig, net, described: dict):
+    from infinirl.realworld.intervention.bc_learner import BCLearnerWorker, BCSpec
+
+    bc = cfg.bc
+    spec = BCSpec(loss=bc.loss, lr=bc.lr, batch_size=bc.batch_size, weight_decay=bc.weight_decay, seed=cfg.seed)
+    return BCLearnerWorker, (net, spec, described["obs_dim"], described["action_dim"], cfg.learner.num_threads)
+
+
+class HGDAggerFlow:
+    """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
+
+    def __init__(self, cfg: HGDAggerConfig, robots, learner):
+        self.cfg, self.robots, self.learner = cfg, robots, learner
+        self.spec = LoopSpec(
+            name="hg_dagger", headline="eval/success_rate", target=cfg.eval.target,
+            title=f"HG-DAgger {cfg.robot.kind} with {cfg.interventions.device}",
+            progress=(ProgressField(label="succ", key="rollout/success_rate", format=".2f"),
+                      ProgressField(label="eval", key="eval/success_rate", format=".2f"),
+                      ProgressField(label="interv", key="intervention/rate", format=".2f"),
+                      ProgressField(label="rows", key="dagger/dataset_rows", format=".0f")),
+            panels=(Panel(title="success rate (policy alone)", y=("eval/success_rate",), x="step",
+                          x_label="iteration"),
+                    Panel(title="intervention rate (intervened steps / steps)", y=("intervention/rate",), x="step",
+                          x_label="iteration"),
+                    Panel(title="rollouts with the human (success)", y=("rollout/success_rate",), x="step",
+                          x_label="iteration"),
+                    Panel(title="behaviour cloning loss", y=("train/bc_loss",), x="step", x_label="iteration")))
+
+    # ------------------------------------------------------------------ start
+    def start(self, iteration: int) -> None:
+        dagger = self.cfg.dagger
+        size = self.learner.dataset_size().wait()[0]
+        if iteration == 0 and size == 0 and dagger.initial_demos:
+            episodes = self.robots.call("demonstrations", dagger.initial_demos, dagger.demo_policy, self.cfg.seed,
+                                        dagger.demo_noise_std, dict(dagger.demo_options), ranks=[0]).wait()[0]
+            added = self.learner.aggregate(episodes, True).wait()[0]
+            trained = self.learner.train(self.cfg.bc.updates_per_iteration).wait()[0]
+            print(f"initial policy cloned from {len(episodes)} demonstration episodes ({added['added']} steps, "
+                  f"loss {trained['loss']:.4f})", flush=True)
+        self._sync()
+
+    def _sync(self) -> None:
+        from infinirl.runtime import start_weight_sync
+
+        version = self.learner.published_version().wait()[0]
+        if version > 0:
+            start_weight_sync(self.learner, self.robots, version).wait(timeout=120)
+
+    # ------------------------------------------------------------------ one iteration
+    def step(self, iteration: int) -> dict:
+        from infinirl.realworld.intervention.metrics import InterventionStats, intervention_metrics
+
+        cfg = self.cfg
+        episodes = [e for batch in self.robots.collect(cfg.dagger.episodes_per_iteration, cfg.dagger.deterministic)
+                    .wait(timeout=3600) for e in batch]
+        novice_error = self.learner.action_error(episodes).wait()[0]
+        added = self.learner.aggregate(episodes).wait()[0]
+        trained = self.learner.train(cfg.bc.updates_per_iteration).wait()[0]
+        self._sync()
+        robots = self.robots.stats().wait(timeout=60)
+        recent = [e for r in robots for e in r["episodes"]]
+        stats = [InterventionStats(steps=e["length"], intervened_steps=e["intervened_steps"], takeovers=e["takeovers"])
+                 for e in recent]
+        metrics = {**intervention_metrics(stats),
+                   "dagger/added_rows": float(added["added"]), "dagger/dataset_rows": float(added["size"]),
+                   "train/bc_loss": trained["loss"],
+                   "train/updates": float(trained["updates"]), "pipeline/version": float(trained["version"]),
+                   "env/steps": float(sum(r["counts"].get("steps", 0) for r in robots)),
+                   "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots))}
+        if novice_error == novice_error:  # NaN: the human labelled no step this iteration
+            metrics["dagger/novice_error"] = novice_error
+        if recent:
+            metrics.update({"rollout/success_rate": float(np.mean([e["success"] for e in recent])),
+                            "rollout/episode_length_mean": float(np.mean([e["length"] for e in recent])),
+                            "rollout/episodes": float(len(recent))})
+        return metrics
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self) -> dict:
+        results = [r for r in self.robots.evaluate(self.cfg.eval.episodes).wait() if r]
+        return {key: float(np.mean([r[key] for r in results])) for key in results[0]} if results else {}
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, folder: str) -> dict:
+        self.learner.save_checkpoint(os.path.join(folder, "learner")).wait()
+        return {}
+
+    def load(self, folder: str, state: dict) -> None:
+        self.learner.load_checkpoint(os.path.join(folder, "learner")).wait()
+
+    def finish(self, output_dir: str) -> dict:
+        size = self.learner.dataset_size().wait()[0]
+        return {"dataset_rows": size, "version": self.learner.published_version().wait()[0]}
+
+    def close(self) -> None:
+        try:
+            self.robots.close().wait(timeout=60)
+        except Exception:  # best effort: the groups are shut down right after
+            pass
