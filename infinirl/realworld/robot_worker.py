@@ -175,6 +175,9 @@ class RobotActorWorker(Worker, WeightSink):
         if intervention is not None:
             self.intervention_device = intervention.build(self.action_dim)
             self.intervention_device.bind(self.env)
+            url = getattr(self.intervention_device, "url", None)
+            if url is not None:  # a device people open in a browser: say where (reaches the driver's console)
+                print(f"intervention page of robot rank {self.rank}: {url}", flush=True)
             if intervention.labels_dir is not None:
                 self.labels = SuccessLabelWriter(intervention.labels_dir, prefix=f"rank{self.rank}")
 
