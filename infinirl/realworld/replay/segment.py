@@ -151,6 +151,10 @@ class Segment:
         segment._check_field_sizes(exact=segment.sealed)
         if writable and not segment.sealed:
             segment._open_for_append()
+        if not writable:
+            # The writer may evict (unlink) the segment at any time; a reader's maps keep its data
+            # readable until the reader's next refresh drops it from the view.
+            segment.mapped()
         return segment
 
     def _check_sealed(self, sealed_path: str, log_data: bytes) -> None:
@@ -276,6 +280,10 @@ class Segment:
         for name in self.names:
             shape, dtype = self.spec.fields[name]
             start = int(self.row_starts(name)[first_episode]) if first_episode < self.num_episodes else self.rows(name)
+            mapped = self._maps.get(name)
+            if mapped is not None and mapped[0] >= self.rows(name):  # a reader's map: the file may be gone
+                arrays[name] = np.array(mapped[1][start:self.rows(name)])
+                continue
             array = np.empty((self.rows(name) - start, *shape), dtype)
             with open(self.file(name), "rb", buffering=0) as handle:
                 handle.seek(start * self.spec.row_bytes(name))

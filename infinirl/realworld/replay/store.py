@@ -192,6 +192,7 @@ class ReplayStore:
             if not newest.sealed:
                 old = newest.num_episodes
                 newest.refresh()
+                newest.mapped()  # map the new rows now, while the files surely exist (see Segment.open)
                 self._index(newest, old)
                 if self._grow_cached(newest, old, None) is None and newest.sealed:
                     self._admit(newest)
