@@ -111,3 +111,18 @@ def test_the_busy_ratio_policy_grows_the_env_when_it_is_the_bottleneck(ray_clust
 def test_scaling_settings_that_contradict_each_other_are_refused():
     with pytest.raises(ConfigError, match="scaling.shrink_below"):
         make_cfg("/tmp/unused", scaling={"grow_above": 0.2, "shrink_below": 0.5})
+
+
+def test_env_shares_split_each_rollout_ranks_stages_evenly():
+    from infinirl.components.env_worker import env_shares, stage_seeds
+
+    assert env_shares(1, 1, 2) == [(0, (0, 1))]
+    assert env_shares(2, 1, 2) == [(0, (0,)), (0, (1,))]
+    assert env_shares(4, 2, 4) == [(0, (0, 1)), (0, (2, 3)), (1, (0, 1)), (1, (2, 3))]
+    with pytest.raises(ValueError, match="multiple of rollout ranks"):
+        env_shares(3, 2, 2)
+    with pytest.raises(ValueError, match="cannot share its 2 pipeline stage"):
+        env_shares(3, 1, 2)
+    seeds = [10, 11, 12, 13, 14]  # stages of 3 and 2 envs
+    assert stage_seeds(seeds, [3, 2], (1,)) == [13, 14]
+    assert stage_seeds(seeds, [3, 2], (0, 1)) == seeds

@@ -111,9 +111,9 @@ class TwoNodes:
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-@pytest.fixture
-def nodes(tmp_path):
-    cluster = TwoNodes(tmp_path)
+@pytest.fixture(scope="module")
+def nodes(tmp_path_factory):
+    cluster = TwoNodes(tmp_path_factory.mktemp("two-nodes"))
     try:
         cluster.add_node()
         yield cluster
@@ -170,3 +170,19 @@ def test_embodied_runner_across_two_nodes_and_the_loss_of_one(nodes, tmp_path):
     assert rows[-1]["step"] == ITERATIONS
     summary = json.loads([line for line in out.splitlines() if line.startswith("SUMMARY ")][-1][8:])
     assert summary["env_steps"] == ITERATIONS * 4 * 16
+
+
+def test_reasoning_runner_with_its_rollout_on_the_second_node(nodes, tiny_llama_dir, tmp_path):
+    out_dir = tmp_path / "reasoning"
+    config = {
+        "iterations": 2, "prompts_per_step": 2, "output_dir": str(out_dir), "save_every": 2,
+        "model": {"path": tiny_llama_dir}, "rollout": {"group_size": 2, "max_new_tokens": 6},
+        "task": {"eval_size": 2, "verifier": "infinirl.tasks.toy_rewards:response_length"},
+        "actor": {"lr": 1e-3, "micro_batch_size": 2}, "eval": {"every": 2},
+        "placement": {"actor": "0", "reward": "1", "rollout": "node:1"},
+    }
+    out, _ = finished(nodes.run("reasoning", config))
+    assert placement_rows(out, "rollout")[0][2] == "1" and placement_rows(out, "actor")[0][2] == "0"
+    rows = [json.loads(line) for line in (out_dir / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows][-2:] == [1, 2]
+    assert rows[1]["train/logprob_mismatch_mean"] < 1e-3  # the weights reached the other node intact
