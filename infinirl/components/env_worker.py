@@ -281,7 +281,9 @@ def _step_message(result, chunk: int) -> StageStep:
 class EnvWorker(Worker):
     """The env component in its own process: a rank's stages served to one rollout rank.
 
-    Rank ``r`` pairs with rollout rank ``r`` through a link (``open_link`` + ``accept_link`` here,
+    Rank ``r`` pairs with rollout rank ``r`` (or, with more env ranks than rollout ranks, serves its
+    share of a rollout rank's stages: :func:`env_shares`; online scaling moves shares with
+    :meth:`assign`) through a link (``open_link`` + ``accept_link`` here,
     ``connect_link`` on the rollout). Per iteration the runner calls :meth:`serve`, which resets
     the envs with the given seeds and then answers each stage's actions with its next step, in the
     order the rollout sends them; simulation of one stage overlaps the rollout's inference for

@@ -20,6 +20,11 @@ How it runs is placement, not code:
   simulation of one stage overlaps inference of another (hybrid, with the actor time-sharing the
   same CPUs/devices between rollouts).
 
+Online scaling (env and rollout on disjoint slots): the env component grows or shrinks between
+iterations on a command (``<output_dir>/scale.json``, :meth:`EmbodiedFlow.request_scale`) or on its
+measured busy ratio (``scaling.auto``); each rollout rank's stages are then shared out over the env
+ranks that serve it (:meth:`EmbodiedFlow.scale_env`, :mod:`infinirl.runtime.scaling`).
+
 Asynchronous (``algorithm.asynchronous.max_staleness`` = eta): the next eta iterations'
 trajectories are collected while the actor trains (:mod:`infinirl.runners.async_rollout`), and
 ``algorithm.is_cap`` corrects for the version gap (decoupled PPO).
