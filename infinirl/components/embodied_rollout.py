@@ -129,17 +129,23 @@ class _LocalEndpoint:
 
 
 class _RemoteEndpoint:
-    """An :class:`EnvWorker` rank over its link(s): one link it serves every stage over, in the order
-    we use them, or one link per stage (stage processes, each streaming its own stage)."""
+    """:class:`EnvWorker` ranks over their links: one link per env rank (or stage process), each
+    serving some of the stages in the order we use them. ``stage_link[s]`` is the index of the link
+    that serves stage ``s``: one link for every stage (one env rank), one per stage (stage
+    processes, or as many env ranks as stages), or a share of the stages each (online scaling)."""
 
-    def __init__(self, links: list, num_stages: int):
-        if len(links) not in (1, num_stages):
-            raise ValueError(f"{len(links)} env links for {num_stages} stages: expected 1 or one per stage")
-        self.links, self.num_stages = links, num_stages
-        self._per_stage = len(links) > 1
+    def __init__(self, links: list, stage_link: list[int] | int):
+        if isinstance(stage_link, int):  # a number of stages: one shared link, or one per stage
+            stage_link = [0] * stage_link if len(links) == 1 else list(range(stage_link))
+        self.num_stages = len(stage_link)
+        if sorted(set(stage_link)) != list(range(len(links))):
+            raise ValueError(f"stages {stage_link} must use each of the {len(links)} env links")
+        self.links = [links[i] for i in stage_link]  # per stage
         # A link per stage with a file descriptor (sockets): serve the stages as their results
-        # arrive. One link (one env process serving every stage in turn) or channel links: in order.
-        self.any_order = self._per_stage and all(hasattr(link, "fileno") for link in links)
+        # arrive. A link serving several stages (an env process serving them in turn) or channel
+        # links: in order.
+        self.any_order = (self.num_stages > 1 and len(links) == self.num_stages
+                          and all(hasattr(link, "fileno") for link in links))
 
     def ready(self, stages: list[int]) -> list[int]:
         """Stages of ``stages`` whose step result has arrived (blocks until one has), in stage
@@ -150,11 +156,11 @@ class _RemoteEndpoint:
         return [stage for stage in stages if id(self.links[stage]) in arrived]
 
     def recv(self, stage: int) -> dict:
-        return self.links[stage if self._per_stage else 0].recv()
+        return self.links[stage].recv()
 
     def send(self, stage: int, actions: np.ndarray, autoreset: bool = True) -> None:
         # the env side knows the iteration's length and skips the last step's resets itself
-        self.links[stage if self._per_stage else 0].send((stage, actions))
+        self.links[stage].send((stage, actions))
 
 
 class _StageBuffer:
@@ -246,6 +252,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         self.policy = policy_spec.build(observation_spec, action_space).to(self.compute).eval()
         self.env = StagedEnv(env_spec, self.rank) if host_env else None
         self.links: list = []
+        self.stage_link: list[int] = []
         self._eval_env = None
         # Collection only: evaluation batches vary in size (each would compile anew) and are rare.
         self._act = compiled_act(self.policy) if compile_act else self.policy.act
@@ -258,9 +265,27 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
     # ---------------------------------------------------------------- wiring
     def connect_link(self, address: dict) -> None:
         """Connect to this rank's env: one address, or ``{"stages": [...]}`` (a link per stage process)."""
+        stages = self.env_spec.stages
+        if "stages" in address:
+            self.connect_links([(a, [s]) for s, a in enumerate(address["stages"])])
+        else:
+            self.connect_links([(address, list(range(stages)))])
+
+    def connect_links(self, parts: list[tuple[dict, list[int]]]) -> None:
+        """Connect to the env ranks that serve this rank: (address, the stages it serves) each;
+        together they serve every stage once. Closes the links of an earlier layout first (online
+        scaling re-links between iterations)."""
         from infinirl.components.env_link import connect
 
-        self.links = [connect(a) for a in address["stages"]] if "stages" in address else [connect(address)]
+        served = sorted(s for _, stages in parts for s in stages)
+        if served != list(range(self.env_spec.stages)):
+            raise ValueError(f"env links serve stages {served}; this rank has stages 0-{self.env_spec.stages - 1}")
+        self._close_links()
+        self.links = [connect(address) for address, _ in parts]
+        self.stage_link = [0] * self.env_spec.stages
+        for index, (_, stages) in enumerate(parts):
+            for stage in stages:
+                self.stage_link[stage] = index
 
     def load_weights(self, named_tensors, version: int) -> None:
         own = self.policy.state_dict()
@@ -280,7 +305,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         else:
             if not self.links:
                 raise RuntimeError("collect() with a remote env before connect_link()")
-            endpoint = _RemoteEndpoint(self.links, self.env_spec.stages)
+            endpoint = _RemoteEndpoint(self.links, self.stage_link)
         try:
             return self._collect(endpoint, iteration, num_steps)
         except BaseException:

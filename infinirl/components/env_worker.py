@@ -23,6 +23,7 @@ start at :data:`EVAL_SEED_BASE` = ``2**31``, so the two never meet.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,7 +32,8 @@ import numpy as np
 from infinirl.runtime import Worker
 from infinirl.utils.threads import limit_threads
 
-__all__ = ["EVAL_SEED_BASE", "EnvSpec", "EnvWorker", "StagedEnv", "iteration_seeds", "probe_env_specs", "serve_stages"]
+__all__ = ["EVAL_SEED_BASE", "EnvSpec", "EnvWorker", "StagedEnv", "env_shares", "iteration_seeds", "probe_env_specs",
+           "serve_stages", "stage_seeds"]
 
 EVAL_SEED_BASE = 2**31
 """First held-out evaluation seed; training seeds (iteration resets and auto-resets) are below it."""
@@ -100,6 +102,31 @@ def iteration_seeds(seed: int, iteration: int, num_envs: int, group_size: int = 
     return [int(s) for s in draws for _ in range(group_size)]
 
 
+def env_shares(env_ranks: int, rollout_ranks: int, stages: int) -> list[tuple[int, tuple[int, ...]]]:
+    """Per env rank: the rollout rank it serves and which of that rollout rank's pipeline stages.
+
+    Each rollout rank's ``stages`` are shared out evenly over ``env_ranks / rollout_ranks``
+    consecutive env ranks: 1 env rank per rollout rank serves all its stages; 2 serve half each
+    (online scaling grows and shrinks the env component this way). Where a stage is served never
+    changes what it simulates (see :class:`StagedEnv`)."""
+    if env_ranks < 1 or rollout_ranks < 1 or env_ranks % rollout_ranks:
+        raise ValueError(f"env ranks ({env_ranks}) must be a multiple of rollout ranks ({rollout_ranks}): each "
+                         "rollout rank is served by the same number of env ranks")
+    per = env_ranks // rollout_ranks
+    if stages % per:
+        raise ValueError(f"{per} env ranks per rollout rank cannot share its {stages} pipeline stage(s) evenly; "
+                         f"use a divisor of rollout.pipeline_stages={stages} env ranks per rollout rank")
+    width = stages // per
+    return [(e // per, tuple(range((e % per) * width, (e % per + 1) * width))) for e in range(env_ranks)]
+
+
+def stage_seeds(seeds: list[int], sizes: list[int], stages: tuple[int, ...]) -> list[int]:
+    """The reset seeds of ``stages``' envs, out of a rollout rank's ``seeds`` (stage ``s`` has
+    ``sizes[s]`` envs, in stage order)."""
+    starts = np.cumsum([0, *sizes])
+    return [seed for s in stages for seed in seeds[starts[s]:starts[s + 1]]]
+
+
 def probe_env_specs(name: str, kwargs: dict, where: str = "env.kwargs") -> tuple[dict, Any]:
     """Observation spec and (single-step) action space of env ``name``, from one sub-env built in
     this process. Also validates the name and options (``where``: their config key, for the
@@ -139,10 +166,28 @@ class StagedEnv:
             raise ValueError(f"{spec.num_envs} envs cannot fill {spec.stages} pipeline stages")
         self.stage_ids = list(range(spec.stages)) if stages is None else [int(s) for s in stages]
         self.sizes = [sizes[s] for s in self.stage_ids]
-        seeded = EnvSpec(**{**spec.__dict__, "seed": _mix(spec.seed, 1000 + rank)})
-        self.envs = [seeded.build(sizes[s], stage=s) for s in self.stage_ids]
+        self.rank = rank
+        self._seeded = EnvSpec(**{**spec.__dict__, "seed": _mix(spec.seed, 1000 + rank)})
+        self.envs = [self._seeded.build(sizes[s], stage=s) for s in self.stage_ids]
         self.num_stages = len(self.envs)
         self._pending: list[bool] = [False] * self.num_stages
+
+    def regroup(self, stages: list[int]) -> None:
+        """Hold ``stages`` from now on (online scaling moved stages between env ranks): the envs of
+        stages kept stay as they are, those of stages given up are closed, new ones are built.
+        Between iterations only (no step pending)."""
+        if any(p is not False for p in self._pending):
+            raise RuntimeError("regroup() with a step pending")
+        sizes = self.spec.stage_sizes()
+        held = dict(zip(self.stage_ids, self.envs))
+        wanted = [int(s) for s in stages]
+        for stage_id, env in held.items():
+            if stage_id not in wanted:
+                env.close()
+        self.envs = [held[s] if s in held else self._seeded.build(sizes[s], stage=s) for s in wanted]
+        self.stage_ids, self.sizes = wanted, [sizes[s] for s in wanted]
+        self.num_stages = len(self.envs)
+        self._pending = [False] * self.num_stages
 
     @property
     def observation_spec(self) -> dict:
@@ -236,7 +281,9 @@ def _step_message(result, chunk: int) -> StageStep:
 class EnvWorker(Worker):
     """The env component in its own process: a rank's stages served to one rollout rank.
 
-    Rank ``r`` pairs with rollout rank ``r`` through a link (``open_link`` + ``accept_link`` here,
+    Rank ``r`` pairs with rollout rank ``r`` (or, with more env ranks than rollout ranks, serves its
+    share of a rollout rank's stages: :func:`env_shares`; online scaling moves shares with
+    :meth:`assign`) through a link (``open_link`` + ``accept_link`` here,
     ``connect_link`` on the rollout). Per iteration the runner calls :meth:`serve`, which resets
     the envs with the given seeds and then answers each stage's actions with its next step, in the
     order the rollout sends them; simulation of one stage overlaps the rollout's inference for
@@ -248,11 +295,16 @@ class EnvWorker(Worker):
     time as each other and no message is relayed through this process.
     """
 
-    def __init__(self, spec: EnvSpec, num_threads: int = 1):
+    def __init__(self, spec: EnvSpec, num_threads: int = 1, rollout_ranks: int | None = None):
         limit_threads(num_threads)
         self.spec = spec
         self.link = None
         self._server = None
+        # The rollout rank and stages this rank serves: all of rollout rank r's stages, or (online
+        # scaling, ``rollout_ranks`` given) this rank's share for the group's size at its start.
+        self.serves: tuple[int, tuple[int, ...]] = (self.rank, tuple(range(spec.stages)))
+        if rollout_ranks is not None:
+            self.serves = env_shares(self.world_size, rollout_ranks, spec.stages)[self.rank]
         if spec.stage_processes:
             from infinirl.components.env_stages import StageProcess
 
@@ -266,8 +318,36 @@ class EnvWorker(Worker):
                     stage.close()
                 raise
         else:
-            self.env = StagedEnv(spec, self.rank)
+            self.env = StagedEnv(spec, self.serves[0], list(self.serves[1]))
             self.stage_processes = []
+
+    def assign(self, rollout_rank: int, stages: list[int]) -> None:
+        """Serve ``stages`` of ``rollout_rank`` from now on (online scaling rebalanced the env
+        ranks); the link is re-opened afterwards (:meth:`close_link`, :meth:`open_link`)."""
+        if self.stage_processes:
+            raise RuntimeError("an env rank with stage processes serves one rollout rank's stages; it cannot be "
+                               "reassigned (env.stage_processes=true does not scale online)")
+        if rollout_rank != self.env.rank:
+            self.env.close()
+            self.env = StagedEnv(self.spec, rollout_rank, list(stages))
+        else:
+            self.env.regroup(list(stages))
+        self.serves = (rollout_rank, tuple(stages))
+
+    def served(self) -> tuple[int, tuple[int, ...]]:
+        """The rollout rank this rank serves and which of its stages."""
+        return self.serves
+
+    def close_link(self) -> None:
+        """Close the link to the rollout (and a listener it never connected to) and keep the envs."""
+        if self._server is not None:
+            from infinirl.components.env_link import close_server
+
+            close_server(self._server)
+            self._server = None
+        if self.link is not None:
+            self.link.close()
+            self.link = None
 
     def open_link(self, transport: str, channel_names: tuple[str, str] | None = None,
                   family: str | None = None) -> Any:
@@ -303,7 +383,11 @@ class EnvWorker(Worker):
             return serve_in_stage_processes(self.stage_processes, self.spec.stage_sizes(), seeds, num_steps)
         if self.link is None:
             raise RuntimeError("serve() before the link to the rollout was opened (open_link/accept_link)")
-        return serve_stages(self.env, self.link, seeds, num_steps)
+        start = time.perf_counter()
+        stats = serve_stages(self.env, self.link, seeds, num_steps)
+        # the fraction of the collection this rank simulated (1 - its bubble): the scaling signal
+        stats["env/busy_ratio"] = stats["env/simulate_s"] / max(time.perf_counter() - start, 1e-9)
+        return stats
 
     def close(self) -> None:
         for stage in self.stage_processes:

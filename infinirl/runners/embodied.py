@@ -20,6 +20,11 @@ How it runs is placement, not code:
   simulation of one stage overlaps inference of another (hybrid, with the actor time-sharing the
   same CPUs/devices between rollouts).
 
+Online scaling (env and rollout on disjoint slots): the env component grows or shrinks between
+iterations on a command (``<output_dir>/scale.json``, :meth:`EmbodiedFlow.request_scale`) or on its
+measured busy ratio (``scaling.auto``); each rollout rank's stages are then shared out over the env
+ranks that serve it (:meth:`EmbodiedFlow.scale_env`, :mod:`infinirl.runtime.scaling`).
+
 Asynchronous (``algorithm.asynchronous.max_staleness`` = eta): the next eta iterations'
 trajectories are collected while the actor trains (:mod:`infinirl.runners.async_rollout`), and
 ``algorithm.is_cap`` corrects for the version gap (decoupled PPO).
@@ -28,6 +33,7 @@ trajectories are collected while the actor trains (:mod:`infinirl.runners.async_
 from __future__ import annotations
 
 import os
+import queue
 import time
 from typing import Any
 
@@ -39,7 +45,14 @@ from infinirl.algorithms.embodied_ppo import PPOSpec
 from infinirl.components.embodied_actor import EmbodiedActorWorker, actor_process_env
 from infinirl.components.embodied_policy import ReturnNormalizer
 from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec
-from infinirl.components.env_worker import EnvSpec, EnvWorker, iteration_seeds, probe_env_specs
+from infinirl.components.env_worker import (
+    EnvSpec,
+    EnvWorker,
+    env_shares,
+    iteration_seeds,
+    probe_env_specs,
+    stage_seeds,
+)
 from infinirl.config import ConfigError
 from infinirl.runners import register_runner
 from infinirl.runners.async_rollout import (
@@ -55,6 +68,8 @@ from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.run_support import run_components, run_start_time
 from infinirl.runners.sim_config import check_env_options, episode_metrics, eval_seeds
 from infinirl.runtime import sync_weights
+from infinirl.runtime.placement import place, resized_spec
+from infinirl.runtime.scaling import BusyRatioPolicy, ScaleCommands
 
 
 @register_runner("embodied", EmbodiedConfig, "PPO / embodied GRPO for robot policies in vectorised simulators "
@@ -79,14 +94,14 @@ def run(cfg: EmbodiedConfig) -> dict:
                           actor_process_env(cfg.actor.num_threads)),
             }
             if not host_env:
-                launched["env"] = (EnvWorker, (env_spec, cfg.rollout.num_threads))
+                launched["env"] = (EnvWorker, (env_spec, cfg.rollout.num_threads, plan.world_size("rollout")))
             return launched
 
         def make_flow(groups, plan) -> EmbodiedFlow:
-            flow = EmbodiedFlow(cfg, groups.get("env"), groups["rollout"], groups["actor"])
+            flow = EmbodiedFlow(cfg, groups.get("env"), groups["rollout"], groups["actor"], plan)
             print("policy computes on: " + ", ".join(f"{k} {v}" for k, v in flow.devices().items()), flush=True)
             if flow.env is not None:
-                flow.connect(plan)
+                flow.connect()
             return flow
 
         return run_components(cfg, loop, launches, make_flow)
@@ -140,19 +155,28 @@ def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
     """Collocated env (inside the rollout's process) or not, and one env rank's :class:`EnvSpec`."""
     host_env = plan.relation("env", "rollout") == "collocated"
     env_ranks, rollout_ranks = plan.world_size("env"), plan.world_size("rollout")
-    if env_ranks != rollout_ranks:
-        raise ConfigError(f"placement gives env {env_ranks} rank(s) and rollout {rollout_ranks}; each env rank "
-                          "pairs with one rollout rank, so give them the same number of ranks")
     stages = cfg.rollout.pipeline_stages
-    if cfg.env.num_envs % (env_ranks * stages):
-        raise ConfigError(f"env.num_envs={cfg.env.num_envs} must be divisible by env ranks ({env_ranks}) x "
+    if host_env and env_ranks != rollout_ranks:
+        raise ConfigError(f"placement gives env {env_ranks} rank(s) and rollout {rollout_ranks} on the same slots; "
+                          "a collocated env lives in its rollout rank's process, so give them the same number of "
+                          "ranks")
+    try:
+        env_shares(env_ranks, rollout_ranks, stages)
+    except ValueError as exc:
+        raise ConfigError(f"placement of env and rollout: {exc}") from None
+    if cfg.env.stage_processes and env_ranks != rollout_ranks:
+        raise ConfigError(f"env.stage_processes=true runs each rollout rank's stages under one env rank; the "
+                          f"placement gives env {env_ranks} rank(s) for {rollout_ranks} rollout rank(s): give them "
+                          "the same number of ranks or set env.stage_processes=false")
+    if cfg.env.num_envs % (rollout_ranks * stages):
+        raise ConfigError(f"env.num_envs={cfg.env.num_envs} must be divisible by rollout ranks ({rollout_ranks}) x "
                           f"rollout.pipeline_stages ({stages})")
     if host_env and cfg.env.stage_processes:
         raise ConfigError("env.stage_processes=true needs the env on its own resources, but the placement "
                           f"collocates it with the rollout (placement.env={cfg.placement['env']!r}, "
                           f"placement.rollout={cfg.placement['rollout']!r}): place them on disjoint slots "
                           "or set env.stage_processes=false")
-    spec = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // env_ranks, stages=stages,
+    spec = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // rollout_ranks, stages=stages,
                    num_workers=cfg.env.num_workers, max_episode_steps=cfg.env.max_episode_steps,
                    chunk_size=cfg.policy.chunk, seed=cfg.seed, kwargs=dict(cfg.env.kwargs),
                    stage_processes=cfg.env.stage_processes)
@@ -192,8 +216,8 @@ def _is_link_closed(error: BaseException) -> bool:
 class EmbodiedFlow:
     """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
 
-    def __init__(self, cfg: EmbodiedConfig, env, rollout, actor):
-        self.cfg, self.env, self.rollout, self.actor = cfg, env, rollout, actor
+    def __init__(self, cfg: EmbodiedConfig, env, rollout, actor, plan=None):
+        self.cfg, self.env, self.rollout, self.actor, self.plan = cfg, env, rollout, actor, plan
         self.algorithm = ALGORITHMS[cfg.algorithm.name]
         self.group_size = cfg.algorithm.group_size if self.algorithm.grouped else 1
         self.return_norm = ReturnNormalizer(cfg.env.num_envs, cfg.algorithm.gamma)
@@ -202,6 +226,12 @@ class EmbodiedFlow:
         self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_collect,
                                                            self._finish_collect)
         self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None)
+        self._link_generation = 0
+        scaling = cfg.scaling
+        self.scale_requests: queue.SimpleQueue = queue.SimpleQueue()
+        self.commands = ScaleCommands(scaling.command_file or os.path.join(cfg.output_dir, "scale.json"),
+                                      ["env"]) if scaling.commands and env is not None else None
+        self.policy = BusyRatioPolicy(scaling) if scaling.auto and env is not None else None
         self.spec = LoopSpec(
             name="embodied", title=f"{cfg.algorithm.name.upper()} {cfg.env.name}", headline="eval/success_rate",
             target=cfg.eval.target,
@@ -224,24 +254,87 @@ class EmbodiedFlow:
                 for name, group in (("rollout", self.rollout), ("actor", self.actor))}
 
     # ------------------------------------------------------------------ wiring
-    def connect(self, plan) -> None:
-        """Open one env<->rollout link per rank pair (a Unix socket on one node, TCP across nodes)."""
-        transport = self.cfg.rollout.transport
+    def connect(self) -> None:
+        """Open one link per env rank to the rollout rank it serves (a Unix socket on one node, TCP
+        across nodes); a rollout rank served by several env ranks gets a link from each."""
+        transport, plan = self.cfg.rollout.transport, self.plan
+        self._link_generation += 1
+        shares = self.env.call("served").wait()
         per_rank = []
-        for r, (env_rank, rollout_rank) in enumerate(zip(plan.ranks("env"), plan.ranks("rollout"))):
-            family = "AF_UNIX" if env_rank.node_id == rollout_rank.node_id else "AF_INET"
+        for e, (env_rank, (r, _)) in enumerate(zip(plan.ranks("env"), shares)):
+            family = "AF_UNIX" if env_rank.node_id == plan.ranks("rollout")[r].node_id else "AF_INET"
             names = None
             if transport == "channel":
                 from infinirl.runtime import Channel
 
-                names = (f"embodied-{os.getpid()}-{r}-to-rollout", f"embodied-{os.getpid()}-{r}-to-env")
+                prefix = f"embodied-{os.getpid()}-{self._link_generation}-{e}"
+                names = (f"{prefix}-to-rollout", f"{prefix}-to-env")
                 for name in names:
                     Channel.create(name, pipeline_depth=2, exist_ok=True)
             per_rank.append((transport, names, family))
         addresses = self.env.call_each("open_link", per_rank).wait()
         accepted = self.env.accept_link()
-        self.rollout.call_each("connect_link", [(a,) for a in addresses]).wait()
+        if self.cfg.env.stage_processes:  # one env rank per rollout rank, a link per stage process
+            self.rollout.call_each("connect_link", [(a,) for a in addresses]).wait()
+        else:
+            parts: list[list] = [[] for _ in range(self.rollout.world_size)]
+            for address, (r, stages) in zip(addresses, shares):
+                parts[r].append((address, list(stages)))
+            self.rollout.call_each("connect_links", [(p,) for p in parts]).wait()
         accepted.wait()
+
+    # ------------------------------------------------------------------ online scaling
+    def request_scale(self, component: str, ranks: int) -> None:
+        """Ask for ``component`` to have ``ranks`` ranks; applied after the current iteration
+        (thread-safe: another thread of the driver may call it while the run goes on)."""
+        self.scale_requests.put({component: ranks})
+
+    def _scale_between_iterations(self, busy_ratio: float | None) -> None:
+        """Apply a scaling request (:meth:`request_scale`, then the command file), else the busy-ratio
+        policy's decision. A request the layout cannot take is refused with its reason; the run goes on."""
+        wanted, source = None, None
+        while not self.scale_requests.empty():
+            wanted, source = self.scale_requests.get().get("env", wanted), "request"
+        if self.commands is not None:
+            command = self.commands.poll()
+            if "env" in command:
+                wanted, source = command["env"], "command"
+        if wanted is None and self.policy is not None and busy_ratio is not None:
+            wanted, source = self.policy.decide(self.env.world_size, busy_ratio), "policy"
+        if wanted is None or wanted == self.env.world_size:
+            return
+        try:
+            self.scale_env(wanted)
+        except ValueError as exc:
+            if source == "command":
+                self.commands.reject(str(exc))
+            else:
+                print(f"scaling env to {wanted} rank(s) refused ({source}): {exc}", flush=True)
+
+    def scale_env(self, ranks: int) -> None:
+        """Give the env component ``ranks`` ranks without stopping the run: collections in flight
+        finish first (their samples are kept), then ranks are added or removed where the env's
+        placement puts them, every env rank gets its share of the rollout ranks' stages, and the
+        links are re-opened. Raises ValueError (nothing changed) for a count the layout does not
+        allow."""
+        if self.env is None:
+            raise ValueError("the env runs inside the rollout's process (collocated placement); place env and "
+                             "rollout on disjoint slots to scale the env")
+        if self.cfg.env.stage_processes:
+            raise ValueError("env.stage_processes=true does not scale online; set env.stage_processes=false")
+        shares = env_shares(ranks, self.rollout.world_size, self.cfg.rollout.pipeline_stages)
+        spec = resized_spec(self.cfg.placement_spec()["env"], ranks, "env")
+        placed = place(self.plan.inventory, {"env": spec}).ranks("env")
+        if self.ahead is not None:
+            self.ahead.drain()  # collections in flight complete on the old layout and are kept
+        old = self.env.world_size
+        self.env.close_link().wait()
+        self.env.resize(ranks, placement=placed)
+        for handle in [self.env.call("assign", *shares[e], ranks=[e]) for e in range(min(old, ranks))]:
+            handle.wait()  # ranks started by the resize took their share when they started
+        self.plan = self.plan.with_component("env", placed)
+        self.connect()
+        print(f"scaled env {old} -> {ranks} rank(s) ({spec})", flush=True)
 
     def start(self, iteration: int) -> None:
         sync_weights(self.actor, self.rollout, version=iteration)
@@ -257,6 +350,7 @@ class EmbodiedFlow:
         train_metrics = self.actor.update(batch, iteration).wait()[0]
         t2 = time.perf_counter()
         sync_s = self.weights.push(iteration + 1)
+        self._scale_between_iterations(rollout_metrics.get("env/busy_ratio"))
         steps = int(trajectory["step_mask"].sum())
         self.env_steps += steps
         if self.ahead is not None:
@@ -283,7 +377,15 @@ class EmbodiedFlow:
         seeds = iteration_seeds(cfg.seed, iteration, cfg.env.num_envs, self.group_size)
         per = cfg.env.num_envs // ranks
         shards = [seeds[r * per:(r + 1) * per] for r in range(ranks)]
-        serving = self.env.call_each("serve", [(s, cfg.rollout_steps) for s in shards]) if self.env else None
+        serving = None
+        if self.env is not None:
+            if cfg.env.stage_processes:
+                serving = self.env.call_each("serve", [(s, cfg.rollout_steps) for s in shards])
+            else:  # each env rank resets its share of its rollout rank's stages
+                sizes = EnvSpec(name=cfg.env.name, num_envs=per, stages=cfg.rollout.pipeline_stages).stage_sizes()
+                shares = env_shares(self.env.world_size, ranks, cfg.rollout.pipeline_stages)
+                serving = self.env.call_each("serve", [(stage_seeds(shards[r], sizes, stages), cfg.rollout_steps)
+                                                       for r, stages in shares])
         collecting = self.rollout.call_each("collect", [(iteration, s, cfg.rollout_steps) for s in shards])
         return serving, collecting
 
@@ -295,6 +397,9 @@ class EmbodiedFlow:
             _raise_env_root_cause(serving, rollout_error)
             raise
         env_stats = serving.wait() if serving is not None else [{}]
+        busy = [stats["env/busy_ratio"] for stats in env_stats if "env/busy_ratio" in stats]
+        if busy:
+            env_stats[0] = {**env_stats[0], "env/busy_ratio": float(np.mean(busy)), "env/ranks": float(len(busy))}
         trajectory = _merge(parts)
         metrics = {
             "rollout/reward_mean": float(trajectory["rewards"].mean()),

@@ -17,6 +17,7 @@ from infinirl.config import ConfigError, bounded
 from infinirl.runners.async_rollout import AsyncConfig
 from infinirl.runners.run_config import RunConfig
 from infinirl.runners.sim_config import SimEnvConfig, SimEvalConfig
+from infinirl.runtime.scaling import ScalingConfig
 
 COMPONENTS = ("env", "rollout", "actor")
 
@@ -192,7 +193,7 @@ class EmbodiedConfig(RunConfig):
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = (
         "env.num_workers", "env.stage_processes", "rollout.pipeline_stages", "rollout.transport",
         "rollout.num_threads", "rollout.compile", "rollout.device", "actor.num_threads", "actor.compile",
-        "actor.device")
+        "actor.device", "scaling")
 
     output_dir: str = "runs/embodied"
     rollout_steps: int = bounded(200, ge=1)
@@ -204,9 +205,17 @@ class EmbodiedConfig(RunConfig):
     actor: ActorConfig = field(default_factory=ActorConfig)
     rollout: RolloutConfig = field(default_factory=RolloutConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    scaling: ScalingConfig = field(default_factory=ScalingConfig)
+    """Online scaling of the env component (env and rollout on disjoint slots): a command file and/or
+    a policy on the env ranks' busy ratio (see infinirl.runtime.scaling)."""
 
     def check(self) -> None:
         from infinirl.components.embodied_policy import registered_policies
+
+        try:
+            self.scaling.check()
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
 
         policies = registered_policies()
         if self.policy.name not in policies:

@@ -13,7 +13,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 from infinirl.config import ConfigError
 
-__all__ = ["launch_all", "plan_placement", "run_components", "run_start_time"]
+__all__ = ["NODE_LOSS_WAIT_S", "launch_all", "plan_placement", "raise_if_nodes_lost", "run_components",
+           "run_start_time"]
 
 _RUNS_IN_PROCESS = [0]
 
@@ -88,6 +89,27 @@ def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:
                 return loop.run(flow)
             finally:
                 flow.close()
+        except Exception as exc:
+            raise_if_nodes_lost(cluster, groups.values(), exc)
+            raise
         finally:
             for group in groups.values():
                 group.shutdown()
+
+
+# How long a failed run waits for Ray to declare the node of a dead rank dead (its health checks
+# take seconds to miss a node), so that the error names the lost node rather than one dead rank.
+NODE_LOSS_WAIT_S = 60.0
+
+
+def raise_if_nodes_lost(cluster, groups, error: BaseException) -> None:
+    """Raise a ClusterError naming the lost nodes and components when ``error`` came with nodes of
+    this run leaving the cluster (a node shut down, crashed or cut off), chained to ``error``."""
+    from infinirl.runtime import ClusterError, WorkerError
+
+    if cluster.inventory.num_nodes < 2:
+        return  # the driver's own node cannot be lost while the driver runs
+    died = isinstance(error, WorkerError) and error.cause.startswith("died")
+    lost = cluster.lost_nodes(list(groups), wait_s=NODE_LOSS_WAIT_S if died else 0.0)
+    if lost is not None:
+        raise ClusterError(lost) from error

@@ -13,7 +13,8 @@ from infinirl.runtime.errors import (
 )
 from infinirl.runtime.inventory import Accelerator, ClusterInventory, NodeInventory, Robot
 from infinirl.runtime.memory import device_turn
-from infinirl.runtime.placement import PlacementError, PlacementPlan, RankPlacement, place
+from infinirl.runtime.placement import PlacementError, PlacementPlan, RankPlacement, place, resized_spec
+from infinirl.runtime.scaling import BusyRatioPolicy, ScaleCommands, ScalingConfig
 from infinirl.runtime.tracing import Tracer
 from infinirl.runtime.weights import (
     PendingSync,
@@ -26,9 +27,10 @@ from infinirl.runtime.weights import (
 from infinirl.runtime.worker import GroupHandle, RankContext, RestartPolicy, Worker, WorkerGroup
 
 __all__ = [
-    "Accelerator", "CallCancelled", "Channel", "ChannelClosed", "ChannelError", "ChannelPeerDied",
+    "Accelerator", "BusyRatioPolicy", "CallCancelled", "Channel", "ChannelClosed", "ChannelError", "ChannelPeerDied",
     "Cluster", "ClusterConfig", "ClusterError", "ClusterInventory", "GroupHandle", "InfiniRLError", "NodeInventory",
     "PlacementError", "PlacementPlan", "RankContext", "RankPlacement", "RestartPolicy", "Robot",
-    "Tracer", "WeightSink", "WeightSource", "WeightSyncGroup", "Worker", "WorkerError",
-    "WorkerGroup", "device_turn", "place", "sync_weights", "start_weight_sync", "PendingSync",
+    "ScaleCommands", "ScalingConfig", "Tracer", "WeightSink", "WeightSource", "WeightSyncGroup", "Worker",
+    "WorkerError", "WorkerGroup", "device_turn", "place", "resized_spec", "sync_weights", "start_weight_sync",
+    "PendingSync",
 ]

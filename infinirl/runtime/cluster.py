@@ -141,6 +141,37 @@ class Cluster:
         self._inventory = self._take_inventory()
         return self._inventory
 
+    def lost_nodes(self, groups, wait_s: float = 0.0) -> str | None:
+        """One line naming every node that ran a rank of ``groups`` (WorkerGroups) and has left the
+        cluster, with the ranks lost on each; None when all those nodes are alive.
+
+        ``wait_s``: a node that has just died can still be listed alive for some seconds (Ray
+        notices a lost node by missed health checks), so when a rank died, wait up to this long for
+        its node to be declared dead before concluding that it lives."""
+        where: dict[str, list[str]] = {}
+        for group in groups:
+            for ctx in group.contexts:
+                if ctx.node_id:
+                    where.setdefault(ctx.node_id, []).append(f"{ctx.component}[rank {ctx.rank}]")
+        deadline = time.monotonic() + wait_s
+        while True:
+            alive = {n["NodeID"] for n in self._alive_nodes()}
+            lost = [node_id for node_id in where if node_id not in alive]
+            if lost or time.monotonic() >= deadline:
+                break
+            time.sleep(0.5)
+        if not lost:
+            return None
+        known = {n.node_id: n for n in self._inventory.nodes} if self._inventory is not None else {}
+        parts = []
+        for node_id in lost:
+            node = known.get(node_id)
+            name = f"node {node.node_index} ({node.ip}, id {node_id[:12]})" if node else f"node {node_id[:12]}"
+            parts.append(f"{name} left the Ray cluster mid-run, taking {', '.join(where[node_id])}")
+        head = self.config.address if self.config.address not in (None, "", "local", "auto") else "<head>"
+        return (f"{'; '.join(parts)}; bring it back (`ray start --address={head}` on it) and run again: with "
+                "resume=true the run continues from its last checkpoint")
+
     def _alive_nodes(self) -> list[dict]:
         return [n for n in ray.nodes() if n.get("Alive")]
 

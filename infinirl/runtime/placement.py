@@ -173,6 +173,24 @@ def parse_spec(value: str | int, component: str | None = None) -> ParsedSpec:
     return ParsedSpec(kind=kind, indices=indices, num_processes=num_processes, text=text)
 
 
+def resized_spec(value: str | int, num_processes: int, component: str | None = None) -> str:
+    """The spec that places ``num_processes`` ranks on the resources ``value`` names (online scaling):
+    ``resized_spec("0", 2)`` is ``"0:0-1"``, ``resized_spec("node:1", 3)`` is ``"node:1:0-2"``.
+
+    Robot placements cannot be resized: a robot is exclusive hardware with one rank each."""
+    if isinstance(num_processes, bool) or not isinstance(num_processes, int) or num_processes < 1:
+        raise PlacementError(f"{_prefix(component)}a component needs at least 1 process, got {num_processes!r}")
+    parsed = parse_spec(value, component)
+    ranks = "0" if num_processes == 1 else f"0-{num_processes - 1}"
+    if parsed.kind == "robots":
+        raise PlacementError(f"{_prefix(component)}{parsed.text!r} gives one process per robot; a robot-placed "
+                             "component cannot change its number of ranks")
+    if parsed.kind == "all":
+        return f"all:{ranks}"
+    where = _format_indices(parsed.indices)
+    return f"node:{where}:{ranks}" if parsed.kind == "nodes" else f"{where}:{ranks}"
+
+
 # ----- results ------------------------------------------------------------------------------------
 
 
@@ -212,6 +230,12 @@ class PlacementPlan:
 
     inventory: ClusterInventory
     components: dict[str, tuple[RankPlacement, ...]] = field(hash=False)
+
+    def with_component(self, component: str, ranks: tuple[RankPlacement, ...]) -> "PlacementPlan":
+        """This plan with ``component``'s ranks replaced (a component scaled while the job runs)."""
+        if component not in self.components:
+            raise PlacementError(f"placement has no component {component!r}; it has {', '.join(self.components)}")
+        return PlacementPlan(inventory=self.inventory, components={**self.components, component: tuple(ranks)})
 
     def ranks(self, component: str) -> tuple[RankPlacement, ...]:
         if component not in self.components:

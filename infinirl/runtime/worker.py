@@ -251,12 +251,12 @@ class WorkerGroup:
         self.rank_info: list[dict] = []
         self._caller = uuid.uuid4().hex
         self._seq = [0] * len(actors)
+        self._launch_settings: tuple = ((), {}, None, {})  # args, kwargs, restart, env_vars: for resize()
         # A group dropped without shutdown(): Ray ends its ranks once the last handle goes, and
         # this frees its name and removes its crash logs then (or at exit) unless a crash was
-        # written to them.
-        self._forget = weakref.finalize(
-            self, _forget_group, component,
-            [str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in contexts if ctx.crash_log_name])
+        # written to them. The list grows with the ranks resize() adds.
+        self._crash_log_paths = [str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in contexts if ctx.crash_log_name]
+        self._forget = weakref.finalize(self, _forget_group, component, self._crash_log_paths)
 
     # ------------------------------------------------------------------ launch
     @classmethod
@@ -296,6 +296,7 @@ class WorkerGroup:
             _forget_group(component, [])
             raise
         group = cls(worker_cls, component, actors, contexts)
+        group._launch_settings = (args, kwargs or {}, restart, env_vars or {})
         _LIVE_GROUPS.add(group)
         handle = GroupHandle(group, "__init__", list(range(len(actors))), [a.ready.remote() for a in actors])
         try:
@@ -304,6 +305,63 @@ class WorkerGroup:
             group.shutdown()
             raise
         return group
+
+    # ------------------------------------------------------------------ online scaling
+    def resize(self, num_ranks: int, placement: list | tuple | None = None,
+               ready_timeout_s: float = 300.0) -> None:
+        """Grow or shrink the group to ``num_ranks`` while it runs, keeping ranks ``0..min-1`` as they are.
+
+        Growing starts ranks ``world_size..num_ranks-1`` with the constructor arguments, restart
+        policy and environment of the launch, where ``placement`` (the component's placement for
+        ``num_ranks`` ranks, see :func:`~infinirl.runtime.placement.resized_spec`) puts them,
+        and waits until each has built its Worker; a rank that fails to start is stopped and its
+        error raised, leaving the group as it was. Shrinking stops the highest ranks (their
+        pending calls fail). The caller hands work to the new ranks and stops giving it to the
+        removed ones: a resize moves no state.
+
+        For components whose ranks work independently (env servers, reward): ranks started
+        later see the new ``world_size``, earlier ones keep the one they started with, and no
+        torch.distributed group is re-formed."""
+        if isinstance(num_ranks, bool) or not isinstance(num_ranks, int) or num_ranks < 1:
+            raise ValueError(f"{self.component}.resize: num_ranks must be an int >= 1, got {num_ranks!r}")
+        if placement is not None and len(placement) != num_ranks:
+            raise ValueError(f"{self.component}.resize: placement has {len(placement)} ranks for num_ranks={num_ranks}")
+        if not self._actors:
+            raise RuntimeError(f"{self.component}.resize: the group was shut down")
+        old = self.world_size
+        if num_ranks < old:
+            self._remove_ranks(num_ranks)
+        elif num_ranks > old:
+            self._add_ranks(num_ranks, placement, ready_timeout_s)
+
+    def _add_ranks(self, num_ranks: int, placement, ready_timeout_s: float) -> None:
+        args, kwargs, restart, env_vars = self._launch_settings
+        old = self.world_size
+        new = _contexts_for(self.component, num_ranks, placement, env_vars)[old:]
+        master = self.contexts[0].env_vars.get("MASTER_ADDR"), self.contexts[0].env_vars.get("MASTER_PORT")
+        actors = _start_hosts(self.worker_cls, new, args, kwargs, restart, env_vars,
+                              master=(master[0], int(master[1])) if all(master) else None)
+        self._crash_log_paths.extend(str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in new)
+        refs = [actor.ready.remote() for actor in actors]
+        self._actors.extend(actors)
+        self.contexts.extend(new)
+        self._seq.extend([0] * len(actors))
+        try:
+            infos = GroupHandle(self, "__init__", list(range(old, num_ranks)), refs).wait(timeout=ready_timeout_s)
+        except BaseException:
+            self.rank_info.extend({} for _ in actors)
+            self._remove_ranks(old)
+            raise
+        self.rank_info.extend(infos)
+
+    def _remove_ranks(self, keep: int) -> None:
+        for actor in self._actors[keep:]:
+            try:
+                ray.kill(actor, no_restart=True)
+            except Exception:
+                pass
+        crash_logs.remove_if_no_crash(info.get("crash_log") for info in self.rank_info[keep:] if info)
+        del self._actors[keep:], self.contexts[keep:], self._seq[keep:], self.rank_info[keep:]
 
     # ------------------------------------------------------------------ calls
     @property
@@ -444,9 +502,11 @@ class WorkerGroup:
 
 
 def _start_hosts(worker_cls: type, contexts: list[RankContext], args: tuple, kwargs: dict,
-                 restart: RestartPolicy | None, env_vars: dict[str, str]) -> list:
-    """One ``WorkerHost`` actor per rank, with the torch.distributed rendezvous in its environment."""
-    master_addr, master_port = pick_master(contexts[0])
+                 restart: RestartPolicy | None, env_vars: dict[str, str],
+                 master: tuple[str, int] | None = None) -> list:
+    """One ``WorkerHost`` actor per rank, with the torch.distributed rendezvous in its environment
+    (``master``: the group's, for ranks added later; picked on rank 0's node otherwise)."""
+    master_addr, master_port = master or pick_master(contexts[0])
     options = {"num_cpus": 0, "namespace": NAMESPACE, "max_concurrency": 1000}
     if restart is not None:
         options["max_restarts"] = restart.max_restarts
