@@ -139,6 +139,14 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"infinirl: config error: {one_line(str(exc))}", file=sys.stderr)
         return 2
+    except Exception as exc:
+        from infinirl.runtime.errors import ClusterError  # here: importing the runtime starts Ray's modules
+
+        if not isinstance(exc, ClusterError):
+            raise
+        # Ray not started or joined, a node lost: the message says what to do
+        print(f"infinirl: ClusterError: {one_line(str(exc))}", file=sys.stderr)
+        return 1
 
 
 def one_line(message: str) -> str:

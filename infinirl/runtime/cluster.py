@@ -85,16 +85,23 @@ class Cluster:
         if ray.is_initialized():
             logger.info("Ray already initialised in this process; reusing it")
         elif cfg.address in (None, "", "local"):
-            ray.init(
-                address="local",  # always a new instance: never silently join a stray `ray start`
-                num_cpus=cfg.num_cpus,
-                num_gpus=cfg.num_gpus,
-                namespace=NAMESPACE,
-                include_dashboard=False,
-                log_to_driver=cfg.log_to_driver,
-                configure_logging=False,
-                _system_config=LOCAL_RAY_SYSTEM_CONFIG,
-            )
+            try:
+                ray.init(
+                    address="local",  # always a new instance: never silently join a stray `ray start`
+                    num_cpus=cfg.num_cpus,
+                    num_gpus=cfg.num_gpus,
+                    namespace=NAMESPACE,
+                    include_dashboard=False,
+                    log_to_driver=cfg.log_to_driver,
+                    configure_logging=False,
+                    _system_config=LOCAL_RAY_SYSTEM_CONFIG,
+                )
+            except Exception as exc:  # Ray raises a bare Exception when its node does not come up
+                first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                raise ClusterError(
+                    f"could not start a local Ray node: {first} Ray's own logs are under /tmp/ray/session_latest/logs; "
+                    "on an overloaded machine run again, or join a running cluster with cluster.address=<head>"
+                ) from exc
             self._started_here = True
         else:
             self._started_here = True  # we joined: disconnect on shutdown (the cluster stays up)

@@ -233,3 +233,11 @@ def test_bad_input_known_from_the_cluster_starts_no_worker(case, tmp_path, tiny_
 
 def test_there_are_at_least_sixty_distinct_cases():
     assert len(CASES) + len(NEEDS_CLUSTER) >= 60
+
+
+def test_an_unreachable_cluster_is_one_line_and_exit_code_1(tmp_path, tiny_llama_dir, capsys, no_workers):
+    args = [*TINY, "cluster.address=127.0.0.1:1", "cluster.connect_timeout_s=1"]
+    code, lines, err = _run(args, _files(tmp_path, tiny_llama_dir), capsys)
+    assert code == 1, err
+    assert len(lines) == 1 and lines[0].startswith("infinirl: ClusterError: cannot reach the Ray head"), err
+    assert "Traceback" not in err
