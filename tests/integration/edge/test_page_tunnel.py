@@ -1,0 +1,125 @@
+"""The intervention page at the edge, used from the cloud through the link: a web intervention device
+beside the (simulated) robot, the edge client dialling the cloud hub through the link emulator (60 ms
+RTT, 20 Mbit/s), and HTTP requests to the cloud's page port: the page loads, take-over, an action, a
+success mark and a camera frame travel through the one authenticated connection and reach the
+control loop's poll(), while episodes still go up on the same link. The edge opens no port for it."""
+
+import http.client
+import io
+import json
+from importlib import resources
+
+import numpy as np
+import pytest
+
+from infinirl.edge.cloud_hub import CloudHub, HubOptions, wait_for
+from infinirl.edge.credentials import issue_credentials
+from infinirl.edge.edge_client import EdgeClient, EdgeOptions
+from infinirl.edge.emulator import EmulatorSpec, LinkEmulator
+from infinirl.edge.link import LinkOptions
+from infinirl.edge.tunnel import TunnelListener
+from infinirl.realworld.intervention.web import WebInterventionDevice
+
+pytest.importorskip("aiohttp")  # the page's server
+
+LINK = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.3, dead_after_s=3.0)
+TOKEN = "through-the-link"
+TIMEOUT = 20.0
+
+
+class Page:
+    """An HTTP/1.1 client on the cloud's page port; one kept-alive connection, like a browser tab's."""
+
+    def __init__(self, address):
+        self.connection = http.client.HTTPConnection(*address, timeout=TIMEOUT)
+
+    def request(self, method, path, body=None):
+        self.connection.request(method, f"{path}?token={TOKEN}", body=None if body is None else json.dumps(body),
+                                headers={"Content-Type": "application/json"})
+        response = self.connection.getresponse()
+        return response.status, response.getheader("Content-Type"), response.read()
+
+    def json(self, method, path, body=None):
+        status, _, data = self.request(method, path, body)
+        assert status == 200, data
+        return json.loads(data)
+
+
+@pytest.fixture(scope="module")
+def credentials(tmp_path_factory):
+    return issue_credentials(tmp_path_factory.mktemp("pki"), edges=("edge-0",))
+
+
+@pytest.fixture()
+def page_through_link(credentials):
+    episodes = []
+    device = WebInterventionDevice(action_dim=4, token=TOKEN, heartbeat_timeout_s=None)
+    hub = CloudHub(("127.0.0.1", 0), credentials["cloud"], on_episode=lambda *args: episodes.append(args),
+                   options=HubOptions(link=LINK)).start()
+    emulator = LinkEmulator(EmulatorSpec.from_rtt(rtt_ms=60, mbit_per_s=20), hub.address)
+    client = EdgeClient(emulator.address, credentials["edge-0"], name="edge-0",
+                        options=EdgeOptions(link=LINK), tunnel_targets={"page": (device.host, device.port)}).start()
+    listener = TunnelListener(("127.0.0.1", 0), lambda: hub.tunnel("edge-0"), service="page").start()
+    try:
+        assert client.wait_connected(TIMEOUT)
+        assert wait_for(lambda: hub.tunnel() is not None, TIMEOUT)
+        yield device, listener, client, hub, episodes
+    finally:
+        listener.close()
+        client.close()
+        emulator.close()
+        hub.close()
+        device.close()
+
+
+def test_the_page_at_the_edge_is_used_from_the_cloud(page_through_link):
+    device, listener, client, hub, episodes = page_through_link
+    frame = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    device.show({"corner": frame}, {"episode": 3})
+    page = Page(listener.address)
+
+    status, content_type, html = page.request("GET", "/")
+    assert status == 200 and content_type.startswith("text/html") and b"<html" in html.lower()
+    assert html == resources.files("infinirl.realworld.intervention").joinpath("static", "index.html").read_bytes()
+    state = page.json("GET", "/api/state")
+    assert state["actor"] == "policy" and state["info"] == {"episode": 3} and state["cameras"] == ["corner"]
+
+    assert page.json("POST", "/api/takeover")["actor"] == "human"
+    assert page.json("POST", "/api/action", {"action": [0.5, -0.25, 1.0, -1.0]}) == {"ok": True}
+    assert page.json("POST", "/api/mark", {"mark": "success"})["marks_pending"] == ["success"]
+    human = device.poll(policy_action=np.zeros(4))
+    assert human.active and human.marks == ("success",)
+    np.testing.assert_array_equal(human.action, [0.5, -0.25, 1.0, -1.0])
+
+    status, content_type, jpeg = page.request("GET", "/api/frame/corner")
+    assert status == 200 and content_type == "image/jpeg"
+    from PIL import Image
+
+    assert Image.open(io.BytesIO(jpeg)).size == (64, 48)
+
+    assert page.json("POST", "/api/handback")["actor"] == "policy"
+    assert not device.poll().active
+    status, _, _ = page.request("POST", "/api/action", {"action": [2.0, 0, 0, 0]})
+    assert status == 400  # the device's own checks answer through the tunnel too
+
+    # episodes share the link with the page meanwhile
+    episode = {"state": np.zeros((3, 9), np.float32), "action": np.zeros((2, 4), np.float32),
+               "reward": np.zeros(2, np.float32)}
+    client.submit(episode)
+    assert client.wait_drained(TIMEOUT) and len(episodes) == 1
+    assert page.json("GET", "/api/state")["polls"] == 2
+    page.connection.close()
+    end = hub.tunnel("edge-0")
+    assert wait_for(lambda: end.connections() == 0, TIMEOUT)
+    assert not end.failures and not client.tunnel.failures
+    assert device.stats.takeovers == 1 and device.stats.marks == 1
+
+
+def test_the_page_port_closes_connections_while_no_edge_is_connected(page_through_link):
+    device, listener, client, hub, episodes = page_through_link
+    client.close()
+    assert wait_for(lambda: hub.tunnel() is None, TIMEOUT)
+    page = Page(listener.address)
+    with pytest.raises((ConnectionError, http.client.RemoteDisconnected)):
+        page.request("GET", "/api/state")
+    assert listener.counts["no_edge"] == 1
