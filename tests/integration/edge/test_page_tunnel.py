@@ -5,8 +5,12 @@ success mark and a camera frame travel through the one authenticated connection 
 control loop's poll(), while episodes still go up on the same link. The edge opens no port for it."""
 
 import http.client
+import importlib.util
 import io
 import json
+import subprocess
+import sys
+import time
 from importlib import resources
 
 import numpy as np
@@ -123,3 +127,64 @@ def test_the_page_port_closes_connections_while_no_edge_is_connected(page_throug
     with pytest.raises((ConnectionError, http.client.RemoteDisconnected)):
         page.request("GET", "/api/state")
     assert listener.counts["no_edge"] == 1
+
+
+@pytest.mark.skipif(importlib.util.find_spec("metaworld") is None,
+                    reason="needs metaworld (the edge node's simulated Sawyer)")
+def test_the_edge_and_cloud_commands_serve_the_page(tmp_path):
+    """``cloud --page-port`` and ``edge --page-target``: the page beside a running edge node is
+    reached on the cloud node's port."""
+    issue_credentials(tmp_path / "pki", edges=("edge-0",))
+    device = WebInterventionDevice(action_dim=4, token=TOKEN, heartbeat_timeout_s=None)
+    cloud = _spawn("cloud", "--listen", "127.0.0.1:0", "--certs", str(tmp_path / "pki"),
+                   "--replay", str(tmp_path / "replay"), "--page-port", "0")
+    edge = None
+    try:
+        started = _json_line(cloud)
+        edge = _spawn("edge", "--cloud", f"127.0.0.1:{started['listening'][1]}", "--certs", str(tmp_path / "pki"),
+                      "--name", "edge-0", "--robot", "sim_sawyer",
+                      "--robot-options", json.dumps({"image_size": 32, "control_hz": 20}),
+                      "--max-episode-steps", "10", "--hidden", "16,16", "--seconds", "120",
+                      "--page-target", f"{device.host}:{device.port}")
+        page_address = ("127.0.0.1", started["page"][1])
+
+        def taken_over():
+            try:
+                return Page(page_address).json("POST", "/api/takeover")["actor"] == "human"
+            except (ConnectionError, http.client.HTTPException):
+                return False  # the edge's link is not up yet
+
+        assert wait_for(taken_over, 120.0)  # the edge node imports its robot before it dials
+        assert device.poll().active
+        assert _json_line(edge)["episode"] == 1  # its robot runs meanwhile
+    finally:
+        for process in (edge, cloud):
+            if process is not None:
+                _stop(process)
+        device.close()
+
+
+def _spawn(*args):
+    return subprocess.Popen([sys.executable, "-m", "infinirl.edge", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL)
+
+
+def _json_line(process, timeout=120.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = process.stdout.readline()
+        if not line:
+            raise AssertionError(f"process ended: {process.stderr.read()[-3000:]}")
+        if line.startswith("{"):
+            return json.loads(line)
+    raise AssertionError("no JSON line in time")
+
+
+def _stop(process):
+    if process.poll() is None:
+        process.terminate()
+    try:
+        process.communicate(timeout=30.0)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
