@@ -187,7 +187,7 @@ class TunnelEnd:
         try:
             while not self._stop.is_set():
                 try:
-                    payload = self.link.recv(protocol.TUNNEL, timeout=_POLL_S * 5)
+                    payload = self.link.recv(protocol.TUNNEL, timeout=_POLL_S * 2)
                 except TimeoutError:
                     continue
                 try:
@@ -299,7 +299,7 @@ class TunnelEnd:
         """The edge's side: connect to the service's target, answer, then pump."""
         target = self.targets.get(service)
         if target is None:
-            self._finish(relay, f"the edge offers no tunnel service {service!r} (it offers "
+            self._finish(relay, f"{self.link.peer}'s peer offers no tunnel service {service!r} (it offers "
                                 f"{sorted(self.targets) or 'none'})", tell_peer=True, failed=True)
             return
         try:

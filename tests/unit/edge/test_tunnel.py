@@ -12,6 +12,7 @@ import pytest
 
 from infinirl.edge.cloud_hub import wait_for
 from infinirl.edge.credentials import client_context, server_context
+from infinirl.edge.emulator import EmulatorSpec, LinkEmulator
 from infinirl.edge.link import CloudListener, LinkOptions, dial
 from infinirl.edge.tunnel import DATA, TunnelEnd, TunnelListener, TunnelOptions, decode_message, encode_message
 
@@ -269,3 +270,40 @@ def test_a_client_that_stops_reading_holds_up_neither_other_streams_nor_connecti
     finally:
         other.close()
         echo_target.close()
+
+
+def test_episodes_go_up_while_a_download_fills_the_emulated_link(credentials):
+    """Page downloads and episodes travel the same way (edge to cloud); an episode sent during a
+    download that saturates the link arrives before the download ends."""
+    payload = os.urandom(6 << 20)
+    target = Target(lambda sock: sock.sendall(payload))
+    with CloudListener("127.0.0.1", 0, server_context(credentials["cloud"]), options=LINK) as listener, \
+            LinkEmulator(EmulatorSpec.from_rtt(rtt_ms=60, mbit_per_s=20), listener.address) as emulator:
+        result = {}
+        thread = threading.Thread(target=lambda: result.update(link=listener.accept(timeout=10.0)), daemon=True)
+        thread.start()
+        edge_link = dial(emulator.address, client_context(credentials["edge-0"]), options=LINK)
+        thread.join()
+        cloud_link = result["link"]
+        edge_end = TunnelEnd(edge_link, targets={"svc": target.address}, options=TUNNEL).start()
+        cloud_end = TunnelEnd(cloud_link, options=TUNNEL).start()
+        listener_page = TunnelListener(("127.0.0.1", 0), lambda: cloud_end, service="svc").start()
+        received = bytearray()
+        try:
+            with connect(listener_page) as sock:
+                def download():
+                    while data := sock.recv(65536):
+                        received.extend(data)
+
+                reader = threading.Thread(target=download, daemon=True)
+                reader.start()
+                assert wait_for(lambda: len(received) >= 1 << 20, TIMEOUT)
+                episode = os.urandom(200_000)
+                edge_link.send("episodes", episode, timeout=TIMEOUT)
+                assert cloud_link.recv("episodes", timeout=TIMEOUT) == episode
+                assert len(received) < len(payload)  # the download was still running
+                reader.join(TIMEOUT * 2)
+            assert bytes(received) == payload
+        finally:
+            for part in (listener_page, cloud_end, edge_end, edge_link, cloud_link, target):
+                part.close()
