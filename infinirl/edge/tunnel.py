@@ -155,13 +155,15 @@ class TunnelEnd:
         """Relay ``sock`` (an accepted client) to the peer's ``service``; returns at once. The socket
         is closed when the connection ends, also when it cannot be opened."""
         with self._lock:
-            full = len(self._relays) >= self.options.max_connections
-            if not full and self.alive:
+            reason = None
+            if not self.alive:
+                reason = f"the link to {self.link.peer} is closed"
+            elif len(self._relays) >= self.options.max_connections:
+                reason = f"{self.options.max_connections} tunnel connections are open to {self.link.peer} already"
+            else:
                 relay = _Relay(next(self._ids), sock, self.options.window_bytes, f"{service} via {self.link.peer}")
                 self._relays[relay.id] = relay
-        if full or not self.alive:
-            reason = (f"{self.options.max_connections} tunnel connections are open to {self.link.peer} already"
-                      if full else f"the link to {self.link.peer} is closed")
+        if reason is not None:
             logger.warning("tunnel to %s refused a connection: %s", service, reason)
             self.failures.append(reason)
             self.counts["refused"] += 1

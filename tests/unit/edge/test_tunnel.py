@@ -307,3 +307,29 @@ def test_episodes_go_up_while_a_download_fills_the_emulated_link(credentials):
         finally:
             for part in (listener_page, cloud_end, edge_end, edge_link, cloud_link, target):
                 part.close()
+
+
+@pytest.mark.parametrize(("cloud_limit", "edge_limit", "reason"), [
+    (1, 4, "1 tunnel connections are open to edge-0 already"),
+    (4, 1, "the edge has 1 tunnel connections open"),
+])
+def test_connections_beyond_the_limit_are_closed_with_the_reason(link_pair, cloud_limit, edge_limit, reason):
+    cloud_link, edge_link = link_pair
+    target = Target(echo)
+    edge_end = TunnelEnd(edge_link, targets={"svc": target.address},
+                         options=TunnelOptions(max_connections=edge_limit, connect_timeout_s=2.0)).start()
+    cloud_end = TunnelEnd(cloud_link, options=TunnelOptions(max_connections=cloud_limit, open_timeout_s=5.0)).start()
+    listener = TunnelListener(("127.0.0.1", 0), lambda: cloud_end, service="svc").start()
+    try:
+        with connect(listener) as first:
+            first.sendall(b"a")
+            assert first.recv(1) == b"a"
+            with connect(listener) as second:
+                assert receive_all(second) == b""
+            assert wait_for(lambda: cloud_end.failures, TIMEOUT) and reason in cloud_end.failures[0]
+            first.sendall(b"b")
+            assert first.recv(1) == b"b"  # the open connection did not notice
+        assert target.accepted == 1
+    finally:
+        for part in (listener, cloud_end, edge_end, target):
+            part.close()
