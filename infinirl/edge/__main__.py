@@ -104,11 +104,16 @@ def _cloud(args) -> int:
 
     sink = _ReplaySink(args.replay)
     stop = _stop_event()
+    page = None
+    if args.page_port is not None:  # the hub is looked up per connection, once it exists
+        try:
+            page = TunnelListener((args.page_host, args.page_port), lambda: hub.tunnel(args.page_edge),
+                                  service="page")
+        except OSError as exc:
+            print(f"error: --page-port {args.page_port} on {args.page_host}: {exc}", file=sys.stderr, flush=True)
+            return 2
     hub = CloudHub(args.listen, TlsFiles.in_folder(args.certs, "cloud"), on_episode=sink, seen_ids=sink.seen,
                    options=HubOptions(link=_link_options(args)))
-    page = None
-    if args.page_port is not None:
-        page = TunnelListener((args.page_host, args.page_port), lambda: hub.tunnel(args.page_edge), service="page")
     print(json.dumps({"listening": list(hub.address), "page": list(page.address) if page else None}), flush=True)
     version, mtime = 0, None
     started = time.monotonic()

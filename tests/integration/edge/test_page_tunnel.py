@@ -8,6 +8,7 @@ import http.client
 import importlib.util
 import io
 import json
+import socket
 import subprocess
 import sys
 import time
@@ -162,6 +163,16 @@ def test_the_edge_and_cloud_commands_serve_the_page(tmp_path):
             if process is not None:
                 _stop(process)
         device.close()
+
+
+def test_a_busy_page_port_stops_the_cloud_command_with_one_line(tmp_path):
+    issue_credentials(tmp_path / "pki", edges=("edge-0",))
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        cloud = _spawn("cloud", "--listen", "127.0.0.1:0", "--certs", str(tmp_path / "pki"),
+                       "--replay", str(tmp_path / "replay"), "--page-port", str(busy.getsockname()[1]))
+        out, err = cloud.communicate(timeout=120.0)
+    assert cloud.returncode == 2 and out == ""
+    assert err.startswith("error: --page-port") and err.count("\n") == 1
 
 
 def _spawn(*args):
