@@ -2,16 +2,19 @@
 
     python -m infinirl.edge certs pki --edges edge-0 edge-1
     python -m infinirl.edge cloud --listen 0.0.0.0:7443 --certs pki --replay runs/edge/replay \\
-        --weights runs/edge/actor.pt
+        --weights runs/edge/actor.pt --page-port 8080
     python -m infinirl.edge edge --cloud cloud.example.org:7443 --certs pki --name edge-0 \\
-        --robot sim_sawyer --robot-options '{"image_size": 224, "control_hz": 20}' --episodes 0
+        --robot sim_sawyer --robot-options '{"image_size": 224, "control_hz": 20}' --episodes 0 \\
+        --page-target 127.0.0.1:8765
 
 The cloud node stores every episode that arrives into a replay store (once per episode id; the ids
 are also appended to ``<replay>/edge_received.log`` so a restarted cloud still recognises resends)
 and publishes the actor state dict in ``--weights`` (a ``torch.save`` file a trainer rewrites
 atomically) as a new version whenever the file changes. The edge node runs episodes on its robot
 with the newest weights and ships them (docs/edge.md). Each node prints one JSON line of counters
-when it stops (Ctrl-C, or after ``--episodes`` / ``--seconds``).
+when it stops (Ctrl-C, or after ``--episodes`` / ``--seconds``). With ``--page-port`` at the cloud
+and ``--page-target`` at the edge, connections to the cloud's port reach the edge's intervention
+page through the link (:mod:`infinirl.edge.tunnel`).
 """
 
 from __future__ import annotations
@@ -97,15 +100,26 @@ def _stop_event() -> threading.Event:
 def _cloud(args) -> int:
     from infinirl.edge.cloud_hub import CloudHub, HubOptions
     from infinirl.edge.credentials import TlsFiles
+    from infinirl.edge.tunnel import TunnelListener
 
     sink = _ReplaySink(args.replay)
     stop = _stop_event()
+    page = None
+    if args.page_port is not None:  # the hub is looked up per connection, once it exists
+        try:
+            page = TunnelListener((args.page_host, args.page_port), lambda: hub.tunnel(args.page_edge),
+                                  service="page")
+        except OSError as exc:
+            print(f"error: --page-port {args.page_port} on {args.page_host}: {exc}", file=sys.stderr, flush=True)
+            return 2
     hub = CloudHub(args.listen, TlsFiles.in_folder(args.certs, "cloud"), on_episode=sink, seen_ids=sink.seen,
                    options=HubOptions(link=_link_options(args)))
-    print(json.dumps({"listening": list(hub.address)}), flush=True)
+    print(json.dumps({"listening": list(hub.address), "page": list(page.address) if page else None}), flush=True)
     version, mtime = 0, None
     started = time.monotonic()
     with hub:
+        if page is not None:
+            page.start()
         while not stop.is_set() and (args.seconds is None or time.monotonic() - started < args.seconds):
             if args.weights and os.path.exists(args.weights) and os.path.getmtime(args.weights) != mtime:
                 mtime = os.path.getmtime(args.weights)
@@ -115,6 +129,9 @@ def _cloud(args) -> int:
                 hub.publish(torch.load(args.weights, map_location="cpu", weights_only=True), version)
             stop.wait(0.5)
         stats = hub.stats()
+        if page is not None:
+            page.close()
+            stats["page_connections"] = dict(page.counts)
     print(json.dumps({**stats, "weights_version": version,
                       "replay_episodes": sink.store.num_episodes if sink.store else 0}), flush=True)
     return 0
@@ -138,7 +155,8 @@ def _edge_node(args) -> int:
     try:  # bad files or a refused certificate stop the node before the robot moves; an unreachable cloud not
         client = EdgeClient(args.cloud, TlsFiles.in_folder(args.certs, args.name), name=args.name, spool=spool,
                             frames=FrameOptions(format=args.frame_format, quality=args.jpeg_quality, size=size),
-                            options=EdgeOptions(link=_link_options(args))).start()
+                            options=EdgeOptions(link=_link_options(args)),
+                            tunnel_targets={"page": args.page_target} if args.page_target else None).start()
         client.wait_connected(args.connect_wait_s)
     except (LinkAuthError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr, flush=True)
@@ -189,6 +207,12 @@ def main(argv: list[str] | None = None) -> int:
     cloud.add_argument("--replay", required=True, help="replay store folder")
     cloud.add_argument("--weights", default=None, help="actor state dict file to publish when it changes")
     cloud.add_argument("--seconds", type=float, default=None)
+    cloud.add_argument("--page-port", type=int, default=None,
+                       help="serve the edge's intervention page (its --page-target) on this cloud port")
+    cloud.add_argument("--page-host", default="127.0.0.1",
+                       help="interface of --page-port (the page's token is its only guard: keep it local)")
+    cloud.add_argument("--page-edge", default=None,
+                       help="the edge whose page --page-port shows (default: the one connected edge)")
     _add_link_arguments(cloud)
     edge = sub.add_parser("edge", help="run a robot at the edge, shipping its episodes to the cloud")
     edge.add_argument("--cloud", type=_address, required=True)
@@ -212,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     edge.add_argument("--seed", type=int, default=0)
     edge.add_argument("--connect-wait-s", type=float, default=10.0,
                       help="before starting the robot, wait this long for the first connection")
+    edge.add_argument("--page-target", type=_address, default=None,
+                      help="HOST:PORT of the intervention page at the edge, served by the cloud's --page-port")
     _add_link_arguments(edge)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

@@ -14,6 +14,10 @@ acknowledged the previous push (one push in flight per edge, so versions never q
 link: an edge that falls behind skips to the newest). The hub keeps, per edge name, the exact
 weights the edge acknowledged and encodes the next version as a delta against them when that is
 smaller (:mod:`infinirl.edge.codec`); an edge that reconnects holding them continues with deltas.
+
+Each connected edge's link also carries TCP connections from the cloud to services at that edge:
+:meth:`CloudHub.tunnel` returns the edge's :class:`~infinirl.edge.tunnel.TunnelEnd`, which a
+:class:`~infinirl.edge.tunnel.TunnelListener` on a cloud port uses (:mod:`infinirl.edge.tunnel`).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from infinirl.edge import protocol
 from infinirl.edge.codec import HeldWeights, decode_episode, encode_weights, weights_header
 from infinirl.edge.credentials import TlsFiles, server_context
 from infinirl.edge.link import CloudListener, Link, LinkAuthError, LinkError, LinkOptions
+from infinirl.edge.tunnel import TunnelEnd, TunnelOptions
 
 __all__ = ["CloudHub", "HubOptions", "wait_for"]
 
@@ -43,6 +48,7 @@ class HubOptions:
     send_timeout_s: float = 60.0
     max_refusals_kept: int = 100
     link: LinkOptions = field(default_factory=LinkOptions)
+    tunnel: TunnelOptions = field(default_factory=TunnelOptions)
 
 
 @dataclass(kw_only=True)
@@ -71,6 +77,7 @@ class CloudHub:
         self._latest: tuple[int, dict[str, np.ndarray]] | None = None
         self._edges: dict[str, _EdgeState] = {}
         self._links: dict[int, Link] = {}
+        self._tunnels: dict[str, TunnelEnd] = {}  # per edge name, its newest link's
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._accept_thread = threading.Thread(target=self._accept_loop, name="cloud-hub-accept", daemon=True)
@@ -88,6 +95,15 @@ class CloudHub:
     def connected_edges(self) -> list[str]:
         with self._lock:
             return sorted({link.peer for link in self._links.values() if link.alive})
+
+    def tunnel(self, edge: str | None = None) -> TunnelEnd | None:
+        """The tunnel end of ``edge``'s present link; with ``edge=None`` that of the one connected
+        edge. None while that edge is not connected, or (``edge=None``) unless exactly one is."""
+        with self._lock:
+            alive = {name: end for name, end in self._tunnels.items() if end.alive}
+        if edge is not None:
+            return alive.get(edge)
+        return next(iter(alive.values())) if len(alive) == 1 else None
 
     def edge_version(self, edge: str) -> int | None:
         with self._lock:
@@ -152,8 +168,10 @@ class CloudHub:
             link.close("the cloud is shutting down")
             return
         self.counts["connects"] += 1
+        tunnel = TunnelEnd(link, options=self.options.tunnel).start()  # drains the stream, accepts no opens
         with self._lock:
             self._links[id(link)] = link
+            self._tunnels[link.peer] = tunnel
             state = self._edges.setdefault(link.peer, _EdgeState())
             digest = link.peer_hello.get("weights_digest")
             if state.pending is not None and state.pending.digest == digest:

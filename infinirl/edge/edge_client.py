@@ -10,6 +10,10 @@ refused certificate is not retried: it is permanent, and :meth:`EdgeClient.check
 The robot keeps acting meanwhile: :attr:`EdgeClient.weights` is the newest version received, and
 :meth:`EdgeClient.offline_s` how long the link has been down, so the control loop can use the last
 policy within a staleness bound and hold the robot beyond it (:meth:`policy_usable`).
+
+While connected it also answers the cloud's tunnel connections (:mod:`infinirl.edge.tunnel`) to
+the services in ``tunnel_targets`` (e.g. ``{"page": ("127.0.0.1", 8765)}``, the intervention page),
+so the cloud reaches them through the link although the edge opens no port.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from infinirl.edge.codec import FrameOptions, HeldWeights, WeightBaseError, deco
 from infinirl.edge.credentials import TlsFiles, certificate_name, client_context
 from infinirl.edge.link import Link, LinkAuthError, LinkError, LinkOptions, dial
 from infinirl.edge.spool import EpisodeSpool
+from infinirl.edge.tunnel import TunnelEnd, TunnelOptions
 
 __all__ = ["EdgeClient", "EdgeOptions"]
 
@@ -39,22 +44,27 @@ _POLL_S = 0.1
 
 @dataclass(frozen=True, kw_only=True)
 class EdgeOptions:
-    """Reconnect backoff (s), episodes in flight, the per-frame send timeout, the link's options."""
+    """Reconnect backoff (s), episodes in flight, the per-frame send timeout, the link's and the
+    tunnel's options."""
 
     reconnect_min_s: float = 0.2
     reconnect_max_s: float = 5.0
     window: int = 4
     send_timeout_s: float = 60.0
     link: LinkOptions = field(default_factory=LinkOptions)
+    tunnel: TunnelOptions = field(default_factory=TunnelOptions)
 
 
 class EdgeClient:
-    """See the module docstring. ``name``: this edge (episode ids start with it)."""
+    """See the module docstring. ``name``: this edge (episode ids start with it); ``tunnel_targets``:
+    service name -> ``(host, port)`` the cloud may open connections to."""
 
     def __init__(self, address: tuple[str, int], files: TlsFiles, *, name: str, spool: EpisodeSpool | None = None,
                  frames: FrameOptions | None = None, options: EdgeOptions | None = None,
-                 on_weights: Callable[[HeldWeights], None] | None = None) -> None:
+                 on_weights: Callable[[HeldWeights], None] | None = None,
+                 tunnel_targets: Mapping[str, tuple[str, int]] | None = None) -> None:
         self.address, self.name = address, name
+        self.tunnel_targets = dict(tunnel_targets or {})
         self.spool = spool if spool is not None else EpisodeSpool(max_bytes=1 << 30)
         self.frames, self.options = frames or FrameOptions(), options or EdgeOptions()
         self.on_weights = on_weights
@@ -69,6 +79,7 @@ class EdgeClient:
         self._boot = uuid.uuid4().hex[:8]
         self._seq = 0
         self._link: Link | None = None
+        self.tunnel: TunnelEnd | None = None  # the present link's, while connected
         self._offline_since: float | None = time.monotonic()
         self._changed = threading.Condition()
         self._stop = threading.Event()
@@ -193,6 +204,8 @@ class EdgeClient:
 
     def _session(self, link: Link) -> None:
         in_flight: set[str] = set()
+        # always answered, also without targets: unread tunnel messages would fill the stream's inbox
+        self.tunnel = TunnelEnd(link, targets=self.tunnel_targets, options=self.options.tunnel).start()
         receivers = [threading.Thread(target=self._receive_acks, args=(link, in_flight), daemon=True),
                      threading.Thread(target=self._receive_weights, args=(link,), daemon=True)]
         for thread in receivers:
@@ -219,6 +232,7 @@ class EdgeClient:
             logger.info("edge %s: sending stopped (%s)", self.name, exc)
         finally:
             link.close("session ended")
+            self.tunnel.close("the link closed")
             for thread in receivers:
                 thread.join(timeout=5.0)
 
