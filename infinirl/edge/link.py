@@ -41,6 +41,9 @@ PROTOCOL_VERSION = 1
 HELLO, WELCOME, HEARTBEAT = "link.hello", "link.welcome", "link.heartbeat"
 _CHUNK = 1 << 16
 _POLL_S = 0.05
+# Bytes one direction may move per turn of the I/O loop: a sustained one-way flood must not keep the
+# other direction (and the peer's heartbeats) waiting until the link looks dead.
+_TURN_BYTES = 1 << 20
 
 
 class LinkError(ConnectionError):
@@ -219,6 +222,7 @@ class Link:
         self._inbox: dict[str, queue.Queue] = {}
         self._stalled: collections.deque[tuple[str, bytes]] = collections.deque(early or ())
         self._closed_reason: str | None = None
+        self._more_to_read = False  # the last read stopped at its per-turn budget
         self.closed_at: float | None = None  # time.monotonic() when it closed
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
@@ -326,9 +330,13 @@ class Link:
         return True
 
     def _read_some(self) -> bool:
-        """Read what the socket has; True when bytes arrived."""
-        got = False
+        """Read what the socket has, up to :data:`_TURN_BYTES`; True when bytes arrived."""
+        got, budget = False, _TURN_BYTES
+        self._more_to_read = False
         while True:
+            if budget <= 0:  # let the writing side have its turn; come straight back (SSL may hold bytes)
+                self._more_to_read = True
+                return got
             try:
                 data = self._sock.recv(_CHUNK)
             except (ssl.SSLWantReadError, ssl.SSLWantWriteError, BlockingIOError):
@@ -336,15 +344,17 @@ class Link:
             if not data:
                 raise LinkClosedError("the peer closed the connection")
             got = True
+            budget -= len(data)
             self.bytes_received += len(data)
             self._stalled.extend(self._reader.feed(data))
             if not self._deliver_stalled():
                 return got
 
     def _write_some(self) -> bool:
-        """Write queued frames until the socket would block; True when bytes went out."""
-        sent = False
-        while True:
+        """Write queued frames until the socket would block or :data:`_TURN_BYTES` went; True when bytes
+        went out."""
+        sent, budget = False, _TURN_BYTES
+        while budget > 0:
             with self._lock:
                 if not self._out:
                     return sent
@@ -354,6 +364,7 @@ class Link:
             except (ssl.SSLWantReadError, ssl.SSLWantWriteError, BlockingIOError):
                 return sent
             sent = sent or count > 0
+            budget -= count
             self.bytes_sent += count
             with self._space:
                 self._out_bytes -= count
@@ -362,6 +373,7 @@ class Link:
                 else:
                     self._out[0] = head[count:]
                 self._space.notify_all()
+        return sent
 
     def _run(self) -> None:
         selector = selectors.DefaultSelector()
@@ -373,7 +385,7 @@ class Link:
                 with self._lock:
                     pending = bool(self._out)
                 selector.modify(self._sock, selectors.EVENT_READ | (selectors.EVENT_WRITE if pending else 0))
-                selector.select(timeout=_POLL_S)
+                selector.select(timeout=0 if self._more_to_read else _POLL_S)
                 try:
                     while self._wake_r.recv(4096):
                         pass
