@@ -13,9 +13,13 @@ from concurrent.futures import ThreadPoolExecutor
 
 from infinirl.config import ConfigError
 
-__all__ = ["launch_all", "plan_placement", "run_components", "run_start_time"]
+__all__ = ["RUN_OBSERVERS", "launch_all", "plan_placement", "run_components", "run_start_time"]
 
 _RUNS_IN_PROCESS = [0]
+
+RUN_OBSERVERS: list[Callable] = []
+"""Called as ``observe(groups, plan)`` once a run's loop has finished, before its components shut
+down: the scheduler's profiler reads their spans and memory here."""
 
 
 def run_start_time() -> float:
@@ -85,7 +89,10 @@ def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:
         try:
             flow = make_flow(groups, plan)
             try:
-                return loop.run(flow)
+                summary = loop.run(flow)
+                for observe in RUN_OBSERVERS:
+                    observe(groups, plan)
+                return summary
             finally:
                 flow.close()
         finally:
