@@ -102,6 +102,9 @@ class Workload:
     """One message between processes of a streamed phase."""
     link_bytes_per_s: float = 12.5e9
     """Bandwidth between nodes, for bytes streamed across them."""
+    offloads: bool = True
+    """Whether the runner offloads and reloads a component that time-shares a device at each turn
+    (then ``switch_s`` is paid); a runner that keeps every component resident pays none."""
 
     @property
     def components(self) -> tuple[str, ...]:
@@ -215,6 +218,8 @@ def _cross_node_seconds(workload: Workload, phase: Phase, candidate: Candidate, 
 
 def switch_seconds(workload: Workload, candidate: Candidate) -> float:
     """Offload + reload of every component that time-shares a device with another one."""
+    if not workload.offloads:
+        return 0.0
     alloc, total = candidate.allocations, 0.0
     names = workload.components
     for name in names:

@@ -28,12 +28,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from infinirl.config import to_plain
-from infinirl.scheduler.cost import WorkCost, Workload, predict
+from infinirl.scheduler.cost import Candidate, WorkCost, Workload, predict
 from infinirl.scheduler.workloads import RUNNER_MODELS, Probe, RunnerModel, StepWindow, probe_candidates
 from infinirl.utils import capture_rng_state, restore_rng_state, write_json_atomic
 
-__all__ = ["PROFILE_CACHE_ENV", "Profile", "ProbeResult", "cache_path", "config_hash", "fit", "hardware_probe",
-           "load_or_profile", "run_probe", "step_windows", "workload_of"]
+__all__ = ["PROFILE_CACHE_ENV", "MeasuredRun", "Profile", "ProbeResult", "cache_path", "config_hash", "fit",
+           "hardware_probe", "load_or_profile", "measure_candidate", "profile_key", "profile_summary", "run_probe",
+           "step_windows", "workload_of"]
 
 PROFILE_CACHE_ENV = "INFINIRL_PROFILE_CACHE"
 """Folder of cached profiles (default ``~/.cache/infinirl/profiles``)."""
@@ -190,21 +191,33 @@ class _Recorder:
             self.switch[name] = sum(s[4] - s[3] for s in turns) / max(group.world_size, 1)
 
 
-def run_probe(cfg, model: RunnerModel, probe: Probe, iterations: int = 4) -> ProbeResult:
-    """Run ``cfg`` shortened to ``iterations`` under ``probe``'s placement; measure it."""
+@dataclass(frozen=True, kw_only=True)
+class MeasuredRun:
+    """A short run under one candidate: its iterations (warm-up dropped) and what the observer read."""
+
+    windows: list[StepWindow]
+    step_s: list[float]
+    memory_bytes: dict[str, float]
+    switch_s: dict[str, float]
+    inventory: dict
+
+
+def measure_candidate(cfg, model: RunnerModel, candidate: Candidate, iterations: int = 4,
+                      label: str = "candidate") -> MeasuredRun:
+    """Run ``cfg`` shortened to ``iterations`` under ``candidate``; its spans cut into iterations."""
     from infinirl.runners import load_runners
     from infinirl.runners.metrics_log import read_metrics
     from infinirl.runners.run_support import RUN_OBSERVERS
 
     run = copy.deepcopy(cfg)
-    model.apply(run, probe.candidate(tuple(run.components())))
+    model.apply(run, candidate)
     model.shorten(run, iterations)
-    folder = tempfile.mkdtemp(prefix=f"infinirl-profile-{probe.name}-")
+    folder = tempfile.mkdtemp(prefix=f"infinirl-profile-{label}-")
     run.output_dir = os.path.join(folder, "run")
     recorder = _Recorder()
     RUN_OBSERVERS.append(recorder)
     try:
-        print(f"profiling {model.runner} under probe {probe.name}: placement {run.placement}", flush=True)
+        print(f"measuring {model.runner} ({label}): placement {run.placement}, depth {candidate.depth}", flush=True)
         load_runners().get(run.runner).run(run)
         rows = read_metrics(os.path.join(run.output_dir, "metrics.jsonl"))
     finally:
@@ -212,11 +225,18 @@ def run_probe(cfg, model: RunnerModel, probe: Probe, iterations: int = 4) -> Pro
         shutil.rmtree(folder, ignore_errors=True)
     windows = step_windows(recorder.spans, rows, model, iterations)[1:]  # the first is warm-up
     if not windows:
-        raise RuntimeError(f"profiling probe {probe.name!r}: no iteration after the warm-up was traced; "
-                           "profile with at least 2 iterations")
-    return ProbeResult(probe=probe, iterations=[model.measure(w, probe, run) for w in windows],
-                       step_s=[float(w.metrics.get(model.step_metric, 0.0)) for w in windows],
+        raise RuntimeError(f"measuring {label!r}: no iteration after the warm-up was traced; "
+                           "run at least 2 iterations")
+    return MeasuredRun(windows=windows, step_s=[float(w.metrics.get(model.step_metric, 0.0)) for w in windows],
                        memory_bytes=recorder.memory, switch_s=recorder.switch, inventory=recorder.inventory)
+
+
+def run_probe(cfg, model: RunnerModel, probe: Probe, iterations: int = 4) -> ProbeResult:
+    """Run ``cfg`` shortened to ``iterations`` under ``probe``'s placement; measure it."""
+    run = measure_candidate(cfg, model, probe.candidate(tuple(cfg.components())), iterations, probe.name)
+    return ProbeResult(probe=probe, iterations=[model.measure(w, probe, cfg) for w in run.windows],
+                       step_s=run.step_s, memory_bytes=run.memory_bytes, switch_s=run.switch_s,
+                       inventory=run.inventory)
 
 
 # ----- fitting -----------------------------------------------------------------------------------
@@ -260,7 +280,8 @@ def fit(cfg, model: RunnerModel, results: list[ProbeResult], key: dict | None = 
                                    memory_fixed_bytes=memory)
     hops = [it["hop"] for r in results for it in r.iterations if "hop" in it]
     hop_s = _median(hops)
-    bare = Workload(runner=model.runner, phases=model.phases(cfg), units=units, costs=costs, hop_s=hop_s)
+    bare = Workload(runner=model.runner, phases=model.phases(cfg), units=units, costs=costs, hop_s=hop_s,
+                    offloads=model.offloads)
     excess = [_median(r.step_s) - predict(bare, r.probe.candidate(components)).step_s for r in results]
     return Profile(runner=model.runner, key=key or {}, costs=costs, overhead_s=max(0.0, _median(excess)),
                    hop_s=hop_s, inventory=results[0].inventory if results else {}, probes=list(results))
@@ -270,7 +291,7 @@ def workload_of(cfg, profile: Profile) -> Workload:
     """The config's workload with the profile's measured costs (what :func:`~.cost.predict` reads)."""
     model = RUNNER_MODELS.get(cfg.runner)
     return Workload(runner=cfg.runner, phases=model.phases(cfg), units=model.units(cfg), costs=profile.costs,
-                    overhead_s=profile.overhead_s, hop_s=profile.hop_s)
+                    overhead_s=profile.overhead_s, hop_s=profile.hop_s, offloads=model.offloads)
 
 
 def load_or_profile(cfg, iterations: int = 4, cache_dir: str | None = None, refresh: bool = False,

@@ -77,6 +77,9 @@ class RunnerModel:
     """Multiply one iteration's work by a factor (a simulated cluster plans for a larger batch)."""
     probes: tuple[Probe, ...]
     measure: Callable[[StepWindow, Probe, Any], dict[str, float]]
+    offloads: bool = False
+    """Whether the runner offloads a time-sharing component at each turn (``runtime.device_turn``).
+    The embodied and reasoning runners keep every component resident, so they pay no switch."""
 
 
 RUNNER_MODELS: Registry[RunnerModel] = Registry("runner model")

@@ -97,6 +97,9 @@ def test_switch_costs_only_for_components_that_time_share():
     alone = Candidate(allocations={"env": _on(0), "rollout": _on(1), "actor": _on(1)})
     assert switch_seconds(w, shared) == pytest.approx(0.25)
     assert switch_seconds(w, alone) == 0.0
+    assert predict(w, shared).step_s == pytest.approx(predict(w, alone).step_s + 0.25)
+    resident = Workload(runner="t", phases=w.phases, units=w.units, costs=w.costs, offloads=False)
+    assert switch_seconds(resident, shared) == 0.0
 
 
 def test_overhead_and_phases_add_up():

@@ -64,9 +64,8 @@ def test_fit_recovers_the_costs_that_made_the_measurements(embodied_cfg):
     assert profile.costs["update/actor"].memory_fixed_bytes == pytest.approx(1e9)
     assert profile.costs["update/actor"].switch_s == pytest.approx(0.01)
     assert profile.hop_s == pytest.approx(hop)
-    # the measured steps hold no offload/reload (these runners time-share without one), so the
-    # driver's share is what the predicted switches leave of it
-    assert profile.overhead_s == pytest.approx(overhead - 0.01)
+    # the embodied runner keeps its components resident: the measured offload is no part of a step
+    assert profile.overhead_s == pytest.approx(overhead)
     workload = workload_of(cfg, profile)
     components = tuple(cfg.components())
     for result in results:  # every probe is predicted as it was measured
