@@ -81,7 +81,7 @@ class RunConfig:
     def __post_init__(self) -> None:
         if not self.runner:
             self.runner = self.RUNNER
-        if not self.auto_placement:
+        if isinstance(self.placement, dict):  # "auto" is resolved when the run starts; another string fails validate
             self.placement = {**expand_placement(self.DEFAULT_PLACEMENT), **expand_placement(self.placement)}
 
     # ------------------------------------------------------------------ validation
