@@ -79,9 +79,15 @@ def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:
     """Start the cluster, place and launch the components, run ``make_flow(groups, plan)`` on ``loop``.
 
     ``launches(plan)`` returns what :func:`launch_all` takes; the flow's ``close()`` and every
-    group's shutdown run however the loop ends."""
+    group's shutdown run however the loop ends. ``placement: auto`` is resolved first: the
+    scheduler profiles the config (or reads its cached profile) and writes its choice into ``cfg``."""
     from infinirl.runtime import Cluster
 
+    if cfg.auto_placement:
+        # The scheduler sits above the runners (it profiles by running them), hence the late import.
+        from infinirl.scheduler.auto import resolve_auto_placement
+
+        resolve_auto_placement(cfg)
     with Cluster(cfg.cluster) as cluster:
         plan = plan_placement(cluster.inventory, cfg)
         print(plan.describe(), flush=True)

@@ -81,6 +81,7 @@ def plan_command(cfg, args) -> int:
 
     if args.top < 1 or args.profile_iterations < 2:
         raise ConfigError("--top must be >= 1 and --profile-iterations >= 2 (the first iteration is warm-up)")
+    runner_model(cfg)  # a runner without a model fails before anything runs
     profile = load_or_profile(cfg, iterations=args.profile_iterations, refresh=args.refresh)
     start = time.perf_counter()
     if args.gpus is None:
