@@ -63,7 +63,7 @@ def format_plan(cfg, profile: Profile | None, entries: list[PlanEntry], top: int
              f"depth = pipeline stages ({depth_key})",
              f"{'#':>3}  {'step_s':>8}  {'memory':>14}  depth  placement"]
     for i, entry in enumerate(entries[:top]):
-        spec = " ".join(f"{k}={v}" for k, v in entry.placement.items())
+        spec = " ".join(f"{name}={entry.placement[name]}" for name in cfg.components())
         lines.append(f"{i + 1:>3}  {entry.prediction.step_s:>8.3f}  {_memory_text(entry):>14}  "
                      f"{entry.candidate.depth:>5}  {spec}")
     if len(entries) > top:
