@@ -1,5 +1,5 @@
 """`infinirl` command line: train / eval / validate / list, on Hydra configs validated before anything starts;
-`demos` records demonstration datasets."""
+`demos` records demonstration datasets; `plan` ranks placements by predicted step time."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from infinirl.config import (
     upgrade_renamed_overrides,
 )
 
-_DEFAULT_CONFIG = {"train": "default", "eval": "eval", "validate": "default"}
+_DEFAULT_CONFIG = {"train": "default", "eval": "eval", "validate": "default", "plan": "default"}
 
 
 def _runners():
@@ -126,11 +126,20 @@ def main(argv: list[str] | None = None) -> int:
         for name in runners.names():
             print(f"runner {name}: {runners.get(name).summary}")
         return 0
+    return _run_config_command(args)
+
+
+def _run_config_command(args: argparse.Namespace) -> int:
+    """``train``, ``eval``, ``validate`` and ``plan``: bad config and cluster failures as one line."""
     try:
         spec, cfg = build_config(args.config, args.overrides, args.command)
         if args.command == "validate":
             print(f"config '{args.config}' is valid (runner {spec.name})")
             return 0
+        if args.command == "plan":
+            from infinirl.scheduler.auto import plan_command
+
+            return plan_command(cfg, args)
         # Runners check what only they can (the env task, data files, prompt lengths, the resume
         # point) in the driver before any worker starts and raise ConfigError: reported like a bad
         # key, one line, no traceback.
@@ -173,6 +182,19 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
         p.add_argument("config", nargs="?", default=default,
                        help=f"config name (default: {default}). Available: {', '.join(names)}")
         p.add_argument("overrides", nargs="*", help=f"key=value overrides, e.g. {example}")
+    plan = sub.add_parser("plan", help="rank placements by predicted step time, from a short measured profile "
+                                       "(docs/scheduler.md); placement=auto runs the first")
+    plan.add_argument("config", nargs="?", default=_DEFAULT_CONFIG["plan"], help="config name (default: default)")
+    plan.add_argument("overrides", nargs="*", help="key=value overrides, e.g. env.num_envs=32")
+    plan.add_argument("--top", type=int, default=20, help="candidates shown (default 20)")
+    plan.add_argument("--refresh", action="store_true", help="profile again even if a cached profile matches")
+    plan.add_argument("--profile-iterations", type=int, default=4,
+                      help="iterations of each probe run (the first is warm-up; default 4)")
+    plan.add_argument("--gpus", type=int, default=None,
+                      help="plan for a simulated cluster of this many GPUs instead (the measured profile scaled)")
+    plan.add_argument("--gpus-per-node", type=int, default=8, help="simulated GPUs per node (default 8)")
+    plan.add_argument("--speedup", type=float, default=1.0,
+                      help="a simulated GPU is this many times faster than the profiled device (default 1)")
     sub.add_parser("list", help="list configs and runners")
     robots = sub.add_parser("robots", help="the robots each node of the cluster reaches (robot:N of placements)")
     robots.add_argument("overrides", nargs="*", help="where to look, kind.option=value: sim_sawyer.instances=2, "

@@ -9,7 +9,8 @@ algorithm, ...). The shared keys mean the same in every runner:
   (``<output_dir>/checkpoints/iter_NNNNNN/``);
 * ``resume``: continue from the newest checkpoint of ``output_dir``;
 * ``placement``: component -> devices or CPU slots; a key may name several components
-  (``"actor,rollout": "0"``), and components a config leaves out keep the runner's defaults.
+  (``"actor,rollout": "0"``), and components a config leaves out keep the runner's defaults;
+  ``auto``: the scheduler picks the placement (docs/scheduler.md).
 
 Numeric limits are declared on the fields (:func:`~infinirl.config.bounded`); a subclass's
 ``check()`` holds only the rules that involve several fields.
@@ -23,7 +24,10 @@ from typing import Any, ClassVar
 from infinirl.config import ConfigError, bounded
 from infinirl.runtime import ClusterConfig
 
-__all__ = ["EvalSchedule", "RunConfig", "expand_placement", "validate_placement"]
+__all__ = ["AUTO_PLACEMENT", "EvalSchedule", "RunConfig", "expand_placement", "validate_placement"]
+
+AUTO_PLACEMENT = "auto"
+"""``placement: auto``: the scheduler profiles the config and runs the placement it predicts fastest."""
 
 
 @dataclass(kw_only=True)
@@ -69,14 +73,16 @@ class RunConfig:
     loggers: list[str] = field(default_factory=lambda: ["tensorboard"])
     """Metric sinks besides metrics.jsonl: tensorboard, wandb, swanlab."""
     eval: EvalSchedule = field(default_factory=EvalSchedule)
-    placement: dict[str, str] = field(default_factory=dict)
-    """Component -> devices or CPU slots (see infinirl.runtime.placement); "a,b" keys place several."""
+    placement: dict[str, str] | str = field(default_factory=dict)
+    """Component -> devices or CPU slots (see infinirl.runtime.placement); "a,b" keys place several.
+    ``auto``: the placement the scheduler predicts fastest, chosen when the run starts."""
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
 
     def __post_init__(self) -> None:
         if not self.runner:
             self.runner = self.RUNNER
-        self.placement = {**expand_placement(self.DEFAULT_PLACEMENT), **expand_placement(self.placement)}
+        if isinstance(self.placement, dict):  # "auto" is resolved when the run starts; another string fails validate
+            self.placement = {**expand_placement(self.DEFAULT_PLACEMENT), **expand_placement(self.placement)}
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> None:
@@ -100,9 +106,16 @@ class RunConfig:
         """Rules that involve several fields of the runner's own sections; raise ConfigError."""
 
     def _validate_placement(self) -> None:
+        if self.auto_placement:
+            return
         validate_placement(self.placement, [*self.DEFAULT_PLACEMENT, *self.OPTIONAL_COMPONENTS], self.RUNNER)
 
     # ------------------------------------------------------------------ derived
+    @property
+    def auto_placement(self) -> bool:
+        """``placement: auto``: the run resolves its placement when it starts (``run_support``)."""
+        return self.placement == AUTO_PLACEMENT
+
     def components(self) -> list[str]:
         """The components this run launches (required ones, then optional ones it uses)."""
         return list(self.DEFAULT_PLACEMENT)
@@ -125,6 +138,9 @@ def validate_placement(placement: dict[str, str], known, runner: str) -> None:
     """Every entry names a component of ``runner`` and parses as a placement spec."""
     from infinirl.runtime.placement import PlacementError, parse_spec
 
+    if not isinstance(placement, dict):
+        raise ConfigError(f"placement={placement!r}: give a mapping of component -> devices (e.g. {{actor: '0'}}) "
+                          f"or '{AUTO_PLACEMENT}' for the scheduler's choice")
     for component, spec in placement.items():
         if component not in known:
             raise ConfigError(f"placement.{component}: the {runner} runner has no such component; "

@@ -13,10 +13,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 from infinirl.config import ConfigError
 
-__all__ = ["NODE_LOSS_WAIT_S", "launch_all", "plan_placement", "raise_if_nodes_lost", "run_components",
-           "run_start_time"]
+__all__ = ["NODE_LOSS_WAIT_S", "RUN_OBSERVERS", "launch_all", "plan_placement", "raise_if_nodes_lost",
+           "run_components", "run_start_time"]
 
 _RUNS_IN_PROCESS = [0]
+
+RUN_OBSERVERS: list[Callable] = []
+"""Called as ``observe(groups, plan)`` once a run's loop has finished, before its components shut
+down: the scheduler's profiler reads their spans and memory here."""
 
 
 def run_start_time() -> float:
@@ -76,9 +80,15 @@ def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:
     """Start the cluster, place and launch the components, run ``make_flow(groups, plan)`` on ``loop``.
 
     ``launches(plan)`` returns what :func:`launch_all` takes; the flow's ``close()`` and every
-    group's shutdown run however the loop ends."""
+    group's shutdown run however the loop ends. ``placement: auto`` is resolved first: the
+    scheduler profiles the config (or reads its cached profile) and writes its choice into ``cfg``."""
     from infinirl.runtime import Cluster
 
+    if cfg.auto_placement:
+        # The scheduler sits above the runners (it profiles by running them), hence the late import.
+        from infinirl.scheduler.auto import resolve_auto_placement
+
+        resolve_auto_placement(cfg)
     with Cluster(cfg.cluster) as cluster:
         plan = plan_placement(cluster.inventory, cfg)
         print(plan.describe(), flush=True)
@@ -86,7 +96,10 @@ def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:
         try:
             flow = make_flow(groups, plan)
             try:
-                return loop.run(flow)
+                summary = loop.run(flow)
+                for observe in RUN_OBSERVERS:
+                    observe(groups, plan)
+                return summary
             finally:
                 flow.close()
         except Exception as exc:

@@ -1,0 +1,99 @@
+"""``infinirl plan`` and ``placement: auto``: profile (or read the cached profile), search, choose.
+
+:func:`plan` returns the ranked candidates of a config on this machine's cluster; the run of a
+config with ``placement: auto`` takes the first one (:func:`resolve_auto_placement`, called by
+``runners.run_support`` before its cluster starts) and writes it into the config, so the run's
+``config.json`` records the placement and depth that ran.
+"""
+
+from __future__ import annotations
+
+import json
+
+from infinirl.config import ConfigError
+from infinirl.runtime.inventory import ClusterInventory, GiB
+from infinirl.scheduler.profile import Profile, load_or_profile, profile_summary, workload_of
+from infinirl.scheduler.search import PlanEntry, search
+from infinirl.scheduler.workloads import RUNNER_MODELS
+
+__all__ = ["DEPTH_KEYS", "format_plan", "plan", "plan_command", "resolve_auto_placement", "runner_model"]
+
+DEPTH_KEYS = {"embodied": "rollout.pipeline_stages", "reasoning": "rollout.stream_chunk_prompts"}
+"""The config key each runner's pipeline depth is written to (for the table's header)."""
+
+
+def runner_model(cfg):
+    """The scheduler's model of ``cfg``'s runner; a runner without one is a one-line ConfigError."""
+    if cfg.runner not in RUNNER_MODELS:
+        raise ConfigError(f"placement=auto / infinirl plan: the scheduler has no model of the {cfg.runner!r} runner; "
+                          f"it plans {', '.join(RUNNER_MODELS.names())}. Give placement.* explicitly")
+    return RUNNER_MODELS.get(cfg.runner)
+
+
+def plan(cfg, inventory: ClusterInventory | None = None, iterations: int = 4, refresh: bool = False,
+         cache_dir: str | None = None) -> tuple[Profile, list[PlanEntry]]:
+    """``cfg``'s candidates on ``inventory`` (default: the cluster the profile ran on), best first."""
+    model = runner_model(cfg)
+    profile = load_or_profile(cfg, iterations=iterations, cache_dir=cache_dir, refresh=refresh)
+    inventory = inventory or ClusterInventory.from_dict(profile.inventory)
+    return profile, search(cfg, model, workload_of(cfg, profile), inventory)
+
+
+def resolve_auto_placement(cfg, **plan_options) -> PlanEntry:
+    """Write the best candidate's placement and depth into ``cfg`` (``placement: auto``)."""
+    _, entries = plan(cfg, **plan_options)
+    if not entries:
+        raise ConfigError(f"placement=auto: no placement of {', '.join(cfg.components())} fits this cluster's "
+                          "devices and memory; give placement.* explicitly")
+    best = entries[0]
+    runner_model(cfg).apply(cfg, best.candidate)
+    print(f"placement=auto: {json.dumps(best.placement)} depth {best.candidate.depth}, predicted "
+          f"{best.prediction.step_s:.3f} s per iteration (`infinirl plan` lists the others)", flush=True)
+    return best
+
+
+def _memory_text(entry: PlanEntry) -> str:
+    return f"{entry.memory_bytes / GiB:.2f}/{entry.memory_limit_bytes / GiB:.0f} GiB"
+
+
+def format_plan(cfg, profile: Profile | None, entries: list[PlanEntry], top: int = 20) -> str:
+    """The candidates as a table, best first, with the measured profile under it."""
+    depth_key = DEPTH_KEYS.get(cfg.runner, "depth")
+    lines = [f"{len(entries)} candidate placements of {cfg.runner} ({', '.join(cfg.components())}); "
+             f"depth = pipeline stages ({depth_key})",
+             f"{'#':>3}  {'step_s':>8}  {'memory':>14}  depth  placement"]
+    for i, entry in enumerate(entries[:top]):
+        spec = " ".join(f"{name}={entry.placement[name]}" for name in cfg.components())
+        lines.append(f"{i + 1:>3}  {entry.prediction.step_s:>8.3f}  {_memory_text(entry):>14}  "
+                     f"{entry.candidate.depth:>5}  {spec}")
+    if len(entries) > top:
+        lines.append(f"... {len(entries) - top} more (--top N shows more)")
+    if profile is not None:
+        lines.append("measured: " + json.dumps(profile_summary(profile)))
+    return "\n".join(lines)
+
+
+def plan_command(cfg, args) -> int:
+    """``infinirl plan``: the table on this machine's cluster, or on a simulated one (``--gpus``)."""
+    import time
+
+    from infinirl.scheduler.simulate import simulated_plan
+
+    if args.top < 1 or args.profile_iterations < 2:
+        raise ConfigError("--top must be >= 1 and --profile-iterations >= 2 (the first iteration is warm-up)")
+    runner_model(cfg)  # a runner without a model fails before anything runs
+    profile = load_or_profile(cfg, iterations=args.profile_iterations, refresh=args.refresh)
+    start = time.perf_counter()
+    if args.gpus is None:
+        inventory = ClusterInventory.from_dict(profile.inventory)
+        entries = search(cfg, runner_model(cfg), workload_of(cfg, profile), inventory)
+        where = "this cluster"
+    else:
+        try:
+            _, entries = simulated_plan(cfg, profile, args.gpus, speedup=args.speedup, gpus_per_node=args.gpus_per_node)
+        except ValueError as exc:
+            raise ConfigError(f"--gpus: {exc}") from None
+        where = f"a simulated cluster of {args.gpus} GPUs (batch x{args.gpus}, device x{args.speedup:g} speed)"
+    print(format_plan(cfg, profile, entries, args.top))
+    print(f"searched {len(entries)} candidates on {where} in {time.perf_counter() - start:.2f} s")
+    return 0 if entries else 1

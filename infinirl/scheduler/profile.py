@@ -1,0 +1,325 @@
+"""Profiling: short real runs of a config under a few probe placements, measured from the tracer's spans.
+
+For each probe of the runner (:mod:`.workloads`: collocated, two ranks per component, streamed)
+the profiler runs the config for a few iterations with the probe's placement, and before the
+components shut down reads every rank's spans (one per executed method), its peak resident
+memory, and the time of one offload + reload. Iterations are cut out of the spans at each call of
+the runner's first-phase method; the first iteration is warm-up and dropped. The runner model
+turns each iteration into own seconds per ``"<phase>/<component>"``, and :func:`fit` turns the
+probes into one :class:`~infinirl.scheduler.cost.WorkCost` each: seconds per unit of work from the
+one-rank probes, the cost of a second rank (the collective) from the two-rank probe.
+
+Profiles are cached as JSON per (runner, model, config hash, hardware probe), so a second plan of
+the same config on the same machine is instant. The config hash leaves out what does not change
+the work of an iteration: placement, the depth keys, length, cadences, output and loggers.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import os
+import shutil
+import socket
+import statistics
+import tempfile
+from dataclasses import dataclass, field
+from typing import Any
+
+from infinirl.config import to_plain
+from infinirl.scheduler.cost import Candidate, WorkCost, Workload, predict
+from infinirl.scheduler.workloads import RUNNER_MODELS, Probe, RunnerModel, StepWindow, probe_candidates
+from infinirl.utils import capture_rng_state, restore_rng_state, write_json_atomic
+
+__all__ = ["PROFILE_CACHE_ENV", "MeasuredRun", "Profile", "ProbeResult", "cache_path", "config_hash", "fit",
+           "hardware_probe", "load_or_profile", "measure_candidate", "profile_key", "profile_summary", "run_probe",
+           "step_windows", "workload_of"]
+
+PROFILE_CACHE_ENV = "INFINIRL_PROFILE_CACHE"
+"""Folder of cached profiles (default ``~/.cache/infinirl/profiles``)."""
+PROFILE_FORMAT = 1
+
+# Keys that do not change one iteration's work (the search varies the placement and depth keys).
+_NOT_WORK = ("placement", "iterations", "output_dir", "resume", "save_every", "keep_checkpoints", "loggers", "eval",
+             "cluster", "seed")
+_DEPTH_KEYS = (("rollout", "pipeline_stages"), ("rollout", "stream_chunk_prompts"), ("env", "stage_processes"))
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProbeResult:
+    """What one probe run measured: per iteration (warm-up dropped) the model's own seconds and the
+    step time; per component the peak resident bytes of a rank and one offload + reload."""
+
+    probe: Probe
+    iterations: list[dict[str, float]]
+    step_s: list[float]
+    memory_bytes: dict[str, float] = field(default_factory=dict)
+    switch_s: dict[str, float] = field(default_factory=dict)
+    inventory: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"probe": {"name": self.probe.name, "devices": {k: list(v) for k, v in self.probe.devices.items()},
+                          "depth": self.probe.depth},
+                "iterations": self.iterations, "step_s": self.step_s, "memory_bytes": self.memory_bytes,
+                "switch_s": self.switch_s, "inventory": self.inventory}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ProbeResult:
+        p = data["probe"]
+        probe = Probe(name=p["name"], devices={k: tuple(v) for k, v in p["devices"].items()}, depth=p["depth"])
+        return cls(probe=probe, iterations=data["iterations"], step_s=data["step_s"],
+                   memory_bytes=data["memory_bytes"], switch_s=data["switch_s"], inventory=data["inventory"])
+
+
+@dataclass(frozen=True, kw_only=True)
+class Profile:
+    """A config's measured costs on this hardware (what the cost model and the search read)."""
+
+    runner: str
+    key: dict
+    costs: dict[str, WorkCost]
+    overhead_s: float
+    hop_s: float
+    inventory: dict
+    probes: list[ProbeResult]
+
+    def to_dict(self) -> dict:
+        return {"format": PROFILE_FORMAT, "runner": self.runner, "key": self.key,
+                "costs": {k: vars(c) for k, c in self.costs.items()}, "overhead_s": self.overhead_s,
+                "hop_s": self.hop_s, "inventory": self.inventory, "probes": [p.to_dict() for p in self.probes]}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Profile:
+        return cls(runner=data["runner"], key=data["key"],
+                   costs={k: WorkCost(**c) for k, c in data["costs"].items()}, overhead_s=data["overhead_s"],
+                   hop_s=data["hop_s"], inventory=data["inventory"],
+                   probes=[ProbeResult.from_dict(p) for p in data["probes"]])
+
+
+# ----- keys and cache ----------------------------------------------------------------------------
+
+
+def config_hash(cfg) -> str:
+    """Hash of the config's work-defining keys (see the module docstring)."""
+    plain = to_plain(cfg)
+    for key in _NOT_WORK:
+        plain.pop(key, None)
+    for section, key in _DEPTH_KEYS:
+        if isinstance(plain.get(section), dict):
+            plain[section].pop(key, None)
+    text = json.dumps(plain, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def hardware_probe() -> dict:
+    """What the measured costs depend on: CPU model and count, memory, accelerators."""
+    from infinirl.results import host_probe
+
+    probe = host_probe()
+    return {k: probe.get(k) for k in ("cpu", "vcpus", "memory_gib", "gpus")}
+
+
+def profile_key(cfg, model: RunnerModel) -> dict:
+    return {"runner": model.runner, "model": model.model_key(cfg), "config": config_hash(cfg),
+            "hardware": hardware_probe()}
+
+
+def cache_path(key: dict, cache_dir: str | None = None) -> str:
+    folder = cache_dir or os.environ.get(PROFILE_CACHE_ENV) or os.path.join(
+        os.path.expanduser("~"), ".cache", "infinirl", "profiles")
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    return os.path.join(folder, f"{key['runner']}-{key['config']}-{digest}.json")
+
+
+# ----- measuring ---------------------------------------------------------------------------------
+
+
+def step_windows(spans: list[tuple], rows: list[dict], model: RunnerModel, iterations: int) -> list[StepWindow]:
+    """Cut spans into iterations at each rank-0 call of the model's window method; pair each with
+    its metrics row (rows of steps 1..N, in order)."""
+    component, method = model.window_method
+    starts = sorted(s[3] for s in spans if s[0] == component and s[1] == 0 and s[2] == method)[:iterations]
+    step_rows = [r for r in rows if model.step_metric in r]
+    windows = []
+    for i, start in enumerate(starts):
+        end = starts[i + 1] if i + 1 < len(starts) else float("inf")
+        busy: dict[tuple[str, str], dict[int, float]] = {}
+        last_end: dict[tuple[str, str], float] = {}
+        for name, rank, meth, s, e, _ in spans:
+            if start <= s < end:
+                per_rank = busy.setdefault((name, meth), {})
+                per_rank[rank] = per_rank.get(rank, 0.0) + (e - s)
+                last_end[(name, meth)] = max(last_end.get((name, meth), 0.0), e - start)
+        windows.append(StepWindow(busy={k: list(v.values()) for k, v in busy.items()}, last_end=last_end,
+                                  metrics=step_rows[i] if i < len(step_rows) else {}))
+    return windows
+
+
+def _peak_rss(pid: int) -> float:
+    """A process's peak resident set (Linux ``VmHWM``), 0 if it cannot be read."""
+    try:
+        with open(f"/proc/{pid}/status") as handle:
+            for line in handle:
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+class _Recorder:
+    """The run observer: spans, peak memory and one offload + reload of every component."""
+
+    def __init__(self):
+        self.spans: list[tuple] = []
+        self.memory: dict[str, float] = {}
+        self.switch: dict[str, float] = {}
+        self.inventory: dict = {}
+
+    def __call__(self, groups: dict, plan) -> None:
+        self.inventory = plan.inventory.to_dict()
+        host = socket.gethostname()
+        for name, group in groups.items():
+            self.spans.extend(group.pop_spans())
+            peaks = [_peak_rss(info["pid"]) for info in group.rank_info
+                     if info.get("hostname") == host and "pid" in info]
+            self.memory[name] = max(peaks, default=0.0)
+            group.call("offload").wait(timeout=120)
+            group.call("reload").wait(timeout=120)
+            turns = [s for s in group.pop_spans() if s[2] in ("offload", "reload")]
+            self.switch[name] = sum(s[4] - s[3] for s in turns) / max(group.world_size, 1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MeasuredRun:
+    """A short run under one candidate: its iterations (warm-up dropped) and what the observer read."""
+
+    windows: list[StepWindow]
+    step_s: list[float]
+    memory_bytes: dict[str, float]
+    switch_s: dict[str, float]
+    inventory: dict
+
+
+def measure_candidate(cfg, model: RunnerModel, candidate: Candidate, iterations: int = 4,
+                      label: str = "candidate") -> MeasuredRun:
+    """Run ``cfg`` shortened to ``iterations`` under ``candidate``; its spans cut into iterations."""
+    from infinirl.runners import load_runners
+    from infinirl.runners.metrics_log import read_metrics
+    from infinirl.runners.run_support import RUN_OBSERVERS
+
+    run = copy.deepcopy(cfg)
+    model.apply(run, candidate)
+    model.shorten(run, iterations)
+    folder = tempfile.mkdtemp(prefix=f"infinirl-profile-{label}-")
+    run.output_dir = os.path.join(folder, "run")
+    recorder = _Recorder()
+    RUN_OBSERVERS.append(recorder)
+    try:
+        print(f"measuring {model.runner} ({label}): placement {run.placement}, depth {candidate.depth}", flush=True)
+        load_runners().get(run.runner).run(run)
+        rows = read_metrics(os.path.join(run.output_dir, "metrics.jsonl"))
+    finally:
+        RUN_OBSERVERS.remove(recorder)
+        shutil.rmtree(folder, ignore_errors=True)
+    windows = step_windows(recorder.spans, rows, model, iterations)[1:]  # the first is warm-up
+    if not windows:
+        raise RuntimeError(f"measuring {label!r}: no iteration after the warm-up was traced; "
+                           "run at least 2 iterations")
+    return MeasuredRun(windows=windows, step_s=[float(w.metrics.get(model.step_metric, 0.0)) for w in windows],
+                       memory_bytes=recorder.memory, switch_s=recorder.switch, inventory=recorder.inventory)
+
+
+def run_probe(cfg, model: RunnerModel, probe: Probe, iterations: int = 4) -> ProbeResult:
+    """Run ``cfg`` shortened to ``iterations`` under ``probe``'s placement; measure it."""
+    run = measure_candidate(cfg, model, probe.candidate(tuple(cfg.components())), iterations, probe.name)
+    return ProbeResult(probe=probe, iterations=[model.measure(w, probe, cfg) for w in run.windows],
+                       step_s=run.step_s, memory_bytes=run.memory_bytes, switch_s=run.switch_s,
+                       inventory=run.inventory)
+
+
+# ----- fitting -----------------------------------------------------------------------------------
+
+
+def _median(values: list[float]) -> float:
+    return statistics.median(values) if values else 0.0
+
+
+def _fit_work(key: str, units: float, results: list[ProbeResult], components: tuple[str, ...]) -> dict[str, float]:
+    """per_unit_s from the one-rank probes (mean of their medians), comm_s from the others' excess."""
+    component = key.split("/", 1)[1]
+    by_ranks: dict[int, list[float]] = {}
+    for result in results:
+        ranks = result.probe.candidate(components).allocations[component].ranks
+        by_ranks.setdefault(ranks, []).append(_median([it[key] for it in result.iterations if key in it]))
+    single = by_ranks.pop(1, [])
+    per_unit = statistics.fmean(single) / units if single else 0.0
+    comm = [(s - per_unit * units / r) / max(r.bit_length() - 1, 1) for r, values in by_ranks.items()
+            for s in values]
+    if not single and comm:  # only multi-rank probes: attribute everything to the work
+        r, values = next(iter(by_ranks.items()))
+        return {"per_unit_s": statistics.fmean(values) * r / units, "comm_s": 0.0}
+    return {"per_unit_s": per_unit, "comm_s": max(0.0, statistics.fmean(comm)) if comm else 0.0}
+
+
+def fit(cfg, model: RunnerModel, results: list[ProbeResult], key: dict | None = None) -> Profile:
+    """One WorkCost per phase and component, the hop and the driver's overhead, from the probes."""
+    components = tuple(cfg.components())
+    units = model.units(cfg)
+    costs: dict[str, WorkCost] = {}
+    for phase in model.phases(cfg):
+        for component in phase.components:
+            name = f"{phase.name}/{component}"
+            work = _fit_work(name, units[component], results, components)
+            single = [r for r in results if r.probe.candidate(components).allocations[component].ranks == 1]
+            # The largest one-rank peak: a probe that ran the component inside another's process has none.
+            memory = max((r.memory_bytes.get(component, 0.0) for r in single or results), default=0.0)
+            switch = _median([r.switch_s.get(component, 0.0) for r in results])
+            costs[name] = WorkCost(per_unit_s=work["per_unit_s"], comm_s=work["comm_s"], switch_s=switch,
+                                   memory_fixed_bytes=memory)
+    hops = [it["hop"] for r in results for it in r.iterations if "hop" in it]
+    hop_s = _median(hops)
+    bare = Workload(runner=model.runner, phases=model.phases(cfg), units=units, costs=costs, hop_s=hop_s,
+                    offloads=model.offloads)
+    excess = [_median(r.step_s) - predict(bare, r.probe.candidate(components)).step_s for r in results]
+    return Profile(runner=model.runner, key=key or {}, costs=costs, overhead_s=max(0.0, _median(excess)),
+                   hop_s=hop_s, inventory=results[0].inventory if results else {}, probes=list(results))
+
+
+def workload_of(cfg, profile: Profile) -> Workload:
+    """The config's workload with the profile's measured costs (what :func:`~.cost.predict` reads)."""
+    model = RUNNER_MODELS.get(cfg.runner)
+    return Workload(runner=cfg.runner, phases=model.phases(cfg), units=model.units(cfg), costs=profile.costs,
+                    overhead_s=profile.overhead_s, hop_s=profile.hop_s, offloads=model.offloads)
+
+
+def load_or_profile(cfg, iterations: int = 4, cache_dir: str | None = None, refresh: bool = False,
+                    num_slots: int | None = None) -> Profile:
+    """The cached profile of ``cfg`` on this hardware, or a new one (probe runs, then cached).
+
+    ``num_slots``: devices (or CPU slots) the probes may use; default: the CPUs Ray would see."""
+    model = RUNNER_MODELS.get(cfg.runner)
+    key = profile_key(cfg, model)
+    path = cache_path(key, cache_dir)
+    if os.path.exists(path) and not refresh:
+        with open(path) as handle:
+            data = json.load(handle)
+        if data.get("format") == PROFILE_FORMAT and data.get("key") == key:
+            return Profile.from_dict(data)
+    slots = num_slots or cfg.cluster.num_cpus or len(os.sched_getaffinity(0))
+    rng = capture_rng_state()  # probe runs seed and draw; the run that asked must not notice
+    try:
+        results = [run_probe(cfg, model, probe, iterations) for probe in probe_candidates(model, slots)]
+    finally:
+        restore_rng_state(rng)
+    profile = fit(cfg, model, results, key)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    write_json_atomic(path, profile.to_dict())
+    return profile
+
+
+def profile_summary(profile: Profile) -> dict[str, Any]:
+    """The measured numbers a plan prints under its table."""
+    return {"probes": {r.probe.name: round(_median(r.step_s), 3) for r in profile.probes},
+            "overhead_s": round(profile.overhead_s, 4), "hop_s": round(profile.hop_s, 6)}

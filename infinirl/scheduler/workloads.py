@@ -1,0 +1,272 @@
+"""What the scheduler knows about each runner: its phases, units of work, depth knob and probes.
+
+One :class:`RunnerModel` per runner, registered by name (``RUNNER_MODELS``), so supporting a new
+runner is one entry here and no edit in the profiler, the cost model or the search:
+
+* ``phases(cfg)`` and ``units(cfg)``: the shape of one iteration (see :mod:`.cost`);
+* ``depths(cfg, candidate_ranks)``: the pipeline depths the config can run, and ``apply(cfg, candidate)``
+  writes a candidate into a config (placement and the runner's depth key);
+* ``check(cfg, candidate)``: the runner's own rules a placement must meet (paired ranks, divisibility);
+* ``probes``: the placements the profiler runs, and ``measure(window, probe)``: one iteration's
+  own seconds per ``"<phase>/<component>"``, read from the tracer's spans (a streamed phase's
+  span holds both sides, so the split uses the timings the components report with their result);
+* ``shorten(cfg, iterations)``: a profiling or measuring run of the same work, without evaluation
+  or checkpoints worth keeping; ``scale_batch(cfg, factor)``: the same run with ``factor`` times the
+  work per iteration (what a larger cluster is given).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from infinirl.registry import Registry
+from infinirl.scheduler.cost import Allocation, Candidate, Phase
+
+__all__ = ["RUNNER_MODELS", "Probe", "RunnerModel", "StepWindow", "probe_candidates"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class StepWindow:
+    """One iteration as the profiler saw it: per (component, method), each rank's summed span
+    seconds; per (component, method), the latest span end; the runner's metrics row."""
+
+    busy: dict[tuple[str, str], list[float]]
+    last_end: dict[tuple[str, str], float]
+    metrics: dict[str, Any]
+
+    def per_rank(self, component: str, method: str) -> float:
+        """Mean over ranks of a method's seconds in this iteration (ranks work side by side)."""
+        values = self.busy.get((component, method), [])
+        return sum(values) / len(values) if values else 0.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class Probe:
+    """A profiling placement: per component, (first device, device count), and the depth."""
+
+    name: str
+    devices: dict[str, tuple[int, int]]
+    depth: int = 1
+
+    def candidate(self, components: tuple[str, ...] | None = None) -> Candidate:
+        """The probe as a candidate, over ``components`` (default: every component it names)."""
+        names = components if components is not None else tuple(self.devices)
+        return Candidate(allocations={c: Allocation(first=self.devices[c][0], count=self.devices[c][1],
+                                                    ranks=self.devices[c][1]) for c in names},
+                         depth=self.depth)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunnerModel:
+    runner: str
+    step_metric: str
+    """The metrics key of one iteration's wall time."""
+    window_method: tuple[str, str]
+    """(component, method) whose calls on rank 0 start each iteration: the spans' step boundaries."""
+    phases: Callable[[Any], tuple[Phase, ...]]
+    units: Callable[[Any], dict[str, float]]
+    model_key: Callable[[Any], str]
+    depths: Callable[[Any, dict[str, int]], tuple[int, ...]]
+    check: Callable[[Any, Candidate], str | None]
+    apply: Callable[[Any, Candidate], None]
+    shorten: Callable[[Any, int], None]
+    scale_batch: Callable[[Any, int], None]
+    """Multiply one iteration's work by a factor (a simulated cluster plans for a larger batch)."""
+    probes: tuple[Probe, ...]
+    measure: Callable[[StepWindow, Probe, Any], dict[str, float]]
+    offloads: bool = False
+    """Whether the runner offloads a time-sharing component at each turn (``runtime.device_turn``).
+    The embodied and reasoning runners keep every component resident, so they pay no switch."""
+
+
+RUNNER_MODELS: Registry[RunnerModel] = Registry("runner model")
+
+
+def probe_candidates(model: RunnerModel, num_slots: int) -> tuple[Probe, ...]:
+    """The probes that fit on ``num_slots`` devices (one device: the collocated probe only)."""
+    return tuple(p for p in model.probes if all(f + n <= num_slots for f, n in p.devices.values()))
+
+
+# ----- embodied ----------------------------------------------------------------------------------
+
+
+def _embodied_phases(cfg) -> tuple[Phase, ...]:
+    return (Phase(name="collect", components=("env", "rollout"), pipelined=True, round_trips=cfg.rollout_steps + 1),
+            Phase(name="update", components=("actor",)))
+
+
+def _embodied_units(cfg) -> dict[str, float]:
+    decisions = float(cfg.env.num_envs * cfg.rollout_steps)
+    return {"env": decisions, "rollout": decisions, "actor": decisions}
+
+
+def _embodied_depths(cfg, ranks: dict[str, int]) -> tuple[int, ...]:
+    envs = cfg.env.num_envs
+    return tuple(k for k in (1, 2, 4) if envs % (ranks["env"] * k) == 0)
+
+
+def _embodied_check(cfg, candidate: Candidate) -> str | None:
+    a = candidate.allocations
+    if a["env"].ranks != a["rollout"].ranks:
+        return "env and rollout pair rank for rank"
+    if cfg.env.num_envs % (a["env"].ranks * candidate.depth):
+        return "env.num_envs is not divisible by env ranks x pipeline stages"
+    per_mini = cfg.env.num_envs * cfg.rollout_steps // cfg.algorithm.mini_batches
+    if per_mini % a["actor"].ranks:
+        return "a mini-batch does not split evenly over the actor's ranks"
+    if a["env"].overlaps(a["rollout"]) and candidate.depth > 1:
+        return "a collocated env steps its stages in turn: depth > 1 adds nothing"
+    return None
+
+
+def _embodied_apply(cfg, candidate: Candidate) -> None:
+    cfg.placement = candidate.placement()
+    cfg.rollout.pipeline_stages = candidate.depth
+    if candidate.allocations["env"].overlaps(candidate.allocations["rollout"]):
+        cfg.env.stage_processes = False
+
+
+def _embodied_shorten(cfg, iterations: int) -> None:
+    cfg.iterations = iterations
+    cfg.eval.every = 0
+    cfg.eval.at_start = False
+    cfg.eval.episodes = 1
+    cfg.eval.num_envs = 1
+    cfg.eval.video_episodes = 0
+    cfg.save_every = 0
+    cfg.loggers = []
+    cfg.resume = False
+
+
+def _embodied_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
+    collect = window.per_rank("rollout", "collect")
+    rollout_own = float(window.metrics.get("rollout/inference_s", 0.0)) + float(window.metrics.get("rollout/record_s",
+                                                                                                   0.0))
+    a = probe.candidate().allocations
+    out = {"update/actor": window.per_rank("actor", "update"), "collect/rollout": rollout_own}
+    if a["env"].overlaps(a["rollout"]):  # the env steps inside the rollout's collect call
+        out["collect/env"] = max(collect - rollout_own, 0.0)
+    else:
+        env_own = float(window.metrics.get("env/simulate_s", 0.0))
+        out["collect/env"] = env_own
+        trips = (cfg.rollout_steps + 1) * probe.depth
+        out["hop"] = max(collect - env_own - rollout_own, 0.0) / trips
+    return out
+
+
+RUNNER_MODELS.add("embodied", RunnerModel(
+    runner="embodied",
+    step_metric="time/iteration_s",
+    window_method=("rollout", "collect"),
+    phases=_embodied_phases,
+    units=_embodied_units,
+    model_key=lambda cfg: f"{cfg.policy.name}:{cfg.env.name}",
+    depths=_embodied_depths,
+    check=_embodied_check,
+    apply=_embodied_apply,
+    shorten=_embodied_shorten,
+    scale_batch=lambda cfg, factor: setattr(cfg.env, "num_envs", cfg.env.num_envs * factor),
+    probes=(Probe(name="collocated", devices={"env": (0, 1), "rollout": (0, 1), "actor": (0, 1)}),
+            Probe(name="two_ranks", devices={"env": (0, 2), "rollout": (0, 2), "actor": (0, 2)}),
+            Probe(name="streamed", devices={"env": (0, 1), "rollout": (1, 1), "actor": (0, 1)})),
+    measure=_embodied_measure,
+))
+
+
+# ----- reasoning ---------------------------------------------------------------------------------
+
+
+def _reasoning_needs_logprobs(cfg) -> bool:
+    algo = cfg.algorithm
+    return algo.mini_batches > 1 or algo.epochs > 1 or algo.kl_reward_coef > 0 or cfg.reference_mode == "actor_base"
+
+
+def _reasoning_phases(cfg) -> tuple[Phase, ...]:
+    phases = [Phase(name="generate", components=("rollout", "reward"), pipelined=True)]
+    scorers = (("actor",) if _reasoning_needs_logprobs(cfg) else ()) + tuple(
+        c for c in ("reference", "critic") if c in cfg.components())
+    if scorers:
+        phases.append(Phase(name="logprobs", components=scorers, concurrent=True))
+    trainers = ("actor", "critic") if "critic" in cfg.components() else ("actor",)
+    phases.append(Phase(name="train", components=trainers, concurrent=True))
+    return tuple(phases)
+
+
+def _reasoning_units(cfg) -> dict[str, float]:
+    samples = float(cfg.prompts_per_step * cfg.rollout.group_size)
+    return {name: samples for name in cfg.components()}
+
+
+def _reasoning_depths(cfg, ranks: dict[str, int]) -> tuple[int, ...]:
+    return tuple(k for k in (1, 2, 4) if cfg.prompts_per_step % (ranks["rollout"] * k) == 0)
+
+
+def _reasoning_check(cfg, candidate: Candidate) -> str | None:
+    a = candidate.allocations
+    if cfg.prompts_per_step % (a["rollout"].ranks * candidate.depth):
+        return "prompts_per_step does not split evenly into chunks over the rollout's ranks"
+    per_mini = cfg.prompts_per_step * cfg.rollout.group_size // cfg.algorithm.mini_batches
+    for trainer in ("actor", "critic"):
+        if trainer in a and per_mini < a[trainer].ranks:
+            return f"a mini-batch has fewer samples than the {trainer}'s ranks"
+    return None
+
+
+def _reasoning_apply(cfg, candidate: Candidate) -> None:
+    cfg.placement = candidate.placement()
+    ranks = candidate.allocations["rollout"].ranks
+    per_rank = math.ceil(cfg.prompts_per_step / ranks)
+    cfg.rollout.stream_chunk_prompts = 0 if candidate.depth == 1 else math.ceil(per_rank / candidate.depth)
+
+
+def _reasoning_shorten(cfg, iterations: int) -> None:
+    cfg.iterations = iterations
+    cfg.eval.every = 0
+    cfg.eval.at_start = False
+    cfg.task.eval_size = 0
+    cfg.save_every = 0
+    cfg.loggers = []
+    cfg.resume = False
+
+
+def _reasoning_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
+    out = {"generate/rollout": window.per_rank("rollout", "generate_to"),
+           "train/actor": window.per_rank("actor", "train_step")}
+    # The reward scores chunks as they arrive; what it adds after the last chunk is its own share.
+    drain = window.last_end.get(("reward", "score_stream"), 0.0) - window.last_end.get(("rollout", "generate_to"), 0.0)
+    chunks_per_reward_rank = probe.devices["rollout"][1] * probe.depth / probe.devices["reward"][1]
+    out["generate/reward"] = max(drain, 0.0) * chunks_per_reward_rank
+    if _reasoning_needs_logprobs(cfg):
+        out["logprobs/actor"] = window.per_rank("actor", "compute_logprobs") + window.per_rank(
+            "actor", "compute_ref_logprobs")
+    for name, methods in (("reference", ("compute_logprobs",)), ("critic", ("compute_values",))):
+        if name in cfg.components():
+            out[f"logprobs/{name}"] = sum(window.per_rank(name, m) for m in methods)
+    if "critic" in cfg.components():
+        out["train/critic"] = window.per_rank("critic", "train_step")
+    return out
+
+
+def _reasoning_probe_devices(width: int) -> dict[str, tuple[int, int]]:
+    return {name: (0, width) for name in ("actor", "rollout", "reward", "critic", "reference")}
+
+
+RUNNER_MODELS.add("reasoning", RunnerModel(
+    runner="reasoning",
+    step_metric="time/step_s",
+    window_method=("rollout", "generate_to"),
+    phases=_reasoning_phases,
+    units=_reasoning_units,
+    model_key=lambda cfg: cfg.model.path,
+    depths=_reasoning_depths,
+    check=_reasoning_check,
+    apply=_reasoning_apply,
+    shorten=_reasoning_shorten,
+    scale_batch=lambda cfg, factor: setattr(cfg, "prompts_per_step", cfg.prompts_per_step * factor),
+    probes=(Probe(name="collocated", devices=_reasoning_probe_devices(1)),
+            Probe(name="two_ranks", devices=_reasoning_probe_devices(2))),
+    measure=_reasoning_measure,
+))

@@ -1,0 +1,102 @@
+"""Profiling without Ray: spans cut into iterations, costs fitted from probes, the cache."""
+
+import json
+
+import pytest
+
+from infinirl.cli import build_config
+from infinirl.runtime import ClusterInventory
+from infinirl.scheduler import profile as profiling
+from infinirl.scheduler.cost import predict
+from infinirl.scheduler.profile import ProbeResult, config_hash, fit, load_or_profile, step_windows, workload_of
+from infinirl.scheduler.workloads import RUNNER_MODELS
+
+
+@pytest.fixture(scope="module")
+def embodied_cfg():
+    return build_config("ppo_metaworld_reach", ["env.num_envs=4", "rollout_steps=10", "algorithm.mini_batches=2"])[1]
+
+
+def test_spans_are_cut_at_each_iteration_and_paired_with_metrics():
+    model = RUNNER_MODELS.get("embodied")
+    spans = []
+    for i in range(3):  # iteration i starts at 10 i: collect 4 s on rank 0, update 1 s on ranks 0 and 1
+        t = 10.0 * i
+        spans += [("rollout", 0, "collect", t, t + 4.0, True), ("actor", 0, "update", t + 5, t + 6, True),
+                  ("actor", 1, "update", t + 5, t + 6.5, True), ("rollout", 0, "evaluate", t + 7, t + 8, True)]
+    rows = [{"step": i + 1, "time/iteration_s": 9.0 + i, "rollout/inference_s": 1.0} for i in range(3)]
+    windows = step_windows(spans, rows, model, iterations=3)
+    assert len(windows) == 3
+    assert windows[1].per_rank("rollout", "collect") == pytest.approx(4.0)
+    assert windows[1].per_rank("actor", "update") == pytest.approx(1.25)  # ranks work side by side: their mean
+    assert windows[2].metrics["time/iteration_s"] == 11.0
+    assert windows[0].last_end[("actor", "update")] == pytest.approx(6.5)
+
+
+def _result(model, cfg, probe_name, per_iteration, step_s, memory=0.0):
+    probe = next(p for p in model.probes if p.name == probe_name)
+    return ProbeResult(probe=probe, iterations=[per_iteration] * 3, step_s=[step_s] * 3,
+                       memory_bytes={"rollout": memory, "actor": memory, "env": memory},
+                       switch_s={"actor": 0.01}, inventory=ClusterInventory.cpu_only(1, 2).to_dict())
+
+
+def test_fit_recovers_the_costs_that_made_the_measurements(embodied_cfg):
+    """Measurements made by known costs (env 2 ms, rollout 1 ms, actor 0.5 ms per decision; a
+    second actor rank costs 0.3 s; a hop 1 ms; the driver 0.4 s) come back out of the fit."""
+    model, cfg = RUNNER_MODELS.get("embodied"), embodied_cfg
+    units = 40.0
+    env, rollout, actor, hop, overhead = 0.002 * units, 0.001 * units, 0.0005 * units, 0.001, 0.4
+    trips = cfg.rollout_steps + 1
+    results = [
+        _result(model, cfg, "collocated", {"collect/env": env, "collect/rollout": rollout, "update/actor": actor},
+                env + rollout + actor + overhead, memory=1e9),
+        _result(model, cfg, "two_ranks",
+                {"collect/env": env / 2, "collect/rollout": rollout / 2, "update/actor": actor / 2 + 0.3},
+                (env + rollout) / 2 + actor / 2 + 0.3 + overhead),
+        _result(model, cfg, "streamed", {"collect/env": env, "collect/rollout": rollout, "update/actor": actor,
+                                         "hop": hop}, env + rollout + hop * trips + actor + overhead),
+    ]
+    profile = fit(cfg, model, results)
+    assert profile.costs["collect/env"].per_unit_s == pytest.approx(0.002)
+    assert profile.costs["update/actor"].per_unit_s == pytest.approx(0.0005)
+    assert profile.costs["update/actor"].comm_s == pytest.approx(0.3)
+    assert profile.costs["collect/rollout"].comm_s == pytest.approx(0.0)
+    assert profile.costs["update/actor"].memory_fixed_bytes == pytest.approx(1e9)
+    assert profile.costs["update/actor"].switch_s == pytest.approx(0.01)
+    assert profile.hop_s == pytest.approx(hop)
+    # the embodied runner keeps its components resident: the measured offload is no part of a step
+    assert profile.overhead_s == pytest.approx(overhead)
+    workload = workload_of(cfg, profile)
+    components = tuple(cfg.components())
+    for result in results:  # every probe is predicted as it was measured
+        assert predict(workload, result.probe.candidate(components)).step_s == pytest.approx(result.step_s[0])
+
+
+def test_config_hash_ignores_placement_and_length_not_the_work():
+    base = build_config("ppo_metaworld_reach", [])[1]
+    same = build_config("ppo_metaworld_reach", ["placement.rollout=1", "iterations=3", "rollout.pipeline_stages=2",
+                                                "output_dir=/tmp/elsewhere", "eval.every=1"])[1]
+    other = build_config("ppo_metaworld_reach", ["env.num_envs=32"])[1]
+    assert config_hash(base) == config_hash(same)
+    assert config_hash(base) != config_hash(other)
+
+
+def test_a_cached_profile_is_read_without_running(tmp_path, monkeypatch, embodied_cfg):
+    model, cfg = RUNNER_MODELS.get("embodied"), embodied_cfg
+    results = [_result(model, cfg, "collocated", {"collect/env": 0.1, "collect/rollout": 0.05, "update/actor": 0.02},
+                       0.2)]
+    key = profiling.profile_key(cfg, model)
+    path = profiling.cache_path(key, str(tmp_path))
+    (tmp_path / path.rsplit("/", 1)[1]).write_text(json.dumps(fit(cfg, model, results, key).to_dict()))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a cached profile must not be measured again")
+
+    monkeypatch.setattr(profiling, "run_probe", refuse)
+    loaded = load_or_profile(cfg, cache_dir=str(tmp_path))
+    assert loaded.key == key
+    assert loaded.costs["collect/env"].per_unit_s == pytest.approx(0.1 / 40)
+    changed = build_config("ppo_metaworld_reach", ["env.num_envs=8", "rollout_steps=10",
+                                                   "algorithm.mini_batches=2"])[1]
+    with pytest.raises(AssertionError, match="measured again"):
+        load_or_profile(changed, cache_dir=str(tmp_path))

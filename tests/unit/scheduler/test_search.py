@@ -1,0 +1,135 @@
+"""The search on this machine's kind of cluster and on simulated ones of 8 to 1,024 GPUs."""
+
+import pytest
+
+from infinirl.cli import build_config
+from infinirl.runtime import ClusterInventory, place
+from infinirl.runtime.inventory import GiB
+from infinirl.scheduler.cost import WorkCost, predict
+from infinirl.scheduler.profile import Profile, workload_of
+from infinirl.scheduler.search import candidate_layouts, pool_of, search
+from infinirl.scheduler.simulate import scaled_config, simulated_plan
+from infinirl.scheduler.workloads import RUNNER_MODELS
+
+
+def _profile(runner, costs, overhead_s=0.1, hop_s=1e-4, inventory=None):
+    return Profile(runner=runner, key={}, costs=costs, overhead_s=overhead_s, hop_s=hop_s,
+                   inventory=(inventory or ClusterInventory.cpu_only(1, 2)).to_dict(), probes=[])
+
+
+@pytest.fixture(scope="module")
+def embodied():
+    cfg = build_config("ppo_metaworld_reach", [])[1]
+    gib = float(GiB)
+    costs = {"collect/env": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=0.3 * gib),
+             "collect/rollout": WorkCost(per_unit_s=4e-4, memory_fixed_bytes=0.4 * gib),
+             "update/actor": WorkCost(per_unit_s=5e-4, comm_s=0.2, memory_fixed_bytes=0.7 * gib)}
+    return cfg, _profile("embodied", costs)
+
+
+@pytest.fixture(scope="module")
+def reasoning():
+    cfg = build_config("grpo_chain_sum", [])[1]
+    gib = float(GiB)
+    costs = {"generate/rollout": WorkCost(per_unit_s=0.2, comm_s=0.5, memory_fixed_bytes=1.0 * gib),
+             "generate/reward": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=0.5 * gib),
+             "train/actor": WorkCost(per_unit_s=0.1, comm_s=1.0, memory_fixed_bytes=2.0 * gib)}
+    return cfg, _profile("reasoning", costs)
+
+
+def _valid(cfg, entry, inventory):
+    """Every component placed, by a spec place() accepts, with the ranks the candidate counted."""
+    plan = place(inventory, entry.placement, components=cfg.components())
+    assert set(plan.components) == set(cfg.components())
+    for name, allocation in entry.candidate.allocations.items():
+        assert plan.world_size(name) == allocation.ranks
+    assert entry.memory_bytes <= entry.memory_limit_bytes
+
+
+@pytest.mark.parametrize("fixture", ["embodied", "reasoning"])
+def test_every_candidate_on_two_cpu_slots_is_valid_and_the_first_is_the_fastest(fixture, request):
+    cfg, profile = request.getfixturevalue(fixture)
+    inventory = ClusterInventory.cpu_only(1, 2)
+    model = RUNNER_MODELS.get(cfg.runner)
+    entries = search(cfg, model, workload_of(cfg, profile), inventory)
+    assert len(entries) >= 4
+    for entry in entries:
+        _valid(cfg, entry, inventory)
+        assert model.check(cfg, entry.candidate) is None
+    times = [e.prediction.step_s for e in entries]
+    assert times == sorted(times)
+    # brute force over every layout and depth: nothing valid beats the first entry
+    workload = workload_of(cfg, profile)
+    from infinirl.scheduler.cost import Candidate
+
+    best = min(predict(workload, Candidate(allocations=layout, depth=d)).step_s
+               for layout in candidate_layouts(tuple(cfg.components()), 2)
+               for d in model.depths(cfg, {n: a.ranks for n, a in layout.items()})
+               if model.check(cfg, Candidate(allocations=layout, depth=d)) is None)
+    assert times[0] == pytest.approx(best)
+
+
+def test_the_embodied_search_covers_every_execution_mode(embodied):
+    cfg, profile = embodied
+    three = ClusterInventory.cpu_only(1, 3)  # three components apart need three slots
+    entries = search(cfg, RUNNER_MODELS.get("embodied"), workload_of(cfg, profile), three)
+    modes = {place(three, e.placement).mode for e in entries}
+    assert modes == {"collocated", "disaggregated", "hybrid"}
+    assert {e.candidate.depth for e in entries} == {1, 2, 4}
+    # a streamed env with 2 stages overlaps simulation and inference: predicted faster than 1 stage
+    by_key = {(tuple(sorted(e.placement.items())), e.candidate.depth): e.prediction.step_s for e in entries}
+    streamed = tuple(sorted({"env": "0", "rollout": "1", "actor": "0"}.items()))
+    assert by_key[(streamed, 2)] < by_key[(streamed, 1)]
+
+
+def test_memory_rules_out_collocating_what_does_not_fit(embodied):
+    cfg, profile = embodied
+    model = RUNNER_MODELS.get("embodied")
+    workload = workload_of(cfg, profile)
+    # GPUs of 1 GiB: env (0.3) + rollout (0.4) fit together, the actor (0.7) with the rollout does not
+    inventory = ClusterInventory.with_gpus(1, 4, gpu_memory_bytes=GiB)
+    entries = search(cfg, model, workload, inventory)
+    assert entries
+    for entry in entries:
+        a = entry.candidate.allocations
+        assert not a["actor"].overlaps(a["rollout"])
+        assert entry.memory_bytes <= GiB
+    roomy = search(cfg, model, workload, ClusterInventory.with_gpus(1, 4, gpu_memory_bytes=8 * GiB))
+    assert any(e.candidate.allocations["actor"].overlaps(e.candidate.allocations["rollout"]) for e in roomy)
+
+
+def test_cpu_slots_share_their_node_memory(embodied):
+    cfg, profile = embodied
+    tight = ClusterInventory.from_dict({"nodes": [{**ClusterInventory.cpu_only(1, 2).to_dict()["nodes"][0],
+                                                   "memory_bytes": int(1.5 * GiB)}]})
+    assert pool_of(tight).on_cpu
+    entries = search(cfg, RUNNER_MODELS.get("embodied"), workload_of(cfg, profile), tight)
+    # 1.4 GiB for one rank of each; two env/rollout ranks (2 x 0.7 GiB) and an actor do not fit
+    assert entries and all(e.candidate.allocations["rollout"].ranks == 1 for e in entries)
+
+
+@pytest.mark.parametrize("num_gpus", [8, 64, 1024])
+@pytest.mark.parametrize("fixture", ["embodied", "reasoning"])
+def test_simulated_clusters_plan_valid_placements_within_memory(fixture, num_gpus, request):
+    cfg, profile = request.getfixturevalue(fixture)
+    inventory, entries = simulated_plan(cfg, profile, num_gpus, speedup=20.0, gpu_memory_bytes=80 * GiB)
+    assert entries
+    scaled = scaled_config(cfg, num_gpus)
+    model = RUNNER_MODELS.get(cfg.runner)
+    for entry in entries[:3]:
+        _valid(scaled, entry, inventory)
+        assert model.check(scaled, entry.candidate) is None
+    assert all(e.memory_bytes <= 80 * GiB for e in entries)
+    best = entries[0].candidate.allocations
+    assert max(a.first + a.count for a in best.values()) <= num_gpus
+
+
+def test_simulated_memory_limit_is_respected(reasoning):
+    cfg, profile = reasoning
+    # 2.5 GiB GPUs: the actor (2 GiB) cannot share a GPU with the rollout (1 GiB)
+    _, entries = simulated_plan(cfg, profile, 64, gpu_memory_bytes=int(2.5 * GiB))
+    assert entries
+    for entry in entries:
+        a = entry.candidate.allocations
+        assert not a["actor"].overlaps(a["rollout"])
+        assert entry.memory_bytes <= 2.5 * GiB
