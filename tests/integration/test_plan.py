@@ -18,6 +18,7 @@ def profile_cache(tmp_path, monkeypatch):
     return folder
 
 
+@pytest.mark.slow  # profiles and runs a config several times; the planner's parts have unit tests
 def test_plan_profiles_once_then_reads_the_cache_and_auto_runs_the_best(tmp_path, profile_cache, monkeypatch,
                                                                         capsys):
     from infinirl.cli import main

@@ -5,10 +5,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[2]
 README = (REPO / "README.md").read_text()
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_concepts_example_runs_as_written():
     from infinirl.runtime.worker import CRASH_LOG_DIR
 

@@ -97,6 +97,7 @@ def test_ppo_with_critic_and_reference_resumes_exactly(ray_cluster, tiny_llama_d
         assert resumed_row[key] == pytest.approx(rows[3][key], abs=1e-7), key
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_ppo_with_a_lora_actor_scores_kl_against_its_base(ray_cluster, tiny_llama_dir, tmp_path):
     """PPO end to end in one short run: critic + GAE, KL as loss term and reward penalty, and
     reference.mode=auto with a LoRA actor, i.e. the actor's base with the adapter off (no
@@ -188,6 +189,7 @@ def test_asynchronous_eta_1_trains_one_version_stale_corrected_and_resumes_exact
     assert [r["rollout/reward_mean"] for r in resumed_rows] == [r["rollout/reward_mean"] for r in rows]
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_partial_rollouts_train_within_the_bound_and_log_per_token_staleness(ray_cluster, tiny_llama_dir, tmp_path):
     """Where a weight update lands in a generation depends on timing (the engine test pins the
     switch itself); here the run trains, every sample stays within the bound, and tokens are never

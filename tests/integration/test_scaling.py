@@ -86,6 +86,7 @@ def test_env_scales_1_2_1_mid_training_with_every_sample_complete(ray_cluster, t
     assert scaled["actor_weights_sha256"] == fixed["actor_weights_sha256"]
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_a_command_the_layout_cannot_take_is_refused_and_the_run_goes_on(ray_cluster, tmp_path):
     out = tmp_path / "run"
     errors: list = []
@@ -99,6 +100,7 @@ def test_a_command_the_layout_cannot_take_is_refused_and_the_run_goes_on(ray_clu
     assert all(int(r["env/ranks"]) == 1 for r in rows_of(out) if r["step"] > 0)
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_the_busy_ratio_policy_grows_the_env_when_it_is_the_bottleneck(ray_cluster, tmp_path):
     # grow_above=0.01 makes every iteration's env the bottleneck: after `patience` iterations, a rank more
     out = tmp_path / "run"

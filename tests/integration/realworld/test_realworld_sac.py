@@ -74,6 +74,7 @@ def test_async_run_streams_versioned_episodes_and_resumes_with_the_store(ray_clu
     assert resumed_rows[1]["train/updates"] >= rows[0]["train/updates"]  # updates continue from the checkpoint
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_sync_mode_collects_then_updates_with_no_staleness(ray_cluster, tmp_path):
     summary = run(make_cfg(tmp_path / "sync", 1, pipeline={"mode": "sync", "iteration_s": 3.0, "max_staleness": 0,
                                                             "staleness_action": "drop", "durable": False},

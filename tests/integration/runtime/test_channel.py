@@ -252,6 +252,7 @@ class Consumer(Worker):
                 return got
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_many_producers_consumers_nothing_lost_nothing_duplicated(ray_cluster):
     ch = fresh(maxsize=500)
     producers = WorkerGroup.launch(Producer, "producer", num_ranks=4)

@@ -68,6 +68,7 @@ def _peer_roles(ch: Channel) -> dict:
     return {name: peer for name, peer in ch.info()["peers"].items() if name.startswith("peer[")}
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_getters_learn_that_every_producer_died(ray_cluster, deliberate_deaths):
     ch = fresh()
     prefetching = fresh(prefetch=4)  # its gets take several items per call (get_many)
@@ -95,6 +96,7 @@ def test_getters_learn_that_every_producer_died(ray_cluster, deliberate_deaths):
         group.shutdown()
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_a_producer_that_never_put_anything_is_watched_too(ray_cluster, deliberate_deaths):
     ch = fresh()
     group = WorkerGroup.launch(Peer, "peer", num_ranks=1)
@@ -108,6 +110,7 @@ def test_a_producer_that_never_put_anything_is_watched_too(ray_cluster, delibera
         group.shutdown()
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_a_producer_waiting_for_space_learns_that_every_consumer_died(ray_cluster, deliberate_deaths):
     ch = fresh(maxsize=1)
     group = WorkerGroup.launch(Peer, "peer", num_ranks=1)
@@ -126,6 +129,7 @@ def test_a_producer_waiting_for_space_learns_that_every_consumer_died(ray_cluste
         group.shutdown()
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_a_dead_consumers_pending_get_takes_nothing(ray_cluster, deliberate_deaths):
     """The get a consumer had pending when it died must not take the next item: nobody would
     receive it."""

@@ -72,6 +72,7 @@ def test_a_cluster_we_start_keeps_no_idle_worker_processes(ray_cluster):
     assert not _idle_pool_workers()
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_multinode_placement_on_simulated_cluster():
     out = run_scenario("multinode.py")
     assert out["num_nodes"] == 3 and out["cpus"] == [1, 2, 2]
@@ -80,6 +81,7 @@ def test_multinode_placement_on_simulated_cluster():
     assert len(set(out["expected"]["actor"])) == 1 and out["expected"]["actor"][0] != out["expected"]["env"][0]
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_shutdown_leaves_no_process():
     out = run_scenario("lifecycle.py")
     pids = out["workers"] + out["ray"]
@@ -119,6 +121,7 @@ class Idle(Worker):
     pass
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_the_next_launch_removes_crash_logs_of_a_killed_driver_and_keeps_live_ones(ray_cluster, deliberate_deaths):
     """A driver killed with SIGKILL never shuts its groups down: its ranks' (crash-free) logs would
     stay in the temp dir for good. The next launch on the host removes them, and only them."""

@@ -161,6 +161,7 @@ def test_handle_done_and_timeout(ray_cluster):
         group.shutdown()
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_cancel_frees_ranks_blocked_in_a_channel_for_later_calls(ray_cluster):
     """A call that can never finish (its producer is gone) is cancelled; the calls queued behind
     it on the same ranks run, and the cancelled gets took nothing from the channel."""
@@ -239,6 +240,7 @@ def test_exception_names_component_rank_node_and_traceback(ray_cluster):
         group.shutdown()
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_init_failure_is_reported_with_rank(ray_cluster):
     from infinirl.runtime.worker import CRASH_LOG_DIR
 
@@ -308,6 +310,7 @@ def test_a_segfault_is_reported_with_the_python_stack_of_the_crash(ray_cluster, 
         _remove_crash_logs(group)
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
 def test_a_restarted_rank_that_crashes_again_is_reported_with_its_own_crash(ray_cluster, deliberate_deaths):
     """The crash log quoted is the one of the process that died last, not of the first one."""
     group = WorkerGroup.launch(Segfaults, "sim2", num_ranks=1, restart=RestartPolicy(max_restarts=1, retry_calls=False))
