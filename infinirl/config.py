@@ -14,6 +14,7 @@ import math
 import sys
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import MISSING
 from pathlib import Path
 from typing import Any, Literal
@@ -283,7 +284,7 @@ def _convert_union(tp: Any, value: Any, path: str) -> Any:
     args = typing.get_args(tp)
     if value is None and type(None) in args:
         return None
-    errors = []
+    errors, same_shape = [], []
     for arg in args:
         if arg is type(None):
             continue
@@ -291,7 +292,20 @@ def _convert_union(tp: Any, value: Any, path: str) -> Any:
             return _convert(arg, value, path)
         except ConfigError as exc:
             errors.append(str(exc))
-    raise ConfigError(errors[0] if len(errors) == 1 else f"{path}: {value!r} matches none of {tp}")
+            if _same_shape(arg, value):  # a mapping given for a mapping member: its error is the useful one
+                same_shape.append(str(exc))
+    if len(errors) == 1 or len(same_shape) == 1:
+        raise ConfigError((same_shape or errors)[0])
+    raise ConfigError(f"{path}: {value!r} matches none of {tp}")
+
+
+def _same_shape(tp: Any, value: Any) -> bool:
+    origin = typing.get_origin(tp) or tp
+    if isinstance(value, Mapping):
+        return origin is dict
+    if isinstance(value, (list, tuple)):
+        return origin in (list, tuple)
+    return False
 
 
 def _convert_literal(tp: Any, value: Any, path: str) -> Any:

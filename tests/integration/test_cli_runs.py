@@ -1,5 +1,9 @@
 """The command line as a user runs it: its own process, its own Ray."""
 
+import pytest
+
+
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow
 def test_runtime_demo_cli_trains_end_to_end(tmp_path):
     """`infinirl train runtime_demo` as a user runs it (own process, own Ray): the loss falls, trace is written."""
     import json

@@ -38,7 +38,8 @@ def rows_of(path):
     return [json.loads(line) for line in path.read_text().splitlines()]
 
 
-@pytest.mark.parametrize("collect_ahead", [False, True], ids=["sequential", "collect_ahead"])
+@pytest.mark.parametrize("collect_ahead", [False, pytest.param(True, marks=pytest.mark.slow)],  # budget
+                         ids=["sequential", "collect_ahead"])
 def test_runs_and_resumes_exactly(ray_cluster, tmp_path, collect_ahead):
     video = {"video_episodes": 1, "video_max_steps": 8, "video_frame_skip": 1,
              "video_env_kwargs": {"width": 64, "height": 64}}

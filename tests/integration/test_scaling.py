@@ -60,6 +60,7 @@ def send_commands(output_dir, commands: list[tuple[int, dict]], errors: list) ->
         errors.append(exc)
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow
 def test_env_scales_1_2_1_mid_training_with_every_sample_complete(ray_cluster, tmp_path):
     scaled_dir = tmp_path / "scaled"
     errors: list = []

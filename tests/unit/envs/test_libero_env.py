@@ -72,6 +72,7 @@ def _recorded(result: tuple, raw_observations: list) -> tuple:
     return result
 
 
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow
 def test_two_envs_reset_from_one_state_id_start_identically(scenes):
     """A second env reset from state 0 starts bit-identical to the first env's reset, also after
     an episode from another state (which starts elsewhere): the fixtures, which the init state
