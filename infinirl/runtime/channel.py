@@ -40,7 +40,7 @@ import ray
 from infinirl.runtime import cancellation, processes
 from infinirl.runtime.channel_actor import ChannelActor
 from infinirl.runtime.errors import CallCancelled, ChannelClosed, ChannelError
-from infinirl.runtime.payload import tensor_bytes
+from infinirl.runtime.payload import tensor_bytes, unbox
 from infinirl.runtime.ray_defaults import NAMESPACE
 from infinirl.runtime.transport import (
     INLINE_LIMIT_BYTES,
@@ -185,8 +185,9 @@ class Channel:
             buffered = self._prefetched.setdefault(key, deque())
             if not buffered:
                 taken = self._get(self._actor.get_many, key, os.getpid(), _peer_id(), self.prefetch, timeout)
-                buffered.extend(unpack_many([envelope for envelope, _ in taken]))
-            return buffered.popleft()
+                buffered.extend(_prefetch_entries(taken))
+            envelope, _, value = buffered.popleft()
+            return unpack(envelope) if value is _UNREAD else value
         envelope, _ = self._get(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope)
 
@@ -207,6 +208,18 @@ class Channel:
         self._register("consumer")
         taken = self._get(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
         return unpack_many([envelope for envelope, _ in taken])
+
+    def give_back_prefetched(self) -> int:
+        """Return the items ``get`` prefetched but did not hand out yet to the front of their
+        queues, for other consumers; a consumer that stops getting before the channel ends calls
+        this so that nothing stays stranded in it. Returns how many items went back."""
+        returned = 0
+        for key, buffered in self._prefetched.items():
+            if buffered:
+                self._call(self._actor.give_back.remote(key, [(e, w) for e, w, _ in buffered]))
+                returned += len(buffered)
+                buffered.clear()
+        return returned
 
     def close(self) -> None:
         self.flush()
@@ -385,6 +398,20 @@ class Channel:
 
     def _gone(self) -> ChannelError:
         return ChannelError(f"channel '{self.name}' is gone: its actor was destroyed or died")
+
+
+_UNREAD = object()
+
+
+def _prefetch_entries(taken: list) -> list[tuple]:
+    """``(envelope, weight, value)`` for items a prefetching get took. Object-store payloads are
+    fetched now, in one ``ray.get`` (their envelopes stay valid, so they can still be given back);
+    the others are unpacked only when handed out, because unpacking consumes them (a same-process
+    item, a p2p receive) or maps memory that a given-back item must not keep."""
+    refs = [envelope.body[0] for envelope, _ in taken if envelope.path == "object_store"]
+    fetched = iter(ray.get(refs)) if refs else iter(())
+    return [(envelope, weight, unbox(next(fetched)) if envelope.path == "object_store" else _UNREAD)
+            for envelope, weight in taken]
 
 
 def _wait_get(ref, on_cancel):

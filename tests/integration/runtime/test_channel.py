@@ -374,6 +374,12 @@ def test_pipelined_puts_keep_order_and_backpressure(ray_cluster):
         for i in range(20):
             reader.put(i)
         assert [reader.get() for _ in range(20)] == list(range(20))  # prefetched, in order
+        for i in range(5):
+            reader.put(i, key="stop-early")
+        assert reader.get(key="stop-early") == 0  # took all 5; 4 wait in this client's buffer
+        assert reader.give_back_prefetched() == 4
+        other = Channel.connect(reader.name)  # another consumer finds them, in order
+        assert [other.get(key="stop-early", timeout=30) for _ in range(4)] == [1, 2, 3, 4]
         assert Channel.connect(reader.name).prefetch == 8
         reader.close()
         with pytest.raises(ChannelClosed):

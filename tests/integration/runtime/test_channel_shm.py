@@ -75,6 +75,7 @@ class Consumer(Worker):
                 item["f32"].add_(1.0)  # the consumer owns the item: writable, in place
                 assert torch.equal(item["f32"], payload(i)["f32"] + 1.0)
                 seen.append(i)
+        ch.give_back_prefetched()  # the other consumer needs whatever this one took ahead
         return seen
 
     def forget_and_report_maps(self) -> list[str]:
