@@ -17,12 +17,18 @@ and the training time until it first reaches the synchronous run's final value.
 
     python benchmarks/async_vs_sync.py                                   # both jobs, full length
     python benchmarks/async_vs_sync.py --jobs grpo --iterations 6 --rows sync,eta1   # a quick look
+    python benchmarks/async_vs_sync.py --jobs grpo --rows sync,eta1 --seeds 1,2,3    # accuracy over seeds
+
+With ``--seeds``, every row runs once per seed (``seed=`` also draws the held-out set, so each
+seed's rows are compared on the same questions); training times are summed over the seeds, the
+held-out gap is the mean of the per-seed gaps, and each seed's results are listed.
 
 Last stdout line: {"benchmark": "async_vs_sync", "ratios": {"grpo_async_vs_sync": sync training
 time / eta=1 training time (same samples: the throughput ratio), "grpo_async2_vs_sync": eta=2's,
 "grpo_async_partial_vs_sync" / "grpo_async2_partial_vs_sync": with partial rollouts, "ppo_async_vs_sync",
 "ppo_async2_vs_sync"},
-"metric_gap_points": {job: {row: sync final - row final, in points}}, "targets": ..., "results": {job: {row: ...}}}.
+"metric_gap_points": {job: {row: sync final - row final, in points (mean over seeds)}}, "targets": ...,
+"results": {job: {row: ...}} (with several seeds: {job: {row: {"seed=N": ...}}})}.
 """
 
 from __future__ import annotations
@@ -75,9 +81,12 @@ JOBS = {
 }
 
 
-def overrides(job: Job, row: str, iterations: int | None, out: str, async_threads: tuple[int, int]) -> list[str]:
+def overrides(job: Job, row: str, iterations: int | None, out: str, async_threads: tuple[int, int],
+              seed: int | None = None) -> list[str]:
     args = [f"eval.every={job.eval_every}", f"output_dir={out}", "resume=false", "loggers=[]",
             "save_every=100000", "cluster.log_to_driver=false", "eval.video_episodes=0"]
+    if seed is not None:
+        args.append(f"seed={seed}")
     if iterations:
         args.append(f"iterations={iterations}")
     if job.config == "grpo_arithmetic":
@@ -117,6 +126,12 @@ def summarise(job: Job, out: str) -> dict:
     }
 
 
+def seed_total(runs: dict, key: str) -> float | None:
+    """``key`` summed over a row's seeds; None if any seed's run has none (failed or skipped)."""
+    values = [res.get(key) for res in runs.values()]
+    return sum(values) if values and all(v for v in values) else None
+
+
 def time_to(curve: list[dict], value: float) -> float | None:
     """Training seconds until the held-out metric first reaches ``value``."""
     return next((point["train_s"] for point in curve if point["metric"] >= value - 1e-9), None)
@@ -130,6 +145,8 @@ def main() -> int:
     parser.add_argument("--async-threads", default="1,1",
                         help="grpo: torch threads of the actor and of the rollout in the asynchronous rows (they run "
                              "at the same time; the synchronous row keeps the job's 2 and 2, used one after the other)")
+    parser.add_argument("--seeds", default="",
+                        help="comma-separated seeds: each row runs once per seed (default: the config's seed)")
     add_record_argument(parser)
     args = parser.parse_args()
     jobs = [j.strip() for j in args.jobs.split(",") if j.strip()]
@@ -139,38 +156,49 @@ def main() -> int:
         if unknown:
             parser.error(f"{option}: unknown {unknown}; choose from {', '.join(known)}")
     async_threads = tuple(int(x) for x in args.async_threads.split(","))
+    seeds = [int(x) for x in args.seeds.split(",") if x.strip()] or [None]
     results: dict = {}
     ratios, gaps, to_final = {}, {}, {}
     for name in jobs:
         job, results[name] = JOBS[name], {}
-        for row in wanted:
-            if ROWS[row].partial_rollout and not job.threads:
-                results[name][row] = {"skipped": "partial rollouts interrupt language-model generation only"}
-                continue
-            out = tempfile.mkdtemp(prefix=f"bench-async-{name}-{row}-")
-            command = [sys.executable, "-m", "infinirl.cli", "train", job.config,
-                       *overrides(job, row, args.iterations, out, async_threads)]
-            start = time.perf_counter()
-            proc = subprocess.run(command, capture_output=True, text=True)
-            failed = {"failed": f"exit {proc.returncode}: {proc.stderr[-1500:]}"}
-            res = failed if proc.returncode else summarise(job, out)
-            res["wall_s"] = round(time.perf_counter() - start, 1)
-            res["command"] = "infinirl " + " ".join(command[3:])
-            results[name][row] = res
-            print(f"[{name} {row}] {json.dumps(res)[:600]}", file=sys.stderr, flush=True)
-        sync = results[name].get("sync", {})
-        for row, res in results[name].items():
-            if row != "sync" and sync.get("train_s") and res.get("train_s"):
-                # same samples: the throughput ratio
-                ratios[ROWS[row].ratio_key(name)] = round(sync["train_s"] / res["train_s"], 3)
-            if sync.get("final_metric") is not None and res.get("final_metric") is not None:
-                gaps.setdefault(name, {})[row] = round(100 * (sync["final_metric"] - res["final_metric"]), 1)
-                to_final.setdefault(name, {})[row] = time_to(res["eval"], sync["final_metric"])
+        per_seed: dict = {}
+        for seed in seeds:
+            for row in wanted:
+                if ROWS[row].partial_rollout and not job.threads:
+                    skipped = "partial rollouts interrupt language-model generation only"
+                    per_seed.setdefault(row, {})[seed] = {"skipped": skipped}
+                    continue
+                out = tempfile.mkdtemp(prefix=f"bench-async-{name}-{row}-")
+                command = [sys.executable, "-m", "infinirl.cli", "train", job.config,
+                           *overrides(job, row, args.iterations, out, async_threads, seed)]
+                start = time.perf_counter()
+                proc = subprocess.run(command, capture_output=True, text=True)
+                failed = {"failed": f"exit {proc.returncode}: {proc.stderr[-1500:]}"}
+                res = failed if proc.returncode else summarise(job, out)
+                res["wall_s"] = round(time.perf_counter() - start, 1)
+                res["command"] = "infinirl " + " ".join(command[3:])
+                per_seed.setdefault(row, {})[seed] = res
+                print(f"[{name} {row} seed={seed}] {json.dumps(res)[:600]}", file=sys.stderr, flush=True)
+        results[name] = {row: runs[None] if seeds == [None] else {f"seed={s}": r for s, r in runs.items()}
+                         for row, runs in per_seed.items()}
+        sync_runs = per_seed.get("sync", {})
+        for row, runs in per_seed.items():
+            sync_s, row_s = seed_total(sync_runs, "train_s"), seed_total(runs, "train_s")
+            if row != "sync" and sync_s and row_s:
+                ratios[ROWS[row].ratio_key(name)] = round(sync_s / row_s, 3)  # same samples: the throughput ratio
+            paired = [(sync_runs[s]["final_metric"], runs[s]["final_metric"]) for s in seeds
+                      if sync_runs.get(s, {}).get("final_metric") is not None
+                      and runs.get(s, {}).get("final_metric") is not None]
+            if paired:
+                gaps.setdefault(name, {})[row] = round(100 * statistics.mean(a - b for a, b in paired), 1)
+                if seeds == [None]:
+                    to_final.setdefault(name, {})[row] = time_to(runs[None]["eval"], sync_runs[None]["final_metric"])
     final = {"benchmark": "async_vs_sync", "ratios": ratios,
              "targets": {f"{name}_async_vs_sync": JOBS[name].target for name in jobs},
              "metric_gap_points": gaps, "train_s_to_sync_final_metric": to_final,
              "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
-             "iterations": args.iterations, "async_threads": list(async_threads), "results": results}
+             "iterations": args.iterations, "seeds": [s for s in seeds if s is not None],
+             "async_threads": list(async_threads), "results": results}
     print(json.dumps(final))
     record_result(args.record, "Asynchronous vs synchronous training", final)
     return 0
