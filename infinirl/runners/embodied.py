@@ -479,14 +479,29 @@ class EmbodiedFlow:
         if self.ahead is not None:  # the trajectories collected ahead are part of the run's state
             save_ahead_batches(folder, self.ahead.drain())
         self.actor.save_checkpoint(os.path.join(folder, "actor")).wait()
-        return {"env_steps": self.env_steps, "return_normalizer": self.return_norm.state_dict()}
+        state = {"env_steps": self.env_steps, "return_normalizer": self.return_norm.state_dict()}
+        if self.env is not None:  # online scaling may have changed it from the placement's count
+            state["env_ranks"] = self.env.world_size
+        return state
 
     def load(self, folder: str, state: dict) -> None:
         self.actor.load_checkpoint(os.path.join(folder, "actor")).wait()
         self.return_norm.load_state_dict(state["return_normalizer"])
         self.env_steps = int(state["env_steps"])
+        self._restore_env_ranks(state.get("env_ranks"))
         if self.ahead is not None:
             self.ahead.restore(load_ahead_batches(folder))
+
+    def _restore_env_ranks(self, saved: int | None) -> None:
+        """Resume with the env rank count the run had when it saved (scaling changed it from the
+        placement's); if this layout cannot take it, say so and go on with the placement's count."""
+        if self.env is None or saved is None or saved == self.env.world_size:
+            return
+        try:
+            self.scale_env(int(saved))
+        except ValueError as exc:
+            print(f"resume: the env had {saved} rank(s) when saved; this layout cannot take that ({exc}); "
+                  f"going on with {self.env.world_size}", flush=True)
 
     def finish(self, output_dir: str) -> dict:
         cfg = self.cfg

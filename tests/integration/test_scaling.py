@@ -111,6 +111,21 @@ def test_the_busy_ratio_policy_grows_the_env_when_it_is_the_bottleneck(ray_clust
     assert ranks == [1, 1, 2, 2]
 
 
+@pytest.mark.slow  # two runs; default-tier budget
+def test_a_resumed_run_keeps_the_env_rank_count_it_was_scaled_to(ray_cluster, tmp_path):
+    out = tmp_path / "run"
+    errors: list = []
+    sender = threading.Thread(target=send_commands, args=(str(out), [(1, {"env": 2})], errors), daemon=True)
+    sender.start()
+    run(make_cfg(out, iterations=3, save_every=3))
+    sender.join(timeout=60)
+    assert not errors, errors
+    assert [int(r["env/ranks"]) for r in rows_of(out) if r["step"] > 0][-1] == 2
+    run(make_cfg(out, iterations=5, save_every=0, scaling={"commands": False}))
+    resumed = [int(r["env/ranks"]) for r in rows_of(out) if r["step"] > 3]
+    assert resumed == [2, 2], resumed
+
+
 def test_scaling_settings_that_contradict_each_other_are_refused():
     with pytest.raises(ConfigError, match="scaling.shrink_below"):
         make_cfg("/tmp/unused", scaling={"grow_above": 0.2, "shrink_below": 0.5})
