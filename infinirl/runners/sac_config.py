@@ -157,6 +157,8 @@ class SACConfig(RunConfig):
     def _check_single_ranks(self) -> None:
         from infinirl.runtime.placement import parse_spec
 
+        if self.auto_placement:  # the scheduler's SAC model places one rank each
+            return
         for component in COMPONENTS:
             spec = self.placement[component]
             parsed = parse_spec(spec, component)

@@ -270,3 +270,68 @@ RUNNER_MODELS.add("reasoning", RunnerModel(
             Probe(name="two_ranks", devices=_reasoning_probe_devices(2))),
     measure=_reasoning_measure,
 ))
+
+
+# ----- sac ---------------------------------------------------------------------------------------
+# One collector and one learner rank. Without collect_ahead an iteration collects, then updates;
+# with it the collector gathers the next iteration's steps while the learner trains on this one's,
+# so on disjoint slots the two overlap (the longer one sets the pace) and on one slot they take turns.
+
+
+def _sac_phases(cfg) -> tuple[Phase, ...]:
+    if cfg.collect_ahead:
+        return (Phase(name="iteration", components=("collector", "learner"), concurrent=True),)
+    return (Phase(name="collect", components=("collector",)), Phase(name="update", components=("learner",)))
+
+
+def _sac_phase_of(cfg, component: str) -> str:
+    return next(p.name for p in _sac_phases(cfg) if component in p.components)
+
+
+def _sac_units(cfg) -> dict[str, float]:
+    steps = float(cfg.steps_per_iteration * cfg.env.num_envs)
+    return {"collector": steps, "learner": cfg.algorithm.utd_ratio * steps}
+
+
+def _sac_check(cfg, candidate: Candidate) -> str | None:
+    if any(a.ranks != 1 for a in candidate.allocations.values()):
+        return "the SAC runner runs one collector and one learner rank"
+    return None
+
+
+def _sac_shorten(cfg, iterations: int) -> None:
+    cfg.iterations = iterations
+    cfg.eval.every = 0
+    cfg.eval.at_start = False
+    cfg.eval.episodes = 1
+    cfg.eval.num_envs = 1
+    cfg.eval.video_episodes = 0
+    cfg.save_every = 0
+    cfg.loggers = []
+    cfg.resume = False
+    # Random warm-up steps make collection cheaper and leave the learner idle: the measured
+    # iterations would not be the run's. Learning starts as early as the first mini-batch allows.
+    cfg.algorithm.learning_starts = cfg.algorithm.batch_size
+
+
+def _sac_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
+    return {f"{_sac_phase_of(cfg, 'collector')}/collector": float(window.metrics.get("rollout/collect_s", 0.0)),
+            f"{_sac_phase_of(cfg, 'learner')}/learner": window.per_rank("learner", "add_and_update")}
+
+
+RUNNER_MODELS.add("sac", RunnerModel(
+    runner="sac",
+    step_metric="time/iteration_s",
+    window_method=("collector", "collect"),
+    phases=_sac_phases,
+    units=_sac_units,
+    model_key=lambda cfg: f"{cfg.network.actor}:{cfg.env.name}",
+    depths=lambda cfg, ranks: (1,),
+    check=_sac_check,
+    apply=lambda cfg, candidate: setattr(cfg, "placement", candidate.placement()),
+    shorten=_sac_shorten,
+    scale_batch=lambda cfg, factor: setattr(cfg.env, "num_envs", cfg.env.num_envs * factor),
+    probes=(Probe(name="collocated", devices={"collector": (0, 1), "learner": (0, 1)}),
+            Probe(name="split", devices={"collector": (1, 1), "learner": (0, 1)})),
+    measure=_sac_measure,
+))

@@ -24,8 +24,8 @@ def test_a_placement_string_other_than_auto_is_one_line_naming_the_fix():
 
 
 def test_a_runner_without_a_model_is_refused_by_name():
-    cfg = build_config("sac_inverted_pendulum", [])[1]
-    with pytest.raises(ConfigError, match="no model of the 'sac' runner; it plans embodied, reasoning"):
+    cfg = build_config("realworld_sac_sawyer_reach", [])[1]
+    with pytest.raises(ConfigError, match="no model of the 'realworld_sac' runner; it plans embodied, reasoning, sac"):
         runner_model(cfg)
 
 

@@ -100,3 +100,27 @@ def test_a_cached_profile_is_read_without_running(tmp_path, monkeypatch, embodie
                                                    "algorithm.mini_batches=2"])[1]
     with pytest.raises(AssertionError, match="measured again"):
         load_or_profile(changed, cache_dir=str(tmp_path))
+
+
+@pytest.mark.parametrize("collect_ahead", [False, True])
+def test_fit_recovers_sac_costs_with_and_without_collecting_ahead(collect_ahead):
+    """Collector 1 ms per env step, learner 2 ms per update, the driver 0.2 s: the fit gets them back,
+    and both probes are predicted as measured (apart and collecting ahead: the longer side only)."""
+    cfg = build_config("sac_inverted_pendulum", [f"collect_ahead={collect_ahead}", "steps_per_iteration=50"])[1]
+    model = RUNNER_MODELS.get("sac")
+    units = model.units(cfg)
+    collect, learn, overhead = 1e-3 * units["collector"], 2e-3 * units["learner"], 0.2
+    phase_c, phase_l = ("iteration", "iteration") if collect_ahead else ("collect", "update")
+    measured = {f"{phase_c}/collector": collect, f"{phase_l}/learner": learn}
+    apart = max(collect, learn) if collect_ahead else collect + learn
+    results = [ProbeResult(probe=next(p for p in model.probes if p.name == name), iterations=[measured] * 3,
+                           step_s=[step] * 3, memory_bytes={}, switch_s={}, inventory={})
+               for name, step in (("collocated", collect + learn + overhead), ("split", apart + overhead))]
+    profile = fit(cfg, model, results)
+    assert profile.costs[f"{phase_c}/collector"].per_unit_s == pytest.approx(1e-3)
+    assert profile.costs[f"{phase_l}/learner"].per_unit_s == pytest.approx(2e-3)
+    assert profile.overhead_s == pytest.approx(overhead)
+    workload = workload_of(cfg, profile)
+    for result in results:
+        assert predict(workload, result.probe.candidate(tuple(cfg.components()))).step_s == pytest.approx(
+            result.step_s[0])
