@@ -306,8 +306,13 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
             if not self.links:
                 raise RuntimeError("collect() with a remote env before connect_link()")
             endpoint = _RemoteEndpoint(self.links, self.stage_link)
+        counted = [link for link in self.links if hasattr(link, "bytes_sent")] if self.env is None else []
+        sent = sum(link.bytes_sent for link in counted)
         try:
-            return self._collect(endpoint, iteration, num_steps)
+            trajectory = self._collect(endpoint, iteration, num_steps)
+            if counted:  # this rank's actions to its env ranks (socket links count what they send)
+                trajectory["timing"]["rollout/bytes_out"] = float(sum(link.bytes_sent for link in counted) - sent)
+            return trajectory
         except BaseException:
             # Close the links so the env side stops waiting for actions that will never come; it
             # then fails with EnvLinkClosed, which the runner knows is not the root cause.

@@ -24,6 +24,7 @@ import contextlib
 import os
 import secrets
 import tempfile
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 from infinirl.runtime.errors import InfiniRLError
@@ -39,18 +40,24 @@ class EnvLinkClosed(InfiniRLError):
 
 
 class _SocketLink:
+    """``bytes_sent``: the pickled bytes this end has sent (what the scheduler's cost model charges
+    a link between nodes); pickled as ``Connection.send`` would, only counted on the way."""
+
     def __init__(self, conn):
         self._conn = conn
+        self.bytes_sent = 0
 
     def send(self, obj: Any) -> None:
+        payload = ForkingPickler.dumps(obj)
         try:
-            self._conn.send(obj)
+            self._conn.send_bytes(payload)
         except (BrokenPipeError, ConnectionError) as exc:
             raise EnvLinkClosed(f"the env link's other end is gone ({exc!r})") from None
+        self.bytes_sent += len(payload)
 
     def recv(self) -> Any:
         try:
-            return self._conn.recv()
+            return ForkingPickler.loads(self._conn.recv_bytes())
         except (EOFError, ConnectionError) as exc:
             raise EnvLinkClosed(f"the env link's other end closed it ({exc!r})") from None
 

@@ -383,10 +383,12 @@ class EnvWorker(Worker):
             return serve_in_stage_processes(self.stage_processes, self.spec.stage_sizes(), seeds, num_steps)
         if self.link is None:
             raise RuntimeError("serve() before the link to the rollout was opened (open_link/accept_link)")
-        start = time.perf_counter()
+        start, sent = time.perf_counter(), getattr(self.link, "bytes_sent", None)
         stats = serve_stages(self.env, self.link, seeds, num_steps)
         # the fraction of the collection this rank simulated (1 - its bubble): the scaling signal
         stats["env/busy_ratio"] = stats["env/simulate_s"] / max(time.perf_counter() - start, 1e-9)
+        if sent is not None:  # a socket link counts what it sends (observations to the rollout)
+            stats["env/bytes_out"] = float(self.link.bytes_sent - sent)
         return stats
 
     def close(self) -> None:

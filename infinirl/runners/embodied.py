@@ -400,6 +400,9 @@ class EmbodiedFlow:
         busy = [stats["env/busy_ratio"] for stats in env_stats if "env/busy_ratio" in stats]
         if busy:
             env_stats[0] = {**env_stats[0], "env/busy_ratio": float(np.mean(busy)), "env/ranks": float(len(busy))}
+        sent = [stats["env/bytes_out"] for stats in env_stats if "env/bytes_out" in stats]
+        if sent:  # every env rank's observations to the rollout, summed
+            env_stats[0] = {**env_stats[0], "env/bytes_out": float(sum(sent))}
         trajectory = _merge(parts)
         metrics = {
             "rollout/reward_mean": float(trajectory["rewards"].mean()),

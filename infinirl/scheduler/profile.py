@@ -276,8 +276,10 @@ def fit(cfg, model: RunnerModel, results: list[ProbeResult], key: dict | None = 
             # The largest one-rank peak: a probe that ran the component inside another's process has none.
             memory = max((r.memory_bytes.get(component, 0.0) for r in single or results), default=0.0)
             switch = _median([r.switch_s.get(component, 0.0) for r in results])
+            sent = [it[f"bytes/{component}"] for r in results for it in r.iterations if f"bytes/{component}" in it]
             costs[name] = WorkCost(per_unit_s=work["per_unit_s"], comm_s=work["comm_s"], switch_s=switch,
-                                   memory_fixed_bytes=memory)
+                                   memory_fixed_bytes=memory,
+                                   bytes_out_per_unit=_median(sent) / units[component] if sent else 0.0)
     hops = [it["hop"] for r in results for it in r.iterations if "hop" in it]
     hop_s = _median(hops)
     bare = Workload(runner=model.runner, phases=model.phases(cfg), units=units, costs=costs, hop_s=hop_s,

@@ -9,7 +9,9 @@ runner is one entry here and no edit in the profiler, the cost model or the sear
 * ``check(cfg, candidate)``: the runner's own rules a placement must meet (paired ranks, divisibility);
 * ``probes``: the placements the profiler runs, and ``measure(window, probe)``: one iteration's
   own seconds per ``"<phase>/<component>"``, read from the tracer's spans (a streamed phase's
-  span holds both sides, so the split uses the timings the components report with their result);
+  span holds both sides, so the split uses the timings the components report with their result),
+  and, where the runner counts them, the bytes each component sent downstream (``"bytes/<component>"``,
+  all its ranks together);
 * ``shorten(cfg, iterations)``: a profiling or measuring run of the same work, without evaluation
   or checkpoints worth keeping; ``scale_batch(cfg, factor)``: the same run with ``factor`` times the
   work per iteration (what a larger cluster is given).
@@ -154,6 +156,10 @@ def _embodied_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]
         out["collect/env"] = env_own
         trips = (cfg.rollout_steps + 1) * probe.depth
         out["hop"] = max(collect - env_own - rollout_own, 0.0) / trips
+        if "env/bytes_out" in window.metrics:  # observations over the env links, every env rank's
+            out["bytes/env"] = float(window.metrics["env/bytes_out"])
+        if "rollout/bytes_out" in window.metrics:  # rank 0's actions; the ranks send alike
+            out["bytes/rollout"] = float(window.metrics["rollout/bytes_out"]) * a["rollout"].ranks
     return out
 
 

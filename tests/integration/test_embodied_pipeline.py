@@ -73,6 +73,8 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, mode):
         assert a["eval/return_mean"] == b["eval/return_mean"]
     assert (tmp_path / "straight" / "curves.png").exists()
     assert list((tmp_path / "straight" / "tensorboard").iterdir())
+    if mode == "pipelined":  # env and rollout in two processes: the link counts what crosses it
+        assert rows[1]["env/bytes_out"] > rows[1]["rollout/bytes_out"] > 0  # observations outweigh actions
     if mode == "collocated":
         check_pinned("embodied", tmp_path / "straight", [
             "rollout/reward_mean", "train/policy_loss", "train/value_loss", "train/approx_kl", "train/grad_norm",

@@ -34,3 +34,31 @@ def test_a_server_nobody_connected_to_removes_its_directory_when_closed():
     close_server(server)
     assert not os.path.exists(directory)
     close_server(server)  # closing twice is harmless
+
+
+def test_a_socket_link_counts_the_pickled_bytes_it_sends():
+    """What the scheduler charges a link between nodes: each end counts exactly the bytes it sent."""
+    import pickle
+
+    import numpy as np
+
+    server, address = open_server("socket")
+    client = {}
+    connecting = threading.Thread(target=lambda: client.setdefault("link", connect(address)))
+    connecting.start()
+    env_side = accept(server)
+    connecting.join(timeout=10)
+    try:
+        observation = {"pixels": np.zeros((4, 3, 64, 64), np.uint8), "state": np.arange(39, dtype=np.float32)}
+        env_side.send(observation)
+        env_side.send(observation)
+        got = client["link"].recv()
+        assert np.array_equal(got["pixels"], observation["pixels"]) and got["state"].dtype == np.float32
+        client["link"].recv()
+        assert env_side.bytes_sent == 2 * len(pickle.dumps(observation, protocol=pickle.DEFAULT_PROTOCOL))
+        assert client["link"].bytes_sent == 0
+        client["link"].send((0, np.ones(4, np.float32)))
+        assert env_side.recv()[0] == 0 and client["link"].bytes_sent > 16
+    finally:
+        env_side.close()
+        client["link"].close()

@@ -54,7 +54,8 @@ def test_fit_recovers_the_costs_that_made_the_measurements(embodied_cfg):
                 {"collect/env": env / 2, "collect/rollout": rollout / 2, "update/actor": actor / 2 + 0.3},
                 (env + rollout) / 2 + actor / 2 + 0.3 + overhead),
         _result(model, cfg, "streamed", {"collect/env": env, "collect/rollout": rollout, "update/actor": actor,
-                                         "hop": hop}, env + rollout + hop * trips + actor + overhead),
+                                         "hop": hop, "bytes/env": 300.0 * units, "bytes/rollout": 8.0 * units},
+                env + rollout + hop * trips + actor + overhead),
     ]
     profile = fit(cfg, model, results)
     assert profile.costs["collect/env"].per_unit_s == pytest.approx(0.002)
@@ -64,6 +65,9 @@ def test_fit_recovers_the_costs_that_made_the_measurements(embodied_cfg):
     assert profile.costs["update/actor"].memory_fixed_bytes == pytest.approx(1e9)
     assert profile.costs["update/actor"].switch_s == pytest.approx(0.01)
     assert profile.hop_s == pytest.approx(hop)
+    assert profile.costs["collect/env"].bytes_out_per_unit == pytest.approx(300.0)  # an observation's bytes
+    assert profile.costs["collect/rollout"].bytes_out_per_unit == pytest.approx(8.0)
+    assert profile.costs["update/actor"].bytes_out_per_unit == 0.0
     # the embodied runner keeps its components resident: the measured offload is no part of a step
     assert profile.overhead_s == pytest.approx(overhead)
     workload = workload_of(cfg, profile)
