@@ -36,6 +36,9 @@ from infinirl.components.env_worker import EnvSpec, StagedEnv, serve_stages
 __all__ = ["EnvStageError", "StageProcess", "serve_in_stage_processes"]
 
 _CLOSE_TIMEOUT_S = 5.0
+SYMPTOM_GRACE_S = 5.0
+"""How long a stage's closed-link failure waits for another stage's report: the link closes when
+the stage at the other end failed, and that failure, not the closed link, is the root cause."""
 
 
 class EnvStageError(RuntimeError):
@@ -127,7 +130,8 @@ class StageProcess:
 
 def serve_in_stage_processes(stages: list[StageProcess], sizes: list[int], seeds: list[int],
                              num_steps: int) -> dict:
-    """One iteration on every stage process at once; raises the first stage failure as it happens.
+    """One iteration on every stage process at once; raises the first stage failure as it happens,
+    except that a stage whose link was closed under it waits a moment for a root cause elsewhere.
 
     ``env/simulate_s`` is the simulation time of all stages together (CPU seconds, comparable with
     the in-process env worker's); ``env/simulate_max_stage_s`` the busiest stage's share, the
@@ -139,10 +143,20 @@ def serve_in_stage_processes(stages: list[StageProcess], sizes: list[int], seeds
         stage.start_serving(seeds[start:start + size], num_steps)
         start += size
     waiting = {stage.control: stage for stage in stages}
-    busy = []
+    busy, symptom = [], None
     while waiting:
-        for control in wait(list(waiting)):
-            busy.append(waiting.pop(control).finish_serving()["busy_s"])
+        ready = wait(list(waiting), timeout=SYMPTOM_GRACE_S if symptom is not None else None)
+        if not ready:
+            raise symptom
+        for control in ready:
+            try:
+                busy.append(waiting.pop(control).finish_serving()["busy_s"])
+            except EnvStageError as exc:
+                if "EnvLinkClosed" not in str(exc):
+                    raise
+                symptom = symptom or exc  # another stage's failure may have closed it: wait for that one
+    if symptom is not None:
+        raise symptom
     return {"env/simulate_s": sum(busy), "env/simulate_max_stage_s": max(busy)}
 
 

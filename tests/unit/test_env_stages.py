@@ -190,3 +190,22 @@ def test_the_runner_keeps_the_rollouts_own_error():
     # the rollout saw a closed link but the env finished or also saw one: nothing better to show
     _raise_env_root_cause(FakeServing(env), worker_error("rollout", "infinirl.components.env_link.EnvLinkClosed: x"))
     _raise_env_root_cause(FakeServing(), worker_error("rollout", "infinirl.components.env_link.EnvLinkClosed: x"))
+
+
+def test_a_root_cause_reported_after_a_closed_link_still_wins():
+    """Stage 1's link closes first (a symptom), stage 0 fails on its own a moment later: the error
+    raised is stage 0's, not the closed link that happened to be reported first."""
+    import time
+
+    stages = Stages()
+    try:
+        thread, outcome = stages.serve_past_reset()
+        stages.links[1].close()
+        time.sleep(1.0)  # stage 1 reports its closed link before stage 0 fails
+        stages.links[0].send((0, np.zeros((ENVS // STAGES, 3), np.float32)))  # wrong action shape
+        thread.join(30)
+        error = outcome["error"]
+        assert isinstance(error, EnvStageError)
+        assert "env stage 0 of rank" in str(error) and "expected actions of shape (2, 1)" in str(error)
+    finally:
+        stages.close()
