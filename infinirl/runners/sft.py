@@ -11,7 +11,8 @@ rate after a linear warm-up). Every ``eval.every`` iterations the policy acts de
 (π0's ODE sampler, ``n_action_steps`` actions of each chunk executed) in each evaluation task's
 MetaWorld env from the rendered camera, on held-out seeds, and its success rate is logged.
 
-It runs in the driver process (one small model, no components to place). Checkpoints hold the
+It runs in the driver process (one small model, no components to place), on ``device`` (the CPU,
+or a GPU). Checkpoints hold the
 model as a loadable VLA folder (``policy/``), the optimizer state, and the loop's RNG state, so a
 resumed run continues bit for bit; the final model is also written to ``<output_dir>/policy/``,
 which the ``pi0_smollm2`` policy loads for RL.
@@ -51,6 +52,7 @@ CAMERA_PREFIX = "observation.images."
 def run(cfg: SFTConfig) -> dict:
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
+    compute_device(cfg.device)  # a GPU that is not there fails here, before the dataset is read
     with RunLoop(cfg, run_start_time()) as loop:
         reader = open_dataset(cfg)
         tasks = task_instructions(list(cfg.eval.tasks or cfg.data.generate.tasks), reader.tasks)
@@ -59,6 +61,19 @@ def run(cfg: SFTConfig) -> dict:
             return loop.run(flow)
         finally:
             flow.close()
+
+
+def compute_device(device: str) -> torch.device:
+    """``device`` resolved (``auto``: the first GPU if any); a GPU this machine lacks is a ConfigError."""
+    if device == "auto":
+        return torch.device("cuda:0" if torch.cuda.is_available() else "cpu")
+    resolved = torch.device(device)
+    if resolved.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        index = resolved.index or 0
+        if index >= count:
+            raise ConfigError(f"device={device!r}: this machine has {count} CUDA device(s); use device=cpu or auto")
+    return resolved
 
 
 # ---------------------------------------------------------------------------------------------
@@ -242,6 +257,16 @@ def trainable_parameters(vla, cfg: SFTConfig) -> list[torch.nn.Parameter]:
     return [p for p in vla.model.parameters() if p.requires_grad]
 
 
+def _peak_memory_bytes(device: torch.device) -> float:
+    """The training process's peak memory so far: the GPU's allocator peak, or the process's peak
+    resident set on the CPU (what a user sizes a machine by)."""
+    if device.type == "cuda":
+        return float(torch.cuda.max_memory_allocated(device))
+    import resource
+
+    return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # kilobytes on Linux
+
+
 def weights_digest(module: torch.nn.Module) -> str:
     digest = hashlib.sha256()
     for name, tensor in module.state_dict().items():
@@ -267,7 +292,7 @@ def rollout_episodes(policy, env, seeds: list[int]) -> dict[str, list]:
         active = np.arange(num_envs) < len(batch)
         while active.any():
             step = policy.act(prepare_obs(obs), deterministic=True)
-            result = env.step(step.actions.numpy(), env_mask=active, autoreset=False)
+            result = env.step(step.actions.cpu().numpy(), env_mask=active, autoreset=False)
             for i in np.flatnonzero(result.done & active):
                 out["success"].append(bool(result.info["episode_success"][i]))
                 out["return"].append(float(result.info["episode_return"][i]))
@@ -284,7 +309,9 @@ class SFTFlow:
         from infinirl.models.policies.base import build_policy
 
         self.cfg, self.demos, self.tasks = cfg, demos, tasks
+        self.device = compute_device(cfg.device)
         self.vla = build_model(cfg, demos, {env_text: wording for env_text, wording in tasks.values()})
+        self.vla.to(self.device)  # before the optimizer exists: its state follows the parameters
         self.vla.train()
         self.parameters = trainable_parameters(self.vla, cfg)
         optim = cfg.optim
@@ -324,6 +351,7 @@ class SFTFlow:
         self.samples += len(indices)
         seconds = time.perf_counter() - t0
         return {"train/loss": float(loss.detach()), "train/grad_norm": float(grad_norm), "train/lr": lr,
+                "train/peak_memory_bytes": _peak_memory_bytes(self.device),
                 "train/samples": self.samples, "time/step_s": seconds,
                 "time/samples_per_s": len(indices) / max(seconds, 1e-9)}
 

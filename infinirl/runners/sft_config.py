@@ -114,7 +114,7 @@ class SFTEvalConfig(EvalSchedule):
 @dataclass(kw_only=True)
 class SFTConfig(RunConfig):
     RUNNER: ClassVar[str] = "sft"
-    RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("num_threads",)
+    RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("num_threads", "device")
 
     output_dir: str = "runs/sft"
     iterations: int = bounded(500, ge=1)
@@ -123,6 +123,9 @@ class SFTConfig(RunConfig):
     keep_checkpoints: int = bounded(2, ge=0)
     num_threads: int = bounded(0, ge=0)
     """torch threads (0: torch's default)."""
+    device: str = "cpu"
+    """Where the model trains and acts: ``cpu``, ``cuda``, ``cuda:N``, or ``auto`` (the first GPU
+    when there is one, else the CPU). Batches are drawn and augmented on the CPU and moved over."""
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
@@ -139,5 +142,8 @@ class SFTConfig(RunConfig):
         if self.optim.warmup_steps >= self.iterations and self.optim.warmup_steps > 0:
             raise ConfigError(f"optim.warmup_steps={self.optim.warmup_steps} must be below iterations="
                               f"{self.iterations}")
+        if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")
+                and self.device[5:].isdigit()):
+            raise ConfigError(f"device={self.device!r}: use cpu, cuda, cuda:N or auto")
         if len(self.optim.betas) != 2:
             raise ConfigError(f"optim.betas={self.optim.betas}: give two numbers (AdamW's beta1, beta2)")

@@ -104,3 +104,24 @@ def test_pi0_smollm2_policy_acts_evaluates_and_trains_on_cuda(tmp_path):
     policy = build_policy("pi0_smollm2", checkpoint=str(folder), action_dim=4, chunk=2, cameras={"rgb": CAMERA},
                           state_key="proprio", value_hidden=8).cuda()
     act_evaluate_backward(policy, smollm2_env_obs())
+
+
+def test_sft_runner_trains_on_cuda_and_resumes_on_the_cpu(tmp_path):
+    """The SFT runner with ``device=cuda``: the model and its optimizer state on the GPU, batches
+    moved over from host memory, an evaluation in MetaWorld acting from CUDA; the checkpoint it
+    writes resumes with ``device=cpu`` (the change is recorded, not refused)."""
+    pytest.importorskip("metaworld")
+    pytest.importorskip("pyarrow")
+    from infinirl.runners.sft import run
+    from tests.integration.test_sft_pipeline import make_cfg, rows_of
+
+    init = save_vla(tiny_vla(), tmp_path / "init")
+    data = tmp_path / "demos"
+    extra = {"model": {"init": str(init), "chunk_size": 3, "n_action_steps": 2, "num_inference_steps": 2}}
+    done = run(make_cfg(tmp_path / "gpu", data, device="cuda", iterations=2, **extra))
+    rows = rows_of(tmp_path / "gpu" / "metrics.jsonl")
+    assert [r["step"] for r in rows] == [1, 2] and all(r["train/loss"] > 0 for r in rows)
+    assert rows[-1]["train/peak_memory_bytes"] > 0 and "eval/success_rate" in rows[-1]
+    assert done["samples"] == 8
+    resumed = run(make_cfg(tmp_path / "gpu", data, device="cpu", iterations=3, **extra))
+    assert resumed["samples"] == 12

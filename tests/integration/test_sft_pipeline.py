@@ -42,11 +42,12 @@ def rows_of(path):
 
 def test_sft_trains_evaluates_and_resumes_exactly(tmp_path):
     data = tmp_path / "demos"
-    straight = run(make_cfg(tmp_path / "straight", data))
+    straight = run(make_cfg(tmp_path / "straight", data, device="auto"))  # the CPU here, a GPU where there is one
     assert (data / "meta" / "info.json").is_file()  # generated on first use
     rows = rows_of(tmp_path / "straight" / "metrics.jsonl")
     assert [r["step"] for r in rows] == [1, 2, 3]
     assert all(r["train/loss"] > 0 for r in rows)
+    assert all(r["train/peak_memory_bytes"] > 0 for r in rows)
     assert "eval/success/reach-v3" in rows[1] and "eval/success_rate" in rows[2]
     assert straight["samples"] == 12
     check_pinned("sft", tmp_path / "straight", ["train/loss", "eval/success_rate"])
@@ -70,3 +71,14 @@ def test_bad_data_and_tasks_fail_before_training(tmp_path):
         run(make_cfg(tmp_path / "out", tmp_path / "new", data={"path": str(tmp_path / "new"),
                                                                 "generate": {"tasks": ["nope-v3"]}}))
     assert not (tmp_path / "new").exists()
+
+
+def test_a_device_that_is_not_there_is_one_line_before_the_data_is_read(tmp_path):
+    import torch
+
+    with pytest.raises(ConfigError, match=r"^device='gpu': use cpu, cuda, cuda:N or auto$"):
+        make_cfg(tmp_path / "out", tmp_path / "data", device="gpu")
+    missing = f"cuda:{torch.cuda.device_count()}"  # one past the last GPU (cuda:0 on a CPU-only machine)
+    with pytest.raises(ConfigError, match=rf"^device='{missing}': this machine has \d+ CUDA device"):
+        run(make_cfg(tmp_path / "out", tmp_path / "data", device=missing))
+    assert not (tmp_path / "data").exists() and not (tmp_path / "out").exists()
