@@ -30,6 +30,7 @@ from infinirl.algorithms.embodied_ppo import PPOSpec, ppo_minibatch_loss, ppo_ob
 from infinirl.components.embodied_policy import compute_device, module_device
 from infinirl.components.embodied_rollout import PolicySpec
 from infinirl.engines.parallel import DATA_PARALLEL
+from infinirl.engines.policy_lora import PolicyLoraSpec, apply_policy_lora, merged_policy_weights
 from infinirl.runtime import WeightSource, Worker
 from infinirl.utils.threads import limit_threads
 
@@ -88,7 +89,7 @@ class EmbodiedActorWorker(Worker, WeightSource):
     GPU, with NCCL between ranks) or on the CPU (``device="cpu"``, gloo)."""
 
     def __init__(self, policy_spec: PolicySpec, observation_spec: dict, action_space, ppo: PPOSpec,
-                 num_threads: int = 1, device: str = "auto"):
+                 num_threads: int = 1, device: str = "auto", lora: PolicyLoraSpec | None = None):
         # 0: every core this process may run on (actor.num_threads): the on-policy update runs while
         # the envs and the rollout wait, so it may use the cores they leave idle.
         limit_threads(num_threads or len(os.sched_getaffinity(0)))
@@ -98,7 +99,10 @@ class EmbodiedActorWorker(Worker, WeightSource):
         if self.parallel.needs_process_group:
             self.init_process_group("nccl" if self.compute.type == "cuda" else "gloo")
         torch.manual_seed(ppo.seed)  # identical initial weights on every rank
-        self.model = self.parallel.wrap(policy_spec.build(observation_spec, action_space).to(self.compute))
+        policy = policy_spec.build(observation_spec, action_space)
+        # adapters start at zero (B = 0): the adapted policy acts exactly as the one the rollout built
+        self.lora_plan = apply_policy_lora(policy, lora) if lora is not None else None
+        self.model = self.parallel.wrap(policy.to(self.compute))
         self.optimizer = self.parallel.build_optimizer(self.model, ppo.lr, ppo.adam_eps)
 
     def compute_device(self) -> str:
@@ -125,11 +129,18 @@ class EmbodiedActorWorker(Worker, WeightSource):
 
     # ---------------------------------------------------------------- weights
     def weights_for_sync(self):
-        return self.parallel.full_weights(self.model)
+        """The plain policy's weights (with LoRA: each adapter folded into its base weight)."""
+        weights = self.parallel.full_weights(self.model)
+        return weights if self.lora_plan is None else merged_policy_weights(weights, self.lora_plan)
+
+    def trainable_parameters(self) -> dict[str, int]:
+        """Parameters that train and in all (LoRA trains a small part)."""
+        return {"trainable": sum(p.numel() for p in self.model.parameters() if p.requires_grad),
+                "total": sum(p.numel() for p in self.model.parameters())}
 
     def weights_digest(self) -> str:
         digest = hashlib.sha256()
-        for name, tensor in self.parallel.full_weights(self.model):
+        for name, tensor in self.weights_for_sync():
             digest.update(name.encode())
             digest.update(tensor.cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
         return digest.hexdigest()

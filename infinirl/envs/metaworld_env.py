@@ -2,7 +2,8 @@
 
 ``make_env("metaworld:reach-v3", 8)``; any of the 50 v3 task names, or ``MT10`` / ``MT25`` /
 ``MT50``, which give env ``i`` task ``i mod T`` of that benchmark (multi-task training with one
-vector env). Requires ``metaworld`` and ``mujoco==3.3.0`` (MuJoCo 4 breaks metaworld).
+vector env), or a comma-separated list of any of these (``reach-v3,push-v3``). Requires
+``metaworld`` and ``mujoco==3.3.0`` (MuJoCo 4 breaks metaworld).
 
 What this adapter fixes on top of the raw MetaWorld class:
 
@@ -229,14 +230,17 @@ class MetaWorldFactory:
 
 
 def metaworld_factory(task: str | None, **kwargs: Any) -> MetaWorldFactory:
-    """Registry entry: ``metaworld:<task>`` with a v3 task name or MT10/MT25/MT50."""
+    """Registry entry: ``metaworld:<task>`` with a v3 task name, MT10/MT25/MT50, or a comma-separated
+    list of them (``reach-v3,push-v3``: env ``i`` runs the ``i % n``-th task)."""
     names = metaworld_task_names()
-    if task not in names:
+    parts = [part.strip() for part in (task or "").split(",")]
+    unknown = [part for part in parts if part not in names]
+    if unknown:
         raise ValueError(
-            f"unknown MetaWorld task {task!r}; tasks: {', '.join(sorted(names))}"
+            f"unknown MetaWorld task {unknown[0]!r}; tasks: {', '.join(sorted(names))}"
         )
     check_obs_mode(kwargs.get("obs_mode", "state"))
-    return MetaWorldFactory(tuple(names[task]), **kwargs)
+    return MetaWorldFactory(tuple(name for part in parts for name in names[part]), **kwargs)
 
 
 def metaworld_options(task: str | None) -> EnvOptions:

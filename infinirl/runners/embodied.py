@@ -54,6 +54,7 @@ from infinirl.components.env_worker import (
     stage_seeds,
 )
 from infinirl.config import ConfigError
+from infinirl.engines.policy_lora import apply_policy_lora
 from infinirl.runners import register_runner
 from infinirl.runners.async_rollout import (
     RolloutAhead,
@@ -90,7 +91,7 @@ def run(cfg: EmbodiedConfig) -> dict:
                                                     host_env, cfg.rollout.num_threads, cfg.rollout.compile,
                                                     cfg.rollout.device)),
                 "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo,
-                                                cfg.actor.num_threads, cfg.actor.device),
+                                                cfg.actor.num_threads, cfg.actor.device, cfg.actor.lora),
                           actor_process_env(cfg.actor.num_threads)),
             }
             if not host_env:
@@ -116,9 +117,14 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
         policy_spec = PolicySpec(name=cfg.policy.name, options=dict(cfg.policy.kwargs), chunk=cfg.policy.chunk,
                                  normalize_obs=cfg.policy.normalize_obs,
                                  normalize_keys=tuple(cfg.policy.normalize_keys) or None, obs_clip=cfg.policy.obs_clip)
-        policy_spec.build(observation_spec, action_space)
+        policy = policy_spec.build(observation_spec, action_space)
     except (ValueError, TypeError, KeyError, OSError) as exc:  # OSError: a checkpoint folder or file missing
         raise ConfigError(f"{cfg.env.name} / policy {cfg.policy.name}: {exc}") from exc
+    if cfg.actor.lora is not None:  # the layers it names must exist: checked on the policy just built
+        try:
+            apply_policy_lora(policy, cfg.actor.lora)
+        except ValueError as exc:
+            raise ConfigError(f"policy {cfg.policy.name}: {exc}") from None
     if ALGORITHMS[cfg.algorithm.name].grouped:
         _check_one_task_per_group(cfg)
     return observation_spec, action_space, policy_spec

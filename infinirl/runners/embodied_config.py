@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 from infinirl.config import ConfigError, bounded
+from infinirl.engines.policy_lora import PolicyLoraSpec
 from infinirl.runners.async_rollout import AsyncConfig
 from infinirl.runners.run_config import RunConfig
 from infinirl.runners.sim_config import SimEnvConfig, SimEvalConfig
@@ -151,6 +152,10 @@ class ActorConfig:
     """auto: train on the device the placement gives each rank (a GPU when placed on one, NCCL between
     ranks; else CPU); cpu: train on the CPU even when placed on a GPU (a 2x64 MLP's tiny ops are
     cheaper on CPU than as GPU kernel launches)."""
+    lora: PolicyLoraSpec | None = None
+    """Low-rank adapters on the policy's linear layers (a VLA's backbone; docs/vla.md): only they and
+    ``lora.train_fully`` (the value head) train; the rollout receives the merged weights. None: every
+    weight trains."""
 
 
 @dataclass(kw_only=True)
@@ -214,6 +219,8 @@ class EmbodiedConfig(RunConfig):
 
         try:
             self.scaling.check()
+            if self.actor.lora is not None:
+                self.actor.lora.check()
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
 

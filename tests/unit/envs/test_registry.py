@@ -27,6 +27,16 @@ def test_unknown_metaworld_task_lists_the_tasks():
         make_env("metaworld", 2, task="rech-v3")
 
 
+def test_a_metaworld_task_list_gives_env_i_the_i_mod_n_th_task():
+    pytest.importorskip("metaworld")
+    from infinirl.envs.metaworld_env import metaworld_factory
+
+    factory = metaworld_factory("reach-v3, push-v3")
+    assert factory.tasks == ("reach-v3", "push-v3")
+    with pytest.raises(ValueError, match="unknown MetaWorld task 'psh-v3'"):
+        metaworld_factory("reach-v3,psh-v3")
+
+
 def test_task_given_twice_must_agree():
     with pytest.raises(ValueError, match="task given twice"):
         make_env("gym:CartPole-v1", 2, task="Pendulum-v1")

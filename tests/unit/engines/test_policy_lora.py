@@ -1,0 +1,74 @@
+"""LoRA on a robot policy: adapters on the chosen linear layers, the rest frozen but the value head,
+the adapted policy acting as the plain one until it trains, and the merged weights giving a plain
+policy that computes what the adapted one does (what the rollout receives)."""
+
+import pytest
+import torch
+
+from infinirl.engines.policy_lora import PolicyLoraSpec, apply_policy_lora, lora_targets, merged_policy_weights
+from infinirl.models.policies.base import build_policy
+from infinirl.models.vla import save_vla
+from tests.unit.models.test_vla_smollm2 import CAMERA, env_obs, tiny_vla
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    return str(save_vla(tiny_vla(), tmp_path_factory.mktemp("lora") / "ckpt"))
+
+
+def plain_policy(checkpoint):
+    torch.manual_seed(0)  # the value head's initial weights
+    return build_policy("pi0_smollm2", checkpoint=checkpoint, action_dim=4, chunk=2, cameras={"rgb": CAMERA},
+                        state_key="proprio", value_hidden=8)
+
+
+def logprobs_of(policy, step):
+    return policy.evaluate(env_obs(), step.actions, step.extras).logprobs
+
+
+def test_adapters_train_the_value_head_trains_the_rest_is_frozen(checkpoint):
+    policy = plain_policy(checkpoint)
+    spec = PolicyLoraSpec(r=2, alpha=4.0, target_modules=["q_proj", "v_proj"])
+    targets = lora_targets(policy, spec)
+    assert targets and all(t.endswith(("q_proj", "v_proj")) for t in targets)
+    apply_policy_lora(policy, spec)
+    trainable = {n for n, p in policy.named_parameters() if p.requires_grad}
+    assert trainable == {n for n, _ in policy.named_parameters() if ".lora_" in n or n.startswith("value_net.")}
+    assert trainable and not any(n.startswith("vla.") and ".lora_" not in n for n in trainable)
+    assert len([n for n in trainable if ".lora_A." in n]) == len(targets)
+
+
+def test_the_adapted_policy_acts_as_the_plain_one_then_its_merged_weights_reproduce_it(checkpoint):
+    plain, adapted = plain_policy(checkpoint), plain_policy(checkpoint)
+    plan = apply_policy_lora(adapted, PolicyLoraSpec(r=4, alpha=8.0))
+    torch.manual_seed(1)
+    step = plain.act(env_obs())
+    torch.testing.assert_close(logprobs_of(adapted, step), logprobs_of(plain, step), atol=1e-6, rtol=1e-6)
+
+    optimizer = torch.optim.Adam([p for p in adapted.parameters() if p.requires_grad], lr=1e-2)
+    frozen = {n: p.detach().clone() for n, p in adapted.named_parameters() if not p.requires_grad}
+    for _ in range(3):
+        optimizer.zero_grad()
+        evaluated = adapted.evaluate(env_obs(), step.actions, step.extras)
+        (-evaluated.logprobs.sum() + evaluated.values.square().sum()).backward()
+        optimizer.step()
+    assert all(torch.equal(p, frozen[n]) for n, p in adapted.named_parameters() if n in frozen)
+    trained = logprobs_of(adapted, step)
+    assert not torch.allclose(trained, logprobs_of(plain, step), atol=1e-4)
+
+    merged = dict(merged_policy_weights(adapted.state_dict().items(), plan))
+    assert set(merged) == set(plain.state_dict())  # the plain policy's names, no adapter entries
+    plain.load_state_dict(merged)
+    torch.testing.assert_close(logprobs_of(plain, step), trained, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(plain.evaluate(env_obs(), step.actions, step.extras).values,
+                               adapted.evaluate(env_obs(), step.actions, step.extras).values)
+
+
+def test_names_that_match_nothing_are_one_line_naming_the_key(checkpoint):
+    policy = plain_policy(checkpoint)
+    with pytest.raises(ValueError, match=r"^actor.lora.target_modules=\['qkv'\] matches no linear layer.*q_proj"):
+        apply_policy_lora(policy, PolicyLoraSpec(target_modules=["qkv"]))
+    with pytest.raises(ValueError, match=r"^actor.lora.train_fully names \['critic'\]"):
+        apply_policy_lora(plain_policy(checkpoint), PolicyLoraSpec(train_fully=["critic"]))
+    with pytest.raises(ValueError, match=r"^actor.lora.target_modules='q_proj': give 'all-linear' or a list"):
+        PolicyLoraSpec(target_modules="q_proj").check()
