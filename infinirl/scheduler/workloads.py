@@ -131,7 +131,8 @@ def _embodied_apply(cfg, candidate: Candidate) -> None:
         cfg.env.stage_processes = False
 
 
-def _embodied_shorten(cfg, iterations: int) -> None:
+def _simulated_shorten(cfg, iterations: int) -> None:
+    """A short run of a simulator runner's config: no evaluation worth the name, no checkpoints."""
     cfg.iterations = iterations
     cfg.eval.every = 0
     cfg.eval.at_start = False
@@ -173,7 +174,7 @@ RUNNER_MODELS.add("embodied", RunnerModel(
     depths=_embodied_depths,
     check=_embodied_check,
     apply=_embodied_apply,
-    shorten=_embodied_shorten,
+    shorten=_simulated_shorten,
     scale_batch=lambda cfg, factor: setattr(cfg.env, "num_envs", cfg.env.num_envs * factor),
     probes=(Probe(name="collocated", devices={"env": (0, 1), "rollout": (0, 1), "actor": (0, 1)}),
             Probe(name="two_ranks", devices={"env": (0, 2), "rollout": (0, 2), "actor": (0, 2)}),
@@ -306,15 +307,7 @@ def _sac_check(cfg, candidate: Candidate) -> str | None:
 
 
 def _sac_shorten(cfg, iterations: int) -> None:
-    cfg.iterations = iterations
-    cfg.eval.every = 0
-    cfg.eval.at_start = False
-    cfg.eval.episodes = 1
-    cfg.eval.num_envs = 1
-    cfg.eval.video_episodes = 0
-    cfg.save_every = 0
-    cfg.loggers = []
-    cfg.resume = False
+    _simulated_shorten(cfg, iterations)
     # Random warm-up steps make collection cheaper and leave the learner idle: the measured
     # iterations would not be the run's. Learning starts as early as the first mini-batch allows.
     cfg.algorithm.learning_starts = cfg.algorithm.batch_size

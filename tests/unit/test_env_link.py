@@ -10,22 +10,28 @@ import threading
 from infinirl.components.env_link import accept, close_server, connect, open_server
 
 
-def test_a_unix_socket_link_removes_its_directory_once_connected():
-    server, address = open_server("socket")
-    directory = os.path.dirname(address["address"])
-    assert os.path.isdir(directory)
+def connected_pair(server, address):
+    """(env side, rollout side) of one socket link."""
     client = {}
     connecting = threading.Thread(target=lambda: client.setdefault("link", connect(address)))
     connecting.start()
     env_side = accept(server)
     connecting.join(timeout=10)
+    return env_side, client["link"]
+
+
+def test_a_unix_socket_link_removes_its_directory_once_connected():
+    server, address = open_server("socket")
+    directory = os.path.dirname(address["address"])
+    assert os.path.isdir(directory)
+    env_side, rollout_side = connected_pair(server, address)
     try:
-        client["link"].send({"obs": 1})
+        rollout_side.send({"obs": 1})
         assert env_side.recv() == {"obs": 1}
         assert not os.path.exists(directory)
     finally:
         env_side.close()
-        client["link"].close()
+        rollout_side.close()
 
 
 def test_a_server_nobody_connected_to_removes_its_directory_when_closed():
@@ -42,12 +48,8 @@ def test_a_socket_link_counts_the_pickled_bytes_it_sends():
 
     import numpy as np
 
-    server, address = open_server("socket")
-    client = {}
-    connecting = threading.Thread(target=lambda: client.setdefault("link", connect(address)))
-    connecting.start()
-    env_side = accept(server)
-    connecting.join(timeout=10)
+    env_side, rollout_side = connected_pair(*open_server("socket"))
+    client = {"link": rollout_side}
     try:
         observation = {"pixels": np.zeros((4, 3, 64, 64), np.uint8), "state": np.arange(39, dtype=np.float32)}
         env_side.send(observation)
