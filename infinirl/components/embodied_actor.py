@@ -32,6 +32,7 @@ from infinirl.components.embodied_rollout import PolicySpec
 from infinirl.engines.parallel import DATA_PARALLEL
 from infinirl.engines.policy_lora import PolicyLoraSpec, apply_policy_lora, merged_policy_weights
 from infinirl.runtime import WeightSource, Worker
+from infinirl.utils.memory import peak_memory_bytes
 from infinirl.utils.threads import limit_threads
 
 __all__ = ["EmbodiedActorWorker", "PPOSpec", "actor_process_env", "minibatch_order_generator", "ppo_minibatch_loss",
@@ -122,6 +123,7 @@ class EmbodiedActorWorker(Worker, WeightSource):
         metrics["time/actor_update_s"] = time.perf_counter() - start
         self.model.update_obs_stats({k: batch["obs"][k] for k in self.model.keys})
         metrics["train/num_threads"] = torch.get_num_threads()  # what actor.num_threads resolved to
+        metrics["train/peak_memory_bytes"] = peak_memory_bytes(self.compute)  # this rank's
         return metrics
 
     def _reduce_gradients(self) -> None:

@@ -32,6 +32,7 @@ from infinirl.components.embodied_policy import build_embodied_policy, compute_d
 from infinirl.components.env_worker import EnvSpec, StagedEnv
 from infinirl.models.policies.base import prepare_obs
 from infinirl.runtime import WeightSink, Worker
+from infinirl.utils.memory import peak_memory_bytes
 from infinirl.utils.threads import limit_threads
 
 __all__ = ["EmbodiedRolloutWorker", "PolicySpec", "compiled_act", "run_eval_episodes"]
@@ -387,6 +388,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         trajectory["open_episodes"] = _open_episodes(running)
         trajectory["timing"] = {"rollout/inference_s": infer_s, "rollout/wait_env_s": wait_s,
                                 "rollout/record_s": record_s, "rollout/cpu_s": time.thread_time() - cpu_start,
+                                "rollout/peak_memory_bytes": peak_memory_bytes(self.compute),
                                 "rollout/act_compiled": float(self._act_compiled)}  # which path produced the timings
         trajectory["restarted"] = restarted
         return trajectory

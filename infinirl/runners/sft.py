@@ -39,6 +39,7 @@ from infinirl.runners.run_support import run_start_time
 from infinirl.runners.sft_config import SFTConfig
 from infinirl.runners.sim_config import eval_seeds
 from infinirl.utils import torch_save_atomic
+from infinirl.utils.memory import peak_memory_bytes
 
 __all__ = ["DemoFrames", "SFTFlow", "learning_rate", "rollout_episodes", "run", "task_instructions"]
 
@@ -257,16 +258,6 @@ def trainable_parameters(vla, cfg: SFTConfig) -> list[torch.nn.Parameter]:
     return [p for p in vla.model.parameters() if p.requires_grad]
 
 
-def _peak_memory_bytes(device: torch.device) -> float:
-    """The training process's peak memory so far: the GPU's allocator peak, or the process's peak
-    resident set on the CPU (what a user sizes a machine by)."""
-    if device.type == "cuda":
-        return float(torch.cuda.max_memory_allocated(device))
-    import resource
-
-    return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # kilobytes on Linux
-
-
 def weights_digest(module: torch.nn.Module) -> str:
     digest = hashlib.sha256()
     for name, tensor in module.state_dict().items():
@@ -351,7 +342,7 @@ class SFTFlow:
         self.samples += len(indices)
         seconds = time.perf_counter() - t0
         return {"train/loss": float(loss.detach()), "train/grad_norm": float(grad_norm), "train/lr": lr,
-                "train/peak_memory_bytes": _peak_memory_bytes(self.device),
+                "train/peak_memory_bytes": peak_memory_bytes(self.device),
                 "train/samples": self.samples, "time/step_s": seconds,
                 "time/samples_per_s": len(indices) / max(seconds, 1e-9)}
 

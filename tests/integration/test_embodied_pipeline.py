@@ -62,6 +62,7 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, mode):
                 "time/env_steps_per_s", "env/steps"):
         assert key in rows[1], key
     assert rows[1]["rollout/act_compiled"] == 0.0  # eager unless rollout.compile
+    assert rows[1]["train/peak_memory_bytes"] > 0 and rows[1]["rollout/peak_memory_bytes"] > 0
     # the actor's own PPO update, inside the runner's train time (which also moves the batch there)
     assert 0 < rows[1]["time/actor_update_s"] < rows[1]["time/train_s"]
     assert rows[1]["train/logprob_mismatch"] < 1e-5  # trainer and rollout agree on log-probs
