@@ -77,11 +77,12 @@ def _placements(job: str, entries, wanted: int) -> dict[str, tuple[Candidate, st
     return chosen
 
 
-def run_job(job: str, iterations: int, profile_iterations: int, wanted: int, overrides: list[str]) -> dict:
+def run_job(job: str, iterations: int, profile_iterations: int, wanted: int, overrides: list[str],
+            rounds: int = 1) -> dict:
     cfg = build_config(JOBS[job], overrides)[1]
     model = RUNNER_MODELS.get(cfg.runner)
     started = time.perf_counter()
-    profile, entries = plan(cfg, iterations=profile_iterations)
+    profile, entries = plan(cfg, iterations=profile_iterations, rounds=rounds)
     workload = workload_of(cfg, profile)
     rows = {}
     for key, (candidate, role) in _placements(job, entries, wanted).items():
@@ -119,6 +120,8 @@ def main() -> None:
     parser.add_argument("--jobs", default="embodied,reasoning", help="comma-separated: embodied, reasoning")
     parser.add_argument("--iterations", type=int, default=4, help="iterations of each measured run (first: warm-up)")
     parser.add_argument("--profile-iterations", type=int, default=4, help="iterations of each probe run")
+    parser.add_argument("--profile-rounds", type=int, default=1,
+                        help="runs of every probe, interleaved (a drifting load then shifts all probes alike)")
     parser.add_argument("--placements", type=int, default=5, help="distinct placements measured per job (>= 4)")
     parser.add_argument("--set", action="append", default=[], metavar="JOB:KEY=VALUE",
                         help="a config override for one job, e.g. embodied:env.num_envs=8 (repeatable)")
@@ -133,7 +136,8 @@ def main() -> None:
     unknown = [j for j in jobs if j not in JOBS]
     if unknown or args.iterations < 2 or args.placements < 1:
         parser.error(f"--jobs from {', '.join(JOBS)} (got {unknown or jobs}); --iterations >= 2; --placements >= 1")
-    results = {job: run_job(job, args.iterations, args.profile_iterations, args.placements, overrides[job])
+    results = {job: run_job(job, args.iterations, args.profile_iterations, args.placements, overrides[job],
+                            args.profile_rounds)
                for job in jobs}
     for job, result in results.items():
         print(f"\n{job} ({result['config']}): {result['candidates']} candidates")

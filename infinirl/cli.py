@@ -190,6 +190,8 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
     plan.add_argument("--refresh", action="store_true", help="profile again even if a cached profile matches")
     plan.add_argument("--profile-iterations", type=int, default=4,
                       help="iterations of each probe run (the first is warm-up; default 4)")
+    plan.add_argument("--profile-rounds", type=int, default=1,
+                      help="run every probe this many times, interleaved, so a drifting load shifts all alike")
     plan.add_argument("--gpus", type=int, default=None,
                       help="plan for a simulated cluster of this many GPUs instead (the measured profile scaled)")
     plan.add_argument("--gpus-per-node", type=int, default=8, help="simulated GPUs per node (default 8)")

@@ -31,10 +31,10 @@ def runner_model(cfg):
 
 
 def plan(cfg, inventory: ClusterInventory | None = None, iterations: int = 4, refresh: bool = False,
-         cache_dir: str | None = None) -> tuple[Profile, list[PlanEntry]]:
+         cache_dir: str | None = None, rounds: int = 1) -> tuple[Profile, list[PlanEntry]]:
     """``cfg``'s candidates on ``inventory`` (default: the cluster the profile ran on), best first."""
     model = runner_model(cfg)
-    profile = load_or_profile(cfg, iterations=iterations, cache_dir=cache_dir, refresh=refresh)
+    profile = load_or_profile(cfg, iterations=iterations, cache_dir=cache_dir, refresh=refresh, rounds=rounds)
     inventory = inventory or ClusterInventory.from_dict(profile.inventory)
     return profile, search(cfg, model, workload_of(cfg, profile), inventory)
 
@@ -79,10 +79,12 @@ def plan_command(cfg, args) -> int:
 
     from infinirl.scheduler.simulate import simulated_plan
 
-    if args.top < 1 or args.profile_iterations < 2:
-        raise ConfigError("--top must be >= 1 and --profile-iterations >= 2 (the first iteration is warm-up)")
+    if args.top < 1 or args.profile_iterations < 2 or args.profile_rounds < 1:
+        raise ConfigError("--top and --profile-rounds must be >= 1 and --profile-iterations >= 2 (the first "
+                          "iteration is warm-up)")
     runner_model(cfg)  # a runner without a model fails before anything runs
-    profile = load_or_profile(cfg, iterations=args.profile_iterations, refresh=args.refresh)
+    profile = load_or_profile(cfg, iterations=args.profile_iterations, refresh=args.refresh,
+                              rounds=args.profile_rounds)
     start = time.perf_counter()
     if args.gpus is None:
         inventory = ClusterInventory.from_dict(profile.inventory)

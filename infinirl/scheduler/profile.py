@@ -33,7 +33,8 @@ from infinirl.scheduler.workloads import RUNNER_MODELS, Probe, RunnerModel, Step
 from infinirl.utils import capture_rng_state, restore_rng_state, write_json_atomic
 
 __all__ = ["PROFILE_CACHE_ENV", "MeasuredRun", "Profile", "ProbeResult", "cache_path", "config_hash", "fit",
-           "hardware_probe", "load_or_profile", "measure_candidate", "profile_key", "profile_summary", "run_probe",
+           "hardware_probe", "load_or_profile", "measure_candidate", "merge_rounds", "profile_key", "profile_summary",
+           "run_probe",
            "step_windows", "workload_of"]
 
 PROFILE_CACHE_ENV = "INFINIRL_PROFILE_CACHE"
@@ -296,11 +297,27 @@ def workload_of(cfg, profile: Profile) -> Workload:
                     overhead_s=profile.overhead_s, hop_s=profile.hop_s, offloads=model.offloads)
 
 
+def merge_rounds(results: list[ProbeResult]) -> ProbeResult:
+    """One probe's runs of several rounds as one result: their iterations together (the fit takes
+    medians over them), the largest peak memory, the median offload + reload."""
+    first = results[0]
+    components = {c for r in results for c in (*r.memory_bytes, *r.switch_s)}
+    return ProbeResult(probe=first.probe, iterations=[it for r in results for it in r.iterations],
+                       step_s=[s for r in results for s in r.step_s],
+                       memory_bytes={c: max(r.memory_bytes.get(c, 0.0) for r in results) for c in components},
+                       switch_s={c: _median([r.switch_s[c] for r in results if c in r.switch_s]) for c in components},
+                       inventory=first.inventory)
+
+
 def load_or_profile(cfg, iterations: int = 4, cache_dir: str | None = None, refresh: bool = False,
-                    num_slots: int | None = None) -> Profile:
+                    num_slots: int | None = None, rounds: int = 1) -> Profile:
     """The cached profile of ``cfg`` on this hardware, or a new one (probe runs, then cached).
 
-    ``num_slots``: devices (or CPU slots) the probes may use; default: the CPUs Ray would see."""
+    ``num_slots``: devices (or CPU slots) the probes may use; default: the CPUs Ray would see.
+    ``rounds`` > 1 runs every probe that many times, interleaved (A B C A B C): a load that drifts
+    while profiling then shifts every probe alike instead of the later ones only."""
+    if rounds < 1:
+        raise ValueError(f"rounds={rounds} must be >= 1")
     model = RUNNER_MODELS.get(cfg.runner)
     key = profile_key(cfg, model)
     path = cache_path(key, cache_dir)
@@ -312,7 +329,9 @@ def load_or_profile(cfg, iterations: int = 4, cache_dir: str | None = None, refr
     slots = num_slots or cfg.cluster.num_cpus or len(os.sched_getaffinity(0))
     rng = capture_rng_state()  # probe runs seed and draw; the run that asked must not notice
     try:
-        results = [run_probe(cfg, model, probe, iterations) for probe in probe_candidates(model, slots)]
+        probes = probe_candidates(model, slots)
+        runs = [[run_probe(cfg, model, probe, iterations) for probe in probes] for _ in range(rounds)]
+        results = [merge_rounds([round_[i] for round_ in runs]) for i in range(len(probes))]
     finally:
         restore_rng_state(rng)
     profile = fit(cfg, model, results, key)

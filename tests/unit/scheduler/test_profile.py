@@ -128,3 +128,26 @@ def test_fit_recovers_sac_costs_with_and_without_collecting_ahead(collect_ahead)
     for result in results:
         assert predict(workload, result.probe.candidate(tuple(cfg.components()))).step_s == pytest.approx(
             result.step_s[0])
+
+
+def test_rounds_interleave_the_probes_and_merge_each_probes_runs(tmp_path, monkeypatch):
+    """Two rounds run the probes A B A B, not A A B B, and each probe's profile takes both runs."""
+    cfg = build_config("sac_inverted_pendulum", ["steps_per_iteration=50"])[1]
+    model = RUNNER_MODELS.get("sac")
+    order = []
+
+    def fake_probe(cfg, model, probe, iterations):
+        order.append(probe.name)
+        step = 1.0 + len(order)  # a load that drifts up while profiling
+        return ProbeResult(probe=probe, iterations=[{"collect/collector": 0.5, "update/learner": 0.4}],
+                           step_s=[step], memory_bytes={"learner": float(len(order))}, switch_s={"learner": 0.1},
+                           inventory={})
+
+    monkeypatch.setattr(profiling, "run_probe", fake_probe)
+    profile = load_or_profile(cfg, cache_dir=str(tmp_path), num_slots=2, rounds=2)
+    assert order == ["collocated", "split", "collocated", "split"]
+    by_name = {r.probe.name: r for r in profile.probes}
+    assert by_name["collocated"].step_s == [2.0, 4.0] and by_name["split"].step_s == [3.0, 5.0]
+    assert by_name["split"].memory_bytes["learner"] == 4.0  # the larger peak of its two runs
+    with pytest.raises(ValueError, match="rounds=0 must be >= 1"):
+        load_or_profile(cfg, cache_dir=str(tmp_path), refresh=True, rounds=0)
