@@ -52,8 +52,8 @@ def _run(args: argparse.Namespace) -> None:
         if split in report:
             print(f"  {split}: {format_metrics(report[split])}")
     save_classifier(args.out, classifier, report)
-    print(f"saved {args.out} (and {args.out}.json); use it with task.rewards={{classifier: 1.0}} and "
-          f"task.reward_options={{classifier: {{path: {args.out}}}}}")
+    print(f"saved {args.out} (and {args.out}.json); the robot env's reward: rewards {{classifier: 1.0}}, "
+          f"reward_options {{classifier: {{path: {args.out}}}}}")
 
 
 def train_classifier_command(args: argparse.Namespace) -> int:
