@@ -77,7 +77,7 @@ def held_out_states(env: RobotEnv, expert_episodes: int, random_episodes: int, s
     states, successes = [], []
     for count, act in ((expert_episodes, expert.act), (random_episodes, lambda _o: rng.uniform(-1, 1, env.action_dim))):
         for _ in range(count):
-            obs = env.reset()
+            env.reset()
             after = 0
             for _ in range(env.spec.max_episode_steps):
                 step = env.step(act(env.last_observation))
@@ -87,5 +87,4 @@ def held_out_states(env: RobotEnv, expert_episodes: int, random_episodes: int, s
                 after += int(success)
                 if after > extra_steps:
                     break
-            del obs
     return np.stack(states), np.asarray(successes)
