@@ -1,5 +1,6 @@
 """`infinirl` command line: train / eval / validate / list, on Hydra configs validated before anything starts;
-`demos` records demonstration datasets; `plan` ranks placements by predicted step time."""
+`demos` records demonstration datasets; `plan` ranks placements by predicted step time;
+`train-classifier` trains a success classifier on human success labels."""
 
 from __future__ import annotations
 
@@ -116,6 +117,10 @@ def main(argv: list[str] | None = None) -> int:
         from infinirl.data.demos import demos_command
 
         return demos_command(args)
+    if args.command == "train-classifier":
+        from infinirl.realworld.success_classifier.command import train_classifier_command
+
+        return train_classifier_command(args)
     if args.command == "robots":
         from infinirl.realworld.discovery import robots_command
 
@@ -225,7 +230,28 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
                             "Meta-World paper's sentence (MT10 tasks)")
     demos.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
     demos.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_train_classifier(sub)
     return parser
+
+
+def _add_train_classifier(sub) -> None:
+    p = sub.add_parser("train-classifier", help="train a success classifier on the success labels of marked "
+                                                "episodes, the reward of real-world RL (docs/realworld.md)")
+    p.add_argument("labels_dir", help="the labels folder (<output_dir>/success_labels of a run with "
+                                      "interventions.labels=true)")
+    p.add_argument("--out", required=True, help="the classifier file to write (and <out>.json)")
+    p.add_argument("--arch", default="mlp", help="architecture: mlp (state vector) or cnn (camera frames; default mlp)")
+    p.add_argument("--keys", default=None, help="comma-separated observation keys, e.g. state or pixels.corner,state "
+                                                "(default: state for mlp, every camera for cnn)")
+    p.add_argument("--hidden", default="256,256", help="hidden widths of the MLP head (default 256,256)")
+    p.add_argument("--steps", type=int, default=2000, help="training steps (default 2000)")
+    p.add_argument("--batch-size", type=int, default=64, help="rows per step, half successes (default 64)")
+    p.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (default 1e-3)")
+    p.add_argument("--val-fraction", type=float, default=0.2,
+                   help="share of episodes held out for validation (default 0.2; 0: none)")
+    p.add_argument("--threshold", type=float, default=0.5,
+                   help="probability at or above which a success is predicted (default 0.5)")
+    p.add_argument("--seed", type=int, default=0, help="seeds the split, the weights and the batches")
 
 
 if __name__ == "__main__":

@@ -18,10 +18,16 @@ filter) and gives the learning code what it expects of an environment:
   until the period after the previous step ends (a late step is not made up for), then observes;
 * **reward**: a weighted sum of :data:`REWARDS` components over the observation after the step
   (``success``: the simulator's ``info["success"]``; ``goal_distance`` / ``block_distance``: minus
-  the end effector's distance to the goal or the cube, where the simulator reports them);
-* **episode end**: success (``terminated``, when ``terminate_on_success``) or
-  ``max_episode_steps`` (``truncated``: the value still bootstraps). ``reset`` goes through the
-  driver and takes its wall-clock time.
+  the end effector's distance to the goal or the cube, where the simulator reports them;
+  ``classifier``: 1 when a learned success classifier, loaded when the env is built, predicts
+  success, :mod:`~infinirl.realworld.success_classifier`). A component with options (the
+  classifier's ``path``, ``threshold``) takes them from ``spec.reward_options[name]``;
+* **success**: the robot's ``info["success"]`` where it reports one (a simulator), else a
+  component's prediction (the classifier's: a real robot knows no success of its own);
+* **episode end**: the robot's success (``terminated``, when ``terminate_on_success``), a predicted
+  success of a component told to end the episode on it (the classifier's ``terminate_on_success``
+  option), or ``max_episode_steps`` (``truncated``: the value still bootstraps). ``reset`` goes
+  through the driver and takes its wall-clock time.
 """
 
 from __future__ import annotations
@@ -37,8 +43,8 @@ from infinirl.realworld.driver import RobotDriver, RobotObservation, RobotSpec
 from infinirl.realworld.safety import SafetyConfig
 from infinirl.registry import Registry
 
-__all__ = ["OBSERVATIONS", "REWARDS", "ObservationSource", "RewardComponent", "RobotEnv", "RobotEnvSpec",
-           "RobotStep", "action_to_command"]
+__all__ = ["OBSERVATIONS", "REWARDS", "ObservationSource", "RewardComponent", "RewardTerm", "RobotEnv",
+           "RobotEnvSpec", "RobotStep", "action_to_command"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -51,12 +57,41 @@ class ObservationSource:
 
 
 @dataclass(frozen=True, kw_only=True)
-class RewardComponent:
-    """``reward(observation) -> float``; ``needs`` names the ``info`` key a simulator must report."""
+class RewardTerm:
+    """What a built reward component gives for one step."""
 
-    reward: Callable[[RobotObservation], float]
+    value: float
+    success: bool | None = None
+    """The component's prediction of success (None: it predicts none)."""
+    terminates: bool = False
+    """The episode ends here (terminated)."""
+
+
+BuiltReward = Callable[[RobotObservation, dict[str, np.ndarray]], RewardTerm]
+"""A reward built on one env: ``(the robot's observation, the env's observation dict) -> RewardTerm``."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class RewardComponent:
+    """``reward(observation) -> float``; ``needs`` names the ``info`` key a simulator must report.
+
+    A component with options or state (a model to load) gives ``build(env, **options)`` instead,
+    called once when the env is built, returning a :data:`BuiltReward`; ``options`` names the
+    options it takes, ``required_options`` those without a default."""
+
+    reward: Callable[[RobotObservation], float] | None = None
+    build: Callable[..., BuiltReward] | None = None
+    options: tuple[str, ...] = ()
+    required_options: tuple[str, ...] = ()
     needs: str | None = None
     description: str = ""
+
+    def bind(self, env: Any, options: Mapping[str, Any]) -> BuiltReward:
+        """This component's reward on ``env``."""
+        if self.build is not None:
+            return self.build(env, **dict(options))
+        plain = self.reward
+        return lambda observation, obs: RewardTerm(value=plain(observation))
 
 
 OBSERVATIONS: Registry[ObservationSource] = Registry("robot observation source")
@@ -111,6 +146,19 @@ REWARDS.add("block_distance", RewardComponent(reward=_block_distance, needs="blo
                                               description="minus the gripper-cube distance (SO-101 scene)"))
 
 
+def _classifier_reward(env: RobotEnv, **options: Any) -> BuiltReward:
+    from infinirl.realworld.success_classifier.reward import classifier_reward  # torch: loaded only when used
+
+    return classifier_reward(env, **options)
+
+
+REWARDS.add("classifier", RewardComponent(
+    build=_classifier_reward, options=("path", "threshold", "terminate_on_success"), required_options=("path",),
+    description="1 when the learned success classifier at reward_options.classifier.path predicts success "
+                "(probability >= threshold, default the one saved with it); terminate_on_success (default true) "
+                "ends the episode there"))
+
+
 @dataclass(frozen=True, kw_only=True)
 class RobotEnvSpec:
     """How a robot becomes an environment (see the module docstring)."""
@@ -118,6 +166,8 @@ class RobotEnvSpec:
     observations: tuple[str, ...] = ("proprio",)
     cameras: tuple[str, ...] = ()
     rewards: Mapping[str, float] = field(default_factory=lambda: {"success": 1.0})
+    reward_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    """Options of the reward components that take some, e.g. ``{"classifier": {"path": ...}}``."""
     max_episode_steps: int = 100
     action_mode: Literal["delta", "absolute"] = "delta"
     terminate_on_success: bool = True
@@ -126,16 +176,33 @@ class RobotEnvSpec:
         object.__setattr__(self, "observations", tuple(self.observations))
         object.__setattr__(self, "cameras", tuple(self.cameras))
         object.__setattr__(self, "rewards", dict(self.rewards))
+        object.__setattr__(self, "reward_options", {k: dict(v) for k, v in self.reward_options.items()})
         for name in self.observations:
             OBSERVATIONS.get(name)  # unknown names fail listing the registered ones
         for name in self.rewards:
-            REWARDS.get(name)
+            self._check_reward_options(name)
+        stray = sorted(set(self.reward_options) - set(self.rewards))
+        if stray:
+            raise ValueError(f"RobotEnvSpec.reward_options: {stray} are not among the rewards {sorted(self.rewards)}; "
+                             "add them to rewards or drop their options")
         if not self.observations:
             raise ValueError("RobotEnvSpec.observations: name at least one source, e.g. ['proprio']")
         if self.max_episode_steps < 1:
             raise ValueError(f"RobotEnvSpec.max_episode_steps must be >= 1, got {self.max_episode_steps}")
         if self.action_mode not in ("delta", "absolute"):
             raise ValueError(f"RobotEnvSpec.action_mode must be 'delta' or 'absolute', got {self.action_mode!r}")
+
+    def _check_reward_options(self, name: str) -> None:
+        component = REWARDS.get(name)
+        given = self.reward_options.get(name, {})
+        unknown = sorted(set(given) - set(component.options))
+        if unknown:
+            raise ValueError(f"RobotEnvSpec.reward_options.{name}: unknown {unknown}; reward {name!r} takes "
+                             f"{list(component.options) or 'no options'}")
+        missing = [option for option in component.required_options if option not in given]
+        if missing:
+            raise ValueError(f"reward {name!r} needs reward_options.{name}.{missing[0]} (it takes "
+                             f"{list(component.options)})")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -194,6 +261,8 @@ class RobotEnv:
         self.steps = 0
         self.episode_return = 0.0
         self.late_steps = 0
+        self.rewards = [(weight, REWARDS.get(name).bind(self, spec.reward_options.get(name, {})))
+                        for name, weight in spec.rewards.items()]
 
     @property
     def action_dim(self) -> int:
@@ -202,6 +271,10 @@ class RobotEnv:
     def observation_size(self) -> int:
         """Entries of ``obs["state"]`` (reads the robot's present observation)."""
         return int(self._state(self.robot.observe()).shape[0])
+
+    def observation_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Key -> shape of each entry of the observation dict (reads the robot's present observation)."""
+        return {key: tuple(value.shape) for key, value in self._obs(self.robot.observe()).items()}
 
     def reset(self) -> dict[str, np.ndarray]:
         observation = self.last_observation = self.robot.reset()
@@ -222,13 +295,20 @@ class RobotEnv:
         self._heartbeat()
         late = self._wait_for_period()
         observation = self.last_observation = self.robot.observe()
-        reward = sum(weight * REWARDS.get(name).reward(observation) for name, weight in self.spec.rewards.items())
-        success = bool(observation.info.get("success", False))
+        obs = self._obs(observation)
+        terms = [(weight, reward(observation, obs)) for weight, reward in self.rewards]
+        reward = sum(weight * term.value for weight, term in terms)
+        predicted = [term.success for _, term in terms if term.success is not None]
+        if "success" in observation.info:
+            success = bool(observation.info["success"])
+            terminated = success and self.spec.terminate_on_success
+        else:
+            success, terminated = any(predicted), False
+        terminated = terminated or any(term.terminates for _, term in terms)
         self.steps += 1
         self.episode_return += reward
-        terminated = success and self.spec.terminate_on_success
         truncated = not terminated and self.steps >= self.spec.max_episode_steps
-        return RobotStep(obs=self._obs(observation), reward=float(reward), terminated=terminated, truncated=truncated,
+        return RobotStep(obs=obs, reward=float(reward), terminated=terminated, truncated=truncated,
                          success=success, late=late)
 
     def _wait_for_period(self) -> bool:
