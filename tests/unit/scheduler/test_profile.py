@@ -133,7 +133,6 @@ def test_fit_recovers_sac_costs_with_and_without_collecting_ahead(collect_ahead)
 def test_rounds_interleave_the_probes_and_merge_each_probes_runs(tmp_path, monkeypatch):
     """Two rounds run the probes A B A B, not A A B B, and each probe's profile takes both runs."""
     cfg = build_config("sac_inverted_pendulum", ["steps_per_iteration=50"])[1]
-    model = RUNNER_MODELS.get("sac")
     order = []
 
     def fake_probe(cfg, model, probe, iterations):
