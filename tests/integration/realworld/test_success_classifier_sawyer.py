@@ -70,6 +70,7 @@ def trained(tmp_path_factory):
     return train_on_sawyer_labels(tmp_path_factory.mktemp("classifier"), expert_episodes=40, random_episodes=10)
 
 
+@pytest.mark.slow  # 50 labelled episodes in real time; default-tier budget (pytest -m slow tests/integration)
 def test_classifier_recognises_both_classes_on_fresh_episodes(trained):
     assert trained.marks["success"] >= 25 and trained.marks["failure"] >= 10
     assert trained.report["validation"]["tp"] >= 1  # successes were held out and validated
@@ -89,6 +90,7 @@ def test_classifier_agrees_with_the_simulators_success_given_enough_labels(tmp_p
     assert metrics["balanced_accuracy"] >= 0.9 and metrics["recall"] >= 0.85 and metrics["accuracy"] >= 0.85
 
 
+@pytest.mark.slow  # shares the labelled episodes above
 def test_classifier_reward_ends_an_episode_on_predicted_success(trained):
     robot = sawyer(seed=7)
     try:
