@@ -96,6 +96,13 @@ class CloudHub:
         with self._lock:
             return sorted({link.peer for link in self._links.values() if link.alive})
 
+    def link(self, edge: str) -> Link | None:
+        """``edge``'s present link (None while it is not connected): other services (e.g. the
+        robot's calls, :mod:`infinirl.edge.robot_calls`) send and receive on streams of their own."""
+        with self._lock:
+            alive = [link for link in self._links.values() if link.peer == edge and link.alive]
+        return alive[-1] if alive else None
+
     def tunnel(self, edge: str | None = None) -> TunnelEnd | None:
         """The tunnel end of ``edge``'s present link; with ``edge=None`` that of the one connected
         edge. None while that edge is not connected, or (``edge=None``) unless exactly one is."""
