@@ -217,6 +217,16 @@ def _run_config(args):
     return cfg
 
 
+def _control_loop_of(cfg):
+    """The robot's control loop of a run's config, built as the runner builds a robot worker's."""
+    from infinirl.realworld.control_loop import RobotControlLoop
+    from infinirl.runners.hg_dagger import intervention_spec_of
+    from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of
+
+    return RobotControlLoop(robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg), seed=cfg.seed,
+                            intervention=intervention_spec_of(cfg))
+
+
 def _robot_node(args) -> int:
     from infinirl.config import ConfigError
     from infinirl.edge.link import LinkAuthError
@@ -231,8 +241,9 @@ def _robot_node(args) -> int:
         return 2
     limit_threads(cfg.actor.num_threads)
     try:
-        summary = run_robot_node(cfg, cloud=args.cloud, certs=args.certs, name=args.name, spool=args.spool,
-                                 stop=_stop_event(), connect_wait_s=args.connect_wait_s)
+        summary = run_robot_node(cfg, lambda: _control_loop_of(cfg), cloud=args.cloud, certs=args.certs,
+                                 name=args.name, spool=args.spool, stop=_stop_event(),
+                                 connect_wait_s=args.connect_wait_s)
     except (LinkAuthError, FileNotFoundError, ValueError) as exc:  # before the robot moved, or a refusal
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return 2

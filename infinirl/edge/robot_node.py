@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+from collections.abc import Callable
 
 import torch
 
@@ -31,6 +32,8 @@ from infinirl.edge.edge_client import EdgeClient, EdgeOptions
 from infinirl.edge.link import LinkOptions
 from infinirl.edge.robot_calls import RobotCallServer
 from infinirl.edge.spool import EpisodeSpool, SpoolFullError
+from infinirl.realworld.control_loop import PolicyLayout, RobotControlLoop
+from infinirl.realworld.driver import RobotError
 
 __all__ = ["EdgeRobotNode", "edge_options_of", "run_robot_node", "shared_config"]
 
@@ -85,8 +88,6 @@ class EdgeRobotNode:
         return {**self.loop.describe(), "config": shared_config(self.cfg)}, []
 
     def configure(self, layout: dict):
-        from infinirl.realworld.control_loop import PolicyLayout
-
         self.loop.configure(PolicyLayout(**layout))
         return None, []
 
@@ -118,15 +119,12 @@ class EdgeRobotNode:
         return {**stats, "counts": counts}
 
 
-def run_robot_node(cfg, *, cloud: tuple[str, int], certs: str, name: str | None = None, spool: str | None = None,
-                   stop: threading.Event | None = None, connect_wait_s: float = 60.0) -> dict:
-    """Run the robot of ``cfg`` (a ``RealWorldSACConfig``) at this edge until the trainer closes it
-    or ``stop`` is set; returns the node's counters. Raises a refused certificate or missing files
-    before the robot moves."""
-    from infinirl.realworld.control_loop import RobotControlLoop
-    from infinirl.realworld.driver import RobotError
-    from infinirl.runners.hg_dagger import intervention_spec_of
-    from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of
+def run_robot_node(cfg, build_loop: Callable[[], RobotControlLoop], *, cloud: tuple[str, int], certs: str,
+                   name: str | None = None, spool: str | None = None, stop: threading.Event | None = None,
+                   connect_wait_s: float = 60.0) -> dict:
+    """Run the robot of ``cfg`` (a ``RealWorldSACConfig``; ``build_loop()`` builds its control loop,
+    the runner's way) at this edge until the trainer closes it or ``stop`` is set; returns the node's
+    counters. Raises a refused certificate or missing files before the robot moves."""
 
     name = name or cfg.edge.name
     stop = stop or threading.Event()
@@ -140,8 +138,7 @@ def run_robot_node(cfg, *, cloud: tuple[str, int], certs: str, name: str | None 
     server = None
     try:
         client.wait_connected(connect_wait_s)  # a refused certificate ends the node here, before the robot moves
-        loop = RobotControlLoop(robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg), seed=cfg.seed,
-                                intervention=intervention_spec_of(cfg))
+        loop = build_loop()
         node = EdgeRobotNode(cfg, loop, client)
         server = RobotCallServer(client, node.handlers()).start()
         try:

@@ -32,7 +32,7 @@ from infinirl.edge.link import LinkOptions
 from infinirl.edge.robot_calls import RobotCaller
 from infinirl.edge.robot_node import shared_config
 
-__all__ = ["EdgeRobots", "ReceivedIds", "TrainerLink"]
+__all__ = ["EdgeRobots", "ReceivedIds", "TrainerLink", "differences"]
 
 logger = logging.getLogger(__name__)
 _EXIT_GRACE_S = 30.0
@@ -52,6 +52,18 @@ class ReceivedIds:
         with open(self.path, "a") as handle:
             handle.write(episode_id + "\n")
         self.ids.add(episode_id)
+
+
+def differences(ours: dict, theirs: dict, prefix: str = "") -> dict[str, tuple]:
+    """Every dotted key whose value differs between two plain config trees: ``key -> (ours, theirs)``."""
+    changes: dict[str, tuple] = {}
+    for key in sorted(set(ours) | set(theirs)):
+        a, b = ours.get(key), theirs.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            changes.update(differences(a, b, f"{prefix}{key}."))
+        elif a != b:
+            changes[f"{prefix}{key}"] = (a, b)
+    return changes
 
 
 class _Answer:
@@ -99,10 +111,9 @@ class EdgeRobots:
 
     def describe(self) -> _Answer:
         from infinirl.config import ConfigError
-        from infinirl.runners.checkpoints import config_changes
 
         described = self._call("describe")
-        changes = config_changes(json.loads(json.dumps(self.expected_config)), described.pop("config"))
+        changes = differences(json.loads(json.dumps(self.expected_config)), described.pop("config"))
         if changes:
             keys = ", ".join(f"{key} ({theirs!r} at the edge, {ours!r} here)"
                              for key, (ours, theirs) in list(changes.items())[:4])
@@ -143,14 +154,13 @@ class TrainerLink:
     hands an episode to the learner (called once per episode id, before it is acknowledged)."""
 
     def __init__(self, cfg, deliver: Callable[[dict], None]) -> None:
-        from infinirl.runners.realworld_sac_config import parse_address
-
         self.cfg, self.deliver = cfg, deliver
         self.folder = os.path.abspath(os.path.join(cfg.output_dir, "edge"))
         os.makedirs(self.folder, exist_ok=True)
         self.received = ReceivedIds(os.path.join(self.folder, "received.log"))
         link = LinkOptions(heartbeat_s=cfg.edge.heartbeat_s, dead_after_s=cfg.edge.dead_after_s)
-        self.hub = CloudHub(parse_address(cfg.edge.listen, "edge.listen"), TlsFiles.in_folder(cfg.edge.certs, "cloud"),
+        host, _, port = cfg.edge.listen.rpartition(":")  # checked by the config
+        self.hub = CloudHub((host, int(port)), TlsFiles.in_folder(cfg.edge.certs, "cloud"),
                             on_episode=self._on_episode, seen_ids=self.received.ids, options=HubOptions(link=link))
         self.process: subprocess.Popen | None = None
 
