@@ -243,7 +243,7 @@ def _robot_node(args) -> int:
     try:
         summary = run_robot_node(cfg, lambda: _control_loop_of(cfg), cloud=args.cloud, certs=args.certs,
                                  name=args.name, spool=args.spool, stop=_stop_event(),
-                                 connect_wait_s=args.connect_wait_s)
+                                 connect_wait_s=args.connect_wait_s, parent_pid=args.parent_pid)
     except (LinkAuthError, FileNotFoundError, ValueError) as exc:  # before the robot moved, or a refusal
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return 2
@@ -266,6 +266,8 @@ def _add_robot_parser(sub) -> None:
                                                      "<output_dir>/edge/spool)")
     robot.add_argument("--connect-wait-s", type=float, default=60.0,
                        help="before building the robot, wait this long for the first connection")
+    robot.add_argument("--parent-pid", type=int, default=None,
+                       help="end when this process (the trainer that launched the node) is gone")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -121,10 +121,12 @@ class EdgeRobotNode:
 
 def run_robot_node(cfg, build_loop: Callable[[], RobotControlLoop], *, cloud: tuple[str, int], certs: str,
                    name: str | None = None, spool: str | None = None, stop: threading.Event | None = None,
-                   connect_wait_s: float = 60.0) -> dict:
+                   connect_wait_s: float = 60.0, parent_pid: int | None = None) -> dict:
     """Run the robot of ``cfg`` (a ``RealWorldSACConfig``; ``build_loop()`` builds its control loop,
     the runner's way) at this edge until the trainer closes it or ``stop`` is set; returns the node's
-    counters. Raises a refused certificate or missing files before the robot moves."""
+    counters. Raises a refused certificate or missing files before the robot moves. With
+    ``parent_pid`` (a trainer that launched the node), the node also ends when that process is gone,
+    so a killed trainer leaves no robot running on its machine."""
 
     name = name or cfg.edge.name
     stop = stop or threading.Event()
@@ -144,6 +146,9 @@ def run_robot_node(cfg, build_loop: Callable[[], RobotControlLoop], *, cloud: tu
         try:
             while not (node.closed.is_set() or stop.is_set()):
                 client.check()
+                if parent_pid is not None and os.getppid() != parent_pid:
+                    logger.warning("the trainer that launched this edge node (pid %d) is gone; stopping", parent_pid)
+                    break
                 stop.wait(0.2)
             final = node.stop()[0]  # a no-op when the trainer stopped the loop already
         finally:

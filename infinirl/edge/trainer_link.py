@@ -227,7 +227,8 @@ class TrainerLink:
         write_json_atomic(config_path, to_plain(self.cfg))
         dial = self.cfg.edge.dial or f"127.0.0.1:{self.hub.address[1]}"
         command = [sys.executable, "-m", "infinirl.edge", "robot", "--config-file", config_path, "--cloud", dial,
-                   "--certs", os.path.abspath(self.cfg.edge.certs), "--name", self.cfg.edge.name]
+                   "--certs", os.path.abspath(self.cfg.edge.certs), "--name", self.cfg.edge.name,
+                   "--parent-pid", str(os.getpid())]
         with open(os.path.join(self.folder, "node.log"), "ab") as log:
             return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
 

@@ -415,7 +415,7 @@ class RobotControlLoop:
 
     def _raise_if_failed(self) -> None:
         if self._error is not None:
-            raise RobotError(f"{self.kind} robot worker failed: {self._error!r}") from self._error
+            raise RobotError(f"{self.kind} robot control loop failed: {self._error!r}") from self._error
 
     def close(self) -> None:
         self.stop()

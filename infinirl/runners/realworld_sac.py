@@ -15,6 +15,11 @@ sped up, so an iteration is a wall-clock window (``pipeline.iteration_s``).
   learner stores them and runs ``utd_ratio`` updates per collected step, the weights go to the
   robots, and so on (the robot idles while the learner updates).
 
+``pipeline.transport=edge``: the robot's control loop runs in an edge node that dials the driver
+over the mutual-TLS link of :mod:`infinirl.edge` instead of in a Ray worker; the driver's
+:class:`~infinirl.edge.trainer_link.TrainerLink` puts its episodes on the same channel and
+publishes each version on the link, and the iteration logic below is the same (docs/edge.md).
+
 RLPD (``demos.episodes > 0``): robot rank 0 records scripted demonstrations into
 ``<output_dir>/demos`` once, and every mini-batch draws ``demos.fraction`` of its rows from them.
 With an intervention device (``interventions.device``) and ``interventions.as_demos``, the
