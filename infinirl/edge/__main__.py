@@ -7,8 +7,8 @@ the robot of a ``realworld_sac`` run at the edge (``pipeline.transport=edge``).
     python -m infinirl.edge edge --cloud cloud.example.org:7443 --certs pki --name edge-0 \\
         --robot sim_sawyer --robot-options '{"image_size": 224, "control_hz": 20}' --episodes 0 \\
         --page-target 127.0.0.1:8765
-    python -m infinirl.edge robot realworld_sac_sawyer_reach pipeline.transport=edge \\
-        --cloud trainer.example.org:7443 --certs pki --name edge-0
+    python -m infinirl.edge robot realworld_sac_sawyer_reach --cloud trainer.example.org:7443 \\
+        --certs pki --name edge-0
 
 The cloud node stores every episode that arrives into a replay store (once per episode id; the ids
 are also appended to ``<replay>/edge_received.log`` so a restarted cloud still recognises resends)
