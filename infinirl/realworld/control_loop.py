@@ -126,7 +126,7 @@ def unit_box(action_dim: int) -> SimpleNamespace:
 def connect_robot(kind: str, options: dict, safety: SafetyConfig, tries: int = _CONNECT_TRIES) -> SafeRobot:
     """The robot behind the safety layer, connected; a driver whose connect fails (a serial port
     that does not answer yet, a simulator that fails to load) is replaced by a fresh one, up to
-    ``tries`` times, before the worker reports the failure."""
+    ``tries`` times, before the failure is raised."""
     for attempt in range(1, tries + 1):
         robot = SafeRobot(make_robot(kind, **options), safety)
         try:
