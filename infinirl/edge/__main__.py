@@ -1,4 +1,5 @@
-"""``python -m infinirl.edge certs | cloud | edge``: credentials, a cloud node, an edge node.
+"""``python -m infinirl.edge certs | cloud | edge | robot``: credentials, a cloud node, an edge node,
+the robot of a ``realworld_sac`` run at the edge (``pipeline.transport=edge``).
 
     python -m infinirl.edge certs pki --edges edge-0 edge-1
     python -m infinirl.edge cloud --listen 0.0.0.0:7443 --certs pki --replay runs/edge/replay \\
@@ -6,6 +7,8 @@
     python -m infinirl.edge edge --cloud cloud.example.org:7443 --certs pki --name edge-0 \\
         --robot sim_sawyer --robot-options '{"image_size": 224, "control_hz": 20}' --episodes 0 \\
         --page-target 127.0.0.1:8765
+    python -m infinirl.edge robot realworld_sac_sawyer_reach --cloud trainer.example.org:7443 \\
+        --certs pki --name edge-0
 
 The cloud node stores every episode that arrives into a replay store (once per episode id; the ids
 are also appended to ``<replay>/edge_received.log`` so a restarted cloud still recognises resends)
@@ -195,6 +198,78 @@ def _edge_node(args) -> int:
     return 0 if drained and client.error is None else 1
 
 
+def _run_config(args):
+    """The run's config: a resolved file (``--config-file``, what a trainer launching the node writes)
+    or a config name with ``key=value`` overrides, as given to ``infinirl train``."""
+    from infinirl.config import to_dataclass
+    from infinirl.runners.realworld_sac_config import RealWorldSACConfig
+
+    if args.config_file is not None:
+        with open(args.config_file) as handle:
+            return to_dataclass(RealWorldSACConfig, json.load(handle))
+    if args.config is None:
+        raise ValueError("name the run's config (e.g. realworld_sac_sawyer_reach) or give --config-file")
+    from infinirl.cli import build_config
+
+    _, cfg = build_config(args.config, list(args.overrides))
+    if not isinstance(cfg, RealWorldSACConfig):
+        raise ValueError(f"config {args.config!r} is not a realworld_sac config")
+    return cfg
+
+
+def _control_loop_of(cfg):
+    """The robot's control loop of a run's config, built as the runner builds a robot worker's."""
+    from infinirl.realworld.control_loop import RobotControlLoop
+    from infinirl.runners.hg_dagger import intervention_spec_of
+    from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of
+
+    return RobotControlLoop(robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg), seed=cfg.seed,
+                            intervention=intervention_spec_of(cfg))
+
+
+def _robot_node(args) -> int:
+    from infinirl.config import ConfigError
+    from infinirl.edge.link import LinkAuthError
+    from infinirl.edge.robot_node import run_robot_node
+    from infinirl.realworld.driver import RobotError
+    from infinirl.utils.threads import limit_threads
+
+    try:
+        cfg = _run_config(args)
+    except (ConfigError, ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
+    limit_threads(cfg.actor.num_threads)
+    try:
+        summary = run_robot_node(cfg, lambda: _control_loop_of(cfg), cloud=args.cloud, certs=args.certs,
+                                 name=args.name, spool=args.spool, stop=_stop_event(),
+                                 connect_wait_s=args.connect_wait_s, parent_pid=args.parent_pid)
+    except (LinkAuthError, FileNotFoundError, ValueError) as exc:  # before the robot moved, or a refusal
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
+    except RobotError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 1
+    print(json.dumps(summary), flush=True)
+    return 0 if summary["drained"] else 1
+
+
+def _add_robot_parser(sub) -> None:
+    robot = sub.add_parser("robot", help="run the robot of a realworld_sac run (pipeline.transport=edge) here")
+    robot.add_argument("config", nargs="?", default=None, help="the run's config name, as given to infinirl train")
+    robot.add_argument("overrides", nargs="*", help="the run's key=value overrides (the same as the trainer's)")
+    robot.add_argument("--config-file", default=None, help="a resolved run config (JSON) instead of a name")
+    robot.add_argument("--cloud", type=_address, required=True, help="HOST:PORT of the trainer's edge.listen")
+    robot.add_argument("--certs", required=True, help="folder with ca.pem, <name>.pem, <name>.key")
+    robot.add_argument("--name", default=None, help="the edge's name (default: the config's edge.name)")
+    robot.add_argument("--spool", default=None, help="on-disk outbox (default: edge.spool, else "
+                                                     "<output_dir>/edge/spool)")
+    robot.add_argument("--connect-wait-s", type=float, default=60.0,
+                       help="before building the robot, wait this long for the first connection")
+    robot.add_argument("--parent-pid", type=int, default=None,
+                       help="end when this process (the trainer that launched the node) is gone")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m infinirl.edge", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -239,9 +314,10 @@ def main(argv: list[str] | None = None) -> int:
     edge.add_argument("--page-target", type=_address, default=None,
                       help="HOST:PORT of the intervention page at the edge, served by the cloud's --page-port")
     _add_link_arguments(edge)
+    _add_robot_parser(sub)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    return {"certs": _certs, "cloud": _cloud, "edge": _edge_node}[args.command](args)
+    return {"certs": _certs, "cloud": _cloud, "edge": _edge_node, "robot": _robot_node}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,8 @@
 :attr:`CloudHub.refusals`, one line each). For each connected edge it receives episodes, hands each
 new episode id to ``on_episode(edge, episode_id, episode)`` exactly once (an id seen before, from a
 resend after an outage, is acknowledged again but not delivered), and acknowledges only after
-``on_episode`` returned, so an episode is never lost between the two ends. Episode ids must start
+``on_episode`` returned, so an episode is never lost between the two ends (when ``on_episode``
+raises, the hub closes that edge's link, and the edge resends the episode on its next one). Episode ids must start
 with the edge's certificate name and a dash (:class:`~infinirl.edge.edge_client.EdgeClient` names
 them so); an edge sending another id is disconnected, so no edge can shadow another's episodes. Seen ids are kept in
 memory; pass ``seen_ids`` (e.g. from the replay store) when the cloud restarts.
@@ -95,6 +96,13 @@ class CloudHub:
     def connected_edges(self) -> list[str]:
         with self._lock:
             return sorted({link.peer for link in self._links.values() if link.alive})
+
+    def link(self, edge: str) -> Link | None:
+        """``edge``'s present link (None while it is not connected): other services (e.g. the
+        robot's calls, :mod:`infinirl.edge.robot_calls`) send and receive on streams of their own."""
+        with self._lock:
+            alive = [link for link in self._links.values() if link.peer == edge and link.alive]
+        return alive[-1] if alive else None
 
     def tunnel(self, edge: str | None = None) -> TunnelEnd | None:
         """The tunnel end of ``edge``'s present link; with ``edge=None`` that of the one connected
@@ -200,7 +208,13 @@ class CloudHub:
                 with self._deliver_lock:  # one delivery per id, also across an old and a new connection
                     fresh = episode_id not in self._seen
                     if fresh:
-                        self.on_episode(link.peer, episode_id, episode)
+                        try:
+                            self.on_episode(link.peer, episode_id, episode)
+                        except Exception as exc:  # not acknowledged: the edge resends it on its next link
+                            self.counts["delivery_failures"] += 1
+                            link.close(f"the cloud could not take episode {episode_id} ({exc!r}); the edge resends it")
+                            logger.warning("%s", link.closed_reason)
+                            return
                         self._seen.add(episode_id)
                 self.counts["episodes" if fresh else "duplicates"] += 1
                 link.send(protocol.EPISODE_ACKS, protocol.dump({"ids": [episode_id]}),

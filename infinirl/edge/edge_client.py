@@ -107,6 +107,12 @@ class EdgeClient:
         link = self._link
         return link is not None and link.alive
 
+    @property
+    def link(self) -> Link | None:
+        """The present link while connected (other services send and receive on streams of their own)."""
+        link = self._link
+        return link if link is not None and link.alive else None
+
     def offline_s(self) -> float:
         """Seconds since the link went down (0 while connected)."""
         link = self._link

@@ -182,6 +182,9 @@ def dial(address: tuple[str, int], context: ssl.SSLContext, *, options: LinkOpti
         raw.close()
         raise LinkAuthError(f"{where} refused by this edge: its certificate does not verify against this edge's "
                             f"CA ({exc.verify_message}); is it the right cloud and the right ca.pem?") from None
+    except (ssl.SSLEOFError, ConnectionResetError) as exc:  # dropped, not refused: a refusal is a TLS alert
+        raw.close()
+        raise LinkError(f"{where} closed the connection during the TLS handshake ({exc}); retrying") from None
     except ssl.SSLError as exc:
         raw.close()
         raise LinkAuthError(f"{where} refused this edge during the TLS handshake ({exc.reason or exc})") from None

@@ -15,6 +15,11 @@ sped up, so an iteration is a wall-clock window (``pipeline.iteration_s``).
   learner stores them and runs ``utd_ratio`` updates per collected step, the weights go to the
   robots, and so on (the robot idles while the learner updates).
 
+``pipeline.transport=edge``: the robot's control loop runs in an edge node that dials the driver
+over the mutual-TLS link of :mod:`infinirl.edge` instead of in a Ray worker; the driver's
+:class:`~infinirl.edge.trainer_link.TrainerLink` puts its episodes on the same channel and
+publishes each version on the link, and the iteration logic below is the same (docs/edge.md).
+
 RLPD (``demos.episodes > 0``): robot rank 0 records scripted demonstrations into
 ``<output_dir>/demos`` once, and every mini-batch draws ``demos.fraction`` of its rows from them.
 With an intervention device (``interventions.device``) and ``interventions.as_demos``, the
@@ -50,8 +55,10 @@ __all__ = ["RealWorldSACFlow", "env_spec_of", "net_spec_of", "robot_setup_of", "
 def run(cfg: RealWorldSACConfig) -> dict:
     from infinirl.runtime import Channel, Cluster
 
+    if cfg.pipeline.transport == "edge":
+        cfg.edge.check_trainer_files()  # here, not in the config's check: the edge node holds other files
     with RunLoop(cfg, run_start_time()) as loop:
-        setup, env, net = robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg)
+        net = net_spec_of(cfg)
         from infinirl.realworld.discovery import with_driver_discovery
         from infinirl.runners.hg_dagger import intervention_spec_of
 
@@ -60,19 +67,20 @@ def run(cfg: RealWorldSACConfig) -> dict:
         with Cluster(with_driver_discovery(cfg.cluster)) as cluster:
             plan = plan_placement(cluster.inventory, cfg)
             print(plan.describe(), flush=True)
-            _check_fleet(cfg, len(plan.ranks("robot")))
-            from infinirl.realworld.robot_worker import RobotActorWorker
-
             # Created first: its actor starts while the robots connect, not on a robot's time.
             channel = Channel.create(f"realworld-{uuid.uuid4().hex[:12]}")
-            groups = {}
+            groups, edge = {}, None
             try:
-                groups.update(launch_all(plan, {"robot": (RobotActorWorker, (setup, env, net, cfg.seed,
-                                                                             cfg.actor.num_threads, intervention))}))
-                shape = _robot_shape(cfg, groups["robot"])
+                if cfg.pipeline.transport == "edge":
+                    edge, robots = _edge_robots(cfg, channel)
+                else:
+                    _check_fleet(cfg, len(plan.ranks("robot")))
+                    robots = _robot_workers(cfg, plan, intervention, groups)
+                shape = _robot_shape(cfg, robots)
                 groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, shape)}))
                 channel.qsize()  # returns once the channel's actor is up
-                flow = RealWorldSACFlow(cfg, groups["robot"], groups["learner"], channel)
+                flow = RealWorldSACFlow(cfg, robots, groups["learner"], channel,
+                                        send_weights=edge.send_weights if edge is not None else None)
                 try:
                     return loop.run(flow)
                 finally:
@@ -80,7 +88,32 @@ def run(cfg: RealWorldSACConfig) -> dict:
             finally:
                 for group in groups.values():
                     group.shutdown()
+                if edge is not None:
+                    edge.close()
                 channel.destroy()
+
+
+def _robot_workers(cfg: RealWorldSACConfig, plan, intervention, groups: dict):
+    """``pipeline.transport=ray``: one robot worker per robot rank of the placement."""
+    from infinirl.realworld.robot_worker import RobotActorWorker
+
+    setup, env, net = robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg)
+    groups.update(launch_all(plan, {"robot": (RobotActorWorker, (setup, env, net, cfg.seed, cfg.actor.num_threads,
+                                                                 intervention))}))
+    return groups["robot"]
+
+
+def _edge_robots(cfg: RealWorldSACConfig, channel):
+    """``pipeline.transport=edge``: the hub, and the robot at the edge once it connected; its
+    episodes go on ``channel`` like a robot worker's."""
+    from infinirl.edge.trainer_link import TrainerLink
+
+    edge = TrainerLink(cfg, lambda episode: channel.put(episode, key="episodes", timeout=60.0)).start()
+    try:
+        return edge, edge.robots()
+    except BaseException:
+        edge.close()
+        raise
 
 
 def _check_fleet(cfg: RealWorldSACConfig, robot_ranks: int) -> None:
@@ -179,8 +212,11 @@ def _per_kind(robots: list[dict]) -> dict:
 class RealWorldSACFlow:
     """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
 
-    def __init__(self, cfg: RealWorldSACConfig, robots, learner, channel):
+    def __init__(self, cfg: RealWorldSACConfig, robots, learner, channel, send_weights=None):
+        from infinirl.runtime import start_weight_sync
+
         self.cfg, self.robots, self.learner, self.channel = cfg, robots, learner, channel
+        self.send_weights = send_weights or start_weight_sync  # (learner, robots, version, interrupt) -> pending
         self.synced_version = 0
         self.pending_sync = None
         self.running = False
@@ -222,13 +258,11 @@ class RealWorldSACFlow:
 
     def _sync(self, version: int, wait: bool = False) -> None:
         """Send the learner's published weights to the robots when they are newer than theirs."""
-        from infinirl.runtime import start_weight_sync
-
         if version <= self.synced_version:
             return
         if self.pending_sync is not None and not self.pending_sync.done():
             return  # one sync in flight at a time; the next poll sends the newest version
-        self.pending_sync = start_weight_sync(self.learner, self.robots, version, interrupt=self.running)
+        self.pending_sync = self.send_weights(self.learner, self.robots, version, interrupt=self.running)
         self.synced_version = version
         if wait:
             self.pending_sync.wait(timeout=60)

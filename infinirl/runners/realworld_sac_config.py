@@ -7,6 +7,7 @@ observation size is known only once a robot worker has connected to its robot.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
@@ -14,7 +15,8 @@ from infinirl.config import ConfigError, bounded
 from infinirl.runners.run_config import EvalSchedule, RunConfig
 from infinirl.runners.sac_config import AlgorithmConfig, NetworkConfig, WorkerConfig
 
-__all__ = ["EvalConfig", "InterventionConfig", "RealWorldSACConfig", "RobotConfig", "TaskConfig", "known_names"]
+__all__ = ["EdgeLinkConfig", "EvalConfig", "InterventionConfig", "RealWorldSACConfig", "RobotConfig", "TaskConfig",
+           "known_names", "parse_address"]
 
 
 @dataclass(kw_only=True)
@@ -82,6 +84,70 @@ class PipelineConfig:
     """async: how often the driver looks for a newer published version to send to the robots."""
     durable: bool = True
     """fsync every stored episode (survives power loss); false still survives a killed process."""
+    transport: Literal["ray", "edge"] = "ray"
+    """How robot and learner talk. ray: the robot is a worker of the run's Ray cluster (channels and
+    weight syncs); edge: the robot runs at an edge node that dials the trainer over the mutual-TLS link
+    of infinirl.edge (episodes up through its spool, weights down as deltas; the ``edge`` section)."""
+
+
+@dataclass(kw_only=True)
+class EdgeLinkConfig:
+    listen: str = "0.0.0.0:7443"
+    """pipeline.transport=edge: HOST:PORT where the trainer's hub accepts the edge (port 0: any free
+    port, for an edge node launched here)."""
+    certs: str | None = None
+    """Folder made by ``python -m infinirl.edge certs <folder> --edges <name>``: the trainer reads
+    ca.pem, cloud.pem, cloud.key; the edge node ca.pem, <name>.pem, <name>.key."""
+    name: str = "edge-0"
+    """The edge's name: the common name of its certificate."""
+    launch: bool = False
+    """Start the edge node on this machine as a process of its own (one-machine runs, tests, demos);
+    false: run ``python -m infinirl.edge robot ...`` on the robot's machine (docs/edge.md)."""
+    dial: str | None = None
+    """launch: HOST:PORT the edge node launched here dials (None: the hub's port on 127.0.0.1); e.g.
+    a link emulator in front of the hub."""
+    spool: str | None = None
+    """The edge's on-disk outbox of unacknowledged episodes (None: <output_dir>/edge/spool)."""
+    spool_gib: float = bounded(2.0, gt=0)
+    """The spool's bound; beyond it a finished episode is refused (counted as spool_refused, logged)."""
+    connect_timeout_s: float = bounded(300.0, gt=0)
+    """How long the trainer waits for the edge to connect, and a robot call for its answer."""
+    drain_s: float = bounded(60.0, gt=0)
+    """When the robot stops, how long the edge waits for the trainer to acknowledge its spool."""
+    frame_format: Literal["jpeg", "png"] = "jpeg"
+    """How camera frames travel (png: lossless)."""
+    jpeg_quality: int = bounded(90, ge=1, le=100)
+    heartbeat_s: float = bounded(1.0, gt=0)
+    """Either end sends a heartbeat after this long without sending."""
+    dead_after_s: float = bounded(6.0, gt=0)
+    """Either end closes the link after this long without receiving (the edge then reconnects)."""
+
+    def check(self, transport: str) -> None:
+        if transport != "edge":
+            return
+        for key, value in (("edge.listen", self.listen), ("edge.dial", self.dial)):
+            if value is not None:
+                parse_address(value, key)
+        if self.certs is None:
+            raise ConfigError("pipeline.transport=edge needs edge.certs: a folder made by `python -m infinirl.edge "
+                              f"certs <folder> --edges {self.name}`")
+
+    def check_trainer_files(self) -> None:
+        """The trainer's certificate files (and the edge's when it launches the edge node); checked
+        where the trainer starts, not in :meth:`check`, since the edge holds other files."""
+        names = ["ca.pem", "cloud.pem", "cloud.key", *([f"{self.name}.pem", f"{self.name}.key"] if self.launch else [])]
+        missing = [n for n in names if not os.path.isfile(os.path.join(self.certs, n))]
+        if missing:
+            raise ConfigError(f"edge.certs={self.certs!r} lacks {', '.join(missing)}; create the folder with "
+                              f"`python -m infinirl.edge certs {self.certs} --edges {self.name}`")
+
+
+def parse_address(text: str, key: str) -> tuple[str, int]:
+    """``(host, port)`` of ``HOST:PORT``; a one-line ConfigError naming ``key`` otherwise."""
+    host, _, port = str(text).rpartition(":")
+    if not host or not port.isdigit() or int(port) > 65535:
+        raise ConfigError(f"{key}={text!r}: expected HOST:PORT, e.g. 0.0.0.0:7443")
+    return host, int(port)
 
 
 @dataclass(kw_only=True)
@@ -152,7 +218,8 @@ class RealWorldSACConfig(RunConfig):
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("pipeline.mode", "pipeline.iteration_s", "pipeline.sync_poll_s",
                                                     "pipeline.max_updates_per_step", "robot.command_deadline_s",
                                                     "robot.heartbeat_deadline_s", "robot.velocity_scale",
-                                                    "learner.num_threads", "actor.num_threads")
+                                                    "learner.num_threads", "actor.num_threads",
+                                                    "pipeline.transport", "edge")
 
     output_dir: str = "runs/realworld_sac"
     iterations: int = bounded(20, ge=1)
@@ -167,6 +234,8 @@ class RealWorldSACConfig(RunConfig):
     interventions: InterventionConfig = field(default_factory=InterventionConfig)
     """A human (or simulated one) who takes over the robots during training episodes."""
     replay: ReplayConfig = field(default_factory=ReplayConfig)
+    edge: EdgeLinkConfig = field(default_factory=EdgeLinkConfig)
+    """The link to a robot at the edge (pipeline.transport=edge)."""
     eval: EvalConfig = field(default_factory=EvalConfig)
     actor: WorkerConfig = field(default_factory=WorkerConfig)
     """The robot workers' policy inference threads."""
@@ -203,6 +272,17 @@ class RealWorldSACConfig(RunConfig):
         if self.network.obs_key != "state":
             raise ConfigError(f"network.obs_key={self.network.obs_key!r}: robot observations are read from 'state'")
         self._check_placement()
+        self._check_transport()
+
+    def _check_transport(self) -> None:
+        if self.pipeline.transport == "edge":
+            if self.pipeline.mode != "async":
+                raise ConfigError(f"pipeline.transport=edge runs pipeline.mode=async only (got "
+                                  f"{self.pipeline.mode!r}); set pipeline.mode=async or pipeline.transport=ray")
+            if self.robot.fleet:
+                raise ConfigError("pipeline.transport=edge drives one robot at one edge; robot.fleet needs "
+                                  "pipeline.transport=ray")
+        self.edge.check(self.pipeline.transport)
 
     def task_of(self, index: int) -> TaskConfig:
         """The task of fleet entry ``index``: the shared section with the entry's keys over it."""

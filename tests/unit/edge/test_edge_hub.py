@@ -87,6 +87,29 @@ def test_the_hub_delivers_a_resent_episode_once(cloud, credentials):
     assert list(received.episodes) == ["edge-1-a-0"] and hub.counts["duplicates"] == 1
 
 
+def test_an_episode_the_cloud_could_not_take_is_resent_on_the_next_link(credentials):
+    """``on_episode`` failing (e.g. the learner's channel timing out) closes the edge's link
+    without acknowledging the episode; the edge reconnects and resends it, and it arrives once."""
+    taken, failures = [], []
+
+    def on_episode(edge, episode_id, episode):
+        if not failures:
+            failures.append(episode_id)
+            raise TimeoutError("the learner's channel is full")
+        taken.append(episode_id)
+
+    with CloudHub(("127.0.0.1", 0), credentials["cloud"], on_episode=on_episode,
+                  options=HubOptions(link=LINK)) as hub:
+        client = EdgeClient(hub.address, credentials["edge-0"], name="edge-0", options=EDGE).start()
+        try:
+            ids = [client.submit(an_episode(i)) for i in range(2)]
+            assert client.wait_drained(30.0)
+        finally:
+            client.close()
+    assert failures == ids[:1] and sorted(taken) == sorted(ids)
+    assert hub.counts["delivery_failures"] == 1 and client.counts["connects"] >= 2
+
+
 def test_an_edge_cannot_send_episodes_in_another_edges_name(cloud, credentials):
     hub, _, received = cloud
     link = dial(hub.address, client_context(credentials["edge-1"]), options=LINK)

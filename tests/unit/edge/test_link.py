@@ -8,7 +8,7 @@ import pytest
 
 from infinirl.edge.credentials import TlsFiles, client_context, server_context
 from infinirl.edge.emulator import EmulatorSpec, LinkEmulator
-from infinirl.edge.link import CloudListener, LinkAuthError, LinkClosedError, LinkOptions, dial
+from infinirl.edge.link import CloudListener, LinkAuthError, LinkClosedError, LinkError, LinkOptions, dial
 
 FAST = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=5.0)
 QUICK_TO_DIE = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=1.0)
@@ -102,6 +102,21 @@ def test_connecting_to_a_silent_port_times_out(credentials):
             dial(server.getsockname(), client_context(credentials["edge-0"]),
                  options=LinkOptions(connect_timeout_s=0.5, heartbeat_s=0.1, dead_after_s=1.0))
     finally:
+        server.close()
+
+
+def test_a_connection_dropped_during_the_handshake_is_retryable_not_a_refusal(credentials):
+    """A proxy or NAT that accepts and closes at once (the emulator while its link is reset) is an
+    outage: the edge retries it, while a refusal (a TLS alert) stops the edge for good."""
+    server = socket.create_server(("127.0.0.1", 0))
+    closer = threading.Thread(target=lambda: server.accept()[0].close(), daemon=True)
+    closer.start()
+    try:
+        with pytest.raises(LinkError) as error:
+            dial(server.getsockname(), client_context(credentials["edge-0"]), options=FAST)
+        assert not isinstance(error.value, LinkAuthError) and "closed the connection" in str(error.value)
+    finally:
+        closer.join(5)
         server.close()
 
 

@@ -1,0 +1,424 @@
+"""One robot's control loop, without Ray: the robot, the policy's inference copy, and the loop that never waits.
+
+:class:`RobotControlLoop` drives one robot behind the safety layer through a
+:class:`~infinirl.realworld.robot_env.RobotEnv` and acts in one of two ways:
+
+* **asynchronous** (:meth:`RobotControlLoop.start`): a control thread runs episodes back to back
+  at the robot's own rate. Before each step it calls ``between_steps`` (where the transport loads
+  the newest weights it received: the Ray worker's staged weights, or the edge link's newest
+  version), so it acts with the latest policy it has and never waits for one. Each finished episode
+  goes to a sender thread that hands it to ``submit`` (a put on the learner's channel, or a submit
+  to the edge link's spool): a slow transport delays delivery, not the robot;
+* **synchronous** (:meth:`RobotControlLoop.collect`): the call runs whole episodes and returns them.
+
+Every step records the policy version that chose its action (:mod:`~infinirl.realworld.episodes`);
+until the first trained weights arrive, actions are uniform in ``[-1, 1]`` (warm-up, version -1).
+A safety stop during an episode ends it (kept, not terminated) and the next reset re-arms the robot.
+
+**Interventions** (an :class:`~infinirl.realworld.intervention.spec.InterventionSpec`): before each
+training step the loop polls the device with the observation and the policy's proposal; while the
+human holds control the human's action is executed and recorded (``intervened`` = 1). A mark
+(success / failure) labels the observations up to it for a success classifier (``labels_dir``) and,
+with the reward source ``human``, becomes the reward of the step that led to the marked state and
+ends the episode (the env's own success then ends nothing). One more poll after an episode's last
+step collects the marks given for it. Evaluation and demonstration episodes run without the device.
+
+The Ray robot worker (:class:`~infinirl.realworld.robot_worker.RobotActorWorker`) and the edge
+node (:mod:`infinirl.edge.robot_node`) both run this class; only the transport differs.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import torch
+
+from infinirl.realworld.driver import RobotError, RobotStoppedError, make_robot
+from infinirl.realworld.episodes import RANDOM_VERSION, EpisodeRecorder
+from infinirl.realworld.intervention.human_reward import SuccessLabelWriter, human_reward
+from infinirl.realworld.intervention.metrics import intervention_stats
+from infinirl.realworld.intervention.spec import InterventionSpec
+from infinirl.realworld.robot_env import RobotEnv, RobotEnvSpec
+from infinirl.realworld.safety import SafeRobot, SafetyConfig
+
+__all__ = ["VERSION_TENSOR", "PolicyLayout", "RobotControlLoop", "RobotSetup", "connect_robot", "policy_layouts",
+           "resolve_robot", "unit_box"]
+
+logger = logging.getLogger(__name__)
+
+VERSION_TENSOR = "policy_version"
+"""A one-element int64 tensor sent with the weights: the version they are, stamped where they were
+snapshotted (so a robot never labels its steps with a version other than the one it acts with)."""
+_JOIN_TIMEOUT_S = 30.0
+_CONNECT_TRIES = 3
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobotSetup:
+    """Which robot a rank drives when its placement gives it none, and its safety settings."""
+
+    kind: str
+    options: Mapping[str, Any] = field(default_factory=dict)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+
+
+def resolve_robot(setup: RobotSetup, placed: Any) -> tuple[str, dict]:
+    """``(kind, options)`` for ``make_robot``: the placed robot's when discovery found it through a
+    driver kind (its properties carry ``driver_kind`` and ``options``), else ``setup``'s."""
+    properties = getattr(placed, "properties", None) or {}
+    if "driver_kind" in properties:
+        return str(properties["driver_kind"]), dict(properties.get("options", {}))
+    return setup.kind, dict(setup.options)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PolicyLayout:
+    """How one robot's observations and actions sit in the shared policy's vectors.
+
+    Robots of different embodiments feed one policy: its observation is the robot's state, zeros up
+    to ``obs_dim - num_embodiments``, then a one-hot of ``embodiment`` (absent with one embodiment);
+    its action has ``action_dim`` entries, of which a robot executes its own first ``command_size``
+    (the rest are ignored by that robot, and stored as drawn, so the critic sees what the actor did).
+    """
+
+    obs_dim: int
+    action_dim: int
+    embodiment: int = 0
+    num_embodiments: int = 1
+
+    def pad_state(self, state: np.ndarray) -> np.ndarray:
+        if self.num_embodiments == 1 and len(state) == self.obs_dim:
+            return state
+        padded = np.zeros(self.obs_dim, np.float32)
+        padded[:len(state)] = state
+        if self.num_embodiments > 1:
+            padded[self.obs_dim - self.num_embodiments + self.embodiment] = 1.0
+        return padded
+
+
+def policy_layouts(described: list[dict]) -> list[PolicyLayout]:
+    """One layout per robot rank from their :meth:`RobotActorWorker.describe`: identity when every
+    robot has the same shape, else padded to the largest with one embodiment per robot kind."""
+    kinds = sorted({d["kind"] for d in described})
+    same = len({(d["obs_dim"], d["action_dim"]) for d in described}) == 1
+    if same and len(kinds) == 1:
+        return [PolicyLayout(obs_dim=d["obs_dim"], action_dim=d["action_dim"]) for d in described]
+    obs = max(d["obs_dim"] for d in described) + len(kinds)
+    action = max(d["action_dim"] for d in described)
+    return [PolicyLayout(obs_dim=obs, action_dim=action, embodiment=kinds.index(d["kind"]), num_embodiments=len(kinds))
+            for d in described]
+
+
+def unit_box(action_dim: int) -> SimpleNamespace:
+    """The ``[-1, 1]^A`` action space the SAC networks are built for."""
+    return SimpleNamespace(low=-np.ones(action_dim, np.float32), high=np.ones(action_dim, np.float32),
+                           shape=(action_dim,))
+
+
+def connect_robot(kind: str, options: dict, safety: SafetyConfig, tries: int = _CONNECT_TRIES) -> SafeRobot:
+    """The robot behind the safety layer, connected; a driver whose connect fails (a serial port
+    that does not answer yet, a simulator that fails to load) is replaced by a fresh one, up to
+    ``tries`` times, before the failure is raised."""
+    for attempt in range(1, tries + 1):
+        robot = SafeRobot(make_robot(kind, **options), safety)
+        try:
+            robot.connect()
+            return robot
+        except RobotError as exc:
+            robot.close()
+            if attempt == tries:
+                raise
+            logger.warning("%s: connect failed (%s); trying a fresh driver (%d/%d)", kind, exc, attempt + 1, tries)
+    raise AssertionError("unreachable")
+
+
+class RobotControlLoop:
+    """One robot + its policy copy (see the module docstring). ``rank`` seeds the warm-up and
+    names the rank in messages; ``net`` builds the actor (a :class:`~infinirl.components.sac_learner.SACNetSpec`)."""
+
+    def __init__(self, setup: RobotSetup, env: RobotEnvSpec, net, *, seed: int, rank: int = 0, placed: Any = None,
+                 intervention: InterventionSpec | None = None):
+        kind, options = resolve_robot(setup, placed)
+        self.robot = connect_robot(kind, options, setup.safety)
+        self.rank = rank
+        self.env = RobotEnv(self.robot, env, setup.safety)
+        self.kind, self.net = kind, net
+        self.obs_dim, self.action_dim = self.env.observation_size(), self.env.action_dim
+        self.configure(PolicyLayout(obs_dim=self.obs_dim, action_dim=self.action_dim))
+        self.policy_version = RANDOM_VERSION
+        self.rng = np.random.default_rng([seed, self.rank, 0xAC7])
+        self.generator = torch.Generator().manual_seed(int(np.random.SeedSequence([seed, self.rank, 0x7A])
+                                                           .generate_state(1)[0]))
+        self.counts: Counter[str] = Counter()
+        self.recent: list[dict] = []  # finished training episodes since the last stats() call
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._sender: threading.Thread | None = None
+        self._outbox: queue.Queue = queue.Queue()
+        self._error: BaseException | None = None
+        self._eval_request: tuple[int, queue.Queue] | None = None
+        self.intervention = intervention
+        self.intervention_device = None
+        self.labels = None
+        if intervention is not None:
+            self.intervention_device = intervention.build(self.action_dim)
+            self.intervention_device.bind(self.env)
+            url = getattr(self.intervention_device, "url", None)
+            if url is not None:  # a device people open in a browser: say where (reaches the driver's console)
+                print(f"intervention page of robot rank {self.rank}: {url}", flush=True)
+            if intervention.labels_dir is not None:
+                self.labels = SuccessLabelWriter(intervention.labels_dir, prefix=f"rank{self.rank}")
+
+    # ---------------------------------------------------------------- what it is
+    def describe(self) -> dict:
+        spec = self.env.robot_spec
+        return {"kind": self.kind, "obs_dim": self.obs_dim, "action_dim": self.action_dim,
+                "control_hz": spec.control_hz,
+                "cameras": {c.name: (c.height, c.width) for c in spec.cameras if c.name in self.env.spec.cameras}}
+
+    def configure(self, layout: PolicyLayout) -> None:
+        """Build the policy copy for ``layout`` (before the first weights arrive)."""
+        self.layout = layout
+        self.actor = self.net.build_actor(layout.obs_dim, unit_box(layout.action_dim)).eval()
+
+    # ---------------------------------------------------------------- weights
+    def load_weights(self, named_tensors, version: int) -> None:
+        own = self.actor.state_dict()
+        stamped = version
+        with torch.no_grad():
+            for name, tensor in named_tensors:
+                if name == VERSION_TENSOR:
+                    stamped = int(tensor.reshape(-1)[0])
+                    continue
+                if name not in own:
+                    raise KeyError(f"weight {name!r} from the learner has no place in the robot's actor")
+                own[name].copy_(tensor)
+        self.policy_version = stamped
+
+    # ---------------------------------------------------------------- acting
+    @torch.no_grad()
+    def act(self, obs: dict, deterministic: bool = False) -> tuple[np.ndarray, int]:
+        if self.policy_version == RANDOM_VERSION and not deterministic:
+            return self.rng.uniform(-1.0, 1.0, self.layout.action_dim).astype(np.float32), RANDOM_VERSION
+        state = torch.from_numpy(np.asarray(obs["state"], np.float32)[None])
+        action, _, _ = self.actor.sample(state, self.generator, deterministic=deterministic)
+        return action[0].numpy(), self.policy_version
+
+    def _episode(self, policy=None, deterministic: bool = False, between_steps=None,
+                 training: bool = True) -> tuple[dict | None, bool]:
+        """One episode and whether it succeeded; ``policy(observation) -> action`` replaces the
+        actor (demonstrations). Training episodes are counted and reported by :meth:`stats`, and
+        are the ones a human may intervene in."""
+        obs = self._padded(self.env.reset())
+        recorder = EpisodeRecorder(obs)
+        human = self.intervention_device if training and policy is None else None
+        if human is not None:
+            human.reset()
+        while not self._stop.is_set():
+            if between_steps is not None:
+                between_steps()
+            action, version, given = self._choose(obs, policy, deterministic, human)
+            if given is not None and self._apply_marks(recorder, given.marks):
+                break  # the human's mark ended the episode
+            try:
+                step = self.env.step(action[:self.action_dim])
+            except RobotStoppedError as exc:  # the safety layer stopped the robot: keep what was collected
+                logger.warning("%s: episode ended by a safety stop (%s)", self.kind, exc)
+                self.counts["safety_aborts"] += 1
+                break
+            obs = self._padded(step.obs)
+            self.counts["late_steps"] += int(step.late)
+            if self._record(recorder, action, obs, step, version, given):
+                break
+        if human is not None and recorder.mark is None and len(recorder):
+            self._apply_marks(recorder, human.poll(observation=obs).marks)  # marks given for the last step
+        episode = recorder.finish(interventions=self.intervention_device is not None)
+        if episode is not None and training:
+            self._count(recorder, episode)
+        return episode, recorder.success
+
+    def _choose(self, obs: dict, policy, deterministic: bool, human):
+        """``(action, version, the human's input or None)`` for the next step."""
+        if policy is not None:
+            action = np.zeros(self.layout.action_dim, np.float32)
+            action[:self.action_dim] = policy(self.env.last_observation)
+            return action, RANDOM_VERSION, None
+        action, version = self.act(obs, deterministic)
+        if human is None:
+            return action, version, None
+        frames = {key.removeprefix("pixels."): value for key, value in obs.items() if key.startswith("pixels.")}
+        if frames:
+            human.show(frames, {"steps": self.env.steps, "policy_version": version})
+        given = human.poll(observation=obs, policy_action=action[:self.action_dim])
+        if given.active:
+            action = np.zeros(self.layout.action_dim, np.float32)
+            action[:self.action_dim] = given.action
+        return action, version, given
+
+    def _record(self, recorder: EpisodeRecorder, action, obs: dict, step, version: int, given) -> bool:
+        """Record one step; returns whether the episode is over."""
+        if given is not None and self.intervention.reward == "human":  # only the human's marks reward and end
+            recorder.add(action, obs, 0.0, False, version, False, intervened=given.active)
+            return self.env.steps >= self.env.spec.max_episode_steps
+        recorder.add(action, obs, step.reward, step.terminated, version, step.success,
+                     intervened=given is not None and given.active)
+        return step.terminated or step.truncated
+
+    def _apply_marks(self, recorder: EpisodeRecorder, marks: tuple[str, ...]) -> bool:
+        """Count the marks, label the observations so far, and with the human reward source reward
+        the last step and end the episode (returns True then). Marks before the first step have no
+        step to reward and are only counted."""
+        for mark in marks:
+            self.counts[f"marks_{mark}"] += 1
+        if not marks or not len(recorder) or recorder.mark is not None:
+            return False
+        recorder.mark = marks[-1]
+        if self.labels is not None:
+            self.labels.write(recorder.obs, recorder.mark)
+        if self.intervention.reward != "human":
+            return False
+        outcome = human_reward(marks)
+        recorder.relabel_last(reward=outcome.reward, terminated=outcome.terminated, success=outcome.success)
+        return True
+
+    def _count(self, recorder: EpisodeRecorder, episode: dict) -> None:
+        self.counts["episodes"] += 1
+        self.counts["steps"] += len(recorder)
+        self.counts["successes"] += int(recorder.success)
+        entry = {"return": float(episode["reward"].sum()), "length": len(recorder), "success": recorder.success}
+        if self.intervention_device is not None:
+            stats = intervention_stats(episode["intervened"])
+            self.counts["intervened_steps"] += stats.intervened_steps
+            self.counts["takeovers"] += stats.takeovers
+            entry.update(intervened_steps=stats.intervened_steps, takeovers=stats.takeovers, mark=recorder.mark)
+        with self._lock:
+            self.recent.append(entry)
+
+    def _padded(self, obs: dict) -> dict:
+        return {**obs, "state": self.layout.pad_state(obs["state"])}
+
+    # ---------------------------------------------------------------- asynchronous
+    def start(self, submit: Callable[[dict], None], between_steps: Callable[[], Any] | None = None) -> None:
+        """Run episodes back to back on a control thread, calling ``between_steps`` before every step
+        (where the newest weights are loaded); each finished one is handed to ``submit`` on a sender
+        thread (an exception there stops the loop and is reported by the next :meth:`stats`)."""
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._sender = threading.Thread(target=self._send_loop, args=(submit,), name="robot-sender", daemon=True)
+        self._thread = threading.Thread(target=self._control_loop, args=(between_steps,), name="robot-control",
+                                        daemon=True)
+        self._sender.start()
+        self._thread.start()
+
+    def _control_loop(self, between_steps) -> None:
+        try:
+            while not self._stop.is_set():
+                request, self._eval_request = self._eval_request, None
+                if request is not None:
+                    request[1].put(self._evaluate(request[0]))
+                    continue
+                episode, _ = self._episode(between_steps=between_steps)
+                if episode is not None:
+                    self._outbox.put(episode)
+        except BaseException as exc:  # reported by the next stats() / stop() call
+            logger.exception("%s control loop failed", self.kind)
+            self._error = exc
+        finally:
+            self._outbox.put(None)
+
+    def _send_loop(self, submit) -> None:
+        while True:
+            episode = self._outbox.get()
+            if episode is None:
+                return
+            try:
+                submit(episode)
+                self.counts["episodes_sent"] += 1
+            except BaseException as exc:
+                logger.exception("%s: sending an episode failed", self.kind)
+                self._error = self._error or exc
+                return
+
+    def stop(self) -> dict:
+        """Stop the control loop after its present step (the running episode is sent as it is)."""
+        self._stop.set()
+        for thread in (self._thread, self._sender):
+            if thread is not None:
+                thread.join(_JOIN_TIMEOUT_S)
+        self._thread = self._sender = None
+        return self.stats()
+
+    # ---------------------------------------------------------------- synchronous
+    def collect(self, num_episodes: int, deterministic: bool = False) -> list[dict]:
+        """Run ``num_episodes`` training episodes here and return them (synchronous mode);
+        ``deterministic``: the policy acts with ``tanh(mean)`` (HG-DAgger's rollouts)."""
+        episodes = [self._episode(deterministic=deterministic)[0] for _ in range(num_episodes)]
+        return [e for e in episodes if e is not None]
+
+    def demonstrations(self, num_episodes: int, policy: str, seed: int = 0, noise_std: float = 0.0,
+                       options: Mapping[str, Any] | None = None) -> list[dict]:
+        """``num_episodes`` episodes of the scripted demo policy ``policy`` (their versions read -1)."""
+        from infinirl.realworld.demos import make_demo_policy
+
+        demo = make_demo_policy(policy, self.env, seed=seed, noise_std=noise_std, **dict(options or {}))
+        episodes = [self._episode(policy=demo.act, training=False)[0] for _ in range(num_episodes)]
+        return [e for e in episodes if e is not None]
+
+    # ---------------------------------------------------------------- evaluation
+    def evaluate(self, num_episodes: int) -> dict:
+        """``num_episodes`` episodes of the deterministic policy ``tanh(mean)``, not sent to the
+        learner; while the control loop runs they take its turn between two training episodes."""
+        if self._thread is None:
+            return self._evaluate(num_episodes)
+        answer: queue.Queue = queue.Queue()
+        self._eval_request = (num_episodes, answer)
+        while True:
+            try:
+                return answer.get(timeout=1.0)
+            except queue.Empty:
+                self._raise_if_failed()
+
+    def _evaluate(self, num_episodes: int) -> dict:
+        returns, successes, lengths = [], [], []
+        for _ in range(num_episodes):
+            episode, success = self._episode(deterministic=True, training=False)
+            if episode is None:
+                break
+            returns.append(float(episode["reward"].sum()))
+            lengths.append(len(episode["action"]))
+            successes.append(float(success))
+        if not returns:
+            return {}
+        return {"eval/success_rate": float(np.mean(successes)), "eval/return_mean": float(np.mean(returns)),
+                "eval/length_mean": float(np.mean(lengths)), "eval/episodes": float(len(returns)),
+                "eval/policy_version": float(self.policy_version)}
+
+    # ---------------------------------------------------------------- reporting
+    def stats(self) -> dict:
+        """Counters and the training episodes finished since the last call."""
+        self._raise_if_failed()
+        with self._lock:
+            recent, self.recent = self.recent, []
+        return {"kind": self.kind, "counts": dict(self.counts), "episodes": recent,
+                "policy_version": self.policy_version,
+                "safety_clips": dict(self.robot.clip_counts), "safety_events": dict(self.robot.event_counts)}
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None:
+            raise RobotError(f"{self.kind} robot control loop failed: {self._error!r}") from self._error
+
+    def close(self) -> None:
+        self.stop()
+        if self.intervention_device is not None:
+            self.intervention_device.close()
+        self.robot.close()
