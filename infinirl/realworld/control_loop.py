@@ -282,8 +282,11 @@ class RobotControlLoop:
         if not marks or not len(recorder) or recorder.mark is not None:
             return False
         recorder.mark = marks[-1]
-        if self.labels is not None:
-            self.labels.write(recorder.obs, recorder.mark)
+        if self.labels is not None:  # the robot's own state, as its env (and a classifier reward) reads it
+            observations = dict(recorder.obs)
+            if "state" in observations:  # a fleet pads the policy's state and appends the robot's one-hot
+                observations["state"] = [np.asarray(row)[:self.obs_dim] for row in observations["state"]]
+            self.labels.write(observations, recorder.mark)
         if self.intervention.reward != "human":
             return False
         outcome = human_reward(marks)

@@ -141,7 +141,8 @@ def env_spec_of(cfg: RealWorldSACConfig):
 
     def spec(task):
         return RobotEnvSpec(observations=tuple(task.observations), cameras=tuple(task.cameras),
-                            rewards=dict(task.rewards), max_episode_steps=task.max_episode_steps,
+                            rewards=dict(task.rewards), reward_options=dict(task.reward_options),
+                            max_episode_steps=task.max_episode_steps,
                             action_mode=task.action_mode, terminate_on_success=task.terminate_on_success)
 
     if cfg.robot.fleet:

@@ -57,7 +57,11 @@ class TaskConfig:
     cameras: list[str] = field(default_factory=list)
     """Cameras recorded as pixels into the replay store (the state-based networks do not read them)."""
     rewards: dict[str, float] = field(default_factory=lambda: {"goal_distance": 1.0, "success": 1.0})
-    """Reward component -> weight: success, goal_distance, block_distance."""
+    """Reward component -> weight: success, goal_distance, block_distance, classifier (a learned
+    success classifier: docs/realworld.md)."""
+    reward_options: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Options of the reward components that take some, e.g. ``classifier: {path: runs/clf/reach.pt,
+    threshold: 0.5, terminate_on_success: true}``."""
     max_episode_steps: int = bounded(50, ge=1)
     """Steps (control periods) before an episode is cut (it still bootstraps)."""
     action_mode: Literal["delta", "absolute"] = "delta"
@@ -252,8 +256,10 @@ class RealWorldSACConfig(RunConfig):
             task = self.task_of(index)
             known_names(OBSERVATIONS, task.observations, f"robot.fleet[{index}].task.observations")
             known_names(REWARDS, list(task.rewards), f"robot.fleet[{index}].task.rewards")
+            _check_reward_options(task, f"robot.fleet[{index}].task")
         known_names(OBSERVATIONS, self.task.observations, "task.observations")
         known_names(REWARDS, list(self.task.rewards), "task.rewards")
+        _check_reward_options(self.task, "task")
         self.interventions.check()
         if not self.task.observations:
             raise ConfigError("task.observations is empty; name at least one source, e.g. [proprio]")
@@ -308,3 +314,14 @@ def known_names(registry, names, key: str) -> None:
     for name in names:
         if name not in registry:
             raise ConfigError(f"{key}: unknown {registry.kind} {name!r}; registered: {', '.join(registry.names())}")
+
+
+def _check_reward_options(task: TaskConfig, key: str) -> None:
+    """The reward components' options as the robot env will take them (unknown, missing or orphan
+    options), checked before any worker starts."""
+    from infinirl.realworld.robot_env import RobotEnvSpec
+
+    try:
+        RobotEnvSpec(rewards=dict(task.rewards), reward_options=dict(task.reward_options))
+    except ValueError as exc:
+        raise ConfigError(f"{key}.reward_options: {exc}") from None

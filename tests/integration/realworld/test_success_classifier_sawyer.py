@@ -13,6 +13,7 @@ import pytest
 # simulated robots choose a headless one before they import it.
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("metaworld") is None, reason="needs metaworld")
 
+from infinirl.config import ConfigError  # noqa: E402
 from infinirl.realworld.demos import make_demo_policy  # noqa: E402
 from infinirl.realworld.replay import ReplayStore  # noqa: E402
 from infinirl.realworld.robot_env import RobotEnv, RobotEnvSpec  # noqa: E402
@@ -121,15 +122,10 @@ def test_classifier_reward_ends_an_episode_on_predicted_success(trained):
 
 
 @pytest.mark.slow  # a Ray cluster and two iterations of real-time training
-def test_realworld_sac_learns_from_the_classifier_reward(ray_cluster, trained, tmp_path, monkeypatch):
-    built = realworld_sac.env_spec_of
-
-    def classifier_rewarded(cfg):  # the robot env of the run, its reward given by the classifier
-        return dataclasses.replace(built(cfg), rewards={"classifier": 1.0}, terminate_on_success=False,
-                                   reward_options={"classifier": {"path": trained.path}})
-
-    monkeypatch.setattr(realworld_sac, "env_spec_of", classifier_rewarded)
-    cfg = make_cfg(tmp_path / "run", 2, task={"observations": list(OBSERVATIONS), "max_episode_steps": 20})
+def test_realworld_sac_learns_from_the_classifier_reward(ray_cluster, trained, tmp_path):
+    cfg = make_cfg(tmp_path / "run", 2, task={"observations": list(OBSERVATIONS), "max_episode_steps": 20,
+                                              "rewards": {"classifier": 1.0}, "terminate_on_success": False,
+                                              "reward_options": {"classifier": {"path": trained.path}}})
     summary = realworld_sac.run(cfg)
     assert summary["replay_episodes"] >= 1
     rows = rows_of(tmp_path / "run" / "metrics.jsonl")
@@ -140,3 +136,10 @@ def test_realworld_sac_learns_from_the_classifier_reward(ray_cluster, trained, t
     finally:
         store.close()
     assert set(np.unique(rewards).tolist()) <= {0.0, 1.0}  # every stored reward is the classifier's
+
+
+def test_classifier_options_are_checked_before_any_worker_starts(tmp_path):
+    with pytest.raises(ConfigError, match=r"^task.reward_options: .*classifier.*path"):
+        make_cfg(tmp_path / "run", 2, task={"rewards": {"classifier": 1.0}})
+    with pytest.raises(ConfigError, match=r"^task.reward_options: .*\['success'\] are not among the rewards"):
+        make_cfg(tmp_path / "run", 2, task={"rewards": {"goal_distance": 1.0}, "reward_options": {"success": {}}})
