@@ -10,8 +10,10 @@ initial noise into env-unit action chunks, ``--repeats`` times after ``--warmup`
   pipelines, ``postprocessor(policy.predict_action_chunk(preprocessor(batch), noise=noise))``.
 
 Each runs in its own subprocess (neither sees the other's threads or memory) with the same torch
-thread count (``--threads``, default: every core). Reported per side: the median seconds per call
-and ``chunks_per_s`` = batch size / median. Both sides' actions for the shared noise are compared
+thread count (``--threads``, default: every core). The two start at once and take turns call by
+call (benchmarks/_bench_turns.py: the waiting side is stopped), so a slow spell of a shared machine
+lands on both alike and neither computes while the other does. Reported per side: the median
+seconds per call and ``chunks_per_s`` = batch size / median. Both sides' actions for the shared noise are compared
 (``max_abs_diff``), so the two did the same work.
 
 LeRobot is not a dependency of the project (docs/vla.md, "The LeRobot decision"): it lives in its
@@ -35,6 +37,7 @@ reference chunks/s}, "targets": {"vla_act_vs_reference": 1.0}, "device": ..., "r
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -46,6 +49,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from _bench_common import add_record_argument, device_description, record_result
+from _bench_turns import Conductor, RowFailed, Turn
 
 REPO = Path(__file__).resolve().parents[1]
 FIXTURES = REPO / "tests" / "fixtures" / "vla"
@@ -193,15 +197,17 @@ def read_inputs(path: Path) -> tuple[dict, object]:
 
 # --- one side, in its own process ---------------------------------------------------------------
 
-def time_calls(act, warmup: int, repeats: int) -> tuple[list[float], object]:
-    """Seconds of each timed call, and the last call's actions."""
-    for _ in range(warmup):
-        act()
-    seconds = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        actions = act()
-        seconds.append(time.perf_counter() - start)
+def time_calls(act, warmup: int, repeats: int, turn: Turn | None = None) -> tuple[list[float], object]:
+    """Seconds of each timed call, and the last call's actions; with a ``turn``, every call (warm-up
+    too) in a turn of its own, so the other side's calls never run at the same time."""
+    seconds, actions = [], None
+    for i in range(warmup + repeats):
+        with turn or contextlib.nullcontext():
+            start = time.perf_counter()
+            actions = act()
+            elapsed = time.perf_counter() - start
+        if i >= warmup:
+            seconds.append(elapsed)
     return seconds, actions
 
 
@@ -261,9 +267,12 @@ def run_side(side: str, checkpoint: Path, inputs: Path, actions_out: Path, threa
     from safetensors.torch import save_file
 
     torch.set_num_threads(threads)
+    turn = Turn.from_env()
     with torch.no_grad():
         act = SIDES[side](checkpoint, inputs)
-        seconds, actions = time_calls(act, warmup, repeats)
+        seconds, actions = time_calls(act, warmup, repeats, turn)
+    if turn is not None:
+        turn.take()  # the last turn: what follows the timed calls
     save_file({"actions": actions.detach().float().contiguous()}, str(actions_out))
     batch_size = int(actions.shape[0])
     return {**timing_summary(seconds, batch_size), "seconds": [round(s, 6) for s in seconds],
@@ -272,22 +281,40 @@ def run_side(side: str, checkpoint: Path, inputs: Path, actions_out: Path, threa
 
 # --- the driver ---------------------------------------------------------------------------------
 
-def child(python: str, args: list[str], threads: int) -> subprocess.CompletedProcess:
-    """This script under ``python``. Our interpreter also finds the repository's package; the
-    reference's sees the repository only through this script's own folder and the fixtures."""
+def child_env(python: str, threads: int) -> dict[str, str]:
+    """Our interpreter also finds the repository's package; the reference's sees the repository only
+    through this script's own folder and the fixtures (an empty PYTHONPATH adds nothing)."""
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
-    if python == sys.executable:
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
-    else:
-        env.pop("PYTHONPATH", None)
-    return subprocess.run([python, __file__, *args], capture_output=True, text=True, env=env)
+    ours = python == sys.executable
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])) if ours else ""
+    return env
 
 
-def result_of(proc: subprocess.CompletedProcess) -> dict:
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
-    if proc.returncode or not lines:
-        return {"skipped": f"exit {proc.returncode}: {proc.stderr.strip()[-1500:]}"}
+def child(python: str, args: list[str], threads: int) -> subprocess.CompletedProcess:
+    """This script under ``python``, alone."""
+    return subprocess.run([python, __file__, *args], capture_output=True, text=True, env=child_env(python, threads))
+
+
+def result_of(stdout: str) -> dict:
+    lines = [line for line in stdout.splitlines() if line.startswith("RESULT ")]
+    if not lines:
+        return {"skipped": f"no RESULT line in its output: {stdout.strip()[-1500:]}"}
     return json.loads(lines[-1][len("RESULT "):])
+
+
+def run_sides_in_turns(pythons: Mapping[str, str], work: Path, common: list[str], args) -> dict[str, dict]:
+    """Both sides start at once and take turns call by call (``_bench_turns.Conductor``): the i-th
+    call of each runs within one call of the other's, so a slow spell of a shared machine lands on
+    both alike, and never while the other computes."""
+    commands = {side: [python, __file__, "--only", side, "--actions-out", str(work / f"{side}_actions.safetensors"),
+                       *common] for side, python in pythons.items()}
+    row_env = {side: {"PYTHONPATH": child_env(python, args.threads)["PYTHONPATH"]} for side, python in pythons.items()}
+    base = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "MKL_NUM_THREADS": str(args.threads)}
+    try:
+        outputs = Conductor(commands, env=base, row_env=row_env).run(args.warmup + args.repeats)
+    except RowFailed as error:
+        raise SystemExit(f"vla_rollout: a side failed: {error}") from None
+    return {side: {**result_of(outputs[side]), "python": pythons[side]} for side in pythons}
 
 
 def prepare_checkpoint(size: str, work: Path, reference: str | None, threads: int) -> tuple[Path, str]:
@@ -334,16 +361,10 @@ def drive(args) -> dict:
         make_inputs(checkpoint, args.batch_size, inputs)
         common = ["--checkpoint", str(checkpoint), "--inputs", str(inputs), "--threads", str(args.threads),
                   "--warmup", str(args.warmup), "--repeats", str(args.repeats)]
-        pythons = {"ours": sys.executable, "reference": reference}
-        results = {}
-        for side, python in pythons.items():
-            if python is None:
-                results[side] = {"skipped": why}
-                continue
-            results[side] = result_of(child(python, ["--only", side, "--actions-out",
-                                                     str(work / f"{side}_actions.safetensors"), *common],
-                                            args.threads))
-            results[side]["python"] = python
+        pythons = {"ours": sys.executable, **({"reference": reference} if reference else {})}
+        results = run_sides_in_turns(pythons, work, common, args)
+        results.setdefault("reference", {"skipped": why})
+        for side in ("ours", "reference"):
             print(f"[{side}] {json.dumps(results[side])[:400]}", file=sys.stderr, flush=True)
         results["actions"] = compare_actions(work)
         config = json.loads((checkpoint / "config.json").read_text())
