@@ -14,6 +14,7 @@ from vla_rollout import (  # noqa: E402
     SIZES,
     act_ratio,
     action_agreement,
+    compare_actions,
     final_line,
     resolve_reference_python,
     timing_summary,
@@ -79,3 +80,18 @@ def test_sizes_keep_what_lerobot_and_our_loader_need():
         assert (vlm["num_kv_heads"], vlm["head_dim"], vlm["depth"]) == (
             expert["num_kv_heads"], expert["head_dim"], expert["depth"]), name
         assert spec["IMAGE_SIZE"] % spec["VISION"]["patch_size"] == 0, name
+
+
+def test_compare_actions_reads_both_sides_files(tmp_path):
+    import torch
+    from safetensors.torch import save_file
+
+    assert compare_actions(tmp_path)["same_actions"] is None  # a side did not run
+    theirs = torch.tensor([[[0.5, -2.0]]])
+    save_file({"actions": theirs}, str(tmp_path / "reference_actions.safetensors"))
+    save_file({"actions": theirs + torch.tensor([[[0.0, 1e-3]]])}, str(tmp_path / "ours_actions.safetensors"))
+    result = compare_actions(tmp_path)
+    assert result["max_abs_diff"] == pytest.approx(1e-3, rel=1e-3) and result["actions_scale"] == 2.0
+    assert result["same_actions"] is False
+    save_file({"actions": theirs[:, :, :1]}, str(tmp_path / "ours_actions.safetensors"))
+    assert compare_actions(tmp_path)["same_actions"] is False  # shapes differ
