@@ -384,7 +384,9 @@ def main() -> int:
                         help="interpreter of a venv with LeRobot 0.4.4 (default: $INFINIRL_LEROBOT_PYTHON)")
     parser.add_argument("--size", choices=sorted(SIZES), default="small")
     parser.add_argument("--batch-size", type=int, default=4)
-    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch threads of each side")
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1,
+                        help="torch threads of each side (on a host whose cores other jobs keep busy, 1: a "
+                             "parallel region waits for its slowest thread, and a descheduled one stalls it)")
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--only", choices=sorted(SIDES), help=argparse.SUPPRESS)
