@@ -146,9 +146,12 @@ class _Row:
         self.stdout = tempfile.TemporaryFile(mode="w+")
         self.stderr = tempfile.TemporaryFile(mode="w+")
         # A session of its own, so that stopping the row reaches what it started (Ray, simulators).
+        # SIGINT back to its default in the row: a benchmark started in the background (nohup, &)
+        # inherits it ignored, and the row would then not hear the stop.
         self.process = subprocess.Popen(list(cmd), env={**env, ENV_VAR: f"{to_child_r},{from_child_w}"},
                                         stdout=self.stdout, stderr=self.stderr,
-                                        pass_fds=(to_child_r, from_child_w), start_new_session=True)
+                                        pass_fds=(to_child_r, from_child_w), start_new_session=True,
+                                        preexec_fn=_default_sigint)
         os.close(to_child_r)
         os.close(from_child_w)  # the child's exit is then EOF here
         self.ready = False
@@ -210,6 +213,10 @@ class _Row:
                 pass
         self.stdout.close()
         self.stderr.close()
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 class Conductor:

@@ -54,6 +54,6 @@ def test_plan_profiles_once_then_reads_the_cache_and_auto_runs_the_best(tmp_path
 def test_plan_refuses_a_runner_it_has_no_model_of(capsys):
     from infinirl.cli import main
 
-    assert main(["plan", "sac_inverted_pendulum"]) == 2
+    assert main(["plan", "realworld_sac_sawyer_reach"]) == 2
     err = capsys.readouterr().err
-    assert "no model of the 'sac' runner" in err
+    assert "no model of the 'realworld_sac' runner" in err

@@ -84,6 +84,7 @@ def test_the_robot_trains_at_the_edge_through_the_link(ray_cluster, tmp_path, pk
     assert [r["step"] for r in rows] == [1, 2] and rows[-1]["pipeline/robot_versions_min"] >= 1
 
 
+@pytest.mark.slow  # default-tier budget: the link-level cut (test_netns_link.py) and the unit tier's resends stay
 def test_a_link_cut_mid_run_loses_no_episode(ray_cluster, tmp_path, pki):
     """The edge dials the hub through the emulator; the link goes silent for 3 s mid-run (longer
     than dead_after_s, so both ends drop it); the edge keeps acting, spools, reconnects and resends
