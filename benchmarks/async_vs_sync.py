@@ -27,7 +27,8 @@ Last stdout line: {"benchmark": "async_vs_sync", "ratios": {"grpo_async_vs_sync"
 time / eta=1 training time (same samples: the throughput ratio), "grpo_async2_vs_sync": eta=2's,
 "grpo_async_partial_vs_sync" / "grpo_async2_partial_vs_sync": with partial rollouts, "ppo_async_vs_sync",
 "ppo_async2_vs_sync"},
-"metric_gap_points": {job: {row: sync final - row final, in points (mean over seeds)}}, "targets": ...,
+"metric_gap_points": {job: {row: sync final - row final, in points (mean over seeds)}},
+"metric_gap_se_points": {job: {row: its standard error over seeds (null with one seed)}}, "targets": ...,
 "results": {job: {row: ...}} (with several seeds: {job: {row: {"seed=N": ...}}})}.
 """
 
@@ -132,6 +133,14 @@ def seed_total(runs: dict, key: str) -> float | None:
     return sum(values) if values and all(v for v in values) else None
 
 
+def paired_gap(pairs: list[tuple[float, float]]) -> dict:
+    """The synchronous final metric minus a row's, in points: the mean over seeds of the paired
+    differences and its standard error (None with one seed)."""
+    diffs = [100 * (sync - row) for sync, row in pairs]
+    se = statistics.stdev(diffs) / len(diffs) ** 0.5 if len(diffs) > 1 else None
+    return {"mean": round(statistics.mean(diffs), 1), "se": None if se is None else round(se, 1), "seeds": len(diffs)}
+
+
 def time_to(curve: list[dict], value: float) -> float | None:
     """Training seconds until the held-out metric first reaches ``value``."""
     return next((point["train_s"] for point in curve if point["metric"] >= value - 1e-9), None)
@@ -158,7 +167,7 @@ def main() -> int:
     async_threads = tuple(int(x) for x in args.async_threads.split(","))
     seeds = [int(x) for x in args.seeds.split(",") if x.strip()] or [None]
     results: dict = {}
-    ratios, gaps, to_final = {}, {}, {}
+    ratios, gaps, gap_se, to_final = {}, {}, {}, {}
     for name in jobs:
         job, results[name] = JOBS[name], {}
         per_seed: dict = {}
@@ -190,12 +199,14 @@ def main() -> int:
                       if sync_runs.get(s, {}).get("final_metric") is not None
                       and runs.get(s, {}).get("final_metric") is not None]
             if paired:
-                gaps.setdefault(name, {})[row] = round(100 * statistics.mean(a - b for a, b in paired), 1)
+                summary = paired_gap(paired)
+                gaps.setdefault(name, {})[row] = summary["mean"]
+                gap_se.setdefault(name, {})[row] = summary["se"]
                 if seeds == [None]:
                     to_final.setdefault(name, {})[row] = time_to(runs[None]["eval"], sync_runs[None]["final_metric"])
     final = {"benchmark": "async_vs_sync", "ratios": ratios,
              "targets": {f"{name}_async_vs_sync": JOBS[name].target for name in jobs},
-             "metric_gap_points": gaps, "train_s_to_sync_final_metric": to_final,
+             "metric_gap_points": gaps, "metric_gap_se_points": gap_se, "train_s_to_sync_final_metric": to_final,
              "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
              "iterations": args.iterations, "seeds": [s for s in seeds if s is not None],
              "async_threads": list(async_threads), "results": results}
