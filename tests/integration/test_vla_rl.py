@@ -43,8 +43,13 @@ def make_cfg(output_dir, checkpoint, **extra):
 
 
 @pytest.mark.slow  # three short runs with a VLA; default-tier budget (pytest -m slow tests/integration)
-def test_ppo_with_lora_on_the_vla_trains_the_adapters_and_resumes_exactly(ray_cluster, tmp_path, checkpoint):
-    straight = run(make_cfg(tmp_path / "straight", checkpoint))
+@pytest.mark.parametrize("strategy", ["ddp", "fsdp"])
+def test_ppo_with_lora_on_the_vla_trains_the_adapters_and_resumes_exactly(ray_cluster, tmp_path, checkpoint, strategy):
+    def make(output_dir):
+        return make_cfg(output_dir, checkpoint, actor={"anneal_lr": False, "lr": 1e-3, "lora": {"r": 2, "alpha": 4.0},
+                                                       "strategy": strategy})
+
+    straight = run(make(tmp_path / "straight"))
     rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows if "train/grad_norm" in r] == [1, 2]
     assert all(r["train/grad_norm"] > 0 for r in rows if "train/grad_norm" in r)
@@ -52,7 +57,7 @@ def test_ppo_with_lora_on_the_vla_trains_the_adapters_and_resumes_exactly(ray_cl
     assert all(r["train/logprob_mismatch"] < 1e-4 for r in rows if "train/logprob_mismatch" in r)
 
     killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", 1)
-    resumed = run(make_cfg(tmp_path / "resumed", checkpoint))
+    resumed = run(make(tmp_path / "resumed"))
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
 
 

@@ -72,3 +72,46 @@ def test_names_that_match_nothing_are_one_line_naming_the_key(checkpoint):
         apply_policy_lora(plain_policy(checkpoint), PolicyLoraSpec(train_fully=["critic"]))
     with pytest.raises(ValueError, match=r"^actor.lora.target_modules='q_proj': give 'all-linear' or a list"):
         PolicyLoraSpec(target_modules="q_proj").check()
+
+
+def test_adapters_under_fsdp2_train_and_merge_as_unsharded(checkpoint):
+    """actor.strategy=fsdp with actor.lora (FSDP2, one gloo rank): frozen base weights and trainable
+    adapters share the sharded parameter groups; the update, the frozen weights and the merged
+    plain weights the rollout receives match the unsharded adapted policy's. The policy is called
+    through the actor's wrapper's ``forward``, the call FSDP2's hooks see."""
+    from infinirl.components.embodied_policy import NormalizedPolicy
+    from infinirl.engines.distributed import init_distributed
+    from infinirl.engines.parallel import DATA_PARALLEL
+
+    init_distributed()
+    spec = PolicyLoraSpec(r=4, alpha=8.0)
+    unsharded, sharded = NormalizedPolicy(plain_policy(checkpoint), {}), NormalizedPolicy(plain_policy(checkpoint), {})
+    torch.manual_seed(2)  # the adapters' A matrices: random, identical on both (as on every rank)
+    plan = apply_policy_lora(unsharded, spec)
+    torch.manual_seed(2)
+    assert apply_policy_lora(sharded, spec) == plan
+    parallel = DATA_PARALLEL.get("fsdp")()
+    sharded = parallel.wrap(sharded)
+    torch.manual_seed(1)
+    step = unsharded.act(env_obs())
+
+    def train(model, optimizer):
+        for _ in range(3):
+            optimizer.zero_grad()
+            logprobs, _, values = model(env_obs(), step.actions, step.extras, False)
+            (-logprobs.sum() + values.square().sum()).backward()
+            optimizer.step()
+        with torch.no_grad():
+            return model(env_obs(), step.actions, step.extras, False)[0]
+
+    expected_logprobs = train(unsharded, torch.optim.Adam([p for p in unsharded.parameters() if p.requires_grad],
+                                                          lr=1e-2))
+    logprobs = train(sharded, parallel.build_optimizer(sharded, lr=1e-2, eps=1e-8))
+    torch.testing.assert_close(logprobs, expected_logprobs, atol=1e-5, rtol=1e-5)
+
+    merged = dict(merged_policy_weights(parallel.full_weights(sharded), plan))
+    expected = dict(merged_policy_weights(unsharded.state_dict().items(), plan))
+    assert set(merged) == set(expected)
+    assert not any(".lora_" in name for name in merged)
+    for name, tensor in expected.items():
+        torch.testing.assert_close(merged[name], tensor, atol=1e-5, rtol=1e-5, msg=name)
