@@ -49,7 +49,7 @@ class EdgeOptions:
 
     reconnect_min_s: float = 0.2
     reconnect_max_s: float = 5.0
-    window: int = 4
+    window: int = 16  # a trainer acknowledges after the learner's commit (a channel hop, an fsync and back)
     send_timeout_s: float = 60.0
     link: LinkOptions = field(default_factory=LinkOptions)
     tunnel: TunnelOptions = field(default_factory=TunnelOptions)
