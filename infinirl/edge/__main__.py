@@ -10,8 +10,8 @@ the robot of a ``realworld_sac`` run at the edge (``pipeline.transport=edge``).
     python -m infinirl.edge robot realworld_sac_sawyer_reach --cloud trainer.example.org:7443 \\
         --certs pki --name edge-0
 
-The cloud node stores every episode that arrives into a replay store (once per episode id; the ids
-are also appended to ``<replay>/edge_received.log`` so a restarted cloud still recognises resends)
+The cloud node stores every episode that arrives into a replay store (once per episode id: the
+store keeps each episode's id as its source id, so a restarted cloud still recognises resends)
 and publishes the actor state dict in ``--weights`` (a ``torch.save`` file a trainer rewrites
 atomically) as a new version whenever the file changes. The edge node runs episodes on its robot
 with the newest weights and ships them (docs/edge.md). Each node prints one JSON line of counters
@@ -62,20 +62,18 @@ def _certs(args) -> int:
 
 class _ReplaySink:
     """Episodes into a :class:`~infinirl.realworld.replay.ReplayStore` (created from the first
-    episode's shapes), and their ids into a log, so a restarted cloud deduplicates resends."""
+    episode's shapes), each with its episode id as the store's source id, so a restarted cloud
+    deduplicates resends (``seen``: the ids stored before it started)."""
 
     def __init__(self, folder: str) -> None:
         self.folder, self.store = folder, None
         os.makedirs(folder, exist_ok=True)
-        self.log_path = os.path.join(folder, "edge_received.log")
-        self.seen = set()
-        if os.path.exists(self.log_path):
-            with open(self.log_path) as handle:
-                self.seen = {line.strip() for line in handle if line.strip()}
+        self.seen: set[str] = set()
         if os.path.exists(os.path.join(folder, "store.json")):
             from infinirl.realworld.replay import ReplayStore
 
             self.store = ReplayStore(folder)
+            self.seen = set(self.store.sources.sources())
 
     def __call__(self, edge: str, episode_id: str, episode: dict) -> None:
         from infinirl.realworld.episodes import episode_spec
@@ -86,11 +84,7 @@ class _ReplaySink:
                        if name.startswith("pixels.")}
             spec = episode_spec(episode["state"].shape[1], episode["action"].shape[1], cameras)
             self.store = ReplayStore(self.folder, spec)
-        self.store.append(episode)
-        with open(self.log_path, "a") as handle:
-            handle.write(episode_id + "\n")
-            handle.flush()
-            os.fsync(handle.fileno())
+        self.store.append(episode, source_id=episode_id)  # committed (durably) before the hub acknowledges
 
 
 def _stop_event() -> threading.Event:

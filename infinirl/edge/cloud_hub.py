@@ -1,11 +1,15 @@
 """The cloud's side of the link: accept edges, store their episodes once, push them weights.
 
 :class:`CloudHub` listens for edges (one accept thread; a refused one is logged and kept in
-:attr:`CloudHub.refusals`, one line each). For each connected edge it receives episodes, hands each
+:attr:`CloudHub.refusals`, one line each). For each connected edge it receives episodes and hands each
 new episode id to ``on_episode(edge, episode_id, episode)`` exactly once (an id seen before, from a
-resend after an outage, is acknowledged again but not delivered), and acknowledges only after
-``on_episode`` returned, so an episode is never lost between the two ends (when ``on_episode``
-raises, the hub closes that edge's link, and the edge resends the episode on its next one). Episode ids must start
+resend after an outage, is not delivered again). When ``on_episode`` raises, the hub closes that
+edge's link, and the edge resends the episode on its next one. An episode is acknowledged (the edge
+then forgets it) only after ``on_episode`` returned, or with ``commit_acks=True`` only once the
+owner calls :meth:`CloudHub.commit` with its id: when the episode is in durable storage (the
+learner's replay store), so neither a trainer that dies nor a link that drops in between loses it.
+A resend of a committed id is acknowledged again at once; one of a delivered, not yet committed id
+waits for its commit, whose acknowledgement goes on the edge's link of that moment. Episode ids must start
 with the edge's certificate name and a dash (:class:`~infinirl.edge.edge_client.EdgeClient` names
 them so); an edge sending another id is disconnected, so no edge can shadow another's episodes. Seen ids are kept in
 memory; pass ``seen_ids`` (e.g. from the replay store) when the cloud restarts.
@@ -64,14 +68,16 @@ class CloudHub:
 
     def __init__(self, listen: tuple[str, int], files: TlsFiles, *,
                  on_episode: Callable[[str, str, dict[str, np.ndarray]], None],
-                 seen_ids: Iterable[str] = (), options: HubOptions | None = None) -> None:
+                 seen_ids: Iterable[str] = (), options: HubOptions | None = None, commit_acks: bool = False) -> None:
         self.options = options or HubOptions()
         self.on_episode = on_episode
         self.counts: Counter[str] = Counter()
         self.refusals: deque[str] = deque(maxlen=self.options.max_refusals_kept)
         self._listener = CloudListener(*listen, server_context(files), options=self.options.link)
         self.address = self._listener.address
-        self._seen = set(seen_ids)
+        self.commit_acks = commit_acks
+        self._seen: dict[str, str] = dict.fromkeys(seen_ids, "")  # delivered id -> its edge
+        self._committed: set[str] = set(self._seen)  # acknowledged at once when resent
         self._lock = threading.Lock()
         self._deliver_lock = threading.Lock()  # held while on_episode runs: the other locks stay free
         self._changed = threading.Condition(self._lock)
@@ -92,6 +98,28 @@ class CloudHub:
         with self._changed:
             self._latest = (version, dict(tensors))
             self._changed.notify_all()
+
+    def commit(self, episode_ids: Iterable[str]) -> int:
+        """``commit_acks``: these delivered episodes are stored; acknowledge them to their edges
+        (on each edge's present link; an edge offline now is acknowledged when it resends them).
+        Returns how many acknowledgements went out."""
+        by_edge: dict[str, list[str]] = {}
+        with self._deliver_lock:
+            for episode_id in episode_ids:
+                self._committed.add(episode_id)
+                by_edge.setdefault(self._seen.get(episode_id, ""), []).append(episode_id)
+        sent = 0
+        for edge, ids in by_edge.items():
+            self.counts["episodes_committed"] += len(ids)
+            link = self.link(edge) if edge else None
+            if link is None:
+                continue
+            try:
+                link.send(protocol.EPISODE_ACKS, protocol.dump({"ids": ids}), timeout=self.options.send_timeout_s)
+                sent += len(ids)
+            except (LinkError, TimeoutError) as exc:  # the edge resends them and is acknowledged then
+                logger.info("edge %s: acknowledgement of %d committed episodes not sent (%s)", edge, len(ids), exc)
+        return sent
 
     def connected_edges(self) -> list[str]:
         with self._lock:
@@ -205,25 +233,34 @@ class CloudHub:
                     logger.warning("%s", link.closed_reason)
                     return
                 self.counts["episode_bytes"] += len(payload)
-                with self._deliver_lock:  # one delivery per id, also across an old and a new connection
-                    fresh = episode_id not in self._seen
-                    if fresh:
-                        try:
-                            self.on_episode(link.peer, episode_id, episode)
-                        except Exception as exc:  # not acknowledged: the edge resends it on its next link
-                            self.counts["delivery_failures"] += 1
-                            link.close(f"the cloud could not take episode {episode_id} ({exc!r}); the edge resends it")
-                            logger.warning("%s", link.closed_reason)
-                            return
-                        self._seen.add(episode_id)
-                self.counts["episodes" if fresh else "duplicates"] += 1
-                link.send(protocol.EPISODE_ACKS, protocol.dump({"ids": [episode_id]}),
-                          timeout=self.options.send_timeout_s)
+                if not self._take(link, episode_id, episode):
+                    return
         except (LinkError, TimeoutError) as exc:
             logger.info("edge %s: episode stream ended (%s)", link.peer, exc)
         finally:
             with self._lock:
                 self._links.pop(id(link), None)
+
+    def _take(self, link: Link, episode_id: str, episode: dict) -> bool:
+        """Deliver a new id, acknowledge it when due; False when the delivery failed (link closed)."""
+        with self._deliver_lock:  # one delivery per id, also across an old and a new connection
+            fresh = episode_id not in self._seen
+            if fresh:
+                try:
+                    self.on_episode(link.peer, episode_id, episode)
+                except Exception as exc:  # not acknowledged: the edge resends it on its next link
+                    self.counts["delivery_failures"] += 1
+                    link.close(f"the cloud could not take episode {episode_id} ({exc!r}); the edge resends it")
+                    logger.warning("%s", link.closed_reason)
+                    return False
+                self._seen[episode_id] = link.peer
+                if not self.commit_acks:
+                    self._committed.add(episode_id)
+            due = episode_id in self._committed  # else: acknowledged by commit()
+        self.counts["episodes" if fresh else "duplicates"] += 1
+        if due:
+            link.send(protocol.EPISODE_ACKS, protocol.dump({"ids": [episode_id]}), timeout=self.options.send_timeout_s)
+        return True
 
     def _next_push(self, link: Link, state: _EdgeState) -> tuple[int, dict] | None:
         latest = self._latest

@@ -9,7 +9,9 @@ refused certificate is not retried: it is permanent, and :meth:`EdgeClient.check
 
 The robot keeps acting meanwhile: :attr:`EdgeClient.weights` is the newest version received, and
 :meth:`EdgeClient.offline_s` how long the link has been down, so the control loop can use the last
-policy within a staleness bound and hold the robot beyond it (:meth:`policy_usable`).
+policy within a staleness bound and hold the robot beyond it (:meth:`policy_usable`). When the link
+returns, the client logs how long it was down and how many episodes were spooled meanwhile, and
+counts them (``outages``, ``offline_s``, ``episodes_spooled_offline``; :attr:`last_outage`).
 
 While connected it also answers the cloud's tunnel connections (:mod:`infinirl.edge.tunnel`) to
 the services in ``tunnel_targets`` (e.g. ``{"page": ("127.0.0.1", 8765)}``, the intervention page),
@@ -49,7 +51,7 @@ class EdgeOptions:
 
     reconnect_min_s: float = 0.2
     reconnect_max_s: float = 5.0
-    window: int = 4
+    window: int = 16  # a trainer acknowledges after the learner's commit (a channel hop, an fsync and back)
     send_timeout_s: float = 60.0
     link: LinkOptions = field(default_factory=LinkOptions)
     tunnel: TunnelOptions = field(default_factory=TunnelOptions)
@@ -81,6 +83,8 @@ class EdgeClient:
         self._link: Link | None = None
         self.tunnel: TunnelEnd | None = None  # the present link's, while connected
         self._offline_since: float | None = time.monotonic()
+        self._outage_from: tuple[float, int] | None = None  # (went down at, episodes submitted then)
+        self.last_outage: dict | None = None  # {"offline_s", "episodes_spooled"} of the last outage ended
         self._changed = threading.Condition()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"edge-client-{name}", daemon=True)
@@ -198,15 +202,31 @@ class EdgeClient:
                 continue
             backoff = self.options.reconnect_min_s
             self.counts["connects"] += 1
+            self._back_online()
             self._link, self._offline_since = link, None
             try:
                 self._session(link)
             finally:
                 link.close("session ended")
-                self._offline_since = time.monotonic()
+                self._offline_since = link.closed_at or time.monotonic()
+                self._outage_from = (self._offline_since, self.counts["episodes_submitted"])
                 self._link = None
                 self.counts["disconnects"] += 1
                 logger.warning("edge %s: link lost (%s); reconnecting", self.name, link.closed_reason)
+
+    def _back_online(self) -> None:
+        """After an outage: count it, and say how long it lasted and what the spool took meanwhile."""
+        if self._outage_from is None:
+            return
+        since, submitted = self._outage_from
+        self._outage_from = None
+        seconds, spooled = time.monotonic() - since, self.counts["episodes_submitted"] - submitted
+        self.counts["outages"] += 1
+        self.counts["offline_s"] += seconds
+        self.counts["episodes_spooled_offline"] += spooled
+        self.last_outage = {"offline_s": seconds, "episodes_spooled": spooled}
+        logger.warning("edge %s: link back after %.1f s offline; %d episodes were spooled meanwhile, %d await "
+                       "acknowledgement and are sent now", self.name, seconds, spooled, len(self.spool))
 
     def _session(self, link: Link) -> None:
         in_flight: set[str] = set()

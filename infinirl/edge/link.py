@@ -13,7 +13,10 @@ over the non-blocking socket: :meth:`Link.send` queues a frame (bounded by ``max
 so a slow link pushes back on the producer), :meth:`Link.recv` takes the next frame of one stream.
 Every call takes a timeout. A link on which nothing arrives for ``dead_after_s`` (each end sends a
 heartbeat after ``heartbeat_s`` without sending) is closed, so a cable pulled without a TCP reset
-is noticed; after that every call raises :class:`LinkClosedError` with the reason.
+is noticed; after that every call raises :class:`LinkClosedError` with the reason. Outgoing frames
+wait in one queue per stream and go out in deficit round-robin (:mod:`infinirl.edge.fair_queue`), so
+a stream with a backlog of large frames (episodes) does not hold up small messages of other
+streams (weights announcements, call replies, acknowledgements, heartbeats).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import time
 from dataclasses import dataclass
 
 from infinirl.edge.credentials import CLOUD_NAME
+from infinirl.edge.fair_queue import FairQueue
 from infinirl.edge.frames import FrameError, FrameReader, encode_frame
 
 __all__ = ["PROTOCOL_VERSION", "CloudListener", "Link", "LinkAuthError", "LinkClosedError", "LinkError",
@@ -44,6 +48,9 @@ _POLL_S = 0.05
 # Bytes one direction may move per turn of the I/O loop: a sustained one-way flood must not keep the
 # other direction (and the peer's heartbeats) waiting until the link looks dead.
 _TURN_BYTES = 1 << 20
+# Credit per stream and turn of the outgoing fair queue: a small frame waits for at most this much of
+# each busy stream (or one of its frames, when larger) after the frame being written.
+_QUANTUM = 1 << 16
 
 
 class LinkError(ConnectionError):
@@ -218,7 +225,8 @@ class Link:
         self.bytes_sent = self.bytes_received = 0
         self._sock, self._reader = sock, reader
         self._sock.setblocking(False)
-        self._out: collections.deque[memoryview] = collections.deque()
+        self._out = FairQueue(_QUANTUM)  # frames not yet begun, by stream
+        self._writing: memoryview | None = None  # the rest of the frame on the wire (sent whole, first)
         self._out_bytes = 0
         self._lock = threading.Lock()
         self._space = threading.Condition(self._lock)
@@ -254,7 +262,7 @@ class Link:
                                        f"within {timeout} s (the link is slower than the data offered)")
                 self._space.wait(min(remaining, _POLL_S * 4))
             self._raise_if_closed()
-            self._out.append(memoryview(frame))
+            self._out.push(stream, memoryview(frame))
             self._out_bytes += len(frame)
         self._wake()
 
@@ -359,9 +367,11 @@ class Link:
         sent, budget = False, _TURN_BYTES
         while budget > 0:
             with self._lock:
-                if not self._out:
-                    return sent
-                head = self._out[0]
+                if self._writing is None:
+                    if not self._out:
+                        return sent
+                    self._writing = self._out.pop()[1]
+                head = self._writing
             try:
                 count = self._sock.send(head[:_CHUNK])
             except (ssl.SSLWantReadError, ssl.SSLWantWriteError, BlockingIOError):
@@ -371,10 +381,7 @@ class Link:
             self.bytes_sent += count
             with self._space:
                 self._out_bytes -= count
-                if count == len(head):
-                    self._out.popleft()
-                else:
-                    self._out[0] = head[count:]
+                self._writing = head[count:] if count < len(head) else None
                 self._space.notify_all()
         return sent
 
@@ -386,7 +393,7 @@ class Link:
         try:
             while self._closed_reason is None:
                 with self._lock:
-                    pending = bool(self._out)
+                    pending = self._out_bytes > 0
                 selector.modify(self._sock, selectors.EVENT_READ | (selectors.EVENT_WRITE if pending else 0))
                 selector.select(timeout=0 if self._more_to_read else _POLL_S)
                 try:
@@ -404,7 +411,7 @@ class Link:
                 if now - last_tx > self.options.heartbeat_s and not pending:
                     with self._lock:
                         frame = encode_frame(HEARTBEAT, b"")
-                        self._out.append(memoryview(frame))
+                        self._out.push(HEARTBEAT, memoryview(frame))
                         self._out_bytes += len(frame)
                     last_tx = now
         except (LinkClosedError, FrameError) as exc:

@@ -11,6 +11,11 @@ worker does (:class:`~infinirl.realworld.control_loop.RobotControlLoop`), dials 
 * weights: the trainer publishes each new version on the link (deltas when smaller); before every
   step the control loop loads the newest version the client holds, as a Ray worker loads its staged
   weights;
+* outages: while the link is down the robot keeps acting on the last weights it holds and its
+  episodes wait in the spool; once the link has been down for ``edge.max_offline_s`` the robot holds
+  (the driver's ``hold()``, heartbeats kept, so it is paused, not stopped) until the link returns,
+  then acts on (and loads the versions the trainer pushes). Holds are counted (``offline_holds``,
+  ``offline_hold_s``) and logged; the client logs each outage's length and the episodes spooled;
 * ``stop`` ends the control loop after its present step and waits until the trainer acknowledged
   every spooled episode (``edge.drain_s``), so the learner has them before it stops.
 
@@ -22,6 +27,8 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
+from collections import Counter
 from collections.abc import Callable
 
 import torch
@@ -38,6 +45,7 @@ from infinirl.realworld.driver import RobotError
 __all__ = ["EdgeRobotNode", "edge_options_of", "run_robot_node", "shared_config"]
 
 logger = logging.getLogger(__name__)
+_HOLD_POLL_S = 0.1  # while holding: how often the link is looked at (and the robot's heartbeat given)
 
 SHARED_SECTIONS = ("seed", "robot", "task", "network", "interventions")
 """Config sections that must agree between the trainer and the edge (the robot and the policy)."""
@@ -61,7 +69,9 @@ class EdgeRobotNode:
     def __init__(self, cfg, loop, client: EdgeClient) -> None:
         self.cfg, self.loop, self.client = cfg, loop, client
         self.closed = threading.Event()
+        self.halted = threading.Event()  # the loop is stopping: an offline hold ends
         self.spool_refused = 0
+        self.counts: Counter[str] = Counter()
 
     def handlers(self) -> dict:
         return {"describe": self.describe, "configure": self.configure, "start": self.start, "stop": self.stop,
@@ -69,6 +79,32 @@ class EdgeRobotNode:
                 "close": self.close}
 
     # ------------------------------------------------------------------ the transport
+    def between_steps(self) -> None:
+        """Before each step of the control loop: hold while offline too long, then load new weights."""
+        self.hold_while_offline()
+        self.load_newest_weights()
+
+    def hold_while_offline(self) -> None:
+        """Past ``edge.max_offline_s`` without the link, hold the robot until the link returns (or
+        the loop stops). The heartbeat goes on: a deliberate pause, not a stalled pipeline."""
+        limit = self.cfg.edge.max_offline_s
+        if self.client.offline_s() <= limit:
+            return
+        robot = self.loop.robot
+        logger.warning("edge %s: the link has been down for %.1f s (edge.max_offline_s=%g): holding the robot "
+                       "until it returns", self.client.name, self.client.offline_s(), limit)
+        self.counts["offline_holds"] += 1
+        started = time.monotonic()
+        robot.hold()
+        while not self.client.connected and not self.halted.is_set():
+            self.client.check()
+            robot.heartbeat()
+            self.halted.wait(_HOLD_POLL_S)
+        held = time.monotonic() - started
+        self.counts["offline_hold_s"] += held
+        logger.warning("edge %s: %s after holding the robot %.1f s", self.client.name,
+                       "stopping" if self.halted.is_set() else "the link is back; acting again", held)
+
     def load_newest_weights(self) -> None:
         """Between steps: load the client's newest version when the policy acts with another."""
         held = self.client.weights
@@ -92,10 +128,12 @@ class EdgeRobotNode:
         return None, []
 
     def start(self):
-        self.loop.start(self.submit, between_steps=self.load_newest_weights)
+        self.halted.clear()
+        self.loop.start(self.submit, between_steps=self.between_steps)
         return None, []
 
     def stop(self):
+        self.halted.set()
         stats = self.loop.stop()
         drained = self.client.wait_drained(self.cfg.edge.drain_s)
         return {**self._with_link(stats), "drained": drained}, []
@@ -114,7 +152,7 @@ class EdgeRobotNode:
         return None, []
 
     def _with_link(self, stats: dict) -> dict:
-        counts = {**stats["counts"], "spool_refused": self.spool_refused,
+        counts = {**stats["counts"], **self.counts, "spool_refused": self.spool_refused,
                   **{f"link_{key}": value for key, value in self.client.counts.items()}}
         return {**stats, "counts": counts}
 

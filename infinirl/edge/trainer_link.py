@@ -1,11 +1,15 @@
 """The trainer's end of ``pipeline.transport=edge``: a hub for the run's robot at the edge.
 
 :class:`TrainerLink` runs a :class:`~infinirl.edge.cloud_hub.CloudHub` in the run's driver. Each
-episode the edge sends reaches ``deliver`` (the runner's: a put on the learner's channel) once per
-episode id, and only then is acknowledged; the ids are also appended to
-``<output_dir>/edge/received.log``, so a trainer restarted while the edge keeps resending still
-recognises them. :meth:`TrainerLink.send_weights` publishes the learner's newest snapshot on the
-link (the hub sends it as a delta when smaller; a slow edge skips to the newest version).
+episode the edge sends is put on the learner's channel once per episode id, carrying that id
+(:data:`~infinirl.realworld.learner_worker.SOURCE_ID`). The learner commits it to its replay store
+under that id and reports the id back on the channel
+(:func:`~infinirl.realworld.learner_worker.committed_key`); only then does the hub acknowledge it
+to the edge, whose spool keeps the episode until that acknowledgement. So a trainer that dies, or a
+link that drops, between the channel and the store loses no episode: the edge resends it, and the
+store, which knows the ids it holds, keeps it once (also across a restarted trainer).
+:meth:`TrainerLink.send_weights` publishes the learner's newest snapshot on the link (the hub sends
+it as a delta when smaller; a slow edge skips to the newest version).
 :class:`EdgeRobots` drives the edge's robot by calls on the link (:mod:`infinirl.edge.robot_calls`)
 with the subset of a Ray worker group's interface the runner uses, so the runner's iteration logic
 is the same for both transports.
@@ -23,8 +27,8 @@ import logging
 import os
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Callable
 
 from infinirl.edge.cloud_hub import CloudHub, HubOptions, wait_for
 from infinirl.edge.credentials import TlsFiles
@@ -32,26 +36,12 @@ from infinirl.edge.link import LinkOptions
 from infinirl.edge.robot_calls import RobotCaller
 from infinirl.edge.robot_node import shared_config
 
-__all__ = ["EdgeRobots", "ReceivedIds", "TrainerLink", "differences"]
+__all__ = ["EdgeRobots", "TrainerLink", "differences"]
 
 logger = logging.getLogger(__name__)
 _EXIT_GRACE_S = 30.0
-
-
-class ReceivedIds:
-    """Episode ids delivered so far, one a line in ``path`` (appended and flushed per id)."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-        self.ids: set[str] = set()
-        if os.path.exists(path):
-            with open(path) as handle:
-                self.ids = {line.strip() for line in handle if line.strip()}
-
-    def add(self, episode_id: str) -> None:
-        with open(self.path, "a") as handle:
-            handle.write(episode_id + "\n")
-        self.ids.add(episode_id)
+_PUT_TIMEOUT_S = 60.0
+_COMMITS_WAIT_S = 0.5
 
 
 def differences(ours: dict, theirs: dict, prefix: str = "") -> dict[str, tuple]:
@@ -150,26 +140,45 @@ class EdgeRobots:
 
 
 class TrainerLink:
-    """See the module docstring; ``cfg`` is the run's ``RealWorldSACConfig``, ``deliver(episode)``
-    hands an episode to the learner (called once per episode id, before it is acknowledged)."""
+    """See the module docstring; ``cfg`` is the run's ``RealWorldSACConfig``; the edge's episodes go
+    on ``channel`` under ``key`` (the learner's), and its reports of committed ids come back there."""
 
-    def __init__(self, cfg, deliver: Callable[[dict], None]) -> None:
-        self.cfg, self.deliver = cfg, deliver
+    def __init__(self, cfg, channel, key: str = "episodes") -> None:
+        from infinirl.realworld.learner_worker import committed_key
+
+        self.cfg, self.channel, self.key, self.commits_key = cfg, channel, key, committed_key(key)
         self.folder = os.path.abspath(os.path.join(cfg.output_dir, "edge"))
         os.makedirs(self.folder, exist_ok=True)
-        self.received = ReceivedIds(os.path.join(self.folder, "received.log"))
         link = LinkOptions(heartbeat_s=cfg.edge.heartbeat_s, dead_after_s=cfg.edge.dead_after_s)
         host, _, port = cfg.edge.listen.rpartition(":")  # checked by the config
         self.hub = CloudHub((host, int(port)), TlsFiles.in_folder(cfg.edge.certs, "cloud"),
-                            on_episode=self._on_episode, seen_ids=self.received.ids, options=HubOptions(link=link))
+                            on_episode=self._on_episode, options=HubOptions(link=link), commit_acks=True)
         self.process: subprocess.Popen | None = None
+        self._stop = threading.Event()
+        self._commits = threading.Thread(target=self._follow_commits, name="edge-commits", daemon=True)
 
     def _on_episode(self, edge: str, episode_id: str, episode: dict) -> None:
-        self.deliver(episode)
-        self.received.add(episode_id)
+        from infinirl.realworld.learner_worker import SOURCE_ID
+
+        self.channel.put({**episode, SOURCE_ID: episode_id}, key=self.key, timeout=_PUT_TIMEOUT_S)
+
+    def _follow_commits(self) -> None:
+        """Acknowledge to the edge what the learner reports committed, until closed."""
+        from infinirl.runtime import ChannelClosed, ChannelError
+
+        while not self._stop.is_set():
+            try:
+                reports = self.channel.get_batch(1e12, key=self.commits_key, timeout=_COMMITS_WAIT_S)
+            except TimeoutError:
+                continue
+            except (ChannelClosed, ChannelError) as exc:  # the run is ending; the edge resends what is unacknowledged
+                logger.info("edge link: no more commit reports (%r)", exc)
+                return
+            self.hub.commit(episode_id for report in reports for episode_id in report["ids"])
 
     def start(self) -> TrainerLink:
         self.hub.start()
+        self._commits.start()
         print(f"edge link: waiting for edge {self.cfg.edge.name} on {self.hub.address[0]}:{self.hub.address[1]}",
               flush=True)
         if self.cfg.edge.launch:
@@ -216,6 +225,9 @@ class TrainerLink:
                 logger.warning("the edge node launched here did not end; terminating it")
                 self.process.terminate()
                 self.process.wait(_EXIT_GRACE_S)
+        self._stop.set()
+        if self._commits.is_alive():
+            self._commits.join(_COMMITS_WAIT_S * 4)
         self.hub.close()
 
     # ------------------------------------------------------------------ the local edge node

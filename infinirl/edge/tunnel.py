@@ -22,8 +22,8 @@ Messages (:func:`encode_message`): ``[u8 kind][u32 connection id][body]``; the c
 * ``close``, body the reason: ends the connection at once in both directions (a failed socket,
   a peer breaking the window).
 
-The link sends its frames first in, first out, so the tunnel's share of what waits there is
-bounded by ``max_connections * window_bytes``; frames of other streams queued meanwhile go out
+The tunnel's frames wait on the link at most ``max_connections * window_bytes``, and the link
+takes its streams in turns (:mod:`infinirl.edge.fair_queue`), so frames of other streams go out
 between the tunnel's chunks. Every blocking call has a timeout: writes to a socket and sends on
 the link wait ``io_timeout_s``, the edge's connect ``connect_timeout_s``, and the cloud waits
 ``open_timeout_s`` for the edge to answer an ``open``. When the link closes, every connection on it

@@ -16,6 +16,13 @@ appended to the demonstrations store as an episode of its own
 * **synchronous** (:meth:`add_and_update`): the same ingest and update code, called by the driver
   between collections.
 
+**Committed ids.** An episode may carry a sender's id for it under :data:`SOURCE_ID` (the edge
+transport's episode id). It is appended to the store with that id, so a resend is stored once
+(:meth:`~infinirl.realworld.replay.ReplayStore.append`), and once it is committed (or deliberately
+dropped as stale, or found stored already) its id is put on the channel under
+:func:`committed_key` ``(key)`` (``{"ids": [...]}``), where the sender's side reads which episodes it
+may forget (the edge's spool keeps each episode until then).
+
 **Staleness.** When an episode arrives, the lag of each policy step is the number of versions
 published since the one that chose it. With ``max_staleness`` set, an episode whose largest lag
 exceeds it is dropped (``staleness_action="drop"``, counted) or kept and only counted (``"log"``).
@@ -43,10 +50,10 @@ from infinirl.realworld.episodes import episode_spec, staleness_of
 from infinirl.realworld.intervention.segments import intervened_segments
 from infinirl.realworld.replay import ReplayStore, SamplingSpec, StoreOptions
 from infinirl.realworld.robot_worker import VERSION_TENSOR, unit_box
-from infinirl.runtime import ChannelClosed, WeightSource, Worker
+from infinirl.runtime import ChannelClosed, ChannelError, WeightSource, Worker
 from infinirl.utils.atomic import torch_save_atomic
 
-__all__ = ["LearnerLoopSpec", "RealWorldLearnerWorker"]
+__all__ = ["SOURCE_ID", "LearnerLoopSpec", "RealWorldLearnerWorker", "committed_key"]
 
 logger = logging.getLogger(__name__)
 
@@ -54,6 +61,15 @@ _CHECKPOINT = "learner.pt"
 _TAKE_ALL = 1e12  # channel weight target: every waiting episode
 _INGEST_WAIT_S = 0.1  # one look for episodes gathers what arrives within this
 _IDLE_WAIT_S = 0.02  # nothing to update yet: how long the training thread waits before it looks again
+_REPORT_TIMEOUT_S = 60.0
+
+SOURCE_ID = "source_id"
+"""The key of an episode's sender id (a string; not stored as a field, but as the store's source id)."""
+
+
+def committed_key(key: str) -> str:
+    """The channel key on which the learner reports the sender ids of the episodes it took from ``key``."""
+    return f"{key}.committed"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,27 +128,52 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         self._reported_at = time.perf_counter()
 
     # ---------------------------------------------------------------- data in
-    def _ingest(self, episodes: list[dict]) -> None:
+    def _ingest(self, episodes: list[dict]) -> list[str]:
+        """Store ``episodes``; returns the sender ids (:data:`SOURCE_ID`) of those that carried one,
+        each now committed, dropped as stale, or found stored already."""
+        handled = []
         with self._lock:
             for episode in episodes:
-                lag = staleness_of(episode["version"], self.version)
-                self._counts["policy_steps"] += lag.policy_steps
-                self._counts["lag_sum"] += lag.lag_sum
-                self._counts["lag_max"] = max(self._counts["lag_max"], lag.lag_max)
-                if lag.exceeds(self.loop.max_staleness):
-                    self._counts["stale_episodes"] += 1
-                    self._counts["stale_steps"] += len(episode["action"])
-                    if self.loop.staleness_action == "drop":
-                        self._counts["dropped_episodes"] += 1
-                        self._counts["dropped_steps"] += len(episode["action"])
+                source = episode.get(SOURCE_ID)
+                if source is not None:
+                    episode = {key: value for key, value in episode.items() if key != SOURCE_ID}
+                    handled.append(source)
+                    if self.store.episode_of_source(source) is not None:  # a resend of a stored episode
+                        self._counts["duplicate_episodes"] += 1
                         continue
-                self.store.append(episode)
-                self._counts["episodes"] += 1
-                self._counts["steps"] += len(episode["action"])
-                if self.loop.interventions_as_demos:
-                    for segment in intervened_segments(episode):
-                        self.demos.append(segment)
-                        self._counts["intervention_demo_steps"] += len(segment["action"])
+                self._store_one(episode, source)
+        return handled
+
+    def _store_one(self, episode: dict, source: str | None) -> None:
+        lag = staleness_of(episode["version"], self.version)
+        self._counts["policy_steps"] += lag.policy_steps
+        self._counts["lag_sum"] += lag.lag_sum
+        self._counts["lag_max"] = max(self._counts["lag_max"], lag.lag_max)
+        if lag.exceeds(self.loop.max_staleness):
+            self._counts["stale_episodes"] += 1
+            self._counts["stale_steps"] += len(episode["action"])
+            if self.loop.staleness_action == "drop":
+                self._counts["dropped_episodes"] += 1
+                self._counts["dropped_steps"] += len(episode["action"])
+                return
+        self.store.append(episode, source_id=source)
+        self._counts["episodes"] += 1
+        self._counts["steps"] += len(episode["action"])
+        if self.loop.interventions_as_demos:
+            for segment in intervened_segments(episode):
+                self.demos.append(segment)
+                self._counts["intervention_demo_steps"] += len(segment["action"])
+
+    def _report_committed(self, channel, key: str, handled: list[str]) -> None:
+        """Tell the sender's side which episodes it may forget (a report that cannot be put is
+        logged: the sender resends those episodes and the store recognises them)."""
+        if not handled:
+            return
+        try:
+            channel.put({"ids": handled}, key=committed_key(key), timeout=_REPORT_TIMEOUT_S)
+        except (TimeoutError, ChannelClosed, ChannelError) as exc:
+            logger.warning("could not report %d committed episode ids on %r (%r); their sender resends them",
+                           len(handled), committed_key(key), exc)
 
     def add_demonstrations(self, episodes: list[dict]) -> int:
         """Append demonstrations to the demo store; returns how many it holds."""
@@ -233,7 +274,7 @@ class RealWorldLearnerWorker(Worker, WeightSource):
                 continue
             except ChannelClosed:
                 return
-            self._ingest(episodes)
+            self._report_committed(channel, key, self._ingest(episodes))
 
     def _train_loop(self) -> None:
         while not self._stop.is_set():
@@ -251,7 +292,8 @@ class RealWorldLearnerWorker(Worker, WeightSource):
             channel, key = self._channel
             self._channel = None
             try:
-                self._ingest(channel.get_batch(_TAKE_ALL, key=key, timeout=_INGEST_WAIT_S))
+                self._report_committed(channel, key,
+                                       self._ingest(channel.get_batch(_TAKE_ALL, key=key, timeout=_INGEST_WAIT_S)))
             except (TimeoutError, ChannelClosed):
                 pass
         return self.status()

@@ -17,8 +17,9 @@ sped up, so an iteration is a wall-clock window (``pipeline.iteration_s``).
 
 ``pipeline.transport=edge``: the robot's control loop runs in an edge node that dials the driver
 over the mutual-TLS link of :mod:`infinirl.edge` instead of in a Ray worker; the driver's
-:class:`~infinirl.edge.trainer_link.TrainerLink` puts its episodes on the same channel and
-publishes each version on the link, and the iteration logic below is the same (docs/edge.md).
+:class:`~infinirl.edge.trainer_link.TrainerLink` puts its episodes on the same channel (the
+learner reports their ids back once committed to its store, and only then does the edge forget
+them), publishes each version on the link, and the iteration logic below is the same (docs/edge.md).
 
 RLPD (``demos.episodes > 0``): robot rank 0 records scripted demonstrations into
 ``<output_dir>/demos`` once, and every mini-batch draws ``demos.fraction`` of its rows from them.
@@ -108,7 +109,7 @@ def _edge_robots(cfg: RealWorldSACConfig, channel):
     episodes go on ``channel`` like a robot worker's."""
     from infinirl.edge.trainer_link import TrainerLink
 
-    edge = TrainerLink(cfg, lambda episode: channel.put(episode, key="episodes", timeout=60.0)).start()
+    edge = TrainerLink(cfg, channel, key="episodes").start()
     try:
         return edge, edge.robots()
     except BaseException:

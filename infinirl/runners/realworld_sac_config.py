@@ -125,6 +125,10 @@ class EdgeLinkConfig:
     """Either end sends a heartbeat after this long without sending."""
     dead_after_s: float = bounded(6.0, gt=0)
     """Either end closes the link after this long without receiving (the edge then reconnects)."""
+    max_offline_s: float = bounded(30.0, ge=0)
+    """How long the edge's robot acts on its last weights once the link is down (counted from when
+    the link is declared down, dead_after_s after it went silent); beyond it the robot holds (the
+    driver's hold) until the link returns."""
 
     def check(self, transport: str) -> None:
         if transport != "edge":

@@ -3,6 +3,7 @@
 Directory layout (see ``segment.py`` for a segment's folder)::
 
     store.json          format version and the EpisodeSpec (written once, atomically)
+    sources.log         the source id of each episode appended with one (``sources.py``)
     writer.lock         held (flock) by the one writer process; holds its pid
     segments/00000000/  sealed segments, oldest first ...
     segments/0000000N/  ... and the open one the writer appends to (no sealed.json yet)
@@ -13,6 +14,10 @@ Guarantees:
   ``durable`` fsynced) and then its checksummed record is in the segment's commit log. A process
   killed at any point (``kill -9``) loses at most the episode being appended; reopening for
   writing cuts the torn tail off the open segment's log and field files and continues.
+* **Once per source.** An episode appended with a ``source_id`` (a sender's id for it, e.g. an
+  edge's episode id) is stored once: appending the same source id again returns the stored
+  episode's id and writes nothing, also after a crash and a reopen (:mod:`.sources`), so a sender
+  may resend whatever it was not told was committed.
 * **Damage.** Every committed episode carries a crc32 per field; it is checked before the
   episode's rows are first used (on loading a segment into the cache, on the first read through
   a memory map) and by :meth:`ReplayStore.verify`. A mismatch raises
@@ -46,6 +51,7 @@ from infinirl.realworld.replay.log import ReplayCorruptionError
 from infinirl.realworld.replay.ram import RowArrays
 from infinirl.realworld.replay.sampler import SamplingSpec, TransitionSampler
 from infinirl.realworld.replay.segment import Segment, fsync_directory
+from infinirl.realworld.replay.sources import SourceLog
 from infinirl.realworld.replay.spec import EpisodeSpec
 from infinirl.realworld.replay.table import EpisodeTable
 from infinirl.utils.atomic import atomic_open
@@ -103,6 +109,7 @@ class ReplayStore:
         self.segments: dict[int, Segment] = {}
         self.next_episode_id = 0
         self._lock_fd: int | None = None
+        self.sources: SourceLog | None = None
         if writable:
             self._lock()
         try:
@@ -111,6 +118,7 @@ class ReplayStore:
                 self._open_segments_for_writing()
             else:
                 self.refresh()
+            self.sources = SourceLog(self.path, self.next_episode_id, writable=writable, durable=self.options.durable)
             self._warm_cache()
         except BaseException:
             self.close()
@@ -250,15 +258,26 @@ class ReplayStore:
         return entry
 
     # ------------------------------------------------------------------ writing
-    def append(self, episode: Mapping[str, Any]) -> int:
+    def append(self, episode: Mapping[str, Any], source_id: str | None = None) -> int:
         """Commit one episode (``field -> array``: ``T + 1`` rows per observation field, ``T`` per
-        step field); returns its episode id. Raises ``ValueError`` naming a field that does not fit."""
+        step field); returns its episode id. Raises ``ValueError`` naming a field that does not fit.
+        With ``source_id``, an episode of that source id already stored is not appended again: its
+        id is returned (:meth:`episode_of_source` tells beforehand)."""
         if not self.writable:
             raise RuntimeError(f"{self.path}: this replay store was opened with writable=False")
+        if source_id is not None and self.sources.episode_of(source_id) is not None:
+            return self.sources.episode_of(source_id)
         steps, arrays = self.spec.check_episode(episode)
         active = self._active_segment()
         episode_id = self.next_episode_id
-        active.append(steps, arrays, episode_id, self.table.end_position, self.options.durable)
+        if source_id is not None:
+            self.sources.intend(source_id, episode_id)
+        try:
+            active.append(steps, arrays, episode_id, self.table.end_position, self.options.durable)
+        except BaseException:
+            if source_id is not None:
+                self.sources.forget(source_id)
+            raise
         self._index(active, active.num_episodes - 1)
         if active.data_bytes >= self.options.segment_bytes:
             active.seal(self.options.durable)
@@ -301,6 +320,11 @@ class ReplayStore:
     def __len__(self) -> int:
         """Live transitions (those sampling draws from)."""
         return self.table.end_position - self.table.first_live
+
+    def episode_of_source(self, source_id: str) -> int | None:
+        """The id of the stored episode appended with ``source_id`` (None when there is none; a
+        reader sees those committed when it opened)."""
+        return self.sources.episode_of(source_id)
 
     @property
     def num_episodes(self) -> int:
@@ -391,6 +415,8 @@ class ReplayStore:
     def close(self) -> None:
         for segment in self.segments.values():
             segment.close()
+        if self.sources is not None:
+            self.sources.close()
         self.cache = ByteLRU(self.options.cache_bytes)
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # releases the flock

@@ -3,7 +3,8 @@ launches the edge node as a process of its own on this machine, which drives the
 and talks to the trainer only over the mutual-TLS link. Every episode the edge finished reaches the
 replay store exactly once, the edge's policy version advances with the learner's, and a link cut
 mid-run (a silent outage in the link emulator) loses no episode: the edge's spool resends what was not
-acknowledged and the trainer drops the duplicates by id."""
+acknowledged (an episode is acknowledged once the learner committed it) and the replay store keeps
+each episode id once."""
 
 import importlib.util
 import json
@@ -63,8 +64,13 @@ def node_summary(output_dir) -> dict:
     return json.loads(next(line for line in reversed(lines) if line.startswith("{")))
 
 
-def received_ids(output_dir) -> list[str]:
-    return (output_dir / "edge" / "received.log").read_text().split()
+def stored_ids(replay) -> list[str]:
+    """The edge episode ids the replay store holds (each stored episode's source id)."""
+    store = ReplayStore(str(replay), writable=False)
+    try:
+        return list(store.sources.sources())
+    finally:
+        store.close()
 
 
 def test_the_robot_trains_at_the_edge_through_the_link(ray_cluster, tmp_path, pki):
@@ -74,8 +80,8 @@ def test_the_robot_trains_at_the_edge_through_the_link(ray_cluster, tmp_path, pk
     episodes = stored(out / "replay")
     assert node["drained"] and node["spool_refused"] == 0 and node["spooled_episodes"] == 0
     assert node["episodes_sent"] >= 2 and len(episodes) == node["episodes_sent"]  # every episode stored once
-    ids = received_ids(out)
-    assert len(ids) == len(set(ids)) == len(episodes) and all(i.startswith("edge-0-") for i in ids)
+    ids = stored_ids(out / "replay")
+    assert len(ids) == len(episodes) and all(i.startswith("edge-0-") for i in ids)
     assert summary["replay_episodes"] == len(episodes) and summary["updates"] > 0
     versions = np.concatenate([e["version"] for e in episodes])
     assert versions.min() == -1 and versions.max() >= 1  # warm-up, then the versions the link brought
@@ -96,8 +102,8 @@ def test_a_link_cut_mid_run_loses_no_episode(ray_cluster, tmp_path, pki):
     out = tmp_path / "cut"
     with LinkEmulator(EmulatorSpec.from_rtt(rtt_ms=20, mbit_per_s=None), ("127.0.0.1", port)) as emulator:
         def cut_once_episodes_flow():
-            log, deadline = out / "edge" / "received.log", time.monotonic() + 300
-            while time.monotonic() < deadline and (not log.exists() or len(log.read_text().split()) < 3):
+            log, deadline = out / "replay" / "sources.log", time.monotonic() + 300
+            while time.monotonic() < deadline and (not log.exists() or len(log.read_text().split("\n")) < 4):
                 time.sleep(0.1)
             emulator.cut()  # silent: both ends notice only by dead_after_s; what is on the wire is lost
             time.sleep(3.0)
@@ -112,8 +118,7 @@ def test_a_link_cut_mid_run_loses_no_episode(ray_cluster, tmp_path, pki):
     assert node["connects"] >= 2  # the cut happened, and the edge came back
     assert node["drained"] and node["spooled_episodes"] == 0 and node["spool_refused"] == 0
     assert len(episodes) == node["episodes_sent"] == summary["replay_episodes"]  # none lost, none twice
-    ids = received_ids(out)
-    assert len(ids) == len(set(ids)) == len(episodes)
+    assert len(stored_ids(out / "replay")) == len(episodes)
 
 
 def test_edge_transport_config_errors_are_one_line_and_name_the_key(tmp_path, pki):

@@ -182,3 +182,28 @@ def test_a_client_that_never_speaks_does_not_hold_up_other_edges(credentials):
         finally:
             client.close()
             silent.close()
+
+
+def test_with_commit_acks_an_episode_is_acknowledged_once_committed(credentials):
+    """``commit_acks``: delivery alone acknowledges nothing; :meth:`CloudHub.commit` does, on the
+    edge's present link; a resend of a delivered, uncommitted id is not delivered again and waits
+    for the commit; one of a committed id is acknowledged at once."""
+    received = Received()
+    with CloudHub(("127.0.0.1", 0), credentials["cloud"], on_episode=received, options=HubOptions(link=LINK),
+                  commit_acks=True) as hub:
+        link = dial(hub.address, client_context(credentials["edge-1"]), options=LINK)
+        try:
+            payload = encode_episode(an_episode(0), episode_id="edge-1-a-0")
+            link.send(protocol.EPISODES, payload, timeout=5.0)
+            assert wait_for(lambda: "edge-1-a-0" in received.episodes, 10.0)
+            link.send(protocol.EPISODES, payload, timeout=5.0)  # resent before its commit
+            assert wait_for(lambda: hub.counts["duplicates"] == 1, 10.0)
+            with pytest.raises(TimeoutError):
+                link.recv(protocol.EPISODE_ACKS, timeout=0.5)
+            assert hub.commit(["edge-1-a-0"]) == 1
+            assert protocol.load(link.recv(protocol.EPISODE_ACKS, timeout=10.0)) == {"ids": ["edge-1-a-0"]}
+            link.send(protocol.EPISODES, payload, timeout=5.0)  # resent after its commit (the ack was lost)
+            assert protocol.load(link.recv(protocol.EPISODE_ACKS, timeout=10.0)) == {"ids": ["edge-1-a-0"]}
+        finally:
+            link.close()
+    assert list(received.episodes) == ["edge-1-a-0"] and hub.counts["duplicates"] == 2

@@ -3,6 +3,7 @@
 ``python -m tests.unit.realworld.replay_fixtures DIR SEGMENT_BYTES MAX_BYTES [LIMIT]`` opens the
 store at DIR for writing and appends episode after episode (from the store's next episode id on),
 printing ``committed <id>`` after each append returns, until LIMIT episodes are in (default: never).
+Episode ``i`` is appended with the source id :func:`source_of` ``(i)``.
 """
 
 from __future__ import annotations
@@ -20,6 +21,10 @@ SPEC = EpisodeSpec(observations={"pixels": ((6, 6, 3), "uint8"), "state": ((3,),
 
 def steps_of(episode_id: int) -> int:
     return 3 + (episode_id * 7) % 5
+
+
+def source_of(episode_id: int) -> str:
+    return f"src-{episode_id}"
 
 
 def make_episode(episode_id: int) -> dict[str, np.ndarray]:
@@ -60,7 +65,7 @@ def main(argv: list[str]) -> None:
     with ReplayStore(path, SPEC, options=options) as store:
         print(f"opened {store.next_episode_id}", flush=True)
         while limit is None or store.next_episode_id < limit:
-            episode_id = store.append(make_episode(store.next_episode_id))
+            episode_id = store.append(make_episode(store.next_episode_id), source_id=source_of(store.next_episode_id))
             print(f"committed {episode_id}", flush=True)
 
 

@@ -13,7 +13,7 @@ import pytest
 
 from infinirl.realworld.replay import ReplayCorruptionError, ReplayStore, StoreOptions
 from infinirl.realworld.replay.segment import LOG_NAME
-from tests.unit.realworld.replay_fixtures import SPEC, check_batch, make_episode
+from tests.unit.realworld.replay_fixtures import SPEC, check_batch, make_episode, source_of
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 SEGMENT_BYTES, MAX_BYTES = 3000, 15000
@@ -63,10 +63,12 @@ def test_kill_9_during_appends_loses_at_most_the_episode_in_flight(tmp_path):
             check_store(reader)
         with ReplayStore(str(path), options=StoreOptions(segment_bytes=SEGMENT_BYTES, max_bytes=MAX_BYTES)) as store:
             assert store.next_episode_id in (last + 1, last + 2)  # the one in flight may have committed
+            # every committed episode's source id is known, the one in flight's only if it committed
+            assert store.sources.sources() == {source_of(i): i for i in range(store.next_episode_id)}
             for segment in store.segments.values():  # the rows of an uncommitted episode are cut off
                 for name in segment.names:
                     assert os.path.getsize(segment.file(name)) == segment.rows(name) * SPEC.row_bytes(name), name
-            store.append(make_episode(store.next_episode_id))
+            store.append(make_episode(store.next_episode_id), source_id=source_of(store.next_episode_id))
             check_store(store)
             store.verify()
             last = store.next_episode_id - 1
