@@ -287,9 +287,11 @@ def fit(cfg, model: RunnerModel, results: list[ProbeResult], key: dict | None = 
     bare = Workload(runner=model.runner, phases=model.phases(cfg), units=units, costs=paced_costs(model, cfg, costs),
                     hop_s=hop_s, offloads=model.offloads)
     excess = [_median(r.step_s) - predict(bare, r.probe.candidate(components)).step_s for r in results]
-    # A driver off the iteration's path (it only polls) has no overhead to fit; its probes may have
-    # run in another shape (the real-time runner profiles its asynchronous mode in turns).
-    overhead = max(0.0, _median(excess)) if model.driver_on_path(cfg) else 0.0
+    # A model whose probes run less work than the config (fewer robot episodes) measures the
+    # driver's own time directly ("overhead"); a driver off the iteration's path (it only polls)
+    # has none to fit, whatever shape its probes ran in.
+    direct = [it["overhead"] for r in results for it in r.iterations if "overhead" in it]
+    overhead = max(0.0, _median(direct) if direct else _median(excess)) if model.driver_on_path(cfg) else 0.0
     return Profile(runner=model.runner, key=key or {}, costs=costs, overhead_s=overhead,
                    hop_s=hop_s, inventory=results[0].inventory if results else {}, probes=list(results))
 

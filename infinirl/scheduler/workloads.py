@@ -11,7 +11,8 @@ runner is one entry here and no edit in the profiler, the cost model or the sear
   own seconds per ``"<phase>/<component>"``, read from the tracer's spans (a streamed phase's
   span holds both sides, so the split uses the timings the components report with their result),
   and, where the runner counts them, the bytes each component sent downstream (``"bytes/<component>"``,
-  all its ranks together);
+  all its ranks together) and the driver's own seconds (``"overhead"``, when the probe ran less
+  work than the config and the step time therefore cannot give it);
 * ``shorten(cfg, iterations)``: a profiling or measuring run of the same work, without evaluation
   or checkpoints worth keeping; ``scale_batch(cfg, factor)``: the same run with ``factor`` times the
   work per iteration (what a larger cluster is given);
@@ -504,4 +505,69 @@ RUNNER_MODELS.add("realworld_sac", RunnerModel(
     step_name="turn",
     step_text="step_s = one turn: every robot runs one episode and the learner its updates on it (iterations "
               "are pipeline.iteration_s windows of turns)",
+))
+
+
+# ----- hg_dagger ---------------------------------------------------------------------------------
+# The same robots and learner as realworld_sac, taking turns: every robot runs
+# dagger.episodes_per_iteration episodes with the human watching, then the learner aggregates the
+# human's labels and trains bc.updates_per_iteration mini-batches. A profile runs one episode per
+# robot per iteration (robot time is real time) and scales it to the config's episodes.
+
+
+def _dagger_units(cfg) -> dict[str, float]:
+    return {"robot": float(cfg.dagger.episodes_per_iteration * cfg.task.max_episode_steps),
+            "learner": float(cfg.bc.updates_per_iteration)}
+
+
+def _dagger_shorten(cfg, iterations: int) -> None:
+    """One episode per robot per iteration; one initial demonstration when the config records any (the
+    learner then trains from the first iteration whatever the human labelled); no evaluations."""
+    cfg.iterations = iterations
+    cfg.dagger.episodes_per_iteration = 1
+    cfg.dagger.initial_demos = min(cfg.dagger.initial_demos, 1)
+    cfg.eval.every = 0
+    cfg.eval.at_start = False
+    cfg.eval.episodes = 1
+    cfg.save_every = 0
+    cfg.loggers = []
+    cfg.resume = False
+
+
+_DAGGER_LEARNER_METHODS = ("action_error", "aggregate", "train")
+
+
+def _dagger_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
+    """The iteration's episodes scaled to the config's (per robot: episodes x the longest episode),
+    the learner's calls as they ran (its updates per iteration are the config's), and the driver's
+    own time: the step less both."""
+    length = float(window.metrics.get("rollout/episode_length_mean", 0.0))
+    episodes = float(window.metrics.get("rollout/episodes", 0.0))
+    if length <= 0 or episodes <= 0:
+        return {}
+    collect = window.per_rank("robot", "collect")
+    learner = sum(window.per_rank("learner", m) for m in _DAGGER_LEARNER_METHODS)
+    steps_per_robot = length * episodes / _realworld_robots(cfg)
+    step = float(window.metrics.get("time/iteration_s", 0.0))
+    return {"collect/robot": collect * _dagger_units(cfg)["robot"] / steps_per_robot, "update/learner": learner,
+            "overhead": max(step - collect - learner, 0.0)}
+
+
+RUNNER_MODELS.add("hg_dagger", RunnerModel(
+    runner="hg_dagger",
+    step_metric="time/iteration_s",
+    window_method=("robot", "collect"),
+    phases=lambda cfg: (Phase(name="collect", components=("robot",)), Phase(name="update", components=("learner",))),
+    units=_dagger_units,
+    model_key=lambda cfg: f"{cfg.robot.kind}:hg_dagger",
+    depths=lambda cfg, ranks: (1,),
+    check=_realworld_check,
+    apply=_realworld_apply,
+    shorten=_dagger_shorten,
+    scale_batch=lambda cfg, factor: None,  # robots are hardware: a larger cluster gets no more of them
+    probes=(Probe(name="collocated", devices={"robot": (0, 1), "learner": (0, 1)}),
+            Probe(name="split", devices={"robot": (0, 1), "learner": (1, 1)})),
+    measure=_dagger_measure,
+    fixed=lambda cfg: {"robot": _realworld_robot_spec(cfg)},
+    paced=_realworld_paced,
 ))

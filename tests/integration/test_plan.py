@@ -82,6 +82,19 @@ def test_plan_of_a_robot_run_profiles_turns_and_auto_places_the_learner(tmp_path
     assert json.loads((out_dir / "config.json").read_text())["placement"] == {"robot": "0", "learner": "0"}
 
 
+@pytest.mark.slow  # Ray starts and the robot runs in real time; the model's parts have unit tests
+def test_plan_of_hg_dagger_profiles_one_episode_per_iteration(profile_cache, capsys):
+    from infinirl.cli import main
+
+    assert main(["plan", "hg_dagger_sawyer_reach", *ROBOT_TINY, "bc.updates_per_iteration=20",
+                 "--profile-iterations", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "candidate placements of hg_dagger" in out and "robot=0 learner=0" in out
+    profile = json.loads(next(profile_cache.glob("hg_dagger-*.json")).read_text())
+    assert profile["costs"]["collect/robot"]["per_unit_s"] >= 0.05  # never faster than its 20 Hz clock
+    assert profile["costs"]["update/learner"]["per_unit_s"] > 0
+
+
 def test_plan_of_a_robot_run_from_its_cached_profile_lists_the_learners_places(profile_cache, monkeypatch, capsys):
     """The CLI end to end on a profile already measured (fitted from known turns): no run, the
     robot stays where the config puts it and every CPU slot is a place for the learner."""

@@ -1,4 +1,4 @@
-"""The scheduler's models of the robot runners (realworld_sac): the robots stay where the config puts
+"""The scheduler's models of the robot runners (realworld_sac, hg_dagger): the robots stay where the config puts
 them, the robots' clock sets collection's pace, and the learner is placed; runners with nothing to
 plan say why."""
 
@@ -162,3 +162,66 @@ def test_runners_and_configs_with_nothing_to_plan_say_why_and_what_to_write():
     with pytest.raises(ConfigError, match="no model of the 'unknown' runner; it plans .*realworld_sac"):
         runner_model(types.SimpleNamespace(runner="unknown"))
     assert runner_model(_cfg()) is MODEL
+
+
+def test_placement_auto_on_sft_is_refused_when_the_config_loads_not_ignored():
+    with pytest.raises(ConfigError, match="placement=auto: sft trains in one process.*device=auto"):
+        build_config("sft_vla_metaworld", ["placement=auto"])
+
+
+def test_placement_auto_on_a_robot_run_loads_and_is_resolved_when_it_starts():
+    cfg = _cfg("placement=auto")
+    assert cfg.auto_placement  # the learner's one-rank rule is the model's check, applied by the search
+
+
+# ----- hg_dagger -----
+
+DAGGER = RUNNER_MODELS.get("hg_dagger")
+
+
+def _dagger(*overrides):
+    return build_config("hg_dagger_sawyer_reach", list(overrides))[1]
+
+
+def test_hg_dagger_collects_its_episodes_then_trains_its_updates():
+    cfg = _dagger("dagger.episodes_per_iteration=6", "task.max_episode_steps=40", "bc.updates_per_iteration=300")
+    assert DAGGER.phases(cfg) == (Phase(name="collect", components=("robot",)),
+                                  Phase(name="update", components=("learner",)))
+    assert DAGGER.units(cfg) == {"robot": 240.0, "learner": 300.0}
+    assert DAGGER.paced(cfg) == {"robot": pytest.approx(1 / 20)}
+    assert DAGGER.fixed(_dagger("placement.robot=robot:0")) == {"robot": "robot:0"}
+    short = _dagger("dagger.initial_demos=3")
+    DAGGER.shorten(short, 2)
+    assert short.dagger.episodes_per_iteration == 1 and short.dagger.initial_demos == 1
+    assert not short.eval.at_start and short.eval.every == 0 and short.iterations == 2
+    none = _dagger("dagger.initial_demos=0")
+    DAGGER.shorten(none, 2)
+    assert none.dagger.initial_demos == 0  # a config that records none may have no demo policy for its robot
+
+
+def test_hg_dagger_measures_one_episode_and_scales_it_to_the_configs():
+    """One 20-step episode in 1.1 s, the learner's calls 0.2 + 0.1 + 2.0 s, a step of 3.6 s: six
+    40-step episodes are 13.2 s, the learner 2.3 s, the driver 0.2 s."""
+    cfg = _dagger("dagger.episodes_per_iteration=6", "task.max_episode_steps=40")
+    window = StepWindow(busy={("robot", "collect"): [1.1], ("learner", "action_error"): [0.2],
+                              ("learner", "aggregate"): [0.1], ("learner", "train"): [2.0]}, last_end={},
+                        metrics={"rollout/episode_length_mean": 20.0, "rollout/episodes": 1.0,
+                                 "time/iteration_s": 3.6})
+    measured = DAGGER.measure(window, DAGGER.probes[0], cfg)
+    assert measured == {"collect/robot": pytest.approx(13.2), "update/learner": pytest.approx(2.3),
+                        "overhead": pytest.approx(0.2)}
+
+
+def test_hg_dagger_fit_takes_the_drivers_measured_time_and_predicts_turns():
+    cfg = _dagger("dagger.episodes_per_iteration=6", "task.max_episode_steps=40", "bc.updates_per_iteration=300")
+    measured = {"collect/robot": 0.055 * 240, "update/learner": 0.004 * 300, "overhead": 0.2}
+    # the probe ran one episode: its step time is far below the config's, the driver's time is not
+    results = [ProbeResult(probe=p, iterations=[measured] * 3, step_s=[0.055 * 40 + 1.2 + 0.2] * 3, memory_bytes={},
+                           switch_s={}, inventory={}) for p in DAGGER.probes]
+    profile = fit(cfg, DAGGER, results)
+    assert profile.costs["collect/robot"].per_unit_s == pytest.approx(0.055)
+    assert profile.costs["update/learner"].per_unit_s == pytest.approx(0.004)
+    assert profile.overhead_s == pytest.approx(0.2)
+    entries = search(cfg, DAGGER, workload_of(cfg, profile), ClusterInventory.cpu_only(1, 2))
+    assert [e.placement for e in entries] == [{"robot": "0", "learner": "0"}, {"robot": "0", "learner": "1"}]
+    assert entries[0].prediction.step_s == pytest.approx(0.055 * 240 + 1.2 + 0.2)
