@@ -8,7 +8,7 @@ import pytest
 
 from infinirl.cli import build_config
 from infinirl.config import ConfigError
-from infinirl.runtime import ClusterInventory
+from infinirl.runtime import ClusterInventory, place
 from infinirl.runtime.inventory import GiB
 from infinirl.scheduler.auto import format_plan, runner_model
 from infinirl.scheduler.cost import Allocation, Candidate, Phase, WorkCost, predict
@@ -139,6 +139,9 @@ def test_the_search_places_the_learner_only(robot):
     entries = search(cfg, MODEL, workload_of(cfg, _profile(cfg)), inventory)
     assert sorted(e.placement["learner"] for e in entries) == ["0", "1", "2", "3"]
     assert {e.placement["robot"] for e in entries} == {robot}
+    if not robot.startswith("robot:"):  # the cluster has no robots to place on
+        for entry in entries:
+            assert place(inventory, entry.placement, components=["robot", "learner"]).world_size("learner") == 1
     assert entries[0].prediction.step_s == pytest.approx(0.05 * 50)  # the robot's pace, wherever the learner is
     text = format_plan(cfg, None, entries)
     assert "step_s = one turn" in text and f"fixed (not searched): robot={robot}" in text
