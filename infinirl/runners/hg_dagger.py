@@ -24,6 +24,7 @@ dataset and behaviour cloning).
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 
@@ -31,7 +32,7 @@ from infinirl.runners import register_runner
 from infinirl.runners.curves import Panel
 from infinirl.runners.hg_dagger_config import HGDAggerConfig
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
-from infinirl.runners.run_support import launch_all, plan_placement, run_start_time
+from infinirl.runners.run_support import RUN_OBSERVERS, launch_all, plan_placement, run_start_time
 
 __all__ = ["HGDAggerFlow", "run"]
 
@@ -45,6 +46,11 @@ def run(cfg: HGDAggerConfig) -> dict:
     from infinirl.runtime import Cluster
 
     with RunLoop(cfg, run_start_time()) as loop:
+        if cfg.auto_placement:
+            # The scheduler sits above the runners (it profiles by running them), hence the late import.
+            from infinirl.scheduler.auto import resolve_auto_placement
+
+            resolve_auto_placement(cfg)
         setup, env, net = robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg)
         intervention = intervention_spec_of(cfg)
         with Cluster(with_driver_discovery(cfg.cluster)) as cluster:
@@ -58,7 +64,10 @@ def run(cfg: HGDAggerConfig) -> dict:
                 groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, described[0])}))
                 flow = HGDAggerFlow(cfg, groups["robot"], groups["learner"])
                 try:
-                    return loop.run(flow)
+                    summary = loop.run(flow)
+                    for observe in RUN_OBSERVERS:  # the scheduler's profiler reads spans and memory here
+                        observe(groups, plan)
+                    return summary
                 finally:
                     flow.close()
             finally:
@@ -131,6 +140,7 @@ class HGDAggerFlow:
         from infinirl.realworld.intervention.metrics import InterventionStats, intervention_metrics
 
         cfg = self.cfg
+        started = time.perf_counter()
         episodes = [e for batch in self.robots.collect(cfg.dagger.episodes_per_iteration, cfg.dagger.deterministic)
                     .wait(timeout=3600) for e in batch]
         novice_error = self.learner.action_error(episodes).wait()[0]
@@ -146,7 +156,8 @@ class HGDAggerFlow:
                    "train/bc_loss": trained["loss"],
                    "train/updates": float(trained["updates"]), "pipeline/version": float(trained["version"]),
                    "env/steps": float(sum(r["counts"].get("steps", 0) for r in robots)),
-                   "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots))}
+                   "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots)),
+                   "time/iteration_s": time.perf_counter() - started}
         if novice_error == novice_error:  # NaN: the human labelled no step this iteration
             metrics["dagger/novice_error"] = novice_error
         if recent:

@@ -46,7 +46,7 @@ from infinirl.runners import register_runner
 from infinirl.runners.curves import Panel
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.realworld_sac_config import RealWorldSACConfig
-from infinirl.runners.run_support import launch_all, plan_placement, run_start_time
+from infinirl.runners.run_support import RUN_OBSERVERS, launch_all, plan_placement, run_start_time
 
 __all__ = ["RealWorldSACFlow", "env_spec_of", "net_spec_of", "robot_setup_of", "run"]
 
@@ -59,6 +59,11 @@ def run(cfg: RealWorldSACConfig) -> dict:
     if cfg.pipeline.transport == "edge":
         cfg.edge.check_trainer_files()  # here, not in the config's check: the edge node holds other files
     with RunLoop(cfg, run_start_time()) as loop:
+        if cfg.auto_placement:
+            # The scheduler sits above the runners (it profiles by running them), hence the late import.
+            from infinirl.scheduler.auto import resolve_auto_placement
+
+            resolve_auto_placement(cfg)
         net = net_spec_of(cfg)
         from infinirl.realworld.discovery import with_driver_discovery
         from infinirl.runners.hg_dagger import intervention_spec_of
@@ -83,7 +88,10 @@ def run(cfg: RealWorldSACConfig) -> dict:
                 flow = RealWorldSACFlow(cfg, robots, groups["learner"], channel,
                                         send_weights=edge.send_weights if edge is not None else None)
                 try:
-                    return loop.run(flow)
+                    summary = loop.run(flow)
+                    for observe in RUN_OBSERVERS:  # the scheduler's profiler reads spans and memory here
+                        observe(groups, plan)
+                    return summary
                 finally:
                     flow.close()
             finally:

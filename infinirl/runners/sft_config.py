@@ -132,6 +132,9 @@ class SFTConfig(RunConfig):
     eval: SFTEvalConfig = field(default_factory=SFTEvalConfig)
 
     def check(self) -> None:
+        if self.auto_placement:
+            raise ConfigError("placement=auto: sft trains in one process of the driver, with no components to place; "
+                              "its device key chooses where (device=auto: the first GPU, else the CPU)")
         model = self.model
         if model.n_action_steps > model.chunk_size:
             raise ConfigError(f"model.n_action_steps={model.n_action_steps} must be <= model.chunk_size="

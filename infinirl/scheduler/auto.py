@@ -14,7 +14,7 @@ from infinirl.config import ConfigError
 from infinirl.runtime.inventory import ClusterInventory, GiB
 from infinirl.scheduler.profile import Profile, load_or_profile, profile_summary, workload_of
 from infinirl.scheduler.search import PlanEntry, search
-from infinirl.scheduler.workloads import RUNNER_MODELS
+from infinirl.scheduler.workloads import RUNNER_MODELS, UNPLANNED_RUNNERS
 
 __all__ = ["DEPTH_KEYS", "format_plan", "plan", "plan_command", "resolve_auto_placement", "runner_model"]
 
@@ -23,11 +23,18 @@ DEPTH_KEYS = {"embodied": "rollout.pipeline_stages", "reasoning": "rollout.strea
 
 
 def runner_model(cfg):
-    """The scheduler's model of ``cfg``'s runner; a runner without one is a one-line ConfigError."""
+    """The scheduler's model of ``cfg``'s runner; a runner or config it cannot plan is a one-line
+    ConfigError saying why and what to write instead."""
+    if cfg.runner in UNPLANNED_RUNNERS:
+        raise ConfigError(f"placement=auto / infinirl plan: nothing to plan: {UNPLANNED_RUNNERS[cfg.runner]}")
     if cfg.runner not in RUNNER_MODELS:
         raise ConfigError(f"placement=auto / infinirl plan: the scheduler has no model of the {cfg.runner!r} runner; "
                           f"it plans {', '.join(RUNNER_MODELS.names())}. Give placement.* explicitly")
-    return RUNNER_MODELS.get(cfg.runner)
+    model = RUNNER_MODELS.get(cfg.runner)
+    why = model.refuses(cfg)
+    if why is not None:
+        raise ConfigError(f"placement=auto / infinirl plan: {why}")
+    return model
 
 
 def plan(cfg, inventory: ClusterInventory | None = None, iterations: int = 4, refresh: bool = False,
@@ -46,9 +53,10 @@ def resolve_auto_placement(cfg, **plan_options) -> PlanEntry:
         raise ConfigError(f"placement=auto: no placement of {', '.join(cfg.components())} fits this cluster's "
                           "devices and memory; give placement.* explicitly")
     best = entries[0]
-    runner_model(cfg).apply(cfg, best.candidate)
+    model = runner_model(cfg)
+    model.apply(cfg, best.candidate)
     print(f"placement=auto: {json.dumps(best.placement)} depth {best.candidate.depth}, predicted "
-          f"{best.prediction.step_s:.3f} s per iteration (`infinirl plan` lists the others)", flush=True)
+          f"{best.prediction.step_s:.3f} s per {model.step_name} (`infinirl plan` lists the others)", flush=True)
     return best
 
 
@@ -60,8 +68,13 @@ def format_plan(cfg, profile: Profile | None, entries: list[PlanEntry], top: int
     """The candidates as a table, best first, with the measured profile under it."""
     depth_key = DEPTH_KEYS.get(cfg.runner, "depth")
     lines = [f"{len(entries)} candidate placements of {cfg.runner} ({', '.join(cfg.components())}); "
-             f"depth = pipeline stages ({depth_key})",
-             f"{'#':>3}  {'step_s':>8}  {'memory':>14}  depth  placement"]
+             f"depth = pipeline stages ({depth_key})"]
+    model = RUNNER_MODELS.get(cfg.runner) if cfg.runner in RUNNER_MODELS else None
+    if model is not None and model.step_text:
+        lines.append(model.step_text)
+    if model is not None and model.fixed(cfg):
+        lines.append(f"fixed (not searched): {', '.join(f'{k}={v}' for k, v in model.fixed(cfg).items())}")
+    lines.append(f"{'#':>3}  {'step_s':>8}  {'memory':>14}  depth  placement")
     for i, entry in enumerate(entries[:top]):
         spec = " ".join(f"{name}={entry.placement[name]}" for name in cfg.components())
         lines.append(f"{i + 1:>3}  {entry.prediction.step_s:>8.3f}  {_memory_text(entry):>14}  "

@@ -25,6 +25,11 @@ How a phase's components share hardware decides how their times combine:
   on disjoint devices takes the longest group's time;
 * **hybrids**: a phase with some groups time-sharing inside and space-sharing between them.
 
+**Paced** work (a robot's control loop) takes the wall-clock time real time gives it
+(``paced_per_unit_s``: the control period per step), on any device; it waits on the clock
+rather than computing, so a component that time-shares its device works meanwhile: a group with
+paced members takes the longer of its paced members' time and the sum of the others'.
+
 Memory: every rank of every component stays resident (time-sharing offloads only what a
 component's ``switch_s`` was measured with), so the sum over the ranks on a device (accelerators)
 or on a node (CPU slots share the node's memory) must fit.
@@ -54,9 +59,17 @@ class WorkCost:
     memory_per_unit_bytes: float = 0.0
     bytes_out_per_unit: float = 0.0
     """Bytes this component sends downstream per unit of work."""
+    paced_per_unit_s: float = 0.0
+    """Wall-clock seconds per unit that real time sets (a robot's control period per step): the
+    work takes at least this long on any hardware. 0: the work is compute-bound."""
+
+    @property
+    def paced(self) -> bool:
+        return self.paced_per_unit_s > 0
 
     def seconds(self, units: float, ranks: int) -> float:
-        return self.fixed_s + self.per_unit_s * units / ranks + self.comm_s * math.log2(ranks)
+        computed = self.fixed_s + self.per_unit_s * units / ranks + self.comm_s * math.log2(ranks)
+        return max(computed, self.paced_per_unit_s * units / ranks)
 
     def memory_bytes(self, units: float, ranks: int) -> float:
         return self.memory_fixed_bytes + self.memory_per_unit_bytes * units / ranks
@@ -67,7 +80,7 @@ class WorkCost:
                         comm_s=self.comm_s / speedup, switch_s=self.switch_s / speedup,
                         memory_fixed_bytes=self.memory_fixed_bytes * memory,
                         memory_per_unit_bytes=self.memory_per_unit_bytes * memory,
-                        bytes_out_per_unit=self.bytes_out_per_unit)
+                        bytes_out_per_unit=self.bytes_out_per_unit, paced_per_unit_s=self.paced_per_unit_s)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -149,9 +162,11 @@ class Candidate:
 
     allocations: Mapping[str, Allocation]
     depth: int = 1
+    fixed_specs: Mapping[str, str] = field(default_factory=dict)
+    """Components the search does not move (robots): their placement as the config gives it."""
 
     def placement(self) -> dict[str, str]:
-        return {name: a.spec() for name, a in self.allocations.items()}
+        return {name: self.fixed_specs.get(name, a.spec()) for name, a in self.allocations.items()}
 
     def ranks(self) -> dict[str, int]:
         return {name: a.ranks for name, a in self.allocations.items()}
@@ -187,7 +202,9 @@ def phase_seconds(workload: Workload, phase: Phase, candidate: Candidate, node_o
     times = {c: workload.cost(phase.name, c).seconds(workload.units[c], alloc[c].ranks) * alloc[c].load_factor()
              for c in phase.components}
     groups = time_sharing_groups(phase.components, alloc)
-    group_s = [sum(times[c] for c in g) for g in groups]
+    paced = {c for c in phase.components if workload.cost(phase.name, c).paced}
+    group_s = [max(sum(times[c] for c in g if c not in paced), max((times[c] for c in g if c in paced), default=0.0))
+               for g in groups]
     if len(groups) == 1:
         return group_s[0]
     if phase.concurrent:

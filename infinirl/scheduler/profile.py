@@ -24,7 +24,7 @@ import shutil
 import socket
 import statistics
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from infinirl.config import to_plain
@@ -33,7 +33,8 @@ from infinirl.scheduler.workloads import RUNNER_MODELS, Probe, RunnerModel, Step
 from infinirl.utils import capture_rng_state, restore_rng_state, write_json_atomic
 
 __all__ = ["PROFILE_CACHE_ENV", "MeasuredRun", "Profile", "ProbeResult", "cache_path", "config_hash", "fit",
-           "hardware_probe", "load_or_profile", "measure_candidate", "merge_rounds", "profile_key", "profile_summary",
+           "hardware_probe", "load_or_profile", "measure_candidate", "merge_rounds", "paced_costs", "profile_key",
+           "profile_summary",
            "run_probe",
            "step_windows", "workload_of"]
 
@@ -283,18 +284,33 @@ def fit(cfg, model: RunnerModel, results: list[ProbeResult], key: dict | None = 
                                    bytes_out_per_unit=_median(sent) / units[component] if sent else 0.0)
     hops = [it["hop"] for r in results for it in r.iterations if "hop" in it]
     hop_s = _median(hops)
-    bare = Workload(runner=model.runner, phases=model.phases(cfg), units=units, costs=costs, hop_s=hop_s,
-                    offloads=model.offloads)
+    bare = Workload(runner=model.runner, phases=model.phases(cfg), units=units, costs=paced_costs(model, cfg, costs),
+                    hop_s=hop_s, offloads=model.offloads)
     excess = [_median(r.step_s) - predict(bare, r.probe.candidate(components)).step_s for r in results]
-    return Profile(runner=model.runner, key=key or {}, costs=costs, overhead_s=max(0.0, _median(excess)),
+    # A model whose probes run less work than the config (fewer robot episodes) measures the
+    # driver's own time directly ("overhead"); a driver off the iteration's path (it only polls)
+    # has none to fit, whatever shape its probes ran in.
+    direct = [it["overhead"] for r in results for it in r.iterations if "overhead" in it]
+    overhead = max(0.0, _median(direct) if direct else _median(excess)) if model.driver_on_path(cfg) else 0.0
+    return Profile(runner=model.runner, key=key or {}, costs=costs, overhead_s=overhead,
                    hop_s=hop_s, inventory=results[0].inventory if results else {}, probes=list(results))
+
+
+def paced_costs(model: RunnerModel, cfg, costs: dict[str, WorkCost]) -> dict[str, WorkCost]:
+    """``costs`` with the config's real-time pace (``model.paced``) on its components' work: the
+    pace is the config's (a control rate), not something measured, so it is never cached."""
+    paced = model.paced(cfg)
+    return {key: replace(cost, paced_per_unit_s=paced.get(key.split("/", 1)[1], cost.paced_per_unit_s))
+            for key, cost in costs.items()}
 
 
 def workload_of(cfg, profile: Profile) -> Workload:
     """The config's workload with the profile's measured costs (what :func:`~.cost.predict` reads)."""
     model = RUNNER_MODELS.get(cfg.runner)
-    return Workload(runner=cfg.runner, phases=model.phases(cfg), units=model.units(cfg), costs=profile.costs,
-                    overhead_s=profile.overhead_s, hop_s=profile.hop_s, offloads=model.offloads)
+    overhead = profile.overhead_s if model.driver_on_path(cfg) else 0.0
+    return Workload(runner=cfg.runner, phases=model.phases(cfg), units=model.units(cfg),
+                    costs=paced_costs(model, cfg, profile.costs), overhead_s=overhead, hop_s=profile.hop_s,
+                    offloads=model.offloads)
 
 
 def merge_rounds(results: list[ProbeResult]) -> ProbeResult:

@@ -8,10 +8,13 @@ with one rank per device, so every placement is a spec ``place()`` accepts (``"0
 * larger pools: components are split into groups that share a block (set partitions of the
   components, blocks side by side), block sizes from a grid (powers of two and eighths of the
   pool, the last block taking the rest), plus each layout with one component spanning every block
-  (it time-shares with all the others, as a trainer collocated with streamed stages does).
+  (it time-shares with all the others, as a trainer collocated with streamed stages does);
+* one component to place (the others fixed): every block of a grid size, aligned to its size.
 
 For each layout the runner model lists the depths it can run and its rules (paired ranks,
 divisibility); a candidate over memory (a device's, or a node's for CPU slots) is left out.
+Components the model holds fixed (robots: ``RunnerModel.fixed``) keep the placement the config
+gives them; only the others are laid out (:func:`fixed_allocation`).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from infinirl.runtime.inventory import ClusterInventory
 from infinirl.scheduler.cost import Allocation, Candidate, Prediction, Workload, memory_by_range, predict
 from infinirl.scheduler.workloads import RunnerModel
 
-__all__ = ["EXHAUSTIVE_DEVICES", "PlanEntry", "candidate_layouts", "pool_of", "search"]
+__all__ = ["EXHAUSTIVE_DEVICES", "PlanEntry", "candidate_layouts", "fixed_allocation", "pool_of", "search"]
 
 EXHAUSTIVE_DEVICES = 4
 
@@ -90,6 +93,22 @@ def pool_of(inventory: ClusterInventory) -> Pool:
                 on_cpu=False, memory_limit_bytes=float(memory))
 
 
+def fixed_allocation(spec: str, pool: Pool) -> Allocation:
+    """Where a fixed component's spec sits among the pool's devices, as one rank (its ranks work side by
+    side, each on its own robot, so the model's units for it are one rank's): the devices or CPU slots
+    it names (their span), the whole pool for ``all``, and past the pool's end for robots and nodes,
+    which hold none of the pool's devices."""
+    from infinirl.runtime.placement import parse_spec
+
+    parsed = parse_spec(spec)
+    if parsed.kind == "all":
+        return Allocation(first=0, count=pool.size, ranks=1)
+    if parsed.kind == "devices":
+        first = min(parsed.indices)
+        return Allocation(first=first, count=max(parsed.indices) - first + 1, ranks=1)
+    return Allocation(first=pool.size, count=1, ranks=1)
+
+
 # ----- layouts -----------------------------------------------------------------------------------
 
 
@@ -142,11 +161,20 @@ def _structured(components: tuple[str, ...], size: int) -> Iterator[dict[str, Al
                     yield {**layout, name: Allocation(first=0, count=first, ranks=first)}
 
 
+def _aligned_blocks(component: str, size: int) -> Iterator[dict[str, Allocation]]:
+    """One component alone (the others fixed): every block of a grid size at a multiple of its size."""
+    for count in _size_grid(size):
+        for first in range(0, size - count + 1, count):
+            yield {component: Allocation(first=first, count=count, ranks=count)}
+
+
 def candidate_layouts(components: tuple[str, ...], size: int) -> Iterator[dict[str, Allocation]]:
     """Allocations to try on ``size`` devices (module docstring)."""
     if size < 1:
         raise ValueError("the cluster has no devices or CPU slots to place on")
-    return _exhaustive(components, size) if size <= EXHAUSTIVE_DEVICES else _structured(components, size)
+    if size <= EXHAUSTIVE_DEVICES:
+        return _exhaustive(components, size)
+    return _aligned_blocks(components[0], size) if len(components) == 1 else _structured(components, size)
 
 
 # ----- search ------------------------------------------------------------------------------------
@@ -163,13 +191,16 @@ def search(cfg, model: RunnerModel, workload: Workload, inventory: ClusterInvent
     """Every valid candidate within memory, best predicted step time first (ties: fewer devices,
     then the placement's text, so the order is stable)."""
     pool = pool_of(inventory)
-    components = tuple(cfg.components())
+    fixed = model.fixed(cfg)
+    pinned = {name: fixed_allocation(spec, pool) for name, spec in fixed.items()}
+    movable = tuple(c for c in cfg.components() if c not in fixed)
     entries, seen = [], set()
     node_of = pool.node_of if len(pool.per_node) > 1 else None
-    for layout in candidate_layouts(components, pool.size):
+    for placed in candidate_layouts(movable, pool.size):
+        layout = {**pinned, **placed}
         ranks = {name: a.ranks for name, a in layout.items()}
         for depth in model.depths(cfg, ranks):
-            candidate = Candidate(allocations=layout, depth=depth)
+            candidate = Candidate(allocations=layout, depth=depth, fixed_specs=fixed)
             signature = (tuple(sorted(candidate.placement().items())), depth)
             if signature in seen or model.check(cfg, candidate) is not None:
                 continue

@@ -11,10 +11,17 @@ runner is one entry here and no edit in the profiler, the cost model or the sear
   own seconds per ``"<phase>/<component>"``, read from the tracer's spans (a streamed phase's
   span holds both sides, so the split uses the timings the components report with their result),
   and, where the runner counts them, the bytes each component sent downstream (``"bytes/<component>"``,
-  all its ranks together);
+  all its ranks together) and the driver's own seconds (``"overhead"``, when the probe ran less
+  work than the config and the step time therefore cannot give it);
 * ``shorten(cfg, iterations)``: a profiling or measuring run of the same work, without evaluation
   or checkpoints worth keeping; ``scale_batch(cfg, factor)``: the same run with ``factor`` times the
-  work per iteration (what a larger cluster is given).
+  work per iteration (what a larger cluster is given);
+* ``fixed(cfg)``: components the search leaves where the config puts them (robots), ``paced(cfg)``:
+  the wall-clock seconds per unit real time sets (a robot's control period), ``refuses(cfg)``: why
+  a config of the runner cannot be planned, if it cannot.
+
+Runners the scheduler does not plan are listed in ``UNPLANNED_RUNNERS`` with the reason and what
+to write instead, which ``infinirl plan`` and ``placement=auto`` print.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ from typing import Any
 from infinirl.registry import Registry
 from infinirl.scheduler.cost import Allocation, Candidate, Phase
 
-__all__ = ["RUNNER_MODELS", "Probe", "RunnerModel", "StepWindow", "probe_candidates"]
+__all__ = ["RUNNER_MODELS", "UNPLANNED_RUNNERS", "Probe", "RunnerModel", "StepWindow", "probe_candidates"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -82,9 +89,30 @@ class RunnerModel:
     offloads: bool = False
     """Whether the runner offloads a time-sharing component at each turn (``runtime.device_turn``).
     The embodied and reasoning runners keep every component resident, so they pay no switch."""
+    fixed: Callable[[Any], dict[str, str]] = lambda cfg: {}
+    """Components the search does not move (robots are hardware): name -> the spec the run uses."""
+    paced: Callable[[Any], dict[str, float]] = lambda cfg: {}
+    """Component -> wall-clock seconds per unit that real time sets (see :mod:`.cost`)."""
+    driver_on_path: Callable[[Any], bool] = lambda cfg: True
+    """Whether the driver's own time per iteration (the profile's overhead) adds to the iteration:
+    a driver that only polls while its components work on their own adds nothing."""
+    refuses: Callable[[Any], str | None] = lambda cfg: None
+    """Why this config cannot be planned (one line with the placement to write instead), or None."""
+    step_name: str = "iteration"
+    """What one predicted step is (``placement=auto`` prints "predicted X s per <step_name>")."""
+    step_text: str = ""
+    """What one predicted step is when it is not one iteration of the runner (the plan's table says it)."""
 
 
 RUNNER_MODELS: Registry[RunnerModel] = Registry("runner model")
+
+UNPLANNED_RUNNERS: dict[str, str] = {
+    "sft": "sft trains in one process of the driver, with no components to place; its device key chooses where "
+           "(device=auto: the first GPU, else the CPU)",
+    "runtime_demo": "runtime_demo demonstrates the placements you write; give placement.sampler and "
+                    "placement.learner (e.g. sampler: '0', learner: '1')",
+}
+"""Runners with nothing for the scheduler to plan: runner -> why, and what to write instead."""
 
 
 def probe_candidates(model: RunnerModel, num_slots: int) -> tuple[Probe, ...]:
@@ -333,4 +361,213 @@ RUNNER_MODELS.add("sac", RunnerModel(
     probes=(Probe(name="collocated", devices={"collector": (0, 1), "learner": (0, 1)}),
             Probe(name="split", devices={"collector": (1, 1), "learner": (0, 1)})),
     measure=_sac_measure,
+))
+
+
+# ----- realworld_sac -----------------------------------------------------------------------------
+# Robots are hardware: the search never moves them (``fixed``) and only places the learner, one rank
+# on a CPU slot or a device. A robot's steps take its control period of wall-clock time whatever
+# runs beside it (``paced``), so the model's unit of time is one turn: every robot runs one episode
+# (side by side: the cost model sees one robot's steps) and the learner does its updates per
+# collected step. Synchronous mode takes the two in turn; asynchronous mode runs them side by side,
+# so the robots' clock bounds an iteration and the learner keeps up or not. Both are profiled in
+# turns (clean spans per turn, the same per-step and per-update work).
+
+
+def _realworld_robots(cfg) -> int:
+    """Robot ranks: one per fleet entry, else as many as placement.robot gives (one under auto)."""
+    from infinirl.runtime.placement import parse_spec
+
+    if cfg.robot.fleet:
+        return len(cfg.robot.fleet)
+    if cfg.auto_placement:
+        return 1
+    parsed = parse_spec(cfg.placement["robot"], "robot")
+    return parsed.num_processes or max(len(parsed.indices), 1)
+
+
+def _realworld_robot_spec(cfg) -> str:
+    """Where the robots run: placement.robot, or under ``placement: auto`` the default one (slot or
+    device 0, every fleet rank on it)."""
+    if not cfg.auto_placement:
+        return cfg.placement["robot"]
+    robots = _realworld_robots(cfg)
+    return "0" if robots == 1 else f"0:0-{robots - 1}"
+
+
+def _realworld_episode_steps(cfg) -> float:
+    """Steps of one turn's episode: the longest any robot's task allows (the turn waits for it)."""
+    if cfg.robot.fleet:
+        return float(max(cfg.task_of(i).max_episode_steps for i in range(len(cfg.robot.fleet))))
+    return float(cfg.task.max_episode_steps)
+
+
+def _realworld_updates_per_step(cfg) -> float:
+    """Learner updates per collected step: the asynchronous cap when one is set, else utd_ratio."""
+    cap = cfg.pipeline.max_updates_per_step
+    return float(cap) if cfg.pipeline.mode == "async" and cap is not None else float(cfg.algorithm.utd_ratio)
+
+
+def _realworld_phases(cfg) -> tuple[Phase, ...]:
+    if cfg.pipeline.mode == "async":
+        return (Phase(name="iteration", components=("robot", "learner"), concurrent=True),)
+    return (Phase(name="collect", components=("robot",)), Phase(name="update", components=("learner",)))
+
+
+def _realworld_phase_of(cfg, component: str) -> str:
+    return next(p.name for p in _realworld_phases(cfg) if component in p.components)
+
+
+def _realworld_units(cfg) -> dict[str, float]:
+    steps = _realworld_episode_steps(cfg)
+    return {"robot": steps, "learner": _realworld_updates_per_step(cfg) * steps * _realworld_robots(cfg)}
+
+
+def _realworld_paced(cfg) -> dict[str, float]:
+    """The slowest robot's control period per step (a driver option; 0 when the config names no
+    rate, e.g. a discovered robot: its measured steps stand)."""
+    entries = [e.options for e in cfg.robot.fleet] or [cfg.robot.options]
+    rates = [float(o["control_hz"]) for o in entries if o.get("control_hz")]
+    return {"robot": 1.0 / min(rates)} if rates and len(rates) == len(entries) else {}
+
+
+def _realworld_check(cfg, candidate: Candidate) -> str | None:
+    learner = candidate.allocations["learner"]
+    if learner.ranks != 1 or learner.count != 1:
+        return "the learner is one rank on one device or CPU slot"
+    return None
+
+
+def _realworld_apply(cfg, candidate: Candidate) -> None:
+    cfg.placement = {"robot": _realworld_robot_spec(cfg), "learner": candidate.allocations["learner"].spec()}
+
+
+def _realworld_shorten(cfg, iterations: int) -> None:
+    """Turns of the same work: one turn per iteration (a window shorter than any turn), in
+    synchronous mode whatever the config's mode, with no demonstrations or evaluations (robot time
+    that is not the iteration's) and updates from the first turn on (a batch is drawn with
+    replacement, so an update costs the same on a small store)."""
+    cfg.algorithm.utd_ratio = _realworld_updates_per_step(cfg)  # read before the mode changes
+    cfg.iterations = iterations
+    cfg.pipeline.mode = "sync"
+    cfg.pipeline.iteration_s = 1e-3
+    cfg.algorithm.learning_starts = 1
+    cfg.demos.episodes = 0
+    cfg.eval.every = 0
+    cfg.eval.at_start = False
+    cfg.eval.episodes = 1
+    cfg.save_every = 0
+    cfg.loggers = []
+    cfg.resume = False
+    cfg.replay.path = None
+
+
+def _realworld_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
+    """The turn's episode and updates, scaled to the config's units (episodes that end early on
+    success have fewer steps than the config's longest)."""
+    length = float(window.metrics.get("rollout/episode_length_mean", 0.0))
+    episodes = float(window.metrics.get("rollout/episodes", 0.0))
+    if length <= 0 or episodes <= 0:
+        return {}
+    units = _realworld_units(cfg)
+    updates = _realworld_updates_per_step(cfg) * length * episodes
+    return {f"{_realworld_phase_of(cfg, 'robot')}/robot": window.per_rank("robot", "collect") * units["robot"] / length,
+            f"{_realworld_phase_of(cfg, 'learner')}/learner":
+                window.per_rank("learner", "add_and_update") * units["learner"] / updates}
+
+
+def _realworld_refuses(cfg) -> str | None:
+    if cfg.pipeline.transport == "edge":
+        return ("pipeline.transport=edge: the robot runs at the edge node, outside the cluster the scheduler "
+                "profiles; give placement.learner by hand (one CPU slot or device, e.g. '0')")
+    return None
+
+
+RUNNER_MODELS.add("realworld_sac", RunnerModel(
+    runner="realworld_sac",
+    step_metric="time/iteration_s",
+    window_method=("robot", "collect"),
+    phases=_realworld_phases,
+    units=_realworld_units,
+    model_key=lambda cfg: f"{'+'.join(e.kind for e in cfg.robot.fleet) or cfg.robot.kind}:realworld_sac",
+    depths=lambda cfg, ranks: (1,),
+    check=_realworld_check,
+    apply=_realworld_apply,
+    shorten=_realworld_shorten,
+    scale_batch=lambda cfg, factor: None,  # robots are hardware: a larger cluster gets no more of them
+    probes=(Probe(name="collocated", devices={"robot": (0, 1), "learner": (0, 1)}),
+            Probe(name="split", devices={"robot": (0, 1), "learner": (1, 1)})),
+    measure=_realworld_measure,
+    fixed=lambda cfg: {"robot": _realworld_robot_spec(cfg)},
+    paced=_realworld_paced,
+    driver_on_path=lambda cfg: cfg.pipeline.mode == "sync",
+    refuses=_realworld_refuses,
+    step_name="turn",
+    step_text="step_s = one turn: every robot runs one episode and the learner its updates on it (iterations "
+              "are pipeline.iteration_s windows of turns)",
+))
+
+
+# ----- hg_dagger ---------------------------------------------------------------------------------
+# The same robots and learner as realworld_sac, taking turns: every robot runs
+# dagger.episodes_per_iteration episodes with the human watching, then the learner aggregates the
+# human's labels and trains bc.updates_per_iteration mini-batches. A profile runs one episode per
+# robot per iteration (robot time is real time) and scales it to the config's episodes.
+
+
+def _dagger_units(cfg) -> dict[str, float]:
+    return {"robot": float(cfg.dagger.episodes_per_iteration * cfg.task.max_episode_steps),
+            "learner": float(cfg.bc.updates_per_iteration)}
+
+
+def _dagger_shorten(cfg, iterations: int) -> None:
+    """One episode per robot per iteration; one initial demonstration when the config records any (the
+    learner then trains from the first iteration whatever the human labelled); no evaluations."""
+    cfg.iterations = iterations
+    cfg.dagger.episodes_per_iteration = 1
+    cfg.dagger.initial_demos = min(cfg.dagger.initial_demos, 1)
+    cfg.eval.every = 0
+    cfg.eval.at_start = False
+    cfg.eval.episodes = 1
+    cfg.save_every = 0
+    cfg.loggers = []
+    cfg.resume = False
+
+
+_DAGGER_LEARNER_METHODS = ("action_error", "aggregate", "train")
+
+
+def _dagger_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
+    """The iteration's episodes scaled to the config's (per robot: episodes x the longest episode),
+    the learner's calls as they ran (its updates per iteration are the config's), and the driver's
+    own time: the step less both."""
+    length = float(window.metrics.get("rollout/episode_length_mean", 0.0))
+    episodes = float(window.metrics.get("rollout/episodes", 0.0))
+    if length <= 0 or episodes <= 0:
+        return {}
+    collect = window.per_rank("robot", "collect")
+    learner = sum(window.per_rank("learner", m) for m in _DAGGER_LEARNER_METHODS)
+    steps_per_robot = length * episodes / _realworld_robots(cfg)
+    step = float(window.metrics.get("time/iteration_s", 0.0))
+    return {"collect/robot": collect * _dagger_units(cfg)["robot"] / steps_per_robot, "update/learner": learner,
+            "overhead": max(step - collect - learner, 0.0)}
+
+
+RUNNER_MODELS.add("hg_dagger", RunnerModel(
+    runner="hg_dagger",
+    step_metric="time/iteration_s",
+    window_method=("robot", "collect"),
+    phases=lambda cfg: (Phase(name="collect", components=("robot",)), Phase(name="update", components=("learner",))),
+    units=_dagger_units,
+    model_key=lambda cfg: f"{cfg.robot.kind}:hg_dagger",
+    depths=lambda cfg, ranks: (1,),
+    check=_realworld_check,
+    apply=_realworld_apply,
+    shorten=_dagger_shorten,
+    scale_batch=lambda cfg, factor: None,  # robots are hardware: a larger cluster gets no more of them
+    probes=(Probe(name="collocated", devices={"robot": (0, 1), "learner": (0, 1)}),
+            Probe(name="split", devices={"robot": (0, 1), "learner": (1, 1)})),
+    measure=_dagger_measure,
+    fixed=lambda cfg: {"robot": _realworld_robot_spec(cfg)},
+    paced=_realworld_paced,
 ))

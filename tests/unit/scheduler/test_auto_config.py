@@ -1,5 +1,7 @@
 """`placement: auto` in a config, and the plan table."""
 
+import types
+
 import pytest
 
 from infinirl.cli import build_config
@@ -24,8 +26,9 @@ def test_a_placement_string_other_than_auto_is_one_line_naming_the_fix():
 
 
 def test_a_runner_without_a_model_is_refused_by_name():
-    cfg = build_config("realworld_sac_sawyer_reach", [])[1]
-    with pytest.raises(ConfigError, match="no model of the 'realworld_sac' runner; it plans embodied, reasoning, sac"):
+    cfg = types.SimpleNamespace(runner="unmodelled")  # a runner the scheduler knows nothing of
+    with pytest.raises(ConfigError, match="no model of the 'unmodelled' runner; it plans embodied, .*realworld_sac, "
+                                          "reasoning, sac. Give placement"):
         runner_model(cfg)
 
 

@@ -46,6 +46,31 @@ def test_work_cost_seconds_and_memory_by_hand():
     assert fast.memory_bytes(100, 4) == pytest.approx(75.0)
 
 
+def test_paced_work_takes_its_clock_time_on_any_device_and_leaves_the_device_to_others():
+    """A robot at 0.05 s per step (its loop waits on the clock) beside a learner: on one slot the
+    learner works while the robot waits, so the phase is the longer, not the sum; faster hardware
+    speeds the learner up and never the robot's clock."""
+    robot = WorkCost(per_unit_s=0.01, paced_per_unit_s=0.05)
+    assert robot.seconds(50, 1) == pytest.approx(2.5) and robot.paced
+    assert robot.scaled(speedup=100).seconds(50, 1) == pytest.approx(2.5)
+    assert not WorkCost(per_unit_s=0.01).paced
+    phase = Phase(name="iteration", components=("robot", "learner"), concurrent=True)
+    for learner_s, expected in ((1.0, 2.5), (4.0, 4.0)):
+        w = Workload(runner="t", phases=(phase,), units={"robot": 50.0, "learner": 1.0},
+                     costs={"iteration/robot": robot, "iteration/learner": WorkCost(per_unit_s=learner_s)})
+        for layout in ({"robot": _on(0), "learner": _on(0)}, {"robot": _on(0), "learner": _on(1)}):
+            assert phase_seconds(w, phase, Candidate(allocations=layout)) == pytest.approx(expected)
+    compute = {"iteration/robot": WorkCost(per_unit_s=0.05), "iteration/learner": WorkCost(per_unit_s=1.0)}
+    w = Workload(runner="t", phases=(phase,), units={"robot": 50.0, "learner": 1.0}, costs=compute)
+    shared = Candidate(allocations={"robot": _on(0), "learner": _on(0)})
+    assert phase_seconds(w, phase, shared) == pytest.approx(3.5)  # compute-bound work on one slot adds up
+
+
+def test_a_fixed_components_spec_is_written_as_given():
+    cand = Candidate(allocations={"robot": _on(5), "learner": _on(1)}, fixed_specs={"robot": "robot:0"})
+    assert cand.placement() == {"robot": "robot:0", "learner": "1"}
+
+
 def test_time_sharing_sums_whatever_the_depth():
     w = _stream_workload(hop_s=1.0, trips=3)
     for depth in (1, 2, 4):
