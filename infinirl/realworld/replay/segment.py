@@ -137,14 +137,18 @@ class Segment:
         torn tail off its log and field files; a reader sees the complete records only."""
         segment = cls(path, number, spec)
         log_path = os.path.join(path, LOG_NAME)
+        # Looked at before the log is read: the writer seals after its last record, so a segment
+        # sealed by then has its final log; one sealed while a reader reads it is taken as open
+        # (its next refresh sees the seal), never as a sealed log cut short.
+        sealed_path = os.path.join(path, SEALED_NAME)
+        sealed = os.path.exists(sealed_path)
         data = b""
         if os.path.exists(log_path):  # absent only in a segment whose creation was interrupted
             with open(log_path, "rb") as handle:
                 data = handle.read()
         records, span = scan_records(data, len(segment.names), log_path)
         segment._add_records(records, verified=False)
-        sealed_path = os.path.join(path, SEALED_NAME)
-        if os.path.exists(sealed_path):
+        if sealed:
             segment._check_sealed(sealed_path, data)
         elif writable:
             segment._cut_torn_tail(log_path, span)

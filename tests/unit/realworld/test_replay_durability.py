@@ -190,3 +190,33 @@ def test_a_reader_process_sees_committed_episodes_while_the_writer_appends(tmp_p
         proc.kill()
         proc.wait()
         proc.stdout.close()
+
+
+def test_a_segment_sealed_while_a_reader_opens_it_is_taken_as_open_not_as_damaged(tmp_path, monkeypatch):
+    """The writer may append and seal between a reader's read of the open segment's log and its look
+    for ``sealed.json``: the reader must not compare its shorter read with the seal's sizes."""
+    from infinirl.realworld.replay import segment as segment_module
+
+    path = tmp_path / "store"
+    writer = ReplayStore(str(path), SPEC, options=StoreOptions(segment_bytes=SEGMENT_BYTES, durable=False))
+    for _ in range(2):
+        writer.append(make_episode(writer.next_episode_id))
+    open_segment = max(writer.segments)
+    real_scan, raced = segment_module.scan_records, []
+
+    def scan_then_writer_seals(data, fields, log_path):
+        records = real_scan(data, fields, log_path)
+        if not raced and log_path.startswith(str(writer.segments[open_segment].path)):
+            raced.append(True)
+            while max(writer.segments) == open_segment:  # appends until that segment seals
+                writer.append(make_episode(writer.next_episode_id))
+        return records
+
+    monkeypatch.setattr(segment_module, "scan_records", scan_then_writer_seals)
+    reader = ReplayStore(str(path), writable=False)
+    assert raced
+    reader.refresh()
+    assert reader.next_episode_id == writer.next_episode_id
+    check_store(reader)
+    reader.close()
+    writer.close()
