@@ -273,12 +273,19 @@ class SO101FeetechArm(RobotDriver):
         return self._bus
 
 
-def _answers(bus: FeetechBus, servo_id: int) -> bool:
-    try:
-        bus.ping(servo_id)
-    except FeetechError:
-        return False
-    return True
+#: Pings a servo gets at connect before it counts as missing: a bus drops an answer now and then
+#: (noise on the line, a busy host reading the port late), which must not refuse a whole arm.
+CONNECT_PING_ATTEMPTS = 3
+
+
+def _answers(bus: FeetechBus, servo_id: int, attempts: int = CONNECT_PING_ATTEMPTS) -> bool:
+    for _ in range(attempts):
+        try:
+            bus.ping(servo_id)
+        except FeetechError:
+            continue
+        return True
+    return False
 
 
 def attached_so101_arms(*, ports: Sequence[str] = (), baudrate: int = 1_000_000, timeout_s: float = 0.05,

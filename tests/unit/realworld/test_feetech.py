@@ -19,6 +19,7 @@ from infinirl.realworld.feetech import (
     u16,
 )
 from infinirl.realworld.feetech_emulator import FeetechBusEmulator
+from infinirl.realworld.so101_feetech import CONNECT_PING_ATTEMPTS
 
 # Packets worked out by hand from the protocol: checksum = ~(id + length + instruction + params) & 0xFF.
 PING_1 = bytes.fromhex("ff ff 01 02 01 fb")  # ~(1 + 2 + 1) = ~0x04
@@ -150,6 +151,13 @@ def test_arm_with_a_missing_servo_refuses_to_connect(emulator):
     arm = make_robot("so101_feetech", port=emulator.path, timeout_s=0.05)
     with pytest.raises(RobotError, match=r"servos \[5\] do not answer"):
         arm.connect()
+
+
+def test_an_answer_lost_at_connect_is_asked_again_not_taken_for_a_missing_servo(emulator):
+    emulator.corrupt_replies(CONNECT_PING_ATTEMPTS - 1)  # servo 1's first answers are garbled on the line
+    arm = make_robot("so101_feetech", port=emulator.path, timeout_s=0.05)
+    arm.connect()
+    arm.stop()
 
 
 def test_discovery_finds_the_arm_on_a_configured_port(emulator, tmp_path):
