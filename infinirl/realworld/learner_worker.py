@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from infinirl.components.sac_learner import SACAgent, SACNetSpec, SACUpdateSpec
+from infinirl.models.sac_encoders import PIXELS_PREFIX
 from infinirl.realworld.episodes import episode_spec, staleness_of
 from infinirl.realworld.intervention.segments import intervened_segments
 from infinirl.realworld.replay import ReplayStore, SamplingSpec, StoreOptions
@@ -85,7 +86,10 @@ class RealWorldLearnerWorker(Worker, WeightSource):
             torch.set_num_threads(num_threads)
         torch.set_flush_denormal(True)  # see SACLearnerWorker: denormals take a slow path on x86
         self.loop, self.spec = loop, update
-        self.agent = SACAgent(net, update, obs_dim, unit_box(action_dim))
+        self.agent = SACAgent(net, update, obs_dim, unit_box(action_dim), cameras=loop.cameras)
+        encoder = getattr(self.agent.actor, "encoder", None)
+        # The camera fields the networks read (none for the state encoder, which reads only the state).
+        self._pixel_keys = [PIXELS_PREFIX + name for name in getattr(encoder, "cameras", {})]
         if loop.interventions_as_demos and (loop.demo_dir is None or not loop.interventions):
             raise ValueError("LearnerLoopSpec.interventions_as_demos needs interventions=True and a demo_dir")
         fields = episode_spec(obs_dim, action_dim, loop.cameras, interventions=loop.interventions)
@@ -160,9 +164,16 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         if n_demo:
             parts.append(self.demos.sample(n_demo))
         rows = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-        return {"obs": torch.from_numpy(rows["obs.state"]), "next_obs": torch.from_numpy(rows["next_obs.state"]),
+        return {"obs": self._observations(rows, "obs"), "next_obs": self._observations(rows, "next_obs"),
                 "action": torch.from_numpy(rows["action"]), "reward": torch.from_numpy(rows["reward"]),
                 "terminated": torch.from_numpy(rows["terminated"])}
+
+    def _observations(self, rows: dict[str, np.ndarray], prefix: str):
+        """The state rows, or with a pixel encoder the state and the frames it reads (uint8)."""
+        state = torch.from_numpy(rows[f"{prefix}.state"])
+        if not self._pixel_keys:
+            return state
+        return {"state": state, **{key: torch.from_numpy(rows[f"{prefix}.{key}"]) for key in self._pixel_keys}}
 
     def _update_once(self) -> None:
         with self._lock:

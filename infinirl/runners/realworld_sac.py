@@ -44,7 +44,7 @@ from infinirl.config import ConfigError
 from infinirl.runners import register_runner
 from infinirl.runners.curves import Panel
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
-from infinirl.runners.realworld_sac_config import RealWorldSACConfig
+from infinirl.runners.realworld_sac_config import RealWorldNetworkConfig, RealWorldSACConfig
 from infinirl.runners.run_support import launch_all, plan_placement, run_start_time
 
 __all__ = ["RealWorldSACFlow", "env_spec_of", "net_spec_of", "robot_setup_of", "run"]
@@ -150,22 +150,28 @@ def env_spec_of(cfg: RealWorldSACConfig):
     return spec(cfg.task)
 
 
-def net_spec_of(cfg: RealWorldSACConfig) -> SACNetSpec:
+def net_spec_of(cfg) -> SACNetSpec:
+    """The networks of a real-world runner's config (its ``network`` section: this runner's, with an
+    observation encoder, or the plain SAC one of the runners that share the robot workers)."""
     network = cfg.network
+    encoder = network.encoder_spec() if isinstance(network, RealWorldNetworkConfig) else {}
     return SACNetSpec(actor_hidden=tuple(network.actor_hidden), critic_hidden=tuple(network.critic_hidden),
                       num_critics=network.num_critics, activation=network.activation,
-                      log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key="state")
+                      log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key="state",
+                      actor=network.actor, flow=dict(network.flow), **encoder)
 
 
 def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
     """Lay the robots out in the shared policy (:func:`~infinirl.realworld.robot_worker.policy_layouts`)
     and return the policy's observation and action sizes and the recorded cameras."""
-    from infinirl.realworld.robot_worker import policy_layouts
+    from infinirl.realworld.robot_worker import policy_layouts, unit_box
+    from infinirl.runners.sac import check_net_builds
 
     described = robots.describe().wait()
     if len({tuple(sorted(d["cameras"].items())) for d in described}) > 1:
         raise ConfigError("task.cameras: the robots record different cameras; a run stores one set of camera fields")
     layouts = policy_layouts(described)
+    check_net_builds(net_spec_of(cfg), layouts[0].obs_dim, unit_box(layouts[0].action_dim), described[0]["cameras"])
     robots.call_each("configure", [(layout,) for layout in layouts]).wait()
     if layouts[0].num_embodiments > 1:
         print("one policy for " + ", ".join(f"rank {i} {d['kind']} (obs {d['obs_dim']}, action {d['action_dim']})"
