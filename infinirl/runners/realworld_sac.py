@@ -200,7 +200,8 @@ def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
                            max_staleness=pipeline.max_staleness, staleness_action=pipeline.staleness_action,
                            max_updates_per_step=pipeline.max_updates_per_step, durable=pipeline.durable,
                            cameras=dict(shape["cameras"]))
-    return RealWorldLearnerWorker, (net, update, loop, shape["obs_dim"], shape["action_dim"], cfg.learner.num_threads)
+    return RealWorldLearnerWorker, (net, update, loop, shape["obs_dim"], shape["action_dim"], cfg.learner.num_threads,
+                                    cfg.learner.device)
 
 
 def _per_kind(robots: list[dict]) -> dict:

@@ -13,7 +13,7 @@ from typing import Any, ClassVar, Literal
 
 from infinirl.config import ConfigError, bounded
 from infinirl.runners.run_config import EvalSchedule, RunConfig
-from infinirl.runners.sac_config import AlgorithmConfig, NetworkConfig, WorkerConfig
+from infinirl.runners.sac_config import AlgorithmConfig, LearnerConfig, NetworkConfig, WorkerConfig
 
 __all__ = ["CNNConfig", "EdgeLinkConfig", "EvalConfig", "InterventionConfig", "RealWorldNetworkConfig",
            "RealWorldSACConfig", "RobotConfig", "TaskConfig", "known_names", "parse_address"]
@@ -270,7 +270,7 @@ class RealWorldSACConfig(RunConfig):
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("pipeline.mode", "pipeline.iteration_s", "pipeline.sync_poll_s",
                                                     "pipeline.max_updates_per_step", "robot.command_deadline_s",
                                                     "robot.heartbeat_deadline_s", "robot.velocity_scale",
-                                                    "learner.num_threads", "actor.num_threads",
+                                                    "learner.num_threads", "learner.device", "actor.num_threads",
                                                     "pipeline.transport", "edge")
 
     output_dir: str = "runs/realworld_sac"
@@ -291,7 +291,9 @@ class RealWorldSACConfig(RunConfig):
     eval: EvalConfig = field(default_factory=EvalConfig)
     actor: WorkerConfig = field(default_factory=WorkerConfig)
     """The robot workers' policy inference threads."""
-    learner: WorkerConfig = field(default_factory=WorkerConfig)
+    learner: LearnerConfig = field(default_factory=lambda: LearnerConfig(device="cpu"))
+    """The learner's torch threads and device: cpu (default: the state networks' small MLPs), or auto (the
+    GPU its placement gives it, e.g. placement.learner=0 on a GPU machine; what a cnn encoder wants)."""
 
     def check(self) -> None:
         from infinirl.realworld.demos import DEMO_POLICIES
