@@ -59,6 +59,7 @@ def run(cfg: RealWorldSACConfig) -> dict:
         cfg.edge.check_trainer_files()  # here, not in the config's check: the edge node holds other files
     with RunLoop(cfg, run_start_time()) as loop:
         net = net_spec_of(cfg)
+        _check_actor_options(net)
         from infinirl.realworld.discovery import with_driver_discovery
         from infinirl.runners.hg_dagger import intervention_spec_of
 
@@ -91,6 +92,17 @@ def run(cfg: RealWorldSACConfig) -> dict:
                 if edge is not None:
                     edge.close()
                 channel.destroy()
+
+
+def _check_actor_options(net: SACNetSpec) -> None:
+    """The actor head's options (e.g. flow_matching keywords) as a ConfigError before any worker
+    starts; the encoder is checked against the cameras once the robots report them (:func:`_robot_shape`)."""
+    from dataclasses import replace
+
+    from infinirl.realworld.robot_worker import unit_box
+    from infinirl.runners.sac import check_net_builds
+
+    check_net_builds(replace(net, encoder="state", encoder_options={}, augment_pad=0), 1, unit_box(1))
 
 
 def _robot_workers(cfg: RealWorldSACConfig, plan, intervention, groups: dict):

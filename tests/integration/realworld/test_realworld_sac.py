@@ -96,6 +96,9 @@ def test_network_sections_build_the_actors_the_robots_act_with(tmp_path):
     assert isinstance(net_spec_of(make_cfg(tmp_path, 1, **FLOW)).build_actor(5, unit_box(2)), FlowSACActor)
     pixels = net_spec_of(make_cfg(tmp_path, 1, **PIXELS)).build_actor(5, unit_box(2), {"corner": (32, 32)})
     assert isinstance(pixels, EncodedActor) and list(pixels.encoder.cameras) == ["corner"]
+    bad_flow = {"network": {**FLOW["network"], "flow": {"num_steps": 2, "hiden": [32]}}}
+    with pytest.raises(ConfigError, match="network .actor=flow.*hiden"):  # before any worker (no cluster here)
+        run(make_cfg(tmp_path / "bad_flow", 1, **bad_flow))
 
 
 def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
