@@ -6,7 +6,10 @@ episode that reached the learner is lost by a crash), and optionally a second st
 demonstrations (RLPD: each mini-batch is ``demo_fraction`` demonstrations, the rest online data).
 With ``interventions_as_demos``, every run of steps a human acted in (``intervened``) is also
 appended to the demonstrations store as an episode of its own
-(:func:`~infinirl.realworld.intervention.segments.intervened_segments`).
+(:func:`~infinirl.realworld.intervention.segments.intervened_segments`). With a pixel encoder
+(``SACNetSpec.encoder="cnn"``) the mini-batches carry the frames of the cameras it reads besides the
+state; the agent computes on ``device`` (``auto``: the GPU of the rank's placement) and the published
+weights are host copies.
 
 * **asynchronous** (:meth:`start`): an ingest thread takes the episodes the robots put on the
   channel and appends them to the store; a training thread updates continuously once

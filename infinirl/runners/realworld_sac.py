@@ -25,6 +25,10 @@ RLPD (``demos.episodes > 0``): robot rank 0 records scripted demonstrations into
 With an intervention device (``interventions.device``) and ``interventions.as_demos``, the
 stretches of each episode where the human acted also go into the demonstrations store.
 
+Networks: the SAC runner's (``network.actor``: gaussian or flow); ``network.encoder=cnn`` puts a conv
+encoder over the ``task.cameras`` frames in front (the robots act from their current frames, the
+learner samples the stored ones, the weights the robots receive carry the encoder).
+
 Checkpoints hold the learner (agent, sampler state, version); the replay store is on disk already
 and is reopened on resume with everything appended after the checkpoint, so a killed run resumes
 with its experience intact.
