@@ -15,7 +15,12 @@ and the temperature ``alpha = exp(log_alpha)``. One :meth:`SACAgent.update` on a
    (:func:`~infinirl.algorithms.sac.sac_temperature_loss`), reusing the actor step's log-probs;
 3. every ``target_update_every`` updates, **targets**: ``theta' <- (1 - tau) theta' + tau theta``.
 
-All randomness (the buffer's sampling, the reparameterisation noise) comes from generators owned
+With camera frames (``SACNetSpec.encoder="cnn"``) one encoder sits in front of the actor and the
+critics (:mod:`infinirl.models.sac_encoders`): the critic step trains it, the actor reads it
+detached, the targets average it too, and with ``augment_pad`` every mini-batch's frames are
+randomly shifted first (DrQ).
+
+All randomness (the buffer's sampling, the reparameterisation noise, the shifts) comes from generators owned
 here and saved with the checkpoint, so a resumed learner makes exactly the updates the original
 would have.
 
@@ -39,6 +44,7 @@ import torch
 from infinirl.algorithms.sac import sac_actor_loss, sac_critic_loss, sac_temperature_loss
 from infinirl.components.embodied_policy import compute_device, module_device
 from infinirl.components.replay_buffer import ReplayBuffer
+from infinirl.models.sac_encoders import ENCODERS, EncodedActor, EncodedCritic, random_shift_observations
 from infinirl.models.sac_nets import EnsembleQ, FlowSACActor, SquashedGaussianActor
 from infinirl.runtime import WeightSource, Worker
 from infinirl.utils.atomic import torch_save_atomic
@@ -65,8 +71,27 @@ class SACNetSpec:
     """``gaussian`` (:class:`SquashedGaussianActor`) or ``flow`` (SAC-Flow, :class:`FlowSACActor`)."""
     flow: dict = field(default_factory=dict)
     """Options of the ``flow_matching`` policy when ``actor == "flow"`` (num_steps, noise_method, hidden, ...)."""
+    encoder: str = "state"
+    """Observation encoder (:data:`~infinirl.models.sac_encoders.ENCODERS`): ``state`` (none: the
+    networks read the state vector) or ``cnn`` (camera frames + state, shared by actor and critics)."""
+    encoder_options: dict = field(default_factory=dict)
+    """Keyword options of the encoder (cnn: channels, strides, feature_dim)."""
+    augment_pad: int = 0
+    """Random-shift augmentation of the camera frames in every update (pixels, 0: none)."""
 
-    def build_actor(self, obs_dim: int, action_space):
+    def build_encoder(self, obs_dim: int, cameras: dict | None = None):
+        """The encoder module, or None (``state``: the networks read the state vector)."""
+        return ENCODERS.get(self.encoder)(obs_dim=obs_dim, cameras=cameras, **self.encoder_options)
+
+    def build_actor(self, obs_dim: int, action_space, cameras: dict | None = None):
+        """The actor; with an encoder (``cameras``: name -> (height, width)) an :class:`EncodedActor`
+        that owns a fresh one."""
+        encoder = self.build_encoder(obs_dim, cameras)
+        if encoder is None:
+            return self._actor_head(obs_dim, action_space)
+        return EncodedActor(encoder, self._actor_head(encoder.out_dim, action_space))
+
+    def _actor_head(self, obs_dim: int, action_space):
         low = np.array(action_space.low, dtype=np.float32).reshape(-1)  # copies: Ray hands out read-only arrays
         high = np.array(action_space.high, dtype=np.float32).reshape(-1)
         if self.actor == "flow":
@@ -76,9 +101,15 @@ class SACNetSpec:
         return SquashedGaussianActor(obs_dim, int(np.prod(action_space.shape)), low, high, self.actor_hidden,
                                      self.log_std_min, self.log_std_max, self.activation, self.obs_key)
 
-    def build_critic(self, obs_dim: int, action_space) -> EnsembleQ:
-        return EnsembleQ(obs_dim, int(np.prod(action_space.shape)), self.critic_hidden, self.num_critics,
+    def build_critic(self, obs_dim: int, action_space, encoder=None):
+        """The critics; given the actor's ``encoder``, an :class:`EncodedCritic` sharing it (the
+        critic loss trains it)."""
+        if encoder is None:
+            return EnsembleQ(obs_dim, int(np.prod(action_space.shape)), self.critic_hidden, self.num_critics,
+                             self.activation, self.obs_key)
+        head = EnsembleQ(encoder.out_dim, int(np.prod(action_space.shape)), self.critic_hidden, self.num_critics,
                          self.activation, self.obs_key)
+        return EncodedCritic(encoder, head)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -116,24 +147,30 @@ class SACAgent:
     """Actor, critics (+ targets), temperature and their optimisers; :meth:`update` is one SAC step."""
 
     def __init__(self, net: SACNetSpec, spec: SACUpdateSpec, obs_dim: int, action_space,
-                 device: torch.device | str = "cpu"):
+                 device: torch.device | str = "cpu", cameras: dict | None = None):
         torch.manual_seed(spec.seed)  # initial weights are a function of the seed, on any device
         self.net, self.spec = net, spec
         self.device = torch.device(device)
         self.action_dim = int(np.prod(action_space.shape))
-        self.actor = net.build_actor(obs_dim, action_space).to(self.device)
-        self.critic = net.build_critic(obs_dim, action_space).to(self.device)
+        self.actor = net.build_actor(obs_dim, action_space, cameras).to(self.device)
+        # With an encoder the critics share the actor's (their loss trains it; the actor reads it detached).
+        self.critic = net.build_critic(obs_dim, action_space, getattr(self.actor, "encoder", None)).to(self.device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(spec.init_alpha), dtype=torch.float32,
                                                          device=self.device))
         self.target_entropy = float(-self.action_dim if spec.target_entropy is None else spec.target_entropy)
-        self.actor_optim = _adam(self.actor.parameters(), spec.actor_lr)
+        actor_params = self.actor.head_parameters() if isinstance(self.actor, EncodedActor) else self.actor.parameters()
+        self.actor_optim = _adam(actor_params, spec.actor_lr)
         self.critic_optim = _adam(self.critic.parameters(), spec.critic_lr)
         self.alpha_optim = _adam([self.log_alpha], spec.alpha_lr)
         noise_seed = int(np.random.SeedSequence([spec.seed, 0x1EA2]).generate_state(1)[0])
         # A CPU generator on every device: the same noise draws (copied to the device) wherever the
         # learner computes, and a checkpoint's generator state resumes on a CPU or a GPU alike.
         self.generator = torch.Generator().manual_seed(noise_seed)
+        self.augment_generator = None  # random shifts of the camera frames: a stream of their own
+        if net.augment_pad > 0 and isinstance(self.actor, EncodedActor):
+            self.augment_generator = torch.Generator().manual_seed(
+                int(np.random.SeedSequence([spec.seed, 0xA06]).generate_state(1)[0]))
         self.updates = 0
 
     @property
@@ -145,6 +182,9 @@ class SACAgent:
         ``terminated``); returns detached scalar metrics (tensors: no sync per step)."""
         spec = self.spec
         obs, next_obs = batch["obs"], batch["next_obs"]
+        if self.augment_generator is not None:  # DrQ: each of obs and next_obs shifted on its own
+            obs = random_shift_observations(obs, self.net.augment_pad, self.augment_generator)
+            next_obs = random_shift_observations(next_obs, self.net.augment_pad, self.augment_generator)
         alpha = self.alpha
         with torch.no_grad():
             next_action, next_logprob, _ = self.actor.sample(next_obs, self.generator)
@@ -195,6 +235,7 @@ class SACAgent:
             "actor_optim": self.actor_optim.state_dict(), "critic_optim": self.critic_optim.state_dict(),
             "alpha_optim": self.alpha_optim.state_dict(), "generator": self.generator.get_state(),
             "updates": self.updates,
+            **({"augment_generator": self.augment_generator.get_state()} if self.augment_generator is not None else {}),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -207,6 +248,8 @@ class SACAgent:
         self.critic_optim.load_state_dict(state["critic_optim"])
         self.alpha_optim.load_state_dict(state["alpha_optim"])
         self.generator.set_state(state["generator"])
+        if self.augment_generator is not None:
+            self.augment_generator.set_state(state["augment_generator"])
         self.updates = int(state["updates"])
 
     def named_tensors(self):

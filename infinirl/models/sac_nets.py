@@ -24,8 +24,8 @@ collector's and the learner's random streams are their own and are checkpointed.
 a third of the kernel launches on CPU for the usual ``K = 2``. ``forward`` returns ``[K, B]``, the
 layout :mod:`infinirl.algorithms.sac` takes.
 
-Observations are a low-dimensional vector (``obs[obs_key]``, default ``state``); pixel SAC would put
-an encoder in front of both (not done here).
+Observations are a low-dimensional vector (``obs[obs_key]``, default ``state``); for camera frames an
+encoder sits in front of both (:mod:`infinirl.models.sac_encoders`) and these networks take its features.
 """
 
 from __future__ import annotations

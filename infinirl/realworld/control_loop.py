@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from infinirl.models.sac_encoders import PIXELS_PREFIX
 from infinirl.realworld.driver import RobotError, RobotStoppedError, make_robot
 from infinirl.realworld.episodes import RANDOM_VERSION, EpisodeRecorder
 from infinirl.realworld.intervention.human_reward import SuccessLabelWriter, human_reward
@@ -152,6 +153,8 @@ class RobotControlLoop:
         self.env = RobotEnv(self.robot, env, setup.safety)
         self.kind, self.net = kind, net
         self.obs_dim, self.action_dim = self.env.observation_size(), self.env.action_dim
+        self.cameras = {c.name: (c.height, c.width) for c in self.env.robot_spec.cameras
+                        if c.name in self.env.spec.cameras}
         self.configure(PolicyLayout(obs_dim=self.obs_dim, action_dim=self.action_dim))
         self.policy_version = RANDOM_VERSION
         self.rng = np.random.default_rng([seed, self.rank, 0xAC7])
@@ -183,12 +186,12 @@ class RobotControlLoop:
         spec = self.env.robot_spec
         return {"kind": self.kind, "obs_dim": self.obs_dim, "action_dim": self.action_dim,
                 "control_hz": spec.control_hz,
-                "cameras": {c.name: (c.height, c.width) for c in spec.cameras if c.name in self.env.spec.cameras}}
+                "cameras": dict(self.cameras)}
 
     def configure(self, layout: PolicyLayout) -> None:
         """Build the policy copy for ``layout`` (before the first weights arrive)."""
         self.layout = layout
-        self.actor = self.net.build_actor(layout.obs_dim, unit_box(layout.action_dim)).eval()
+        self.actor = self.net.build_actor(layout.obs_dim, unit_box(layout.action_dim), self.cameras).eval()
 
     # ---------------------------------------------------------------- weights
     def load_weights(self, named_tensors, version: int) -> None:
@@ -209,9 +212,17 @@ class RobotControlLoop:
     def act(self, obs: dict, deterministic: bool = False) -> tuple[np.ndarray, int]:
         if self.policy_version == RANDOM_VERSION and not deterministic:
             return self.rng.uniform(-1.0, 1.0, self.layout.action_dim).astype(np.float32), RANDOM_VERSION
-        state = torch.from_numpy(np.asarray(obs["state"], np.float32)[None])
-        action, _, _ = self.actor.sample(state, self.generator, deterministic=deterministic)
+        action, _, _ = self.actor.sample(self._policy_input(obs), self.generator, deterministic=deterministic)
         return action[0].numpy(), self.policy_version
+
+    def _policy_input(self, obs: dict) -> dict:
+        """A batch of one: the state and the current camera frames (a pixel encoder reads them, the
+        state networks read only ``state``)."""
+        batch = {"state": torch.from_numpy(np.asarray(obs["state"], np.float32)[None])}
+        for key, value in obs.items():
+            if key.startswith(PIXELS_PREFIX):
+                batch[key] = torch.from_numpy(np.asarray(value, np.uint8)[None])
+        return batch
 
     def _episode(self, policy=None, deterministic: bool = False, between_steps=None,
                  training: bool = True) -> tuple[dict | None, bool]:

@@ -6,7 +6,10 @@ episode that reached the learner is lost by a crash), and optionally a second st
 demonstrations (RLPD: each mini-batch is ``demo_fraction`` demonstrations, the rest online data).
 With ``interventions_as_demos``, every run of steps a human acted in (``intervened``) is also
 appended to the demonstrations store as an episode of its own
-(:func:`~infinirl.realworld.intervention.segments.intervened_segments`).
+(:func:`~infinirl.realworld.intervention.segments.intervened_segments`). With a pixel encoder
+(``SACNetSpec.encoder="cnn"``) the mini-batches carry the frames of the cameras it reads besides the
+state; the agent computes on ``device`` (``auto``: the GPU of the rank's placement) and the published
+weights are host copies.
 
 * **asynchronous** (:meth:`start`): an ingest thread takes the episodes the robots put on the
   channel and appends them to the store; a training thread updates continuously once
@@ -45,7 +48,9 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from infinirl.components.embodied_policy import compute_device
 from infinirl.components.sac_learner import SACAgent, SACNetSpec, SACUpdateSpec
+from infinirl.models.sac_encoders import PIXELS_PREFIX
 from infinirl.realworld.episodes import episode_spec, staleness_of
 from infinirl.realworld.intervention.segments import intervened_segments
 from infinirl.realworld.replay import ReplayStore, SamplingSpec, StoreOptions
@@ -96,12 +101,17 @@ class RealWorldLearnerWorker(Worker, WeightSource):
     """SAC on a persistent replay store (see the module docstring)."""
 
     def __init__(self, net: SACNetSpec, update: SACUpdateSpec, loop: LearnerLoopSpec, obs_dim: int, action_dim: int,
-                 num_threads: int = 1):
+                 num_threads: int = 1, device: str = "cpu"):
         if num_threads:
             torch.set_num_threads(num_threads)
         torch.set_flush_denormal(True)  # see SACLearnerWorker: denormals take a slow path on x86
         self.loop, self.spec = loop, update
-        self.agent = SACAgent(net, update, obs_dim, unit_box(action_dim))
+        # auto: the GPU the placement gives this rank, else the CPU (a conv encoder wants the GPU).
+        self.compute = compute_device(self.device if device == "auto" else "cpu", device)
+        self.agent = SACAgent(net, update, obs_dim, unit_box(action_dim), self.compute, cameras=loop.cameras)
+        encoder = getattr(self.agent.actor, "encoder", None)
+        # The camera fields the networks read (none for the state encoder, which reads only the state).
+        self._pixel_keys = [PIXELS_PREFIX + name for name in getattr(encoder, "cameras", {})]
         if loop.interventions_as_demos and (loop.demo_dir is None or not loop.interventions):
             raise ValueError("LearnerLoopSpec.interventions_as_demos needs interventions=True and a demo_dir")
         fields = episode_spec(obs_dim, action_dim, loop.cameras, interventions=loop.interventions)
@@ -201,9 +211,19 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         if n_demo:
             parts.append(self.demos.sample(n_demo))
         rows = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-        return {"obs": torch.from_numpy(rows["obs.state"]), "next_obs": torch.from_numpy(rows["next_obs.state"]),
-                "action": torch.from_numpy(rows["action"]), "reward": torch.from_numpy(rows["reward"]),
-                "terminated": torch.from_numpy(rows["terminated"])}
+        return {"obs": self._observations(rows, "obs"), "next_obs": self._observations(rows, "next_obs"),
+                "action": self._tensor(rows["action"]), "reward": self._tensor(rows["reward"]),
+                "terminated": self._tensor(rows["terminated"])}
+
+    def _tensor(self, rows: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(rows).to(self.compute)  # on the CPU: the array itself, no copy
+
+    def _observations(self, rows: dict[str, np.ndarray], prefix: str):
+        """The state rows, or with a pixel encoder the state and the frames it reads (uint8)."""
+        state = self._tensor(rows[f"{prefix}.state"])
+        if not self._pixel_keys:
+            return state
+        return {"state": state, **{key: self._tensor(rows[f"{prefix}.{key}"]) for key in self._pixel_keys}}
 
     def _update_once(self) -> None:
         with self._lock:
@@ -215,7 +235,8 @@ class RealWorldLearnerWorker(Worker, WeightSource):
                 self.publish()
 
     def _snap(self) -> list[tuple[str, torch.Tensor]]:
-        state = [(name, tensor.detach().clone()) for name, tensor in self.agent.actor.state_dict().items()]
+        # Host copies: the robots load them on their CPUs, whatever device the learner computes on.
+        state = [(name, tensor.detach().to("cpu", copy=True)) for name, tensor in self.agent.actor.state_dict().items()]
         return [*state, (VERSION_TENSOR, torch.tensor([self.version], dtype=torch.int64))]
 
     def add_and_update(self, episodes: list[dict], num_updates: int, publish: bool = False) -> int:

@@ -26,6 +26,10 @@ RLPD (``demos.episodes > 0``): robot rank 0 records scripted demonstrations into
 With an intervention device (``interventions.device``) and ``interventions.as_demos``, the
 stretches of each episode where the human acted also go into the demonstrations store.
 
+Networks: the SAC runner's (``network.actor``: gaussian or flow); ``network.encoder=cnn`` puts a conv
+encoder over the ``task.cameras`` frames in front (the robots act from their current frames, the
+learner samples the stored ones, the weights the robots receive carry the encoder).
+
 Checkpoints hold the learner (agent, sampler state, version); the replay store is on disk already
 and is reopened on resume with everything appended after the checkpoint, so a killed run resumes
 with its experience intact.
@@ -45,7 +49,7 @@ from infinirl.config import ConfigError
 from infinirl.runners import register_runner
 from infinirl.runners.curves import Panel
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
-from infinirl.runners.realworld_sac_config import RealWorldSACConfig
+from infinirl.runners.realworld_sac_config import RealWorldNetworkConfig, RealWorldSACConfig
 from infinirl.runners.run_support import RUN_OBSERVERS, launch_all, plan_placement, run_start_time
 
 __all__ = ["RealWorldSACFlow", "env_spec_of", "net_spec_of", "robot_setup_of", "run"]
@@ -65,6 +69,7 @@ def run(cfg: RealWorldSACConfig) -> dict:
 
             resolve_auto_placement(cfg)
         net = net_spec_of(cfg)
+        _check_actor_options(net)
         from infinirl.realworld.discovery import with_driver_discovery
         from infinirl.runners.hg_dagger import intervention_spec_of
 
@@ -100,6 +105,17 @@ def run(cfg: RealWorldSACConfig) -> dict:
                 if edge is not None:
                     edge.close()
                 channel.destroy()
+
+
+def _check_actor_options(net: SACNetSpec) -> None:
+    """The actor head's options (e.g. flow_matching keywords) as a ConfigError before any worker
+    starts; the encoder is checked against the cameras once the robots report them (:func:`_robot_shape`)."""
+    from dataclasses import replace
+
+    from infinirl.realworld.robot_worker import unit_box
+    from infinirl.runners.sac import check_net_builds
+
+    check_net_builds(replace(net, encoder="state", encoder_options={}, augment_pad=0), 1, unit_box(1))
 
 
 def _robot_workers(cfg: RealWorldSACConfig, plan, intervention, groups: dict):
@@ -159,22 +175,28 @@ def env_spec_of(cfg: RealWorldSACConfig):
     return spec(cfg.task)
 
 
-def net_spec_of(cfg: RealWorldSACConfig) -> SACNetSpec:
+def net_spec_of(cfg) -> SACNetSpec:
+    """The networks of a real-world runner's config (its ``network`` section: this runner's, with an
+    observation encoder, or the plain SAC one of the runners that share the robot workers)."""
     network = cfg.network
+    encoder = network.encoder_spec() if isinstance(network, RealWorldNetworkConfig) else {}
     return SACNetSpec(actor_hidden=tuple(network.actor_hidden), critic_hidden=tuple(network.critic_hidden),
                       num_critics=network.num_critics, activation=network.activation,
-                      log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key="state")
+                      log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key="state",
+                      actor=network.actor, flow=dict(network.flow), **encoder)
 
 
 def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
     """Lay the robots out in the shared policy (:func:`~infinirl.realworld.robot_worker.policy_layouts`)
     and return the policy's observation and action sizes and the recorded cameras."""
-    from infinirl.realworld.robot_worker import policy_layouts
+    from infinirl.realworld.robot_worker import policy_layouts, unit_box
+    from infinirl.runners.sac import check_net_builds
 
     described = robots.describe().wait()
     if len({tuple(sorted(d["cameras"].items())) for d in described}) > 1:
         raise ConfigError("task.cameras: the robots record different cameras; a run stores one set of camera fields")
     layouts = policy_layouts(described)
+    check_net_builds(net_spec_of(cfg), layouts[0].obs_dim, unit_box(layouts[0].action_dim), described[0]["cameras"])
     robots.call_each("configure", [(layout,) for layout in layouts]).wait()
     if layouts[0].num_embodiments > 1:
         print("one policy for " + ", ".join(f"rank {i} {d['kind']} (obs {d['obs_dim']}, action {d['action_dim']})"
@@ -203,7 +225,8 @@ def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
                            max_staleness=pipeline.max_staleness, staleness_action=pipeline.staleness_action,
                            max_updates_per_step=pipeline.max_updates_per_step, durable=pipeline.durable,
                            cameras=dict(shape["cameras"]))
-    return RealWorldLearnerWorker, (net, update, loop, shape["obs_dim"], shape["action_dim"], cfg.learner.num_threads)
+    return RealWorldLearnerWorker, (net, update, loop, shape["obs_dim"], shape["action_dim"], cfg.learner.num_threads,
+                                    cfg.learner.device)
 
 
 def _per_kind(robots: list[dict]) -> dict:

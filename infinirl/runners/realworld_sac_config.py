@@ -13,10 +13,10 @@ from typing import Any, ClassVar, Literal
 
 from infinirl.config import ConfigError, bounded
 from infinirl.runners.run_config import EvalSchedule, RunConfig
-from infinirl.runners.sac_config import AlgorithmConfig, NetworkConfig, WorkerConfig
+from infinirl.runners.sac_config import AlgorithmConfig, LearnerConfig, NetworkConfig, WorkerConfig
 
-__all__ = ["EdgeLinkConfig", "EvalConfig", "InterventionConfig", "RealWorldSACConfig", "RobotConfig", "TaskConfig",
-           "known_names", "parse_address"]
+__all__ = ["CNNConfig", "EdgeLinkConfig", "EvalConfig", "InterventionConfig", "RealWorldNetworkConfig",
+           "RealWorldSACConfig", "RobotConfig", "TaskConfig", "known_names", "parse_address"]
 
 
 @dataclass(kw_only=True)
@@ -55,7 +55,8 @@ class TaskConfig:
     observations: list[str] = field(default_factory=lambda: ["proprio", "sim_state"])
     """State vector sources, concatenated in order: proprio, ee_position, sim_state, block_position."""
     cameras: list[str] = field(default_factory=list)
-    """Cameras recorded as pixels into the replay store (the state-based networks do not read them)."""
+    """Cameras recorded as pixels into the replay store; network.encoder=cnn reads them, the state
+    encoder does not."""
     rewards: dict[str, float] = field(default_factory=lambda: {"goal_distance": 1.0, "success": 1.0})
     """Reward component -> weight: success, goal_distance, block_distance, classifier (a learned
     success classifier: docs/realworld.md)."""
@@ -159,6 +160,53 @@ def parse_address(text: str, key: str) -> tuple[str, int]:
 
 
 @dataclass(kw_only=True)
+class CNNConfig:
+    channels: list[int] = bounded(default_factory=lambda: [32, 32, 32], ge=1, each=True)
+    """Output channels of each 3x3 conv layer (one trunk per camera; ReLU between)."""
+    strides: list[int] = bounded(default_factory=lambda: [2, 2, 1], ge=1, each=True)
+    """Stride of each conv layer (one per entry of channels)."""
+    feature_dim: int = bounded(64, ge=1)
+    """Image features after the projection (Linear, LayerNorm, tanh); the state is concatenated after them."""
+    augment_pad: int = bounded(4, ge=0)
+    """Random-shift augmentation (DrQ) of every mini-batch's frames by up to this many pixels (0: off)."""
+
+
+@dataclass(kw_only=True)
+class RealWorldNetworkConfig(NetworkConfig):
+    encoder: str = "state"
+    """Observation encoder: state (the networks read the state vector) or cnn (a conv stack over the
+    task.cameras frames, the state concatenated after it; the critic loss trains it, the actor reads
+    it detached)."""
+    cnn: CNNConfig = field(default_factory=CNNConfig)
+    """The cnn encoder's shape and augmentation (network.encoder=cnn)."""
+
+    def check(self, cameras: list[str], key: str = "task.cameras") -> None:
+        from infinirl.models.sac_encoders import ENCODERS
+
+        known_names(ENCODERS, [self.encoder], "network.encoder")
+        if self.actor == "flow":
+            self.check_flow()
+        if self.obs_key != "state":
+            raise ConfigError(f"network.obs_key={self.obs_key!r}: robot observations are read from 'state'")
+        if self.encoder == "cnn":
+            if not cameras:
+                raise ConfigError(f"network.encoder=cnn reads camera frames but {key} is empty; name a camera, e.g. "
+                                  f"{key}=[corner] (and give a simulated robot robot.options.image_size=64)")
+            if len(self.cnn.channels) != len(self.cnn.strides):
+                raise ConfigError(f"network.cnn.channels ({len(self.cnn.channels)} layers) and network.cnn.strides "
+                                  f"({len(self.cnn.strides)}) need one entry per conv layer")
+
+    def encoder_spec(self) -> dict:
+        """The encoder keywords of :class:`~infinirl.components.sac_learner.SACNetSpec`."""
+        if self.encoder != "cnn":
+            return {"encoder": self.encoder}
+        cnn = self.cnn
+        return {"encoder": "cnn", "augment_pad": cnn.augment_pad,
+                "encoder_options": {"channels": tuple(cnn.channels), "strides": tuple(cnn.strides),
+                                    "feature_dim": cnn.feature_dim}}
+
+
+@dataclass(kw_only=True)
 class DemoConfig:
     episodes: int = bounded(0, ge=0)
     """RLPD: demonstrations recorded once (by robot rank 0, with the scripted policy) into
@@ -226,7 +274,7 @@ class RealWorldSACConfig(RunConfig):
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("pipeline.mode", "pipeline.iteration_s", "pipeline.sync_poll_s",
                                                     "pipeline.max_updates_per_step", "robot.command_deadline_s",
                                                     "robot.heartbeat_deadline_s", "robot.velocity_scale",
-                                                    "learner.num_threads", "actor.num_threads",
+                                                    "learner.num_threads", "learner.device", "actor.num_threads",
                                                     "pipeline.transport", "edge")
 
     output_dir: str = "runs/realworld_sac"
@@ -236,7 +284,7 @@ class RealWorldSACConfig(RunConfig):
     robot: RobotConfig = field(default_factory=RobotConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
-    network: NetworkConfig = field(default_factory=NetworkConfig)
+    network: RealWorldNetworkConfig = field(default_factory=RealWorldNetworkConfig)
     algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
     demos: DemoConfig = field(default_factory=DemoConfig)
     interventions: InterventionConfig = field(default_factory=InterventionConfig)
@@ -247,7 +295,9 @@ class RealWorldSACConfig(RunConfig):
     eval: EvalConfig = field(default_factory=EvalConfig)
     actor: WorkerConfig = field(default_factory=WorkerConfig)
     """The robot workers' policy inference threads."""
-    learner: WorkerConfig = field(default_factory=WorkerConfig)
+    learner: LearnerConfig = field(default_factory=lambda: LearnerConfig(device="cpu"))
+    """The learner's torch threads and device: cpu (default: the state networks' small MLPs), or auto (the
+    GPU its placement gives it, e.g. placement.learner=0 on a GPU machine; what a cnn encoder wants)."""
 
     def check(self) -> None:
         from infinirl.realworld.demos import DEMO_POLICIES
@@ -276,11 +326,9 @@ class RealWorldSACConfig(RunConfig):
         if alg.learning_starts < alg.batch_size:
             raise ConfigError(f"algorithm.learning_starts={alg.learning_starts} must be >= algorithm.batch_size="
                               f"{alg.batch_size} (the first mini-batch needs that many transitions)")
-        if self.network.actor != "gaussian":
-            raise ConfigError(f"network.actor={self.network.actor!r}: the real-world runner trains the gaussian "
-                              "actor (state-based); use network.actor=gaussian")
-        if self.network.obs_key != "state":
-            raise ConfigError(f"network.obs_key={self.network.obs_key!r}: robot observations are read from 'state'")
+        self.network.check(self.task.cameras)
+        for index in range(len(self.robot.fleet)):
+            self.network.check(self.task_of(index).cameras, f"robot.fleet[{index}].task.cameras")
         self._check_placement()
         self._check_transport()
 

@@ -47,10 +47,7 @@ def run(cfg: SACConfig) -> dict:
     with RunLoop(cfg, run_start_time()) as loop:
         obs_dim, action_space = _probe(cfg)  # bad task names / spaces fail here, before any worker starts
         net = _net_spec(cfg)
-        try:  # bad network options (e.g. an unknown flow_matching keyword) fail here, not in a worker
-            net.build_actor(obs_dim, action_space)
-        except (ValueError, TypeError, KeyError) as exc:
-            raise ConfigError(f"network (actor={cfg.network.actor}): {exc}") from exc
+        check_net_builds(net, obs_dim, action_space)
         alg = cfg.algorithm
         update = SACUpdateSpec(gamma=alg.gamma, tau=alg.tau, batch_size=alg.batch_size, actor_lr=alg.actor_lr,
                                critic_lr=alg.critic_lr, alpha_lr=alg.alpha_lr, init_alpha=alg.init_alpha,
@@ -67,6 +64,15 @@ def run(cfg: SACConfig) -> dict:
         }
         return run_components(cfg, loop, lambda plan: launches,
                               lambda groups, plan: SACFlow(cfg, groups["collector"], groups["learner"]))
+
+
+def check_net_builds(net: SACNetSpec, obs_dim: int, action_space, cameras: dict | None = None) -> None:
+    """Build the actor once in the driver: bad network options (an unknown flow_matching keyword, a
+    camera too small for the conv stack) fail as a one-line ConfigError, not in a worker."""
+    try:
+        net.build_actor(obs_dim, action_space, cameras)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ConfigError(f"network (actor={net.actor}, encoder={net.encoder}): {exc}") from exc
 
 
 def _net_spec(cfg: SACConfig) -> SACNetSpec:

@@ -48,6 +48,18 @@ class NetworkConfig:
     obs_key: str = "state"
     """The observation field the networks read (a flat float vector)."""
 
+    def check_flow(self) -> None:
+        """The SAC-Flow actor's options (``actor=flow``): a learned noise std, and none of the keys the
+        runner sets itself."""
+        method = self.flow.get("noise_method", "flow_noise")
+        if method != "flow_noise":
+            raise ConfigError(f"network.flow.noise_method={method!r}: SAC-Flow needs flow_noise (a learned std); "
+                              "with flow_sde the path log-prob is a constant under reparameterisation, so the "
+                              "entropy term and the temperature would not act on the policy")
+        for key in ("value_head", "chunk", "action_dim", "obs_dim", "obs_key"):
+            if key in self.flow:
+                raise ConfigError(f"network.flow.{key} is set by the SAC runner; remove it")
+
 
 @dataclass(kw_only=True)
 class AlgorithmConfig:
@@ -141,18 +153,8 @@ class SACConfig(RunConfig):
             raise ConfigError(f"network.log_std_min={self.network.log_std_min} must be < "
                               f"network.log_std_max={self.network.log_std_max}")
         if self.network.actor == "flow":
-            self._check_flow_actor()
+            self.network.check_flow()
         self._check_single_ranks()
-
-    def _check_flow_actor(self) -> None:
-        method = self.network.flow.get("noise_method", "flow_noise")
-        if method != "flow_noise":
-            raise ConfigError(f"network.flow.noise_method={method!r}: SAC-Flow needs flow_noise (a learned std); "
-                              "with flow_sde the path log-prob is a constant under reparameterisation, so the "
-                              "entropy term and the temperature would not act on the policy")
-        for key in ("value_head", "chunk", "action_dim", "obs_dim", "obs_key"):
-            if key in self.network.flow:
-                raise ConfigError(f"network.flow.{key} is set by the SAC runner; remove it")
 
     def _check_single_ranks(self) -> None:
         from infinirl.runtime.placement import parse_spec

@@ -86,13 +86,33 @@ def test_sync_mode_collects_then_updates_with_no_staleness(ray_cluster, tmp_path
     assert versions.max() >= 1
 
 
+def test_network_sections_build_the_actors_the_robots_act_with(tmp_path):
+    from infinirl.models.sac_encoders import EncodedActor
+    from infinirl.models.sac_nets import FlowSACActor, SquashedGaussianActor
+    from infinirl.realworld.robot_worker import unit_box
+    from infinirl.runners.realworld_sac import net_spec_of
+
+    assert isinstance(net_spec_of(make_cfg(tmp_path, 1)).build_actor(5, unit_box(2)), SquashedGaussianActor)
+    assert isinstance(net_spec_of(make_cfg(tmp_path, 1, **FLOW)).build_actor(5, unit_box(2)), FlowSACActor)
+    pixels = net_spec_of(make_cfg(tmp_path, 1, **PIXELS)).build_actor(5, unit_box(2), {"corner": (32, 32)})
+    assert isinstance(pixels, EncodedActor) and list(pixels.encoder.cameras) == ["corner"]
+    bad_flow = {"network": {**FLOW["network"], "flow": {"num_steps": 2, "hiden": [32]}}}
+    with pytest.raises(ConfigError, match="network .actor=flow.*hiden"):  # before any worker (no cluster here)
+        run(make_cfg(tmp_path / "bad_flow", 1, **bad_flow))
+
+
 def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
     for extra, key in (({"robot": {"kind": "sim_sawyr"}}, "robot.kind"),
                        ({"task": {"rewards": {"sucess": 1.0}}}, "task.rewards"),
                        ({"task": {"observations": ["pixels"]}}, "task.observations"),
                        ({"algorithm": {"batch_size": 64, "learning_starts": 10}}, "algorithm.learning_starts"),
                        ({"demos": {"episodes": 2, "policy": "nope"}}, "demos.policy"),
-                       ({"pipeline": {"mode": "fast"}}, "pipeline.mode")):
+                       ({"pipeline": {"mode": "fast"}}, "pipeline.mode"),
+                       ({"network": {"encoder": "cnn"}}, "task.cameras"),
+                       ({"network": {"encoder": "vit"}}, "network.encoder"),
+                       ({"network": {"actor": "flow", "flow": {"noise_method": "flow_sde"}}},
+                        "network.flow.noise_method"),
+                       ({"network": {"actor": "flow", "flow": {"chunk": 2}}}, "network.flow.chunk")):
         with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
             make_cfg(tmp_path / "bad", 1, **extra).validate()
 
@@ -167,3 +187,39 @@ def test_fleet_size_must_match_the_robot_ranks(ray_cluster, tmp_path):
     with pytest.raises(ConfigError, match="robot.fleet has 1 entries"):
         run(make_cfg(tmp_path / "bad_fleet", 1, robot={"fleet": [{"kind": "sim_sawyer", "options": {
             "image_size": None}}]}, placement={"robot": "0-1"}))
+
+
+PIXELS = {"robot": {"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 50.0, "image_size": 32}},
+          "task": {"max_episode_steps": 20, "cameras": ["corner"]},
+          "network": {"actor_hidden": [32, 32], "critic_hidden": [32, 32], "encoder": "cnn",
+                      "cnn": {"channels": [8, 8], "strides": [2, 2], "feature_dim": 16, "augment_pad": 2}}}
+FLOW = {"network": {"actor_hidden": [32, 32], "critic_hidden": [32, 32], "actor": "flow",
+                    "flow": {"num_steps": 2, "hidden": [32, 32]}}}
+
+
+@pytest.mark.parametrize("extra", [PIXELS, pytest.param(FLOW, marks=pytest.mark.slow)],  # two runs each (~2 min)
+                         ids=["cnn_from_pixels", "sac_flow"])
+def test_pixel_and_flow_networks_train_checkpoint_and_resume(ray_cluster, tmp_path, extra):
+    """network.encoder=cnn (the robot acts from its camera frames, the learner samples them from the
+    store, the published weights carry the encoder) and network.actor=flow: both run, checkpoint,
+    and a second run of the same folder resumes from the checkpoint and goes on updating."""
+    import torch
+
+    first = run(make_cfg(tmp_path / "run", 1, **extra))
+    assert first["updates"] > 0 and first["version"] >= 1
+    checkpoint = torch.load(next((tmp_path / "run" / "checkpoints").glob("iter_*")) / "learner" / "learner.pt",
+                            map_location="cpu", weights_only=False)
+    actor = checkpoint["agent"]["actor"]
+    if extra is PIXELS:
+        assert any(name.startswith("encoder.trunks.corner") for name in actor)
+        assert "augment_generator" in checkpoint["agent"]
+        store = ReplayStore(str(tmp_path / "run" / "replay"), writable=False)
+        try:
+            assert store.episode(0)["pixels.corner"].shape[1:] == (32, 32, 3)
+        finally:
+            store.close()
+    else:
+        assert any(name.startswith("flow.") for name in actor)
+    resumed = run(make_cfg(tmp_path / "run", 2, **extra))
+    assert resumed["updates"] > first["updates"] and resumed["replay_episodes"] > first["replay_episodes"]
+    assert [r["step"] for r in rows_of(tmp_path / "run" / "metrics.jsonl")] == [1, 2]

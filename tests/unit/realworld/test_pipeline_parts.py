@@ -72,3 +72,53 @@ def test_learner_drops_or_logs_episodes_past_the_staleness_bound(tmp_path, actio
     store = ReplayStore(str(tmp_path / "replay"), writable=False)
     assert store.num_episodes == kept
     store.close()
+
+
+def test_pixel_learner_trains_from_stored_frames_and_syncs_the_encoder(tmp_path):
+    """network.encoder=cnn: the learner samples the camera fields from the store, its published
+    weights carry the encoder, and a robot's actor copy built for the same cameras loads them and
+    acts from a frame; a checkpoint resumes the same updates."""
+    import torch
+
+    from infinirl.components.sac_learner import SACNetSpec, SACUpdateSpec
+    from infinirl.realworld.learner_worker import LearnerLoopSpec, RealWorldLearnerWorker
+    from infinirl.realworld.robot_worker import VERSION_TENSOR, unit_box
+
+    cameras = {"front": (12, 12)}
+    net = SACNetSpec(actor_hidden=(8,), critic_hidden=(8,), encoder="cnn", augment_pad=2,
+                     encoder_options={"channels": (4,), "strides": (2,), "feature_dim": 6})
+    rng = np.random.default_rng(0)
+
+    def episode():
+        return {"state": rng.normal(size=(5, 3)).astype(np.float32),
+                "pixels.front": rng.integers(0, 256, (5, 12, 12, 3), dtype=np.uint8),
+                "action": rng.uniform(-1, 1, (4, 2)).astype(np.float32), "reward": np.ones(4, np.float32),
+                "terminated": np.zeros(4, np.float32), "version": np.full(4, -1, np.int64)}
+
+    def learner(folder):
+        loop = LearnerLoopSpec(replay_dir=str(folder), learning_starts=8, publish_every=2, durable=False,
+                               cameras=cameras)
+        return RealWorldLearnerWorker(net, SACUpdateSpec(batch_size=4), loop, 3, 2)
+
+    first = learner(tmp_path / "replay")
+    first.add_and_update([episode(), episode(), episode()], num_updates=3, publish=True)
+    assert first.status()["updates"] == 3  # each update's encoder read the sampled frames (it has no other input)
+    weights = dict(first.weights_for_sync())
+    assert any(name.startswith("encoder.") for name in weights)
+    robot_actor = net.build_actor(3, unit_box(2), cameras)
+    robot_actor.load_state_dict({k: v for k, v in weights.items() if k != VERSION_TENSOR})
+    frame = {"state": torch.zeros(1, 3), "pixels.front": torch.zeros(1, 12, 12, 3, dtype=torch.uint8)}
+    torch.testing.assert_close(robot_actor.sample(frame, deterministic=True)[0],
+                               first.agent.actor.sample(frame, deterministic=True)[0])
+
+    (tmp_path / "ckpt").mkdir()
+    first.save_checkpoint(str(tmp_path / "ckpt"))
+    first.add_and_update([], num_updates=2)
+    expected = [(name, tensor.clone()) for name, tensor in first.agent.named_tensors()]
+    first.close()  # one writer per store: the resumed learner reopens it
+    resumed = learner(tmp_path / "replay")
+    resumed.load_checkpoint(str(tmp_path / "ckpt"))
+    resumed.add_and_update([], num_updates=2)
+    for (name, x), (_, y) in zip(expected, resumed.agent.named_tensors()):
+        assert torch.equal(x, y), name
+    resumed.close()
