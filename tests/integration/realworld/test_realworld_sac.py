@@ -197,8 +197,10 @@ FLOW = {"network": {"actor_hidden": [32, 32], "critic_hidden": [32, 32], "actor"
                     "flow": {"num_steps": 2, "hidden": [32, 32]}}}
 
 
-@pytest.mark.parametrize("extra", [PIXELS, pytest.param(FLOW, marks=pytest.mark.slow)],  # two runs each (~2 min)
-                         ids=["cnn_from_pixels", "sac_flow"])
+# Slow tier (default-tier budget): two runs each; the pixel learner, its actor and its resume are
+# also checked without Ray in tests/unit/realworld/test_pipeline_parts.py.
+@pytest.mark.slow
+@pytest.mark.parametrize("extra", [PIXELS, FLOW], ids=["cnn_from_pixels", "sac_flow"])
 def test_pixel_and_flow_networks_train_checkpoint_and_resume(ray_cluster, tmp_path, extra):
     """network.encoder=cnn (the robot acts from its camera frames, the learner samples them from the
     store, the published weights carry the encoder) and network.actor=flow: both run, checkpoint,
