@@ -483,23 +483,29 @@ def _realworld_refuses(cfg) -> str | None:
     return None
 
 
-RUNNER_MODELS.add("realworld_sac", RunnerModel(
-    runner="realworld_sac",
+#: What the robot runners' models share: robots fixed where the config puts them and paced by
+#: their clock, one learner rank placed beside them or apart.
+_ROBOT_RUNNER_MODEL = dict(
     step_metric="time/iteration_s",
     window_method=("robot", "collect"),
-    phases=_realworld_phases,
-    units=_realworld_units,
-    model_key=lambda cfg: f"{'+'.join(e.kind for e in cfg.robot.fleet) or cfg.robot.kind}:realworld_sac",
     depths=lambda cfg, ranks: (1,),
     check=_realworld_check,
     apply=_realworld_apply,
-    shorten=_realworld_shorten,
     scale_batch=lambda cfg, factor: None,  # robots are hardware: a larger cluster gets no more of them
     probes=(Probe(name="collocated", devices={"robot": (0, 1), "learner": (0, 1)}),
             Probe(name="split", devices={"robot": (0, 1), "learner": (1, 1)})),
-    measure=_realworld_measure,
     fixed=lambda cfg: {"robot": _realworld_robot_spec(cfg)},
     paced=_realworld_paced,
+)
+
+RUNNER_MODELS.add("realworld_sac", RunnerModel(
+    runner="realworld_sac",
+    **_ROBOT_RUNNER_MODEL,
+    phases=_realworld_phases,
+    units=_realworld_units,
+    model_key=lambda cfg: f"{'+'.join(e.kind for e in cfg.robot.fleet) or cfg.robot.kind}:realworld_sac",
+    shorten=_realworld_shorten,
+    measure=_realworld_measure,
     driver_on_path=lambda cfg: cfg.pipeline.mode == "sync",
     refuses=_realworld_refuses,
     step_name="turn",
@@ -555,19 +561,10 @@ def _dagger_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
 
 RUNNER_MODELS.add("hg_dagger", RunnerModel(
     runner="hg_dagger",
-    step_metric="time/iteration_s",
-    window_method=("robot", "collect"),
+    **_ROBOT_RUNNER_MODEL,
     phases=lambda cfg: (Phase(name="collect", components=("robot",)), Phase(name="update", components=("learner",))),
     units=_dagger_units,
     model_key=lambda cfg: f"{cfg.robot.kind}:hg_dagger",
-    depths=lambda cfg, ranks: (1,),
-    check=_realworld_check,
-    apply=_realworld_apply,
     shorten=_dagger_shorten,
-    scale_batch=lambda cfg, factor: None,  # robots are hardware: a larger cluster gets no more of them
-    probes=(Probe(name="collocated", devices={"robot": (0, 1), "learner": (0, 1)}),
-            Probe(name="split", devices={"robot": (0, 1), "learner": (1, 1)})),
     measure=_dagger_measure,
-    fixed=lambda cfg: {"robot": _realworld_robot_spec(cfg)},
-    paced=_realworld_paced,
 ))
