@@ -159,17 +159,23 @@ def _embodied_apply(cfg, candidate: Candidate) -> None:
         cfg.env.stage_processes = False
 
 
-def _simulated_shorten(cfg, iterations: int) -> None:
-    """A short run of a simulator runner's config: no evaluation worth the name, no checkpoints."""
-    cfg.iterations = iterations
+def _profile_run_settings(cfg) -> None:
+    """What every profiling run leaves out: evaluations, checkpoints, loggers, and any earlier run
+    in its output folder (a profile never resumes)."""
     cfg.eval.every = 0
     cfg.eval.at_start = False
-    cfg.eval.episodes = 1
-    cfg.eval.num_envs = 1
-    cfg.eval.video_episodes = 0
     cfg.save_every = 0
     cfg.loggers = []
     cfg.resume = False
+
+
+def _simulated_shorten(cfg, iterations: int) -> None:
+    """A short run of a simulator runner's config: no evaluation worth the name, no checkpoints."""
+    cfg.iterations = iterations
+    _profile_run_settings(cfg)
+    cfg.eval.episodes = 1
+    cfg.eval.num_envs = 1
+    cfg.eval.video_episodes = 0
 
 
 def _embodied_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
@@ -259,12 +265,8 @@ def _reasoning_apply(cfg, candidate: Candidate) -> None:
 
 def _reasoning_shorten(cfg, iterations: int) -> None:
     cfg.iterations = iterations
-    cfg.eval.every = 0
-    cfg.eval.at_start = False
+    _profile_run_settings(cfg)
     cfg.task.eval_size = 0
-    cfg.save_every = 0
-    cfg.loggers = []
-    cfg.resume = False
 
 
 def _reasoning_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
@@ -453,12 +455,8 @@ def _realworld_shorten(cfg, iterations: int) -> None:
     cfg.pipeline.iteration_s = 1e-3
     cfg.algorithm.learning_starts = 1
     cfg.demos.episodes = 0
-    cfg.eval.every = 0
-    cfg.eval.at_start = False
+    _profile_run_settings(cfg)
     cfg.eval.episodes = 1
-    cfg.save_every = 0
-    cfg.loggers = []
-    cfg.resume = False
     cfg.replay.path = None
 
 
@@ -532,12 +530,8 @@ def _dagger_shorten(cfg, iterations: int) -> None:
     cfg.iterations = iterations
     cfg.dagger.episodes_per_iteration = 1
     cfg.dagger.initial_demos = min(cfg.dagger.initial_demos, 1)
-    cfg.eval.every = 0
-    cfg.eval.at_start = False
+    _profile_run_settings(cfg)
     cfg.eval.episodes = 1
-    cfg.save_every = 0
-    cfg.loggers = []
-    cfg.resume = False
 
 
 _DAGGER_LEARNER_METHODS = ("action_error", "aggregate", "train")
