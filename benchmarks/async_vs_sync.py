@@ -18,6 +18,8 @@ and the training time until it first reaches the synchronous run's final value.
     python benchmarks/async_vs_sync.py                                   # both jobs, full length
     python benchmarks/async_vs_sync.py --jobs grpo --iterations 6 --rows sync,eta1   # a quick look
     python benchmarks/async_vs_sync.py --jobs grpo --rows sync,eta1 --seeds 1,2,3    # accuracy over seeds
+    python benchmarks/async_vs_sync.py --jobs grpo --rows sync,eta1 --set actor.lr_schedule=cosine \
+        --set actor.total_steps=40 --set actor.min_lr_ratio=0.1                   # both rows changed alike
 
 With ``--seeds``, every row runs once per seed (``seed=`` also draws the held-out set, so each
 seed's rows are compared on the same questions); training times are summed over the seeds, the
@@ -156,6 +158,8 @@ def main() -> int:
                              "at the same time; the synchronous row keeps the job's 2 and 2, used one after the other)")
     parser.add_argument("--seeds", default="",
                         help="comma-separated seeds: each row runs once per seed (default: the config's seed)")
+    parser.add_argument("--set", dest="extra", action="append", default=[], metavar="KEY=VALUE",
+                        help="a config override for every row (repeatable), e.g. an lr schedule both rows share")
     add_record_argument(parser)
     args = parser.parse_args()
     jobs = [j.strip() for j in args.jobs.split(",") if j.strip()]
@@ -179,7 +183,7 @@ def main() -> int:
                     continue
                 out = tempfile.mkdtemp(prefix=f"bench-async-{name}-{row}-")
                 command = [sys.executable, "-m", "infinirl.cli", "train", job.config,
-                           *overrides(job, row, args.iterations, out, async_threads, seed)]
+                           *overrides(job, row, args.iterations, out, async_threads, seed), *args.extra]
                 start = time.perf_counter()
                 proc = subprocess.run(command, capture_output=True, text=True)
                 failed = {"failed": f"exit {proc.returncode}: {proc.stderr[-1500:]}"}
