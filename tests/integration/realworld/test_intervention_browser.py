@@ -6,9 +6,11 @@ through poll(), which is what the learner stores (who acted, the human's action,
 Needs ``apt-get install chromium`` and ``pip install playwright`` (no ``playwright install``: the
 system Chromium is used); skipped with the missing piece named otherwise."""
 
+import contextlib
 import importlib.util
 import os
 import shutil
+import tempfile
 import threading
 import time
 
@@ -123,7 +125,46 @@ def sawyer_env():
         robot.close()
 
 
-def test_take_over_move_hand_back_and_mark_success_from_the_page(sawyer_env):
+@contextlib.contextmanager
+def page_address(device, via):
+    """Where the browser opens the page: the device itself, or (``via="link"``) the cloud's page port
+    of a cloud-edge link, the edge (beside the robot) dialling the cloud hub through a link
+    emulator of 60 ms round trip and 20 Mbit/s, with no port open at the edge."""
+    if via == "direct":
+        yield device.url
+        return
+    from infinirl.edge.cloud_hub import CloudHub, HubOptions
+    from infinirl.edge.cloud_hub import wait_for as wait_until
+    from infinirl.edge.credentials import issue_credentials
+    from infinirl.edge.edge_client import EdgeClient, EdgeOptions
+    from infinirl.edge.emulator import EmulatorSpec, LinkEmulator
+    from infinirl.edge.link import LinkOptions
+    from infinirl.edge.tunnel import TunnelListener
+
+    link = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.3, dead_after_s=3.0)
+    with tempfile.TemporaryDirectory() as pki:
+        credentials = issue_credentials(pki, edges=("edge-0",))
+        hub = CloudHub(("127.0.0.1", 0), credentials["cloud"], on_episode=lambda *args: None,
+                       options=HubOptions(link=link)).start()
+        emulator = LinkEmulator(EmulatorSpec.from_rtt(rtt_ms=60, mbit_per_s=20), hub.address)
+        client = EdgeClient(emulator.address, credentials["edge-0"], name="edge-0", options=EdgeOptions(link=link),
+                            tunnel_targets={"page": (device.host, device.port)}).start()
+        listener = TunnelListener(("127.0.0.1", 0), lambda: hub.tunnel("edge-0"), service="page").start()
+        try:
+            assert client.wait_connected(WAIT_S) and wait_until(lambda: hub.tunnel() is not None, WAIT_S)
+            host, port = listener.address
+            yield f"http://{host}:{port}/?token={TOKEN}"
+            assert not hub.tunnel("edge-0").failures and not client.tunnel.failures
+        finally:
+            listener.close()
+            client.close()
+            emulator.close()
+            hub.close()
+
+
+@pytest.mark.parametrize("via", ["direct", "link"])
+def test_take_over_move_hand_back_and_mark_success_from_the_page(sawyer_env, via):
+    """``link``: the same clicks from a browser on the cloud side of an emulated slow WAN link."""
     from playwright.sync_api import sync_playwright
 
     from infinirl.realworld.intervention.web import WebInterventionDevice
@@ -132,10 +173,10 @@ def test_take_over_move_hand_back_and_mark_success_from_the_page(sawyer_env):
         loop = ControlLoop(sawyer_env, device)
         loop.thread.start()
         try:
-            with sync_playwright() as playwright:
+            with page_address(device, via) as url, sync_playwright() as playwright:
                 browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
                 try:
-                    drive_the_page(browser.new_page(viewport={"width": 1000, "height": 900}), device, loop)
+                    drive_the_page(browser.new_page(viewport={"width": 1000, "height": 900}), url, loop)
                 finally:
                     browser.close()
         finally:
@@ -146,9 +187,9 @@ def test_take_over_move_hand_back_and_mark_success_from_the_page(sawyer_env):
     assert device.stats.rejected_requests == 0
 
 
-def drive_the_page(page, device, loop):
+def drive_the_page(page, url, loop):
     page.set_default_timeout(WAIT_S * 1000)
-    page.goto(device.url)
+    page.goto(url)
     # The camera view loads a frame of the robot's camera.
     page.wait_for_function(f"() => {{ const img = document.getElementById('camera-{CAMERA}');"
                            " return img && img.complete && img.naturalWidth === 64 && img.dataset.version > 0; }")
