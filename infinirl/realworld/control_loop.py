@@ -168,7 +168,7 @@ class RobotControlLoop:
         self._sender: threading.Thread | None = None
         self._outbox: queue.Queue = queue.Queue()
         self._error: BaseException | None = None
-        self._eval_request: tuple[int, queue.Queue] | None = None
+        self._eval_request: tuple[Callable[[], Any], queue.Queue] | None = None
         self.intervention = intervention
         self.intervention_device = None
         self.labels = None
@@ -339,7 +339,7 @@ class RobotControlLoop:
             while not self._stop.is_set():
                 request, self._eval_request = self._eval_request, None
                 if request is not None:
-                    request[1].put(self._evaluate(request[0]))
+                    request[1].put(request[0]())
                     continue
                 episode, _ = self._episode(between_steps=between_steps)
                 if episode is not None:
@@ -392,10 +392,49 @@ class RobotControlLoop:
     def evaluate(self, num_episodes: int) -> dict:
         """``num_episodes`` episodes of the deterministic policy ``tanh(mean)``, not sent to the
         learner; while the control loop runs they take its turn between two training episodes."""
+        return self._between_episodes(lambda: self._evaluate(num_episodes))
+
+    def record_video(self, num_episodes: int, path: str, fps: int | None = None) -> dict:
+        """``num_episodes`` deterministic episodes filmed by the robot's first camera into the mp4
+        ``path`` (frames at every control step; ``fps`` defaults to the control rate, so the video
+        plays in real time). Returns ``{"path", "frames", "success_rate"}``, or ``{"skipped": why}``
+        when the robot has no camera. Taken between training episodes, like :meth:`evaluate`."""
+        cameras = self.env.robot_spec.cameras
+        if not cameras:
+            return {"skipped": f"{self.kind} has no camera "
+                               "(a simulated robot renders one with robot.options.image_size)"}
+        return self._between_episodes(lambda: self._film(num_episodes, path, cameras[0].name,
+                                                         fps or round(self.env.robot_spec.control_hz)))
+
+    def _film(self, num_episodes: int, path: str, camera: str, fps: int) -> dict:
+        from infinirl.envs.video import write_mp4
+
+        frames, successes = [], []
+
+        def grab() -> None:
+            frames.append(np.asarray(self.env.last_observation.frames[camera], np.uint8))
+
+        for _ in range(num_episodes):
+            episode, success = self._episode(deterministic=True, between_steps=grab, training=False)
+            if episode is None:
+                break
+            grab()  # the episode's last state
+            successes.append(float(success))
+        if not frames:
+            return {"skipped": f"{self.kind}: no episode ran"}
+        try:
+            written = write_mp4(path, frames, fps=fps)
+        except (OSError, RuntimeError, ValueError) as exc:  # a missing encoder must not end the control loop
+            return {"skipped": f"{self.kind}: {exc}"}
+        return {"path": written, "frames": len(frames),
+                "success_rate": float(np.mean(successes)) if successes else float("nan")}
+
+    def _between_episodes(self, work: Callable[[], Any]) -> Any:
+        """``work()`` here, or on the control thread between two training episodes while it runs."""
         if self._thread is None:
-            return self._evaluate(num_episodes)
+            return work()
         answer: queue.Queue = queue.Queue()
-        self._eval_request = (num_episodes, answer)
+        self._eval_request = (work, answer)
         while True:
             try:
                 return answer.get(timeout=1.0)

@@ -84,6 +84,9 @@ class RobotActorWorker(Worker, WeightSink):
     def evaluate(self, num_episodes: int) -> dict:
         return self.loop.evaluate(num_episodes)
 
+    def record_video(self, num_episodes: int, path: str, fps: int | None = None) -> dict:
+        return self.loop.record_video(num_episodes, path, fps)
+
     def stats(self) -> dict:
         return self.loop.stats()
 

@@ -5,7 +5,9 @@ servos, gripper 0 closed to 1 open), paced in real time by :class:`SimulatedRobo
 The package's own ``step`` takes end-effector deltas through its IK; here the position actuators
 are set directly, because that is what the real arm's servo bus does (:mod:`so101_feetech`), so the
 same command drives both. ``info["success"]`` is the package's pick criterion: the cube lifted
-``LIFT_SUCCESS_HEIGHT`` above where it started and still within ``SUCCESS_DISTANCE`` of the gripper.
+``LIFT_SUCCESS_HEIGHT`` above where it started and still within ``SUCCESS_DISTANCE`` of the gripper
+(``success="pick"``), or, for a first task that a policy learns in minutes, the gripper within
+``REACH_SUCCESS_DISTANCE`` of the cube (``success="reach"``).
 """
 
 from __future__ import annotations
@@ -21,16 +23,23 @@ from infinirl.realworld.driver import AttachedRobot, CameraSpec, RobotObservatio
 from infinirl.realworld.sim_robot import SimulatedRobot
 from infinirl.realworld.so101 import SO101_JOINT_NAMES, so101_spec
 
-__all__ = ["LIFT_SUCCESS_HEIGHT", "SO101Plant", "SimSO101", "attached_sim_so101s"]
+__all__ = ["LIFT_SUCCESS_HEIGHT", "REACH_SUCCESS_DISTANCE", "SUCCESS_CRITERIA", "SO101Plant", "SimSO101",
+           "attached_sim_so101s"]
 
 LIFT_SUCCESS_HEIGHT = 0.1  # metres, the package's pick task's own threshold
+REACH_SUCCESS_DISTANCE = 0.05  # metres between the gripper's end point and the cube's centre
+SUCCESS_CRITERIA = ("pick", "reach")
 _CAMERA = "front"  # the one camera of the package's scene
 
 
 class SO101Plant:
     """One SO-101 pick-cube scene (see the module docstring); driven by one thread."""
 
-    def __init__(self, *, control_hz: float, image_size: int | None, random_block_position: bool = True) -> None:
+    def __init__(self, *, control_hz: float, image_size: int | None, random_block_position: bool = True,
+                 success: str = "pick") -> None:
+        if success not in SUCCESS_CRITERIA:
+            raise ValueError(f"sim_so101: success={success!r}; choose one of {', '.join(SUCCESS_CRITERIA)}")
+        self._success = success
         # Before MuJoCo is imported, even without a camera: the GL library is chosen once per process,
         # and a later camera on a display-less node would otherwise get a backend that needs a display.
         use_headless_gl()
@@ -79,8 +88,11 @@ class SO101Plant:
         low, high = self._gripper_range
         ee = data.sensor("so101/ee_pos").data.astype(np.float64)
         block = data.sensor("block_pos").data.astype(np.float64)
-        success = bool(np.linalg.norm(block - ee) < _success_distance()
-                       and block[2] - self._block_start_z > LIFT_SUCCESS_HEIGHT)
+        if self._success == "reach":
+            success = bool(np.linalg.norm(block - ee) < REACH_SUCCESS_DISTANCE)
+        else:
+            success = bool(np.linalg.norm(block - ee) < _success_distance()
+                           and block[2] - self._block_start_z > LIFT_SUCCESS_HEIGHT)
         return RobotObservation(
             joint_positions=data.qpos[self._qpos].astype(np.float64),
             joint_velocities=data.qvel[self._qvel].astype(np.float64),
@@ -120,12 +132,16 @@ def _success_distance() -> float:
 
 
 class SimSO101(SimulatedRobot):
-    """The simulated SO-101 arm at ``control_hz`` in real time; ``image_size=None`` for no camera."""
+    """The simulated SO-101 arm at ``control_hz`` in real time; ``image_size=None`` for no camera;
+    ``success``: ``pick`` (the package's criterion) or ``reach`` (see the module docstring)."""
 
     def __init__(self, *, control_hz: float = 20.0, image_size: int | None = 64, latency_s: float = 0.0,
-                 reset_s: float = 0.0, seed: int = 0, random_block_position: bool = True) -> None:
+                 reset_s: float = 0.0, seed: int = 0, random_block_position: bool = True,
+                 success: str = "pick") -> None:
+        if success not in SUCCESS_CRITERIA:  # here too: the plant is built on the control thread, later
+            raise ValueError(f"sim_so101: success={success!r}; choose one of {', '.join(SUCCESS_CRITERIA)}")
         super().__init__(partial(SO101Plant, control_hz=control_hz, image_size=image_size,
-                                 random_block_position=random_block_position),
+                                 random_block_position=random_block_position, success=success),
                          latency_s=latency_s, reset_s=reset_s, seed=seed)
 
 

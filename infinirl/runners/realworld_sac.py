@@ -230,7 +230,8 @@ def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
 
 
 def _per_kind(robots: list[dict]) -> dict:
-    """``rollout/<kind>/success_rate`` of the window's training episodes, when the run has several kinds."""
+    """``rollout/<kind>/success_rate`` and ``.../episode_return_mean`` of the window's training
+    episodes, when the run has several kinds."""
     kinds = sorted({r["kind"] for r in robots})
     if len(kinds) < 2:
         return {}
@@ -239,6 +240,7 @@ def _per_kind(robots: list[dict]) -> dict:
         episodes = [e for r in robots if r["kind"] == kind for e in r["episodes"]]
         if episodes:
             metrics[f"rollout/{kind}/success_rate"] = float(np.mean([e["success"] for e in episodes]))
+            metrics[f"rollout/{kind}/episode_return_mean"] = float(np.mean([e["return"] for e in episodes]))
     return metrics
 
 
@@ -375,7 +377,8 @@ class RealWorldSACFlow:
         if len({k["kind"] for k in kinds}) > 1:
             for kind in sorted({k["kind"] for k in kinds}):
                 ours = [r for r, k in zip(results, kinds) if k["kind"] == kind and r]
-                merged[f"eval/{kind}/success_rate"] = float(np.mean([r["eval/success_rate"] for r in ours]))
+                for key in ("success_rate", "return_mean"):
+                    merged[f"eval/{kind}/{key}"] = float(np.mean([r[f"eval/{key}"] for r in ours]))
         return merged
 
     # ------------------------------------------------------------------ checkpoints
@@ -392,10 +395,27 @@ class RealWorldSACFlow:
 
     # ------------------------------------------------------------------ the end
     def finish(self, output_dir: str) -> dict:
+        video = self._record_video(output_dir)
         self._stop()
         status = self.learner.status().wait()[0]
         return {"updates": status["updates"], "version": status["version"],
-                "replay_transitions": status["store_transitions"], "replay_episodes": status["store_episodes"]}
+                "replay_transitions": status["store_transitions"], "replay_episodes": status["store_episodes"],
+                "video": video}
+
+    def _record_video(self, output_dir: str) -> str | None:
+        """``eval.video_episodes`` of robot rank 0 into ``eval.mp4`` (while the robots still run: the
+        control loop films them between two training episodes)."""
+        if not self.cfg.eval.video_episodes:
+            return None
+        if self.cfg.pipeline.transport == "edge":  # the frames stay at the edge (only training data goes up)
+            print("eval video skipped: the robot is at the edge, and its camera frames stay there", flush=True)
+            return None
+        result = self.robots.call("record_video", self.cfg.eval.video_episodes, os.path.join(output_dir, "eval.mp4"),
+                                  ranks=[0]).wait()[0]
+        if "skipped" in result:
+            print(f"eval video skipped: {result['skipped']}", flush=True)
+            return None
+        return result["path"]
 
     def _stop(self) -> None:
         if self.running:

@@ -258,6 +258,10 @@ class EvalConfig(EvalSchedule):
     """Episodes of the deterministic policy on every robot per evaluation (not stored, not trained on)."""
     target: float | None = bounded(0.8, ge=0, le=1)
     """Success rate the summary reports the first evaluation reaching."""
+    video_episodes: int = bounded(1, ge=0)
+    """After training, deterministic episodes of robot rank 0 filmed by its first camera into
+    ``<output_dir>/eval.mp4`` at the control rate (0 = none; a robot without a camera records none
+    and the run says why)."""
 
 
 @dataclass(kw_only=True)

@@ -181,6 +181,7 @@ def test_two_embodiments_feed_one_policy_and_one_store(ray_cluster, tmp_path):
     assert np.all(so101_rows[:, 15:47] == 0.0)  # zeros between the SO-101's own entries and the one-hot
     row = rows_of(tmp_path / "fleet" / "metrics.jsonl")[-1]
     assert "eval/sim_sawyer/success_rate" in row and "eval/sim_so101/success_rate" in row
+    assert "eval/sim_so101/return_mean" in row and "eval/sim_sawyer/return_mean" in row
 
 
 def test_fleet_size_must_match_the_robot_ranks(ray_cluster, tmp_path):

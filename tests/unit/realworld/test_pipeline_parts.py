@@ -122,3 +122,17 @@ def test_pixel_learner_trains_from_stored_frames_and_syncs_the_encoder(tmp_path)
     for (name, x), (_, y) in zip(expected, resumed.agent.named_tensors()):
         assert torch.equal(x, y), name
     resumed.close()
+
+
+def test_training_metrics_per_robot_kind_only_with_several_kinds():
+    from infinirl.runners.realworld_sac import _per_kind
+
+    def robot(kind, *episodes):
+        return {"kind": kind, "episodes": [{"success": s, "return": r} for s, r in episodes]}
+
+    assert _per_kind([robot("sim_sawyer", (1, 2.0))]) == {}  # one kind: the run-wide metrics say it all
+    metrics = _per_kind([robot("sim_sawyer", (1, 2.0), (0, -1.0)), robot("sim_so101", (0, -4.0)),
+                         robot("sim_sawyer", (1, 5.0))])
+    assert metrics == {"rollout/sim_sawyer/success_rate": pytest.approx(2 / 3),
+                       "rollout/sim_sawyer/episode_return_mean": pytest.approx(2.0),
+                       "rollout/sim_so101/success_rate": 0.0, "rollout/sim_so101/episode_return_mean": -4.0}

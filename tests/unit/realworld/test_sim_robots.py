@@ -76,3 +76,31 @@ def test_sawyer_moves_its_hand_to_an_end_effector_target():
         target[0] += 0.1
         robot.act(target)
         assert wait_until(lambda: np.linalg.norm(robot.observe().ee_position - target[:3]) < 0.02)
+
+
+def test_so101_reach_success_is_the_gripper_at_the_cube_and_pick_needs_a_lift():
+    """``success="reach"``: the cube within REACH_SUCCESS_DISTANCE of the gripper's end point; the
+    package's pick criterion (``success="pick"``) also needs the cube lifted from where it started."""
+    import mujoco
+
+    from infinirl.realworld.sim_so101 import REACH_SUCCESS_DISTANCE, SO101Plant
+
+    plants = {name: SO101Plant(control_hz=20.0, image_size=None, success=name) for name in ("reach", "pick")}
+    try:
+        for plant in plants.values():
+            plant.reset(seed=0)
+            assert plant.read().info["success"] is False  # the cube starts away from the gripper
+            env = plant._env
+            ee = env.data.sensor("so101/ee_pos").data.copy()
+            block = env.model.joint(env.model.body("block").jntadr[0]).qposadr[0]
+            env.data.qpos[block:block + 3] = ee + [0.0, 0.0, -0.5 * REACH_SUCCESS_DISTANCE]  # resting under the gripper
+            mujoco.mj_forward(env.model, env.data)
+        assert plants["reach"].read().info["success"] is True
+        assert plants["pick"].read().info["success"] is True  # at the gripper and 0.1 m above its start
+        plants["pick"]._block_start_z = float(plants["pick"].read().info["block_position"][2])
+        assert plants["pick"].read().info["success"] is False  # the same place, had it started there: no lift
+    finally:
+        for plant in plants.values():
+            plant.close()
+    with pytest.raises(ValueError, match="success='grasp'; choose one of pick, reach"):
+        make_robot("sim_so101", image_size=None, success="grasp")
