@@ -36,7 +36,7 @@ from infinirl.edge.link import LinkOptions
 from infinirl.edge.robot_calls import RobotCaller
 from infinirl.edge.robot_node import shared_config
 
-__all__ = ["EdgeRobots", "TrainerLink", "differences"]
+__all__ = ["EdgeRobots", "TrainerLink", "differences", "link_metrics"]
 
 logger = logging.getLogger(__name__)
 _EXIT_GRACE_S = 30.0
@@ -54,6 +54,26 @@ def differences(ours: dict, theirs: dict, prefix: str = "") -> dict[str, tuple]:
         elif a != b:
             changes[f"{prefix}{key}"] = (a, b)
     return changes
+
+
+# The hub's counters (cumulative since the run started) logged as link/<name>.
+_HUB_COUNTERS = ("connects", "refused", "episodes", "duplicates", "episode_bytes", "weight_bytes",
+                 "weight_pushes_full", "weight_pushes_delta", "delivery_failures")
+# The edge's counters (its report with every robot stats call; cumulative since the edge node started)
+# logged as edge/<name>: outages the edge lived through, and what it did meanwhile.
+_EDGE_COUNTERS = {"link_outages": "outages", "link_offline_s": "offline_s",
+                  "link_episodes_spooled_offline": "episodes_spooled_offline", "offline_holds": "offline_holds",
+                  "offline_hold_s": "offline_hold_s", "spool_refused": "spool_refused"}
+
+
+def link_metrics(hub: dict, edge: str, edge_counts: dict) -> dict[str, float]:
+    """The trainer's view of its link to ``edge``: ``link/connected`` (1 when the edge is connected
+    now), the hub's counters as ``link/<counter>``, and the edge's outage counters as ``edge/<counter>``,
+    so an outage shows in the run's metrics, not only in the edge's log."""
+    metrics = {"link/connected": float(edge in hub.get("edges", ()))}
+    metrics.update({f"link/{name}": float(hub.get(name, 0)) for name in _HUB_COUNTERS})
+    metrics.update({f"edge/{ours}": float(edge_counts.get(theirs, 0)) for theirs, ours in _EDGE_COUNTERS.items()})
+    return metrics
 
 
 class _Answer:
@@ -216,6 +236,10 @@ class TrainerLink:
 
     def stats(self) -> dict:
         return self.hub.stats()
+
+    def metrics(self, robots: list[dict]) -> dict[str, float]:
+        """This iteration's link metrics (:func:`link_metrics`) from the hub and the edge's report."""
+        return link_metrics(self.hub.stats(), self.cfg.edge.name, robots[0]["counts"] if robots else {})
 
     def close(self) -> None:
         if self.process is not None:

@@ -91,7 +91,8 @@ def run(cfg: RealWorldSACConfig) -> dict:
                 groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, shape)}))
                 channel.qsize()  # returns once the channel's actor is up
                 flow = RealWorldSACFlow(cfg, robots, groups["learner"], channel,
-                                        send_weights=edge.send_weights if edge is not None else None)
+                                        send_weights=edge.send_weights if edge is not None else None,
+                                        link_metrics=edge.metrics if edge is not None else None)
                 try:
                     summary = loop.run(flow)
                     for observe in RUN_OBSERVERS:  # the scheduler's profiler reads spans and memory here
@@ -247,11 +248,12 @@ def _per_kind(robots: list[dict]) -> dict:
 class RealWorldSACFlow:
     """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
 
-    def __init__(self, cfg: RealWorldSACConfig, robots, learner, channel, send_weights=None):
+    def __init__(self, cfg: RealWorldSACConfig, robots, learner, channel, send_weights=None, link_metrics=None):
         from infinirl.runtime import start_weight_sync
 
         self.cfg, self.robots, self.learner, self.channel = cfg, robots, learner, channel
         self.send_weights = send_weights or start_weight_sync  # (learner, robots, version, interrupt) -> pending
+        self.link_metrics = link_metrics  # pipeline.transport=edge: (robots' stats) -> link/..., edge/... metrics
         self.synced_version = 0
         self.pending_sync = None
         self.running = False
@@ -315,7 +317,8 @@ class RealWorldSACFlow:
         else:
             status = self._sync_turns(deadline)
         robots = self.robots.stats().wait(timeout=60)
-        return {**self._metrics(status, robots, time.perf_counter() - started), **_per_kind(robots)}
+        link = self.link_metrics(robots) if self.link_metrics is not None else {}
+        return {**self._metrics(status, robots, time.perf_counter() - started), **_per_kind(robots), **link}
 
     def _sync_turns(self, deadline: float) -> dict:
         """Collect one episode per robot, then update on it, until the window ends."""

@@ -88,6 +88,9 @@ def test_the_robot_trains_at_the_edge_through_the_link(ray_cluster, tmp_path, pk
     assert node["policy_version"] >= 1 and node["weights_received"] >= 1  # the edge's version advanced
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == [1, 2] and rows[-1]["pipeline/robot_versions_min"] >= 1
+    last = rows[-1]  # the trainer's view of the link
+    assert last["link/connected"] == 1.0 and last["link/connects"] == 1.0 and last["edge/outages"] == 0.0
+    assert last["link/episodes"] >= 1 and last["link/weight_pushes_full"] >= 1
 
 
 @pytest.mark.slow  # default-tier budget: the link-level cut (test_netns_link.py) and the unit tier's resends stay
@@ -119,6 +122,9 @@ def test_a_link_cut_mid_run_loses_no_episode(ray_cluster, tmp_path, pki):
     assert node["drained"] and node["spooled_episodes"] == 0 and node["spool_refused"] == 0
     assert len(episodes) == node["episodes_sent"] == summary["replay_episodes"]  # none lost, none twice
     assert len(stored_ids(out / "replay")) == len(episodes)
+    last = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()][-1]
+    assert last["link/connects"] >= 2  # the outage shows in the run's metrics, not only in the edge's log
+    assert last["edge/outages"] >= 1 and last["edge/offline_s"] > 0
 
 
 def test_edge_transport_config_errors_are_one_line_and_name_the_key(tmp_path, pki):
