@@ -256,7 +256,33 @@ class DriverKind:
     attached_robots: str
 
     def create(self, **options: Any) -> RobotDriver:
-        return getattr(importlib.import_module(self.module), self.driver)(**options)
+        return self.driver_class()(**options)
+
+    def driver_class(self) -> type:
+        return getattr(importlib.import_module(self.module), self.driver)
+
+    def check_options(self, kind: str, options: Mapping[str, Any], where: str) -> None:
+        """Raise a ``ConfigError`` naming ``where`` for an option the driver does not take, or one
+        its ``check_options`` classmethod (if any) refuses, before any worker builds the robot."""
+        import inspect
+
+        from infinirl.config import ConfigError
+
+        cls = self.driver_class()
+        parameters = inspect.signature(cls.__init__).parameters
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+            known = [name for name, p in parameters.items()
+                     if name != "self" and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
+            for key in options:
+                if key not in known:
+                    raise ConfigError(f"{where}.{key}: not an option of robot kind {kind!r}; its options: "
+                                      f"{', '.join(known)}")
+        check = getattr(cls, "check_options", None)
+        if check is not None:
+            try:
+                check(**options)
+            except ValueError as exc:
+                raise ConfigError(f"{where}: {exc}") from None
 
     def attached(self, **config: Any) -> list[AttachedRobot]:
         return list(getattr(importlib.import_module(self.module), self.attached_robots)(**config))

@@ -37,8 +37,7 @@ class SO101Plant:
 
     def __init__(self, *, control_hz: float, image_size: int | None, random_block_position: bool = True,
                  success: str = "pick") -> None:
-        if success not in SUCCESS_CRITERIA:
-            raise ValueError(f"sim_so101: success={success!r}; choose one of {', '.join(SUCCESS_CRITERIA)}")
+        _check_success(success)
         self._success = success
         # Before MuJoCo is imported, even without a camera: the GL library is chosen once per process,
         # and a later camera on a display-less node would otherwise get a backend that needs a display.
@@ -125,6 +124,11 @@ class SO101Plant:
         self._env.close()
 
 
+def _check_success(success: str) -> None:
+    if success not in SUCCESS_CRITERIA:
+        raise ValueError(f"sim_so101: success={success!r}; choose one of {', '.join(SUCCESS_CRITERIA)}")
+
+
 def _success_distance() -> float:
     from lerobot_env_so101.pick_env import SUCCESS_DISTANCE
 
@@ -138,11 +142,15 @@ class SimSO101(SimulatedRobot):
     def __init__(self, *, control_hz: float = 20.0, image_size: int | None = 64, latency_s: float = 0.0,
                  reset_s: float = 0.0, seed: int = 0, random_block_position: bool = True,
                  success: str = "pick") -> None:
-        if success not in SUCCESS_CRITERIA:  # here too: the plant is built on the control thread, later
-            raise ValueError(f"sim_so101: success={success!r}; choose one of {', '.join(SUCCESS_CRITERIA)}")
+        _check_success(success)  # here too: the plant is built on the control thread, later
         super().__init__(partial(SO101Plant, control_hz=control_hz, image_size=image_size,
                                  random_block_position=random_block_position, success=success),
                          latency_s=latency_s, reset_s=reset_s, seed=seed)
+
+    @classmethod
+    def check_options(cls, *, success: str = "pick", **_: Any) -> None:
+        """The option values a config gives, checked before any worker builds the arm."""
+        _check_success(success)
 
 
 def attached_sim_so101s(*, instances: int = 0, seed: int = 0, **options: Any) -> list[AttachedRobot]:

@@ -94,6 +94,7 @@ class HGDAggerConfig(RunConfig):
         if self.robot.fleet:
             raise ConfigError("robot.fleet: the HG-DAgger runner drives robots of one kind; leave robot.fleet empty")
         known_names(ROBOT_DRIVERS, [self.robot.kind], "robot.kind")
+        ROBOT_DRIVERS.get(self.robot.kind).check_options(self.robot.kind, self.robot.options, "robot.options")
         known_names(OBSERVATIONS, self.task.observations, "task.observations")
         known_names(REWARDS, list(self.task.rewards), "task.rewards")
         if self.interventions.device is None:

@@ -309,8 +309,11 @@ class RealWorldSACConfig(RunConfig):
         from infinirl.realworld.robot_env import OBSERVATIONS, REWARDS
 
         known_names(ROBOT_DRIVERS, [self.robot.kind], "robot.kind")
+        if not self.robot.fleet:
+            ROBOT_DRIVERS.get(self.robot.kind).check_options(self.robot.kind, self.robot.options, "robot.options")
         for index, entry in enumerate(self.robot.fleet):
             known_names(ROBOT_DRIVERS, [entry.kind], f"robot.fleet[{index}].kind")
+            ROBOT_DRIVERS.get(entry.kind).check_options(entry.kind, entry.options, f"robot.fleet[{index}].options")
             task = self.task_of(index)
             known_names(OBSERVATIONS, task.observations, f"robot.fleet[{index}].task.observations")
             known_names(REWARDS, list(task.rewards), f"robot.fleet[{index}].task.rewards")

@@ -5,6 +5,7 @@ with every episode in it and continues; the synchronous mode runs the same compo
 
 import importlib.util
 import json
+import re
 
 import numpy as np
 import pytest
@@ -112,8 +113,16 @@ def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
                        ({"network": {"encoder": "vit"}}, "network.encoder"),
                        ({"network": {"actor": "flow", "flow": {"noise_method": "flow_sde"}}},
                         "network.flow.noise_method"),
-                       ({"network": {"actor": "flow", "flow": {"chunk": 2}}}, "network.flow.chunk")):
-        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+                       ({"network": {"actor": "flow", "flow": {"chunk": 2}}}, "network.flow.chunk"),
+                       # driver options: a misspelt key, and a value the driver refuses
+                       ({"robot": {"kind": "sim_sawyer", "options": {"control_rate": 20.0}}},
+                        "robot.options.control_rate: not an option of robot kind 'sim_sawyer'; its options: task"),
+                       ({"robot": {"kind": "sim_so101", "options": {"success": "grasp"}},
+                         "task": {"observations": ["proprio"], "rewards": {"success": 1.0}}},
+                        "robot.options: sim_so101: success='grasp'; choose one of pick, reach"),
+                       ({"robot": {"fleet": [{"kind": "sim_sawyer", "options": {"taks": "reach-v3"}}]}},
+                        "robot.fleet[0].options.taks: not an option")):
+        with pytest.raises(ConfigError, match=re.escape(key)):
             make_cfg(tmp_path / "bad", 1, **extra).validate()
 
 
