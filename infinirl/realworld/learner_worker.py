@@ -6,7 +6,9 @@ episode that reached the learner is lost by a crash), and optionally a second st
 demonstrations (RLPD: each mini-batch is ``demo_fraction`` demonstrations, the rest online data).
 With ``interventions_as_demos``, every run of steps a human acted in (``intervened``) is also
 appended to the demonstrations store as an episode of its own
-(:func:`~infinirl.realworld.intervention.segments.intervened_segments`). With a pixel encoder
+(:func:`~infinirl.realworld.intervention.segments.intervened_segments`), before the episode itself
+and, for an episode with a sender's id, under ids derived from it, so a crash between the two
+appends loses neither when the sender resends. With a pixel encoder
 (``SACNetSpec.encoder="cnn"``) the mini-batches carry the frames of the cameras it reads besides the
 state; the agent computes on ``device`` (``auto``: the GPU of the rank's placement) and the published
 weights are host copies.
@@ -166,13 +168,17 @@ class RealWorldLearnerWorker(Worker, WeightSource):
                 self._counts["dropped_episodes"] += 1
                 self._counts["dropped_steps"] += len(episode["action"])
                 return
+        if self.loop.interventions_as_demos:
+            # Before the episode itself: the resend of an episode whose main append a crash cut off
+            # reaches this line again, and the segments' own source ids make their appends once-only.
+            for index, segment in enumerate(intervened_segments(episode)):
+                segment_source = None if source is None else f"{source}#intervention{index}"
+                if segment_source is None or self.demos.episode_of_source(segment_source) is None:
+                    self.demos.append(segment, source_id=segment_source)
+                    self._counts["intervention_demo_steps"] += len(segment["action"])
         self.store.append(episode, source_id=source)
         self._counts["episodes"] += 1
         self._counts["steps"] += len(episode["action"])
-        if self.loop.interventions_as_demos:
-            for segment in intervened_segments(episode):
-                self.demos.append(segment)
-                self._counts["intervention_demo_steps"] += len(segment["action"])
 
     def _report_committed(self, channel, key: str, handled: list[str]) -> None:
         """Tell the sender's side which episodes it may forget (a report that cannot be put is

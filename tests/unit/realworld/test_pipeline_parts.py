@@ -136,3 +136,37 @@ def test_training_metrics_per_robot_kind_only_with_several_kinds():
     assert metrics == {"rollout/sim_sawyer/success_rate": pytest.approx(2 / 3),
                        "rollout/sim_sawyer/episode_return_mean": pytest.approx(2.0),
                        "rollout/sim_so101/success_rate": 0.0, "rollout/sim_so101/episode_return_mean": -4.0}
+
+
+def test_a_crash_between_the_demo_and_episode_appends_loses_and_doubles_nothing(tmp_path, monkeypatch):
+    from infinirl.components.sac_learner import SACNetSpec, SACUpdateSpec
+    from infinirl.realworld.learner_worker import SOURCE_ID, LearnerLoopSpec, RealWorldLearnerWorker
+    from infinirl.realworld.replay import ReplayStore
+
+    loop = LearnerLoopSpec(replay_dir=str(tmp_path / "replay"), demo_dir=str(tmp_path / "demos"), learning_starts=8,
+                           interventions=True, interventions_as_demos=True, durable=False)
+    learner = RealWorldLearnerWorker(SACNetSpec(actor_hidden=(8,), critic_hidden=(8,)), SACUpdateSpec(batch_size=4),
+                                     loop, 3, 2)
+    episode = {"state": np.arange(21, dtype=np.float32).reshape(7, 3), "action": np.ones((6, 2), np.float32),
+               "reward": np.zeros(6, np.float32), "terminated": np.zeros(6, np.float32),
+               "version": np.full(6, -1, np.int64), "intervened": np.array([0, 1, 1, 0, 1, 0], np.float32),
+               SOURCE_ID: "edge-a-0-7"}
+    real_append = learner.store.append
+
+    def dies(*args, **kwargs):  # the process dies after the demos' appends, before the episode's
+        raise SystemExit("killed")
+
+    monkeypatch.setattr(learner.store, "append", dies)
+    with pytest.raises(SystemExit):
+        learner._ingest([episode])
+    assert learner.demos.num_episodes == 2 and learner.store.num_episodes == 0
+    monkeypatch.setattr(learner.store, "append", real_append)
+    assert learner._ingest([episode]) == ["edge-a-0-7"]  # the sender's resend
+    assert learner._ingest([episode]) == ["edge-a-0-7"]  # and a second one, once it is stored
+    assert (learner.demos.num_episodes, learner.store.num_episodes) == (2, 1)
+    assert learner.status()["counts"]["intervention_demo_steps"] == 3
+    learner.close()
+    demos = ReplayStore(str(tmp_path / "demos"), writable=False)
+    np.testing.assert_array_equal(demos.episode(0)["state"], episode["state"][1:4])
+    np.testing.assert_array_equal(demos.episode(1)["state"], episode["state"][4:6])
+    demos.close()
