@@ -361,8 +361,8 @@ class RealWorldSACConfig(RunConfig):
     def _check_placement(self) -> None:
         from infinirl.runtime.placement import parse_spec
 
-        if self.auto_placement:  # the scheduler places the learner by these rules when the run starts
-            return
+        if "learner" not in self.pinned_placement():
+            return  # placed by the scheduler, by these rules, when the run starts
         learner = parse_spec(self.placement["learner"], "learner")
         if learner.kind == "robots" or (learner.num_processes or 1) > 1 or (learner.num_processes is None
                                                                              and len(learner.indices) > 1):

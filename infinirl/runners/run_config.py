@@ -10,7 +10,8 @@ algorithm, ...). The shared keys mean the same in every runner:
 * ``resume``: continue from the newest checkpoint of ``output_dir``;
 * ``placement``: component -> devices or CPU slots; a key may name several components
   (``"actor,rollout": "0"``), and components a config leaves out keep the runner's defaults;
-  ``auto``: the scheduler picks the placement (docs/scheduler.md).
+  ``auto``: the scheduler picks the placement (docs/scheduler.md), and ``auto`` as one component's
+  spec lets it place that component only.
 
 Numeric limits are declared on the fields (:func:`~infinirl.config.bounded`); a subclass's
 ``check()`` holds only the rules that involve several fields.
@@ -75,7 +76,8 @@ class RunConfig:
     eval: EvalSchedule = field(default_factory=EvalSchedule)
     placement: dict[str, str] | str = field(default_factory=dict)
     """Component -> devices or CPU slots (see infinirl.runtime.placement); "a,b" keys place several.
-    ``auto``: the placement the scheduler predicts fastest, chosen when the run starts."""
+    ``auto``: the placement the scheduler predicts fastest, chosen when the run starts; ``auto`` as one
+    component's spec (``placement.learner=auto``): the scheduler places that one, the others stay."""
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
 
     def __post_init__(self) -> None:
@@ -106,15 +108,30 @@ class RunConfig:
         """Rules that involve several fields of the runner's own sections; raise ConfigError."""
 
     def _validate_placement(self) -> None:
-        if self.auto_placement:
+        if self.placement == AUTO_PLACEMENT:
             return
-        validate_placement(self.placement, [*self.DEFAULT_PLACEMENT, *self.OPTIONAL_COMPONENTS], self.RUNNER)
+        known = [*self.DEFAULT_PLACEMENT, *self.OPTIONAL_COMPONENTS]
+        if isinstance(self.placement, dict):  # an "auto" entry still names a known component
+            validate_placement({c: "0" if spec == AUTO_PLACEMENT else spec for c, spec in self.placement.items()},
+                               known, self.RUNNER)
+            return
+        validate_placement(self.placement, known, self.RUNNER)
 
     # ------------------------------------------------------------------ derived
     @property
     def auto_placement(self) -> bool:
-        """``placement: auto``: the run resolves its placement when it starts (``run_support``)."""
+        """``placement: auto``, or ``auto`` for some components (``placement.learner=auto``): the run
+        resolves those when it starts (``run_support``), the others stay where they are given."""
+        if isinstance(self.placement, dict):
+            return AUTO_PLACEMENT in self.placement.values()
         return self.placement == AUTO_PLACEMENT
+
+    def pinned_placement(self) -> dict[str, str]:
+        """Under :attr:`auto_placement`, the launched components the config places itself (the
+        scheduler searches only the others); all of them otherwise."""
+        if not isinstance(self.placement, dict):
+            return {}
+        return {name: spec for name, spec in self.placement_spec().items() if spec != AUTO_PLACEMENT}
 
     def components(self) -> list[str]:
         """The components this run launches (required ones, then optional ones it uses)."""

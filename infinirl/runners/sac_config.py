@@ -159,10 +159,12 @@ class SACConfig(RunConfig):
     def _check_single_ranks(self) -> None:
         from infinirl.runtime.placement import parse_spec
 
-        if self.auto_placement:  # the scheduler's SAC model places one rank each
-            return
+        # Under auto the scheduler's SAC model places one rank of each component it places.
+        pinned = self.pinned_placement()
         for component in COMPONENTS:
-            spec = self.placement[component]
+            if component not in pinned:
+                continue
+            spec = pinned[component]
             parsed = parse_spec(spec, component)
             if (parsed.num_processes or 1) > 1 or (parsed.num_processes is None and len(parsed.indices) > 1):
                 raise ConfigError(f"placement.{component}={spec!r}: the SAC runner runs one {component} rank; "

@@ -13,7 +13,7 @@ import json
 from infinirl.config import ConfigError
 from infinirl.runtime.inventory import ClusterInventory, GiB
 from infinirl.scheduler.profile import Profile, load_or_profile, profile_summary, workload_of
-from infinirl.scheduler.search import PlanEntry, search
+from infinirl.scheduler.search import PlanEntry, fixed_placements, search
 from infinirl.scheduler.workloads import RUNNER_MODELS, UNPLANNED_RUNNERS
 
 __all__ = ["DEPTH_KEYS", "format_plan", "plan", "plan_command", "resolve_auto_placement", "runner_model"]
@@ -72,8 +72,9 @@ def format_plan(cfg, profile: Profile | None, entries: list[PlanEntry], top: int
     model = RUNNER_MODELS.get(cfg.runner) if cfg.runner in RUNNER_MODELS else None
     if model is not None and model.step_text:
         lines.append(model.step_text)
-    if model is not None and model.fixed(cfg):
-        lines.append(f"fixed (not searched): {', '.join(f'{k}={v}' for k, v in model.fixed(cfg).items())}")
+    fixed = fixed_placements(cfg, model) if model is not None else {}
+    if fixed:
+        lines.append(f"fixed (not searched): {', '.join(f'{k}={v}' for k, v in fixed.items())}")
     lines.append(f"{'#':>3}  {'step_s':>8}  {'memory':>14}  depth  placement")
     for i, entry in enumerate(entries[:top]):
         spec = " ".join(f"{name}={entry.placement[name]}" for name in cfg.components())

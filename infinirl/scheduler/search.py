@@ -14,7 +14,9 @@ with one rank per device, so every placement is a spec ``place()`` accepts (``"0
 For each layout the runner model lists the depths it can run and its rules (paired ranks,
 divisibility); a candidate over memory (a device's, or a node's for CPU slots) is left out.
 Components the model holds fixed (robots: ``RunnerModel.fixed``) keep the placement the config
-gives them; only the others are laid out (:func:`fixed_allocation`).
+gives them (:func:`fixed_allocation`), and so do components the config places itself beside
+``auto`` ones (``placement.learner=auto``: :func:`pinned_allocation`, with their ranks); only the
+others are laid out.
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ from infinirl.runtime.inventory import ClusterInventory
 from infinirl.scheduler.cost import Allocation, Candidate, Prediction, Workload, memory_by_range, predict
 from infinirl.scheduler.workloads import RunnerModel
 
-__all__ = ["EXHAUSTIVE_DEVICES", "PlanEntry", "candidate_layouts", "fixed_allocation", "pool_of", "search"]
+__all__ = ["EXHAUSTIVE_DEVICES", "PlanEntry", "candidate_layouts", "fixed_allocation", "fixed_placements",
+           "pinned_allocation", "pool_of", "search"]
 
 EXHAUSTIVE_DEVICES = 4
 
@@ -107,6 +110,30 @@ def fixed_allocation(spec: str, pool: Pool) -> Allocation:
         first = min(parsed.indices)
         return Allocation(first=first, count=max(parsed.indices) - first + 1, ranks=1)
     return Allocation(first=pool.size, count=1, ranks=1)
+
+
+def pinned_allocation(component: str, spec: str, pool: Pool) -> Allocation:
+    """A component the config places itself beside ``auto`` ones, with its ranks: a contiguous
+    range of the pool's devices (``"0"``, ``"2-5"``, ``"0-1:0-3"``); any other spec is a one-line
+    ConfigError naming the key."""
+    from infinirl.config import ConfigError
+    from infinirl.runtime.placement import parse_spec
+
+    parsed = parse_spec(spec, component)
+    indices = sorted(parsed.indices) if parsed.kind == "devices" else []
+    if not indices or indices != list(range(indices[0], indices[-1] + 1)) or indices[-1] >= pool.size:
+        raise ConfigError(f"placement.{component}={spec!r}: beside components placed 'auto', give a contiguous "
+                          f"range of this cluster's {pool.size} devices or CPU slots (e.g. '0', '0-1'), or 'auto'")
+    return Allocation(first=indices[0], count=len(indices), ranks=parsed.num_processes or len(indices))
+
+
+def fixed_placements(cfg, model: RunnerModel) -> dict[str, str]:
+    """Components the search does not move: the model's (robots), then, when some components are
+    ``auto``, those the config places itself (``infinirl plan`` of a config without ``auto`` searches
+    every component)."""
+    fixed = model.fixed(cfg)
+    pinned = cfg.pinned_placement() if cfg.auto_placement else {}
+    return {**fixed, **{name: spec for name, spec in pinned.items() if name not in fixed}}
 
 
 # ----- layouts -----------------------------------------------------------------------------------
@@ -191,8 +218,10 @@ def search(cfg, model: RunnerModel, workload: Workload, inventory: ClusterInvent
     """Every valid candidate within memory, best predicted step time first (ties: fewer devices,
     then the placement's text, so the order is stable)."""
     pool = pool_of(inventory)
-    fixed = model.fixed(cfg)
-    pinned = {name: fixed_allocation(spec, pool) for name, spec in fixed.items()}
+    robots = model.fixed(cfg)
+    fixed = fixed_placements(cfg, model)
+    pinned = {name: fixed_allocation(spec, pool) if name in robots else pinned_allocation(name, spec, pool)
+              for name, spec in fixed.items()}
     movable = tuple(c for c in cfg.components() if c not in fixed)
     entries, seen = [], set()
     node_of = pool.node_of if len(pool.per_node) > 1 else None

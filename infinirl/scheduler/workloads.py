@@ -377,21 +377,21 @@ RUNNER_MODELS.add("sac", RunnerModel(
 
 
 def _realworld_robots(cfg) -> int:
-    """Robot ranks: one per fleet entry, else as many as placement.robot gives (one under auto)."""
+    """Robot ranks: one per fleet entry, else as many as placement.robot gives (one when it is auto)."""
     from infinirl.runtime.placement import parse_spec
 
     if cfg.robot.fleet:
         return len(cfg.robot.fleet)
-    if cfg.auto_placement:
+    if "robot" not in cfg.pinned_placement():
         return 1
     parsed = parse_spec(cfg.placement["robot"], "robot")
     return parsed.num_processes or max(len(parsed.indices), 1)
 
 
 def _realworld_robot_spec(cfg) -> str:
-    """Where the robots run: placement.robot, or under ``placement: auto`` the default one (slot or
-    device 0, every fleet rank on it)."""
-    if not cfg.auto_placement:
+    """Where the robots run: placement.robot, or when it is ``auto`` the default one (slot or device 0,
+    every fleet rank on it)."""
+    if "robot" in cfg.pinned_placement():
         return cfg.placement["robot"]
     robots = _realworld_robots(cfg)
     return "0" if robots == 1 else f"0:0-{robots - 1}"

@@ -46,3 +46,41 @@ def test_the_plan_table_lists_candidates_best_first():
     assert "candidate placements of embodied" in lines[0] and "rollout.pipeline_stages" in lines[0]
     assert lines[2].split()[0] == "1" and "env=" in lines[2]
     assert f"... {len(entries) - 3} more" in text
+
+
+def _embodied_profile(inventory):
+    costs = {"collect/env": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30),
+             "collect/rollout": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30),
+             "update/actor": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30)}
+    return Profile(runner="embodied", key={}, costs=costs, overhead_s=0.0, hop_s=0.0,
+                   inventory=inventory.to_dict(), probes=[])
+
+
+def test_auto_for_some_components_searches_only_those():
+    cfg = build_config("ppo_metaworld_reach", ["placement.actor=auto", "placement.env=0-1", "placement.rollout=0-1"])[1]
+    assert cfg.auto_placement and cfg.pinned_placement() == {"env": "0-1", "rollout": "0-1"}
+    inventory = ClusterInventory.cpu_only(1, 2)
+    entries = search(cfg, runner_model(cfg), workload_of(cfg, _embodied_profile(inventory)), inventory)
+    assert {e.placement["actor"] for e in entries} == {"0", "1", "0-1"}  # every range for the auto one
+    assert all(e.placement["env"] == "0-1" and e.placement["rollout"] == "0-1" for e in entries)
+    assert entries[0].candidate.allocations["env"].ranks == 2  # a pinned component keeps its ranks
+    assert "fixed (not searched): env=0-1, rollout=0-1" in format_plan(cfg, None, entries)
+    full = build_config("ppo_metaworld_reach", [])[1]  # `infinirl plan` of an explicit config searches all
+    assert len(search(full, runner_model(full), workload_of(full, _embodied_profile(inventory)), inventory)) > len(
+        entries)
+
+
+def test_auto_for_some_components_checks_the_others_and_names_the_key():
+    with pytest.raises(ConfigError, match="placement.critic: the embodied runner has no such component"):
+        build_config("ppo_metaworld_reach", ["placement.critic=auto"])
+    with pytest.raises(ConfigError, match="placement.env"):
+        build_config("ppo_metaworld_reach", ["placement.actor=auto", "placement.env=zero"])
+    kept = ["placement.actor=auto", "placement.rollout=0-1"]
+    cfg = build_config("ppo_metaworld_reach", [*kept, "placement.env='0,1'"])[1]
+    inventory = ClusterInventory.cpu_only(1, 2)
+    # "0,1" is contiguous; a gap is refused where the scheduler sees the cluster
+    assert search(cfg, runner_model(cfg), workload_of(cfg, _embodied_profile(inventory)), inventory)
+    gap = build_config("ppo_metaworld_reach", [*kept, "placement.env='0,2'"])[1]
+    with pytest.raises(ConfigError, match=r"placement.env='0,2': beside components placed 'auto', give a contiguous"):
+        search(gap, runner_model(gap), workload_of(gap, _embodied_profile(ClusterInventory.cpu_only(1, 4))),
+               ClusterInventory.cpu_only(1, 4))

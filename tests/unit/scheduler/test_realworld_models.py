@@ -177,6 +177,18 @@ def test_placement_auto_on_a_robot_run_loads_and_is_resolved_when_it_starts():
     assert cfg.auto_placement  # the learner's one-rank rule is the model's check, applied by the search
 
 
+def test_the_learner_alone_auto_beside_robots_the_config_places():
+    cfg = _cfg("placement.robot=robot:0", "placement.learner=auto")
+    assert cfg.auto_placement and MODEL.fixed(cfg) == {"robot": "robot:0"}
+    entries = search(cfg, MODEL, workload_of(cfg, _profile(cfg)), ClusterInventory.cpu_only(1, 2))
+    assert {e.placement["learner"] for e in entries} == {"0", "1"}  # one rank, on either slot
+    assert all(e.placement["robot"] == "robot:0" for e in entries)
+    two = _cfg("placement.robot=0-1", "placement.learner=auto")
+    assert MODEL.units(two)["learner"] == 100.0  # the robots the config gives, not auto's one
+    with pytest.raises(ConfigError, match="placement.learner='0-1': the learner is one rank"):
+        _cfg("placement.robot=0", "placement.learner=0-1")
+
+
 # ----- hg_dagger -----
 
 DAGGER = RUNNER_MODELS.get("hg_dagger")
