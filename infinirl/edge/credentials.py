@@ -48,10 +48,8 @@ class TlsFiles:
 
 
 def _write_pem(path: Path, data: bytes, private: bool) -> None:
-    with atomic_open(path, "wb") as handle:
+    with atomic_open(path, "wb", permissions=0o600 if private else None) as handle:  # a key is never readable by others
         handle.write(data)
-    if private:
-        os.chmod(path, 0o600)
 
 
 def _new_key():

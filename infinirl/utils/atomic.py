@@ -3,7 +3,9 @@
 Every file a run writes for later (checkpoints, replay buffers, configs, traces, videos) goes to a
 temporary name in the same folder and is renamed into place: a rename within one filesystem is
 atomic, so a reader (or a resumed run after a crash, a full disk or ``kill -9``) sees the old
-file or the complete new one, never a torn one. The temporary file is removed on any error.
+file or the complete new one, never a torn one. The temporary file is removed on any error. The
+file gets the permissions a plain ``open`` would give it (``0o666`` less the umask), not the
+owner-only ones of a temporary file, so a checkpoint is as readable as any other output.
 """
 
 from __future__ import annotations
@@ -12,29 +14,55 @@ import json
 import os
 import shutil
 import tempfile
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_open", "atomic_path", "replace_directory", "torch_save_atomic", "write_json_atomic",
-           "write_text_atomic"]
+__all__ = ["atomic_open", "atomic_path", "new_file_mode", "replace_directory", "torch_save_atomic",
+           "write_json_atomic", "write_text_atomic"]
+
+_umask_lock = threading.Lock()
+
+
+def new_file_mode() -> int:
+    """The mode ``open(path, "w")`` gives a new file: ``0o666`` less the process's umask."""
+    try:  # Linux reports the umask without changing it
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except OSError:
+        pass
+    with _umask_lock:  # elsewhere: read it by setting it (and put it back at once)
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return 0o666 & ~mask
+
+
+def _temporary_beside(path: str, suffix: str, permissions: int | None = None) -> tuple[int, str]:
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=suffix)
+    os.fchmod(fd, new_file_mode() if permissions is None else permissions)  # mkstemp makes it 0o600
+    return fd, tmp
 
 
 @contextmanager
 def atomic_open(path: str | os.PathLike, mode: str = "wb", suffix: str = ".tmp",
-                durable: bool = False) -> Iterator[IO[Any]]:
+                durable: bool = False, permissions: int | None = None) -> Iterator[IO[Any]]:
     """Open a temporary file beside ``path`` for writing; on a clean exit it replaces ``path``.
 
     ``suffix`` ends the temporary name (writers that pick a format by extension need it, e.g.
     ``".tmp.mp4"``). ``durable``: ``fsync`` the data before the rename, so the new file survives a
-    power loss too (replay buffers, whose contents cannot be recomputed)."""
+    power loss too (replay buffers, whose contents cannot be recomputed). ``permissions``: the new
+    file's mode bits, set before any byte is written (e.g. ``0o600`` for a private key; default:
+    what a plain ``open`` gives)."""
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_open writes whole files: mode must be 'w' or 'wb', got {mode!r}")
     path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=suffix)
+    fd, tmp = _temporary_beside(path, suffix, permissions)
     try:
         with os.fdopen(fd, mode) as handle:
             yield handle
@@ -53,9 +81,7 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[str]:
     """A temporary file name beside ``path`` for writers that open files themselves (e.g. a video
     encoder picking its format by extension); on a clean exit the file replaces ``path``."""
     path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=suffix)
+    fd, tmp = _temporary_beside(path, suffix)
     os.close(fd)
     try:
         yield tmp
