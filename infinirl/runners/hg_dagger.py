@@ -32,7 +32,7 @@ from infinirl.runners import register_runner
 from infinirl.runners.curves import Panel
 from infinirl.runners.hg_dagger_config import HGDAggerConfig
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
-from infinirl.runners.run_support import RUN_OBSERVERS, launch_all, plan_placement, run_start_time
+from infinirl.runners.run_support import launch_all, run_staged, run_start_time
 
 __all__ = ["HGDAggerFlow", "run"]
 
@@ -43,36 +43,19 @@ def run(cfg: HGDAggerConfig) -> dict:
     from infinirl.realworld.discovery import with_driver_discovery
     from infinirl.realworld.robot_worker import RobotActorWorker
     from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of
-    from infinirl.runtime import Cluster
+
+    setup, env, net = robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg)
+    intervention = intervention_spec_of(cfg)
+
+    def start(plan, groups: dict, on_exit: list):
+        groups.update(launch_all(plan, {"robot": (RobotActorWorker, (setup, env, net, cfg.seed, cfg.actor.num_threads,
+                                                                     intervention))}))
+        described = groups["robot"].describe().wait()
+        groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, described[0])}))
+        return HGDAggerFlow(cfg, groups["robot"], groups["learner"])
 
     with RunLoop(cfg, run_start_time()) as loop:
-        if cfg.auto_placement:
-            # The scheduler sits above the runners (it profiles by running them), hence the late import.
-            from infinirl.scheduler.auto import resolve_auto_placement
-
-            resolve_auto_placement(cfg)
-        setup, env, net = robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg)
-        intervention = intervention_spec_of(cfg)
-        with Cluster(with_driver_discovery(cfg.cluster)) as cluster:
-            plan = plan_placement(cluster.inventory, cfg)
-            print(plan.describe(), flush=True)
-            groups = {}
-            try:
-                groups.update(launch_all(plan, {"robot": (RobotActorWorker, (setup, env, net, cfg.seed,
-                                                                             cfg.actor.num_threads, intervention))}))
-                described = groups["robot"].describe().wait()
-                groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, described[0])}))
-                flow = HGDAggerFlow(cfg, groups["robot"], groups["learner"])
-                try:
-                    summary = loop.run(flow)
-                    for observe in RUN_OBSERVERS:  # the scheduler's profiler reads spans and memory here
-                        observe(groups, plan)
-                    return summary
-                finally:
-                    flow.close()
-            finally:
-                for group in groups.values():
-                    group.shutdown()
+        return run_staged(cfg, loop, start, with_driver_discovery(cfg.cluster))
 
 
 def intervention_spec_of(cfg):

@@ -50,7 +50,7 @@ from infinirl.runners import register_runner
 from infinirl.runners.curves import Panel
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.realworld_sac_config import RealWorldNetworkConfig, RealWorldSACConfig
-from infinirl.runners.run_support import RUN_OBSERVERS, launch_all, plan_placement, run_start_time
+from infinirl.runners.run_support import launch_all, run_staged, run_start_time
 
 __all__ = ["RealWorldSACFlow", "env_spec_of", "net_spec_of", "robot_setup_of", "run"]
 
@@ -58,54 +58,36 @@ __all__ = ["RealWorldSACFlow", "env_spec_of", "net_spec_of", "robot_setup_of", "
 @register_runner("realworld_sac", RealWorldSACConfig,
                  "SAC / RLPD on robots in real time (simulated or real): asynchronous robot and learner workers")
 def run(cfg: RealWorldSACConfig) -> dict:
-    from infinirl.runtime import Channel, Cluster
+    from infinirl.realworld.discovery import with_driver_discovery
+    from infinirl.runners.hg_dagger import intervention_spec_of
+    from infinirl.runtime import Channel
 
     if cfg.pipeline.transport == "edge":
         cfg.edge.check_trainer_files()  # here, not in the config's check: the edge node holds other files
+    net = net_spec_of(cfg)
+    _check_actor_options(net)
+    intervention = intervention_spec_of(cfg)
+
+    def start(plan, groups: dict, on_exit: list):
+        # Created first: its actor starts while the robots connect, not on a robot's time.
+        channel = Channel.create(f"realworld-{uuid.uuid4().hex[:12]}")
+        on_exit.append(channel.destroy)
+        edge = None
+        if cfg.pipeline.transport == "edge":
+            edge, robots = _edge_robots(cfg, channel)
+            on_exit.append(edge.close)
+        else:
+            _check_fleet(cfg, len(plan.ranks("robot")))
+            robots = _robot_workers(cfg, plan, intervention, groups)
+        shape = _robot_shape(cfg, robots)
+        groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, shape)}))
+        channel.qsize()  # returns once the channel's actor is up
+        return RealWorldSACFlow(cfg, robots, groups["learner"], channel,
+                                send_weights=edge.send_weights if edge is not None else None,
+                                link_metrics=edge.metrics if edge is not None else None)
+
     with RunLoop(cfg, run_start_time()) as loop:
-        if cfg.auto_placement:
-            # The scheduler sits above the runners (it profiles by running them), hence the late import.
-            from infinirl.scheduler.auto import resolve_auto_placement
-
-            resolve_auto_placement(cfg)
-        net = net_spec_of(cfg)
-        _check_actor_options(net)
-        from infinirl.realworld.discovery import with_driver_discovery
-        from infinirl.runners.hg_dagger import intervention_spec_of
-
-        intervention = intervention_spec_of(cfg)
-
-        with Cluster(with_driver_discovery(cfg.cluster)) as cluster:
-            plan = plan_placement(cluster.inventory, cfg)
-            print(plan.describe(), flush=True)
-            # Created first: its actor starts while the robots connect, not on a robot's time.
-            channel = Channel.create(f"realworld-{uuid.uuid4().hex[:12]}")
-            groups, edge = {}, None
-            try:
-                if cfg.pipeline.transport == "edge":
-                    edge, robots = _edge_robots(cfg, channel)
-                else:
-                    _check_fleet(cfg, len(plan.ranks("robot")))
-                    robots = _robot_workers(cfg, plan, intervention, groups)
-                shape = _robot_shape(cfg, robots)
-                groups.update(launch_all(plan, {"learner": _learner_launch(cfg, net, shape)}))
-                channel.qsize()  # returns once the channel's actor is up
-                flow = RealWorldSACFlow(cfg, robots, groups["learner"], channel,
-                                        send_weights=edge.send_weights if edge is not None else None,
-                                        link_metrics=edge.metrics if edge is not None else None)
-                try:
-                    summary = loop.run(flow)
-                    for observe in RUN_OBSERVERS:  # the scheduler's profiler reads spans and memory here
-                        observe(groups, plan)
-                    return summary
-                finally:
-                    flow.close()
-            finally:
-                for group in groups.values():
-                    group.shutdown()
-                if edge is not None:
-                    edge.close()
-                channel.destroy()
+        return run_staged(cfg, loop, start, with_driver_discovery(cfg.cluster))
 
 
 def _check_actor_options(net: SACNetSpec) -> None:

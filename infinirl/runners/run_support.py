@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from infinirl.config import ConfigError
 
 __all__ = ["NODE_LOSS_WAIT_S", "RUN_OBSERVERS", "launch_all", "plan_placement", "raise_if_nodes_lost",
-           "run_components", "run_start_time"]
+           "run_components", "run_staged", "run_start_time"]
 
 _RUNS_IN_PROCESS = [0]
 
@@ -79,9 +79,26 @@ def plan_placement(inventory, cfg):
 def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:
     """Start the cluster, place and launch the components, run ``make_flow(groups, plan)`` on ``loop``.
 
-    ``launches(plan)`` returns what :func:`launch_all` takes; the flow's ``close()`` and every
-    group's shutdown run however the loop ends. ``placement: auto`` is resolved first: the
-    scheduler profiles the config (or reads its cached profile) and writes its choice into ``cfg``."""
+    ``launches(plan)`` returns what :func:`launch_all` takes (every component at once); the rest is
+    :func:`run_staged`'s."""
+    def start(plan, groups: dict, on_exit: list):
+        groups.update(launch_all(plan, launches(plan)))
+        return make_flow(groups, plan)
+
+    return run_staged(cfg, loop, start)
+
+
+def run_staged(cfg, loop, start: Callable, cluster_config=None) -> dict:
+    """Start the cluster, place ``cfg``'s components, and run the flow ``start`` builds on ``loop``.
+
+    ``start(plan, groups, on_exit)`` launches components into ``groups`` (in stages where a later
+    one needs what an earlier one reports, e.g. a learner sized by its robots), may add callables to
+    ``on_exit`` (run last first, after the groups' shutdown: a channel to destroy, a link to close),
+    and returns the flow. The flow's ``close()``, every group's shutdown and ``on_exit`` run however
+    the loop ends; a failure that came with nodes leaving the cluster is a ClusterError naming them.
+    ``placement: auto`` (or ``auto`` for some components) is resolved first: the scheduler profiles
+    the config (or reads its cached profile) and writes its choice into ``cfg``. ``cluster_config``:
+    the cluster section to start (default ``cfg.cluster``)."""
     from infinirl.runtime import Cluster
 
     if cfg.auto_placement:
@@ -89,15 +106,16 @@ def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:
         from infinirl.scheduler.auto import resolve_auto_placement
 
         resolve_auto_placement(cfg)
-    with Cluster(cfg.cluster) as cluster:
+    with Cluster(cluster_config if cluster_config is not None else cfg.cluster) as cluster:
         plan = plan_placement(cluster.inventory, cfg)
         print(plan.describe(), flush=True)
-        groups = launch_all(plan, launches(plan))
+        groups: dict = {}
+        on_exit: list[Callable[[], None]] = []
         try:
-            flow = make_flow(groups, plan)
+            flow = start(plan, groups, on_exit)
             try:
                 summary = loop.run(flow)
-                for observe in RUN_OBSERVERS:
+                for observe in RUN_OBSERVERS:  # the scheduler's profiler reads spans and memory here
                     observe(groups, plan)
                 return summary
             finally:
@@ -108,6 +126,8 @@ def run_components(cfg, loop, launches: Callable, make_flow: Callable) -> dict:
         finally:
             for group in groups.values():
                 group.shutdown()
+            for action in reversed(on_exit):
+                action()
 
 
 # How long a failed run waits for Ray to declare the node of a dead rank dead (its health checks
