@@ -30,8 +30,10 @@ quantiles are exact (``numpy.quantile``) where LeRobot estimates them from a his
 
 from __future__ import annotations
 
+import functools
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections import OrderedDict
@@ -262,6 +264,21 @@ class _VideoFile:
             self._parts = []
 
 
+def passthrough_params(ffmpeg_version: str) -> list[str]:
+    """The output option that keeps every decoded frame with its own timestamp: ``-fps_mode`` since
+    FFmpeg 5.1, ``-vsync`` before it (still accepted after, but deprecated), so that an older
+    ffmpeg binary (``IMAGEIO_FFMPEG_EXE``, or an older ``imageio-ffmpeg``) reads the videos too."""
+    match = re.match(r"\D*(\d+)\.(\d+)", ffmpeg_version)
+    if match and (int(match.group(1)), int(match.group(2))) < (5, 1):
+        return ["-vsync", "passthrough"]
+    return ["-fps_mode", "passthrough"]  # a version string that is not a release number: a recent build
+
+
+@functools.cache
+def _reader_passthrough_params() -> tuple[str, ...]:
+    return tuple(passthrough_params(_ffmpeg().get_ffmpeg_version()))
+
+
 def read_video_frames(path: Path, start_s: float, count: int, fps: int) -> np.ndarray:
     """``count`` consecutive frames ``[count, H, W, 3]`` uint8 of an mp4, the first at time
     ``start_s``; one-line :class:`LeRobotDatasetError` naming the file if it cannot be decoded."""
@@ -271,7 +288,7 @@ def read_video_frames(path: Path, start_s: float, count: int, fps: int) -> np.nd
     seek = max(0.0, start_s - 0.5 / fps)
     try:
         reader = ffmpeg.read_frames(str(path), input_params=["-ss", f"{seek:.6f}"],
-                                    output_params=["-fps_mode", "passthrough", "-frames:v", str(count)])
+                                    output_params=[*_reader_passthrough_params(), "-frames:v", str(count)])
         meta = next(reader)
         width, height = meta["size"]
         frames = [np.frombuffer(raw, dtype=np.uint8).reshape(height, width, 3) for raw in reader]

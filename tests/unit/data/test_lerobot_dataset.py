@@ -15,6 +15,7 @@ from infinirl.data.lerobot_dataset import (  # noqa: E402
     LeRobotDatasetError,
     LeRobotDatasetReader,
     LeRobotDatasetWriter,
+    passthrough_params,
 )
 
 SIZE = 64
@@ -287,3 +288,15 @@ def test_reader_errors_name_the_file_and_the_fix(dataset, tmp_path):
     video.write_bytes(video.read_bytes()[: video.stat().st_size // 3])
     message = _one_line_error(truncated)
     assert str(video) in message and "re-create the dataset" in message
+
+
+@pytest.mark.parametrize(("version", "params"), [
+    ("9.0.2", ["-fps_mode", "passthrough"]),
+    ("5.1", ["-fps_mode", "passthrough"]),
+    ("n6.1-static", ["-fps_mode", "passthrough"]),
+    ("4.2.2-static", ["-vsync", "passthrough"]),
+    ("5.0.1", ["-vsync", "passthrough"]),
+    ("N-112345-gdeadbeef", ["-fps_mode", "passthrough"]),  # a git build: recent
+])
+def test_reader_keeps_every_frame_with_old_and_new_ffmpeg(version, params):
+    assert passthrough_params(version) == params
