@@ -55,7 +55,8 @@ class EvalConfig:
     run_dir: str | None = None
     """A training run's output_dir: evaluate its checkpoint (None: evaluate model.path as is)."""
     checkpoint: str = "latest"
-    """With run_dir: latest | an iteration number (40) | a folder name (iter_000040) | a checkpoint path."""
+    """With run_dir: latest | an iteration number (40) | a folder name (iter_000040) | a checkpoint path
+    | initial (the run's model.path untrained, in the run's setting: the baseline it started from)."""
     model: EvalModelConfig = field(default_factory=EvalModelConfig)
     task: TaskConfig | None = None
     """Problems and verifier (same keys as training). None: the run's task (its held-out set)
@@ -151,12 +152,12 @@ class EvalConfig:
         if self.single_turn:
             agent = None
         numbered = _CHECKPOINT_DIR.match(checkpoint.name) if checkpoint else None
-        step = int(numbered.group(1)) if numbered else None
+        step = int(numbered.group(1)) if numbered else (0 if self.checkpoint == INITIAL and run_dir else None)
         label = task_label(task, self.split)
         if self.output:
             output = Path(self.output)
         elif run_dir:
-            output = run_dir / "eval" / f"{label}-{checkpoint.name}.json"
+            output = run_dir / "eval" / f"{label}-{checkpoint.name if checkpoint else INITIAL}.json"
         else:
             output = Path("runs") / "eval" / f"{label}-{Path(model_path).name}.json"
         return EvalPlan(run_dir=run_dir, checkpoint=checkpoint, step=step, model_path=model_path, actor=actor,
@@ -187,6 +188,10 @@ class EvalPlan:
     task.eval_size; the run trained on the rest)."""
 
 
+INITIAL = "initial"
+"""``checkpoint=initial``: a run's starting model, untrained."""
+
+
 def _find_checkpoint(run_dir: str | None, checkpoint: str) -> tuple[Path | None, Path | None]:
     from infinirl.runners.checkpoints import Checkpoints
 
@@ -194,6 +199,9 @@ def _find_checkpoint(run_dir: str | None, checkpoint: str) -> tuple[Path | None,
     if run_dir is None:
         if checkpoint == "latest":
             return None, None  # no run: the plain model
+        if checkpoint == INITIAL:
+            raise ConfigError(f"checkpoint={INITIAL!r} needs run_dir=<training output_dir>: it evaluates that run's "
+                              "starting model in the run's setting")
         if not (given / "actor").is_dir():
             raise ConfigError(f"checkpoint={checkpoint!r} needs run_dir=<training output_dir>, or a path to a "
                               "checkpoint folder (runs/<name>/checkpoints/iter_N, holding actor/)")
@@ -202,6 +210,8 @@ def _find_checkpoint(run_dir: str | None, checkpoint: str) -> tuple[Path | None,
     if not root.is_dir():
         raise ConfigError(f"run_dir={run_dir!r} is not a folder; pass a training run's output_dir "
                           "(e.g. runs/grpo_chain_sum)")
+    if checkpoint == INITIAL:
+        return root, None  # the run's model.path as it was before training
     ckpts = root / "checkpoints"
     done = dict(Checkpoints(str(root)).completed())
     if checkpoint == "latest":

@@ -43,6 +43,22 @@ def test_run_dir_resolves_to_latest_checkpoint_and_the_runs_settings(tmp_path):
     assert plan.run_dir == run.resolve() and plan.actor.lora.r == 4  # run folder found from the checkpoint
 
 
+
+def test_initial_checkpoint_is_the_runs_starting_model_in_the_runs_setting(tmp_path):
+    """checkpoint=initial: the baseline a run is compared against, i.e. its model.path untrained,
+    with the run's task, budget and agent, and no actor to load."""
+    run = fake_run(tmp_path / "run", steps=())
+    plan = to_dataclass(EvalConfig, {"run_dir": str(run), "checkpoint": "initial"}).resolve()
+    assert plan.checkpoint is None and plan.step == 0 and plan.run_dir == run
+    assert plan.model_path == "smollm2-135m-instruct" and plan.task.name == "basic_arithmetic"
+    assert plan.max_new_tokens == 17 and plan.stop_strings == ["\n\n"]
+    assert plan.output == run / "eval" / "basic_arithmetic-initial.json"
+    cfg = to_dataclass(EvalConfig, {"run_dir": str(run), "checkpoint": "initial", "placement": {"rollout": "0",
+                                                                                              "reward": "0"}})
+    cfg.validate()  # no actor placed: nothing to load
+    with pytest.raises(ConfigError, match="checkpoint='initial' needs run_dir"):
+        to_dataclass(EvalConfig, {"checkpoint": "initial"}).resolve()
+
 def test_a_runs_data_file_contributes_only_its_held_out_rows(tmp_path):
     from infinirl.evaluation.runner import load_problems
 
