@@ -10,7 +10,10 @@ scores the tokens the rollout sampled. ``GenerationResult.response_mask`` marks 
 
 A trajectory ends when a turn ends without calling the environment (EOS, one of the task's own
 stop strings, or a turn the environment answers with ``done``), or when a budget runs out: turns,
-response tokens (model and observation ids together) or the tokens of one turn.
+response tokens (model and observation ids together) or the tokens of one turn. An environment
+with ``step_answer_turns`` is handed those answer turns too while the budget allows another turn
+(a coding environment runs the code of an answer as well, so ending a turn with EOS is no way
+around the feedback); it ends the trajectory with ``done`` or answers with feedback.
 
 Scheduling (``AgentBudget.schedule``):
 
@@ -62,6 +65,10 @@ class AgentEnv(ABC):
 
     stop_strings: tuple[str, ...] = ()
     """Strings that end a model turn and hand it to the environment (e.g. a closing tool tag)."""
+    step_answer_turns: bool = False
+    """Also hand the environment turns that end without one of ``stop_strings`` (EOS, a task's stop
+    string) while the budget allows another turn; otherwise such a turn is the answer. The text
+    then ends with what ended the turn (e.g. ``<|im_end|>``): an observation should not repeat it."""
 
     def reset(self, problem: Any) -> None:  # noqa: B027 (optional hook)
         """Called once before the first turn with the trajectory's problem."""
@@ -242,11 +249,17 @@ class AgentRollout:
                 turn = _cut(turn, room)
             trajectory.add_turn(turn)
             text = self.tokenizer.decode(turn.response_ids, skip_special_tokens=False)
+            out_of_budget = (trajectory.turns >= self.budget.max_turns
+                             or len(trajectory.ids) >= self.budget.max_response_tokens)
             if turn.finish_reason == "length":
                 self._finish(trajectory, "length")
             elif not any(stop in text for stop in env_stops):  # the token completing a stop may carry more
-                self._finish(trajectory, "answer")
-            elif trajectory.turns >= self.budget.max_turns or len(trajectory.ids) >= self.budget.max_response_tokens:
+                if trajectory.env.step_answer_turns and not out_of_budget:
+                    trajectory.env_steps += 1
+                    calling.append(trajectory)
+                else:
+                    self._finish(trajectory, "answer")
+            elif out_of_budget:
                 self._finish(trajectory, "length")
             else:
                 trajectory.env_steps += 1

@@ -7,7 +7,10 @@ in the sandbox against the problem's visible tests (the examples its prompt show
 all`` uses every test), and answers with what passed and what failed (with the value returned)
 and what the code printed. When every test passes, the trajectory ends (``stop_when_passing``);
 otherwise the model may fix the code in its next turn. The reward is the ``code_tests`` verifier's
-on the last code the model wrote, so a turn that ends without the fence (EOS) is simply the answer.
+on the last code the model wrote. A turn that ends without the stop string (EOS right after the
+closing fence) is the answer, unless ``run_answers``: then its code runs as well while another turn
+is left, so a policy cannot skip the feedback by ending its turn there; the observation then starts
+after the end-of-turn text the model wrote (the template's leading ``<|im_end|>`` is not repeated).
 
 Without a problem (``reset(None)``, or a problem without tests), the code runs as a program and
 the observation is its output: stdout, stderr and how it ended.
@@ -42,12 +45,13 @@ class CodeRunnerEnv(AgentEnv):
     falling back to running the code when a problem has none; ``all``: every test; ``run``: none,
     just run it). ``observation_template``: the text around the feedback, with ``{feedback}``
     (e.g. a chat template's user turn). ``stop_strings``: where a turn is handed over. ``limits``:
-    SandboxLimits or a mapping of its fields."""
+    SandboxLimits or a mapping of its fields. ``run_answers``: run the code of turns that end without
+    a stop string too (see the module docstring)."""
 
     def __init__(self, feedback: Feedback = "visible", observation_template: str = DEFAULT_OBSERVATION,
                  stop_strings: Sequence[str] = ("```\n",), stop_when_passing: bool = True,
                  limits: SandboxLimits | Mapping[str, Any] | None = None, max_feedback_chars: int = 1200,
-                 max_failures: int = 2, python: str | None = None):
+                 max_failures: int = 2, python: str | None = None, run_answers: bool = False):
         if feedback not in ("visible", "all", "run"):
             raise ValueError(f"feedback={feedback!r}: use visible, all or run")
         if "{feedback}" not in observation_template:
@@ -58,6 +62,7 @@ class CodeRunnerEnv(AgentEnv):
             raise ValueError(f"max_feedback_chars={max_feedback_chars}: must be >= 20")
         self.feedback, self.template, self.stop_when_passing = feedback, observation_template, stop_when_passing
         self.stop_strings = tuple(stop_strings)
+        self.step_answer_turns = bool(run_answers)
         self.sandbox = Sandbox(make_limits(limits, DEFAULT_TEST_LIMITS), python=python)
         self.max_feedback_chars, self.max_failures = max_feedback_chars, max_failures
         self.spec: CodeSpec | None = None
@@ -89,7 +94,11 @@ class CodeRunnerEnv(AgentEnv):
         info["code_run_s"] = time.perf_counter() - start
         if passed and self.stop_when_passing:
             return AgentStep(done=True, info=info)
-        return AgentStep(observation=self.template.replace("{feedback}", text), info=info)
+        observation = self.template.replace("{feedback}", text)
+        if not any(stop in turn for stop in self.stop_strings):  # an answer turn (run_answers)
+            info["answer_runs"] = 1
+            observation = observation[_overlap(turn, observation):]
+        return AgentStep(observation=observation, info=info)
 
     def _tests(self, spec: CodeSpec | None) -> str | None:
         if spec is None or self.feedback == "run":
@@ -97,3 +106,11 @@ class CodeRunnerEnv(AgentEnv):
         if self.feedback == "all":
             return spec.tests
         return spec.visible_tests or None
+
+
+def _overlap(text: str, following: str) -> int:
+    """Length of the longest end of ``text`` that ``following`` starts with (what not to repeat)."""
+    for length in range(min(len(text), len(following)), 0, -1):
+        if text.endswith(following[:length]):
+            return length
+    return 0

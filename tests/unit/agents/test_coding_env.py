@@ -111,3 +111,39 @@ def test_write_run_fix_through_the_agent_loop_and_the_verifier_scores_the_last_c
     verifier = CodeTestsVerifier(limits=LIMITS)
     assert verifier(model_text, PROBLEM).correct  # the fixed code, written last
     assert not verifier(turn(WRONG), PROBLEM).correct
+
+
+CHAT = "<|im_end|>\n<|im_start|>user\n{feedback}<|im_end|>\n<|im_start|>assistant\n"
+
+
+def answer(code):
+    """A turn that ends right after the closing fence with the end-of-turn token (no stop string)."""
+    return f"Here it is.\n```python\n{code}```<|im_end|>"
+
+
+def test_run_answers_runs_the_code_of_a_turn_ended_by_eos_without_repeating_the_eos():
+    env = env_for(run_answers=True, observation_template=CHAT)
+    assert env.step_answer_turns and not env_for().step_answer_turns
+    failing = env.step(answer(WRONG))
+    assert not failing.done and failing.info["answer_runs"] == 1
+    assert failing.observation.startswith("\n<|im_start|>user\n0/2 tests passed.")
+    assert env.step(answer(RIGHT)).done
+    handed = env.step(turn(WRONG))  # a turn ended on the stop string keeps the whole template
+    assert handed.observation.startswith("<|im_end|>\n<|im_start|>user") and "answer_runs" not in handed.info
+
+
+@pytest.mark.parametrize(("run_answers", "max_turns", "turns", "env_steps"),
+                         [(True, 3, 2, 2), (False, 3, 1, 0), (True, 1, 1, 0)])
+def test_an_eos_ended_turn_gets_feedback_only_with_run_answers_and_a_turn_left(run_answers, max_turns, turns,
+                                                                              env_steps):
+    _, tokenizer = tiny_causal_lm(tokenizer="byte", seed=0)
+    engine = ScriptedEngine(tokenizer, [answer(WRONG), answer(RIGHT)])
+    rollout = AgentRollout(engine, tokenizer,
+                           lambda: CodeRunnerEnv(limits=LIMITS, run_answers=run_answers, observation_template=CHAT),
+                           AgentBudget(max_turns=max_turns))
+    [result] = rollout.generate([[1, 2, 3]], SamplingParams(n=1, max_new_tokens=400), problems=[PROBLEM])
+    stats = result.extra["agent"]
+    assert (stats["turns"], stats["env_steps"], stats["end"]) == (turns, env_steps, "answer")
+    text = tokenizer.decode(result.response_ids)
+    assert text.count("<|im_end|>") == 2 * (turns - 1) + 1  # the model's EOS, then the template's own closing one
+    assert CodeTestsVerifier(limits=LIMITS)(tokenizer.decode(sampled_ids(result)), PROBLEM).correct == (turns == 2)
