@@ -22,6 +22,11 @@ What the loop owns:
 * **the end**: ``curves.png`` from the flow's panels, the flow's artifacts (an eval video, weight
   digests), and one JSON summary line: the headline metric before / after / best and the first
   evaluation that reached the target.
+* **stopping early**: SIGINT (Ctrl-C) or SIGTERM (a scheduler's preemption) while iterations run
+  asks the loop to stop after the current iteration: it writes a checkpoint there (unless one was
+  just written), the curves and the summary (``stopped_at``), skips the flow's end artifacts and
+  returns; ``infinirl train`` with the same config resumes from it. A second Ctrl-C interrupts at
+  once.
 * **failure**: an output folder the run created and never logged to is removed again.
 """
 
@@ -31,6 +36,9 @@ import json
 import math
 import os
 import shutil
+import signal
+import sys
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -170,7 +178,9 @@ class RunLoop:
         if start == 0 and cfg.eval.at_start:
             latest_eval = self._evaluate(flow, 0, None)
             self.logger.log({**latest_eval, "time/elapsed_s": self.elapsed()}, step=0)
-        with tqdm(total=cfg.iterations, initial=start, desc=spec.name, unit="it", dynamic_ncols=True) as progress:
+        stopped_at = None
+        with _StopRequests(spec.name) as stop, \
+                tqdm(total=cfg.iterations, initial=start, desc=spec.name, unit="it", dynamic_ncols=True) as progress:
             for iteration in range(start, cfg.iterations):
                 metrics = flow.step(iteration)
                 done = iteration + 1
@@ -181,9 +191,15 @@ class RunLoop:
                 self.logger.log(metrics, step=done)
                 progress.set_postfix_str(_postfix(spec.progress, {**latest_eval, **metrics}), refresh=False)
                 progress.update()
-                if (cfg.save_every and done % cfg.save_every == 0) or done == cfg.iterations:
-                    self._save(flow, done)
-        return self._finish(flow)
+                stopping = stop.requested is not None and done < cfg.iterations
+                if (cfg.save_every and done % cfg.save_every == 0) or done == cfg.iterations or stopping:
+                    path = self._save(flow, done)
+                if stopping:
+                    stopped_at = done
+                    progress.write(f"{spec.name}: stopped by {stop.requested} after iteration {done}; checkpoint "
+                                   f"{path}; run the same command again to resume")
+                    break
+        return self._finish(flow, stopped_at)
 
     def elapsed(self) -> float:
         """Wall time of the run so far, earlier runs of a resumed job included."""
@@ -244,15 +260,16 @@ class RunLoop:
         return iteration
 
     # ------------------------------------------------------------------ the end
-    def _finish(self, flow: Flow) -> dict:
+    def _finish(self, flow: Flow, stopped_at: int | None = None) -> dict:
         cfg, spec = self.cfg, flow.spec
-        artifacts = flow.finish(cfg.output_dir)
+        artifacts = flow.finish(cfg.output_dir) if stopped_at is None else {}
         self.logger.close()
         rows = read_metrics(self.logger.path)
         curves = plot_panels(rows, spec.panels, os.path.join(cfg.output_dir, "curves.png"), spec.title)
         evals = [r for r in rows if _finite(r.get(spec.headline))]
         summary = {
             "iterations": cfg.iterations,
+            **({} if stopped_at is None else {"stopped_at": stopped_at}),
             "elapsed_s": round(self.elapsed(), 1),
             "eval_metric": spec.headline,
             "eval_before": next((r[spec.headline] for r in evals if r["step"] == 0), None),
@@ -273,6 +290,35 @@ class RunLoop:
     def _remove_unused_output(self) -> None:
         if self._created_output and os.path.isdir(self.cfg.output_dir):
             shutil.rmtree(self.cfg.output_dir, ignore_errors=True)
+
+
+class _StopRequests:
+    """SIGINT and SIGTERM while iterations run: the first asks for a stop after the current
+    iteration (``requested`` names the signal); a second SIGINT raises ``KeyboardInterrupt`` at
+    once. Handlers can only be installed from the main thread; elsewhere nothing changes."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, name: str):
+        self.name = name
+        self.requested: str | None = None
+        self._previous: dict = {}
+
+    def __enter__(self) -> _StopRequests:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {sig: signal.signal(sig, self._handle) for sig in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+    def _handle(self, signum: int, frame) -> None:
+        if self.requested is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.requested = signal.Signals(signum).name
+        print(f"\n{self.name}: {self.requested} received; stopping after this iteration with a checkpoint "
+              "(Ctrl-C again to interrupt at once)", file=sys.stderr, flush=True)
 
 
 def _command_line() -> str:

@@ -23,3 +23,51 @@ def test_runtime_demo_cli_trains_end_to_end(tmp_path):
     trace = json.loads((tmp_path / "trace.json").read_text())
     assert {e["name"] for e in trace["traceEvents"] if e["ph"] == "X"} >= {"produce", "train"}
 
+
+
+PENDULUM = ["env.name=gym:Pendulum-v1", "env.num_envs=2", "rollout_steps=16", "save_every=0", "algorithm.epochs=1",
+            "algorithm.mini_batches=2", "eval.every=0", "eval.episodes=2", "eval.num_envs=1", "eval.video_episodes=0",
+            "eval.env_kwargs={}", "loggers=[]", "cluster.log_to_driver=false"]
+
+
+@pytest.mark.parametrize("whom", ["group", "driver"])
+def test_ctrl_c_or_sigterm_stops_after_the_iteration_with_a_checkpoint_and_the_run_resumes(tmp_path, whom):
+    """Ctrl-C reaches the driver and the Ray processes it started (the terminal's process group);
+    a scheduler's SIGTERM reaches the driver: both end the run after the current iteration, with a
+    checkpoint there, exit 0, and the same command resumes from it."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("gymnasium")
+    command = [sys.executable, "-m", "infinirl.cli", "train", "ppo_metaworld_reach", *PENDULUM,
+               f"output_dir={tmp_path}"]
+    proc = subprocess.Popen([*command, "iterations=400"], start_new_session=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    metrics = tmp_path / "metrics.jsonl"
+    deadline = time.monotonic() + 240
+    while not (metrics.exists() and len(metrics.read_text().splitlines()) >= 2) and proc.poll() is None:
+        assert time.monotonic() < deadline, "the run logged no iteration in 240 s"
+        time.sleep(0.1)
+    if whom == "group":
+        os.killpg(proc.pid, signal.SIGINT)
+    else:
+        proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=180)
+    assert proc.returncode == 0, err[-3000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    stopped = summary["stopped_at"]
+    assert 2 <= stopped < 400
+    assert f"stopped by {'SIGINT' if whom == 'group' else 'SIGTERM'} after iteration {stopped}" in out + err
+    assert sorted(os.listdir(tmp_path / "checkpoints")) == [f"iter_{stopped:06d}"]
+    assert [json.loads(line)["step"] for line in metrics.read_text().splitlines()] == list(range(1, stopped + 1))
+    if whom == "driver":
+        return
+    resumed = subprocess.run([*command, f"iterations={stopped + 2}"], capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"resumed from {tmp_path / 'checkpoints' / f'iter_{stopped:06d}'} at iteration {stopped}" in resumed.stdout
+    assert "stopped_at" not in json.loads((tmp_path / "summary.json").read_text())
+    assert [json.loads(line)["step"] for line in metrics.read_text().splitlines()] == list(range(1, stopped + 3))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -116,6 +117,44 @@ def test_resume_continues_exactly(tmp_path):
     history = [json.loads(line) for line in open(tmp_path / "b" / "run" / "config_history.jsonl")]
     assert history[-1]["iteration"] == 3 and history[-1]["changes"] == {"iterations": {"old": 3, "new": 6}}
     assert json.load(open(tmp_path / "b" / "run" / "config.json"))["iterations"] == 6
+
+
+class SignalledFlow(ToyFlow):
+    """Sends its own process ``signals`` (one each) during the step of iteration ``at``."""
+
+    def __init__(self, cfg, at: int, signals: tuple[int, ...]):
+        super().__init__(cfg)
+        self.at, self.signals = at, signals
+
+    def step(self, iteration: int) -> dict:
+        for sig in self.signals if iteration == self.at else ():
+            os.kill(os.getpid(), sig)
+        return super().step(iteration)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_stops_the_run_after_its_iteration_with_a_checkpoint_and_resume_is_exact(tmp_path, sig):
+    straight = run(toy(tmp_path / "a", iterations=6, save_every=5))
+    before = signal.getsignal(sig)
+    cfg = toy(tmp_path / "b", iterations=6, save_every=5)
+    with RunLoop(cfg) as loop:
+        stopped = loop.run(SignalledFlow(cfg, at=2, signals=(sig,)))
+    assert signal.getsignal(sig) is before  # the loop's handler is gone again
+    assert stopped["stopped_at"] == 3 and "weights" not in stopped  # no end artifacts for a stopped run
+    assert sorted(os.listdir(os.path.join(cfg.output_dir, "checkpoints"))) == ["iter_000003"]
+    assert [r["step"] for r in rows_of(cfg)] == [0, 1, 2, 3]
+    resumed = run(cfg)
+    assert "stopped_at" not in resumed and resumed["weights"] == straight["weights"]
+    assert [r["train/loss"] for r in rows_of(cfg)[1:]] == [r["train/loss"] for r in rows_of(toy(tmp_path / "a"))[1:]]
+
+
+def test_a_second_ctrl_c_interrupts_at_once(tmp_path):
+    cfg = toy(tmp_path, iterations=6)
+    with pytest.raises(KeyboardInterrupt), RunLoop(cfg) as loop:
+        loop.run(SignalledFlow(cfg, at=1, signals=(signal.SIGINT, signal.SIGINT)))
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert not os.path.exists(os.path.join(cfg.output_dir, "checkpoints")) or \
+        not os.listdir(os.path.join(cfg.output_dir, "checkpoints"))
 
 
 def test_a_changed_key_the_checkpoint_cannot_honour_is_refused_before_anything_runs(tmp_path):
