@@ -58,11 +58,13 @@ class CodeRunnerEnv(AgentEnv):
             raise ValueError(f"observation_template={observation_template!r} has no {{feedback}} placeholder")
         if not stop_strings or any(not s for s in stop_strings):
             raise ValueError("stop_strings: give at least one non-empty string")
+        if not isinstance(run_answers, bool):
+            raise ValueError(f"run_answers={run_answers!r}: use true or false")
         if max_feedback_chars < 20:
             raise ValueError(f"max_feedback_chars={max_feedback_chars}: must be >= 20")
         self.feedback, self.template, self.stop_when_passing = feedback, observation_template, stop_when_passing
         self.stop_strings = tuple(stop_strings)
-        self.step_answer_turns = bool(run_answers)
+        self.step_answer_turns = run_answers
         self.sandbox = Sandbox(make_limits(limits, DEFAULT_TEST_LIMITS), python=python)
         self.max_feedback_chars, self.max_failures = max_feedback_chars, max_failures
         self.spec: CodeSpec | None = None

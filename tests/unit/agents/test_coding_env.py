@@ -78,6 +78,8 @@ def test_bad_options_are_refused_and_the_env_is_registered():
     assert resolve_agent_env("code_runner") is CodeRunnerEnv
     with pytest.raises(ValueError, match="feedback"):
         CodeRunnerEnv(feedback="some")
+    with pytest.raises(ValueError, match="run_answers='yes': use true or false"):
+        CodeRunnerEnv(run_answers="yes")
     with pytest.raises(ValueError, match="placeholder"):
         CodeRunnerEnv(observation_template="no slot")
     with pytest.raises(ConfigError, match="env_options for env 'code_runner'"):
