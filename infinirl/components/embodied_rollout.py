@@ -35,7 +35,7 @@ from infinirl.runtime import WeightSink, Worker
 from infinirl.utils.memory import peak_memory_bytes
 from infinirl.utils.threads import limit_threads
 
-__all__ = ["EmbodiedRolloutWorker", "PolicySpec", "compiled_act", "run_eval_episodes"]
+__all__ = ["EmbodiedRolloutWorker", "PolicySpec", "compiled_act", "merge_task_success", "run_eval_episodes"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -478,10 +478,14 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
 
 
 def run_eval_episodes(policy, env, seeds: list[int], deterministic: bool = True) -> dict:
-    """Run one episode per seed on ``env`` (rounds of ``env.num_envs``); success/return/length."""
+    """Run one episode per seed on ``env`` (rounds of ``env.num_envs``); success/return/length.
+
+    Where the env's sub-envs run different tasks (``env.task_names``, e.g. ``metaworld:reach-v3,
+    push-v3``), also ``eval/success/<task>`` and ``eval/episodes/<task>`` for each task."""
     num_envs = env.num_envs
     chunk, device = policy.chunk, module_device(policy)
-    successes, returns, lengths = [], [], []
+    successes, returns, lengths, tasks = [], [], [], []
+    task_names = getattr(env, "task_names", None)
     for start in range(0, len(seeds), num_envs):
         batch = [int(s) for s in seeds[start:start + num_envs]]
         used = len(batch)
@@ -496,7 +500,32 @@ def run_eval_episodes(policy, env, seeds: list[int], deterministic: bool = True)
                 successes.append(bool(result.info["episode_success"][i]))
                 returns.append(float(result.info["episode_return"][i]))
                 lengths.append(int(result.info["episode_length"][i]))
+                tasks.append(task_names[i] if task_names else None)
             active &= ~result.done
             obs = result.obs
-    return {"eval/success_rate": float(np.mean(successes)), "eval/return_mean": float(np.mean(returns)),
-            "eval/length_mean": float(np.mean(lengths)), "eval/episodes": len(successes)}
+    metrics = {"eval/success_rate": float(np.mean(successes)), "eval/return_mean": float(np.mean(returns)),
+               "eval/length_mean": float(np.mean(lengths)), "eval/episodes": len(successes)}
+    if task_names and len(set(task_names)) > 1:
+        for task in dict.fromkeys(task for task in tasks if task is not None):
+            done = [success for success, name in zip(successes, tasks, strict=True) if name == task]
+            metrics[f"eval/success/{task}"] = float(np.mean(done))
+            metrics[f"eval/episodes/{task}"] = len(done)
+    return metrics
+
+
+def merge_task_success(results: list[dict]) -> dict:
+    """Per-task success of evaluations run in parts (one per rollout rank), weighted by each part's
+    episodes of that task: ``eval/success/<task>`` and ``eval/episodes/<task>``."""
+    counts: dict[str, float] = {}
+    successes: dict[str, float] = {}
+    for result in results:
+        for key, value in result.items():
+            if key.startswith("eval/episodes/"):
+                task = key[len("eval/episodes/"):]
+                counts[task] = counts.get(task, 0.0) + value
+                successes[task] = successes.get(task, 0.0) + value * result[f"eval/success/{task}"]
+    merged = {}
+    for task, count in counts.items():
+        merged[f"eval/success/{task}"] = successes[task] / count
+        merged[f"eval/episodes/{task}"] = count
+    return merged

@@ -52,6 +52,7 @@ class ActionChunkEnv:
         self.num_envs = env.num_envs
         self.action_space: ActionSpace = env.action_space.chunked(chunk_size)
         self.observation_spec: ObservationSpec = env.observation_spec
+        self.task_names: list[str] | None = getattr(env, "task_names", None)
 
     def reset(
         self, seeds: int | Sequence[int] | None = None, state_ids: Sequence[int] | None = None

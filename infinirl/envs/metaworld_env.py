@@ -228,6 +228,10 @@ class MetaWorldFactory:
             fast_render=self.fast_render,
         )
 
+    def task_names(self, num_envs: int) -> list[str]:
+        """The task each of ``num_envs`` envs runs (per-task evaluation metrics)."""
+        return [self.tasks[index % len(self.tasks)] for index in range(num_envs)]
+
 
 def metaworld_factory(task: str | None, **kwargs: Any) -> MetaWorldFactory:
     """Registry entry: ``metaworld:<task>`` with a v3 task name, MT10/MT25/MT50, or a comma-separated

@@ -98,6 +98,9 @@ class VectorEnv:
             raise ValueError(f"start_method must be 'spawn' or 'forkserver', got {start_method!r}")
         self.num_envs = num_envs
         self.num_workers = num_workers
+        # the task each env runs, where the factory says (multi-task suites): per-task metrics
+        task_names = getattr(factory, "task_names", None)
+        self.task_names: list[str] | None = task_names(num_envs) if callable(task_names) else None
         self.restart_count = 0
         self._max_restarts = max_restarts
         self._step_timeout_s = step_timeout_s

@@ -44,7 +44,7 @@ from infinirl.algorithms import EnvAdvantageInputs, compute_advantages
 from infinirl.algorithms.embodied_ppo import PPOSpec
 from infinirl.components.embodied_actor import EmbodiedActorWorker, actor_process_env
 from infinirl.components.embodied_policy import ReturnNormalizer
-from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec
+from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec, merge_task_success
 from infinirl.components.env_worker import (
     EnvSpec,
     EnvWorker,
@@ -479,6 +479,7 @@ class EmbodiedFlow:
         merged = {key: sum(r[key] * r["eval/episodes"] for r in results) / total
                   for key in ("eval/success_rate", "eval/return_mean", "eval/length_mean")}
         merged["eval/episodes"] = float(total)
+        merged.update(merge_task_success(results))
         merged["time/eval_s"] = time.perf_counter() - t0
         merged["env/steps"] = self.env_steps
         return merged
