@@ -443,6 +443,10 @@ class LiberoFactory:
             max_episode_steps=self.max_episode_steps,
         )
 
+    def task_names(self, num_envs: int) -> list[str]:
+        """``<suite>/<task index>`` of each of ``num_envs`` envs (per-task evaluation metrics)."""
+        return [f"{self.suite}/{self.task_indices[index % len(self.task_indices)]}" for index in range(num_envs)]
+
 
 def libero_factory(task: str | None, **kwargs: Any) -> LiberoFactory:
     """Registry entry: ``libero:<suite>`` or ``libero:<suite>/<task index>``."""

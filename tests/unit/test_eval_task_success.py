@@ -93,3 +93,10 @@ def test_metaworld_task_list_names_each_env():
     factory = metaworld_factory("reach-v3,push-v3")
     assert factory.task_names(3) == ["reach-v3", "push-v3", "reach-v3"]
     assert np.unique(metaworld_factory("MT10").task_names(10)).size == 10
+
+
+def test_libero_suite_names_each_env_by_suite_and_task_index():
+    from infinirl.envs.libero_env import LiberoFactory
+
+    factory = LiberoFactory("libero_goal", (0, 3, 7))
+    assert factory.task_names(4) == ["libero_goal/0", "libero_goal/3", "libero_goal/7", "libero_goal/0"]
