@@ -481,9 +481,21 @@ def run_eval_episodes(policy, env, seeds: list[int], deterministic: bool = True)
     """Run one episode per seed on ``env`` (rounds of ``env.num_envs``); success/return/length.
 
     Where the env's sub-envs run different tasks (``env.task_names``, e.g. ``metaworld:reach-v3,
-    push-v3``), also ``eval/success/<task>`` and ``eval/episodes/<task>`` for each task."""
+    push-v3``), also ``eval/success/<task>`` and ``eval/episodes/<task>`` for each task.
+
+    The policy's own randomness (a flow policy's initial noise, even when acting deterministically)
+    is seeded from the episode seeds on a forked RNG: the same weights on the same seeds score the
+    same in every run and at every evaluation, and training's random stream is left as it was."""
+    device = module_device(policy)
+    cuda = [device.index or 0] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=cuda):
+        torch.manual_seed(int(seeds[0]) if len(seeds) else 0)
+        return _eval_episodes(policy, env, seeds, deterministic, device)
+
+
+def _eval_episodes(policy, env, seeds: list[int], deterministic: bool, device: torch.device) -> dict:
     num_envs = env.num_envs
-    chunk, device = policy.chunk, module_device(policy)
+    chunk = policy.chunk
     successes, returns, lengths, tasks = [], [], [], []
     task_names = getattr(env, "task_names", None)
     for start in range(0, len(seeds), num_envs):

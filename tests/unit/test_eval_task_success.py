@@ -43,6 +43,32 @@ class ZeroPolicy(nn.Module):
         return PolicyStep(actions=torch.zeros(batch, 1, 2), logprobs=torch.zeros(batch, 1))
 
 
+class NoisyPolicy(nn.Module):
+    """Acts with fresh noise even when deterministic (as a flow policy's initial noise): success
+    depends on the draws."""
+
+    chunk = 1
+
+    def act(self, obs, deterministic: bool = True) -> PolicyStep:
+        batch = len(obs["state"])
+        return PolicyStep(actions=torch.rand(batch, 1, 2) * 2 - 1, logprobs=torch.zeros(batch, 1))
+
+
+def test_eval_noise_is_seeded_by_the_episodes_and_leaves_the_global_stream_alone():
+    env = VectorEnv(OneTaskFactory(), 2, num_workers=0)
+    try:
+        results = []
+        for global_seed in (1, 2):
+            torch.manual_seed(global_seed)
+            results.append(run_eval_episodes(NoisyPolicy(), env, seeds=list(range(8))))
+            after = torch.rand(1)
+            torch.manual_seed(global_seed)
+            assert torch.equal(after, torch.rand(1))  # the caller's stream is where it was
+    finally:
+        env.close()
+    assert results[0] == results[1]
+
+
 def test_vector_env_and_chunk_wrapper_report_each_envs_task():
     env = VectorEnv(TwoTaskFactory(), 3, num_workers=0)
     try:
