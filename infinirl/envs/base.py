@@ -19,6 +19,7 @@ language strings). Only numpy is used here, so this module imports in any proces
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -40,6 +41,7 @@ __all__ = [
     "SubEnv",
     "SubEnvFactory",
     "SubStep",
+    "step_takes_observe",
 ]
 
 Obs = dict[str, Any]
@@ -233,6 +235,12 @@ class SubEnv(Protocol):
     ``state_id`` (one of a fixed set of initial states, so several envs can start identically, as
     embodied GRPO needs). Simulators without a table of initial states treat a state id as a seed.
     Observations carry no env dimension; ``instruction`` is a plain string.
+
+    An adapter whose observations have a costly part (camera frames) may give ``step`` a keyword
+    ``observe: bool = True``: with ``observe=False`` nobody will read the step's observation (an
+    inner step of an action chunk), so it may repeat the previous frame instead of rendering, except
+    on a step that ends the episode (its final observation is kept). Physics, reward and state must
+    not depend on it. :func:`step_takes_observe` tells whether an env's ``step`` takes it.
     """
 
     action_space: ActionSpace
@@ -252,6 +260,14 @@ SubEnvFactory = Callable[[int], SubEnv]
 ``functools.partial`` of one) because worker processes call it."""
 
 
+def step_takes_observe(env: object) -> bool:
+    """Whether ``env.step`` takes the ``observe`` keyword (skip what nobody will read)."""
+    try:
+        return "observe" in inspect.signature(env.step).parameters
+    except (TypeError, ValueError):  # a step without a readable signature: assume not
+        return False
+
+
 @runtime_checkable
 class Env(Protocol):
     """The vectorised environment components and runners program against.
@@ -260,7 +276,9 @@ class Env(Protocol):
     repeats its current observation with zero reward and no episode end (action chunking uses
     this to stop an env whose episode ended within a chunk). ``autoreset=False``: an episode that
     ends is not restarted and that env may not be stepped again before ``reset`` (for a last step
-    whose next observation is not used). ``open_episodes()``: the return so far and the steps so
+    whose next observation is not used). An env may also take ``step(..., observe=False)`` for a
+    step whose observation nobody reads (:class:`~infinirl.envs.vector.VectorEnv` does; see
+    :class:`SubEnv`). ``open_episodes()``: the return so far and the steps so
     far of each env's running episode (``{"return": [num_envs], "length": [num_envs]}``), for
     reporting progress on episodes longer than a collection. ``offload``/``reload`` release and
     restore device memory for simulators that hold some; CPU simulators make them no-ops.

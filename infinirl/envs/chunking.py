@@ -28,6 +28,7 @@ from infinirl.envs.base import (
     copy_obs,
     obs_row,
     set_obs_rows,
+    step_takes_observe,
 )
 
 __all__ = ["ActionChunkEnv"]
@@ -44,11 +45,13 @@ class ActionChunkEnv:
     ``step_rewards`` ``[num_envs, chunk_size]`` and ``step_mask`` (which steps ran).
     """
 
-    def __init__(self, env: Env, chunk_size: int) -> None:
+    def __init__(self, env: Env, chunk_size: int, skip_inner_frames: bool = True) -> None:
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         self.env = env
         self.chunk_size = chunk_size
+        # nobody reads the observations between a chunk's actions: let the env skip their frames
+        self._skip_inner_frames = skip_inner_frames and step_takes_observe(env)
         self.num_envs = env.num_envs
         self.action_space: ActionSpace = env.action_space.chunked(chunk_size)
         self.observation_spec: ObservationSpec = env.observation_spec
@@ -77,7 +80,10 @@ class ActionChunkEnv:
         for k in range(k_max):
             if not active.any():
                 break
-            result = self.env.step(actions[:, k], env_mask=active, autoreset=autoreset)
+            if self._skip_inner_frames and k < k_max - 1:
+                result = self.env.step(actions[:, k], env_mask=active, autoreset=autoreset, observe=False)
+            else:
+                result = self.env.step(actions[:, k], env_mask=active, autoreset=autoreset)
             step_mask[:, k] = active
             step_rewards[:, k] = np.where(active, result.reward, 0.0)
             success |= result.info["success"] & active

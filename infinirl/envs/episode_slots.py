@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from infinirl.envs.base import ActionSpace, EnvCrashError, Obs, SubEnvFactory, collate_obs
+from infinirl.envs.base import ActionSpace, EnvCrashError, Obs, SubEnvFactory, collate_obs, step_takes_observe
 
 __all__ = ["BlockStep", "EpisodeSlot", "SlotGroup", "SlotStep"]
 
@@ -84,6 +84,7 @@ class EpisodeSlot:
         self._seed_stream = np.random.default_rng(list(seed_entropy))
         self._length = 0
         self.env = factory(index)
+        self._env_skips_observations = step_takes_observe(self.env)
 
     def reset(self, seed: int | None = None, state_id: int | None = None) -> Obs:
         """Start an episode: at ``state_id`` if given, else with ``seed`` (else the next seed of
@@ -97,9 +98,16 @@ class EpisodeSlot:
             seed = self._next_seed()
         return self._reset_or_rebuild(seed, state_id)
 
-    def step(self, action: np.ndarray, autoreset: bool = True) -> SlotStep:
+    def step(self, action: np.ndarray, autoreset: bool = True, observe: bool = True) -> SlotStep:
+        """``observe=False``: the caller will not read this step's observation, so a sub-env that
+        can (its ``step`` takes ``observe``) may skip its costly parts; not on a step where the
+        time limit ends the episode, whose final observation is kept."""
+        ends_by_time = self._max_episode_steps is not None and self._length + 1 >= self._max_episode_steps
         try:
-            sub = self.env.step(action)
+            if observe or ends_by_time or not self._env_skips_observations:
+                sub = self.env.step(action)
+            else:
+                sub = self.env.step(action, observe=False)
         except Exception:  # a crashing simulator must not take the run down
             error = traceback.format_exc()
             return SlotStep(self._rebuild(error), 0.0, False, True, False, restart_error=error)
@@ -149,6 +157,7 @@ class EpisodeSlot:
             pass
         try:
             self.env = self._factory(self.index)
+            self._env_skips_observations = step_takes_observe(self.env)
         except Exception as exc:
             raise EnvCrashError(
                 f"sub-env {self.index} crashed and cannot be rebuilt:\n{traceback.format_exc()}\n"
@@ -185,11 +194,15 @@ class SlotGroup:
         """``requests``: (local slot, seed, state_id) per env to reset; batched first obs."""
         return collate_obs([self.slots[k].reset(seed, state_id) for k, seed, state_id in requests])
 
-    def step(self, slots: Sequence[int], actions: np.ndarray, autoreset: bool = True) -> BlockStep | None:
+    def step(
+        self, slots: Sequence[int], actions: np.ndarray, autoreset: bool = True, observe: bool = True
+    ) -> BlockStep | None:
         """Step local ``slots`` with the matching rows of ``actions``."""
         if not slots:
             return None
-        return BlockStep.from_slots([self.slots[k].step(a, autoreset) for k, a in zip(slots, actions, strict=False)])
+        return BlockStep.from_slots(
+            [self.slots[k].step(a, autoreset, observe) for k, a in zip(slots, actions, strict=False)]
+        )
 
     def render(self) -> list[np.ndarray]:
         return [slot.env.render() for slot in self.slots]

@@ -100,6 +100,7 @@ class GymnasiumSubEnv:
         self._obs_mode = obs_mode
         self._clip_actions = clip_actions
         self._instruction = instruction
+        self._last_frame: np.ndarray | None = None  # repeated by steps nobody observes
         self._raw_obs_space = self._env.observation_space
         self.action_space = _action_space(self._env.action_space)
         self._discrete_start = int(getattr(self._env.action_space, "start", 0))
@@ -109,10 +110,13 @@ class GymnasiumSubEnv:
         obs, _ = self._env.reset(seed=state_id if state_id is not None else seed)
         return self._observe(obs)
 
-    def step(self, action: np.ndarray) -> SubStep:
+    def step(self, action: np.ndarray, observe: bool = True) -> SubStep:
+        """``observe=False``: nobody reads this step's observation (an inner step of an action
+        chunk), so unless the episode ends here its ``rgb`` repeats the last frame."""
         obs, reward, terminated, truncated, info = self._env.step(self._to_gym_action(action))
         success = bool(info.get("success", info.get("is_success", False)))
-        return SubStep(self._observe(obs), float(reward), bool(terminated), bool(truncated), success)
+        fresh_frame = observe or bool(terminated) or bool(truncated)
+        return SubStep(self._observe(obs, fresh_frame), float(reward), bool(terminated), bool(truncated), success)
 
     def render(self) -> np.ndarray:
         use_headless_gl()
@@ -132,12 +136,14 @@ class GymnasiumSubEnv:
             action = np.clip(action, self.action_space.low, self.action_space.high)
         return action
 
-    def _observe(self, raw_obs: Any) -> Obs:
+    def _observe(self, raw_obs: Any, fresh_frame: bool = True) -> Obs:
         obs: Obs = {}
         if "state" in self._obs_mode:
             obs["state"] = _flat_state(self._raw_obs_space, raw_obs)
         if "rgb" in self._obs_mode:
-            obs["rgb"] = self.render()
+            if fresh_frame or self._last_frame is None:
+                self._last_frame = self.render()
+            obs["rgb"] = self._last_frame
         if self._instruction is not None:
             obs["instruction"] = self._instruction
         return obs

@@ -128,6 +128,7 @@ class MetaWorldSubEnv:
         self._terminate_on_success = terminate_on_success
         self._instruction = task_instruction(task)
         self._rotate_frames: bool | None = None  # decided on the first render
+        self._last_frame: np.ndarray | None = None  # repeated by steps nobody observes
         self.action_space = ActionSpace.box(self._sim.action_space.low, self._sim.action_space.high)
         self.observation_spec = self._observation_spec((height, width))
 
@@ -140,11 +141,15 @@ class MetaWorldSubEnv:
         state, _ = self._sim.reset()
         return self._observe(state)
 
-    def step(self, action: np.ndarray) -> SubStep:
+    def step(self, action: np.ndarray, observe: bool = True) -> SubStep:
+        """``observe=False``: nobody reads this step's observation (an inner step of an action
+        chunk), so unless the episode ends here its ``rgb`` repeats the last frame instead of
+        rendering a new one (physics, reward and state are the same either way)."""
         state, reward, terminated, truncated, info = self._sim.step(np.asarray(action, np.float32))
         success = bool(info["success"])
         terminated = bool(terminated) or (self._terminate_on_success and success)
-        return SubStep(self._observe(state), float(reward), terminated, bool(truncated), success)
+        fresh_frame = observe or terminated or bool(truncated)
+        return SubStep(self._observe(state, fresh_frame), float(reward), terminated, bool(truncated), success)
 
     def render(self) -> np.ndarray:
         """The camera frame, upright, uint8 HxWx3."""
@@ -159,11 +164,13 @@ class MetaWorldSubEnv:
     def close(self) -> None:
         self._sim.close()
 
-    def _observe(self, state: np.ndarray) -> Obs:
+    def _observe(self, state: np.ndarray, fresh_frame: bool = True) -> Obs:
         state = state.astype(np.float32)
         obs: Obs = {"state": state, "proprio": state[:_PROPRIO_DIMS].copy()}
         if "rgb" in self._obs_mode:
-            obs["rgb"] = self.render()
+            if fresh_frame or self._last_frame is None:
+                self._last_frame = self.render()
+            obs["rgb"] = self._last_frame
         obs["instruction"] = self._instruction
         return obs
 

@@ -183,15 +183,29 @@ class VectorEnv:
         self._awaiting_reset[:] = False
         return copy_obs(self._obs)
 
-    def step(self, actions: Any, env_mask: np.ndarray | None = None, autoreset: bool = True) -> StepResult:
+    def step(
+        self,
+        actions: Any,
+        env_mask: np.ndarray | None = None,
+        autoreset: bool = True,
+        observe: bool = True,
+    ) -> StepResult:
         """Step every env (or only where ``env_mask`` is true) by one action; see
         :class:`~infinirl.envs.base.StepResult` for what ``info`` holds. ``autoreset=False``: an
         episode that ends is not restarted (its row keeps the final observation) and that env
-        cannot be stepped again before :meth:`reset`."""
-        self.step_async(actions, env_mask, autoreset)
+        cannot be stepped again before :meth:`reset`. ``observe=False``: this step's observation
+        will not be read (an inner step of an action chunk): sub-envs that can skip their camera
+        frames, whose rows then repeat an earlier frame; final and reset observations stay whole."""
+        self.step_async(actions, env_mask, autoreset, observe)
         return self.step_wait()
 
-    def step_async(self, actions: Any, env_mask: np.ndarray | None = None, autoreset: bool = True) -> None:
+    def step_async(
+        self,
+        actions: Any,
+        env_mask: np.ndarray | None = None,
+        autoreset: bool = True,
+        observe: bool = True,
+    ) -> None:
         """Send the actions and return at once; :meth:`step_wait` collects the result. Lets the
         caller compute something else (another stage's policy) while the simulators run."""
         if self._obs is None:
@@ -211,7 +225,7 @@ class VectorEnv:
         for worker in self._workers:
             slots = [k for k, i in enumerate(worker.indices) if active[i]]
             indices = np.asarray(worker.indices)[slots]
-            worker.send("step", slots, actions[indices], self._pending_autoreset)
+            worker.send("step", slots, actions[indices], self._pending_autoreset, bool(observe))
             self._pending_step.append((worker, indices))
 
     def step_wait(self) -> StepResult:

@@ -126,3 +126,29 @@ def test_worker_processes_match_in_process_stepping():
             env.reset(seeds=[3, 4])
             states.append([env.step(a).obs["state"] for a in actions])
     np.testing.assert_array_equal(np.stack(states[0]), np.stack(states[1]))
+
+
+def test_action_chunks_skip_inner_frames_without_changing_what_is_read():
+    # chunks of 4 in 10-step episodes: each chunk's last frame and the final frames of ended
+    # episodes are the ones rendered at every step; state, reward and success are untouched
+    from infinirl.envs import ActionChunkEnv, VectorEnv
+    from infinirl.envs.metaworld_env import MetaWorldFactory
+
+    rng = np.random.default_rng(0)
+    chunks = [rng.uniform(-1, 1, (2, 4, 4)).astype(np.float32) for _ in range(6)]
+    traces = []
+    for skip in (True, False):
+        factory = MetaWorldFactory(("door-open-v3",), obs_mode="state+rgb", image_size=32, max_episode_steps=10)
+        with ActionChunkEnv(VectorEnv(factory, 2, num_workers=0), 4, skip_inner_frames=skip) as env:
+            env.reset(seeds=[5, 6])
+            results = [env.step(chunk) for chunk in chunks]
+        traces.append(results)
+    for a, b in zip(*traces, strict=True):
+        for key in ("state", "rgb"):
+            np.testing.assert_array_equal(a.obs[key], b.obs[key])
+        np.testing.assert_array_equal(a.reward, b.reward)
+        np.testing.assert_array_equal(a.info["success"], b.info["success"])
+        np.testing.assert_array_equal(a.done, b.done)
+        ended = a.info["final_obs_mask"]
+        np.testing.assert_array_equal(a.info["final_obs"]["rgb"][ended], b.info["final_obs"]["rgb"][ended])
+    assert any(result.done.any() for result in traces[0])

@@ -97,3 +97,43 @@ class BrokenFactory:
 
     def __call__(self, index):
         raise ValueError(f"cannot build env {index}: simulator assets missing")
+
+
+class FramedCounterEnv(CounterEnv):
+    """A :class:`CounterEnv` whose observation has a camera frame (``frame``, the step count it
+    was rendered at) and whose ``step`` takes ``observe``: unobserved steps repeat the last frame,
+    except where the episode ends. ``renders`` counts frames drawn over the env's life."""
+
+    def __init__(self, episode_length=5, success_at=3):
+        super().__init__(episode_length, success_at)
+        self.observation_spec = {
+            **self.observation_spec,
+            "frame": ArraySpec((1,), "int64"),
+            "renders": ArraySpec((1,), "int64"),
+        }
+        self.renders = 0
+        self._frame = None
+
+    def reset(self, seed=None, state_id=None):
+        super().reset(seed, state_id)
+        return self._framed_obs(fresh=True)
+
+    def step(self, action, observe=True):
+        sub = super().step(action)
+        return SubStep(self._framed_obs(fresh=observe or sub.terminated or sub.truncated),
+                       sub.reward, sub.terminated, sub.truncated, sub.success)
+
+    def _framed_obs(self, fresh):
+        if fresh or self._frame is None:
+            self.renders += 1
+            self._frame = np.array([self._t], dtype=np.int64)
+        return {**self._obs(), "frame": self._frame.copy(), "renders": np.array([self.renders])}
+
+
+@dataclass(frozen=True)
+class FramedCounterFactory:
+    episode_length: int = 5
+    success_at: int = 3
+
+    def __call__(self, index):
+        return FramedCounterEnv(self.episode_length, self.success_at)
