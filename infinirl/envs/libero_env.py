@@ -23,12 +23,14 @@ position + axis-angle + the two gripper joints, and episodes are truncated at a 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import os
 import sys
 import types
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -327,7 +329,8 @@ class LiberoSubEnv:
             bddl_file_name=benchmark.get_task_bddl_file_path(task_index),
             camera_heights=image_size,
             camera_widths=image_size,
-            horizon=max_episode_steps or SUITE_MAX_EPISODE_STEPS.get(suite, 400),
+            # robosuite counts the settling steps too; the limit is on the policy's steps
+            horizon=(max_episode_steps or SUITE_MAX_EPISODE_STEPS.get(suite, 400)) + settle_steps,
         )
         self._instruction = task.language
         self._settle_steps = settle_steps
@@ -340,6 +343,12 @@ class LiberoSubEnv:
         }
         self._last_frame: np.ndarray | None = None
         self._scene_is_fresh = True
+        self._cameras: dict[str, _SkippableCamera] = {}
+
+    @property
+    def frames_rendered(self) -> int:
+        """Camera frames drawn since the scene was last built (a hard reset builds it anew)."""
+        return sum(camera.renders for camera in self._cameras.values())
 
     @property
     def simulator(self) -> Any:
@@ -367,8 +376,10 @@ class LiberoSubEnv:
         finally:
             np.random.set_state(saved)
         raw = self._env.set_init_state(self._init_states[state_id])
-        for _ in range(self._settle_steps):
-            raw, *_ = self._env.step(_SETTLE_ACTION)
+        self._cameras = _skippable_cameras(self._env.env)  # a hard reset built new observables
+        for step in range(self._settle_steps):
+            with _frames_skipped(self._cameras, step < self._settle_steps - 1):  # only the last is read
+                raw, *_ = self._env.step(_SETTLE_ACTION)
         return self._observe(raw)
 
     def _reset_scene(self) -> None:
@@ -395,11 +406,24 @@ class LiberoSubEnv:
         if context is not None:
             context.gl_ctx.make_current()
 
-    def step(self, action: np.ndarray) -> SubStep:
+    def step(self, action: np.ndarray, observe: bool = True) -> SubStep:
+        """``observe=False``: nobody reads this step's observation (an inner step of an action
+        chunk), so the cameras repeat their last frames instead of rendering. robosuite keeps
+        sampling them on its own schedule, so the frames of the next observed step are the ones
+        rendering every step gives; a step that reaches the time limit renders as usual, and one
+        that ends in success renders its cameras after the step."""
         self._use_own_gl_context()
-        raw, reward, done, _ = self._env.step(np.asarray(action, np.float64))
+        robosuite_env = self._env.env
+        skip = not observe and robosuite_env.timestep + 1 < robosuite_env.horizon
+        with _frames_skipped(self._cameras, skip):
+            raw, reward, _, _ = self._env.step(np.asarray(action, np.float64))
         success = bool(self._env.check_success())
-        return SubStep(self._observe(raw), float(reward), success, bool(done) and not success, success)
+        if skip and success:  # a final observation: its frames must show this episode's end
+            raw = {**raw, **{name: camera.render_now() for name, camera in self._cameras.items()}}
+        # LIBERO's step reports success as `done`; the time limit is robosuite's own flag, and
+        # robosuite refuses any step after it
+        out_of_time = bool(robosuite_env.done) and not success
+        return SubStep(self._observe(raw), float(reward), success, out_of_time, success)
 
     def render(self) -> np.ndarray:
         return self._last_frame
@@ -422,6 +446,62 @@ class LiberoSubEnv:
             "proprio": proprio,
             "instruction": self._instruction,
         }
+
+
+_CAMERA_OBSERVABLES = ("agentview_image", "robot0_eye_in_hand_image")
+
+
+class _SkippableCamera:
+    """A robosuite camera sensor that can repeat its last frame instead of rendering.
+
+    robosuite samples each observable on its own clock, at some physics substep of a control step.
+    Disabling the observable would stop that clock and shift later samples; wrapping the sensor
+    keeps the clock running, so a frame rendered after skipped steps is the one an env rendering
+    every step shows at that step."""
+
+    def __init__(self, sensor: Any) -> None:
+        self._sensor = sensor
+        self.__modality__ = sensor.__modality__  # robosuite's @sensor marker, checked by set_sensor
+        self.skip = False
+        self.renders = 0
+        self._last: np.ndarray | None = None
+
+    def __call__(self, obs_cache: dict) -> np.ndarray:
+        if not self.skip or self._last is None:
+            return self.render_now(obs_cache)
+        return self._last
+
+    def render_now(self, obs_cache: dict | None = None) -> np.ndarray:
+        """A frame of the current state (outside robosuite's sampling clock when called directly)."""
+        self._last = self._sensor(obs_cache if obs_cache is not None else {})
+        self.renders += 1
+        return self._last
+
+
+def _skippable_cameras(robosuite_env: Any) -> dict[str, _SkippableCamera]:
+    """Wrap the env's camera sensors (once per set of observables: a hard reset builds new ones)."""
+    cameras = {}
+    for name in _CAMERA_OBSERVABLES:
+        observable = robosuite_env._observables[name]  # robosuite has no public sensor getter
+        sensor = observable._sensor
+        if not isinstance(sensor, _SkippableCamera):
+            sensor = _SkippableCamera(sensor)
+            observable.set_sensor(sensor)
+        cameras[name] = sensor
+    return cameras
+
+
+@contextlib.contextmanager
+def _frames_skipped(cameras: dict[str, _SkippableCamera], skip: bool) -> Iterator[None]:
+    """Within, the cameras repeat their last frames if ``skip``."""
+    skipping = list(cameras.values()) if skip else []
+    for camera in skipping:
+        camera.skip = True
+    try:
+        yield
+    finally:
+        for camera in skipping:
+            camera.skip = False
 
 
 @dataclass(frozen=True)

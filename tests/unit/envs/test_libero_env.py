@@ -208,3 +208,35 @@ def test_config_is_private_to_the_install_and_a_foreign_one_fails_in_one_line(tm
     assert ensure_config(assets) == foreign / "config.yaml"  # the user's: kept, then checked
     with pytest.raises(LiberoConfigError, match="names bddl_files: '/elsewhere/bddl_files', which is not a folder"):
         check_config(foreign / "config.yaml")
+
+
+def test_steps_nobody_observes_render_no_frame_and_the_frames_read_are_unchanged(scenes):
+    """Chunks of 4 in 6-step episodes: with ``observe=False`` on inner steps, the frames of every
+    observed step and of the time-limit end are bit-identical to an env rendering every step
+    (robosuite's sampling clock keeps running); a success on an inner step renders its end."""
+    scenes.close()  # two more scenes: free the shared one first
+    make = libero_factory("libero_goal/0", image_size=IMAGE, settle_steps=2, max_episode_steps=6)
+    full, skipping = make(0), make(0)
+    try:
+        for env in (full, skipping):
+            env.reset(state_id=0)
+        rng = np.random.default_rng(0)
+        for t in range(6):
+            action = rng.uniform(-0.5, 0.5, 7).astype(np.float32)
+            a, b = full.step(action), skipping.step(action, observe=t % 4 == 3)
+            assert (a.reward, a.terminated, a.truncated) == (b.reward, b.terminated, b.truncated)
+            assert b.truncated == (t == 5)  # the limit counts the policy's steps, not the settling ones
+            if t % 4 == 3 or b.truncated:
+                for key in ("rgb", "wrist_rgb", "proprio"):
+                    np.testing.assert_array_equal(a.obs[key], b.obs[key], err_msg=f"{key} at step {t}")
+        assert b.truncated  # the time limit ended the episode on a step that was not observed
+        assert skipping.frames_rendered < full.frames_rendered - 6  # 2 cameras x 3 inner steps skipped
+        before = skipping.reset(state_id=0)
+        libero_env = skipping.simulator.env
+        libero_env.object_states_dict["wooden_cabinet_1_middle_region"].set_joint(-0.15)
+        libero_env.sim.forward()
+        end = skipping.step(np.zeros(7, np.float32), observe=False)
+        assert end.terminated and not np.array_equal(end.obs["rgb"], before["rgb"])  # the open drawer
+    finally:
+        full.close()
+        skipping.close()
