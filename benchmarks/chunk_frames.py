@@ -13,11 +13,11 @@ action chunks both ways:
 The two rows are built once and take turns, ``--rounds`` rounds of ``--chunks`` chunks each, so a
 slow spell of a shared machine lands on both; the rate of a row is its total env steps over its
 total time. The env comes from a demo config (``--config``, default the VLA demo
-``ppo_vla_metaworld``: its tasks, env count, camera, image size and chunk), so the benchmark
-measures the loop that demo runs; flags override single fields.
+``ppo_vla_metaworld``: its env, options, env count and chunk; ``ppo_pi0_libero`` steps LIBERO),
+so the benchmark measures the loop that demo runs; flags override single fields.
 
     python benchmarks/chunk_frames.py
-    python benchmarks/chunk_frames.py --image-size 128 --chunk 8 --record docs/results.md
+    python benchmarks/chunk_frames.py --config ppo_pi0_libero --num-envs 2 --chunks 20 --record docs/results.md
 
 Last stdout line: {"benchmark": "chunk_frames", "ratios": {"chunk_frames_skip_vs_full": skip env
 steps/s over full env steps/s}, "device": ..., "results": {row: {...}}, "config": {...}}.
@@ -42,21 +42,15 @@ DEMO = "ppo_vla_metaworld"
 
 
 def demo_env(config: str = DEMO) -> dict:
-    """The env a demo config trains in: {tasks, num_envs, image_size, camera, chunk}."""
+    """The env a demo config trains in: {env (registry name), kwargs, num_envs, chunk}."""
     from infinirl.config import compose
 
     raw = compose(config)
-    family, _, tasks = raw["env"]["name"].partition(":")
-    if family != "metaworld":
-        raise SystemExit(f"--config {config}: its env is {raw['env']['name']!r}; this benchmark steps MetaWorld")
-    kwargs = raw["env"].get("kwargs") or {}
-    return {
-        "tasks": tasks,
-        "num_envs": int(raw["env"]["num_envs"]),
-        "image_size": int(kwargs.get("image_size", 128)),
-        "camera": kwargs.get("camera", "corner"),
-        "chunk": int(raw["policy"].get("chunk") or 1),
-    }
+    chunk = int(raw["policy"].get("chunk") or 1)
+    kwargs = dict(raw["env"].get("kwargs") or {})
+    if "rgb" not in kwargs.get("obs_mode", "rgb"):
+        raise SystemExit(f"--config {config}: its env has no camera (obs_mode={kwargs['obs_mode']!r})")
+    return {"env": raw["env"]["name"], "kwargs": kwargs, "num_envs": int(raw["env"]["num_envs"]), "chunk": chunk}
 
 
 def summarise(seconds: list[float], env_steps: list[int]) -> dict:
@@ -71,13 +65,12 @@ def summarise(seconds: list[float], env_steps: list[int]) -> dict:
 
 
 def _build(args: argparse.Namespace, skip: bool):
-    from infinirl.envs import ActionChunkEnv, VectorEnv
-    from infinirl.envs.metaworld_env import MetaWorldFactory
+    from infinirl.envs import ActionChunkEnv, make_env
 
-    factory = MetaWorldFactory(
-        tuple(args.tasks.split(",")), obs_mode="state+rgb", image_size=args.image_size, camera=args.camera
-    )
-    vector = VectorEnv(factory, args.num_envs, num_workers=args.num_workers, seed=0)
+    kwargs = dict(args.kwargs)
+    if args.image_size is not None:
+        kwargs["image_size"] = args.image_size
+    vector = make_env(args.env, args.num_envs, num_workers=args.num_workers, seed=0, **kwargs)
     return ActionChunkEnv(vector, args.chunk, skip_inner_frames=skip)
 
 
@@ -94,27 +87,27 @@ def _run_round(env, chunks) -> tuple[float, int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", default=DEMO, help="the demo config whose env is stepped")
-    parser.add_argument("--tasks", help="comma-separated MetaWorld v3 tasks (default: the config's)")
     parser.add_argument("--num-envs", type=int, help="default: the config's")
     parser.add_argument("--num-workers", type=int, help="env worker processes (default: one per core)")
     parser.add_argument("--image-size", type=int, help="default: the config's")
-    parser.add_argument("--camera", help="default: the config's")
     parser.add_argument("--chunk", type=int, help="actions per chunk, K (default: the config's policy.chunk)")
     parser.add_argument("--chunks", type=int, default=50, help="chunks per round (50 x 4 = one 200-step episode)")
     parser.add_argument("--rounds", type=int, default=3)
     add_record_argument(parser)
     args = parser.parse_args()
     for key, value in demo_env(args.config).items():
-        if getattr(args, key) is None:
+        if getattr(args, key, None) is None:
             setattr(args, key, value)
     if args.chunk < 2:
         raise SystemExit(f"--chunk must be >= 2 (a chunk of {args.chunk} has no inner step), got {args.chunk}")
 
     import numpy as np
 
-    rng = np.random.default_rng(0)
-    chunks = [rng.uniform(-1, 1, (args.num_envs, args.chunk, 4)).astype(np.float32) for _ in range(args.chunks)]
     envs = {row: _build(args, skip=row == "skip") for row in ROWS}
+    space = envs["skip"].env.action_space
+    rng = np.random.default_rng(0)
+    chunks = [rng.uniform(space.low, space.high, (args.num_envs, args.chunk, *space.shape)).astype(np.float32)
+              for _ in range(args.chunks)]
     times: dict[str, list[float]] = {row: [] for row in ROWS}
     steps: dict[str, list[int]] = {row: [] for row in ROWS}
     try:
