@@ -410,8 +410,10 @@ class LiberoSubEnv:
         """``observe=False``: nobody reads this step's observation (an inner step of an action
         chunk), so the cameras repeat their last frames instead of rendering. robosuite keeps
         sampling them on its own schedule, so the frames of the next observed step are the ones
-        rendering every step gives; a step that reaches the time limit renders as usual, and one
-        that ends in success renders its cameras after the step."""
+        rendering every step gives; a step that reaches the time limit renders as usual. One that
+        ends in success draws its cameras after the step: robosuite samples them at a physics
+        substep within the step, so these final frames (never bootstrapped from: the episode
+        terminated) show the scene a few milliseconds later than rendering every step would."""
         self._use_own_gl_context()
         robosuite_env = self._env.env
         skip = not observe and robosuite_env.timestep + 1 < robosuite_env.horizon
@@ -461,7 +463,7 @@ class _SkippableCamera:
 
     def __init__(self, sensor: Any) -> None:
         self._sensor = sensor
-        self.__modality__ = sensor.__modality__  # robosuite's @sensor marker, checked by set_sensor
+        self.__modality__ = sensor.__modality__  # robosuite's @sensor marker
         self.skip = False
         self.renders = 0
         self._last: np.ndarray | None = None
@@ -472,21 +474,23 @@ class _SkippableCamera:
         return self._last
 
     def render_now(self, obs_cache: dict | None = None) -> np.ndarray:
-        """A frame of the current state (outside robosuite's sampling clock when called directly)."""
+        """A frame of the simulator's current state (outside robosuite's clock when called directly)."""
         self._last = self._sensor(obs_cache if obs_cache is not None else {})
         self.renders += 1
         return self._last
 
 
 def _skippable_cameras(robosuite_env: Any) -> dict[str, _SkippableCamera]:
-    """Wrap the env's camera sensors (once per set of observables: a hard reset builds new ones)."""
+    """Wrap the env's camera sensors (once per set of observables: a hard reset builds new ones).
+    robosuite has no public getter or quiet setter for a sensor: ``set_sensor`` would render a
+    frame to check it, so the attribute is read and replaced directly (robosuite 1.4.1 is pinned)."""
     cameras = {}
     for name in _CAMERA_OBSERVABLES:
-        observable = robosuite_env._observables[name]  # robosuite has no public sensor getter
+        observable = robosuite_env._observables[name]
         sensor = observable._sensor
         if not isinstance(sensor, _SkippableCamera):
             sensor = _SkippableCamera(sensor)
-            observable.set_sensor(sensor)
+            observable._sensor = sensor
         cameras[name] = sensor
     return cameras
 

@@ -50,6 +50,29 @@ def test_mujoco_task_clips_actions_and_renders_rgb():
         assert big.obs["rgb"].std() > 10  # a real picture, not a blank buffer
 
 
+def test_unobserved_steps_repeat_the_frame_and_episode_ends_render():
+    pytest.importorskip("mujoco")
+    from infinirl.envs.gymnasium_env import GymnasiumSubEnv
+
+    kwargs = dict(obs_mode="state+rgb", make_kwargs={"width": 64, "height": 48})
+    full, skipping = GymnasiumSubEnv("InvertedPendulum-v5", **kwargs), GymnasiumSubEnv("InvertedPendulum-v5", **kwargs)
+    try:
+        full.reset(seed=0)
+        first = skipping.reset(seed=0)["rgb"]
+        for _ in range(100):  # pushed one way, the pole falls within a few dozen steps
+            a, b = full.step(np.array([3.0], np.float32)), skipping.step(np.array([3.0], np.float32), observe=False)
+            np.testing.assert_array_equal(a.obs["state"], b.obs["state"])
+            if b.terminated:
+                break
+            np.testing.assert_array_equal(b.obs["rgb"], first)  # nobody reads it: not drawn
+        assert b.terminated
+        np.testing.assert_array_equal(a.obs["rgb"], b.obs["rgb"])  # the final frame is drawn
+        assert not np.array_equal(b.obs["rgb"], first)
+    finally:
+        full.close()
+        skipping.close()
+
+
 def test_headless_gl_renders_software_frames_on_the_calling_thread(monkeypatch):
     """osmesa gets LP_NUM_THREADS=0 (llvmpipe rasterises on the calling thread) unless the user
     chose a value; other backends are left alone."""
