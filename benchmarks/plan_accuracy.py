@@ -34,7 +34,6 @@ from infinirl.results import host_probe
 from infinirl.scheduler.auto import plan
 from infinirl.scheduler.cost import Allocation, Candidate, predict
 from infinirl.scheduler.profile import measure_candidate, workload_of
-from infinirl.scheduler.search import choose
 from infinirl.scheduler.workloads import RUNNER_MODELS
 
 JOBS = {"embodied": "ppo_metaworld_reach", "reasoning": "grpo_chain_sum"}
@@ -69,7 +68,7 @@ def _placements(job: str, entries, wanted: int) -> dict[str, tuple[Candidate, st
     for label, (devices, depth) in HAND_WRITTEN[job].items():
         candidate = _candidate(devices, depth)
         chosen[_key(candidate)] = (candidate, f"hand-written: {label}")
-    best = choose(entries).candidate
+    best = entries[0].candidate
     chosen[_key(best)] = (best, "chosen" + (" (also " + chosen[_key(best)][1] + ")" if _key(best) in chosen else ""))
     for entry in entries[1:]:
         if len(chosen) >= wanted:

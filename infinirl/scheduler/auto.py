@@ -1,9 +1,8 @@
 """``infinirl plan`` and ``placement: auto``: profile (or read the cached profile), search, choose.
 
 :func:`plan` returns the ranked candidates of a config on this machine's cluster; the run of a
-config with ``placement: auto`` takes the chosen one (:func:`~infinirl.scheduler.search.choose`:
-the simplest of those predicted within 10% of the fastest; :func:`resolve_auto_placement`, called
-by ``runners.run_support`` before its cluster starts) and writes it into the config, so the run's
+config with ``placement: auto`` takes the first one (:func:`resolve_auto_placement`, called by
+``runners.run_support`` before its cluster starts) and writes it into the config, so the run's
 ``config.json`` records the placement and depth that ran.
 """
 
@@ -14,7 +13,7 @@ import json
 from infinirl.config import ConfigError
 from infinirl.runtime.inventory import ClusterInventory, GiB
 from infinirl.scheduler.profile import Profile, load_or_profile, profile_summary, workload_of
-from infinirl.scheduler.search import CHOICE_MARGIN, PlanEntry, choose, fixed_placements, search
+from infinirl.scheduler.search import PlanEntry, fixed_placements, search
 from infinirl.scheduler.workloads import RUNNER_MODELS, UNPLANNED_RUNNERS
 
 __all__ = ["DEPTH_KEYS", "format_plan", "plan", "plan_command", "resolve_auto_placement", "runner_model"]
@@ -48,12 +47,12 @@ def plan(cfg, inventory: ClusterInventory | None = None, iterations: int = 4, re
 
 
 def resolve_auto_placement(cfg, **plan_options) -> PlanEntry:
-    """Write the chosen candidate's placement and depth into ``cfg`` (``placement: auto``)."""
+    """Write the best candidate's placement and depth into ``cfg`` (``placement: auto``)."""
     _, entries = plan(cfg, **plan_options)
     if not entries:
         raise ConfigError(f"placement=auto: no placement of {', '.join(cfg.components())} fits this cluster's "
                           "devices and memory; give placement.* explicitly")
-    best = choose(entries)
+    best = entries[0]
     model = runner_model(cfg)
     model.apply(cfg, best.candidate)
     print(f"placement=auto: {json.dumps(best.placement)} depth {best.candidate.depth}, predicted "
@@ -76,17 +75,11 @@ def format_plan(cfg, profile: Profile | None, entries: list[PlanEntry], top: int
     fixed = fixed_placements(cfg, model) if model is not None else {}
     if fixed:
         lines.append(f"fixed (not searched): {', '.join(f'{k}={v}' for k, v in fixed.items())}")
-    chosen = choose(entries) if entries else None
     lines.append(f"{'#':>3}  {'step_s':>8}  {'memory':>14}  depth  placement")
     for i, entry in enumerate(entries[:top]):
         spec = " ".join(f"{name}={entry.placement[name]}" for name in cfg.components())
-        mark = "  <- chosen" if entry is chosen else ""
         lines.append(f"{i + 1:>3}  {entry.prediction.step_s:>8.3f}  {_memory_text(entry):>14}  "
-                     f"{entry.candidate.depth:>5}  {spec}{mark}")
-    if chosen is not None and chosen is not entries[0]:
-        spec = " ".join(f"{name}={chosen.placement[name]}" for name in cfg.components())
-        lines.append(f"chosen: {spec} depth {chosen.candidate.depth}, the simplest placement predicted within "
-                     f"{CHOICE_MARGIN:.0%} of the fastest (fewest ranks, then pipeline depth, then devices)")
+                     f"{entry.candidate.depth:>5}  {spec}")
     if len(entries) > top:
         lines.append(f"... {len(entries) - top} more (--top N shows more)")
     if profile is not None:

@@ -29,17 +29,10 @@ from infinirl.runtime.inventory import ClusterInventory
 from infinirl.scheduler.cost import Allocation, Candidate, Prediction, Workload, memory_by_range, predict
 from infinirl.scheduler.workloads import RunnerModel
 
-__all__ = ["CHOICE_MARGIN", "EXHAUSTIVE_DEVICES", "PlanEntry", "candidate_layouts", "choose", "fixed_allocation",
-           "fixed_placements", "pinned_allocation", "pool_of", "search"]
+__all__ = ["EXHAUSTIVE_DEVICES", "PlanEntry", "candidate_layouts", "fixed_allocation", "fixed_placements",
+           "pinned_allocation", "pool_of", "search"]
 
 EXHAUSTIVE_DEVICES = 4
-
-CHOICE_MARGIN = 0.10
-"""A placement with more ranks is chosen over a simpler one only if it is predicted this much
-faster. Predictions are checked to within 20% of measured step times, and their errors differ
-between placements: on two CPU slots the reasoning job's two-rank placement, predicted 4.5%
-faster than the collocated default, measured 17% slower (docs/results.md, "Predicted vs measured
-step time of placements"). A gain smaller than the model's error is not worth more processes."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -53,10 +46,6 @@ class PlanEntry:
     @property
     def placement(self) -> dict[str, str]:
         return self.candidate.placement()
-
-    @property
-    def total_ranks(self) -> int:
-        return sum(a.ranks for a in self.candidate.allocations.values())
 
     @property
     def devices_used(self) -> int:
@@ -254,14 +243,3 @@ def search(cfg, model: RunnerModel, workload: Workload, inventory: ClusterInvent
     entries.sort(key=lambda e: (round(e.prediction.step_s, 9), e.devices_used, sorted(e.placement.items()),
                                 e.candidate.depth))
     return entries[:limit] if limit else entries
-
-
-def choose(entries: list[PlanEntry], margin: float = CHOICE_MARGIN) -> PlanEntry:
-    """The placement to run: among the candidates predicted within ``margin`` of the fastest, the
-    simplest (fewest ranks, then the shallowest pipeline, then fewest devices, then the fastest).
-    ``entries`` as :func:`search` returns them; empty is an error."""
-    if not entries:
-        raise ValueError("no candidate placement to choose from")
-    fastest = min(entry.prediction.step_s for entry in entries)
-    near = [entry for entry in entries if entry.prediction.step_s <= fastest * (1.0 + margin)]
-    return min(near, key=lambda e: (e.total_ranks, e.candidate.depth, e.devices_used, e.prediction.step_s))

@@ -167,33 +167,3 @@ def test_sac_collecting_ahead_on_its_own_slot_overlaps_collection_and_learning(f
     apart = max(collect, learn) if cfg.collect_ahead else collect + learn
     assert by_layout[False] == pytest.approx(apart + 0.1)
     assert entries[0].placement["collector"] != entries[0].placement["learner"] or not cfg.collect_ahead
-
-
-def _entry(step_s, ranks, depth=1):
-    from infinirl.scheduler.cost import Allocation, Candidate, Prediction
-    from infinirl.scheduler.search import PlanEntry
-
-    allocations = {name: Allocation(first=0, count=r, ranks=r) for name, r in zip(("actor", "rollout", "reward"), ranks)}
-    return PlanEntry(candidate=Candidate(allocations=allocations, depth=depth), prediction=Prediction(step_s=step_s),
-                     memory_bytes=0.0, memory_limit_bytes=1.0)
-
-
-def test_the_choice_is_the_simplest_placement_predicted_within_the_margin():
-    from infinirl.scheduler.search import choose
-
-    two_ranks, default, deep = _entry(12.69, (2, 2, 2)), _entry(13.29, (1, 1, 1)), _entry(12.69, (1, 1, 1), depth=2)
-    assert choose([two_ranks, default]) is default  # 4.5% predicted gain: within the model's error
-    assert choose([two_ranks, default], margin=0.01) is two_ranks
-    assert choose([two_ranks, default, deep]) is default  # fewest ranks, then the shallowest pipeline
-    assert choose([two_ranks, _entry(15.0, (1, 1, 1))]) is two_ranks  # predicted 18% faster: worth it
-    with pytest.raises(ValueError, match="no candidate"):
-        choose([])
-
-
-def test_the_plan_table_marks_the_chosen_placement(reasoning):
-    from infinirl.scheduler.auto import format_plan
-
-    cfg, profile = reasoning
-    entries = search(cfg, RUNNER_MODELS.get("reasoning"), workload_of(cfg, profile), ClusterInventory.cpu_only(1, 2))
-    table = format_plan(cfg, None, entries)
-    assert table.count("<- chosen") == 1
