@@ -86,7 +86,8 @@ def run_job(job: str, iterations: int, profile_iterations: int, wanted: int, ove
     workload = workload_of(cfg, profile)
     rows = {}
     for key, (candidate, role) in _placements(job, entries, wanted).items():
-        predicted = predict(workload, candidate).step_s
+        prediction = predict(workload, candidate)
+        predicted = prediction.step_s
         try:
             run = measure_candidate(cfg, model, candidate, iterations, label=job)
         except Exception as exc:  # one placement that fails must not lose the others' numbers
@@ -95,11 +96,24 @@ def run_job(job: str, iterations: int, profile_iterations: int, wanted: int, ove
         measured = statistics.median(run.step_s)
         rows[key] = {"role": role, "predicted_s": round(predicted, 3), "measured_s": round(measured, 3),
                      "measured_iterations_s": [round(s, 3) for s in run.step_s],
-                     "ratio": round(predicted / measured, 3)}
+                     "ratio": round(predicted / measured, 3),
+                     "predicted_phases_s": {k: round(v, 3) for k, v in prediction.phases.items()}}
+    components = tuple(cfg.components())
     measured_profile = {"overhead_s": profile.overhead_s, "hop_s": profile.hop_s,
-                        "probes": {r.probe.name: [round(s, 3) for s in r.step_s] for r in profile.probes}}
+                        "probes": {r.probe.name: [round(s, 3) for s in r.step_s] for r in profile.probes},
+                        # what the fit saw: each probe's measured work (median over its iterations) and
+                        # the prediction for the probe's own placement, which should match its step time
+                        "probe_work_s": {r.probe.name: _median_work(r.iterations) for r in profile.probes},
+                        "probe_predicted_s": {
+                            r.probe.name: round(predict(workload, r.probe.candidate(components)).step_s, 3)
+                            for r in profile.probes}}
     return {"config": JOBS[job], "overrides": overrides, "profile": measured_profile,
             "candidates": len(entries), "placements": rows, "wall_s": round(time.perf_counter() - started, 1)}
+
+
+def _median_work(iterations: list[dict]) -> dict[str, float]:
+    keys = sorted({k for it in iterations for k in it})
+    return {k: round(statistics.median([it[k] for it in iterations if k in it]), 3) for k in keys}
 
 
 def summarise(results: dict) -> dict:
