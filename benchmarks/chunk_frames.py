@@ -48,8 +48,6 @@ def demo_env(config: str = DEMO) -> dict:
     raw = compose(config)
     chunk = int(raw["policy"].get("chunk") or 1)
     kwargs = dict(raw["env"].get("kwargs") or {})
-    if "rgb" not in kwargs.get("obs_mode", "rgb"):
-        raise SystemExit(f"--config {config}: its env has no camera (obs_mode={kwargs['obs_mode']!r})")
     return {"env": raw["env"]["name"], "kwargs": kwargs, "num_envs": int(raw["env"]["num_envs"]), "chunk": chunk}
 
 
@@ -99,11 +97,20 @@ def main() -> None:
         if getattr(args, key, None) is None:
             setattr(args, key, value)
     if args.chunk < 2:
-        raise SystemExit(f"--chunk must be >= 2 (a chunk of {args.chunk} has no inner step), got {args.chunk}")
+        raise SystemExit(f"chunks of {args.chunk} action (--config {args.config}'s policy.chunk, or --chunk) have no "
+                         "inner step to skip: give --chunk K with K >= 2")
 
     import numpy as np
 
     envs = {row: _build(args, skip=row == "skip") for row in ROWS}
+    spec = envs["skip"].observation_spec
+    frames = [key for key, field in spec.items() if field.dtype == "uint8" and len(field.shape) == 3]
+    if not frames:
+        for env in envs.values():
+            env.close()
+        raise SystemExit(f"--config {args.config}: its env {args.env} gives no camera frames (observation keys "
+                         f"{sorted(spec)}); use a config whose env renders, e.g. env.kwargs "
+                         "obs_mode: state+rgb")
     space = envs["skip"].env.action_space
     rng = np.random.default_rng(0)
     chunks = [rng.uniform(space.low, space.high, (args.num_envs, args.chunk, *space.shape)).astype(np.float32)
