@@ -1,14 +1,17 @@
 """Predicted step time and memory of a placement: pure functions of measured costs.
 
 A runner's iteration is a sequence of **phases** run one after another (the embodied runner:
-collect, then update; the reasoning runner: generate and score, log-probs, update). A phase is
-the work of one or more components; several components in one phase stream to each other in
-order (env -> rollout, rollout -> reward), split into ``depth`` chunks (pipeline stages).
+collect, update, then the weight sync; the reasoning runner: generate and score, log-probs,
+update, weight sync). A phase is the work of one or more components; several components in one
+phase stream to each other in order (env -> rollout, rollout -> reward), split into ``depth``
+chunks (pipeline stages).
 
 Each component's work in a phase has a :class:`WorkCost` measured by the profiler: one rank's
 seconds for ``units`` of work spread over ``ranks`` ranks,
 ``seconds = fixed_s + per_unit_s * units / ranks + comm_s * log2(ranks)``
-(the log term: the collective that joins the ranks), and its memory per rank.
+(the log term: the collective that joins the ranks), and its memory per rank. Work that does not
+grow with the batch (``Phase.per_iteration``: the trainer gathering and publishing its weights,
+the rollout loading them) has ``fixed_s`` and the log term only.
 
 How a phase's components share hardware decides how their times combine:
 
@@ -97,6 +100,9 @@ class Phase:
     round_trips: int = 0
     """Messages per chunk and rank between processes when the components are disaggregated (0: the
     components talk through channels in every placement, so the hop is inside their measured times)."""
+    per_iteration: bool = False
+    """The work does not grow with the batch (a weight sync moves one model whatever the batch):
+    its costs are ``fixed_s`` plus the collective term, and a larger batch leaves them alone."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -110,7 +116,7 @@ class Workload:
     costs: Mapping[str, WorkCost]
     """Keyed ``"<phase>/<component>"``."""
     overhead_s: float = 0.0
-    """The driver's own time per iteration (advantages, weight sync, logging), placement-independent."""
+    """The driver's own time per iteration (advantages, logging), placement-independent."""
     hop_s: float = 0.0
     """One message between processes of a streamed phase."""
     link_bytes_per_s: float = 12.5e9

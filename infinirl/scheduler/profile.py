@@ -7,7 +7,8 @@ memory, and the time of one offload + reload. Iterations are cut out of the span
 the runner's first-phase method; the first iteration is warm-up and dropped. The runner model
 turns each iteration into own seconds per ``"<phase>/<component>"``, and :func:`fit` turns the
 probes into one :class:`~infinirl.scheduler.cost.WorkCost` each: seconds per unit of work from the
-one-rank probes, the cost of a second rank (the collective) from the two-rank probe.
+one-rank probes (fixed seconds for work that does not grow with the batch, the weight sync), the
+cost of a second rank (the collective) from the two-rank probe.
 
 Profiles are cached as JSON per (runner, model, config hash, hardware probe), so a second plan of
 the same config on the same machine is instant. The config hash leaves out what does not change
@@ -28,7 +29,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from infinirl.config import to_plain
-from infinirl.scheduler.cost import Candidate, WorkCost, Workload, predict
+from infinirl.scheduler.cost import Candidate, Phase, WorkCost, Workload, predict
 from infinirl.scheduler.workloads import RUNNER_MODELS, Probe, RunnerModel, StepWindow, probe_candidates
 from infinirl.utils import capture_rng_state, restore_rng_state, write_json_atomic
 
@@ -40,7 +41,7 @@ __all__ = ["PROFILE_CACHE_ENV", "MeasuredRun", "Profile", "ProbeResult", "cache_
 
 PROFILE_CACHE_ENV = "INFINIRL_PROFILE_CACHE"
 """Folder of cached profiles (default ``~/.cache/infinirl/profiles``)."""
-PROFILE_FORMAT = 1
+PROFILE_FORMAT = 2  # 2: weight-sync phases
 
 # Keys that do not change one iteration's work (the search varies the placement and depth keys).
 _NOT_WORK = ("placement", "iterations", "output_dir", "resume", "save_every", "keep_checkpoints", "loggers", "eval",
@@ -248,21 +249,30 @@ def _median(values: list[float]) -> float:
     return statistics.median(values) if values else 0.0
 
 
-def _fit_work(key: str, units: float, results: list[ProbeResult], components: tuple[str, ...]) -> dict[str, float]:
-    """per_unit_s from the one-rank probes (mean of their medians), comm_s from the others' excess."""
-    component = key.split("/", 1)[1]
+def _fit_work(phase: Phase, component: str, units: float, results: list[ProbeResult],
+              components: tuple[str, ...]) -> dict[str, float]:
+    """One rank's work from the one-rank probes (mean of their medians): seconds per unit, or, for
+    a phase whose work does not grow with the batch, fixed seconds per iteration; comm_s from the
+    other probes' excess over that work (spread over their ranks unless it is per iteration)."""
+    key = f"{phase.name}/{component}"
     by_ranks: dict[int, list[float]] = {}
     for result in results:
         ranks = result.probe.candidate(components).allocations[component].ranks
         by_ranks.setdefault(ranks, []).append(_median([it[key] for it in result.iterations if key in it]))
     single = by_ranks.pop(1, [])
-    per_unit = statistics.fmean(single) / units if single else 0.0
-    comm = [(s - per_unit * units / r) / max(r.bit_length() - 1, 1) for r, values in by_ranks.items()
-            for s in values]
+    one_rank = statistics.fmean(single) if single else 0.0
+
+    def work(seconds: float, ranks: int) -> dict[str, float]:
+        if phase.per_iteration:
+            return {"per_unit_s": 0.0, "fixed_s": seconds}
+        return {"per_unit_s": seconds * ranks / units, "fixed_s": 0.0}
+
+    comm = [(s - (one_rank if phase.per_iteration else one_rank / r)) / max(r.bit_length() - 1, 1)
+            for r, values in by_ranks.items() for s in values]
     if not single and comm:  # only multi-rank probes: attribute everything to the work
         r, values = next(iter(by_ranks.items()))
-        return {"per_unit_s": statistics.fmean(values) * r / units, "comm_s": 0.0}
-    return {"per_unit_s": per_unit, "comm_s": max(0.0, statistics.fmean(comm)) if comm else 0.0}
+        return {**work(statistics.fmean(values), r), "comm_s": 0.0}
+    return {**work(one_rank, 1), "comm_s": max(0.0, statistics.fmean(comm)) if comm else 0.0}
 
 
 def fit(cfg, model: RunnerModel, results: list[ProbeResult], key: dict | None = None) -> Profile:
@@ -273,13 +283,14 @@ def fit(cfg, model: RunnerModel, results: list[ProbeResult], key: dict | None = 
     for phase in model.phases(cfg):
         for component in phase.components:
             name = f"{phase.name}/{component}"
-            work = _fit_work(name, units[component], results, components)
+            work = _fit_work(phase, component, units[component], results, components)
             single = [r for r in results if r.probe.candidate(components).allocations[component].ranks == 1]
             # The largest one-rank peak: a probe that ran the component inside another's process has none.
             memory = max((r.memory_bytes.get(component, 0.0) for r in single or results), default=0.0)
             switch = _median([r.switch_s.get(component, 0.0) for r in results])
             sent = [it[f"bytes/{component}"] for r in results for it in r.iterations if f"bytes/{component}" in it]
-            costs[name] = WorkCost(per_unit_s=work["per_unit_s"], comm_s=work["comm_s"], switch_s=switch,
+            costs[name] = WorkCost(per_unit_s=work["per_unit_s"], fixed_s=work["fixed_s"], comm_s=work["comm_s"],
+                                   switch_s=switch,
                                    memory_fixed_bytes=memory,
                                    bytes_out_per_unit=_median(sent) / units[component] if sent else 0.0)
     hops = [it["hop"] for r in results for it in r.iterations if "hop" in it]

@@ -120,12 +120,31 @@ def probe_candidates(model: RunnerModel, num_slots: int) -> tuple[Probe, ...]:
     return tuple(p for p in model.probes if all(f + n <= num_slots for f, n in p.devices.values()))
 
 
+# ----- the weight sync (runners whose trainer feeds a rollout) ------------------------------------
+
+_PUBLISH_METHODS = ("_infinirl_publish_weights", "_infinirl_broadcast_weights", "_infinirl_send_buckets")
+_LOAD_METHODS = ("_infinirl_receive_weights", "_infinirl_receive_broadcast")
+# Staging beside running calls (asynchronous RL's interrupting sync) is off the iteration's path.
+
+
+def _sync_phase(trainer: str, receiver: str) -> Phase:
+    """The trainer gathering and publishing its weights, then the rollout loading them: one model's
+    worth whatever the batch, and more with more trainer ranks (a sharded trainer gathers its
+    shards first), which is what makes many small ranks slower than their compute alone says."""
+    return Phase(name="sync", components=(trainer, receiver), per_iteration=True)
+
+
+def _sync_measure(window: StepWindow, trainer: str, receiver: str) -> dict[str, float]:
+    return {f"sync/{trainer}": sum(window.per_rank(trainer, m) for m in _PUBLISH_METHODS),
+            f"sync/{receiver}": sum(window.per_rank(receiver, m) for m in _LOAD_METHODS)}
+
+
 # ----- embodied ----------------------------------------------------------------------------------
 
 
 def _embodied_phases(cfg) -> tuple[Phase, ...]:
     return (Phase(name="collect", components=("env", "rollout"), pipelined=True, round_trips=cfg.rollout_steps + 1),
-            Phase(name="update", components=("actor",)))
+            Phase(name="update", components=("actor",)), _sync_phase("actor", "rollout"))
 
 
 def _embodied_units(cfg) -> dict[str, float]:
@@ -183,7 +202,8 @@ def _embodied_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]
     rollout_own = float(window.metrics.get("rollout/inference_s", 0.0)) + float(window.metrics.get("rollout/record_s",
                                                                                                    0.0))
     a = probe.candidate().allocations
-    out = {"update/actor": window.per_rank("actor", "update"), "collect/rollout": rollout_own}
+    out = {"update/actor": window.per_rank("actor", "update"), "collect/rollout": rollout_own,
+           **_sync_measure(window, "actor", "rollout")}
     if a["env"].overlaps(a["rollout"]):  # the env steps inside the rollout's collect call
         out["collect/env"] = max(collect - rollout_own, 0.0)
     else:
@@ -233,6 +253,7 @@ def _reasoning_phases(cfg) -> tuple[Phase, ...]:
         phases.append(Phase(name="logprobs", components=scorers, concurrent=True))
     trainers = ("actor", "critic") if "critic" in cfg.components() else ("actor",)
     phases.append(Phase(name="train", components=trainers, concurrent=True))
+    phases.append(_sync_phase("actor", "rollout"))
     return tuple(phases)
 
 
@@ -271,7 +292,7 @@ def _reasoning_shorten(cfg, iterations: int) -> None:
 
 def _reasoning_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]:
     out = {"generate/rollout": window.per_rank("rollout", "generate_to"),
-           "train/actor": window.per_rank("actor", "train_step")}
+           "train/actor": window.per_rank("actor", "train_step"), **_sync_measure(window, "actor", "rollout")}
     # The reward scores chunks as they arrive; what it adds after the last chunk is its own share.
     drain = window.last_end.get(("reward", "score_stream"), 0.0) - window.last_end.get(("rollout", "generate_to"), 0.0)
     chunks_per_reward_rank = probe.devices["rollout"][1] * probe.depth / probe.devices["reward"][1]

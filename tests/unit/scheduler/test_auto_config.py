@@ -36,7 +36,8 @@ def test_the_plan_table_lists_candidates_best_first():
     cfg = build_config("ppo_metaworld_reach", [])[1]
     costs = {"collect/env": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30),
              "collect/rollout": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30),
-             "update/actor": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30)}
+             "update/actor": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30),
+             "sync/actor": WorkCost(per_unit_s=0.0, fixed_s=0.01), "sync/rollout": WorkCost(per_unit_s=0.0)}
     inventory = ClusterInventory.cpu_only(1, 2)
     profile = Profile(runner="embodied", key={}, costs=costs, overhead_s=0.0, hop_s=0.0,
                       inventory=inventory.to_dict(), probes=[])
@@ -51,7 +52,8 @@ def test_the_plan_table_lists_candidates_best_first():
 def _embodied_profile(inventory):
     costs = {"collect/env": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30),
              "collect/rollout": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30),
-             "update/actor": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30)}
+             "update/actor": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=2**30),
+             "sync/actor": WorkCost(per_unit_s=0.0, fixed_s=0.01), "sync/rollout": WorkCost(per_unit_s=0.0)}
     return Profile(runner="embodied", key={}, costs=costs, overhead_s=0.0, hop_s=0.0,
                    inventory=inventory.to_dict(), probes=[])
 

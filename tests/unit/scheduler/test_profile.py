@@ -150,3 +150,40 @@ def test_rounds_interleave_the_probes_and_merge_each_probes_runs(tmp_path, monke
     assert by_name["split"].memory_bytes["learner"] == 4.0  # the larger peak of its two runs
     with pytest.raises(ValueError, match="rounds=0 must be >= 1"):
         load_or_profile(cfg, cache_dir=str(tmp_path), refresh=True, rounds=0)
+
+
+def test_the_weight_sync_is_fitted_per_iteration_and_grows_with_the_trainers_ranks():
+    """The reasoning runner's measured shape: generate 3.6 s and train 7.4 s on one rank, a little
+    less on two; publishing the weights 0.57 s from one actor rank, 2.3 s from two (the shards are
+    gathered first), loading 0.08 s / 0.11 s; the driver 0.2 s. The sync is one model's worth per
+    iteration, so it is fitted as fixed seconds plus a cost per doubling of ranks: the probes come
+    back as measured, two ranks each is predicted slower than one (as measured), and a batch 8
+    times larger leaves the sync alone."""
+    cfg = build_config("grpo_chain_sum", ["prompts_per_step=4"])[1]
+    model = RUNNER_MODELS.get("reasoning")
+    generate, train, publish, load, overhead = 3.6, 7.4, 0.57, 0.08, 0.2
+    one = {"generate/rollout": generate, "generate/reward": 0.01, "train/actor": train,
+           "sync/actor": publish, "sync/rollout": load}
+    # two ranks each on two CPU slots: a rank has one thread where one rank had two, so compute barely shrinks
+    two = {"generate/rollout": 3.36, "generate/reward": 0.01, "train/actor": 6.95, "sync/actor": 2.3,
+           "sync/rollout": 0.11}
+    results = [ProbeResult(probe=next(p for p in model.probes if p.name == name), iterations=[measured] * 3,
+                           step_s=[sum(measured.values()) + overhead] * 3, memory_bytes={}, switch_s={},
+                           inventory={})
+               for name, measured in (("collocated", one), ("two_ranks", two))]
+    profile = fit(cfg, model, results)
+    sync = profile.costs["sync/actor"]
+    assert (sync.per_unit_s, sync.fixed_s, sync.comm_s) == pytest.approx((0.0, publish, 2.3 - publish))
+    assert profile.costs["sync/rollout"].fixed_s == pytest.approx(load)
+    assert profile.overhead_s == pytest.approx(overhead)
+    workload = workload_of(cfg, profile)
+    components = tuple(cfg.components())
+    predicted = {r.probe.name: predict(workload, r.probe.candidate(components)) for r in results}
+    for result in results:
+        assert predicted[result.probe.name].step_s == pytest.approx(result.step_s[0])
+    assert predicted["two_ranks"].phases["sync"] == pytest.approx(2.41)
+    assert predicted["two_ranks"].step_s > predicted["collocated"].step_s
+    model.scale_batch(cfg, 8)
+    bigger = workload_of(cfg, profile)
+    assert bigger.cost("sync", "actor").seconds(bigger.units["actor"], 2) == pytest.approx(2.3)
+    assert bigger.cost("train", "actor").seconds(bigger.units["actor"], 1) == pytest.approx(8 * train)

@@ -23,7 +23,8 @@ def embodied():
     gib = float(GiB)
     costs = {"collect/env": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=0.3 * gib),
              "collect/rollout": WorkCost(per_unit_s=4e-4, memory_fixed_bytes=0.4 * gib),
-             "update/actor": WorkCost(per_unit_s=5e-4, comm_s=0.2, memory_fixed_bytes=0.7 * gib)}
+             "update/actor": WorkCost(per_unit_s=5e-4, comm_s=0.2, memory_fixed_bytes=0.7 * gib),
+             "sync/actor": WorkCost(per_unit_s=0.0, fixed_s=0.01), "sync/rollout": WorkCost(per_unit_s=0.0)}
     return cfg, _profile("embodied", costs)
 
 
@@ -33,7 +34,8 @@ def reasoning():
     gib = float(GiB)
     costs = {"generate/rollout": WorkCost(per_unit_s=0.2, comm_s=0.5, memory_fixed_bytes=1.0 * gib),
              "generate/reward": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=0.5 * gib),
-             "train/actor": WorkCost(per_unit_s=0.1, comm_s=1.0, memory_fixed_bytes=2.0 * gib)}
+             "train/actor": WorkCost(per_unit_s=0.1, comm_s=1.0, memory_fixed_bytes=2.0 * gib),
+             "sync/actor": WorkCost(per_unit_s=0.0, fixed_s=0.01), "sync/rollout": WorkCost(per_unit_s=0.0)}
     return cfg, _profile("reasoning", costs)
 
 
