@@ -19,11 +19,14 @@ How a phase's components share hardware decides how their times combine:
   their times add up on the devices they share, plus each one's measured offload/reload
   (``switch_s``) once per iteration;
 * **space-sharing** (disaggregated: disjoint devices): a pipeline over groups of components; with
-  ``depth`` chunks each group works on a chunk while the next group works on the previous one,
-  so the phase takes the slowest group plus the fill and drain of the others:
-  ``sum(T_g) / depth + (depth - 1) / depth * max(T_g)``, plus ``hop_s`` per message between
-  processes (``round_trips * depth`` messages per rank) and the bytes sent downstream over
-  ``link_bytes_per_s`` when the groups sit on different nodes;
+  ``depth`` chunks each group works on a chunk while the next group works on the previous one.
+  A stream that passes once (rollout -> reward) takes the slowest group plus the fill and drain
+  of the others: ``sum(T_g) / depth + (depth - 1) / depth * max(T_g)``. A closed loop
+  (``Phase.round_trips``: env -> rollout -> env, once per env step) takes the longer of the
+  slowest group and one chunk's way round, ``max(max(T_g), sum(T_g) / depth + hop_s *
+  round_trips)``: while one chunk's message is in flight the groups work on the others, so the
+  hop is paid once per round trip whatever the depth. Across nodes the bytes sent downstream go
+  over ``link_bytes_per_s`` on top;
 * **independent work** (``Phase.concurrent``: e.g. the reference's and the critic's forward passes)
   on disjoint devices takes the longest group's time;
 * **hybrids**: a phase with some groups time-sharing inside and space-sharing between them.
@@ -98,8 +101,10 @@ class Phase:
     """The components work independently (no stream between them): disjoint groups take the
     longest group's time, not a pipeline's."""
     round_trips: int = 0
-    """Messages per chunk and rank between processes when the components are disaggregated (0: the
-    components talk through channels in every placement, so the hop is inside their measured times)."""
+    """Times each chunk goes round the components when they form a closed loop (env -> rollout ->
+    env: once per env step), each round trip a message there and back between processes when
+    they are disaggregated. 0: a stream that passes once, through channels in every placement, so
+    the hop is inside the components' measured times."""
     per_iteration: bool = False
     """The work does not grow with the batch (a weight sync moves one model whatever the batch):
     its costs are ``fixed_s`` plus the collective term, and a larger batch leaves them alone."""
@@ -216,8 +221,10 @@ def phase_seconds(workload: Workload, phase: Phase, candidate: Candidate, node_o
     if phase.concurrent:
         return max(group_s)
     depth = candidate.depth if phase.pipelined else 1
-    seconds = sum(group_s) / depth + (depth - 1) / depth * max(group_s)
-    seconds += workload.hop_s * phase.round_trips * depth
+    if phase.round_trips:  # a closed loop: each chunk goes round the groups round_trips times
+        seconds = max(max(group_s), sum(group_s) / depth + workload.hop_s * phase.round_trips)
+    else:
+        seconds = sum(group_s) / depth + (depth - 1) / depth * max(group_s)
     return seconds + _cross_node_seconds(workload, phase, candidate, node_of)
 
 

@@ -209,8 +209,9 @@ def _embodied_measure(window: StepWindow, probe: Probe, cfg) -> dict[str, float]
     else:
         env_own = float(window.metrics.get("env/simulate_s", 0.0))
         out["collect/env"] = env_own
-        trips = (cfg.rollout_steps + 1) * probe.depth
-        out["hop"] = max(collect - env_own - rollout_own, 0.0) / trips
+        # One chunk's way round the loop, times the round trips (cost.py's closed loop; the
+        # streamed probe runs one chunk, so nothing overlaps the messages there).
+        out["hop"] = max(collect - (env_own + rollout_own) / probe.depth, 0.0) / (cfg.rollout_steps + 1)
         if "env/bytes_out" in window.metrics:  # observations over the env links, every env rank's
             out["bytes/env"] = float(window.metrics["env/bytes_out"])
         if "rollout/bytes_out" in window.metrics:  # rank 0's actions; the ranks send alike
