@@ -75,11 +75,16 @@ def format_plan(cfg, profile: Profile | None, entries: list[PlanEntry], top: int
     fixed = fixed_placements(cfg, model) if model is not None else {}
     if fixed:
         lines.append(f"fixed (not searched): {', '.join(f'{k}={v}' for k, v in fixed.items())}")
-    lines.append(f"{'#':>3}  {'step_s':>8}  {'memory':>14}  depth  placement")
+    lines.append(f"{'#':>3}  {'step_s':>8}  {'memory':>14}  depth  placement  [seconds per phase]")
     for i, entry in enumerate(entries[:top]):
         spec = " ".join(f"{name}={entry.placement[name]}" for name in cfg.components())
+        parts = dict(entry.prediction.phases)
+        rest = entry.prediction.step_s - sum(parts.values())  # the driver's own time, offloads and reloads
+        if rest > 5e-4:
+            parts["driver+switch"] = rest
+        phases = " + ".join(f"{name} {seconds:.3g}" for name, seconds in parts.items())
         lines.append(f"{i + 1:>3}  {entry.prediction.step_s:>8.3f}  {_memory_text(entry):>14}  "
-                     f"{entry.candidate.depth:>5}  {spec}")
+                     f"{entry.candidate.depth:>5}  {spec}  [{phases}]")
     if len(entries) > top:
         lines.append(f"... {len(entries) - top} more (--top N shows more)")
     if profile is not None:

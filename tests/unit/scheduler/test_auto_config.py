@@ -46,6 +46,7 @@ def test_the_plan_table_lists_candidates_best_first():
     lines = text.splitlines()
     assert "candidate placements of embodied" in lines[0] and "rollout.pipeline_stages" in lines[0]
     assert lines[2].split()[0] == "1" and "env=" in lines[2]
+    assert lines[2].endswith("]") and "[collect " in lines[2] and " + sync " in lines[2]  # seconds per phase
     assert f"... {len(entries) - 3} more" in text
 
 
