@@ -124,7 +124,8 @@ def test_plan_of_a_robot_run_from_its_cached_profile_lists_the_learners_places(p
     assert main(["plan", "realworld_sac_sawyer_reach", *overrides]) == 0
     out = capsys.readouterr().out
     assert "3 candidate placements of realworld_sac" in out and "step_s = one turn" in out
-    rows = [line.split() for line in out.splitlines() if line.split()[-1:] and line.split()[-1].startswith("learner=")]
+    cells = [line.split("  [")[0].split() for line in out.splitlines()]  # the row before its seconds per phase
+    rows = [row for row in cells if row[-1:] and row[-1].startswith("learner=")]
     assert sorted(row[-1] for row in rows) == ["learner=0", "learner=1", "learner=2"]
     assert {row[-2] for row in rows} == {"robot=1"}
     assert {row[1] for row in rows} == {f"{0.055 * units['robot']:.3f}"}  # the robot's episode sets the pace
