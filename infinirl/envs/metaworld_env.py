@@ -23,6 +23,10 @@ What this adapter fixes on top of the raw MetaWorld class:
 * **Affordable pixels on CPU.** ``fast_render`` (default) turns off shadows, reflections and
   multisample anti-aliasing in the model's visual settings (physics untouched): software GL then
   renders a small frame in a fraction of the time (see :func:`_fast_visuals`).
+* **Sparse reward.** ``reward_mode="sparse"`` pays 1 on a step where the task is solved and 0
+  elsewhere (the success signal πRL and RLinf train VLAs on), instead of MetaWorld's shaped
+  ``"dense"`` reward, whose return can rise while success does not move. With
+  ``terminate_on_success`` that is one reward at the step the task is first solved.
 
 Observations: ``state`` (39 floats: hand xyz, gripper opening, object poses, the previous frame of
 those, goal xyz), ``proprio`` (hand xyz + gripper opening), ``rgb`` (uint8 HxWx3, when
@@ -43,6 +47,7 @@ from infinirl.envs.options import EnvOptions
 
 __all__ = [
     "DEFAULT_MAX_EPISODE_STEPS",
+    "REWARD_MODES",
     "MetaWorldFactory",
     "MetaWorldSubEnv",
     "camera_is_upside_down",
@@ -52,6 +57,7 @@ __all__ = [
 ]
 
 DEFAULT_MAX_EPISODE_STEPS = 200
+REWARD_MODES = ("dense", "sparse")
 _PROPRIO_DIMS = 4  # hand xyz + normalised gripper opening: the first entries of the state
 
 
@@ -102,9 +108,12 @@ class MetaWorldSubEnv:
         max_episode_steps: int = DEFAULT_MAX_EPISODE_STEPS,
         terminate_on_success: bool = False,
         reward_function_version: str = "v2",
+        reward_mode: str = "dense",
         fast_render: bool = True,
     ) -> None:
         check_obs_mode(obs_mode)
+        if reward_mode not in REWARD_MODES:
+            raise ValueError(f"unknown MetaWorld reward_mode {reward_mode!r}; choices: {', '.join(REWARD_MODES)}")
         if "rgb" in obs_mode:
             use_headless_gl()  # before MuJoCo is imported, so it loads the same GL library
         from metaworld import env_dict
@@ -126,6 +135,7 @@ class MetaWorldSubEnv:
         self._camera = camera
         self._obs_mode = obs_mode
         self._terminate_on_success = terminate_on_success
+        self._sparse_reward = reward_mode == "sparse"
         self._instruction = task_instruction(task)
         self._rotate_frames: bool | None = None  # decided on the first render
         self._last_frame: np.ndarray | None = None  # repeated by steps nobody observes
@@ -149,7 +159,8 @@ class MetaWorldSubEnv:
         success = bool(info["success"])
         terminated = bool(terminated) or (self._terminate_on_success and success)
         fresh_frame = observe or terminated or bool(truncated)
-        return SubStep(self._observe(state, fresh_frame), float(reward), terminated, bool(truncated), success)
+        reward = float(success) if self._sparse_reward else float(reward)
+        return SubStep(self._observe(state, fresh_frame), reward, terminated, bool(truncated), success)
 
     def render(self) -> np.ndarray:
         """The camera frame, upright, uint8 HxWx3."""
@@ -221,6 +232,7 @@ class MetaWorldFactory:
     max_episode_steps: int = DEFAULT_MAX_EPISODE_STEPS
     terminate_on_success: bool = False
     reward_function_version: str = "v2"
+    reward_mode: str = "dense"
     fast_render: bool = True
 
     def __call__(self, index: int) -> MetaWorldSubEnv:
@@ -232,6 +244,7 @@ class MetaWorldFactory:
             max_episode_steps=self.max_episode_steps,
             terminate_on_success=self.terminate_on_success,
             reward_function_version=self.reward_function_version,
+            reward_mode=self.reward_mode,
             fast_render=self.fast_render,
         )
 
@@ -259,5 +272,5 @@ def metaworld_options(task: str | None) -> EnvOptions:
     the same ones, so neither the task nor MetaWorld is looked at)."""
     return EnvOptions(
         names=frozenset(f.name for f in fields(MetaWorldFactory) if f.name != "tasks"),
-        choices={"obs_mode": OBS_MODES},
+        choices={"obs_mode": OBS_MODES, "reward_mode": REWARD_MODES},
     )

@@ -137,15 +137,23 @@ class PiZeroPolicy(Policy):
     # --- denoising ---------------------------------------------------------------------------
 
     def transition(self, prefix: PrefixCache, state: torch.Tensor | None, x: torch.Tensor,
-                   k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Step ``k`` from ``x`` (model space): the SDE transition's ``(mean, std)`` and the ODE step."""
+                   k: int | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Step ``k`` from ``x`` (model space): the SDE transition's ``(mean, std)`` and the ODE step.
+        ``k`` is one step for the whole batch or a ``[B]`` tensor, a step per row."""
         timesteps = flow_timesteps(self.num_steps, torch.float32, x.device)
+        sigmas = flow_sde_sigmas(timesteps, self.noise_level)
+        if isinstance(k, torch.Tensor):
+            def per_row(values: torch.Tensor) -> torch.Tensor:
+                return values[..., None, None]
+            k = k.to(x.device)
+        else:
+            def per_row(values: torch.Tensor) -> torch.Tensor:
+                return values
         tau, dtau = timesteps[k], timesteps[k + 1] - timesteps[k]
-        time = torch.full((x.shape[0],), 1.0, device=x.device) - tau
+        time = torch.ones(x.shape[0], device=x.device) - tau
         v = -self.vla.model.velocity(prefix, state, x, time).float()
-        sigma = flow_sde_sigmas(timesteps, self.noise_level)[k]
-        mean, std = flow_sde_transition(x, v, tau, dtau, sigma)
-        return mean, std.expand_as(mean), x + v * dtau
+        mean, std = flow_sde_transition(x, v, per_row(tau), per_row(dtau), per_row(sigmas[k]))
+        return mean, std.expand_as(mean), x + v * per_row(dtau)
 
     def _credited(self, values: torch.Tensor) -> torch.Tensor:
         """``[B, chunk_size, max_action_dim]`` -> the executed coordinates summed over dims ``[B, chunk]``."""
@@ -203,6 +211,8 @@ class PiZeroPolicy(Policy):
             mask = torch.ones(chain.shape[0], self.num_steps, dtype=torch.bool, device=chain.device)
         x = self.inputs(obs)
         prefix = self._prefix(x)
+        if bool((mask.sum(1) == 1).all()):  # one stochastic step a row: only its transition has a density
+            return self._evaluate_one_step(prefix, x.state, chain, mask.bool().float().argmax(1), with_entropy)
         logprobs = torch.zeros(chain.shape[0], self.chunk, device=chain.device)
         entropy = torch.zeros_like(logprobs)
         for k in range(self.num_steps):
@@ -214,6 +224,16 @@ class PiZeroPolicy(Policy):
                 ent = self._credited(gaussian_entropy(std.log()))
                 entropy = entropy + torch.where(keep, ent, torch.zeros_like(ent))
         return PolicyEval(logprobs=logprobs, entropy=entropy if with_entropy else None, values=self._values(prefix))
+
+    def _evaluate_one_step(self, prefix: PrefixCache, state: torch.Tensor | None, chain: torch.Tensor,
+                           steps: torch.Tensor, with_entropy: bool) -> PolicyEval:
+        """:meth:`evaluate` of chains with one stochastic step a row (``sde_steps="one"``): one
+        expert pass at each row's step instead of one per denoising step, the same log-probs."""
+        rows = torch.arange(chain.shape[0], device=chain.device)
+        mean, std, _ = self.transition(prefix, state, chain[rows, steps], steps)
+        logprobs = self._credited(gaussian_logprob(chain[rows, steps + 1], mean, std.log()))
+        entropy = self._credited(gaussian_entropy(std.log())) if with_entropy else None
+        return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._values(prefix))
 
     def value(self, obs) -> torch.Tensor:
         if self.value_net is None:

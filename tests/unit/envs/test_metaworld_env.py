@@ -62,6 +62,34 @@ def test_terminate_on_success_ends_the_episode():
         assert result.info["episode_length"][0] < 200
 
 
+
+def test_sparse_reward_is_the_success_signal_and_dense_is_metaworlds():
+    """``reward_mode="sparse"``: 1 on a step where the task is solved, 0 elsewhere; the physics and
+    the success flags are those of the dense env stepped with the same actions."""
+    kinds = {}
+    for mode in ("dense", "sparse"):
+        with make_env("metaworld:reach-v3", 1, num_workers=0, reward_mode=mode) as env:
+            obs = env.reset(seeds=1)
+            rewards, successes, states = [], [], []
+            for _ in range(60):
+                result = env.step(_reach_towards_goal(obs["state"]))
+                obs = result.obs
+                rewards.append(float(result.reward[0]))
+                successes.append(bool(result.info["success"][0]))
+                states.append(obs["state"][0])
+            kinds[mode] = (np.array(rewards), np.array(successes), np.array(states))
+    dense, sparse = kinds["dense"], kinds["sparse"]
+    np.testing.assert_array_equal(sparse[1], dense[1])
+    np.testing.assert_array_equal(sparse[2], dense[2])
+    assert sparse[1].any() and not sparse[1].all()  # solved part of the way in
+    np.testing.assert_array_equal(sparse[0], sparse[1].astype(float))
+    assert (dense[0][~dense[1]] > 0).any()  # MetaWorld's shaped reward pays before success
+
+
+def test_unknown_reward_mode_is_refused():
+    with pytest.raises(ValueError, match="reward_mode"):
+        make_env("metaworld:reach-v3", 1, num_workers=0, reward_mode="shaped")
+
 def test_camera_frames_are_upright():
     """In an upright view of the ``corner`` camera the wooden table is below the red robot arm.
 

@@ -105,8 +105,21 @@ def test_one_stochastic_step():
     torch.manual_seed(4)
     step = pi.act(obs)
     assert step.values is None and step.extras["sde_mask"].sum(1).tolist() == [1, 1]
-    evaluated = pi.evaluate(obs, step.actions, step.extras, with_entropy=False)
+    evaluated = pi.evaluate(obs, step.actions, step.extras, with_entropy=True)
     torch.testing.assert_close(evaluated.logprobs, step.logprobs, atol=1e-4, rtol=1e-5)
+    with torch.no_grad():
+        expected = reference_logprob(pi, obs, step.extras["chain"], step.extras["sde_mask"])
+    torch.testing.assert_close(evaluated.logprobs.double(), expected, atol=1e-3, rtol=1e-5)
+    # rows at different steps, evaluated in one pass, against the every-step loop of the same chains
+    mask = torch.nn.functional.one_hot(torch.tensor([0, pi.num_steps - 1]), pi.num_steps).bool()
+    chain = pi.denoise(pi.inputs(obs), torch.randn_like(step.extras["chain"][:, 0]), mask=mask)[0]
+    fast = pi.evaluate(obs, step.actions, {"chain": chain, "sde_mask": mask})
+    torch.testing.assert_close(fast.logprobs.double(),
+                               reference_logprob(pi, obs, chain, mask), atol=1e-3, rtol=1e-5)
+    timesteps = flow_timesteps(pi.num_steps, torch.float64)
+    stds = flow_sde_sigmas(timesteps, pi.noise_level) * (timesteps[1:] - timesteps[:-1]).sqrt()
+    entropy = pi.action_dim * (0.5 * math.log(2 * math.pi * math.e) + stds[[0, pi.num_steps - 1]].log())
+    torch.testing.assert_close(fast.entropy.double(), entropy[:, None].expand(2, pi.chunk), atol=1e-5, rtol=1e-5)
 
 
 def test_checkpoint_and_env_must_agree():
