@@ -63,6 +63,9 @@ class PiZeroPolicy(Policy):
         num_steps: denoising steps (default: the checkpoint's ``num_inference_steps``).
         noise_level: Flow-SDE's ``a``; sde_steps: ``"all"`` or ``"one"`` stochastic step(s).
         value_head: add a critic on the pooled prefix; value_hidden: its hidden width.
+        detach_critic: the critic reads the prefix without back-propagating into the VLM, so the
+            value loss trains the value head only and the VLM's weights move for the policy alone
+            (RLinf's ``detach_critic_input`` for π0).
     """
 
     family: str | None = "pi0"
@@ -71,7 +74,7 @@ class PiZeroPolicy(Policy):
                  architecture: str | None = None, cameras: Mapping[str, str] | None = None,
                  state_key: str = "state", instruction_key: str = "instruction", num_steps: int | None = None,
                  noise_level: float = 0.5, sde_steps: str = "all", value_head: bool = True, value_hidden: int = 256,
-                 dtype: str = "float32", instruction: str | None = None):
+                 dtype: str = "float32", instruction: str | None = None, detach_critic: bool = False):
         # Imported here, not at the top: the policy registry imports this module in every process
         # that builds any policy, and transformers' model classes take seconds to import.
         from infinirl.models.vla.vla import VLA, load_vla
@@ -102,7 +105,7 @@ class PiZeroPolicy(Policy):
             raise ValueError(f"cameras maps to {unknown}, which the checkpoint does not have: "
                              f"{list(config.camera_keys)}")
         self.state_key, self.instruction_key, self.instruction = state_key, instruction_key, instruction
-        self.has_value_head = value_head
+        self.has_value_head, self.detach_critic = value_head, detach_critic
         width = config.architecture.vlm.width
         self.value_net = (nn.Sequential(nn.Linear(width, value_hidden), nn.SiLU(), nn.Linear(value_hidden, 1))
                           if value_head else None)
@@ -130,8 +133,9 @@ class PiZeroPolicy(Policy):
     def _values(self, prefix: PrefixCache) -> torch.Tensor | None:
         if self.value_net is None:
             return None
-        weight = prefix.pad_mask.to(prefix.hidden.dtype)[..., None]
-        pooled = (prefix.hidden * weight).sum(1) / weight.sum(1).clamp_min(1.0)
+        hidden = prefix.hidden.detach() if self.detach_critic else prefix.hidden
+        weight = prefix.pad_mask.to(hidden.dtype)[..., None]
+        pooled = (hidden * weight).sum(1) / weight.sum(1).clamp_min(1.0)
         return self.value_net(pooled.float()).squeeze(-1)
 
     # --- denoising ---------------------------------------------------------------------------

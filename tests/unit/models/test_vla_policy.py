@@ -99,6 +99,19 @@ def test_evaluate_is_differentiable(case):
     pi.zero_grad()
 
 
+
+def test_detached_critic_trains_the_value_head_only():
+    pi = policy("pi0", detach_critic=True)
+    obs = env_obs("pi0")
+    torch.manual_seed(3)
+    step = pi.act(obs)
+    pi.zero_grad()
+    pi.evaluate(obs, step.actions, step.extras).values.sum().backward()
+    model = pi.vla.model
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in pi.value_net.parameters())
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.parameters())
+    pi.zero_grad()
+
 def test_one_stochastic_step():
     pi = policy("pi0", sde_steps="one", value_head=False)
     obs = env_obs("pi0")
