@@ -182,6 +182,18 @@ def test_grpo_refuses_multi_task_envs():
         _check_one_task_per_group(grpo_cfg(env={"name": "metaworld:MT10", "num_envs": 4}))
 
 
+
+@pytest.mark.parametrize("name", ["grpo_metaworld_reach", "grpo_openvla_oft_libero"])
+def test_shipped_grpo_configs_run_one_task(name):
+    """The multi-task refusal above must not hit a shipped config (it would only show once a
+    user's 7B checkpoint had loaded in the driver)."""
+    from infinirl.cli import build_config
+    from infinirl.runners.embodied import _check_one_task_per_group
+
+    _, cfg = build_config(name, ["policy.kwargs.checkpoint=/unused"] if "libero" in name else [])
+    pytest.importorskip("libero" if "libero" in name else "metaworld")
+    _check_one_task_per_group(cfg)
+
 def test_grpo_action_level_with_chunks_masks_per_action_and_trains():
     cfg = grpo_cfg(policy={"name": "mlp_gaussian", "kwargs": {"hidden": [8]}, "chunk": 2, "normalize_obs": False},
                    algorithm={"name": "grpo", "group_size": 2, "epochs": 1, "mini_batches": 2, "gae_level": "action"})
