@@ -510,18 +510,27 @@ def _frames_skipped(cameras: dict[str, _SkippableCamera], skip: bool) -> Iterato
 
 @dataclass(frozen=True)
 class LiberoFactory:
-    """Picklable ``index -> LiberoSubEnv``: env ``i`` runs ``task_indices[i % len]``."""
+    """Picklable ``index -> LiberoSubEnv``: env ``i`` runs ``task_indices[(i // task_block) % len]``
+    (``task_block`` consecutive envs share a task: embodied GRPO's groups on a whole suite)."""
 
     suite: str
     task_indices: tuple[int, ...]
     image_size: int = 128
     settle_steps: int = 10
     max_episode_steps: int | None = None
+    task_block: int = 1
+
+    def __post_init__(self) -> None:
+        if self.task_block < 1:
+            raise ValueError(f"task_block must be >= 1, got {self.task_block}")
+
+    def task_of(self, index: int) -> int:
+        return self.task_indices[(index // self.task_block) % len(self.task_indices)]
 
     def __call__(self, index: int) -> LiberoSubEnv:
         return LiberoSubEnv(
             self.suite,
-            self.task_indices[index % len(self.task_indices)],
+            self.task_of(index),
             image_size=self.image_size,
             settle_steps=self.settle_steps,
             max_episode_steps=self.max_episode_steps,
@@ -529,7 +538,7 @@ class LiberoFactory:
 
     def task_names(self, num_envs: int) -> list[str]:
         """``<suite>/<task index>`` of each of ``num_envs`` envs (per-task evaluation metrics)."""
-        return [f"{self.suite}/{self.task_indices[index % len(self.task_indices)]}" for index in range(num_envs)]
+        return [f"{self.suite}/{self.task_of(index)}" for index in range(num_envs)]
 
 
 def libero_factory(task: str | None, **kwargs: Any) -> LiberoFactory:

@@ -223,7 +223,8 @@ def _fast_visuals(model: Any) -> None:
 
 @dataclass(frozen=True)
 class MetaWorldFactory:
-    """Picklable ``index -> MetaWorldSubEnv``; env ``i`` runs ``tasks[i % len(tasks)]``."""
+    """Picklable ``index -> MetaWorldSubEnv``; env ``i`` runs ``tasks[(i // task_block) % len(tasks)]``
+    (``task_block`` consecutive envs share a task: embodied GRPO's groups on a multi-task name)."""
 
     tasks: tuple[str, ...]
     obs_mode: str = "state"
@@ -234,10 +235,18 @@ class MetaWorldFactory:
     reward_function_version: str = "v2"
     reward_mode: str = "dense"
     fast_render: bool = True
+    task_block: int = 1
+
+    def __post_init__(self) -> None:
+        if self.task_block < 1:
+            raise ValueError(f"task_block must be >= 1, got {self.task_block}")
+
+    def task_of(self, index: int) -> str:
+        return self.tasks[(index // self.task_block) % len(self.tasks)]
 
     def __call__(self, index: int) -> MetaWorldSubEnv:
         return MetaWorldSubEnv(
-            self.tasks[index % len(self.tasks)],
+            self.task_of(index),
             obs_mode=self.obs_mode,
             camera=self.camera,
             image_size=self.image_size,
@@ -250,7 +259,7 @@ class MetaWorldFactory:
 
     def task_names(self, num_envs: int) -> list[str]:
         """The task each of ``num_envs`` envs runs (per-task evaluation metrics)."""
-        return [self.tasks[index % len(self.tasks)] for index in range(num_envs)]
+        return [self.task_of(index) for index in range(num_envs)]
 
 
 def metaworld_factory(task: str | None, **kwargs: Any) -> MetaWorldFactory:

@@ -143,18 +143,47 @@ def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
                    is_cap_mode=alg.is_cap_mode)
 
 
-def _check_one_task_per_group(cfg: EmbodiedConfig) -> None:
-    """Multi-task env names (metaworld:MT10, LIBERO suites) give env ``i`` task ``i mod T``, so a
-    group of consecutive envs would mix tasks under one seed: refuse that before anything starts."""
+def _env_task_count(cfg: EmbodiedConfig) -> tuple[int, bool]:
+    """How many tasks ``env.name`` spreads over its envs, and whether its factory can give
+    consecutive envs one task (``task_block``)."""
+    from dataclasses import fields, is_dataclass
+
     from infinirl.envs.registry import ENVS
 
     family, _, task = cfg.env.name.partition(":")
     factory = ENVS.get(family)(task or None, **cfg.env.kwargs)
     tasks = getattr(factory, "tasks", None) or getattr(factory, "task_indices", None) or ()
-    if len(tasks) > 1:
+    blocks = is_dataclass(factory) and any(f.name == "task_block" for f in fields(factory))
+    return max(len(tasks), 1), blocks
+
+
+def task_block(cfg: EmbodiedConfig) -> int:
+    """Consecutive training envs that run one task: ``algorithm.group_size`` for a grouped algorithm
+    (embodied GRPO) on a multi-task env, so that a group shares its task as well as its reset
+    state; 1 otherwise (env ``i`` runs task ``i mod T``)."""
+    if not ALGORITHMS[cfg.algorithm.name].grouped:
+        return 1
+    tasks, _ = _env_task_count(cfg)
+    return cfg.algorithm.group_size if tasks > 1 else 1
+
+
+def _check_one_task_per_group(cfg: EmbodiedConfig) -> None:
+    """A group of consecutive envs shares one reset seed, so it must share its task too: on a
+    multi-task env (metaworld:MT10, a LIBERO suite) every group gets a block of one task, which
+    needs the env family's ``task_block`` and ``env.num_envs`` a multiple of group_size x tasks
+    (every task then has as many groups). Refused before anything starts otherwise."""
+    tasks, blocks = _env_task_count(cfg)
+    if tasks == 1:
+        return
+    size, envs = cfg.algorithm.group_size, cfg.env.num_envs
+    if not blocks:
         raise ConfigError(f"algorithm.name={cfg.algorithm.name} compares envs reset to the same state, but "
-                          f"env.name={cfg.env.name} runs {len(tasks)} tasks across the envs (env i: task i mod "
-                          f"{len(tasks)}); use one task per run with grpo, or algorithm.name=ppo")
+                          f"env.name={cfg.env.name} runs {tasks} tasks across the envs and cannot give a group one "
+                          "task; use one task per run with grpo, or algorithm.name=ppo")
+    if envs % (size * tasks):
+        raise ConfigError(f"algorithm.name={cfg.algorithm.name} on env.name={cfg.env.name} ({tasks} tasks) runs "
+                          f"groups of algorithm.group_size={size} envs, one task each, every task as often: "
+                          f"env.num_envs={envs} must be a multiple of {size * tasks} (group_size x tasks)")
 
 
 def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
@@ -182,11 +211,27 @@ def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
                           f"collocates it with the rollout (placement.env={cfg.placement['env']!r}, "
                           f"placement.rollout={cfg.placement['rollout']!r}): place them on disjoint slots "
                           "or set env.stage_processes=false")
+    kwargs = dict(cfg.env.kwargs)
+    block = task_block(cfg)
+    if block > 1:
+        tasks, _ = _env_task_count(cfg)
+        sizes = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // rollout_ranks, stages=stages).stage_sizes()
+        if any(size % (block * tasks) for size in sizes):
+            raise ConfigError(f"algorithm.name={cfg.algorithm.name} on {tasks} tasks gives each group of {block} envs "
+                              f"one task, in every rollout rank and pipeline stage: their env counts {sizes} must "
+                              f"be multiples of {block * tasks}; use fewer ranks/stages or more envs")
+        kwargs["task_block"] = block
     spec = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // rollout_ranks, stages=stages,
                    num_workers=cfg.env.num_workers, max_episode_steps=cfg.env.max_episode_steps,
-                   chunk_size=cfg.policy.chunk, seed=cfg.seed, kwargs=dict(cfg.env.kwargs),
+                   chunk_size=cfg.policy.chunk, seed=cfg.seed, kwargs=kwargs,
                    stage_processes=cfg.env.stage_processes)
     return host_env, spec
+
+
+def eval_env_kwargs(cfg: EmbodiedConfig, kwargs: dict) -> dict:
+    """The evaluation's env options: the training envs' task blocks undone (env ``i`` runs task
+    ``i mod T`` again, so every task gets its share of the held-out episodes)."""
+    return {**kwargs, "task_block": 1} if task_block(cfg) > 1 else dict(kwargs)
 
 
 def _raise_env_root_cause(serving, rollout_error: BaseException, timeout_s: float = 60.0) -> None:
@@ -472,7 +517,8 @@ class EmbodiedFlow:
         t0 = time.perf_counter()
         seeds = eval_seeds(cfg.seed, cfg.episodes)
         handles = [self.rollout.call("evaluate", seeds[r::ranks], min(cfg.num_envs, len(seeds[r::ranks])),
-                                     cfg.deterministic, dict(cfg.env_kwargs), cfg.max_episode_steps, ranks=[r])
+                                     cfg.deterministic, eval_env_kwargs(self.cfg, cfg.env_kwargs),
+                                     cfg.max_episode_steps, ranks=[r])
                    for r in range(min(ranks, len(seeds)))]
         results = [handle.wait()[0] for handle in handles]
         total = sum(r["eval/episodes"] for r in results)
@@ -521,7 +567,8 @@ class EmbodiedFlow:
             try:
                 video = self.rollout.call("record_video", eval_seeds(cfg.eval.seed, cfg.eval.video_episodes),
                                           os.path.join(output_dir, "eval.mp4"), cfg.eval.video_frame_skip,
-                                          cfg.eval.video_fps, {**cfg.eval.env_kwargs, **cfg.eval.video_env_kwargs},
+                                          cfg.eval.video_fps,
+                                          eval_env_kwargs(cfg, {**cfg.eval.env_kwargs, **cfg.eval.video_env_kwargs}),
                                           cfg.eval.deterministic, cfg.eval.max_episode_steps, ranks=[0]).wait()[0]
             except Exception as exc:  # a missing GL library must not lose the trained run
                 print(f"eval video skipped: {exc}", flush=True)

@@ -82,6 +82,24 @@ def test_runs_and_resumes_exactly(ray_cluster, tmp_path, mode):
             "train/advantage_std", "eval/return_mean"])
 
 
+def test_grpo_on_two_tasks_trains_a_task_per_group_and_evaluates_both(ray_cluster, tmp_path):
+    """Embodied GRPO on a multi-task name: each group of envs runs one task (task blocks), and the
+    evaluation's envs cycle through the tasks again, so both get their held-out episodes."""
+    pytest.importorskip("metaworld")
+    from infinirl.runners.embodied import run
+
+    cfg = make_cfg(tmp_path / "run", 1, PLACEMENTS["collocated"][0], 1,
+                   algorithm={"name": "grpo", "group_size": 2, "epochs": 1, "mini_batches": 2},
+                   env={"name": "metaworld:reach-v3,push-v3", "num_envs": 4, "max_episode_steps": 8},
+                   rollout_steps=8, eval={"every": 1, "episodes": 4, "num_envs": 2, "video_episodes": 0,
+                                          "max_episode_steps": 8})
+    summary = run(cfg)
+    assert summary["iterations"] == 1
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    last = rows[-1]
+    assert last["eval/episodes/reach-v3"] == 2 and last["eval/episodes/push-v3"] == 2
+    assert "train/group_return_std_mean" in last
+
 def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
     """Embodied GRPO (collocated: the cheap placement; seed groups across ranks and stages are
     checked in tests/unit/test_embodied_grpo.py): 20-step episodes in 32-step rollouts, so each env's

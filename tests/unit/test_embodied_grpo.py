@@ -173,13 +173,44 @@ def test_grpo_update_ignores_masked_decisions_and_trains_no_critic():
     assert not torch.equal(weights, weights_all)
 
 
-def test_grpo_refuses_multi_task_envs():
+def test_grpo_on_multi_task_envs_gives_each_group_a_task_block():
+    """A group shares its reset seed, so it must share its task: consecutive blocks of
+    group_size envs run one task, every task as often; the evaluation undoes the blocks."""
     pytest.importorskip("metaworld")
-    from infinirl.runners.embodied import _check_one_task_per_group
+    from infinirl.components.env_worker import EnvSpec
+    from infinirl.runners.embodied import _check_one_task_per_group, _layout, eval_env_kwargs, task_block
 
-    _check_one_task_per_group(grpo_cfg(env={"name": "metaworld:reach-v3", "num_envs": 4}))
-    with pytest.raises(ConfigError, match="MT10 runs 10 tasks"):
-        _check_one_task_per_group(grpo_cfg(env={"name": "metaworld:MT10", "num_envs": 4}))
+    single = grpo_cfg(env={"name": "metaworld:reach-v3", "num_envs": 4})
+    _check_one_task_per_group(single)
+    assert task_block(single) == 1
+    two_tasks = {"name": "metaworld:reach-v3,push-v3", "num_envs": 8, "kwargs": {"obs_mode": "state"}}
+    two = grpo_cfg(env=two_tasks)
+    _check_one_task_per_group(two)
+    assert task_block(two) == 2 and eval_env_kwargs(two, {"terminate_on_success": True}) == {
+        "terminate_on_success": True, "task_block": 1}
+    assert task_block(grpo_cfg(env=two_tasks, algorithm={"name": "ppo", "mini_batches": 2})) == 1
+
+    class OneRank:
+        def relation(self, a, b):
+            return "collocated"
+
+        def world_size(self, role):
+            return 1
+
+    _, spec = _layout(two, OneRank())
+    assert spec.kwargs["task_block"] == 2
+    seeds = iteration_seeds(0, 3, 8, group_size=2)
+    with spec.build(8) as env:
+        obs = env.reset(seeds=seeds)
+        assert env.task_names == ["reach-v3", "reach-v3", "push-v3", "push-v3"] * 2
+        for group in range(4):  # one task and one layout a group
+            np.testing.assert_array_equal(obs["state"][2 * group], obs["state"][2 * group + 1])
+    with EnvSpec(**{**spec.__dict__, "kwargs": eval_env_kwargs(two, spec.kwargs)}).build(4) as env:
+        assert env.task_names == ["reach-v3", "push-v3"] * 2
+    with pytest.raises(ConfigError, match="multiple of 4"):
+        _check_one_task_per_group(grpo_cfg(env={"name": "metaworld:reach-v3,push-v3", "num_envs": 6}))
+    with pytest.raises(ConfigError, match="multiples of 4"):
+        _layout(grpo_cfg(env=two_tasks, rollout={"pipeline_stages": 4}), OneRank())
 
 
 

@@ -73,7 +73,8 @@ def test_metaworld_and_libero_take_their_factory_fields_without_importing_the_si
     assert out.stdout.strip() == "[]"
     fields = set(MetaWorldFactory.__dataclass_fields__) - {"tasks", "max_episode_steps"}
     assert env_options("metaworld:reach-v3").names - {"max_episode_steps"} == fields
-    assert env_options("libero:libero_spatial").names == {"image_size", "settle_steps", "max_episode_steps"}
+    libero = {"image_size", "settle_steps", "max_episode_steps", "task_block"}
+    assert env_options("libero:libero_spatial").names == libero
     assert set(LiberoFactory.__dataclass_fields__) >= env_options("libero:libero_spatial").names
 
 
