@@ -228,10 +228,10 @@ def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
     return host_env, spec
 
 
-def eval_env_kwargs(cfg: EmbodiedConfig, kwargs: dict) -> dict:
+def eval_env_kwargs(training_task_block: int, kwargs: dict) -> dict:
     """The evaluation's env options: the training envs' task blocks undone (env ``i`` runs task
     ``i mod T`` again, so every task gets its share of the held-out episodes)."""
-    return {**kwargs, "task_block": 1} if task_block(cfg) > 1 else dict(kwargs)
+    return {**kwargs, "task_block": 1} if training_task_block > 1 else dict(kwargs)
 
 
 def _raise_env_root_cause(serving, rollout_error: BaseException, timeout_s: float = 60.0) -> None:
@@ -269,6 +269,7 @@ class EmbodiedFlow:
 
     def __init__(self, cfg: EmbodiedConfig, env, rollout, actor, plan=None):
         self.cfg, self.env, self.rollout, self.actor, self.plan = cfg, env, rollout, actor, plan
+        self.task_block = task_block(cfg)  # the training envs' task blocks, undone for evaluation
         self.algorithm = ALGORITHMS[cfg.algorithm.name]
         self.group_size = cfg.algorithm.group_size if self.algorithm.grouped else 1
         self.return_norm = ReturnNormalizer(cfg.env.num_envs, cfg.algorithm.gamma)
@@ -517,7 +518,7 @@ class EmbodiedFlow:
         t0 = time.perf_counter()
         seeds = eval_seeds(cfg.seed, cfg.episodes)
         handles = [self.rollout.call("evaluate", seeds[r::ranks], min(cfg.num_envs, len(seeds[r::ranks])),
-                                     cfg.deterministic, eval_env_kwargs(self.cfg, cfg.env_kwargs),
+                                     cfg.deterministic, eval_env_kwargs(self.task_block, cfg.env_kwargs),
                                      cfg.max_episode_steps, ranks=[r])
                    for r in range(min(ranks, len(seeds)))]
         results = [handle.wait()[0] for handle in handles]
@@ -567,8 +568,8 @@ class EmbodiedFlow:
             try:
                 video = self.rollout.call("record_video", eval_seeds(cfg.eval.seed, cfg.eval.video_episodes),
                                           os.path.join(output_dir, "eval.mp4"), cfg.eval.video_frame_skip,
-                                          cfg.eval.video_fps,
-                                          eval_env_kwargs(cfg, {**cfg.eval.env_kwargs, **cfg.eval.video_env_kwargs}),
+                                          cfg.eval.video_fps, eval_env_kwargs(self.task_block, {
+                                              **cfg.eval.env_kwargs, **cfg.eval.video_env_kwargs}),
                                           cfg.eval.deterministic, cfg.eval.max_episode_steps, ranks=[0]).wait()[0]
             except Exception as exc:  # a missing GL library must not lose the trained run
                 print(f"eval video skipped: {exc}", flush=True)

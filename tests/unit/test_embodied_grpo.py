@@ -186,7 +186,7 @@ def test_grpo_on_multi_task_envs_gives_each_group_a_task_block():
     two_tasks = {"name": "metaworld:reach-v3,push-v3", "num_envs": 8, "kwargs": {"obs_mode": "state"}}
     two = grpo_cfg(env=two_tasks)
     _check_one_task_per_group(two)
-    assert task_block(two) == 2 and eval_env_kwargs(two, {"terminate_on_success": True}) == {
+    assert task_block(two) == 2 and eval_env_kwargs(2, {"terminate_on_success": True}) == {
         "terminate_on_success": True, "task_block": 1}
     assert task_block(grpo_cfg(env=two_tasks, algorithm={"name": "ppo", "mini_batches": 2})) == 1
 
@@ -205,7 +205,7 @@ def test_grpo_on_multi_task_envs_gives_each_group_a_task_block():
         assert env.task_names == ["reach-v3", "reach-v3", "push-v3", "push-v3"] * 2
         for group in range(4):  # one task and one layout a group
             np.testing.assert_array_equal(obs["state"][2 * group], obs["state"][2 * group + 1])
-    with EnvSpec(**{**spec.__dict__, "kwargs": eval_env_kwargs(two, spec.kwargs)}).build(4) as env:
+    with EnvSpec(**{**spec.__dict__, "kwargs": eval_env_kwargs(2, spec.kwargs)}).build(4) as env:
         assert env.task_names == ["reach-v3", "push-v3"] * 2
     with pytest.raises(ConfigError, match="multiple of 4"):
         _check_one_task_per_group(grpo_cfg(env={"name": "metaworld:reach-v3,push-v3", "num_envs": 6}))
