@@ -1,15 +1,17 @@
 """Benchmark: a robot at the edge far from its trainer, naive remote control vs the edge link.
 
-One simulated Sawyer (MetaWorld, real time, ``--control-hz``) with a ``--image-size`` camera, one
-SAC actor (``SquashedGaussianActor`` on the state vector), and between the robot and the cloud the
-link emulator (``python -m infinirl.edge.emulator`` in its own process: ``--rtt-ms`` round trip,
+One simulated Sawyer (MetaWorld, real time, ``--control-hz``) with a ``--camera`` HxW camera (a real
+robot's camera streams e.g. 480x640; training uses a ``--frame-size`` resize of it), one SAC actor
+(``SquashedGaussianActor`` on the state vector), and between the robot and the cloud the link emulator
+(``python -m infinirl.edge.emulator`` in its own process: ``--rtt-ms`` round trip,
 ``--mbit`` per direction) carrying one mutual-TLS link:
 
   naive:  every control step the edge sends the raw observation (the camera frame as uint8 and the
           state as float32, and the last reward) to the cloud, where the policy runs, and waits for
           the action before stepping the robot;
   edge:   the policy runs at the edge on the newest weights; finished episodes go up in the
-          background with JPEG frames (``infinirl.edge.edge_client``); the cloud publishes a new
+          background with JPEG frames resized to ``--frame-size``, the resolution training uses
+          (``infinirl.edge.edge_client``); the cloud publishes a new
           weight version every ``--publish-every`` seconds (the actor's weights with a small
           change, like a learner's update), which comes down as a compressed delta.
 
@@ -21,6 +23,7 @@ starts the next period late (it is not made up for), as on a real controller.
 
     python benchmarks/edge_link.py                       # 3 + 3 episodes of 100 steps at 20 Hz, ~1.5 min
     python benchmarks/edge_link.py --control-hz 10 --rtt-ms 120 --mbit 10
+    python benchmarks/edge_link.py --camera 224x224      # a camera already at the training resolution
 
 The last stdout line is ONE JSON object: {"benchmark": "edge_link", "ratios": {"edge_episode_speedup":
 naive episode s / edge episode s, "edge_bytes_up_reduction": naive bytes up / edge bytes up},
@@ -79,7 +82,7 @@ def make_env(args):
     from infinirl.realworld.robot_env import RobotEnv, RobotEnvSpec
     from infinirl.realworld.safety import SafeRobot, SafetyConfig
 
-    robot = SafeRobot(make_robot("sim_sawyer", control_hz=args.control_hz, image_size=args.image_size,
+    robot = SafeRobot(make_robot("sim_sawyer", control_hz=args.control_hz, image_size=list(args.camera),
                                  seed=args.seed), SafetyConfig())
     robot.connect()
     spec = RobotEnvSpec(observations=("proprio", "sim_state"), cameras=("corner",), max_episode_steps=args.steps,
@@ -173,7 +176,8 @@ def run_edge(env, actor, files, args) -> dict:
     publisher = threading.Thread(target=learner, daemon=True)
     publisher.start()
     client = EdgeClient(emulator.address, files["edge-0"], name="edge-0",
-                        frames=FrameOptions(format="jpeg", quality=args.jpeg_quality)).start()
+                        frames=FrameOptions(format="jpeg", quality=args.jpeg_quality,
+                                                               size=args.frame_size)).start()
     edge_actor = EdgeActor(make_actor(env, args.seed + 1), client, warmup="hold")
     durations, late = [], 0
     try:
@@ -215,12 +219,23 @@ def summarise(durations, stats, late, args, frame_bytes=None) -> dict:
     return result
 
 
+def height_width(text: str) -> tuple[int, int]:
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW such as 480x640, got {text!r}") from None
+    return height, width
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=3, help="per mode")
     parser.add_argument("--steps", type=int, default=100, help="control steps per episode")
     parser.add_argument("--control-hz", type=float, default=20.0)
-    parser.add_argument("--image-size", type=int, default=224)
+    parser.add_argument("--camera", type=height_width, default=(480, 640), metavar="HxW",
+                        help="the robot camera's raw frame, which the naive mode ships every step")
+    parser.add_argument("--frame-size", type=height_width, default=(224, 224), metavar="HxW",
+                        help="the training resolution: the edge resizes frames to it before the upload")
     parser.add_argument("--rtt-ms", type=float, default=60.0)
     parser.add_argument("--mbit", type=float, default=20.0, help="per direction")
     parser.add_argument("--jpeg-quality", type=int, default=90)
@@ -248,7 +263,9 @@ def main() -> int:
                                                2)}
     final = {"benchmark": "edge_link", "ratios": ratios, "targets": TARGETS, "results": results,
              "settings": {"episodes": args.episodes, "steps": args.steps, "control_hz": args.control_hz,
-                          "image_size": args.image_size, "rtt_ms": args.rtt_ms, "mbit_per_direction": args.mbit,
+                          "camera": "x".join(map(str, args.camera)),
+                          "frame_size": "x".join(map(str, args.frame_size)), "rtt_ms": args.rtt_ms,
+                          "mbit_per_direction": args.mbit,
                           "jpeg_quality": args.jpeg_quality, "publish_every_s": args.publish_every,
                           "seed": args.seed},
              "device": device_description(), "elapsed_s": round(time.perf_counter() - started, 1)}

@@ -12,6 +12,7 @@ the MetaWorld adapter, so observations report ``joint_positions=None``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import partial
 from typing import Any
 
@@ -22,11 +23,20 @@ from infinirl.realworld.driver import AttachedRobot, CameraSpec, RobotObservatio
 from infinirl.realworld.sim_robot import SimulatedRobot
 
 __all__ = ["METAWORLD_ACTION_SCALE", "METAWORLD_STEP_S", "SAWYER_SPEC_LIMITS", "SawyerPlant", "SimSawyer",
-           "attached_sim_sawyers"]
+           "attached_sim_sawyers", "camera_shape"]
 
 METAWORLD_ACTION_SCALE = 0.01
 METAWORLD_STEP_S = 0.0125
 _NEVER_TRUNCATE = 10**12  # the robot runs until reset; episode lengths belong to the layer above
+
+
+def camera_shape(image_size: int | Sequence[int]) -> tuple[int, int]:
+    """``image_size`` as (height, width): an int is a square frame, a pair is (height, width), as a real
+    camera streams (e.g. ``[480, 640]``) while training uses a smaller resize of it."""
+    size = (image_size, image_size) if isinstance(image_size, int) else tuple(image_size)
+    if len(size) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size):
+        raise ValueError(f"image_size must be a positive int or [height, width], got {image_size!r}")
+    return size
 # Sawyer's published joint limits (rad) and joint speed limits (rad/s), right_j0 .. right_j6.
 SAWYER_SPEC_LIMITS = {
     "joint_low": np.array([-3.0503, -3.8095, -3.0426, -3.0439, -2.9761, -2.9761, -4.7124]),
@@ -41,17 +51,19 @@ _WORKSPACE_HIGH = np.array([0.5, 1.0, 0.5])
 class SawyerPlant:
     """One MetaWorld task scene; driven by one thread."""
 
-    def __init__(self, *, task: str, control_hz: float, image_size: int | None, camera: str = "corner") -> None:
+    def __init__(self, *, task: str, control_hz: float, image_size: int | Sequence[int] | None,
+                 camera: str = "corner") -> None:
+        height, width = camera_shape(image_size) if image_size else (64, 64)
         use_headless_gl()  # before MuJoCo is imported (see SO101Plant): frames are rendered from this env
         from infinirl.envs.metaworld_env import MetaWorldSubEnv
 
-        self._env = MetaWorldSubEnv(task, obs_mode="state", camera=camera, image_size=image_size or 64,
+        self._env = MetaWorldSubEnv(task, obs_mode="state", camera=camera, image_size=(height, width),
                                     max_episode_steps=_NEVER_TRUNCATE)
         self._camera = camera
         self._steps_per_tick = max(1, round(1.0 / control_hz / METAWORLD_STEP_S))
         self._state: np.ndarray | None = None
         self._success = False
-        cameras = (CameraSpec(name=camera, height=image_size, width=image_size),) if image_size else ()
+        cameras = (CameraSpec(name=camera, height=height, width=width),) if image_size else ()
         self.spec = RobotSpec(
             kind="sim_sawyer",
             dof=7,
@@ -94,9 +106,10 @@ class SawyerPlant:
 
 class SimSawyer(SimulatedRobot):
     """MetaWorld's Sawyer on task ``task`` at ``control_hz`` in real time; ``image_size=None`` for no
-    camera. ``info["success"]``: the task succeeded at some step since the last reset."""
+    camera, ``[height, width]`` for a non-square one. ``info["success"]``: the task succeeded at some
+    step since the last reset."""
 
-    def __init__(self, *, task: str = "reach-v3", control_hz: float = 20.0, image_size: int | None = 64,
+    def __init__(self, *, task: str = "reach-v3", control_hz: float = 20.0, image_size: int | Sequence[int] | None = 64,
                  camera: str = "corner", latency_s: float = 0.0, reset_s: float = 0.0, seed: int = 0) -> None:
         super().__init__(partial(SawyerPlant, task=task, control_hz=control_hz, image_size=image_size, camera=camera),
                          latency_s=latency_s, reset_s=reset_s, seed=seed)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from infinirl.realworld.driver import RobotError, RobotStoppedError, make_robot
+from infinirl.realworld.sim_sawyer import camera_shape
 
 
 def wait_until(predicate, timeout_s=10.0):
@@ -76,6 +77,17 @@ def test_sawyer_moves_its_hand_to_an_end_effector_target():
         target[0] += 0.1
         robot.act(target)
         assert wait_until(lambda: np.linalg.norm(robot.observe().ee_position - target[:3]) < 0.02)
+
+
+def test_sawyer_camera_can_stream_a_non_square_frame_and_refuses_a_bad_size():
+    """A real camera streams e.g. 480x640 while training uses a resize: ``image_size=[h, w]``."""
+    robot = make_robot("sim_sawyer", task="reach-v3", control_hz=20.0, image_size=[24, 40])
+    with robot:
+        assert robot.spec.cameras[0].height == 24 and robot.spec.cameras[0].width == 40
+        assert robot.observe().frames["corner"].shape == (24, 40, 3)
+    for bad in ([24], [24, 0], [24.5, 40]):
+        with pytest.raises(ValueError, match=r"image_size must be a positive int or \[height, width\]"):
+            camera_shape(bad)
 
 
 def test_so101_reach_success_is_the_gripper_at_the_cube_and_pick_needs_a_lift():
