@@ -82,6 +82,7 @@ class EdgeClient:
         self._seq = 0
         self._link: Link | None = None
         self.tunnel: TunnelEnd | None = None  # the present link's, while connected
+        self._targets_lock = threading.Lock()
         self._offline_since: float | None = time.monotonic()
         self._outage_from: tuple[float, int] | None = None  # (went down at, episodes submitted then)
         self.last_outage: dict | None = None  # {"offline_s", "episodes_spooled"} of the last outage ended
@@ -93,6 +94,15 @@ class EdgeClient:
     def start(self) -> EdgeClient:
         self._thread.start()
         return self
+
+    def offer(self, service: str, target: tuple[str, int]) -> None:
+        """Let the cloud open tunnel connections to ``service`` at ``target`` from now on (on this link
+        and every later one): a service that starts after the client, such as the intervention page
+        of a control loop built once the link is up."""
+        with self._targets_lock:  # a link starting meanwhile copies the targets before or after this
+            self.tunnel_targets[service] = target
+            if self.tunnel is not None:
+                self.tunnel.targets[service] = target
 
     def submit(self, episode: Mapping[str, np.ndarray]) -> str:
         """Encode and spool one episode for sending; returns its id. Raises the client's fatal error
@@ -231,7 +241,8 @@ class EdgeClient:
     def _session(self, link: Link) -> None:
         in_flight: set[str] = set()
         # always answered, also without targets: unread tunnel messages would fill the stream's inbox
-        self.tunnel = TunnelEnd(link, targets=self.tunnel_targets, options=self.options.tunnel).start()
+        with self._targets_lock:
+            self.tunnel = TunnelEnd(link, targets=self.tunnel_targets, options=self.options.tunnel).start()
         receivers = [threading.Thread(target=self._receive_acks, args=(link, in_flight), daemon=True),
                      threading.Thread(target=self._receive_weights, args=(link,), daemon=True)]
         for thread in receivers:

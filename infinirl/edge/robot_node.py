@@ -179,6 +179,9 @@ def run_robot_node(cfg, build_loop: Callable[[], RobotControlLoop], *, cloud: tu
     try:
         client.wait_connected(connect_wait_s)  # a refused certificate ends the node here, before the robot moves
         loop = build_loop()
+        page = getattr(loop.intervention_device, "local_address", None)
+        if page is not None:  # the web intervention page: the trainer serves it through the link (edge.page_listen)
+            client.offer("page", page)
         node = EdgeRobotNode(cfg, loop, client)
         server = RobotCallServer(client, node.handlers()).start()
         try:

@@ -16,7 +16,9 @@ is the same for both transports.
 
 With ``edge.launch`` the link also starts the edge node (:mod:`infinirl.edge.robot_node`) on this
 machine as a process of its own, with the run's config (``<output_dir>/edge/config.json``) and its
-output in ``<output_dir>/edge/node.log``.
+output in ``<output_dir>/edge/node.log``. With ``edge.page_listen`` it serves the edge robot's web
+intervention page on that address, each browser connection carried by the link's tunnel
+(:mod:`infinirl.edge.tunnel`) to the page beside the robot.
 """
 
 from __future__ import annotations
@@ -29,12 +31,14 @@ import subprocess
 import sys
 import threading
 import time
+from urllib.parse import quote
 
 from infinirl.edge.cloud_hub import CloudHub, HubOptions, wait_for
 from infinirl.edge.credentials import TlsFiles
 from infinirl.edge.link import LinkOptions
 from infinirl.edge.robot_calls import RobotCaller
 from infinirl.edge.robot_node import shared_config
+from infinirl.edge.tunnel import TunnelListener
 
 __all__ = ["EdgeRobots", "TrainerLink", "differences", "link_metrics"]
 
@@ -174,6 +178,7 @@ class TrainerLink:
         self.hub = CloudHub((host, int(port)), TlsFiles.in_folder(cfg.edge.certs, "cloud"),
                             on_episode=self._on_episode, options=HubOptions(link=link), commit_acks=True)
         self.process: subprocess.Popen | None = None
+        self.page: TunnelListener | None = None  # edge.page_listen: the edge's intervention page, served here
         self._stop = threading.Event()
         self._commits = threading.Thread(target=self._follow_commits, name="edge-commits", daemon=True)
 
@@ -201,9 +206,26 @@ class TrainerLink:
         self._commits.start()
         print(f"edge link: waiting for edge {self.cfg.edge.name} on {self.hub.address[0]}:{self.hub.address[1]}",
               flush=True)
+        if self.cfg.edge.page_listen is not None:
+            self.page = self._serve_page(self.cfg.edge.page_listen)
         if self.cfg.edge.launch:
             self.process = self._launch_node()
         return self
+
+    def _serve_page(self, listen: str) -> TunnelListener:
+        """Accept browsers on ``listen``; each connection goes through the link to the edge's page."""
+        host, _, port = listen.rpartition(":")  # checked by the config
+        try:
+            page = TunnelListener((host, int(port)), lambda: self.hub.tunnel(self.cfg.edge.name), service="page")
+        except OSError as exc:
+            raise RuntimeError(f"edge.page_listen={listen}: cannot listen there ({exc}); pick a free port or 0") from exc
+        page.start()
+        token = self.cfg.interventions.options.get("token")
+        shown = f"[{page.address[0]}]" if ":" in page.address[0] else page.address[0]
+        query = f"?token={quote(str(token), safe='')}" if token else ""
+        print(f"intervention page of edge {self.cfg.edge.name}'s robot, through the link: "
+              f"http://{shown}:{page.address[1]}/{query}", flush=True)
+        return page
 
     def robots(self) -> EdgeRobots:
         """The edge's robot, once the edge connected (within ``edge.connect_timeout_s``)."""
@@ -235,7 +257,10 @@ class TrainerLink:
         return _PublishedWeights(self.hub, self.cfg.edge.name, stamped)
 
     def stats(self) -> dict:
-        return self.hub.stats()
+        stats = self.hub.stats()
+        if self.page is not None:
+            stats["page_connections"] = dict(self.page.counts)
+        return stats
 
     def metrics(self, robots: list[dict]) -> dict[str, float]:
         """This iteration's link metrics (:func:`link_metrics`) from the hub and the edge's report."""
@@ -249,6 +274,8 @@ class TrainerLink:
                 logger.warning("the edge node launched here did not end; terminating it")
                 self.process.terminate()
                 self.process.wait(_EXIT_GRACE_S)
+        if self.page is not None:
+            self.page.close()
         self._stop.set()
         if self._commits.is_alive():
             self._commits.join(_COMMITS_WAIT_S * 4)

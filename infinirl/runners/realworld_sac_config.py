@@ -126,6 +126,11 @@ class EdgeLinkConfig:
     """Either end sends a heartbeat after this long without sending."""
     dead_after_s: float = bounded(6.0, gt=0)
     """Either end closes the link after this long without receiving (the edge then reconnects)."""
+    page_listen: str | None = None
+    """HOST:PORT where the trainer serves the edge robot's intervention page (``interventions.device:
+    web`` at the edge) through the link, so people open it at the trainer while the edge opens no port
+    (port 0: any free port; the address is printed). The page's token is its only guard: keep HOST
+    local (127.0.0.1) or on a trusted network. None: not served."""
     max_offline_s: float = bounded(30.0, ge=0)
     """How long the edge's robot acts on its last weights once the link is down (counted from when
     the link is declared down, dead_after_s after it went silent); beyond it the robot holds (the
@@ -134,7 +139,8 @@ class EdgeLinkConfig:
     def check(self, transport: str) -> None:
         if transport != "edge":
             return
-        for key, value in (("edge.listen", self.listen), ("edge.dial", self.dial)):
+        addresses = {"edge.listen": self.listen, "edge.dial": self.dial, "edge.page_listen": self.page_listen}
+        for key, value in addresses.items():
             if value is not None:
                 parse_address(value, key)
         if self.certs is None:
@@ -348,6 +354,10 @@ class RealWorldSACConfig(RunConfig):
                 raise ConfigError("pipeline.transport=edge drives one robot at one edge; robot.fleet needs "
                                   "pipeline.transport=ray")
         self.edge.check(self.pipeline.transport)
+        serves_page = self.pipeline.transport == "edge" and self.edge.page_listen is not None
+        if serves_page and self.interventions.device != "web":
+            raise ConfigError(f"edge.page_listen serves the edge's web intervention page, but interventions.device is "
+                              f"{self.interventions.device!r}; set interventions.device=web or drop edge.page_listen")
 
     def task_of(self, index: int) -> TaskConfig:
         """The task of fleet entry ``index``: the shared section with the entry's keys over it."""

@@ -324,6 +324,12 @@ class WebInterventionDevice(InterventionDevice):
         return self.state.stats
 
     @property
+    def local_address(self) -> tuple[str, int]:
+        """Where a process on this machine connects to the page (a tunnel's target)."""
+        host = {"0.0.0.0": "127.0.0.1", "::": "::1", "": "127.0.0.1"}.get(self.host, self.host)
+        return host, self.port
+
+    @property
     def url(self) -> str:
         """The page's address, token included: open it in a browser."""
         host = socket.gethostname() if self.host in ("0.0.0.0", "::", "") else self.host

@@ -8,8 +8,10 @@ each episode id once."""
 
 import importlib.util
 import json
+import socket
 import threading
 import time
+import urllib.request
 
 import numpy as np
 import pytest
@@ -93,6 +95,68 @@ def test_the_robot_trains_at_the_edge_through_the_link(ray_cluster, tmp_path, pk
     assert last["link/episodes"] >= 1 and last["link/weight_pushes_full"] >= 1
 
 
+TOKEN = "page-through-the-link"
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def call_page(base: str, path: str, body: dict | None = None):
+    """GET (no body) or POST one page API call with the token; the parsed JSON answer."""
+    data = None if body is None else json.dumps(body).encode()
+    with urllib.request.urlopen(urllib.request.Request(f"{base}{path}?token={TOKEN}", data=data), timeout=10) as r:
+        return json.loads(r.read()) if path.startswith("/api") else r.read().decode()
+
+
+def person_at_the_trainer(base: str, seen: dict) -> None:
+    """Waits for the page (it answers once the edge connected and built its robot's loop) and for the
+    robot's training episodes, then takes over, steers for a second, marks a success and hands back."""
+    deadline = time.monotonic() + 120
+    while True:
+        try:
+            seen["first_state"] = call_page(base, "/api/state")
+            if seen["first_state"]["polls"] > 0:  # the robot runs training episodes (it polls the page each step)
+                break
+        except OSError:  # the edge is not connected yet: the trainer's port closes the connection
+            pass
+        assert time.monotonic() < deadline, "the page did not answer through the link with the robot running"
+        time.sleep(0.2)
+    seen["page"] = call_page(base, "/")
+    action = [0.0] * seen["first_state"]["action_dim"]
+    call_page(base, "/api/takeover", {"action": action})
+    for _ in range(10):  # the page's joystick: an action every 100 ms keeps control with the human
+        call_page(base, "/api/action", {"action": action})
+        time.sleep(0.1)
+    call_page(base, "/api/mark", {"mark": "success"})
+    time.sleep(0.3)
+    seen["last_state"] = call_page(base, "/api/handback", {})
+
+
+def test_the_edge_robots_intervention_page_is_served_at_the_trainer_through_the_link(ray_cluster, tmp_path, pki):
+    """interventions.device=web at the edge, edge.page_listen at the trainer: a person at the trainer
+    opens the page (the edge opens no port), takes over, steers and marks a success; the learner's
+    store holds the intervened steps and the success as the episode's reward."""
+    out, port = tmp_path / "run", free_port()
+    raw = make_raw(out, pki, iterations=3, page_listen=f"127.0.0.1:{port}")
+    raw["interventions"] = {"device": "web", "reward": "human", "as_demos": False, "options": {"token": TOKEN}}
+    seen: dict = {}
+    person = threading.Thread(target=lambda: person_at_the_trainer(f"http://127.0.0.1:{port}", seen), daemon=True)
+    person.start()
+    summary = run(to_dataclass(RealWorldSACConfig, raw))
+    person.join(timeout=60)
+    assert "<html" in seen["page"].lower() and seen["last_state"]["actor"] == "policy"
+    episodes = stored(out / "replay")
+    assert summary["replay_episodes"] == len(episodes) > 0
+    assert sum(int(e["intervened"].sum()) for e in episodes) > 0  # the human's steps reached the learner, flagged
+    rewards = np.concatenate([e["reward"] for e in episodes])
+    assert rewards.max() == 1.0 and set(np.unique(rewards)) <= {0.0, 1.0}  # the page's success mark is the reward
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert rows[-1]["intervention/steps"] > 0 or any(r.get("intervention/steps", 0) > 0 for r in rows)
+
+
 @pytest.mark.slow  # default-tier budget: the link-level cut (test_netns_link.py) and the unit tier's resends stay
 def test_a_link_cut_mid_run_loses_no_episode(ray_cluster, tmp_path, pki):
     """The edge dials the hub through the emulator; the link goes silent for 3 s mid-run (longer
@@ -130,6 +194,8 @@ def test_a_link_cut_mid_run_loses_no_episode(ray_cluster, tmp_path, pki):
 def test_edge_transport_config_errors_are_one_line_and_name_the_key(tmp_path, pki):
     for edge, pipeline, key in (({"certs": None}, {}, "edge.certs"),
                                 ({"listen": "7443"}, {}, "edge.listen"),
+                                ({"page_listen": "8080"}, {}, "edge.page_listen"),
+                                ({"page_listen": "127.0.0.1:8080"}, {}, "interventions.device"),
                                 ({}, {"mode": "sync"}, "pipeline.mode")):
         with pytest.raises(ConfigError, match=key.replace(".", r"\.")) as error:
             to_dataclass(RealWorldSACConfig, make_raw(tmp_path / "bad", pki, pipeline=pipeline, **edge)).validate()
