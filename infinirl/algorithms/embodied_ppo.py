@@ -37,6 +37,8 @@ class PPOSpec:
     """PPO hyperparameters (documented on the runner's config fields)."""
 
     lr: float = 3e-4
+    value_lr: float | None = None
+    """The critic's learning rate (the policy's ``critic_modules``); None: ``lr``."""
     anneal_lr: bool = True
     total_iterations: int = 1
     epochs: int = 10
@@ -104,9 +106,9 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     whole optimizer step; None where the model cannot be compiled whole (then only the loss is).
     """
     if ppo.anneal_lr:
-        lr = ppo.lr * max(0.0, 1.0 - iteration / max(1, ppo.total_iterations))
-        for group in optimizer.param_groups:
-            group["lr"] = lr
+        factor = max(0.0, 1.0 - iteration / max(1, ppo.total_iterations))
+        for group in optimizer.param_groups:  # each group from its own rate (a faster value head's)
+            group["lr"] = group.get("base_lr", ppo.lr) * factor
     size = batch["actions"].shape[0]
     per_mini = size // ppo.mini_batches
     device = batch["advantages"].device

@@ -27,7 +27,7 @@ import torch
 
 from infinirl.algorithms import embodied_ppo
 from infinirl.algorithms.embodied_ppo import PPOSpec, ppo_minibatch_loss, ppo_objective
-from infinirl.components.embodied_policy import compute_device, module_device
+from infinirl.components.embodied_policy import compute_device, critic_lr_of, module_device
 from infinirl.components.embodied_rollout import PolicySpec
 from infinirl.engines.parallel import DATA_PARALLEL
 from infinirl.engines.policy_lora import PolicyLoraSpec, apply_policy_lora, merged_policy_weights
@@ -104,7 +104,8 @@ class EmbodiedActorWorker(Worker, WeightSource):
         # adapters start at zero (B = 0): the adapted policy acts exactly as the one the rollout built
         self.lora_plan = apply_policy_lora(policy, lora) if lora is not None else None
         self.model = self.parallel.wrap(policy.to(self.compute))
-        self.optimizer = self.parallel.build_optimizer(self.model, ppo.lr, ppo.adam_eps)
+        lr_of = None if ppo.value_lr is None else critic_lr_of(policy, ppo.lr, ppo.value_lr)
+        self.optimizer = self.parallel.build_optimizer(self.model, ppo.lr, ppo.adam_eps, lr_of)
 
     def compute_device(self) -> str:
         """Where this rank's policy is (``"cpu"``, ``"cuda:0"``), read off its parameters."""

@@ -30,7 +30,7 @@ from torch import nn
 from infinirl.models.policies.base import POLICIES, Policy, PolicyEval, PolicyStep
 
 __all__ = ["NormalizedPolicy", "ReturnNormalizer", "RunningMeanStd", "build_embodied_policy", "compute_device",
-           "module_device", "policy_kwargs"]
+           "critic_lr_of", "module_device", "policy_kwargs"]
 
 COMPUTE_DEVICES = ("auto", "cpu")
 
@@ -43,6 +43,20 @@ def compute_device(placed_on: str, setting: str) -> torch.device:
     if setting not in COMPUTE_DEVICES:
         raise ValueError(f"device={setting!r}: use one of {list(COMPUTE_DEVICES)}")
     return torch.device("cpu" if setting == "cpu" else placed_on)
+
+
+def critic_lr_of(policy: nn.Module, lr: float, value_lr: float):
+    """``name -> learning rate`` for ``policy``'s parameters (a :class:`Policy`, or a wrapper holding
+    one as ``.policy``): ``value_lr`` under its ``critic_modules``, ``lr`` elsewhere (names may carry
+    a wrapper's prefix)."""
+    inner = getattr(policy, "policy", policy)
+    modules = tuple(getattr(inner, "critic_modules", ()))
+
+    def lr_of(name: str) -> float:
+        dotted = f".{name}."
+        return value_lr if any(f".{module}." in dotted for module in modules) else lr
+
+    return lr_of
 
 
 def module_device(module: nn.Module) -> torch.device:

@@ -218,7 +218,8 @@ class TrainerLink:
         try:
             page = TunnelListener((host, int(port)), lambda: self.hub.tunnel(self.cfg.edge.name), service="page")
         except OSError as exc:
-            raise RuntimeError(f"edge.page_listen={listen}: cannot listen there ({exc}); pick a free port or 0") from exc
+            raise RuntimeError(f"edge.page_listen={listen}: cannot listen there ({exc}); pick a free port or "
+                               "0") from exc
         page.start()
         token = self.cfg.interventions.options.get("token")
         shown = f"[{page.address[0]}]" if ":" in page.address[0] else page.address[0]

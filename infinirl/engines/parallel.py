@@ -28,7 +28,19 @@ from infinirl.registry import Registry
 from infinirl.utils.atomic import torch_save_atomic
 
 __all__ = ["DATA_PARALLEL", "DataParallel", "FullyShardedDataParallel", "ReplicatedDataParallel",
-           "compiled_whole_step"]
+           "compiled_whole_step", "param_groups"]
+
+
+def param_groups(model: nn.Module, lr: float, lr_of: Callable[[str], float] | None = None) -> list[dict]:
+    """``model``'s parameters as optimizer groups: one at ``lr`` (``lr_of`` None), else one per
+    learning rate ``lr_of(parameter name)`` gives, each keeping it as ``base_lr`` (what a decaying
+    schedule scales: a value head may learn faster than the policy it sits on)."""
+    if lr_of is None:
+        return [{"params": list(model.parameters()), "lr": lr}]
+    groups: dict[float, list[nn.Parameter]] = {}
+    for name, parameter in model.named_parameters():
+        groups.setdefault(float(lr_of(name)), []).append(parameter)
+    return [{"params": params, "lr": rate, "base_lr": rate} for rate, params in groups.items()]
 
 
 def compiled_whole_step(model: nn.Module, optimizer: torch.optim.Optimizer, objective, max_norm: float,
@@ -60,8 +72,11 @@ class DataParallel:
         """The model as this strategy trains it (built identically on every rank, on its device)."""
         return model
 
-    def build_optimizer(self, model: nn.Module, lr: float, eps: float) -> torch.optim.Adam:
-        return torch.optim.Adam(model.parameters(), lr=lr, eps=eps)
+    def build_optimizer(self, model: nn.Module, lr: float, eps: float,
+                        lr_of: Callable[[str], float] | None = None) -> torch.optim.Adam:
+        """Adam over ``model``'s parameters at ``lr``, or at ``lr_of(name)`` per parameter (see
+        :func:`param_groups`)."""
+        return torch.optim.Adam(param_groups(model, lr, lr_of), lr=lr, eps=eps)
 
     def reduce_gradients(self, model: nn.Module) -> None:
         """Sum every ``p.grad`` over the ranks (after the backward pass, before clipping)."""
@@ -104,10 +119,11 @@ class ReplicatedDataParallel(DataParallel):
 
     whole_step = staticmethod(compiled_whole_step)
 
-    def build_optimizer(self, model: nn.Module, lr: float, eps: float) -> torch.optim.Adam:
+    def build_optimizer(self, model: nn.Module, lr: float, eps: float,
+                        lr_of: Callable[[str], float] | None = None) -> torch.optim.Adam:
         # Fused Adam: one kernel per step instead of a Python loop over parameters, which matters
         # for a small policy's many small steps.
-        return torch.optim.Adam(model.parameters(), lr=lr, eps=eps, fused=True)
+        return torch.optim.Adam(param_groups(model, lr, lr_of), lr=lr, eps=eps, fused=True)
 
     def reduce_gradients(self, model: nn.Module) -> None:
         if self.world_size == 1:

@@ -43,7 +43,7 @@ import torch
 from infinirl.algorithms import EnvAdvantageInputs, compute_advantages
 from infinirl.algorithms.embodied_ppo import PPOSpec
 from infinirl.components.embodied_actor import EmbodiedActorWorker, actor_process_env
-from infinirl.components.embodied_policy import ReturnNormalizer
+from infinirl.components.embodied_policy import ReturnNormalizer, critic_lr_of
 from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec, merge_task_success
 from infinirl.components.env_worker import (
     EnvSpec,
@@ -125,16 +125,33 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
             apply_policy_lora(policy, cfg.actor.lora)
         except ValueError as exc:
             raise ConfigError(f"policy {cfg.policy.name}: {exc}") from None
+    if cfg.actor.value_lr is not None:
+        _check_value_lr(cfg, policy)
     if ALGORITHMS[cfg.algorithm.name].grouped:
         _check_one_task_per_group(cfg)
     return observation_spec, action_space, policy_spec
+
+
+def _check_value_lr(cfg: EmbodiedConfig, policy) -> None:
+    """``actor.value_lr`` needs a critic that trains: a PPO-style algorithm and a policy with one."""
+    if not ALGORITHMS[cfg.algorithm.name].critic:
+        raise ConfigError(f"actor.value_lr is the critic's learning rate, and algorithm.name={cfg.algorithm.name} "
+                          "trains no critic; remove actor.value_lr")
+    if cfg.actor.compile:
+        raise ConfigError("actor.value_lr gives the critic a learning rate of its own, which actor.compile's fused "
+                          "step (one learning rate) cannot take; set actor.compile=false or remove actor.value_lr")
+    lr_of = critic_lr_of(policy, cfg.actor.lr, cfg.actor.value_lr)
+    if not any(lr_of(name) == cfg.actor.value_lr for name, _ in policy.named_parameters()):
+        raise ConfigError(f"actor.value_lr: policy {cfg.policy.name} has no critic parameters (its value head is "
+                          "off, or it names no critic_modules); remove actor.value_lr")
 
 
 def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
     """The actor's update settings; grouped (GRPO) advantages are used as they are, no critic is trained."""
     alg, algorithm = cfg.algorithm, ALGORITHMS[cfg.algorithm.name]
     horizon = cfg.actor.anneal_iterations or cfg.iterations
-    return PPOSpec(lr=cfg.actor.lr, anneal_lr=cfg.actor.anneal_lr, total_iterations=horizon, epochs=alg.epochs,
+    return PPOSpec(lr=cfg.actor.lr, value_lr=cfg.actor.value_lr, anneal_lr=cfg.actor.anneal_lr,
+                   total_iterations=horizon, epochs=alg.epochs,
                    mini_batches=alg.mini_batches, clip=alg.clip, value_clip=alg.value_clip,
                    value_coef=alg.value_coef, entropy_coef=alg.entropy_coef, max_grad_norm=alg.max_grad_norm,
                    normalize_advantages=alg.normalize_advantages and not algorithm.grouped,

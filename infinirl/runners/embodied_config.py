@@ -129,6 +129,11 @@ ALGORITHMS: dict[str, EmbodiedAlgorithm] = {
 @dataclass(kw_only=True)
 class ActorConfig:
     lr: float = bounded(3e-4, gt=0)
+    value_lr: float | None = bounded(None, gt=0)
+    """Learning rate of the policy's critic (its value head; with lora, under ``lora.train_fully``);
+    None: ``lr``. A new value head on a pretrained policy that trains at a small ``lr`` needs a larger
+    one to follow the returns (RLinf trains π0 at 1e-5 beside a value head at 1e-4). Annealed with
+    ``lr``; not with ``compile`` (its fused step has one learning rate)."""
     anneal_lr: bool = True
     """Linear decay to 0 over `iterations` (or over `actor.anneal_iterations`)."""
     anneal_iterations: int = bounded(0, ge=0)

@@ -221,6 +221,46 @@ def test_a_bad_anneal_horizon_is_refused_before_anything_starts(horizon, message
         to_dataclass(EmbodiedConfig, raw).validate()
 
 
+def test_value_lr_trains_the_critic_at_its_own_rate_and_anneals_each_group_from_its_own():
+    """``actor.value_lr``: the critic's parameters (the policy's ``critic_modules``) in a group of
+    their own; the linear decay scales each group's own base rate. Without it, one group as before."""
+    from infinirl.components.embodied_policy import critic_lr_of
+    from infinirl.engines.parallel import DATA_PARALLEL
+
+    build, batch = policy_and_batch()
+    model = build()
+    optimizer = DATA_PARALLEL.get("ddp")(0, 1).build_optimizer(model, 1e-3, 1e-5, critic_lr_of(model, 1e-3, 1e-2))
+    rates = {group["lr"]: {id(p) for p in group["params"]} for group in optimizer.param_groups}
+    critic = {id(p) for name, p in model.named_parameters() if ".critic." in f".{name}."}
+    assert set(rates) == {1e-3, 1e-2} and rates[1e-2] == critic and critic
+    ppo = dataclasses.replace(PPO, lr=1e-3, value_lr=1e-2, total_iterations=4)
+    ppo_update(model, optimizer, batch, 1, ppo)
+    assert sorted(group["lr"] for group in optimizer.param_groups) == pytest.approx([1e-3 * 0.75, 1e-2 * 0.75])
+    single = DATA_PARALLEL.get("ddp")(0, 1).build_optimizer(build(), 1e-3, 1e-5)
+    assert len(single.param_groups) == 1 and "base_lr" not in single.param_groups[0]
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"algorithm": {"name": "grpo", "group_size": 2}}, "trains no critic"),
+    ({"actor": {"compile": True}}, "actor.compile"),
+    ({"policy": {"kwargs": {"value_head": False}}}, "has no critic parameters"),
+])
+def test_value_lr_is_refused_where_no_critic_trains_at_its_rate(change, message):
+    from infinirl.config import ConfigError, compose, to_dataclass
+    from infinirl.runners.embodied import _check_env_and_policy
+    from infinirl.runners.embodied_config import EmbodiedConfig
+
+    raw = compose("ppo_metaworld_reach")
+    raw["actor"]["value_lr"] = 1e-3
+    for section, values in change.items():
+        for key, value in values.items():
+            current = raw[section].get(key)
+            raw[section][key] = {**current, **value} if isinstance(current, dict) else value
+    with pytest.raises(ConfigError, match=message) as error:
+        _check_env_and_policy(to_dataclass(EmbodiedConfig, raw))
+    assert "\n" not in str(error.value)
+
+
 # --- decoupled PPO (asynchronous training) ------------------------------------------------------
 
 

@@ -57,6 +57,8 @@ class Policy(nn.Module):
     action_dim: int
     chunk: int = 1
     has_value_head: bool = False
+    critic_modules: tuple[str, ...] = ()
+    """Names of the submodules that form the critic (``actor.value_lr`` trains them at its rate)."""
 
     def act(self, obs: dict[str, torch.Tensor], deterministic: bool = False) -> PolicyStep:
         raise NotImplementedError

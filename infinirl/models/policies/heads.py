@@ -313,6 +313,8 @@ class EncodedPolicy(Policy):
     own encoder (PPG's argument: no interference), at twice the encoder compute.
     """
 
+    critic_modules = ("critic", "critic_encoder")
+
     encoder: ObsEncoder
 
     def _init_value(self, value_head: bool, separate_critic: bool, value_hidden: Sequence[int],

@@ -38,6 +38,8 @@ def gaussian_logprob(x: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor)
 class MLPGaussianPolicy(Policy):
     """``obs[obs_key]`` -> Gaussian over a chunk of ``chunk`` actions of ``action_dim`` dims."""
 
+    critic_modules = ("critic",)
+
     def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...] = (64, 64), chunk: int = 1,
                  init_log_std: float = 0.0, value_head: bool = True, obs_key: str = "state"):
         super().__init__()

@@ -68,6 +68,8 @@ class PiZeroPolicy(Policy):
             (RLinf's ``detach_critic_input`` for π0).
     """
 
+    critic_modules = ("value_net",)
+
     family: str | None = "pi0"
 
     def __init__(self, checkpoint: str | VLA, action_dim: int, chunk: int = 1, tokenizer: str | None = None,

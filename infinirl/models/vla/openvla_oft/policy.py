@@ -47,6 +47,8 @@ class OpenVLAOFTPolicy(Policy):
         value_head / value_hidden: the critic.
     """
 
+    critic_modules = ("value_net",)
+
     def __init__(self, checkpoint: str, action_dim: int, chunk: int = 1, head: str = "discrete",
                  unnorm_key: str | None = None, platform: str = "libero", num_images: int = 1,
                  architecture: str | None = None, cameras: Sequence[str] | None = None, proprio_key: str = "state",
