@@ -8,7 +8,7 @@ filter) and gives the learning code what it expects of an environment:
   concatenates the :data:`OBSERVATIONS` sources the spec names, in order (``proprio``: the robot's
   present target, joints or end effector, then the gripper; ``sim_state``: what a simulator alone
   knows, e.g. MetaWorld's object and goal positions; ``last_action``: the previous action).
-  Cameras the spec names come as pixels;
+  Cameras the spec names come as pixels, resized to ``spec.frame_size`` where it is set;
 * **action**: a vector in ``[-1, 1]`` of ``spec.command_size`` entries. ``action_mode="delta"``
   moves the arm's target (joints or end effector) by ``action * max_step`` from the last target,
   where ``max_step`` is the motion the safety filter allows per control period; ``"absolute"``
@@ -165,6 +165,9 @@ class RobotEnvSpec:
 
     observations: tuple[str, ...] = ("proprio",)
     cameras: tuple[str, ...] = ()
+    frame_size: tuple[int, int] | None = None
+    """(height, width) every camera frame is resized to before anyone sees it (the training
+    resolution; the camera streams its own, which stays with the robot). None: as the camera gives."""
     rewards: Mapping[str, float] = field(default_factory=lambda: {"success": 1.0})
     reward_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     """Options of the reward components that take some, e.g. ``{"classifier": {"path": ...}}``."""
@@ -175,6 +178,12 @@ class RobotEnvSpec:
     def __post_init__(self) -> None:
         object.__setattr__(self, "observations", tuple(self.observations))
         object.__setattr__(self, "cameras", tuple(self.cameras))
+        if self.frame_size is not None:
+            size = tuple(self.frame_size)
+            if len(size) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size):
+                raise ValueError(f"RobotEnvSpec.frame_size must be [height, width] of positive ints, got "
+                                 f"{self.frame_size!r}")
+            object.__setattr__(self, "frame_size", size)
         object.__setattr__(self, "rewards", dict(self.rewards))
         object.__setattr__(self, "reward_options", {k: dict(v) for k, v in self.reward_options.items()})
         for name in self.observations:
@@ -336,5 +345,14 @@ class RobotEnv:
     def _obs(self, observation: RobotObservation) -> dict[str, np.ndarray]:
         obs = {"state": self._state(observation)}
         for name in self.spec.cameras:
-            obs[f"pixels.{name}"] = np.asarray(observation.frames[name], np.uint8)
+            obs[f"pixels.{name}"] = self._frame(np.asarray(observation.frames[name], np.uint8))
         return obs
+
+    def _frame(self, frame: np.ndarray) -> np.ndarray:
+        """A camera frame at ``spec.frame_size`` (Pillow's bilinear resize, antialiased when shrinking)."""
+        size = self.spec.frame_size
+        if size is None or frame.shape[:2] == size:
+            return frame
+        from PIL import Image
+
+        return np.asarray(Image.fromarray(frame).resize((size[1], size[0]), Image.BILINEAR))

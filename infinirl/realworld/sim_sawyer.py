@@ -114,6 +114,12 @@ class SimSawyer(SimulatedRobot):
         super().__init__(partial(SawyerPlant, task=task, control_hz=control_hz, image_size=image_size, camera=camera),
                          latency_s=latency_s, reset_s=reset_s, seed=seed)
 
+    @classmethod
+    def check_options(cls, *, image_size: int | Sequence[int] | None = 64, **_: Any) -> None:
+        """The option values a config gives, checked before any worker builds the arm."""
+        if image_size:
+            camera_shape(image_size)
+
 
 def attached_sim_sawyers(*, instances: int = 0, seed: int = 0, **options: Any) -> list[AttachedRobot]:
     """The ``instances`` simulated Sawyers this node offers (arm ``i`` seeds from ``seed + 1000 * i``)."""

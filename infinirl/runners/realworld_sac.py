@@ -149,6 +149,7 @@ def env_spec_of(cfg: RealWorldSACConfig):
 
     def spec(task):
         return RobotEnvSpec(observations=tuple(task.observations), cameras=tuple(task.cameras),
+                            frame_size=None if task.frame_size is None else tuple(task.frame_size),
                             rewards=dict(task.rewards), reward_options=dict(task.reward_options),
                             max_episode_steps=task.max_episode_steps,
                             action_mode=task.action_mode, terminate_on_success=task.terminate_on_success)

@@ -57,6 +57,10 @@ class TaskConfig:
     cameras: list[str] = field(default_factory=list)
     """Cameras recorded as pixels into the replay store; network.encoder=cnn reads them, the state
     encoder does not."""
+    frame_size: list[int] | None = None
+    """[height, width]: every camera frame is resized to it at the robot before the policy, the replay
+    store or the link sees it (the training resolution; a camera streaming 480x640 keeps its raw
+    frames at the robot). None: frames as the camera gives them."""
     rewards: dict[str, float] = field(default_factory=lambda: {"goal_distance": 1.0, "success": 1.0})
     """Reward component -> weight: success, goal_distance, block_distance, classifier (a learned
     success classifier: docs/realworld.md)."""
@@ -396,3 +400,7 @@ def _check_reward_options(task: TaskConfig, key: str) -> None:
         RobotEnvSpec(rewards=dict(task.rewards), reward_options=dict(task.reward_options))
     except ValueError as exc:
         raise ConfigError(f"{key}.reward_options: {exc}") from None
+    size = task.frame_size
+    if size is not None and (len(size) != 2 or not all(isinstance(v, int) and v > 0 for v in size)):
+        raise ConfigError(f"{key}.frame_size={list(size)}: give [height, width], two positive ints (e.g. [64, 64]), "
+                          "or null for frames as the camera gives them")

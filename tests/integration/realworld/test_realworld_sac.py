@@ -121,7 +121,10 @@ def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
                          "task": {"observations": ["proprio"], "rewards": {"success": 1.0}}},
                         "robot.options: sim_so101: success='grasp'; choose one of pick, reach"),
                        ({"robot": {"fleet": [{"kind": "sim_sawyer", "options": {"taks": "reach-v3"}}]}},
-                        "robot.fleet[0].options.taks: not an option")):
+                        "robot.fleet[0].options.taks: not an option"),
+                       ({"task": {"frame_size": [64]}}, "task.frame_size=[64]: give [height, width]"),
+                       ({"robot": {"kind": "sim_sawyer", "options": {"image_size": [48]}}},
+                        "image_size must be a positive int or [height, width]")):
         with pytest.raises(ConfigError, match=re.escape(key)):
             make_cfg(tmp_path / "bad", 1, **extra).validate()
 

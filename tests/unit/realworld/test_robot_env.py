@@ -87,3 +87,29 @@ def test_step_limit_truncates_and_so101_gives_pixels():
             RobotEnv(robot, RobotEnvSpec(cameras=("wrist",)))
     finally:
         robot.close()
+
+
+def test_frames_are_resized_to_the_training_resolution_at_the_robot():
+    """A camera streaming more pixels than training uses (``image_size=[h, w]``) with
+    ``frame_size``: the observation, and so the policy, the replay store and the link, carries the
+    resized frame; the raw one stays with the robot."""
+    robot = SafeRobot(make_robot("sim_sawyer", control_hz=20.0, image_size=[48, 64]), NO_DEADLINES)
+    robot.connect()
+    try:
+        env = RobotEnv(robot, RobotEnvSpec(cameras=("corner",), frame_size=[16, 24], max_episode_steps=2))
+        obs = env.reset()
+        assert obs["pixels.corner"].shape == (16, 24, 3) and obs["pixels.corner"].dtype == np.uint8
+        assert env.observation_shapes()["pixels.corner"] == (16, 24, 3)
+        assert env.step(np.zeros(4)).obs["pixels.corner"].shape == (16, 24, 3)
+        observation = robot.observe()
+        raw = observation.frames["corner"]
+        assert raw.shape == (48, 64, 3)
+        from PIL import Image
+        expected = np.asarray(Image.fromarray(raw).resize((24, 16), Image.BILINEAR))
+        np.testing.assert_array_equal(env._obs(observation)["pixels.corner"], expected)
+        assert RobotEnv(robot, RobotEnvSpec(cameras=("corner",))).reset()["pixels.corner"].shape == (48, 64, 3)
+    finally:
+        robot.close()
+    for bad in ([16], [16, 0], [16.0, 24]):
+        with pytest.raises(ValueError, match="frame_size must be \\[height, width\\]"):
+            RobotEnvSpec(frame_size=bad)
