@@ -36,7 +36,9 @@ import copy
 import hashlib
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -147,7 +149,8 @@ class SACAgent:
     """Actor, critics (+ targets), temperature and their optimisers; :meth:`update` is one SAC step."""
 
     def __init__(self, net: SACNetSpec, spec: SACUpdateSpec, obs_dim: int, action_space,
-                 device: torch.device | str = "cpu", cameras: dict | None = None):
+                 device: torch.device | str = "cpu", cameras: dict | None = None,
+                 action_mask: Callable[[Any], torch.Tensor] | None = None):
         torch.manual_seed(spec.seed)  # initial weights are a function of the seed, on any device
         self.net, self.spec = net, spec
         self.device = torch.device(device)
@@ -159,6 +162,9 @@ class SACAgent:
         self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(spec.init_alpha), dtype=torch.float32,
                                                          device=self.device))
         self.target_entropy = float(-self.action_dim if spec.target_entropy is None else spec.target_entropy)
+        # ``action_mask(obs) -> [B, A]``: the action entries each sample's robot executes (a policy
+        # shared by embodiments of different sizes); None: all of them.
+        self.action_mask = action_mask
         actor_params = self.actor.head_parameters() if isinstance(self.actor, EncodedActor) else self.actor.parameters()
         self.actor_optim = _adam(actor_params, spec.actor_lr)
         self.critic_optim = _adam(self.critic.parameters(), spec.critic_lr)
@@ -186,10 +192,13 @@ class SACAgent:
             obs = random_shift_observations(obs, self.net.augment_pad, self.augment_generator)
             next_obs = random_shift_observations(next_obs, self.net.augment_pad, self.augment_generator)
         alpha = self.alpha
+        mask = next_mask = None
+        if self.action_mask is not None:
+            mask, next_mask = self.action_mask(obs), self.action_mask(next_obs)
         with torch.no_grad():
-            next_action, next_logprob, _ = self.actor.sample(next_obs, self.generator)
-            next_q = self.critic_target(next_obs, next_action)
-        critic = sac_critic_loss(q_values=self.critic(obs, batch["action"]), rewards=batch["reward"],
+            next_action, next_logprob, _ = self._sample(next_obs, next_mask)
+            next_q = self.critic_target(next_obs, _masked(next_action, next_mask))
+        critic = sac_critic_loss(q_values=self.critic(obs, _masked(batch["action"], mask)), rewards=batch["reward"],
                                  terminated=batch["terminated"], next_target_q_values=next_q,
                                  next_logprobs=next_logprob, alpha=alpha, gamma=spec.gamma)
         self.critic_optim.zero_grad(set_to_none=True)
@@ -200,17 +209,25 @@ class SACAgent:
                    "train/td_error_abs_mean": critic.metrics["td_error_abs_mean"]}
         self.updates += 1
         if self.updates % spec.policy_delay == 0:
-            metrics.update(self._update_actor_and_alpha(obs))
+            metrics.update(self._update_actor_and_alpha(obs, mask))
         if self.updates % spec.target_update_every == 0:
             with torch.no_grad():
                 torch._foreach_lerp_(list(self.critic_target.parameters()), list(self.critic.parameters()), spec.tau)
         return metrics
 
-    def _update_actor_and_alpha(self, obs: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _sample(self, obs, mask: torch.Tensor | None):
+        """The actor's sample; with ``mask``, its log-prob over the executed entries where the actor
+        can take a mask (the Gaussian actor; a flow's path density cannot be split)."""
+        if mask is not None and getattr(self.actor, "masks_logprob", False):
+            return self.actor.sample(obs, self.generator, mask=mask)
+        return self.actor.sample(obs, self.generator)
+
+    def _update_actor_and_alpha(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         self.critic.requires_grad_(False)  # the actor's gradient flows through Q into the action only
         try:
-            action, logprob, _ = self.actor.sample(obs, self.generator)
-            actor = sac_actor_loss(logprobs=logprob, q_values=self.critic(obs, action), alpha=self.alpha)
+            action, logprob, _ = self._sample(obs, mask)
+            actor = sac_actor_loss(logprobs=logprob, q_values=self.critic(obs, _masked(action, mask)),
+                                   alpha=self.alpha)
             self.actor_optim.zero_grad(set_to_none=True)
             actor.loss.backward()
             self.actor_optim.step()
@@ -218,8 +235,10 @@ class SACAgent:
             self.critic.requires_grad_(True)
         metrics = {"train/actor_loss": actor.loss.detach(), "train/entropy": actor.metrics["policy_entropy"]}
         if self.spec.autotune_alpha:
-            temperature = sac_temperature_loss(log_alpha=self.log_alpha, logprobs=logprob,
-                                               target_entropy=self.target_entropy)
+            target = self.target_entropy  # per sample with a mask: the same share of its executed entries
+            if mask is not None and getattr(self.actor, "masks_logprob", False):
+                target = self.target_entropy * mask.sum(-1) / self.action_dim
+            temperature = sac_temperature_loss(log_alpha=self.log_alpha, logprobs=logprob, target_entropy=target)
             self.alpha_optim.zero_grad(set_to_none=True)
             temperature.loss.backward()
             self.alpha_optim.step()
@@ -258,6 +277,11 @@ class SACAgent:
             for name, tensor in module.state_dict().items():
                 yield f"{prefix}.{name}", tensor
         yield "log_alpha", self.log_alpha.detach()
+
+
+def _masked(action: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """``action`` with the entries its robot does not execute zeroed (what the critics see)."""
+    return action if mask is None else action * mask.to(action.dtype)
 
 
 def _adam(params, lr: float) -> torch.optim.Optimizer:

@@ -127,8 +127,13 @@ class EncodedActor(nn.Module):
     def features(self, obs) -> torch.Tensor:
         return self.encoder(obs).detach()
 
-    def sample(self, obs, generator: torch.Generator | None = None, deterministic: bool = False):
-        return self.head.sample(self.features(obs), generator, deterministic=deterministic)
+    @property
+    def masks_logprob(self) -> bool:
+        return getattr(self.head, "masks_logprob", False)
+
+    def sample(self, obs, generator: torch.Generator | None = None, deterministic: bool = False, **mask):
+        """The head's sample of the features; ``mask=`` where the head takes one (``masks_logprob``)."""
+        return self.head.sample(self.features(obs), generator, deterministic=deterministic, **mask)
 
     def logprob_of(self, obs, u: torch.Tensor):
         return self.head.logprob_of(self.features(obs), u)

@@ -101,11 +101,16 @@ class SquashedGaussianActor(nn.Module):
         log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (log_std + 1.0)
         return mean, log_std
 
-    def sample(self, obs, generator: torch.Generator | None = None,
-               deterministic: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    masks_logprob = True
+    """:meth:`sample` takes a ``mask`` of the action entries its log-probability sums over."""
+
+    def sample(self, obs, generator: torch.Generator | None = None, deterministic: bool = False,
+               mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(action in [-1, 1], log pi(action|obs) [B], pre-squash u)``, reparameterised.
 
         ``deterministic`` returns ``tanh(mu)`` (evaluation); its log-prob is that of ``u = mu``.
+        ``mask`` ``[B, A]`` (0/1): the log-prob of the entries it keeps, the marginal of the
+        independent per-entry distribution (padding entries a robot does not execute drop out).
         """
         mean, log_std = self.distribution(obs)
         if deterministic:
@@ -116,7 +121,7 @@ class SquashedGaussianActor(nn.Module):
             draw_on = generator.device if generator is not None else mean.device
             noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=draw_on).to(mean.device)
             u = mean + log_std.exp() * noise
-        return torch.tanh(u), self._logprob(u, mean, log_std), u
+        return torch.tanh(u), self._logprob(u, mean, log_std, mask), u
 
     def logprob_of(self, obs, u: torch.Tensor) -> torch.Tensor:
         """``log pi(tanh(u)|obs)`` ``[B]`` for given pre-squash samples ``u`` (diagnostics: the
@@ -125,9 +130,11 @@ class SquashedGaussianActor(nn.Module):
         return self._logprob(u.to(mean.dtype), mean, log_std)
 
     @staticmethod
-    def _logprob(u: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    def _logprob(u: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor,
+                 mask: torch.Tensor | None = None) -> torch.Tensor:
         gaussian = -0.5 * ((u - mean) / log_std.exp()) ** 2 - log_std - 0.5 * math.log(2 * math.pi)
-        return (gaussian - squash_logprob_correction(u)).sum(-1)
+        terms = gaussian - squash_logprob_correction(u)
+        return (terms if mask is None else terms * mask.to(terms.dtype)).sum(-1)
 
     def to_env(self, action: torch.Tensor) -> torch.Tensor:
         """``[-1, 1]`` actions -> the env's box."""
@@ -221,6 +228,10 @@ class FlowSACActor(nn.Module):
         high_t = torch.as_tensor(high, dtype=torch.float32).reshape(action_dim)
         self.register_buffer("action_scale", (high_t - low_t) / 2.0)
         self.register_buffer("action_bias", (high_t + low_t) / 2.0)
+
+    masks_logprob = False
+    """The path log-density does not split by action entry: no ``mask`` (padding entries of a
+    multi-robot policy stay in it; the critics still ignore them)."""
 
     def sample(self, obs, generator: torch.Generator | None = None,
                deterministic: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -50,8 +50,8 @@ from infinirl.realworld.intervention.spec import InterventionSpec
 from infinirl.realworld.robot_env import RobotEnv, RobotEnvSpec
 from infinirl.realworld.safety import SafeRobot, SafetyConfig
 
-__all__ = ["VERSION_TENSOR", "PolicyLayout", "RobotControlLoop", "RobotSetup", "connect_robot", "policy_layouts",
-           "resolve_robot", "unit_box"]
+__all__ = ["VERSION_TENSOR", "EmbodimentActionMask", "PolicyLayout", "RobotControlLoop", "RobotSetup", "connect_robot",
+           "embodiment_action_mask", "policy_layouts", "resolve_robot", "unit_box"]
 
 logger = logging.getLogger(__name__)
 
@@ -87,13 +87,16 @@ class PolicyLayout:
     Robots of different embodiments feed one policy: its observation is the robot's state, zeros up
     to ``obs_dim - num_embodiments``, then a one-hot of ``embodiment`` (absent with one embodiment);
     its action has ``action_dim`` entries, of which a robot executes its own first ``command_size``
-    (the rest are ignored by that robot, and stored as drawn, so the critic sees what the actor did).
+    (the rest are ignored by that robot and stored as drawn; the learner masks them out of what its
+    critics see and out of the policy's log-probability: :class:`EmbodimentActionMask`).
     """
 
     obs_dim: int
     action_dim: int
     embodiment: int = 0
     num_embodiments: int = 1
+    command_size: int | None = None
+    """The robot's own action entries (None: all ``action_dim``)."""
 
     def pad_state(self, state: np.ndarray) -> np.ndarray:
         if self.num_embodiments == 1 and len(state) == self.obs_dim:
@@ -114,8 +117,35 @@ def policy_layouts(described: list[dict]) -> list[PolicyLayout]:
         return [PolicyLayout(obs_dim=d["obs_dim"], action_dim=d["action_dim"]) for d in described]
     obs = max(d["obs_dim"] for d in described) + len(kinds)
     action = max(d["action_dim"] for d in described)
-    return [PolicyLayout(obs_dim=obs, action_dim=action, embodiment=kinds.index(d["kind"]), num_embodiments=len(kinds))
-            for d in described]
+    return [PolicyLayout(obs_dim=obs, action_dim=action, embodiment=kinds.index(d["kind"]), num_embodiments=len(kinds),
+                         command_size=d["action_dim"]) for d in described]
+
+
+class EmbodimentActionMask:
+    """``mask(obs) -> [B, action_dim]``: 1 on the action entries the observation's embodiment
+    executes, 0 on the padding, read off the kind one-hot at the end of ``obs["state"]`` (see
+    :class:`PolicyLayout`). The learner multiplies the actions its critics see by it, so Q does not
+    depend on entries no robot of that kind executes, and sums the policy's log-probability over the
+    executed entries only (the entropy bonus and the temperature's target count those)."""
+
+    def __init__(self, obs_dim: int, action_dim: int, command_sizes: tuple[int, ...]) -> None:
+        self.obs_dim, self.action_dim, self.command_sizes = obs_dim, action_dim, tuple(command_sizes)
+        self._table = torch.tensor([[1.0] * size + [0.0] * (action_dim - size) for size in self.command_sizes])
+
+    def __call__(self, obs) -> torch.Tensor:
+        state = obs["state"] if isinstance(obs, Mapping) else obs
+        one_hot = state[:, self.obs_dim - len(self.command_sizes):]
+        return self._table.to(state.device)[one_hot.argmax(-1)]
+
+
+def embodiment_action_mask(layouts: list[PolicyLayout]) -> EmbodimentActionMask | None:
+    """The mask for ``layouts`` (from :func:`policy_layouts`), or None when every robot executes the
+    whole action (nothing to mask)."""
+    first = layouts[0]
+    sizes = {layout.embodiment: layout.command_size or layout.action_dim for layout in layouts}
+    if first.num_embodiments == 1 or all(size == first.action_dim for size in sizes.values()):
+        return None
+    return EmbodimentActionMask(first.obs_dim, first.action_dim, tuple(sizes[e] for e in range(first.num_embodiments)))
 
 
 def unit_box(action_dim: int) -> SimpleNamespace:

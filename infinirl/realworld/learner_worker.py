@@ -103,14 +103,16 @@ class RealWorldLearnerWorker(Worker, WeightSource):
     """SAC on a persistent replay store (see the module docstring)."""
 
     def __init__(self, net: SACNetSpec, update: SACUpdateSpec, loop: LearnerLoopSpec, obs_dim: int, action_dim: int,
-                 num_threads: int = 1, device: str = "cpu"):
+                 num_threads: int = 1, device: str = "cpu", action_mask=None):
         if num_threads:
             torch.set_num_threads(num_threads)
         torch.set_flush_denormal(True)  # see SACLearnerWorker: denormals take a slow path on x86
         self.loop, self.spec = loop, update
         # auto: the GPU the placement gives this rank, else the CPU (a conv encoder wants the GPU).
         self.compute = compute_device(self.device if device == "auto" else "cpu", device)
-        self.agent = SACAgent(net, update, obs_dim, unit_box(action_dim), self.compute, cameras=loop.cameras)
+        # action_mask (robots of different action sizes): see control_loop.EmbodimentActionMask
+        self.agent = SACAgent(net, update, obs_dim, unit_box(action_dim), self.compute, cameras=loop.cameras,
+                              action_mask=action_mask)
         encoder = getattr(self.agent.actor, "encoder", None)
         # The camera fields the networks read (none for the state encoder, which reads only the state).
         self._pixel_keys = [PIXELS_PREFIX + name for name in getattr(encoder, "cameras", {})]

@@ -173,6 +173,7 @@ def net_spec_of(cfg) -> SACNetSpec:
 def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
     """Lay the robots out in the shared policy (:func:`~infinirl.realworld.robot_worker.policy_layouts`)
     and return the policy's observation and action sizes and the recorded cameras."""
+    from infinirl.realworld.control_loop import embodiment_action_mask
     from infinirl.realworld.robot_worker import policy_layouts, unit_box
     from infinirl.runners.sac import check_net_builds
 
@@ -188,7 +189,7 @@ def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
               + f": observations padded to {layouts[0].obs_dim} with a kind one-hot, actions to "
                 f"{layouts[0].action_dim}", flush=True)
     return {"obs_dim": layouts[0].obs_dim, "action_dim": layouts[0].action_dim, "cameras": described[0]["cameras"],
-            "kinds": [d["kind"] for d in described]}
+            "kinds": [d["kind"] for d in described], "action_mask": embodiment_action_mask(layouts)}
 
 
 def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
@@ -210,7 +211,7 @@ def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
                            max_updates_per_step=pipeline.max_updates_per_step, durable=pipeline.durable,
                            cameras=dict(shape["cameras"]))
     return RealWorldLearnerWorker, (net, update, loop, shape["obs_dim"], shape["action_dim"], cfg.learner.num_threads,
-                                    cfg.learner.device)
+                                    cfg.learner.device, shape.get("action_mask"))
 
 
 def _per_kind(robots: list[dict]) -> dict:

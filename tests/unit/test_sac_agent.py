@@ -153,3 +153,47 @@ def test_sac_flow_actor_is_reparameterised_and_scores_its_own_path():
     metrics = agent.update(make_batch())
     assert np.isfinite(float(metrics["train/actor_loss"])) and np.isfinite(float(metrics["train/entropy"]))
     assert any(not torch.equal(before[k], v) for k, v in agent.actor.state_dict().items())
+
+
+def test_masked_logprob_is_the_marginal_of_the_executed_entries():
+    """A policy shared by robots of different action sizes: with a mask, the log-prob sums over the
+    entries a sample's robot executes (float64 reference), and the unmasked path is unchanged."""
+    torch.manual_seed(0)
+    actor = SquashedGaussianActor(5, 3, [-1.0] * 3, [1.0] * 3, hidden=(16,)).double()
+    obs = torch.randn(8, 5, dtype=torch.float64)
+    mask = torch.tensor([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]] * 4, dtype=torch.float64)
+    _, full, u = actor.sample(obs, torch.Generator().manual_seed(1))
+    _, masked, u_masked = actor.sample(obs, torch.Generator().manual_seed(1), mask=mask)
+    assert torch.equal(u, u_masked)
+    mean, log_std = actor.distribution(obs)
+    per_entry = torch.distributions.Normal(mean, log_std.exp()).log_prob(u) - torch.log(1 - torch.tanh(u) ** 2)
+    torch.testing.assert_close(masked, (per_entry * mask).sum(-1), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(full, per_entry.sum(-1), rtol=1e-10, atol=1e-10)
+
+
+def test_with_an_action_mask_the_padding_entries_change_nothing_the_agent_learns():
+    """The critics see the executed entries only (padding zeroed), the temperature's target counts
+    them: two batches that differ only in padding entries give the same update."""
+    from infinirl.realworld.control_loop import EmbodimentActionMask
+
+    obs_dim, action_dim = 6, 3  # the state's last two entries: a one-hot of two kinds
+    mask_of = EmbodimentActionMask(obs_dim, action_dim, (3, 2))
+    batch = make_batch(n=16, obs_dim=obs_dim, action_dim=action_dim)
+    kinds = torch.arange(16) % 2
+    for key in ("obs", "next_obs"):
+        batch[key][:, -2:] = torch.nn.functional.one_hot(kinds, 2).float()
+    mask = mask_of(batch["obs"])
+    assert torch.equal(mask, torch.tensor([[1.0, 1.0, 1.0], [1.0, 1.0, 0.0]] * 8))
+    other = {**batch, "action": batch["action"].clone()}
+    other["action"][kinds == 1, 2] = 0.77  # kind 1 does not execute entry 2
+
+    def run(b, mask=mask_of):
+        agent = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,)), SACUpdateSpec(seed=3), obs_dim,
+                         ActionSpace.box([-1.0] * action_dim, [1.0] * action_dim), action_mask=mask)
+        for _ in range(3):
+            agent.update(b)
+        return torch.cat([p.detach().reshape(-1) for p in [*agent.critic.parameters(), *agent.actor.parameters(),
+                                                          agent.log_alpha]])
+
+    torch.testing.assert_close(run(batch), run(other), rtol=0, atol=0)
+    assert not torch.equal(run(batch, None), run(other, None))  # without the mask the padding is data

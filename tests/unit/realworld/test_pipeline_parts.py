@@ -3,7 +3,9 @@ heterogeneous robots, and the learner's staleness bound on a real replay store."
 
 import numpy as np
 import pytest
+import torch
 
+from infinirl.realworld.control_loop import embodiment_action_mask
 from infinirl.realworld.episodes import RANDOM_VERSION, EpisodeRecorder, episode_spec, staleness_of
 from infinirl.realworld.robot_worker import PolicyLayout, policy_layouts
 
@@ -43,6 +45,13 @@ def test_layouts_identity_for_one_shape_padded_with_a_kind_one_hot_otherwise():
     padded = mixed[0].pad_state(np.ones(15, np.float32))
     expected = np.concatenate([np.ones(15), np.zeros(32), [0.0, 1.0]])
     np.testing.assert_array_equal(padded, expected)
+    # The learner's mask of executed action entries, read off the one-hot: SO-101 all 6, Sawyer 4.
+    assert embodiment_action_mask(same) is None and [m.command_size for m in mixed] == [6, 4]
+    mask = embodiment_action_mask(mixed)
+    states = torch.from_numpy(np.stack([mixed[0].pad_state(np.ones(15, np.float32)),
+                                        mixed[1].pad_state(np.ones(47, np.float32))]))
+    assert torch.equal(mask(states), torch.tensor([[1.0] * 6, [1.0] * 4 + [0.0] * 2]))
+    assert torch.equal(mask({"state": states}), mask(states))
 
 
 @pytest.mark.parametrize("action", ["drop", "log"])
