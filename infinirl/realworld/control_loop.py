@@ -183,8 +183,7 @@ class RobotControlLoop:
         self.env = RobotEnv(self.robot, env, setup.safety)
         self.kind, self.net = kind, net
         self.obs_dim, self.action_dim = self.env.observation_size(), self.env.action_dim
-        self.cameras = {c.name: (c.height, c.width) for c in self.env.robot_spec.cameras
-                        if c.name in self.env.spec.cameras}
+        self.cameras = self.env.camera_shapes()  # as the observations carry them (resized to task.frame_size)
         self.configure(PolicyLayout(obs_dim=self.obs_dim, action_dim=self.action_dim))
         self.policy_version = RANDOM_VERSION
         self.rng = np.random.default_rng([seed, self.rank, 0xAC7])

@@ -281,6 +281,12 @@ class RobotEnv:
         """Entries of ``obs["state"]`` (reads the robot's present observation)."""
         return int(self._state(self.robot.observe()).shape[0])
 
+    def camera_shapes(self) -> dict[str, tuple[int, int]]:
+        """Camera name -> (height, width) of its frames in the observations (``spec.frame_size``
+        where set, else the camera's own), for each camera the spec names."""
+        own = {camera.name: (camera.height, camera.width) for camera in self.robot_spec.cameras}
+        return {name: self.spec.frame_size or own[name] for name in self.spec.cameras}
+
     def observation_shapes(self) -> dict[str, tuple[int, ...]]:
         """Key -> shape of each entry of the observation dict (reads the robot's present observation)."""
         return {key: tuple(value.shape) for key, value in self._obs(self.robot.observe()).items()}

@@ -202,8 +202,9 @@ def test_fleet_size_must_match_the_robot_ranks(ray_cluster, tmp_path):
             "image_size": None}}]}, placement={"robot": "0-1"}))
 
 
-PIXELS = {"robot": {"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 50.0, "image_size": 32}},
-          "task": {"max_episode_steps": 20, "cameras": ["corner"]},
+# A 40x48 camera resized at the robot to the 32x32 training frames (task.frame_size).
+PIXELS = {"robot": {"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 50.0, "image_size": [40, 48]}},
+          "task": {"max_episode_steps": 20, "cameras": ["corner"], "frame_size": [32, 32]},
           "network": {"actor_hidden": [32, 32], "critic_hidden": [32, 32], "encoder": "cnn",
                       "cnn": {"channels": [8, 8], "strides": [2, 2], "feature_dim": 16, "augment_pad": 2}}}
 FLOW = {"network": {"actor_hidden": [32, 32], "critic_hidden": [32, 32], "actor": "flow",

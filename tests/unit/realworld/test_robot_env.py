@@ -100,6 +100,7 @@ def test_frames_are_resized_to_the_training_resolution_at_the_robot():
         obs = env.reset()
         assert obs["pixels.corner"].shape == (16, 24, 3) and obs["pixels.corner"].dtype == np.uint8
         assert env.observation_shapes()["pixels.corner"] == (16, 24, 3)
+        assert env.camera_shapes() == {"corner": (16, 24)}  # what the policy's encoder is built for
         assert env.step(np.zeros(4)).obs["pixels.corner"].shape == (16, 24, 3)
         observation = robot.observe()
         raw = observation.frames["corner"]
