@@ -8,7 +8,8 @@ filter) and gives the learning code what it expects of an environment:
   concatenates the :data:`OBSERVATIONS` sources the spec names, in order (``proprio``: the robot's
   present target, joints or end effector, then the gripper; ``sim_state``: what a simulator alone
   knows, e.g. MetaWorld's object and goal positions; ``last_action``: the previous action).
-  Cameras the spec names come as pixels, resized to ``spec.frame_size`` where it is set;
+  Cameras the spec names come as pixels, resized to ``spec.frame_size`` where it is set and named
+  ``spec.camera_names[camera]`` where it renames them;
 * **action**: a vector in ``[-1, 1]`` of ``spec.command_size`` entries. ``action_mode="delta"``
   moves the arm's target (joints or end effector) by ``action * max_step`` from the last target,
   where ``max_step`` is the motion the safety filter allows per control period; ``"absolute"``
@@ -168,6 +169,9 @@ class RobotEnvSpec:
     frame_size: tuple[int, int] | None = None
     """(height, width) every camera frame is resized to before anyone sees it (the training
     resolution; the camera streams its own, which stays with the robot). None: as the camera gives."""
+    camera_names: Mapping[str, str] = field(default_factory=dict)
+    """Robot camera -> the name its frames carry in the observations (``pixels.<name>``), where it
+    differs: robots of different kinds sharing one policy map their cameras to one name."""
     rewards: Mapping[str, float] = field(default_factory=lambda: {"success": 1.0})
     reward_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     """Options of the reward components that take some, e.g. ``{"classifier": {"path": ...}}``."""
@@ -184,6 +188,14 @@ class RobotEnvSpec:
                 raise ValueError(f"RobotEnvSpec.frame_size must be [height, width] of positive ints, got "
                                  f"{self.frame_size!r}")
             object.__setattr__(self, "frame_size", size)
+        object.__setattr__(self, "camera_names", dict(self.camera_names))
+        stray = sorted(set(self.camera_names) - set(self.cameras))
+        if stray:
+            raise ValueError(f"RobotEnvSpec.camera_names renames {stray}, which are not among the cameras "
+                             f"{list(self.cameras)}")
+        named = [self.camera_names.get(name, name) for name in self.cameras]
+        if len(set(named)) != len(named):
+            raise ValueError(f"RobotEnvSpec.camera_names gives two cameras one name: {named}")
         object.__setattr__(self, "rewards", dict(self.rewards))
         object.__setattr__(self, "reward_options", {k: dict(v) for k, v in self.reward_options.items()})
         for name in self.observations:
@@ -285,7 +297,7 @@ class RobotEnv:
         """Camera name -> (height, width) of its frames in the observations (``spec.frame_size``
         where set, else the camera's own), for each camera the spec names."""
         own = {camera.name: (camera.height, camera.width) for camera in self.robot_spec.cameras}
-        return {name: self.spec.frame_size or own[name] for name in self.spec.cameras}
+        return {self.spec.camera_names.get(name, name): self.spec.frame_size or own[name] for name in self.spec.cameras}
 
     def observation_shapes(self) -> dict[str, tuple[int, ...]]:
         """Key -> shape of each entry of the observation dict (reads the robot's present observation)."""
@@ -351,7 +363,8 @@ class RobotEnv:
     def _obs(self, observation: RobotObservation) -> dict[str, np.ndarray]:
         obs = {"state": self._state(observation)}
         for name in self.spec.cameras:
-            obs[f"pixels.{name}"] = self._frame(np.asarray(observation.frames[name], np.uint8))
+            obs[f"pixels.{self.spec.camera_names.get(name, name)}"] = self._frame(
+                np.asarray(observation.frames[name], np.uint8))
         return obs
 
     def _frame(self, frame: np.ndarray) -> np.ndarray:

@@ -150,6 +150,7 @@ def env_spec_of(cfg: RealWorldSACConfig):
     def spec(task):
         return RobotEnvSpec(observations=tuple(task.observations), cameras=tuple(task.cameras),
                             frame_size=None if task.frame_size is None else tuple(task.frame_size),
+                            camera_names=dict(task.camera_names),
                             rewards=dict(task.rewards), reward_options=dict(task.reward_options),
                             max_episode_steps=task.max_episode_steps,
                             action_mode=task.action_mode, terminate_on_success=task.terminate_on_success)
@@ -179,7 +180,9 @@ def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
 
     described = robots.describe().wait()
     if len({tuple(sorted(d["cameras"].items())) for d in described}) > 1:
-        raise ConfigError("task.cameras: the robots record different cameras; a run stores one set of camera fields")
+        shown = "; ".join(f"{d['kind']}: {d['cameras']}" for d in described)
+        raise ConfigError(f"task.cameras: the robots record different camera frames ({shown}); a run stores one set: "
+                          "give them one name (task.camera_names) and one size (task.frame_size)")
     layouts = policy_layouts(described)
     check_net_builds(net_spec_of(cfg), layouts[0].obs_dim, unit_box(layouts[0].action_dim), described[0]["cameras"])
     robots.call_each("configure", [(layout,) for layout in layouts]).wait()

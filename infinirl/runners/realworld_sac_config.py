@@ -57,6 +57,10 @@ class TaskConfig:
     cameras: list[str] = field(default_factory=list)
     """Cameras recorded as pixels into the replay store; network.encoder=cnn reads them, the state
     encoder does not."""
+    camera_names: dict[str, str] = field(default_factory=dict)
+    """Camera -> the name its frames carry in the policy and the replay store, where it differs:
+    robots of a fleet with different cameras (e.g. the Sawyer's corner, the SO-101's front) give
+    them one name, with one task.frame_size, so one encoder and one store field serve both."""
     frame_size: list[int] | None = None
     """[height, width]: every camera frame is resized to it at the robot before the policy, the replay
     store or the link sees it (the training resolution; a camera streaming 480x640 keeps its raw
@@ -400,6 +404,10 @@ def _check_reward_options(task: TaskConfig, key: str) -> None:
         RobotEnvSpec(rewards=dict(task.rewards), reward_options=dict(task.reward_options))
     except ValueError as exc:
         raise ConfigError(f"{key}.reward_options: {exc}") from None
+    try:
+        RobotEnvSpec(cameras=tuple(task.cameras), camera_names=dict(task.camera_names))
+    except ValueError as exc:
+        raise ConfigError(f"{key}.camera_names: {exc}") from None
     size = task.frame_size
     if size is not None and (len(size) != 2 or not all(isinstance(v, int) and v > 0 for v in size)):
         raise ConfigError(f"{key}.frame_size={list(size)}: give [height, width], two positive ints (e.g. [64, 64]), "

@@ -123,6 +123,8 @@ def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
                        ({"robot": {"fleet": [{"kind": "sim_sawyer", "options": {"taks": "reach-v3"}}]}},
                         "robot.fleet[0].options.taks: not an option"),
                        ({"task": {"frame_size": [64]}}, "task.frame_size=[64]: give [height, width]"),
+                       ({"task": {"cameras": ["corner"], "camera_names": {"front": "main"}}},
+                        "task.camera_names: RobotEnvSpec.camera_names renames ['front']"),
                        ({"robot": {"kind": "sim_sawyer", "options": {"image_size": [48]}}},
                         "image_size must be a positive int or [height, width]")):
         with pytest.raises(ConfigError, match=re.escape(key)):
@@ -194,6 +196,28 @@ def test_two_embodiments_feed_one_policy_and_one_store(ray_cluster, tmp_path):
     row = rows_of(tmp_path / "fleet" / "metrics.jsonl")[-1]
     assert "eval/sim_sawyer/success_rate" in row and "eval/sim_so101/success_rate" in row
     assert "eval/sim_so101/return_mean" in row and "eval/sim_sawyer/return_mean" in row
+
+
+@pytest.mark.slow  # two real-time simulated arms, both rendering
+def test_two_embodiments_with_different_cameras_feed_one_pixel_policy(ray_cluster, tmp_path):
+    """The Sawyer's 40x48 corner camera and the SO-101's 32x32 front camera, both named "main" and
+    resized to 24x24 at their robots: one conv encoder and one store field serve both."""
+    fleet = [{"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 20.0, "image_size": [40, 48]}},
+             {"kind": "sim_so101", "options": {"control_hz": 20.0, "image_size": 32},
+              "task": {"observations": ["proprio", "block_position"], "rewards": {"block_distance": 1.0},
+                       "cameras": ["front"], "camera_names": {"front": "main"}}}]
+    summary = run(make_cfg(tmp_path / "fleet", 1, robot={"fleet": fleet},
+                           task={"observations": ["proprio", "sim_state"], "max_episode_steps": 10,
+                                 "cameras": ["corner"], "camera_names": {"corner": "main"}, "frame_size": [24, 24]},
+                           network={**PIXELS["network"]}, placement={"robot": "0-1"}, eval={"every": 0, "episodes": 1}))
+    assert summary["replay_episodes"] >= 2
+    store = ReplayStore(str(tmp_path / "fleet" / "replay"), writable=False)
+    try:
+        episodes = [store.episode(i) for i in range(store.num_episodes)]
+    finally:
+        store.close()
+    kinds = {int(np.argmax(e["state"][0, -2:])) for e in episodes}
+    assert kinds == {0, 1} and all(e["pixels.main"].shape[1:] == (24, 24, 3) for e in episodes)
 
 
 def test_fleet_size_must_match_the_robot_ranks(ray_cluster, tmp_path):

@@ -114,3 +114,19 @@ def test_frames_are_resized_to_the_training_resolution_at_the_robot():
     for bad in ([16], [16, 0], [16.0, 24]):
         with pytest.raises(ValueError, match="frame_size must be \\[height, width\\]"):
             RobotEnvSpec(frame_size=bad)
+
+
+
+def test_camera_names_rename_a_robots_camera_in_the_observations():
+    """Robots of a fleet with different cameras give them one name (and one frame size)."""
+    robot = SafeRobot(make_robot("sim_sawyer", control_hz=20.0, image_size=32), NO_DEADLINES)
+    robot.connect()
+    try:
+        env = RobotEnv(robot, RobotEnvSpec(cameras=("corner",), camera_names={"corner": "main"}, frame_size=[16, 16]))
+        assert set(env.reset()) == {"state", "pixels.main"} and env.camera_shapes() == {"main": (16, 16)}
+    finally:
+        robot.close()
+    with pytest.raises(ValueError, match="renames \\['wrist'\\], which are not among the cameras"):
+        RobotEnvSpec(cameras=("corner",), camera_names={"wrist": "main"})
+    with pytest.raises(ValueError, match="gives two cameras one name"):
+        RobotEnvSpec(cameras=("corner", "wrist"), camera_names={"wrist": "corner"})
