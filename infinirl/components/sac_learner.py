@@ -48,6 +48,7 @@ from infinirl.components.embodied_policy import compute_device, module_device
 from infinirl.components.replay_buffer import ReplayBuffer
 from infinirl.models.sac_encoders import ENCODERS, EncodedActor, EncodedCritic, random_shift_observations
 from infinirl.models.sac_nets import EnsembleQ, FlowSACActor, SquashedGaussianActor
+from infinirl.models.state_normalizer import EmbodimentStateNormalizer, NormalizedStateEncoder
 from infinirl.runtime import WeightSource, Worker
 from infinirl.utils.atomic import torch_save_atomic
 
@@ -80,15 +81,22 @@ class SACNetSpec:
     """Keyword options of the encoder (cnn: channels, strides, feature_dim)."""
     augment_pad: int = 0
     """Random-shift augmentation of the camera frames in every update (pixels, 0: none)."""
+    normalize_state: bool = False
+    """Normalise the state vector with running statistics per embodiment
+    (:class:`~infinirl.models.state_normalizer.EmbodimentStateNormalizer`) before the encoder or the networks."""
 
-    def build_encoder(self, obs_dim: int, cameras: dict | None = None):
-        """The encoder module, or None (``state``: the networks read the state vector)."""
-        return ENCODERS.get(self.encoder)(obs_dim=obs_dim, cameras=cameras, **self.encoder_options)
+    def build_encoder(self, obs_dim: int, cameras: dict | None = None, embodiments: int = 1):
+        """The encoder module, or None (``state`` without ``normalize_state``: the networks read the
+        state vector). ``embodiments``: robot kinds sharing the policy (their one-hot ends the state)."""
+        encoder = ENCODERS.get(self.encoder)(obs_dim=obs_dim, cameras=cameras, **self.encoder_options)
+        if not self.normalize_state:
+            return encoder
+        return NormalizedStateEncoder(EmbodimentStateNormalizer(obs_dim, embodiments), encoder)
 
-    def build_actor(self, obs_dim: int, action_space, cameras: dict | None = None):
+    def build_actor(self, obs_dim: int, action_space, cameras: dict | None = None, embodiments: int = 1):
         """The actor; with an encoder (``cameras``: name -> (height, width)) an :class:`EncodedActor`
         that owns a fresh one."""
-        encoder = self.build_encoder(obs_dim, cameras)
+        encoder = self.build_encoder(obs_dim, cameras, embodiments)
         if encoder is None:
             return self._actor_head(obs_dim, action_space)
         return EncodedActor(encoder, self._actor_head(encoder.out_dim, action_space))
@@ -150,12 +158,12 @@ class SACAgent:
 
     def __init__(self, net: SACNetSpec, spec: SACUpdateSpec, obs_dim: int, action_space,
                  device: torch.device | str = "cpu", cameras: dict | None = None,
-                 action_mask: Callable[[Any], torch.Tensor] | None = None):
+                 action_mask: Callable[[Any], torch.Tensor] | None = None, embodiments: int = 1):
         torch.manual_seed(spec.seed)  # initial weights are a function of the seed, on any device
         self.net, self.spec = net, spec
         self.device = torch.device(device)
         self.action_dim = int(np.prod(action_space.shape))
-        self.actor = net.build_actor(obs_dim, action_space, cameras).to(self.device)
+        self.actor = net.build_actor(obs_dim, action_space, cameras, embodiments).to(self.device)
         # With an encoder the critics share the actor's (their loss trains it; the actor reads it detached).
         self.critic = net.build_critic(obs_dim, action_space, getattr(self.actor, "encoder", None)).to(self.device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
@@ -182,6 +190,22 @@ class SACAgent:
     @property
     def alpha(self) -> torch.Tensor:
         return self.log_alpha.detach().exp()
+
+    @property
+    def state_normalizer(self) -> EmbodimentStateNormalizer | None:
+        encoder = getattr(self.actor, "encoder", None)
+        return encoder.normalizer if isinstance(encoder, NormalizedStateEncoder) else None
+
+    @torch.no_grad()
+    def observe_states(self, states) -> None:
+        """Fold raw ``states`` ``[N, obs_dim]`` into the state normaliser's statistics (nothing
+        without ``normalize_state``). The critics share the actor's normaliser; the targets' copy
+        takes the same statistics (Polyak averaging moves parameters, not these)."""
+        normalizer = self.state_normalizer
+        if normalizer is None:
+            return
+        normalizer.update(torch.as_tensor(states, dtype=torch.float32).to(self.device))
+        self.critic_target.encoder.normalizer.load_state_dict(normalizer.state_dict())
 
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """One SAC update on a mini-batch (``obs``, ``action``, ``reward``, ``next_obs``,

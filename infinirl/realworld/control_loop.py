@@ -220,7 +220,8 @@ class RobotControlLoop:
     def configure(self, layout: PolicyLayout) -> None:
         """Build the policy copy for ``layout`` (before the first weights arrive)."""
         self.layout = layout
-        self.actor = self.net.build_actor(layout.obs_dim, unit_box(layout.action_dim), self.cameras).eval()
+        self.actor = self.net.build_actor(layout.obs_dim, unit_box(layout.action_dim), self.cameras,
+                                          layout.num_embodiments).eval()
 
     # ---------------------------------------------------------------- weights
     def load_weights(self, named_tensors, version: int) -> None:

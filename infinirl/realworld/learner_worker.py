@@ -103,16 +103,17 @@ class RealWorldLearnerWorker(Worker, WeightSource):
     """SAC on a persistent replay store (see the module docstring)."""
 
     def __init__(self, net: SACNetSpec, update: SACUpdateSpec, loop: LearnerLoopSpec, obs_dim: int, action_dim: int,
-                 num_threads: int = 1, device: str = "cpu", action_mask=None):
+                 num_threads: int = 1, device: str = "cpu", action_mask=None, embodiments: int = 1):
         if num_threads:
             torch.set_num_threads(num_threads)
         torch.set_flush_denormal(True)  # see SACLearnerWorker: denormals take a slow path on x86
         self.loop, self.spec = loop, update
         # auto: the GPU the placement gives this rank, else the CPU (a conv encoder wants the GPU).
         self.compute = compute_device(self.device if device == "auto" else "cpu", device)
-        # action_mask (robots of different action sizes): see control_loop.EmbodimentActionMask
+        # action_mask (robots of different action sizes): see control_loop.EmbodimentActionMask;
+        # embodiments: robot kinds sharing the policy (the state normaliser keeps statistics per kind).
         self.agent = SACAgent(net, update, obs_dim, unit_box(action_dim), self.compute, cameras=loop.cameras,
-                              action_mask=action_mask)
+                              action_mask=action_mask, embodiments=embodiments)
         encoder = getattr(self.agent.actor, "encoder", None)
         # The camera fields the networks read (none for the state encoder, which reads only the state).
         self._pixel_keys = [PIXELS_PREFIX + name for name in getattr(encoder, "cameras", {})]
@@ -179,6 +180,7 @@ class RealWorldLearnerWorker(Worker, WeightSource):
                     self.demos.append(segment, source_id=segment_source)
                     self._counts["intervention_demo_steps"] += len(segment["action"])
         self.store.append(episode, source_id=source)
+        self.agent.observe_states(episode["state"])
         self._counts["episodes"] += 1
         self._counts["steps"] += len(episode["action"])
 
@@ -200,6 +202,7 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         with self._lock:
             for episode in episodes:
                 self.demos.append(episode)
+                self.agent.observe_states(episode["state"])
             return self.demos.num_episodes
 
     def demo_episodes(self) -> int:

@@ -168,7 +168,8 @@ def net_spec_of(cfg) -> SACNetSpec:
     return SACNetSpec(actor_hidden=tuple(network.actor_hidden), critic_hidden=tuple(network.critic_hidden),
                       num_critics=network.num_critics, activation=network.activation,
                       log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key="state",
-                      actor=network.actor, flow=dict(network.flow), **encoder)
+                      actor=network.actor, flow=dict(network.flow),
+                      normalize_state=bool(getattr(network, "normalize_state", False)), **encoder)
 
 
 def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
@@ -192,7 +193,8 @@ def _robot_shape(cfg: RealWorldSACConfig, robots) -> dict:
               + f": observations padded to {layouts[0].obs_dim} with a kind one-hot, actions to "
                 f"{layouts[0].action_dim}", flush=True)
     return {"obs_dim": layouts[0].obs_dim, "action_dim": layouts[0].action_dim, "cameras": described[0]["cameras"],
-            "kinds": [d["kind"] for d in described], "action_mask": embodiment_action_mask(layouts)}
+            "kinds": [d["kind"] for d in described], "action_mask": embodiment_action_mask(layouts),
+            "embodiments": layouts[0].num_embodiments}
 
 
 def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
@@ -214,7 +216,7 @@ def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
                            max_updates_per_step=pipeline.max_updates_per_step, durable=pipeline.durable,
                            cameras=dict(shape["cameras"]))
     return RealWorldLearnerWorker, (net, update, loop, shape["obs_dim"], shape["action_dim"], cfg.learner.num_threads,
-                                    cfg.learner.device, shape.get("action_mask"))
+                                    cfg.learner.device, shape.get("action_mask"), shape.get("embodiments", 1))
 
 
 def _per_kind(robots: list[dict]) -> dict:

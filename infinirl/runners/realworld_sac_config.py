@@ -193,6 +193,10 @@ class RealWorldNetworkConfig(NetworkConfig):
     it detached)."""
     cnn: CNNConfig = field(default_factory=CNNConfig)
     """The cnn encoder's shape and augmentation (network.encoder=cnn)."""
+    normalize_state: bool = False
+    """Normalise the state vector before the networks with running mean and variance kept per robot
+    kind (a fleet of different robots: each kind's entries with its own statistics; the kind one-hot
+    passes through). The learner folds in every stored episode; the statistics travel with the weights."""
 
     def check(self, cameras: list[str], key: str = "task.cameras") -> None:
         from infinirl.models.sac_encoders import ENCODERS

@@ -179,3 +179,44 @@ def test_a_crash_between_the_demo_and_episode_appends_loses_and_doubles_nothing(
     np.testing.assert_array_equal(demos.episode(0)["state"], episode["state"][1:4])
     np.testing.assert_array_equal(demos.episode(1)["state"], episode["state"][4:6])
     demos.close()
+
+
+def test_the_learner_keeps_state_statistics_per_robot_kind_and_publishes_them(tmp_path):
+    """network.normalize_state with two kinds: every stored episode's states are folded into its
+    kind's statistics (demonstrations too), the published weights carry them, and a robot's actor
+    copy built for the layout acts as the learner's does."""
+    from infinirl.components.sac_learner import SACNetSpec, SACUpdateSpec
+    from infinirl.realworld.learner_worker import LearnerLoopSpec, RealWorldLearnerWorker
+    from infinirl.realworld.robot_worker import VERSION_TENSOR, unit_box
+
+    net = SACNetSpec(actor_hidden=(8,), critic_hidden=(8,), normalize_state=True)
+    layouts = [PolicyLayout(obs_dim=6, action_dim=2, embodiment=kind, num_embodiments=2, command_size=2)
+               for kind in (0, 1)]
+    rng = np.random.default_rng(0)
+
+    def episode(kind, scale):
+        states = np.stack([layouts[kind].pad_state(rng.normal(size=4 - 2 * kind) * scale) for _ in range(5)])
+        return {"state": states.astype(np.float32), "action": rng.uniform(-1, 1, (4, 2)).astype(np.float32),
+                "reward": np.ones(4, np.float32), "terminated": np.zeros(4, np.float32),
+                "version": np.full(4, -1, np.int64)}
+
+    loop = LearnerLoopSpec(replay_dir=str(tmp_path / "replay"), demo_dir=str(tmp_path / "demos"), learning_starts=4,
+                           publish_every=1, durable=False)
+    learner = RealWorldLearnerWorker(net, SACUpdateSpec(batch_size=4), loop, 6, 2, embodiments=2)
+    demo, robot_0, robot_1 = episode(0, 0.1), episode(0, 0.1), episode(1, 50.0)
+    learner.add_demonstrations([demo])
+    learner.add_and_update([robot_0, robot_1], num_updates=2, publish=True)
+    stats = learner.agent.state_normalizer.stats
+    np.testing.assert_allclose(stats[0].mean.numpy()[:4], np.concatenate([demo["state"], robot_0["state"]])[:, :4]
+                               .astype(np.float64).mean(0), atol=1e-5)
+    np.testing.assert_allclose(stats[1].mean.numpy()[:2], robot_1["state"][:, :2].astype(np.float64).mean(0),
+                               rtol=1e-3)
+    assert float(stats[1].count) == pytest.approx(5, abs=1e-3)  # kind 1's states alone
+    weights = {k: v for k, v in learner.weights_for_sync() if k != VERSION_TENSOR}
+    assert any(".stats." in name for name in weights)
+    robot = net.build_actor(6, unit_box(2), None, layouts[1].num_embodiments)
+    robot.load_state_dict(weights)
+    obs = torch.from_numpy(robot_1["state"])
+    torch.testing.assert_close(robot.sample(obs, deterministic=True)[0],
+                               learner.agent.actor.sample(obs, deterministic=True)[0])
+    learner.close()
