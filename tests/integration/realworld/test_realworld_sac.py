@@ -177,11 +177,13 @@ def test_two_embodiments_feed_one_policy_and_one_store(ray_cluster, tmp_path):
                        "rewards": {"block_distance": 1.0, "success": 1.0}}}]
     summary = run(make_cfg(tmp_path / "fleet", 1, robot={"fleet": fleet},
                            task={"observations": ["proprio", "sim_state", "last_action"], "max_episode_steps": 20},
-                           placement={"robot": "0-1"}, eval={"every": 0, "episodes": 1}))
+                           placement={"robot": "0-1"}, eval={"every": 0, "episodes": 1},
+                           network={"actor_hidden": [32, 32], "critic_hidden": [32, 32], "normalize_state": True}))
     assert summary["replay_episodes"] >= 2
     store = ReplayStore(str(tmp_path / "fleet" / "replay"), writable=False)
     try:
-        states = np.concatenate([store.episode(i)["state"] for i in range(store.num_episodes)])
+        states_per_episode = [store.episode(i)["state"] for i in range(store.num_episodes)]
+        states = np.concatenate(states_per_episode)
         actions = np.concatenate([store.episode(i)["action"] for i in range(store.num_episodes)])
     finally:
         store.close()
@@ -193,6 +195,20 @@ def test_two_embodiments_feed_one_policy_and_one_store(ray_cluster, tmp_path):
     assert np.all(sawyer_rows[:, 47:] == [1.0, 0.0])
     so101_rows = states[states[:, -1] == 1.0]
     assert np.all(so101_rows[:, 15:47] == 0.0)  # zeros between the SO-101's own entries and the one-hot
+    # network.normalize_state: the learner's statistics per kind are those of that kind's states among
+    # the episodes stored when the checkpoint was taken
+    import torch
+
+    checkpoint = torch.load(sorted((tmp_path / "fleet" / "checkpoints").glob("iter_*"))[-1] / "learner" / "learner.pt",
+                            weights_only=False)
+    actor, stored = checkpoint["agent"]["actor"], checkpoint["store"]["episodes"]
+    assert stored >= 2
+    seen = states_per_episode[:stored]
+    for kind in (0, 1):
+        rows = np.concatenate([e[e[:, 47 + kind] == 1.0] for e in seen]).astype(np.float64)
+        assert float(actor[f"encoder.normalizer.stats.{kind}.count"]) == pytest.approx(len(rows), abs=1e-3)
+        np.testing.assert_allclose(actor[f"encoder.normalizer.stats.{kind}.mean"].numpy(), rows[:, :47].mean(0),
+                                   rtol=1e-3, atol=1e-3)
     row = rows_of(tmp_path / "fleet" / "metrics.jsonl")[-1]
     assert "eval/sim_sawyer/success_rate" in row and "eval/sim_so101/success_rate" in row
     assert "eval/sim_so101/return_mean" in row and "eval/sim_sawyer/return_mean" in row
