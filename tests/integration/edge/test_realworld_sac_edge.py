@@ -24,6 +24,7 @@ from infinirl.edge.emulator import EmulatorSpec, LinkEmulator  # noqa: E402
 from infinirl.realworld.replay import ReplayStore  # noqa: E402
 from infinirl.runners.realworld_sac import run  # noqa: E402
 from infinirl.runners.realworld_sac_config import RealWorldSACConfig  # noqa: E402
+from tests.integration.browser import BROWSER_SKIPS, CHROMIUM  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -111,19 +112,30 @@ def call_page(base: str, path: str, body: dict | None = None):
         return json.loads(r.read()) if path.startswith("/api") else r.read().decode()
 
 
-def person_at_the_trainer(base: str, seen: dict) -> None:
-    """Waits for the page (it answers once the edge connected and built its robot's loop) and for the
-    robot's training episodes, then takes over, steers for a second, marks a success and hands back."""
-    deadline = time.monotonic() + 120
+def wait_for_the_robot(base: str, seen: dict, deadline: float) -> None:
+    """Until the page answers (once the edge connected and built its robot's loop) and the robot runs
+    training episodes (it polls the page each step)."""
     while True:
         try:
             seen["first_state"] = call_page(base, "/api/state")
-            if seen["first_state"]["polls"] > 0:  # the robot runs training episodes (it polls the page each step)
-                break
+            if seen["first_state"]["polls"] > 0:
+                return
         except OSError:  # the edge is not connected yet: the trainer's port closes the connection
             pass
         assert time.monotonic() < deadline, "the page did not answer through the link with the robot running"
         time.sleep(0.2)
+
+
+def wait_for_the_mark(base: str, deadline: float) -> None:
+    while call_page(base, "/api/state")["marks_pending"]:  # the robot's loop takes the mark at its next step
+        assert time.monotonic() < deadline, "the robot's loop never took the success mark"
+        time.sleep(0.05)
+
+
+def person_at_the_trainer(base: str, seen: dict) -> None:
+    """Takes over through the page's API, steers for a second, marks a success and hands back."""
+    deadline = time.monotonic() + 120
+    wait_for_the_robot(base, seen, deadline)
     seen["page"] = call_page(base, "/")
     action = [0.0] * seen["first_state"]["action_dim"]
     call_page(base, "/api/takeover", {"action": action})
@@ -131,24 +143,60 @@ def person_at_the_trainer(base: str, seen: dict) -> None:
         call_page(base, "/api/action", {"action": action})
         time.sleep(0.1)
     call_page(base, "/api/mark", {"mark": "success"})
-    while call_page(base, "/api/state")["marks_pending"]:  # the robot's loop takes the mark at its next step
-        assert time.monotonic() < deadline, "the robot's loop never took the success mark"
-        time.sleep(0.05)
+    wait_for_the_mark(base, deadline)
     seen["mark_taken"] = True
     seen["last_state"] = call_page(base, "/api/handback", {})
 
 
-def test_the_edge_robots_intervention_page_is_served_at_the_trainer_through_the_link(ray_cluster, tmp_path, pki):
+def person_with_a_browser(base: str, seen: dict) -> None:
+    """The same in headless Chromium on the page: take over, hold the joystick pad half right and half
+    up for a second (the action (0.5, 0.5, 0, 0)), release, mark a success, hand back."""
+    from playwright.sync_api import sync_playwright
+
+    deadline = time.monotonic() + 120
+    wait_for_the_robot(base, seen, deadline)
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1000, "height": 900})
+            page.set_default_timeout(30_000)
+            page.goto(f"{base}/?token={TOKEN}")
+            seen["page"] = page.content()
+            page.click("#takeover")
+            page.wait_for_function("() => document.querySelector('#actor').textContent.startsWith('HUMAN')")
+            box = page.locator("#pad").bounding_box()
+            centre_x, centre_y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+            page.mouse.move(centre_x, centre_y)
+            page.mouse.down()
+            page.mouse.move(centre_x + box["width"] / 4, centre_y - box["height"] / 4, steps=5)
+            time.sleep(1.0)
+            page.mouse.up()
+            page.click("#success")
+            wait_for_the_mark(base, deadline)
+            seen["mark_taken"] = True
+            page.click("#handback")
+            page.wait_for_function("() => document.querySelector('#actor').textContent === 'policy acts'")
+            seen["last_state"] = call_page(base, "/api/state")
+        finally:
+            browser.close()
+
+
+PEOPLE = {"api": person_at_the_trainer, "browser": person_with_a_browser}
+
+
+@pytest.mark.parametrize("who", ["api", pytest.param("browser", marks=BROWSER_SKIPS)])
+def test_the_edge_robots_intervention_page_is_served_at_the_trainer_through_the_link(ray_cluster, tmp_path, pki, who):
     """interventions.device=web at the edge, edge.page_listen at the trainer: a person at the trainer
-    opens the page (the edge opens no port), takes over, steers and marks a success; the learner's
-    store holds the intervened steps and the success as the episode's reward."""
+    opens the page (the edge opens no port), takes over, steers and marks a success, through the
+    page's API or clicking in a real browser; the learner's store holds the intervened steps (with the
+    pad's action, from the browser) and the success as the episode's reward."""
     out, port = tmp_path / "run", free_port()
-    # 5 iterations of 4 s: the person's 2 s of takeover and the marked episode's commit fit well
-    # inside the run even when the robot starts late on a loaded machine.
-    raw = make_raw(out, pki, iterations=5, page_listen=f"127.0.0.1:{port}")
+    # 4 s iterations: the person's takeover and the marked episode's commit fit well inside the run
+    # even when the robot starts late on a loaded machine (the browser needs a few seconds more).
+    raw = make_raw(out, pki, iterations=5 if who == "api" else 8, page_listen=f"127.0.0.1:{port}")
     raw["interventions"] = {"device": "web", "reward": "human", "as_demos": False, "options": {"token": TOKEN}}
     seen: dict = {}
-    person = threading.Thread(target=lambda: person_at_the_trainer(f"http://127.0.0.1:{port}", seen), daemon=True)
+    person = threading.Thread(target=lambda: PEOPLE[who](f"http://127.0.0.1:{port}", seen), daemon=True)
     person.start()
     summary = run(to_dataclass(RealWorldSACConfig, raw))
     person.join(timeout=60)
@@ -156,6 +204,9 @@ def test_the_edge_robots_intervention_page_is_served_at_the_trainer_through_the_
     episodes = stored(out / "replay")
     assert summary["replay_episodes"] == len(episodes) > 0
     assert sum(int(e["intervened"].sum()) for e in episodes) > 0  # the human's steps reached the learner, flagged
+    if who == "browser":  # the pad held half right and half up: that action, stored on flagged steps
+        human = np.concatenate([e["action"][e["intervened"] == 1.0] for e in episodes])
+        assert np.isclose(human, [0.5, 0.5, 0.0, 0.0], atol=0.02).all(axis=1).sum() >= 3, human
     rewards = np.concatenate([e["reward"] for e in episodes])
     assert rewards.max() == 1.0 and set(np.unique(rewards)) <= {0.0, 1.0}  # the page's success mark is the reward
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]

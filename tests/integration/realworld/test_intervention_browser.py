@@ -8,8 +8,6 @@ system Chromium is used); skipped with the missing piece named otherwise."""
 
 import contextlib
 import importlib.util
-import os
-import shutil
 import tempfile
 import threading
 import time
@@ -17,24 +15,10 @@ import time
 import numpy as np
 import pytest
 
-CHROMIUM_CANDIDATES = ("/usr/lib/chromium/chromium", "chromium", "chromium-browser", "google-chrome")
+from tests.integration.browser import BROWSER_SKIPS, CHROMIUM
 
-
-def find_chromium():
-    """The browser binary: ``INFINIRL_CHROMIUM`` if set, else Debian's (the binary itself, not the
-    /usr/bin/chromium launcher script), else one on PATH."""
-    for candidate in (os.environ.get("INFINIRL_CHROMIUM"), *CHROMIUM_CANDIDATES):
-        path = candidate and (candidate if os.path.isfile(candidate) else shutil.which(candidate))
-        if path:
-            return path
-    return None
-
-
-CHROMIUM = find_chromium()
 pytestmark = [
-    pytest.mark.skipif(importlib.util.find_spec("playwright") is None,
-                       reason="needs Playwright: pip install playwright (the system Chromium is used)"),
-    pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium: apt-get install chromium (or set INFINIRL_CHROMIUM)"),
+    *BROWSER_SKIPS,
     # Not imported here: MetaWorld loads MuJoCo, which picks its GL backend once per process (see
     # the simulated robots), so the robot is built inside the test.
     pytest.mark.skipif(importlib.util.find_spec("metaworld") is None, reason="needs metaworld"),
