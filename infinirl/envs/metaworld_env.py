@@ -27,6 +27,9 @@ What this adapter fixes on top of the raw MetaWorld class:
   elsewhere (the success signal πRL and RLinf train VLAs on), instead of MetaWorld's shaped
   ``"dense"`` reward, whose return can rise while success does not move. With
   ``terminate_on_success`` that is one reward at the step the task is first solved.
+* **Success bonus.** ``success_bonus=B`` adds ``B`` to the reward of every solved step, so a dense
+  return also ranks solved episodes above near misses (the shaped reward alone is continuous across
+  the success threshold: PPO can raise it by getting closer without solving more).
 
 Observations: ``state`` (39 floats: hand xyz, gripper opening, object poses, the previous frame of
 those, goal xyz), ``proprio`` (hand xyz + gripper opening), ``rgb`` (uint8 HxWx3, when
@@ -109,11 +112,13 @@ class MetaWorldSubEnv:
         terminate_on_success: bool = False,
         reward_function_version: str = "v2",
         reward_mode: str = "dense",
+        success_bonus: float = 0.0,
         fast_render: bool = True,
     ) -> None:
         check_obs_mode(obs_mode)
         if reward_mode not in REWARD_MODES:
             raise ValueError(f"unknown MetaWorld reward_mode {reward_mode!r}; choices: {', '.join(REWARD_MODES)}")
+        _check_success_bonus(success_bonus)
         if "rgb" in obs_mode:
             use_headless_gl()  # before MuJoCo is imported, so it loads the same GL library
         from metaworld import env_dict
@@ -136,6 +141,7 @@ class MetaWorldSubEnv:
         self._obs_mode = obs_mode
         self._terminate_on_success = terminate_on_success
         self._sparse_reward = reward_mode == "sparse"
+        self._success_bonus = float(success_bonus)
         self._instruction = task_instruction(task)
         self._rotate_frames: bool | None = None  # decided on the first render
         self._last_frame: np.ndarray | None = None  # repeated by steps nobody observes
@@ -160,6 +166,8 @@ class MetaWorldSubEnv:
         terminated = bool(terminated) or (self._terminate_on_success and success)
         fresh_frame = observe or terminated or bool(truncated)
         reward = float(success) if self._sparse_reward else float(reward)
+        if success:
+            reward += self._success_bonus
         return SubStep(self._observe(state, fresh_frame), reward, terminated, bool(truncated), success)
 
     def render(self) -> np.ndarray:
@@ -194,6 +202,11 @@ class MetaWorldSubEnv:
             spec["rgb"] = ArraySpec((*image_hw, 3), "uint8")
         spec["instruction"] = ArraySpec((), "str")
         return spec
+
+
+def _check_success_bonus(bonus: float) -> None:
+    if not bonus >= 0.0:  # also refuses NaN
+        raise ValueError(f"MetaWorld success_bonus must be >= 0 (added to a solved step's reward), got {bonus!r}")
 
 
 def _make_goal_observable_and_seedable(sim: Any, task_kwargs: dict) -> None:
@@ -234,10 +247,12 @@ class MetaWorldFactory:
     terminate_on_success: bool = False
     reward_function_version: str = "v2"
     reward_mode: str = "dense"
+    success_bonus: float = 0.0
     fast_render: bool = True
     task_block: int = 1
 
     def __post_init__(self) -> None:
+        _check_success_bonus(self.success_bonus)
         if self.task_block < 1:
             raise ValueError(f"task_block must be >= 1, got {self.task_block}")
 
@@ -254,6 +269,7 @@ class MetaWorldFactory:
             terminate_on_success=self.terminate_on_success,
             reward_function_version=self.reward_function_version,
             reward_mode=self.reward_mode,
+            success_bonus=self.success_bonus,
             fast_render=self.fast_render,
         )
 

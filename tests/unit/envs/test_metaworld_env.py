@@ -65,10 +65,12 @@ def test_terminate_on_success_ends_the_episode():
 
 def test_sparse_reward_is_the_success_signal_and_dense_is_metaworlds():
     """``reward_mode="sparse"``: 1 on a step where the task is solved, 0 elsewhere; the physics and
-    the success flags are those of the dense env stepped with the same actions."""
+    the success flags are those of the dense env stepped with the same actions; ``success_bonus``
+    adds its value to the dense reward on exactly the solved steps."""
     kinds = {}
-    for mode in ("dense", "sparse"):
-        with make_env("metaworld:reach-v3", 1, num_workers=0, reward_mode=mode) as env:
+    for mode, bonus in (("dense", 0.0), ("sparse", 0.0), ("dense_bonus", 10.0)):
+        with make_env("metaworld:reach-v3", 1, num_workers=0, reward_mode=mode.split("_")[0],
+                      success_bonus=bonus) as env:
             obs = env.reset(seeds=1)
             rewards, successes, states = [], [], []
             for _ in range(60):
@@ -84,6 +86,14 @@ def test_sparse_reward_is_the_success_signal_and_dense_is_metaworlds():
     assert sparse[1].any() and not sparse[1].all()  # solved part of the way in
     np.testing.assert_array_equal(sparse[0], sparse[1].astype(float))
     assert (dense[0][~dense[1]] > 0).any()  # MetaWorld's shaped reward pays before success
+    bonus = kinds["dense_bonus"]
+    np.testing.assert_array_equal(bonus[2], dense[2])
+    np.testing.assert_allclose(bonus[0], dense[0] + 10.0 * dense[1])
+
+
+def test_a_negative_success_bonus_is_refused():
+    with pytest.raises(ValueError, match="success_bonus"):
+        make_env("metaworld:reach-v3", 1, num_workers=0, success_bonus=-1.0)
 
 
 def test_unknown_reward_mode_is_refused():
