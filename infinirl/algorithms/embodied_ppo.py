@@ -28,8 +28,8 @@ import torch
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
 
-__all__ = ["PPOSpec", "compiled_minibatch_loss", "ppo_minibatch_loss", "ppo_objective", "ppo_objective_of_outputs",
-           "ppo_update"]
+__all__ = ["PPOSpec", "compiled_minibatch_loss", "critic_parameter_ids", "ppo_minibatch_loss", "ppo_objective",
+           "ppo_objective_of_outputs", "ppo_update"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -64,6 +64,8 @@ class PPOSpec:
     its actions; for flow policies, the path likelihood) or per action at action level."""
     is_cap_mode: str = "truncate"
     """truncate (TIS, min(w, cap)) | mask (MIS: decisions with w > cap get no policy gradient)."""
+    critic_warmup: int = 0
+    """Iterations ``0 .. critic_warmup - 1`` train the critic only (:func:`ppo_update`)."""
     compile: bool = False
     """Compile each mini-batch's optimizer step where the strategy allows it (the whole step,
     :class:`~infinirl.engines.compiled_step.CompiledAdamStep`), else the forward pass and loss
@@ -115,13 +117,18 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     keep_all = (batch["advantage_mask"].to(torch.float32) if "advantage_mask" in batch
                 else torch.ones(batch["advantages"].shape, dtype=torch.float32, device=device))
     params = [p for p in model.parameters() if p.requires_grad]
+    warmup = ppo.critic and iteration < ppo.critic_warmup
+    frozen: list[torch.nn.Parameter] = []
+    if warmup:  # the critic alone: no step for any parameter outside it (no policy or entropy term reaches it)
+        critic = critic_parameter_ids(model)
+        frozen = [p for p in params if id(p) not in critic]
     if ppo.is_cap is not None:  # decoupled PPO: clip around the trainer's own (proximal) policy
         batch = {**batch, "behaviour_logprobs": batch["logprobs"],
                  "logprobs": proximal_logprobs(model, batch, per_mini)}
     minibatch_loss = compiled_minibatch_loss(ppo.compile)
     stepper = (whole_step(model, optimizer, ppo_objective_of_outputs, ppo.max_grad_norm,
                           all_reduce_grads if world_size > 1 else None)
-               if ppo.compile and whole_step is not None else None)
+               if ppo.compile and whole_step is not None and not warmup else None)
     step_metrics: dict[str, list[torch.Tensor]] = {}
     # The observation statistics are fixed during the update (folded in after it): normalise the
     # whole batch once instead of every mini-batch (identical values, fewer small ops per step).
@@ -153,18 +160,39 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                 _, metrics, grad_norm = stepper.step(model_args, (ppo, rank, world_size, whole, rows))
             else:
                 loss, metrics = minibatch_loss(model, ppo, rank, world_size, model_args, whole, rows)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                all_reduce_grads()
-                grad_norm = torch.nn.utils.clip_grad_norm_(params, ppo.max_grad_norm, foreach=True)
-                if hasattr(grad_norm, "full_tensor"):  # a sharded model's norm: partial per rank
-                    grad_norm = grad_norm.full_tensor()
-                optimizer.step()
+                grad_norm = _eager_step(optimizer, loss, params, frozen, all_reduce_grads, ppo.max_grad_norm)
             metrics["train/grad_norm"] = grad_norm.detach()
             # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
             for key, value in metrics.items():
                 step_metrics.setdefault(key, []).append(value)
     return _update_metrics(step_metrics, batch, ppo, optimizer)
+
+
+def _eager_step(optimizer, loss: torch.Tensor, params: list, frozen: list, all_reduce_grads: Callable[[], None],
+                max_norm: float) -> torch.Tensor:
+    """Backward, sum over ranks, clip, step; ``frozen`` parameters get no gradient, so the optimizer
+    leaves them and their state untouched. Returns the (whole-model) gradient norm."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    all_reduce_grads()
+    for p in frozen:
+        p.grad = None
+    grad_norm = torch.nn.utils.clip_grad_norm_(params, max_norm, foreach=True)
+    if hasattr(grad_norm, "full_tensor"):  # a sharded model's norm: partial per rank
+        grad_norm = grad_norm.full_tensor()
+    optimizer.step()
+    return grad_norm
+
+
+def critic_parameter_ids(model) -> set[int]:
+    """``id`` of every parameter under the policy's ``critic_modules`` (``model`` may wrap the
+    policy, as ``.policy`` or ``.module``; matched by name, as the critic's learning rate is)."""
+    inner = model
+    while not hasattr(inner, "critic_modules") and (hasattr(inner, "policy") or hasattr(inner, "module")):
+        inner = getattr(inner, "policy", None) or inner.module
+    modules = tuple(getattr(inner, "critic_modules", ()))
+    return {id(p) for name, p in model.named_parameters()
+            if any(f".{module}." in f".{name}." for module in modules)}
 
 
 @torch.no_grad()

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from infinirl.algorithms import EnvAdvantageInputs, compute_advantages
-from infinirl.algorithms.embodied_ppo import PPOSpec
+from infinirl.algorithms.embodied_ppo import PPOSpec, critic_parameter_ids
 from infinirl.components.embodied_actor import EmbodiedActorWorker, actor_process_env
 from infinirl.components.embodied_policy import ReturnNormalizer, critic_lr_of
 from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec, merge_task_success
@@ -127,6 +127,8 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
             raise ConfigError(f"policy {cfg.policy.name}: {exc}") from None
     if cfg.actor.value_lr is not None:
         _check_value_lr(cfg, policy)
+    if cfg.algorithm.critic_warmup:
+        _check_critic_warmup(cfg, policy)
     if ALGORITHMS[cfg.algorithm.name].grouped:
         _check_one_task_per_group(cfg)
     return observation_spec, action_space, policy_spec
@@ -146,6 +148,20 @@ def _check_value_lr(cfg: EmbodiedConfig, policy) -> None:
                           "off, or it names no critic_modules); remove actor.value_lr")
 
 
+def _check_critic_warmup(cfg: EmbodiedConfig, policy) -> None:
+    """``algorithm.critic_warmup`` needs a critic to warm up and iterations left to train the policy."""
+    warmup = cfg.algorithm.critic_warmup
+    if not ALGORITHMS[cfg.algorithm.name].critic:
+        raise ConfigError(f"algorithm.critic_warmup={warmup}: algorithm.name={cfg.algorithm.name} trains no critic; "
+                          "remove algorithm.critic_warmup")
+    if warmup >= cfg.iterations:
+        raise ConfigError(f"algorithm.critic_warmup={warmup} >= iterations={cfg.iterations}: the policy would never "
+                          "train; set algorithm.critic_warmup below iterations")
+    if not critic_parameter_ids(policy):
+        raise ConfigError(f"algorithm.critic_warmup: policy {cfg.policy.name} has no critic parameters (its value "
+                          "head is off, or it names no critic_modules); remove algorithm.critic_warmup")
+
+
 def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
     """The actor's update settings; grouped (GRPO) advantages are used as they are, no critic is trained."""
     alg, algorithm = cfg.algorithm, ALGORITHMS[cfg.algorithm.name]
@@ -157,7 +173,7 @@ def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
                    normalize_advantages=alg.normalize_advantages and not algorithm.grouped,
                    gae_level=alg.gae_level, adam_eps=cfg.actor.adam_eps, strategy=cfg.actor.strategy,
                    seed=cfg.seed, critic=algorithm.critic, compile=cfg.actor.compile, is_cap=alg.is_cap,
-                   is_cap_mode=alg.is_cap_mode)
+                   is_cap_mode=alg.is_cap_mode, critic_warmup=alg.critic_warmup)
 
 
 def _env_task_count(cfg: EmbodiedConfig) -> tuple[int, bool]:

@@ -261,6 +261,69 @@ def test_value_lr_is_refused_where_no_critic_trains_at_its_rate(change, message)
     assert "\n" not in str(error.value)
 
 
+@pytest.mark.parametrize("value_lr", [None, 1e-2])
+def test_critic_warmup_trains_the_critic_alone_and_then_the_policy(value_lr):
+    """``critic_warmup=2``: iterations 0 and 1 leave every parameter outside the critic bit for bit
+    (and its optimizer state empty), the critic learns as if it were the only trainable part; from
+    iteration 2 on the whole policy trains."""
+    from infinirl.algorithms.embodied_ppo import critic_parameter_ids
+    from infinirl.components.embodied_policy import critic_lr_of
+    from infinirl.engines.parallel import DATA_PARALLEL
+
+    build, batch = policy_and_batch()
+    ppo = dataclasses.replace(PPO, critic_warmup=2, total_iterations=4, value_lr=value_lr)
+    lr_of = None if value_lr is None else critic_lr_of(build(), ppo.lr, value_lr)
+    model = build()
+    optimizer = DATA_PARALLEL.get("ddp")(0, 1).build_optimizer(model, ppo.lr, ppo.adam_eps, lr_of)
+    critic = critic_parameter_ids(model)
+    names = {id(p): name for name, p in model.named_parameters()}
+    assert critic and all(".critic." in f".{names[i]}." for i in critic)
+    before = {name: p.detach().clone() for name, p in model.named_parameters()}
+    for iteration in (0, 1):
+        metrics = ppo_update(model, optimizer, batch, iteration, ppo)
+        assert metrics["train/value_loss"] == metrics["train/value_loss"]
+    for name, p in model.named_parameters():
+        changed = not torch.equal(p.detach(), before[name])
+        assert changed == (id(p) in critic), name
+        assert (id(p) in critic) == bool(optimizer.state.get(p)), name
+
+    # the same critic steps as training the critic's parameters alone
+    reference = build()
+    ref_optimizer = DATA_PARALLEL.get("ddp")(0, 1).build_optimizer(reference, ppo.lr, ppo.adam_eps, lr_of)
+    value_only = dataclasses.replace(ppo, critic_warmup=0)
+    for p in reference.parameters():
+        p.requires_grad_(id(p) in critic_parameter_ids(reference))
+    for iteration in (0, 1):
+        ppo_update(reference, ref_optimizer, batch, iteration, value_only)
+    torch.testing.assert_close(flat(reference), flat(model), rtol=0, atol=1e-6)
+
+    frozen_before = {name: p.detach().clone() for name, p in model.named_parameters() if id(p) not in critic}
+    ppo_update(model, optimizer, batch, 2, ppo)
+    assert any(not torch.equal(p.detach(), frozen_before[name])
+               for name, p in model.named_parameters() if id(p) not in critic)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"algorithm": {"name": "grpo", "group_size": 2}}, "trains no critic"),
+    ({"algorithm": {"critic_warmup": 400}}, "algorithm.critic_warmup=400 >= iterations"),
+    ({"policy": {"kwargs": {"value_head": False}}}, "has no critic parameters"),
+])
+def test_critic_warmup_is_refused_where_it_cannot_warm_a_critic_up(change, message):
+    from infinirl.config import ConfigError, compose, to_dataclass
+    from infinirl.runners.embodied import _check_env_and_policy
+    from infinirl.runners.embodied_config import EmbodiedConfig
+
+    raw = compose("ppo_metaworld_reach")
+    raw["algorithm"]["critic_warmup"] = 3
+    for section, values in change.items():
+        for key, value in values.items():
+            current = raw[section].get(key)
+            raw[section][key] = {**current, **value} if isinstance(current, dict) else value
+    with pytest.raises(ConfigError, match=message) as error:
+        _check_env_and_policy(to_dataclass(EmbodiedConfig, raw))
+    assert "\n" not in str(error.value)
+
+
 # --- decoupled PPO (asynchronous training) ------------------------------------------------------
 
 
