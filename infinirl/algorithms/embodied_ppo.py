@@ -18,6 +18,7 @@ training backend (:mod:`infinirl.engines.parallel`); :func:`ppo_update` takes bo
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -118,10 +119,11 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                 else torch.ones(batch["advantages"].shape, dtype=torch.float32, device=device))
     params = [p for p in model.parameters() if p.requires_grad]
     warmup = ppo.critic and iteration < ppo.critic_warmup
-    frozen: list[torch.nn.Parameter] = []
+    critic = critic_parameter_ids(model) if ppo.critic else set()
+    parts = _GradParts(params=params, critic=[p for p in params if id(p) in critic],
+                       policy=[p for p in params if id(p) not in critic], max_norm=ppo.max_grad_norm)
     if warmup:  # the critic alone: no step for any parameter outside it (no policy or entropy term reaches it)
-        critic = critic_parameter_ids(model)
-        frozen = [p for p in params if id(p) not in critic]
+        parts = dataclasses.replace(parts, frozen=tuple(parts.policy))
     if ppo.is_cap is not None:  # decoupled PPO: clip around the trainer's own (proximal) policy
         batch = {**batch, "behaviour_logprobs": batch["logprobs"],
                  "logprobs": proximal_logprobs(model, batch, per_mini)}
@@ -158,30 +160,52 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                           normalize is not None)
             if stepper is not None:
                 _, metrics, grad_norm = stepper.step(model_args, (ppo, rank, world_size, whole, rows))
+                metrics["train/grad_norm"] = grad_norm.detach()
             else:
                 loss, metrics = minibatch_loss(model, ppo, rank, world_size, model_args, whole, rows)
-                grad_norm = _eager_step(optimizer, loss, params, frozen, all_reduce_grads, ppo.max_grad_norm)
-            metrics["train/grad_norm"] = grad_norm.detach()
+                metrics.update(_eager_step(optimizer, loss, parts, all_reduce_grads))
             # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
             for key, value in metrics.items():
                 step_metrics.setdefault(key, []).append(value)
     return _update_metrics(step_metrics, batch, ppo, optimizer)
 
 
-def _eager_step(optimizer, loss: torch.Tensor, params: list, frozen: list, all_reduce_grads: Callable[[], None],
-                max_norm: float) -> torch.Tensor:
-    """Backward, sum over ranks, clip, step; ``frozen`` parameters get no gradient, so the optimizer
-    leaves them and their state untouched. Returns the (whole-model) gradient norm."""
+@dataclass(frozen=True)
+class _GradParts:
+    """The trainable parameters, and the same split into the critic's and the rest (the policy's)."""
+
+    params: list
+    """Every trainable parameter, in the model's order."""
+    critic: list
+    policy: list
+    max_norm: float
+    frozen: tuple = ()
+    """Parameters that get no gradient this update (the policy's, during the critic's warm-up)."""
+
+
+def _full(norm: torch.Tensor) -> torch.Tensor:
+    return norm.full_tensor() if hasattr(norm, "full_tensor") else norm  # a sharded model's norm: partial per rank
+
+
+def _eager_step(optimizer, loss: torch.Tensor, parts: _GradParts, all_reduce_grads: Callable[[], None]) -> dict:
+    """Backward, sum over ranks, clip (one norm over the whole model), step; ``parts.frozen`` get no
+    gradient, so the optimizer leaves them and their state untouched. Returns the gradient norms
+    before clipping: the whole model's and, where it has a critic, the critic parameters' and the
+    rest's (``train/grad_norm``, ``..._critic``, ``..._policy``)."""
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     all_reduce_grads()
-    for p in frozen:
+    for p in parts.frozen:
         p.grad = None
-    grad_norm = torch.nn.utils.clip_grad_norm_(params, max_norm, foreach=True)
-    if hasattr(grad_norm, "full_tensor"):  # a sharded model's norm: partial per rank
-        grad_norm = grad_norm.full_tensor()
+    metrics = {}
+    if parts.critic:
+        for name, group in (("critic", parts.critic), ("policy", parts.policy)):
+            grads = [p.grad for p in group if p.grad is not None]
+            norm = torch.nn.utils.get_total_norm(grads, foreach=True) if grads else torch.zeros(())
+            metrics[f"train/grad_norm_{name}"] = _full(norm).detach()
+    metrics["train/grad_norm"] = _full(torch.nn.utils.clip_grad_norm_(parts.params, parts.max_norm, foreach=True))
     optimizer.step()
-    return grad_norm
+    return metrics
 
 
 def critic_parameter_ids(model) -> set[int]:

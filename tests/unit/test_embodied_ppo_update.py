@@ -108,10 +108,13 @@ def test_the_compiled_update_trains_like_the_eager_one(variant):
     assert not torch.equal(eager, flat(build()))  # the update moved the weights
     # Fused kernels round differently (float32): equal to float32 precision over 12 Adam steps.
     torch.testing.assert_close(fused, eager, rtol=0, atol=1e-5)
-    assert eager_metrics.keys() == fused_metrics.keys()
+    # the eager step also splits the gradient norm into the critic's and the policy's
+    parts = {"train/grad_norm_critic", "train/grad_norm_policy"}
+    assert eager_metrics.keys() - parts == fused_metrics.keys()
+    assert (parts <= eager_metrics.keys()) == (variant == "ppo")
     assert ("train/value_loss" in eager_metrics) == (variant == "ppo")
-    for key, value in eager_metrics.items():
-        assert fused_metrics[key] == pytest.approx(value, rel=1e-4, abs=1e-6), key
+    for key, value in fused_metrics.items():
+        assert value == pytest.approx(eager_metrics[key], rel=1e-4, abs=1e-6), key
 
 
 def run_two_ranks(build, batch, ppo):
@@ -259,6 +262,26 @@ def test_value_lr_is_refused_where_no_critic_trains_at_its_rate(change, message)
     with pytest.raises(ConfigError, match=message) as error:
         _check_env_and_policy(to_dataclass(EmbodiedConfig, raw))
     assert "\n" not in str(error.value)
+
+
+def test_the_gradient_norm_splits_into_the_critics_and_the_rest():
+    """``train/grad_norm_critic`` and ``train/grad_norm_policy``: the norms (before clipping) of the
+    critic parameters' gradient and of the rest's, which make up ``train/grad_norm``."""
+    from infinirl.algorithms.embodied_ppo import critic_parameter_ids
+
+    build, batch = policy_and_batch()
+    model = build()
+    one_step = dataclasses.replace(PPO, epochs=1, mini_batches=1)
+    metrics = ppo_update(model, torch.optim.SGD(model.parameters(), lr=0.0), batch, 0, one_step)
+    critic = critic_parameter_ids(model)
+    norm = {part: float(torch.cat([p.grad.reshape(-1) for p in model.parameters()
+                                   if p.grad is not None and (id(p) in critic) == (part == "critic")]).norm())
+            for part in ("critic", "policy")}
+    clip = min(1.0, one_step.max_grad_norm / metrics["train/grad_norm"])  # the grads left are the clipped ones
+    assert metrics["train/grad_norm_critic"] * clip == pytest.approx(norm["critic"], rel=1e-5)
+    assert metrics["train/grad_norm_policy"] * clip == pytest.approx(norm["policy"], rel=1e-5)
+    assert math.hypot(metrics["train/grad_norm_critic"], metrics["train/grad_norm_policy"]) == pytest.approx(
+        metrics["train/grad_norm"], rel=1e-5)
 
 
 @pytest.mark.parametrize("value_lr", [None, 1e-2])
