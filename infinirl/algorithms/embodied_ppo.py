@@ -65,6 +65,8 @@ class PPOSpec:
     its actions; for flow policies, the path likelihood) or per action at action level."""
     is_cap_mode: str = "truncate"
     """truncate (TIS, min(w, cap)) | mask (MIS: decisions with w > cap get no policy gradient)."""
+    desired_kl: float | None = None
+    """Adapt the rate after every mini-batch to keep PPO's approximate KL near this (None: off)."""
     critic_warmup: int = 0
     """Iterations ``0 .. critic_warmup - 1`` train the critic only (:func:`ppo_update`)."""
     compile: bool = False
@@ -108,10 +110,9 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     ``whole_step`` (see :data:`WholeStepFactory`): with ``ppo.compile``, the factory of the compiled
     whole optimizer step; None where the model cannot be compiled whole (then only the loss is).
     """
-    if ppo.anneal_lr:
-        factor = max(0.0, 1.0 - iteration / max(1, ppo.total_iterations))
-        for group in optimizer.param_groups:  # each group from its own rate (a faster value head's)
-            group["lr"] = group.get("base_lr", ppo.lr) * factor
+    factor = max(0.0, 1.0 - iteration / max(1, ppo.total_iterations)) if ppo.anneal_lr else 1.0
+    if ppo.anneal_lr or ppo.desired_kl is not None:
+        _set_rates(optimizer, ppo, factor)
     size = batch["actions"].shape[0]
     per_mini = size // ppo.mini_batches
     device = batch["advantages"].device
@@ -163,6 +164,8 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                 metrics["train/grad_norm"] = grad_norm.detach()
             else:
                 loss, metrics = minibatch_loss(model, ppo, rank, world_size, model_args, whole, rows)
+                if ppo.desired_kl is not None and not warmup:  # before the step, as rsl_rl does
+                    _adapt_rates(optimizer, ppo, factor, metrics["train/approx_kl"], world_size)
                 metrics.update(_eager_step(optimizer, loss, parts, all_reduce_grads))
             # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
             for key, value in metrics.items():
@@ -181,6 +184,36 @@ class _GradParts:
     max_norm: float
     frozen: tuple = ()
     """Parameters that get no gradient this update (the policy's, during the critic's warm-up)."""
+
+
+#: The adaptive rate's bounds, as multiples of the configured one (``PPOSpec.desired_kl``).
+KL_SCALE_BOUNDS = (1e-2, 10.0)
+KL_SCALE_FACTOR = 1.5
+
+
+def _set_rates(optimizer, ppo: PPOSpec, factor: float) -> None:
+    """Every group's rate: its own base rate (a faster value head's) x the anneal factor x the
+    adaptive scale it carries (``kl_scale``: in the optimizer's state dict, so resume is exact)."""
+    for group in optimizer.param_groups:
+        group["lr"] = group.get("base_lr", ppo.lr) * factor * group.get("kl_scale", 1.0)
+
+
+def _adapt_rates(optimizer, ppo: PPOSpec, factor: float, approx_kl: torch.Tensor, world_size: int) -> None:
+    """rsl_rl's adaptive schedule: divide the rate by 1.5 when the mini-batch's approximate KL to the
+    rollout policy is above twice ``desired_kl``, multiply it by 1.5 below half of it (within
+    :data:`KL_SCALE_BOUNDS` of the configured rate). Every rank decides on the ranks' mean KL."""
+    kl = approx_kl.detach().to(torch.float64).reshape(1)
+    if world_size > 1 and torch.distributed.is_initialized():
+        torch.distributed.all_reduce(kl)
+        kl = kl / world_size
+    kl_value, scale = float(kl), optimizer.param_groups[0].get("kl_scale", 1.0)
+    if kl_value > 2.0 * ppo.desired_kl:
+        scale = max(scale / KL_SCALE_FACTOR, KL_SCALE_BOUNDS[0])
+    elif kl_value < 0.5 * ppo.desired_kl:
+        scale = min(scale * KL_SCALE_FACTOR, KL_SCALE_BOUNDS[1])
+    for group in optimizer.param_groups:
+        group["kl_scale"] = scale
+    _set_rates(optimizer, ppo, factor)
 
 
 def _full(norm: torch.Tensor) -> torch.Tensor:
@@ -243,6 +276,8 @@ def _update_metrics(step_metrics: dict[str, list[torch.Tensor]], batch: dict, pp
         metrics["train/explained_variance"] = (float("nan") if variance == 0
                                                else 1.0 - float((returns - batch["values"]).var()) / variance)
     metrics["train/lr"] = optimizer.param_groups[0]["lr"]
+    if ppo.desired_kl is not None:
+        metrics["train/kl_scale"] = optimizer.param_groups[0].get("kl_scale", 1.0)
     metrics["train/logprob_mismatch"] = float(mismatch)
     metrics["train/optimizer_steps"] = ppo.epochs * ppo.mini_batches
     return metrics

@@ -144,6 +144,13 @@ class ActorConfig:
     """The decay's horizon in iterations; 0 = `iterations`, else at least `iterations`. Set it to stop
     a run early on a longer run's learning-rate schedule: a shorter `iterations=` alone decays faster
     and learns differently."""
+    desired_kl: float | None = bounded(None, gt=0)
+    """Adaptive learning rate (rsl_rl's schedule for robot PPO): after every mini-batch the rate is
+    divided by 1.5 when PPO's approximate KL to the rollout policy is above 2 x `desired_kl` and
+    multiplied by 1.5 below half of it, within 1/100 and 10 times `lr` (every group alike, the
+    value head's too; on top of `anneal_lr`'s decay). Keeps each update's step in the trust region
+    whatever the gradient's noise; None: the rate follows `lr` and `anneal_lr` only. Not with
+    `compile`. Logged as `train/lr` and `train/kl_scale`."""
     adam_eps: float = bounded(1e-5, gt=0)
     strategy: Literal["ddp", "fsdp"] = "ddp"
     """ddp: replicated weights, one SUM all-reduce of the gradients per step; fsdp: FSDP2 fully_shard."""
@@ -240,6 +247,10 @@ class EmbodiedConfig(RunConfig):
             raise ConfigError(f"actor.anneal_iterations={self.actor.anneal_iterations} < iterations={self.iterations}: "
                               "the learning rate would reach 0 before the run ends and the rest would not train; "
                               "set actor.anneal_iterations >= iterations (0 = iterations)")
+        if self.actor.desired_kl is not None and self.actor.compile:
+            raise ConfigError("actor.desired_kl adapts the learning rate at every step, which actor.compile's fused "
+                              "step (its rate fixed when compiled) cannot; set actor.compile=false or remove "
+                              "actor.desired_kl")
         if ALGORITHMS[self.algorithm.name].grouped and self.env.num_envs % self.algorithm.group_size:
             size, envs = self.algorithm.group_size, self.env.num_envs
             raise ConfigError(f"algorithm.group_size={size} does not divide env.num_envs={envs}: envs run in "

@@ -3,6 +3,7 @@ training on its share of every mini-batch and summing gradients, end with the we
 gets alone. Also: normalising a batch once gives what normalising every mini-batch gives, and the
 compiled update (``actor.compile``) trains like the eager one."""
 
+import copy
 import dataclasses
 import math
 import threading
@@ -261,6 +262,67 @@ def test_value_lr_is_refused_where_no_critic_trains_at_its_rate(change, message)
             raw[section][key] = {**current, **value} if isinstance(current, dict) else value
     with pytest.raises(ConfigError, match=message) as error:
         _check_env_and_policy(to_dataclass(EmbodiedConfig, raw))
+    assert "\n" not in str(error.value)
+
+
+def test_the_adaptive_rate_follows_rsl_rls_rule_within_its_bounds():
+    """``desired_kl``: above 2x the target the rate shrinks by 1.5, below half of it it grows by 1.5,
+    in between it stays; each group keeps its own base rate times the anneal factor times the scale."""
+    from infinirl.algorithms.embodied_ppo import KL_SCALE_BOUNDS, _adapt_rates
+
+    a, b = torch.nn.Parameter(torch.zeros(1)), torch.nn.Parameter(torch.zeros(1))
+    optimizer = torch.optim.Adam([{"params": [a], "base_lr": 1e-3}, {"params": [b], "base_lr": 1e-2}], lr=1e-3)
+    spec = dataclasses.replace(PPO, lr=1e-3, desired_kl=0.01)
+    expected = 1.0
+    for kl, change in ((0.03, 1 / 1.5), (0.02, 1.0), (0.005, 1.0), (0.004, 1.5), (0.001, 1.5), (0.5, 1 / 1.5)):
+        _adapt_rates(optimizer, spec, 0.5, torch.tensor(kl, dtype=torch.float64), world_size=1)
+        expected *= change
+        rates = [g["lr"] for g in optimizer.param_groups]
+        assert rates == pytest.approx([1e-3 * 0.5 * expected, 1e-2 * 0.5 * expected])
+        assert all(g["kl_scale"] == pytest.approx(expected) for g in optimizer.param_groups)
+    for _ in range(40):
+        _adapt_rates(optimizer, spec, 1.0, torch.tensor(0.0), world_size=1)
+    assert optimizer.param_groups[0]["kl_scale"] == KL_SCALE_BOUNDS[1]
+    for _ in range(40):
+        _adapt_rates(optimizer, spec, 1.0, torch.tensor(1.0), world_size=1)
+    assert optimizer.param_groups[0]["kl_scale"] == KL_SCALE_BOUNDS[0]
+
+
+def test_the_adaptive_rate_moves_with_the_kl_and_resumes_exactly():
+    """A target far below the update's KL shrinks the rate, one far above grows it; the scale is in
+    the optimizer's state dict, so an optimizer restored from it continues bit for bit."""
+    build, batch = policy_and_batch()
+    scales = {}
+    for target in (1e-9, 1e3):
+        model = build()
+        optimizer = torch.optim.Adam(model.parameters(), lr=PPO.lr)
+        spec = dataclasses.replace(PPO, desired_kl=target, total_iterations=4)
+        scales[target] = ppo_update(model, optimizer, batch, 0, spec)["train/kl_scale"]
+    assert scales[1e-9] < 1.0 < scales[1e3]
+
+    spec = dataclasses.replace(PPO, desired_kl=1e-3, total_iterations=4)
+    model = build()
+    optimizer = torch.optim.Adam(model.parameters(), lr=PPO.lr)
+    ppo_update(model, optimizer, batch, 0, spec)
+    saved_model, saved_optimizer = copy.deepcopy(model.state_dict()), copy.deepcopy(optimizer.state_dict())
+    ppo_update(model, optimizer, batch, 1, spec)
+    resumed = build()
+    resumed.load_state_dict(saved_model)
+    resumed_optimizer = torch.optim.Adam(resumed.parameters(), lr=PPO.lr)
+    resumed_optimizer.load_state_dict(saved_optimizer)
+    ppo_update(resumed, resumed_optimizer, batch, 1, spec)
+    assert torch.equal(flat(resumed), flat(model))
+    assert resumed_optimizer.param_groups[0]["lr"] == optimizer.param_groups[0]["lr"]
+
+
+def test_the_adaptive_rate_is_refused_with_the_compiled_step():
+    from infinirl.config import ConfigError, compose, to_dataclass
+    from infinirl.runners.embodied_config import EmbodiedConfig
+
+    raw = compose("ppo_metaworld_reach")
+    raw["actor"].update(desired_kl=0.01, compile=True)
+    with pytest.raises(ConfigError, match="actor.desired_kl") as error:
+        to_dataclass(EmbodiedConfig, raw).validate()
     assert "\n" not in str(error.value)
 
 
