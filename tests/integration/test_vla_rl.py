@@ -43,11 +43,18 @@ def make_cfg(output_dir, checkpoint, **extra):
 
 
 @pytest.mark.slow  # three short runs with a VLA; default-tier budget (pytest -m slow tests/integration)
-@pytest.mark.parametrize("strategy", ["ddp", "fsdp"])
-def test_ppo_with_lora_on_the_vla_trains_the_adapters_and_resumes_exactly(ray_cluster, tmp_path, checkpoint, strategy):
+@pytest.mark.parametrize("strategy, schedule", [("ddp", {}), ("fsdp", {}),
+                                               ("ddp", {"critic_warmup": 1, "desired_kl": 0.01})])
+def test_ppo_with_lora_on_the_vla_trains_the_adapters_and_resumes_exactly(ray_cluster, tmp_path, checkpoint, strategy,
+                                                                          schedule):
+    """Also with the shipped demo's schedule: the value head alone in iteration 1, then the rate
+    adapted to the KL (its scale resumes with the optimizer's state)."""
     def make(output_dir):
-        return make_cfg(output_dir, checkpoint, actor={"anneal_lr": False, "lr": 1e-3, "lora": {"r": 2, "alpha": 4.0},
-                                                       "strategy": strategy})
+        actor = {"anneal_lr": False, "lr": 1e-3, "lora": {"r": 2, "alpha": 4.0}, "strategy": strategy}
+        if "desired_kl" in schedule:
+            actor["desired_kl"] = schedule["desired_kl"]
+        algorithm = {"epochs": 1, "mini_batches": 2, "critic_warmup": schedule.get("critic_warmup", 0)}
+        return make_cfg(output_dir, checkpoint, actor=actor, algorithm=algorithm)
 
     straight = run(make(tmp_path / "straight"))
     rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
@@ -55,6 +62,11 @@ def test_ppo_with_lora_on_the_vla_trains_the_adapters_and_resumes_exactly(ray_cl
     assert all(r["train/grad_norm"] > 0 for r in rows if "train/grad_norm" in r)
     # the rollout acts with the merged weights: its log-probs agree with the adapted trainer's
     assert all(r["train/logprob_mismatch"] < 1e-4 for r in rows if "train/logprob_mismatch" in r)
+    if schedule:  # the warm-up iteration moved only the value head: the policy's ratios stayed at 1
+        first, second = (r for r in rows if "train/approx_kl" in r)
+        assert abs(first["train/approx_kl"]) < 1e-6 and first["train/grad_norm_policy"] == 0.0
+        assert first["train/grad_norm_critic"] > 0.0 and second["train/grad_norm_policy"] > 0.0
+        assert second["train/approx_kl"] > 1e-6 and "train/kl_scale" in second
 
     killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", 1)
     resumed = run(make(tmp_path / "resumed"))
