@@ -250,16 +250,22 @@ def test_value_lr_trains_the_critic_at_its_own_rate_and_anneals_each_group_from_
     ({"policy": {"kwargs": {"value_head": False}}}, "has no critic parameters"),
 ])
 def test_value_lr_is_refused_where_no_critic_trains_at_its_rate(change, message):
+    assert_refused_in_one_line({"actor": {"value_lr": 1e-3}}, change, message)
+
+
+def assert_refused_in_one_line(setting: dict, change: dict, message: str) -> None:
+    """``ppo_metaworld_reach`` with ``setting`` and then ``change`` applied (section -> key -> value,
+    dicts merged) fails the driver's checks with a one-line ConfigError matching ``message``."""
     from infinirl.config import ConfigError, compose, to_dataclass
     from infinirl.runners.embodied import _check_env_and_policy
     from infinirl.runners.embodied_config import EmbodiedConfig
 
     raw = compose("ppo_metaworld_reach")
-    raw["actor"]["value_lr"] = 1e-3
-    for section, values in change.items():
-        for key, value in values.items():
-            current = raw[section].get(key)
-            raw[section][key] = {**current, **value} if isinstance(current, dict) else value
+    for values_by_section in (setting, change):
+        for section, values in values_by_section.items():
+            for key, value in values.items():
+                current = raw[section].get(key)
+                raw[section][key] = {**current, **value} if isinstance(current, dict) else value
     with pytest.raises(ConfigError, match=message) as error:
         _check_env_and_policy(to_dataclass(EmbodiedConfig, raw))
     assert "\n" not in str(error.value)
@@ -394,19 +400,7 @@ def test_critic_warmup_trains_the_critic_alone_and_then_the_policy(value_lr):
     ({"policy": {"kwargs": {"value_head": False}}}, "has no critic parameters"),
 ])
 def test_critic_warmup_is_refused_where_it_cannot_warm_a_critic_up(change, message):
-    from infinirl.config import ConfigError, compose, to_dataclass
-    from infinirl.runners.embodied import _check_env_and_policy
-    from infinirl.runners.embodied_config import EmbodiedConfig
-
-    raw = compose("ppo_metaworld_reach")
-    raw["algorithm"]["critic_warmup"] = 3
-    for section, values in change.items():
-        for key, value in values.items():
-            current = raw[section].get(key)
-            raw[section][key] = {**current, **value} if isinstance(current, dict) else value
-    with pytest.raises(ConfigError, match=message) as error:
-        _check_env_and_policy(to_dataclass(EmbodiedConfig, raw))
-    assert "\n" not in str(error.value)
+    assert_refused_in_one_line({"algorithm": {"critic_warmup": 3}}, change, message)
 
 
 # --- decoupled PPO (asynchronous training) ------------------------------------------------------
