@@ -102,8 +102,8 @@ class AlgorithmConfig:
     """truncate: TIS, min(w, is_cap). mask: decisions with w > is_cap get no policy gradient."""
     critic_warmup: int = bounded(0, ge=0)
     """ppo: the first `critic_warmup` iterations train the critic only; the policy's weights stay
-    exactly as they are. A new value head on a pretrained policy predicts nothing yet, and the first
-    policy updates on its advantages move the policy far (approximate KL ~1) in a random direction."""
+    exactly as they are. A new value head on a pretrained policy predicts nothing yet: without the
+    warm-up the first policy updates follow advantages of an unfitted critic."""
 
 
 @dataclass(frozen=True, kw_only=True)
