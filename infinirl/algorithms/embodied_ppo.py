@@ -69,6 +69,8 @@ class PPOSpec:
     """Adapt the rate after every mini-batch to keep PPO's approximate KL near this (None: off)."""
     critic_warmup: int = 0
     """Iterations ``0 .. critic_warmup - 1`` train the critic only (:func:`ppo_update`)."""
+    warmup_steps: int = 0
+    """Ramp the policy's rate linearly over its first ``warmup_steps`` optimizer steps (:func:`_ramp_rates`)."""
     compile: bool = False
     """Compile each mini-batch's optimizer step where the strategy allows it (the whole step,
     :class:`~infinirl.engines.compiled_step.CompiledAdamStep`), else the forward pass and loss
@@ -111,7 +113,7 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     whole optimizer step; None where the model cannot be compiled whole (then only the loss is).
     """
     factor = max(0.0, 1.0 - iteration / max(1, ppo.total_iterations)) if ppo.anneal_lr else 1.0
-    if ppo.anneal_lr or ppo.desired_kl is not None:
+    if ppo.anneal_lr or ppo.desired_kl is not None or ppo.warmup_steps:
         _set_rates(optimizer, ppo, factor)
     size = batch["actions"].shape[0]
     per_mini = size // ppo.mini_batches
@@ -166,6 +168,8 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                 loss, metrics = minibatch_loss(model, ppo, rank, world_size, model_args, whole, rows)
                 if ppo.desired_kl is not None and not warmup:  # before the step, as rsl_rl does
                     _adapt_rates(optimizer, ppo, factor, metrics["train/approx_kl"], world_size)
+                if ppo.warmup_steps and not warmup:
+                    _ramp_rates(optimizer, ppo, factor, parts.policy)
                 metrics.update(_eager_step(optimizer, loss, parts, all_reduce_grads))
             # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
             for key, value in metrics.items():
@@ -193,9 +197,28 @@ KL_SCALE_FACTOR = 1.5
 
 def _set_rates(optimizer, ppo: PPOSpec, factor: float) -> None:
     """Every group's rate: its own base rate (a faster value head's) x the anneal factor x the
-    adaptive scale it carries (``kl_scale``: in the optimizer's state dict, so resume is exact)."""
+    adaptive scale it carries (``kl_scale``: in the optimizer's state dict, so resume is exact) x
+    its warm-up ramp (``ramp``, :func:`_ramp_rates`)."""
     for group in optimizer.param_groups:
-        group["lr"] = group.get("base_lr", ppo.lr) * factor * group.get("kl_scale", 1.0)
+        group["lr"] = group.get("base_lr", ppo.lr) * factor * group.get("kl_scale", 1.0) * group.get("ramp", 1.0)
+
+
+def _ramp_rates(optimizer, ppo: PPOSpec, factor: float, policy_params: list) -> None:
+    """Before each of the policy's first ``ppo.warmup_steps`` optimizer steps, set the rate of every
+    group holding a policy parameter to (k + 1) / ``warmup_steps`` of its rate, k the steps the policy
+    has taken: Adam's first steps move every weight by about the full rate, whatever the gradient's
+    size. k is Adam's own step count of the policy's first parameter, so a resumed run (the
+    optimizer's state restored) continues the ramp exactly. A value head in a group of its own
+    (``value_lr``) is not ramped."""
+    if not policy_params:
+        return
+    step = optimizer.state.get(policy_params[0], {}).get("step", 0)
+    ramp = min(1.0, (float(step) + 1.0) / ppo.warmup_steps)
+    policy = {id(p) for p in policy_params}
+    for group in optimizer.param_groups:
+        if any(id(p) in policy for p in group["params"]):
+            group["ramp"] = ramp
+    _set_rates(optimizer, ppo, factor)
 
 
 def _adapt_rates(optimizer, ppo: PPOSpec, factor: float, approx_kl: torch.Tensor, world_size: int) -> None:

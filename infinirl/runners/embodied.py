@@ -174,7 +174,7 @@ def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
                    gae_level=alg.gae_level, adam_eps=cfg.actor.adam_eps, strategy=cfg.actor.strategy,
                    seed=cfg.seed, critic=algorithm.critic, compile=cfg.actor.compile, is_cap=alg.is_cap,
                    is_cap_mode=alg.is_cap_mode, critic_warmup=alg.critic_warmup,
-                   desired_kl=cfg.actor.desired_kl)
+                   desired_kl=cfg.actor.desired_kl, warmup_steps=cfg.actor.warmup_steps)
 
 
 def _env_task_count(cfg: EmbodiedConfig) -> tuple[int, bool]:

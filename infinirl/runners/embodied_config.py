@@ -151,6 +151,12 @@ class ActorConfig:
     value head's too; on top of `anneal_lr`'s decay). Keeps each update's step in the trust region
     whatever the gradient's noise; None: the rate follows `lr` and `anneal_lr` only. Not with
     `compile`. Logged as `train/lr` and `train/kl_scale`."""
+    warmup_steps: int = bounded(0, ge=0)
+    """Ramp the rate linearly over each parameter group's first `warmup_steps` optimizer steps (the
+    k-th step at k / `warmup_steps` of the rate; counted from Adam's own step count, so a resumed run
+    continues the ramp). Adam's first step moves every weight by about the full rate whatever the
+    gradient's size: on a pretrained policy (a VLA's action expert) that one step can leave PPO's
+    trust region (approximate KL 0.5-1). 0: no ramp. Not with `compile`."""
     adam_eps: float = bounded(1e-5, gt=0)
     strategy: Literal["ddp", "fsdp"] = "ddp"
     """ddp: replicated weights, one SUM all-reduce of the gradients per step; fsdp: FSDP2 fully_shard."""
@@ -251,6 +257,10 @@ class EmbodiedConfig(RunConfig):
             raise ConfigError("actor.desired_kl adapts the learning rate at every step, which actor.compile's fused "
                               "step (its rate fixed when compiled) cannot; set actor.compile=false or remove "
                               "actor.desired_kl")
+        if self.actor.warmup_steps and self.actor.compile:
+            raise ConfigError("actor.warmup_steps changes the learning rate at every step, which actor.compile's fused "
+                              "step (its rate fixed when compiled) cannot; set actor.compile=false or remove "
+                              "actor.warmup_steps")
         if ALGORITHMS[self.algorithm.name].grouped and self.env.num_envs % self.algorithm.group_size:
             size, envs = self.algorithm.group_size, self.env.num_envs
             raise ConfigError(f"algorithm.group_size={size} does not divide env.num_envs={envs}: envs run in "

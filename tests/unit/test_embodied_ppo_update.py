@@ -403,6 +403,80 @@ def test_critic_warmup_is_refused_where_it_cannot_warm_a_critic_up(change, messa
     assert_refused_in_one_line({"algorithm": {"critic_warmup": 3}}, change, message)
 
 
+def rates_at_each_step(optimizer) -> list[list[float]]:
+    """Every group's rate as each optimizer step takes it (a step pre-hook records them)."""
+    seen: list[list[float]] = []
+    optimizer.register_step_pre_hook(lambda opt, args, kwargs: seen.append([g["lr"] for g in opt.param_groups]))
+    return seen
+
+
+@pytest.mark.parametrize("value_lr", [None, 1e-1])
+def test_the_warmup_ramps_the_policys_rate_over_its_first_steps_and_resumes_exactly(value_lr):
+    """``warmup_steps=5``: the policy's k-th optimizer step (from 1) runs at k / 5 of the annealed
+    rate, then at the rate; the count is Adam's, so a restored optimizer continues the ramp bit for
+    bit; the critic's warm-up iterations take no ramp step; a value head with a group of its own
+    (``value_lr``) is never ramped."""
+    from infinirl.components.embodied_policy import critic_lr_of
+    from infinirl.engines.parallel import DATA_PARALLEL
+
+    build, batch = policy_and_batch()
+    ppo = dataclasses.replace(PPO, epochs=1, mini_batches=3, total_iterations=4, warmup_steps=5, critic_warmup=1,
+                              value_lr=value_lr)
+    lr_of = None if value_lr is None else critic_lr_of(build(), ppo.lr, value_lr)
+
+    def optimizer_of(model):
+        return DATA_PARALLEL.get("ddp")(0, 1).build_optimizer(model, ppo.lr, ppo.adam_eps, lr_of)
+
+    model = build()
+    optimizer = optimizer_of(model)
+    seen = rates_at_each_step(optimizer)
+    for iteration in (0, 1):
+        ppo_update(model, optimizer, batch, iteration, ppo)
+    saved_model, saved_optimizer = copy.deepcopy(model.state_dict()), copy.deepcopy(optimizer.state_dict())
+    ppo_update(model, optimizer, batch, 2, ppo)
+
+    anneal = [1.0] * 3 + [0.75] * 3 + [0.5] * 3
+    ramp = [1.0] * 3 + [1 / 5, 2 / 5, 3 / 5, 4 / 5, 1.0, 1.0]  # iteration 0 is the critic's warm-up
+    policy_rates = [rates[0] for rates in seen]
+    assert policy_rates == pytest.approx([ppo.lr * a * r for a, r in zip(anneal, ramp)], rel=1e-12)
+    if value_lr is not None:
+        assert [rates[1] for rates in seen] == pytest.approx([value_lr * a for a in anneal], rel=1e-12)
+
+    resumed = build()
+    resumed.load_state_dict(saved_model)
+    resumed_optimizer = optimizer_of(resumed)
+    resumed_optimizer.load_state_dict(saved_optimizer)
+    resumed_seen = rates_at_each_step(resumed_optimizer)
+    ppo_update(resumed, resumed_optimizer, batch, 2, ppo)
+    assert resumed_seen == seen[-3:]
+    assert torch.equal(flat(resumed), flat(model))
+
+
+def test_the_warmup_makes_the_first_policy_step_small():
+    """Adam's first step moves a weight by about the rate whatever the gradient; with the ramp the
+    first update's weights move by a fraction of what they move without it."""
+    build, batch = policy_and_batch()
+    moves = {}
+    for steps in (0, 12):
+        model = build()
+        before = flat(model)
+        ppo_update(model, torch.optim.Adam(model.parameters(), lr=PPO.lr), batch, 0,
+                   dataclasses.replace(PPO, epochs=1, mini_batches=1, warmup_steps=steps))
+        moves[steps] = float((flat(model) - before).abs().max())
+    assert moves[12] == pytest.approx(moves[0] / 12, rel=1e-3)
+
+
+def test_the_warmup_is_refused_with_the_compiled_step():
+    from infinirl.config import ConfigError, compose, to_dataclass
+    from infinirl.runners.embodied_config import EmbodiedConfig
+
+    raw = compose("ppo_metaworld_reach")
+    raw["actor"].update(warmup_steps=10, compile=True)
+    with pytest.raises(ConfigError, match="actor.warmup_steps") as error:
+        to_dataclass(EmbodiedConfig, raw).validate()
+    assert "\n" not in str(error.value)
+
+
 # --- decoupled PPO (asynchronous training) ------------------------------------------------------
 
 
