@@ -21,7 +21,9 @@ human holds control the human's action is executed and recorded (``intervened`` 
 (success / failure) labels the observations up to it for a success classifier (``labels_dir``) and,
 with the reward source ``human``, becomes the reward of the step that led to the marked state and
 ends the episode (the env's own success then ends nothing). One more poll after an episode's last
-step collects the marks given for it. Evaluation and demonstration episodes run without the device.
+step collects the marks given for it; in the asynchronous loop an episode is held back until the
+next one's first poll, so a mark given while the robot resets (the person still judging the episode
+that ended) goes to that episode too. Evaluation and demonstration episodes run without the device.
 
 The Ray robot worker (:class:`~infinirl.realworld.robot_worker.RobotActorWorker`) and the edge
 node (:mod:`infinirl.edge.robot_node`) both run this class; only the transport differs.
@@ -29,6 +31,7 @@ node (:mod:`infinirl.edge.robot_node`) both run this class; only the transport d
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import threading
@@ -259,6 +262,23 @@ class RobotControlLoop:
         """One episode and whether it succeeded; ``policy(observation) -> action`` replaces the
         actor (demonstrations). Training episodes are counted and reported by :meth:`stats`, and
         are the ones a human may intervene in."""
+        recorder = self._steps(policy, deterministic, between_steps, training)
+        return self._finish(recorder, training), recorder.success
+
+    def _finish(self, recorder: EpisodeRecorder, training: bool) -> dict | None:
+        episode = recorder.finish(interventions=self.intervention_device is not None)
+        if episode is not None and training:
+            self._count(recorder, episode)
+        return episode
+
+    def _steps(self, policy=None, deterministic: bool = False, between_steps=None, training: bool = True,
+               previous: EpisodeRecorder | None = None,
+               release: Callable[[EpisodeRecorder], None] | None = None) -> EpisodeRecorder:
+        """Run one episode and return its recorder, not finished. ``previous`` (the asynchronous
+        loop with a human): the last training episode, held back until this episode's first poll,
+        whose marks were given before any step of this one (while the robot reset, the person
+        still looking at the episode that ended): they go to ``previous``, which then goes to
+        ``release`` (also when the loop stops before that poll)."""
         obs = self._padded(self.env.reset())
         recorder = EpisodeRecorder(obs)
         human = self.intervention_device if training and policy is None else None
@@ -268,6 +288,12 @@ class RobotControlLoop:
             if between_steps is not None:
                 between_steps()
             action, version, given = self._choose(obs, policy, deterministic, human)
+            if previous is not None:
+                if given is not None and given.marks:
+                    self._apply_marks(previous, given.marks)
+                    given = dataclasses.replace(given, marks=())
+                release(previous)
+                previous = None
             if given is not None and self._apply_marks(recorder, given.marks):
                 break  # the human's mark ended the episode
             try:
@@ -280,12 +306,11 @@ class RobotControlLoop:
             self.counts["late_steps"] += int(step.late)
             if self._record(recorder, action, obs, step, version, given):
                 break
+        if previous is not None:  # stopped before this episode's first poll
+            release(previous)
         if human is not None and recorder.mark is None and len(recorder):
             self._apply_marks(recorder, human.poll(observation=obs).marks)  # marks given for the last step
-        episode = recorder.finish(interventions=self.intervention_device is not None)
-        if episode is not None and training:
-            self._count(recorder, episode)
-        return episode, recorder.success
+        return recorder
 
     def _choose(self, obs: dict, policy, deterministic: bool, human):
         """``(action, version, the human's input or None)`` for the next step."""
@@ -365,15 +390,30 @@ class RobotControlLoop:
         self._thread.start()
 
     def _control_loop(self, between_steps) -> None:
+        held: EpisodeRecorder | None = None  # with a human: the last episode, until the next one's first poll
+
+        def release(recorder: EpisodeRecorder) -> None:
+            episode = self._finish(recorder, training=True)
+            if episode is not None:
+                self._outbox.put(episode)
+
         try:
             while not self._stop.is_set():
                 request, self._eval_request = self._eval_request, None
                 if request is not None:
+                    if held is not None:
+                        release(held)
+                        held = None
                     request[1].put(request[0]())
                     continue
-                episode, _ = self._episode(between_steps=between_steps)
-                if episode is not None:
-                    self._outbox.put(episode)
+                recorder = self._steps(between_steps=between_steps, previous=held, release=release)
+                held = None
+                if self.intervention_device is not None:
+                    held = recorder
+                else:
+                    release(recorder)
+            if held is not None:
+                release(held)
         except BaseException as exc:  # reported by the next stats() / stop() call
             logger.exception("%s control loop failed", self.kind)
             self._error = exc

@@ -253,14 +253,11 @@ class EmbodiedConfig(RunConfig):
             raise ConfigError(f"actor.anneal_iterations={self.actor.anneal_iterations} < iterations={self.iterations}: "
                               "the learning rate would reach 0 before the run ends and the rest would not train; "
                               "set actor.anneal_iterations >= iterations (0 = iterations)")
-        if self.actor.desired_kl is not None and self.actor.compile:
-            raise ConfigError("actor.desired_kl adapts the learning rate at every step, which actor.compile's fused "
-                              "step (its rate fixed when compiled) cannot; set actor.compile=false or remove "
-                              "actor.desired_kl")
-        if self.actor.warmup_steps and self.actor.compile:
-            raise ConfigError("actor.warmup_steps changes the learning rate at every step, which actor.compile's fused "
-                              "step (its rate fixed when compiled) cannot; set actor.compile=false or remove "
-                              "actor.warmup_steps")
+        per_step_rates = {"actor.desired_kl": self.actor.desired_kl is not None,
+                          "actor.warmup_steps": bool(self.actor.warmup_steps)}
+        for key in (key for key, used in per_step_rates.items() if used and self.actor.compile):
+            raise ConfigError(f"{key} changes the learning rate at every step, which actor.compile's fused step "
+                              f"(its rate fixed when compiled) cannot; set actor.compile=false or remove {key}")
         if ALGORITHMS[self.algorithm.name].grouped and self.env.num_envs % self.algorithm.group_size:
             size, envs = self.algorithm.group_size, self.env.num_envs
             raise ConfigError(f"algorithm.group_size={size} does not divide env.num_envs={envs}: envs run in "

@@ -1,0 +1,79 @@
+"""A mark the person gives while the robot resets, after the episode they judged ended and before
+the next one's first step, goes to the episode that ended: the asynchronous control loop holds each
+episode back until the next one's first poll. Without that it would have no step to reward and
+would only be counted (on a real arm the reset takes seconds: the moment people click)."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("metaworld")
+
+from infinirl.config import to_dataclass  # noqa: E402
+from infinirl.realworld.control_loop import RobotControlLoop  # noqa: E402
+from infinirl.realworld.intervention.device import HumanInput, InterventionDevice  # noqa: E402
+from infinirl.realworld.intervention.human_reward import MARK_REWARD  # noqa: E402
+from infinirl.realworld.intervention.spec import InterventionSpec  # noqa: E402
+from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of  # noqa: E402
+from infinirl.runners.realworld_sac_config import RealWorldSACConfig  # noqa: E402
+
+STEPS = 5
+
+
+class MarksDuringTheReset(InterventionDevice):
+    """A person who marks every episode a success once it has ended, while the robot resets: the
+    mark reaches the device after the loop's last poll of that episode (here: when the loop calls
+    ``reset`` for the next one), so the next episode's first poll delivers it."""
+
+    def __init__(self, *, action_dim: int) -> None:
+        super().__init__(action_dim=action_dim)
+        self.resets, self.pending = 0, []
+
+    def reset(self) -> None:
+        self.resets += 1
+        if self.resets > 1:
+            self.pending.append("success")
+
+    def poll(self, *, observation=None, policy_action=None) -> HumanInput:
+        marks, self.pending = tuple(self.pending), []
+        return HumanInput(active=False, marks=marks)
+
+
+def a_loop(tmp_path) -> RobotControlLoop:
+    cfg = to_dataclass(RealWorldSACConfig, {
+        "output_dir": str(tmp_path / "run"),
+        "robot": {"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 100.0}},
+        "task": {"max_episode_steps": STEPS}, "network": {"actor_hidden": [16], "critic_hidden": [16]}})
+    loop = RobotControlLoop(robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg), seed=0)
+    loop.intervention = InterventionSpec(device="simulated_human", reward="human")
+    loop.intervention_device = MarksDuringTheReset(action_dim=loop.action_dim)
+    return loop
+
+
+def test_a_mark_given_while_the_robot_resets_rewards_the_episode_that_ended(tmp_path):
+    loop = a_loop(tmp_path)
+    sent, lock = [], threading.Lock()
+
+    def submit(episode):
+        with lock:
+            sent.append(episode)
+
+    try:
+        loop.start(submit)
+        deadline = time.monotonic() + 60
+        while len(sent) < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        stats = loop.stop()
+    finally:
+        loop.close()
+    marked = loop.intervention_device.resets - 1  # every reset after the first brought a mark
+    assert len(sent) >= 3 and marked >= len(sent) - 1
+    for episode in sent[:-1]:  # each held back until the next one's first poll brought its mark
+        assert len(episode["action"]) == STEPS
+        assert episode["reward"][-1] == MARK_REWARD["success"] and np.all(episode["reward"][:-1] == 0.0)
+        assert episode["terminated"][-1]
+    assert stats["counts"]["marks_success"] == marked
+    assert stats["counts"]["successes"] >= len(sent) - 1
+    assert stats["counts"]["episodes"] == len(sent)  # the last one, held when the loop stopped, is sent too
