@@ -120,6 +120,8 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
         policy = policy_spec.build(observation_spec, action_space)
     except (ValueError, TypeError, KeyError, OSError) as exc:  # OSError: a checkpoint folder or file missing
         raise ConfigError(f"{cfg.env.name} / policy {cfg.policy.name}: {exc}") from exc
+    if cfg.actor.lora is not None and policy.policy.lora_refusal:
+        raise ConfigError(f"actor.lora: policy {cfg.policy.name}: {policy.policy.lora_refusal}; remove actor.lora")
     if cfg.actor.lora is not None:  # the layers it names must exist: checked on the policy just built
         try:
             apply_policy_lora(policy, cfg.actor.lora)

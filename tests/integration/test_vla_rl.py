@@ -83,3 +83,37 @@ def test_lora_layers_the_policy_lacks_are_one_line_before_any_worker_starts(tmp_
 def test_the_shipped_rl_after_sft_config_validates():
     cfg = build_config("ppo_vla_metaworld", [])[1]
     assert cfg.policy.name == "pi0_smollm2" and cfg.actor.lora is not None
+
+
+def steered_policy(checkpoint):
+    return {"name": "pi0_smollm2_steered", "chunk": 2, "normalize_obs": False,
+            "kwargs": {"checkpoint": checkpoint, "action_dim": 4, "chunk": 2, "cameras": {"rgb": CAMERA},
+                       "state_key": "proprio", "noise_hidden": [8]}}
+
+
+def steered_cfg(output_dir, checkpoint):
+    return make_cfg(output_dir, checkpoint, policy=steered_policy(checkpoint),
+                    actor={"anneal_lr": False, "lr": 1e-3, "value_lr": 1e-2},
+                    algorithm={"epochs": 2, "mini_batches": 2, "critic_warmup": 1})
+
+
+def test_steering_the_vla_through_its_noise_trains_end_to_end(ray_cluster, tmp_path, checkpoint):
+    """``pi0_smollm2_steered``: the rollout records the noise and the VLA's features, the trainer's
+    log-probs of them agree with the rollout's, the critic trains alone in iteration 1 and the noise
+    policy from iteration 2."""
+    result = run(steered_cfg(tmp_path / "steered", checkpoint))
+    rows = [json.loads(line) for line in (tmp_path / "steered" / "metrics.jsonl").read_text().splitlines()]
+    first, second = (r for r in rows if "train/approx_kl" in r)
+    assert all(r["train/logprob_mismatch"] < 1e-5 for r in (first, second))
+    assert first["train/grad_norm_policy"] == 0.0 and first["train/grad_norm_critic"] > 0.0
+    assert second["train/grad_norm_policy"] > 0.0 and second["train/approx_kl"] != 0.0
+    assert result["actor_weights_sha256"]
+
+
+def test_the_shipped_steering_config_validates_and_refuses_lora(tmp_path, checkpoint):
+    cfg = build_config("ppo_vla_metaworld_steered", [])[1]
+    assert cfg.policy.name == "pi0_smollm2_steered" and cfg.actor.lora is None
+    bad = make_cfg(tmp_path / "bad", checkpoint, policy=steered_policy(checkpoint))
+    with pytest.raises(ConfigError, match="^actor.lora: policy pi0_smollm2_steered: the VLA is frozen") as error:
+        run(bad)
+    assert "\n" not in str(error.value) and not (tmp_path / "bad").exists()

@@ -59,6 +59,8 @@ class Policy(nn.Module):
     has_value_head: bool = False
     critic_modules: tuple[str, ...] = ()
     """Names of the submodules that form the critic (``actor.value_lr`` trains them at its rate)."""
+    lora_refusal: str | None = None
+    """Why ``actor.lora`` cannot apply to this policy (refused before any worker starts); None: it can."""
 
     def act(self, obs: dict[str, torch.Tensor], deterministic: bool = False) -> PolicyStep:
         raise NotImplementedError
