@@ -3,8 +3,6 @@ control step plus the last state, into an mp4 that plays at the control rate; ta
 training episodes while the control loop runs; a robot without a camera records nothing and says why."""
 
 import importlib.util
-import threading
-import time
 
 import numpy as np
 import pytest
@@ -15,6 +13,7 @@ from infinirl.config import to_dataclass  # noqa: E402
 from infinirl.realworld.control_loop import RobotControlLoop  # noqa: E402
 from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of  # noqa: E402
 from infinirl.runners.realworld_sac_config import RealWorldSACConfig  # noqa: E402
+from tests.unit.realworld.running_loop import run_async  # noqa: E402
 
 needs_ffmpeg = pytest.mark.skipif(importlib.util.find_spec("imageio_ffmpeg") is None, reason="needs imageio-ffmpeg")
 STEPS = 6
@@ -53,21 +52,7 @@ def test_two_episodes_filmed_at_the_control_rate(tmp_path):
 @needs_ffmpeg
 def test_filmed_between_training_episodes_while_the_loop_runs(tmp_path):
     loop = a_loop(tmp_path, image_size=32)
-    sent, lock = [], threading.Lock()
-
-    def submit(episode):
-        with lock:
-            sent.append(episode)
-
-    try:
-        loop.start(submit)
-        deadline = time.monotonic() + 30
-        while not sent and time.monotonic() < deadline:
-            time.sleep(0.05)
-        result = loop.record_video(1, str(tmp_path / "eval.mp4"), fps=10)
-        loop.stop()
-    finally:
-        loop.close()
+    sent, result, _ = run_async(loop, 1, 30, lambda: loop.record_video(1, str(tmp_path / "eval.mp4"), fps=10))
     assert sent and result["frames"] == STEPS + 1 and frames_of(result["path"])[0] == 10
     assert all(len(episode["action"]) <= STEPS for episode in sent)  # no filmed step leaked into training
 

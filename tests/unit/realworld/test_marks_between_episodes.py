@@ -3,8 +3,6 @@ the next one's first step, goes to the episode that ended: the asynchronous cont
 episode back until the next one's first poll. Without that it would have no step to reward and
 would only be counted (on a real arm the reset takes seconds: the moment people click)."""
 
-import threading
-import time
 
 import numpy as np
 import pytest
@@ -18,6 +16,7 @@ from infinirl.realworld.intervention.human_reward import MARK_REWARD  # noqa: E4
 from infinirl.realworld.intervention.spec import InterventionSpec  # noqa: E402
 from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of  # noqa: E402
 from infinirl.runners.realworld_sac_config import RealWorldSACConfig  # noqa: E402
+from tests.unit.realworld.running_loop import run_async  # noqa: E402
 
 STEPS = 5
 
@@ -54,20 +53,7 @@ def a_loop(tmp_path) -> RobotControlLoop:
 
 def test_a_mark_given_while_the_robot_resets_rewards_the_episode_that_ended(tmp_path):
     loop = a_loop(tmp_path)
-    sent, lock = [], threading.Lock()
-
-    def submit(episode):
-        with lock:
-            sent.append(episode)
-
-    try:
-        loop.start(submit)
-        deadline = time.monotonic() + 60
-        while len(sent) < 3 and time.monotonic() < deadline:
-            time.sleep(0.02)
-        stats = loop.stop()
-    finally:
-        loop.close()
+    sent, _, stats = run_async(loop, 3, 60)
     marked = loop.intervention_device.resets - 1  # every reset after the first brought a mark
     assert len(sent) >= 3 and marked >= len(sent) - 1
     for episode in sent[:-1]:  # each held back until the next one's first poll brought its mark
