@@ -45,6 +45,12 @@ __all__ = ["PiZeroFivePolicy", "PiZeroPolicy", "PiZeroSmolLM2Policy"]
 SDE_STEPS = ("all", "one")
 
 
+def pooled_prefix(hidden: torch.Tensor, pad_mask: torch.Tensor) -> torch.Tensor:
+    """The mean of the prefix's hidden states ``[B, L, W]`` over its real tokens: ``[B, W]`` float32."""
+    weight = pad_mask.to(hidden.dtype)[..., None]
+    return ((hidden * weight).sum(1) / weight.sum(1).clamp_min(1.0)).float()
+
+
 @POLICIES.register("pi0")
 class PiZeroPolicy(Policy):
     """A LeRobot π0/π0.5 checkpoint acting in an env with flow-SDE exploration.
@@ -136,9 +142,7 @@ class PiZeroPolicy(Policy):
         if self.value_net is None:
             return None
         hidden = prefix.hidden.detach() if self.detach_critic else prefix.hidden
-        weight = prefix.pad_mask.to(hidden.dtype)[..., None]
-        pooled = (hidden * weight).sum(1) / weight.sum(1).clamp_min(1.0)
-        return self.value_net(pooled.float()).squeeze(-1)
+        return self.value_net(pooled_prefix(hidden, prefix.pad_mask)).squeeze(-1)
 
     # --- denoising ---------------------------------------------------------------------------
 

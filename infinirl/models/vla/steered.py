@@ -32,7 +32,7 @@ from torch import nn
 from infinirl.models.policies.base import POLICIES, PolicyEval, PolicyStep
 from infinirl.models.policies.heads import gaussian_entropy
 from infinirl.models.policies.mlp import gaussian_logprob
-from infinirl.models.vla.policy import PiZeroFivePolicy, PiZeroPolicy, PiZeroSmolLM2Policy
+from infinirl.models.vla.policy import PiZeroFivePolicy, PiZeroPolicy, PiZeroSmolLM2Policy, pooled_prefix
 
 __all__ = ["NoiseSteering", "PiZeroFiveSteeredPolicy", "PiZeroSmolLM2SteeredPolicy", "PiZeroSteeredPolicy"]
 
@@ -85,8 +85,7 @@ class NoiseSteering:
         (zeros where the family tokenises its state); also the inputs and the prefix."""
         x = self.inputs(obs)
         prefix = self._prefix(x)
-        weight = prefix.pad_mask.to(prefix.hidden.dtype)[..., None]
-        pooled = ((prefix.hidden * weight).sum(1) / weight.sum(1).clamp_min(1.0)).float()
+        pooled = pooled_prefix(prefix.hidden, prefix.pad_mask)
         width = self.vla.config.max_state_dim
         state = (x.state.float().reshape(len(pooled), -1)[:, :width] if x.state is not None
                  else torch.zeros(len(pooled), width, device=pooled.device))
