@@ -30,6 +30,7 @@ import torch
 
 from infinirl.components.embodied_policy import build_embodied_policy, compute_device, module_device
 from infinirl.components.env_worker import EnvSpec, StagedEnv
+from infinirl.components.eval_metrics import task_success_metrics
 from infinirl.models.policies.base import prepare_obs
 from infinirl.runtime import WeightSink, Worker
 from infinirl.utils.memory import peak_memory_bytes
@@ -517,12 +518,7 @@ def _eval_episodes(policy, env, seeds: list[int], deterministic: bool, device: t
             obs = result.obs
     metrics = {"eval/success_rate": float(np.mean(successes)), "eval/return_mean": float(np.mean(returns)),
                "eval/length_mean": float(np.mean(lengths)), "eval/episodes": len(successes)}
-    if task_names and len(set(task_names)) > 1:
-        for task in dict.fromkeys(task for task in tasks if task is not None):
-            done = [success for success, name in zip(successes, tasks, strict=True) if name == task]
-            metrics[f"eval/success/{task}"] = float(np.mean(done))
-            metrics[f"eval/episodes/{task}"] = len(done)
-    return metrics
+    return {**metrics, **task_success_metrics(successes, tasks)}
 
 
 def merge_task_success(results: list[dict]) -> dict:

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from infinirl.components.eval_metrics import task_success_metrics
 from infinirl.runtime import WeightSink, Worker
 from infinirl.utils.atomic import torch_save_atomic
 from infinirl.utils.threads import limit_threads
@@ -241,13 +242,15 @@ class SACCollectorWorker(Worker, WeightSink):
     @torch.no_grad()
     def evaluate(self, seeds: list[int], num_envs: int, env_kwargs: dict | None = None) -> dict:
         """One episode per (held-out) seed with the deterministic policy ``tanh(mean)``, run in
-        rounds of ``num_envs`` envs in this process; return / length / success statistics."""
+        rounds of ``num_envs`` envs in this process; return / length / success statistics, and
+        success per task where the envs run several (``eval/success/<task>``)."""
         if self._eval_env is None or self._eval_env.num_envs != num_envs:
             if self._eval_env is not None:
                 self._eval_env.close()
             self._eval_env = self.spec.build(num_envs, num_workers=0, salt=99, **(env_kwargs or {}))
         env = self._eval_env
-        returns, lengths, successes = [], [], []
+        task_names = getattr(env, "task_names", None)
+        returns, lengths, successes, tasks = [], [], [], []
         for start in range(0, len(seeds), num_envs):
             batch = [int(s) for s in seeds[start:start + num_envs]]
             obs = env.reset(seeds=batch + [batch[-1]] * (num_envs - len(batch)))
@@ -260,9 +263,11 @@ class SACCollectorWorker(Worker, WeightSink):
                     returns.append(float(result.info["episode_return"][i]))
                     lengths.append(int(result.info["episode_length"][i]))
                     successes.append(bool(result.info["episode_success"][i]))
+                    tasks.append(task_names[i] if task_names else None)
                 active &= ~result.done
                 obs = result.obs
-        return {"eval/return_mean": float(np.mean(returns)), "eval/return_std": float(np.std(returns)),
+        return {**task_success_metrics(successes, tasks),
+                "eval/return_mean": float(np.mean(returns)), "eval/return_std": float(np.std(returns)),
                 "eval/return_min": float(np.min(returns)), "eval/length_mean": float(np.mean(lengths)),
                 "eval/success_rate": float(np.mean(successes)), "eval/episodes": float(len(returns))}
 

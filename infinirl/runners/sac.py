@@ -80,6 +80,7 @@ def _net_spec(cfg: SACConfig) -> SACNetSpec:
     return SACNetSpec(actor_hidden=tuple(network.actor_hidden), critic_hidden=tuple(network.critic_hidden),
                       num_critics=network.num_critics, activation=network.activation,
                       log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key=network.obs_key,
+                      layer_norm=network.layer_norm,
                       actor=network.actor, flow=dict(network.flow))
 
 
@@ -93,7 +94,7 @@ def _probe(cfg: SACConfig) -> tuple[int, object]:
     try:
         family, task = split_env_name(cfg.env.name)
         sub_env = ENVS.get(family)(task, **cfg.env.kwargs)(0)
-    except (ValueError, TypeError, KeyError) as exc:
+    except (ValueError, TypeError, KeyError, OSError) as exc:  # OSError: a file the env reads (a VLA) is missing
         raise ConfigError(f"env.name={cfg.env.name!r}: {exc}") from exc
     try:
         spec, space = dict(sub_env.observation_spec), sub_env.action_space
@@ -118,15 +119,16 @@ class SACFlow:
         self.cfg, self.collector, self.learner = cfg, collector, learner
         self.env_steps = 0
         self.pending = None  # the next iteration's batch: a collection in flight, or restored from a checkpoint
+        headline = f"eval/{cfg.eval.headline}"
         self.spec = LoopSpec(
-            name="sac", title=f"SAC {cfg.env.name}", headline="eval/return_mean", target=cfg.eval.target,
+            name="sac", title=f"SAC {cfg.env.name}", headline=headline, target=cfg.eval.target,
             progress=(ProgressField(label="ret", key="rollout/episode_return_mean", format=".0f",
                                     fallback="rollout/open_episode_return_mean"),
-                      ProgressField(label="eval", key="eval/return_mean", format=".0f"),
+                      ProgressField(label="eval", key=headline, format=".2f" if "success" in headline else ".0f"),
                       ProgressField(label="alpha", key="train/alpha", format=".3f")),
-            panels=(Panel(title="held-out return (deterministic)", y=("eval/return_mean",), x="env/steps",
+            panels=(Panel(title=f"held-out {cfg.eval.headline} (deterministic)", y=(headline,), x="env/steps",
                           x_label="env steps"),
-                    Panel(title="held-out return", y=("eval/return_mean",), x="time/elapsed_s",
+                    Panel(title=f"held-out {cfg.eval.headline}", y=(headline,), x="time/elapsed_s",
                           x_label="wall time incl. start-up (s)"),
                     Panel(title="training episode return", y=("rollout/episode_return_mean",
                                                               "rollout/open_episode_return_mean"),

@@ -47,6 +47,10 @@ class NetworkConfig:
     """Range of the actor's log standard deviation (before the tanh squash)."""
     obs_key: str = "state"
     """The observation field the networks read (a flat float vector)."""
+    layer_norm: bool = False
+    """A LayerNorm after every hidden layer of the actor and the critics (RLPD/DSRL): keeps Q from
+    diverging at high update-to-data ratios or with wide, unnormalised inputs (a VLA's features).
+    With actor=flow, the critics only (the actor is the flow policy's network)."""
 
     def check_flow(self) -> None:
         """The SAC-Flow actor's options (``actor=flow``): a learned noise std, and none of the keys the
@@ -100,6 +104,9 @@ class BufferConfig:
 class EvalConfig(SimEvalConfig):
     video_max_steps: int | None = bounded(500, ge=1)
     """Cut each video episode after this many steps (None: the whole episode)."""
+    headline: Literal["return_mean", "success_rate"] = "return_mean"
+    """The held-out metric the summary, the target and the progress bar follow (success_rate for
+    tasks with a success flag, e.g. MetaWorld)."""
 
 
 @dataclass(kw_only=True)
