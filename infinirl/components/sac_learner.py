@@ -70,6 +70,8 @@ class SACNetSpec:
     log_std_min: float = -5.0
     log_std_max: float = 2.0
     obs_key: str = "state"
+    layer_norm: bool = False
+    """A LayerNorm after every hidden layer of the Gaussian actor and the critics."""
     actor: str = "gaussian"
     """``gaussian`` (:class:`SquashedGaussianActor`) or ``flow`` (SAC-Flow, :class:`FlowSACActor`)."""
     flow: dict = field(default_factory=dict)
@@ -109,16 +111,17 @@ class SACNetSpec:
         if self.actor != "gaussian":
             raise ValueError(f"SAC actor must be 'gaussian' or 'flow', got {self.actor!r}")
         return SquashedGaussianActor(obs_dim, int(np.prod(action_space.shape)), low, high, self.actor_hidden,
-                                     self.log_std_min, self.log_std_max, self.activation, self.obs_key)
+                                     self.log_std_min, self.log_std_max, self.activation, self.obs_key,
+                                     self.layer_norm)
 
     def build_critic(self, obs_dim: int, action_space, encoder=None):
         """The critics; given the actor's ``encoder``, an :class:`EncodedCritic` sharing it (the
         critic loss trains it)."""
         if encoder is None:
             return EnsembleQ(obs_dim, int(np.prod(action_space.shape)), self.critic_hidden, self.num_critics,
-                             self.activation, self.obs_key)
+                             self.activation, self.obs_key, self.layer_norm)
         head = EnsembleQ(encoder.out_dim, int(np.prod(action_space.shape)), self.critic_hidden, self.num_critics,
-                         self.activation, self.obs_key)
+                         self.activation, self.obs_key, self.layer_norm)
         return EncodedCritic(encoder, head)
 
 

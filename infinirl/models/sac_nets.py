@@ -37,7 +37,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["EnsembleLinear", "EnsembleQ", "FlowSACActor", "SquashedGaussianActor", "squash_logprob_correction"]
+__all__ = ["EnsembleLayerNorm", "EnsembleLinear", "EnsembleQ", "FlowSACActor", "SquashedGaussianActor",
+           "squash_logprob_correction"]
 
 _LOG2 = math.log(2.0)
 
@@ -64,11 +65,12 @@ class SquashedGaussianActor(nn.Module):
         log_std_min / log_std_max: range of the log standard deviation.
         activation: ``relu`` (SAC's default), ``tanh``, ``silu`` or ``elu``.
         obs_key: which observation field is the input vector.
+        layer_norm: a LayerNorm after each hidden linear layer, before the activation.
     """
 
     def __init__(self, obs_dim: int, action_dim: int, low: Sequence[float], high: Sequence[float],
                  hidden: Sequence[int] = (256, 256), log_std_min: float = -5.0, log_std_max: float = 2.0,
-                 activation: str = "relu", obs_key: str = "state"):
+                 activation: str = "relu", obs_key: str = "state", layer_norm: bool = False):
         super().__init__()
         if not log_std_min < log_std_max:
             raise ValueError(f"log_std_min ({log_std_min}) must be < log_std_max ({log_std_max})")
@@ -76,7 +78,7 @@ class SquashedGaussianActor(nn.Module):
         layers: list[nn.Module] = []
         size = obs_dim
         for width in hidden:
-            layers += [nn.Linear(size, width), act()]
+            layers += [nn.Linear(size, width), *([nn.LayerNorm(width)] if layer_norm else []), act()]
             size = width
         self.trunk = nn.Sequential(*layers)
         self.mean = nn.Linear(size, action_dim)
@@ -163,21 +165,37 @@ class EnsembleLinear(nn.Module):
         return torch.baddbmm(self.bias, x, self.weight)
 
 
+class EnsembleLayerNorm(nn.Module):
+    """``K`` independent LayerNorms over the last dim of ``[K, B, width]`` (each its own gain and bias)."""
+
+    def __init__(self, num_members: int, width: int):
+        super().__init__()
+        self.weight = nn.Parameter(torch.ones(num_members, 1, width))
+        self.bias = nn.Parameter(torch.zeros(num_members, 1, width))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.layer_norm(x, x.shape[-1:]) * self.weight + self.bias
+
+
 class EnsembleQ(nn.Module):
     """``K`` Q-networks ``Q_k(obs, action)``; ``forward`` returns ``[K, B]``.
 
     Actions are the actor's ``[-1, 1]`` actions (the normalised space), so the critics' inputs have
-    the same scale whatever the env's action range.
+    the same scale whatever the env's action range. ``layer_norm``: a LayerNorm after each hidden
+    layer, which keeps Q from diverging when many updates are made per sample (Ball et al. 2023,
+    RLPD; DSRL's critics).
     """
 
     def __init__(self, obs_dim: int, action_dim: int, hidden: Sequence[int] = (256, 256), num_critics: int = 2,
-                 activation: str = "relu", obs_key: str = "state"):
+                 activation: str = "relu", obs_key: str = "state", layer_norm: bool = False):
         super().__init__()
         if num_critics < 1:
             raise ValueError(f"num_critics must be >= 1, got {num_critics}")
         self.num_critics, self.obs_key = num_critics, obs_key
         sizes = [obs_dim + action_dim, *hidden, 1]
         self.layers = nn.ModuleList(EnsembleLinear(num_critics, a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        self.norms = (nn.ModuleList(EnsembleLayerNorm(num_critics, width) for width in hidden) if layer_norm
+                      else None)
         self.act = _activation(activation)()
 
     def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
@@ -187,7 +205,7 @@ class EnsembleQ(nn.Module):
         for i, layer in enumerate(self.layers):
             x = layer(x)
             if i < len(self.layers) - 1:
-                x = self.act(x)
+                x = self.act(x if self.norms is None else self.norms[i](x))
         return x.squeeze(-1)
 
 

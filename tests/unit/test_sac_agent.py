@@ -57,6 +57,33 @@ def test_ensemble_q_equals_independent_networks():
     assert not torch.equal(q.layers[0].weight[0], q.layers[0].weight[1])  # independently initialised
 
 
+def test_ensemble_q_with_layer_norm_equals_independent_networks_with_torchs_layer_norm():
+    """Each member: linear, ``torch.nn.LayerNorm`` with that member's own gain and bias, relu (float64)."""
+    torch.manual_seed(0)
+    q = EnsembleQ(5, 2, hidden=(8, 6), num_critics=2, layer_norm=True).double()
+    for norm in q.norms:  # away from the ones/zeros they start at, different per member
+        torch.nn.init.normal_(norm.weight)
+        torch.nn.init.normal_(norm.bias)
+    obs, action = torch.randn(10, 5, dtype=torch.float64), torch.rand(10, 2, dtype=torch.float64)
+    out = q(obs, action)
+    x = torch.cat([obs, action], -1)
+    for k in range(2):
+        h = x
+        for i, layer in enumerate(q.layers):
+            h = h @ layer.weight[k] + layer.bias[k]
+            if i < len(q.layers) - 1:
+                reference = torch.nn.LayerNorm(h.shape[-1]).double()
+                with torch.no_grad():
+                    reference.weight.copy_(q.norms[i].weight[k, 0])
+                    reference.bias.copy_(q.norms[i].bias[k, 0])
+                h = torch.relu(reference(h))
+        torch.testing.assert_close(out[k], h.squeeze(-1))
+    actor = SquashedGaussianActor(5, 2, [-1, -1], [1, 1], hidden=(8,), layer_norm=True)
+    assert any(isinstance(m, torch.nn.LayerNorm) for m in actor.trunk)
+    plain = SquashedGaussianActor(5, 2, [-1, -1], [1, 1], hidden=(8,))
+    assert not any(isinstance(m, torch.nn.LayerNorm) for m in plain.trunk)
+
+
 def test_update_matches_the_soft_bellman_reference_and_moves_targets_by_tau():
     spec = SACUpdateSpec(gamma=0.9, tau=0.1, init_alpha=0.5, seed=3)
     agent = SACAgent(SACNetSpec(actor_hidden=(16,), critic_hidden=(16,)), spec, 5, SPACE)
