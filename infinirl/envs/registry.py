@@ -58,6 +58,8 @@ ENVS.add("maniskill", AdapterFamily(module="infinirl.envs.maniskill_env", factor
                                     options="maniskill_options"))
 ENVS.add("libero", AdapterFamily(module="infinirl.envs.libero_env", factory="libero_factory",
                                  options="libero_options"))
+ENVS.add("vla_noise", AdapterFamily(module="infinirl.envs.noise_steering", factory="noise_steering_factory",
+                                    options="noise_steering_options"))
 
 
 def make_env(
