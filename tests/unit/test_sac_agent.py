@@ -46,15 +46,18 @@ def test_ensemble_q_equals_independent_networks():
     obs, action = torch.randn(10, 5), torch.rand(10, 2)
     out = q(obs, action)
     assert out.shape == (3, 10)
-    x = torch.cat([obs, action], -1)
     for k in range(3):
-        h = x
-        for i, layer in enumerate(q.layers):
-            h = h @ layer.weight[k] + layer.bias[k]
-            if i < len(q.layers) - 1:
-                h = torch.relu(h)
-        torch.testing.assert_close(out[k], h.squeeze(-1))
+        torch.testing.assert_close(out[k], member(q, k, torch.cat([obs, action], -1)))
     assert not torch.equal(q.layers[0].weight[0], q.layers[0].weight[1])  # independently initialised
+
+
+def member(q, k, x, norm=lambda i, h: h):
+    """Critic ``k`` of the ensemble as a plain MLP: linear, ``norm(layer index, h)``, relu."""
+    for i, layer in enumerate(q.layers):
+        x = x @ layer.weight[k] + layer.bias[k]
+        if i < len(q.layers) - 1:
+            x = torch.relu(norm(i, x))
+    return x.squeeze(-1)
 
 
 def test_ensemble_q_with_layer_norm_equals_independent_networks_with_torchs_layer_norm():
@@ -66,18 +69,15 @@ def test_ensemble_q_with_layer_norm_equals_independent_networks_with_torchs_laye
         torch.nn.init.normal_(norm.bias)
     obs, action = torch.randn(10, 5, dtype=torch.float64), torch.rand(10, 2, dtype=torch.float64)
     out = q(obs, action)
-    x = torch.cat([obs, action], -1)
     for k in range(2):
-        h = x
-        for i, layer in enumerate(q.layers):
-            h = h @ layer.weight[k] + layer.bias[k]
-            if i < len(q.layers) - 1:
-                reference = torch.nn.LayerNorm(h.shape[-1]).double()
-                with torch.no_grad():
-                    reference.weight.copy_(q.norms[i].weight[k, 0])
-                    reference.bias.copy_(q.norms[i].bias[k, 0])
-                h = torch.relu(reference(h))
-        torch.testing.assert_close(out[k], h.squeeze(-1))
+        def norm(i, h, k=k):
+            reference = torch.nn.LayerNorm(h.shape[-1]).double()
+            with torch.no_grad():
+                reference.weight.copy_(q.norms[i].weight[k, 0])
+                reference.bias.copy_(q.norms[i].bias[k, 0])
+            return reference(h)
+
+        torch.testing.assert_close(out[k], member(q, k, torch.cat([obs, action], -1), norm))
     actor = SquashedGaussianActor(5, 2, [-1, -1], [1, 1], hidden=(8,), layer_norm=True)
     assert any(isinstance(m, torch.nn.LayerNorm) for m in actor.trunk)
     plain = SquashedGaussianActor(5, 2, [-1, -1], [1, 1], hidden=(8,))
