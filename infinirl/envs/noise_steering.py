@@ -17,7 +17,10 @@ agent takes is one the cloned VLA can produce; RL chooses among them.
 Options (besides the wrapped family's, passed on): ``vla``, the steered policy's options
 (``policy``: the VLA family's policy name, default ``pi0_smollm2``; ``checkpoint``, ``chunk``,
 ``cameras``, ``state_key``, ... as :class:`~infinirl.models.vla.policy.PiZeroPolicy` takes them;
-``action_dim`` is the wrapped env's), and ``noise_bound``.
+``action_dim`` is the wrapped env's), ``noise_bound``, and ``reward_offset``, added to every
+decision's reward (DSRL's -1 with a success reward that ends the episode: every decision before
+success costs one, so the value is minus the decisions still to come and solving sooner is worth
+more, whatever entropy bonus an off-policy learner adds).
 
 The VLA is loaded once per process and shared by that process's sub-envs. It acts on one env at a
 time (batch 1): the runner steps sub-envs one by one, so nothing could be batched here anyway.
@@ -41,7 +44,7 @@ __all__ = ["FEATURES", "NoiseSteeringFactory", "NoiseSteeringSubEnv", "noise_ste
 FEATURES = "features"
 """The observation field: the frozen VLA's features of the wrapped env's observation."""
 
-_OWN_OPTIONS = ("vla", "noise_bound")
+_OWN_OPTIONS = ("vla", "noise_bound", "reward_offset")
 _POLICIES: dict[str, Any] = {}  # options (as JSON) -> the steered policy, one per process
 
 
@@ -69,8 +72,8 @@ def _batch_of_one(obs: Obs) -> dict[str, Any]:
 class NoiseSteeringSubEnv:
     """One wrapped sub-env whose action is the VLA's initial noise (see the module docstring)."""
 
-    def __init__(self, inner: Any, vla: Mapping[str, Any], noise_bound: float):
-        self.inner = inner
+    def __init__(self, inner: Any, vla: Mapping[str, Any], noise_bound: float, reward_offset: float = 0.0):
+        self.inner, self.reward_offset = inner, float(reward_offset)
         self._inner_observes = step_takes_observe(inner)
         self.policy = _steered_policy(vla, int(np.prod(inner.action_space.shape)))
         size = int(np.prod(self.policy.noise_shape))
@@ -94,7 +97,7 @@ class NoiseSteeringSubEnv:
 
         noise = torch.as_tensor(np.asarray(action, np.float32)).reshape(1, *self.policy.noise_shape)
         chunk = self.policy.decode(self._inputs, self._prefix, noise)[0].numpy()
-        reward, success, result = 0.0, False, None
+        reward, success, result = self.reward_offset, False, None
         for k, env_action in enumerate(chunk):
             last = k == len(chunk) - 1
             result = (self.inner.step(env_action, observe=last) if self._inner_observes
@@ -119,9 +122,10 @@ class NoiseSteeringFactory:
     inner: Any
     vla: Mapping[str, Any] = field(default_factory=dict)
     noise_bound: float = 1.5
+    reward_offset: float = 0.0
 
     def __call__(self, index: int) -> NoiseSteeringSubEnv:
-        return NoiseSteeringSubEnv(self.inner(index), self.vla, self.noise_bound)
+        return NoiseSteeringSubEnv(self.inner(index), self.vla, self.noise_bound, self.reward_offset)
 
     def task_names(self, num_envs: int) -> list[str] | None:
         names = getattr(self.inner, "task_names", None)
@@ -129,7 +133,7 @@ class NoiseSteeringFactory:
 
 
 def noise_steering_factory(task: str | None, *, vla: Mapping[str, Any] | None = None, noise_bound: float = 1.5,
-                           **inner_kwargs: Any) -> NoiseSteeringFactory:
+                           reward_offset: float = 0.0, **inner_kwargs: Any) -> NoiseSteeringFactory:
     """Registry entry: ``vla_noise:<family>:<task>``; ``vla`` must name a ``checkpoint``."""
     from infinirl.envs.registry import ENVS, split_env_name
 
@@ -143,12 +147,15 @@ def noise_steering_factory(task: str | None, *, vla: Mapping[str, Any] | None = 
         raise ValueError("vla.action_dim is the wrapped env's; remove it")
     if not noise_bound > 0:
         raise ValueError(f"noise_bound must be > 0, got {noise_bound!r}")
+    if not np.isfinite(reward_offset):
+        raise ValueError(f"reward_offset must be a finite number, got {reward_offset!r}")
     family, inner_task = split_env_name(task)
-    return NoiseSteeringFactory(ENVS.get(family)(inner_task, **inner_kwargs), dict(vla), float(noise_bound))
+    return NoiseSteeringFactory(ENVS.get(family)(inner_task, **inner_kwargs), dict(vla), float(noise_bound),
+                                float(reward_offset))
 
 
 def noise_steering_options(task: str | None) -> EnvOptions:
-    """The wrapped env's options and this wrapper's own (``vla``, ``noise_bound``)."""
+    """The wrapped env's options and this wrapper's own (``vla``, ``noise_bound``, ``reward_offset``)."""
     from infinirl.envs.registry import env_options
 
     if not task:

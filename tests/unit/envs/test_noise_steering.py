@@ -36,7 +36,8 @@ def batch_of(obs):
 
 
 def test_a_step_runs_the_chunk_the_vla_decodes_from_the_given_noise(checkpoint):
-    env = noise_steering_factory(f"metaworld:{TASK}", vla=vla_options(checkpoint), noise_bound=2.0, **SIM)(0)
+    env = noise_steering_factory(f"metaworld:{TASK}", vla=vla_options(checkpoint), noise_bound=2.0,
+                                 reward_offset=-1.0, **SIM)(0)
     reference = MetaWorldSubEnv(TASK, **SIM)
     plain = build_policy("pi0_smollm2", checkpoint=checkpoint, action_dim=4, chunk=2, cameras={"rgb": CAMERA},
                          state_key="proprio", value_head=False)
@@ -57,7 +58,7 @@ def test_a_step_runs_the_chunk_the_vla_decodes_from_the_given_noise(checkpoint):
                 inner = reference.step(action)
                 rewards.append(inner.reward)
             inner_obs = inner.obs
-            assert step.reward == pytest.approx(sum(rewards), rel=1e-6)
+            assert step.reward == pytest.approx(sum(rewards) - 1.0, rel=1e-6)  # the offset, once a decision
             assert not step.terminated and not step.truncated
             np.testing.assert_allclose(step.obs[FEATURES], env.policy.features(batch_of(inner_obs))[0][0].numpy(),
                                        rtol=1e-5, atol=1e-5)
@@ -100,6 +101,7 @@ def test_task_names_are_the_wrapped_envs(checkpoint):
     ({"vla": {"chunk": 2}}, "vla_noise needs the option vla.checkpoint"),
     ({"vla": {"checkpoint": "x", "action_dim": 4}}, "vla.action_dim is the wrapped env's"),
     ({"vla": {"checkpoint": "x"}, "noise_bound": 0}, "noise_bound must be > 0"),
+    ({"vla": {"checkpoint": "x"}, "reward_offset": float("nan")}, "reward_offset must be a finite number"),
 ])
 def test_bad_options_are_one_line_before_anything_is_built(options, message):
     with pytest.raises(ValueError, match=message) as error:
