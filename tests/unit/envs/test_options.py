@@ -126,7 +126,8 @@ def test_maniskill_reads_the_task_class_and_refuses_what_the_adapter_sets():
 
 
 def test_every_registered_family_says_what_it_takes():
-    tasks = {"gym": "Pendulum-v1", "metaworld": "reach-v3", "maniskill": "PushCube-v1", "libero": "libero_goal"}
+    tasks = {"gym": "Pendulum-v1", "metaworld": "reach-v3", "maniskill": "PushCube-v1", "libero": "libero_goal",
+             "vla_noise": "metaworld:reach-v3"}
     needs = {"gym": "gymnasium", "maniskill": "mani_skill"}
     for family in ENVS.names():
         if family in needs and not _installed(needs[family]):
