@@ -56,8 +56,11 @@ def _steered_policy(options: Mapping[str, Any], action_dim: int):
         from infinirl.models.policies.base import POLICIES
 
         kwargs = dict(options)
-        name = f"{kwargs.pop('policy', 'pi0_smollm2')}_steered"
-        policy = POLICIES.get(name)(action_dim=action_dim, value_head=False, **kwargs)
+        family = kwargs.pop("policy", "pi0_smollm2")
+        if f"{family}_steered" not in POLICIES:
+            steerable = sorted(name.removesuffix("_steered") for name in POLICIES.names() if name.endswith("_steered"))
+            raise ValueError(f"vla.policy={family!r} is not a VLA that can be steered; one of {', '.join(steerable)}")
+        policy = POLICIES.get(f"{family}_steered")(action_dim=action_dim, value_head=False, **kwargs)
         _POLICIES[key] = policy.eval().requires_grad_(False)
     return _POLICIES[key]
 

@@ -109,6 +109,14 @@ def test_bad_options_are_one_line_before_anything_is_built(options, message):
     assert "\n" not in str(error.value)
 
 
+def test_a_policy_that_cannot_be_steered_is_named(checkpoint):
+    factory = noise_steering_factory(f"metaworld:{TASK}", vla={**vla_options(checkpoint), "policy": "mlp_gaussian"},
+                                     **SIM)
+    with pytest.raises(ValueError, match=r"^vla.policy='mlp_gaussian' is not a VLA that can be steered; one of "
+                                         r"pi0, pi05, pi0_smollm2$"):
+        factory(0)
+
+
 def test_options_are_the_wrapped_familys_and_its_own():
     check_env_kwargs(f"vla_noise:metaworld:{TASK}", {"vla": {}, "noise_bound": 1.0, "obs_mode": "state+rgb"}, "env")
     with pytest.raises(ValueError, match=r"^env\.kwargs: vla_noise env 'metaworld:button-press-topdown-v3' does not "
