@@ -164,5 +164,6 @@ def noise_steering_options(task: str | None) -> EnvOptions:
     if not task:
         return EnvOptions(names=frozenset(_OWN_OPTIONS))
     inner = env_options(task)
-    return EnvOptions(names=inner.names | set(_OWN_OPTIONS), passes_others=inner.passes_others,
-                      reserved=inner.reserved, choices=inner.choices)
+    # the wrapped env keeps its own time limit: the wrapper's (make_env's) counts decisions, not its steps
+    return EnvOptions(names=(inner.names - {"max_episode_steps"}) | set(_OWN_OPTIONS),
+                      passes_others=inner.passes_others, reserved=inner.reserved, choices=inner.choices)

@@ -63,6 +63,18 @@ def test_terminate_on_success_ends_the_episode():
 
 
 
+@pytest.mark.parametrize("limit", [7, 230])
+def test_the_configured_time_limit_is_the_episode_length_above_metaworlds_200_too(limit):
+    """make_env's max_episode_steps reaches MetaWorld's own limit: 230 is not cut at its default 200."""
+    with make_env("metaworld:reach-v3", 1, num_workers=0, max_episode_steps=limit) as env:
+        env.reset(seeds=[3])
+        steps, done = 0, False
+        while not done:
+            result = env.step(np.zeros((1, 4), np.float32))
+            steps, done = steps + 1, bool(result.done[0])
+        assert steps == limit and bool(result.truncated[0]) and not bool(result.terminated[0])
+
+
 def test_sparse_reward_is_the_success_signal_and_dense_is_metaworlds():
     """``reward_mode="sparse"``: 1 on a step where the task is solved, 0 elsewhere; the physics and
     the success flags are those of the dense env stepped with the same actions; ``success_bonus``
