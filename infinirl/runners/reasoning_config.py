@@ -203,10 +203,26 @@ class ReasoningConfig(RunConfig):
         ):
             if value not in registry:
                 raise ConfigError(f"{key}={value!r} is not registered; registered: {', '.join(registry.names())}")
+        self._tie_actor_temperature()
         self._check_kl_and_reference()
         self._check_critic()
         self._check_off_policy()
         self._check_agent()
+
+    def _tie_actor_temperature(self) -> None:
+        """The trainer scores tokens under the distribution the rollout samples them from
+        (``logits / rollout.temperature``): scored at another temperature, the gradient is that of
+        another policy than the one that sampled, and the gap grows as training sharpens it."""
+        sampled, scored = self.rollout.temperature, self.actor.temperature
+        if scored == sampled:
+            return
+        if scored != 1.0:
+            raise ConfigError(
+                f"actor.temperature={scored} differs from rollout.temperature={sampled}: the trainer must score "
+                "tokens under the distribution the rollout samples them from; remove actor.temperature (it "
+                "follows rollout.temperature)"
+            )
+        self.actor.temperature = sampled
 
     def _check_agent(self) -> None:
         if self.rollout.agent is not None:

@@ -32,3 +32,12 @@ def test_agent_rollouts_train_on_model_tokens_and_resume_exactly(ray_cluster, ti
     check_pinned("reasoning_agent", tmp_path / "straight", [
         "rollout/reward_mean", "rollout/response_length_mean", "agent/turns_mean", "agent/observation_tokens_mean",
         "train/loss", "train/grad_norm"])
+
+
+def test_the_trainer_scores_multi_turn_samples_at_the_rollout_temperature(ray_cluster, tiny_llama_dir, tmp_path):
+    """Sampled at 0.6, the trainer's log-probs are those of logits / 0.6 too, not of the untempered policy."""
+    tempered = {"rollout": {**AGENT["rollout"], "temperature": 0.6}}
+    run(make_cfg(tiny_llama_dir, tmp_path / "run", iterations=1, save_every=0, eval={"every": 0}, **tempered))
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    train = [r for r in rows if "train/logprob_mismatch_mean" in r]
+    assert train and all(r["train/logprob_mismatch_mean"] < 1e-3 for r in train)

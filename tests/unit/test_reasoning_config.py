@@ -60,10 +60,19 @@ def test_defaults_validate():
     ({"steps": 3, "iterations": 4}, r"both 'steps' and its new name 'iterations' are set"),
     ({"rollout": {"max_new_token": 5}}, r"Did you mean 'rollout.max_new_tokens'"),
     ({"model": {"path": "/no/such/model"}}, r"model.path='/no/such/model' is not a folder"),
+    ({"rollout": {"temperature": 0.8}, "actor": {"temperature": 0.5}},
+     r"actor.temperature=0.5 differs from rollout.temperature=0.8: .*remove actor.temperature"),
 ])
 def test_bad_values_are_named(raw, message):
     with pytest.raises(ConfigError, match=message):
         build(**raw)
+
+
+@pytest.mark.parametrize("actor", [{}, {"temperature": 0.6}])
+def test_the_trainer_scores_at_the_rollout_temperature(actor):
+    cfg = build(rollout={"temperature": 0.6}, actor=actor)
+    assert cfg.actor.temperature == 0.6
+    assert build().actor.temperature == 1.0
 
 
 def test_ppo_launches_a_critic_placed_with_the_actor_by_default():
