@@ -139,7 +139,10 @@ class ReasoningConfig(RunConfig):
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = (
         "num_threads", "rollout.num_threads", "rollout.max_batch_size", "rollout.stream_chunk_prompts",
         "actor.micro_batch_size", "actor.logprob_chunk_tokens", "actor.max_packed_tokens",
-        "critic.micro_batch_size", "reference.micro_batch_size")
+        "critic.micro_batch_size", "reference.micro_batch_size",
+        # scoring only, nothing checkpointed depends on it: a run written while the trainer scored at 1.0
+        # whatever it sampled at resumes scoring at its rollout.temperature (recorded in the config history)
+        "actor.temperature")
 
     output_dir: str = "runs/reasoning"
     prompts_per_step: int = bounded(8, ge=1)

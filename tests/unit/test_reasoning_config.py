@@ -73,6 +73,7 @@ def test_the_trainer_scores_at_the_rollout_temperature(actor):
     cfg = build(rollout={"temperature": 0.6}, actor=actor)
     assert cfg.actor.temperature == 0.6
     assert build().actor.temperature == 1.0
+    assert cfg.resume_may_change("actor.temperature") and not cfg.resume_may_change("rollout.temperature")
 
 
 def test_ppo_launches_a_critic_placed_with_the_actor_by_default():
