@@ -81,10 +81,10 @@ def make_env(
 
     ``chunk_size=K`` wraps it in :class:`ActionChunkEnv` (actions ``[num_envs, K, *action]``).
     ``seed``, ``num_workers``, ``max_episode_steps``, ``start_method``, ``step_timeout_s`` and
-    ``max_restarts`` go to :class:`VectorEnv`; ``max_episode_steps`` also to a family with a time
-    limit of its own (MetaWorld, LIBERO); everything else to the simulator family (e.g.
-    MetaWorld's ``obs_mode="state+rgb"``, ``camera=``, ``image_size=``), checked first by
-    :func:`check_env_kwargs`.
+    ``max_restarts`` go to :class:`VectorEnv`; ``max_episode_steps`` also to a family that takes
+    it (MetaWorld's and LIBERO's own limits, gymnasium's and ManiSkill's ``TimeLimit``); everything
+    else to the simulator family (e.g. MetaWorld's ``obs_mode="state+rgb"``, ``camera=``,
+    ``image_size=``), checked first by :func:`check_env_kwargs`.
     """
     family, named_task = split_env_name(name)
     if named_task and task is not None and named_task != task:
@@ -93,8 +93,9 @@ def make_env(
     full_name = f"{family}:{task}" if task else family
     check_env_kwargs(full_name, env_kwargs, "make_env")
     if max_episode_steps is not None and "max_episode_steps" in env_options(full_name).names:
-        # the simulator's own time limit (MetaWorld's 200 steps, a LIBERO suite's horizon) follows the
-        # configured one: left at its default it would cut a longer episode short, silently
+        # the simulator's own time limit (MetaWorld's 200 steps, a LIBERO suite's horizon, a registered
+        # gymnasium TimeLimit) follows the configured one: left at its default it would cut a longer
+        # episode short, silently
         env_kwargs = {**env_kwargs, "max_episode_steps": max_episode_steps}
     factory = ENVS.get(family)(task, **env_kwargs)
     env: Env = VectorEnv(
