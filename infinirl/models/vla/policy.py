@@ -43,6 +43,8 @@ if TYPE_CHECKING:
 __all__ = ["PiZeroFivePolicy", "PiZeroPolicy", "PiZeroSmolLM2Policy"]
 
 SDE_STEPS = ("all", "one")
+LIKELIHOODS = ("flow_sde", "fpo")
+FPO_KEYS = ("fpo_action", "fpo_noise", "fpo_time")
 
 
 def pooled_prefix(hidden: torch.Tensor, pad_mask: torch.Tensor) -> torch.Tensor:
@@ -72,6 +74,11 @@ class PiZeroPolicy(Policy):
         detach_critic: the critic reads the prefix without back-propagating into the VLM, so the
             value loss trains the value head only and the VLM's weights move for the policy alone
             (RLinf's ``detach_critic_input`` for π0).
+        likelihood: ``"flow_sde"`` (explore with noise along the denoising path, whose Gaussian
+            log-probs PPO ratios use) or ``"fpo"`` (Flow Policy Optimization: act with the
+            policy's own ODE sampler, so the policy trained is the one evaluated, and score an
+            action chunk by minus its flow-matching loss at ``fpo_samples`` recorded (time, noise)
+            draws; PPO's ratio ``exp(L_old - L_new)`` then needs no density).
     """
 
     critic_modules = ("value_net",)
@@ -82,7 +89,8 @@ class PiZeroPolicy(Policy):
                  architecture: str | None = None, cameras: Mapping[str, str] | None = None,
                  state_key: str = "state", instruction_key: str = "instruction", num_steps: int | None = None,
                  noise_level: float = 0.5, sde_steps: str = "all", value_head: bool = True, value_hidden: int = 256,
-                 dtype: str = "float32", instruction: str | None = None, detach_critic: bool = False):
+                 dtype: str = "float32", instruction: str | None = None, detach_critic: bool = False,
+                 likelihood: str = "flow_sde", fpo_samples: int = 8):
         # Imported here, not at the top: the policy registry imports this module in every process
         # that builds any policy, and transformers' model classes take seconds to import.
         from infinirl.models.vla.vla import VLA, load_vla
@@ -90,6 +98,10 @@ class PiZeroPolicy(Policy):
         super().__init__()
         if sde_steps not in SDE_STEPS:
             raise ValueError(f"sde_steps must be one of {SDE_STEPS}, got {sde_steps!r}")
+        if likelihood not in LIKELIHOODS:
+            raise ValueError(f"likelihood must be one of {LIKELIHOODS}, got {likelihood!r}")
+        if fpo_samples < 1:
+            raise ValueError(f"fpo_samples must be at least 1, got {fpo_samples}")
         if noise_level <= 0:
             raise ValueError("flow_sde needs noise_level > 0 (its log-probs are Gaussian densities)")
         if isinstance(checkpoint, VLA):
@@ -107,6 +119,7 @@ class PiZeroPolicy(Policy):
         self.action_dim, self.chunk = action_dim, chunk
         self.num_steps = num_steps or config.num_inference_steps
         self.noise_level, self.sde_steps = float(noise_level), sde_steps
+        self.likelihood, self.fpo_samples = likelihood, int(fpo_samples)
         self.cameras = dict(cameras or {"rgb": config.camera_keys[0]})
         unknown = sorted(set(self.cameras.values()) - set(config.camera_keys))
         if unknown:
@@ -202,15 +215,50 @@ class PiZeroPolicy(Policy):
         config = self.vla.config
         device = x.tokens.device
         noise = torch.randn(x.tokens.shape[0], config.chunk_size, config.max_action_dim, device=device)
-        chain, logprobs, mask, prefix = self.denoise(x, noise, deterministic)
+        fpo = self.likelihood == "fpo"
+        chain, logprobs, mask, prefix = self.denoise(x, noise, deterministic or fpo)
         actions = self.vla.processor.actions_out(chain[:, -1])[:, :self.chunk, :self.action_dim]
         with torch.no_grad():
             values = self._values(prefix)
+            if fpo:
+                extras = self._fpo_draws(chain[:, -1])
+                # Evaluation acts deterministically and never reads log-probs: skip the scoring pass.
+                logprobs = torch.zeros_like(logprobs) if deterministic else self._fpo_scores(prefix, x.state, extras)
+                return PolicyStep(actions=actions, logprobs=logprobs, values=values, extras=extras)
         return PolicyStep(actions=actions, logprobs=logprobs, values=values,
                           extras={"chain": chain, "sde_mask": mask})
 
+    # --- Flow Policy Optimization ------------------------------------------------------------
+
+    def _fpo_draws(self, action: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The sampled chunk (model space) and ``fpo_samples`` flow times and noises to score it at."""
+        batch, samples = action.shape[0], self.fpo_samples
+        time = self.vla.model.sample_time(batch * samples, action.device).view(batch, samples)
+        noise = torch.randn(batch, samples, *action.shape[1:], device=action.device)
+        return {"fpo_action": action.float(), "fpo_noise": noise, "fpo_time": time}
+
+    def _fpo_scores(self, prefix: PrefixCache, state: torch.Tensor | None,
+                    extras: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """Minus the flow-matching loss of the recorded chunk ``[B, chunk]``: squared velocity errors
+        summed over each executed action's dims, averaged over the recorded (time, noise) draws."""
+        action, noise, time = (extras[key].float() for key in FPO_KEYS)
+        batch, samples = time.shape
+        def repeat(tensor: torch.Tensor) -> torch.Tensor:
+            return tensor.repeat_interleave(samples, dim=0)
+        repeated = type(prefix)(kv=[(repeat(k), repeat(v)) for k, v in prefix.kv],
+                                pad_mask=repeat(prefix.pad_mask), hidden=prefix.hidden)
+        t = time.reshape(-1)
+        noise, action = noise.flatten(0, 1), repeat(action)
+        x_t = t[:, None, None] * noise + (1 - t[:, None, None]) * action
+        velocity = self.vla.model.velocity(repeated, None if state is None else repeat(state), x_t, t).float()
+        errors = self._credited((velocity - (noise - action)) ** 2)
+        return -errors.view(batch, samples, -1).mean(1)
+
     def evaluate(self, obs, actions, extras=None, with_entropy: bool = True) -> PolicyEval:
-        """Differentiable log-probs of the recorded chains (the actions are their executed part)."""
+        """Differentiable log-probs of the recorded chains (the actions are their executed part);
+        with ``likelihood="fpo"``, minus the recorded chunks' flow-matching losses."""
+        if self.likelihood == "fpo":
+            return self._evaluate_fpo(obs, extras)
         if not extras or "chain" not in extras:
             raise ValueError("pi0.evaluate needs extras['chain'] (and 'sde_mask') from act()")
         chain = extras["chain"].detach().float()
@@ -234,6 +282,15 @@ class PiZeroPolicy(Policy):
                 ent = self._credited(gaussian_entropy(std.log()))
                 entropy = entropy + torch.where(keep, ent, torch.zeros_like(ent))
         return PolicyEval(logprobs=logprobs, entropy=entropy if with_entropy else None, values=self._values(prefix))
+
+    def _evaluate_fpo(self, obs, extras) -> PolicyEval:
+        missing = [key for key in FPO_KEYS if not extras or key not in extras]
+        if missing:
+            raise ValueError(f"pi0.evaluate with likelihood='fpo' needs extras {missing} from act()")
+        x = self.inputs(obs)
+        prefix = self._prefix(x)
+        return PolicyEval(logprobs=self._fpo_scores(prefix, x.state, extras), entropy=None,
+                          values=self._values(prefix))
 
     def _evaluate_one_step(self, prefix: PrefixCache, state: torch.Tensor | None, chain: torch.Tensor,
                            steps: torch.Tensor, with_entropy: bool) -> PolicyEval:

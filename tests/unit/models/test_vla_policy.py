@@ -150,3 +150,54 @@ def test_env_state_of_another_width_is_refused(case):
     obs["state"] = torch.zeros(2, 9)
     with pytest.raises(ValueError, match=r"expects \[B, 5\]"):
         pi.act(obs)
+
+
+def reference_fpo_scores(pi, obs, extras):
+    """Float64: each recorded (time, noise) draw's flow-matching loss through the model's own
+    training loss (prefix and suffix in one joint pass, no cache), summed over the executed
+    rows/dims, averaged over the draws, negated."""
+    model = pi.vla.model.double()
+    try:
+        inputs = pi.inputs(obs)
+        images = [image.double() for image in inputs.images]
+        state = None if inputs.state is None else inputs.state.double()
+        action = extras["fpo_action"].double()
+        total = torch.zeros(action.shape[0], pi.chunk, dtype=torch.float64)
+        samples = extras["fpo_time"].shape[1]
+        for n in range(samples):
+            errors = model.loss_elements(images, inputs.image_masks, inputs.tokens, inputs.token_mask, state,
+                                         action, noise=extras["fpo_noise"][:, n].double(),
+                                         time=extras["fpo_time"][:, n].double())
+            total += errors.double()[:, :pi.chunk, :pi.action_dim].sum(-1) / samples
+        return -total
+    finally:
+        model.float()
+
+
+def test_fpo_scores_are_minus_the_flow_matching_loss(case):
+    family, _ = case
+    torch.manual_seed(5)
+    pi = policy(family, likelihood="fpo", fpo_samples=3)
+    obs = env_obs(family)
+    step = pi.act(obs)
+    assert step.extras["fpo_noise"].shape == (2, 3, 4, 8) and step.extras["fpo_time"].shape == (2, 3)
+    # the action is the ODE sampler's from some noise: the chunk the policy is evaluated with
+    expected_actions = pi.vla.processor.actions_out(step.extras["fpo_action"])[:, :2, :3]
+    torch.testing.assert_close(step.actions, expected_actions)
+    evaluated = pi.evaluate(obs, step.actions, step.extras)
+    torch.testing.assert_close(evaluated.logprobs, step.logprobs, atol=1e-5, rtol=1e-5)
+    with torch.no_grad():
+        expected = reference_fpo_scores(pi, obs, step.extras)
+    torch.testing.assert_close(evaluated.logprobs.double(), expected, atol=1e-4, rtol=1e-4)
+    assert evaluated.entropy is None and evaluated.values.shape == (2,)
+    (evaluated.logprobs.sum() + evaluated.values.sum()).backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in pi.vla.model.expert.parameters())
+
+
+def test_fpo_needs_its_draws_and_a_known_likelihood():
+    pi = policy("pi0", likelihood="fpo")
+    obs = env_obs("pi0")
+    with pytest.raises(ValueError, match=r"needs extras \['fpo_action', 'fpo_noise', 'fpo_time'\]"):
+        pi.evaluate(obs, torch.zeros(2, 2, 3), {"chain": torch.zeros(2, 3)})
+    with pytest.raises(ValueError, match="likelihood must be one of"):
+        policy("pi0", likelihood="elbo")

@@ -1,7 +1,8 @@
 """The PPO update moves a VLA the right way: a one-step bandit (reward: minus the squared distance of
 the first executed action to a target) with the tiny random ``pi0_smollm2`` policy and the embodied
 runner's own ``ppo_update`` on flow-SDE log-probs. Both the sampled and the noise-free (ODE) policy
-must approach the target, with every denoising step stochastic, with one, and with LoRA adapters."""
+must approach the target, with every denoising step stochastic, with one, with LoRA adapters, and
+with Flow Policy Optimization's flow-matching-loss ratios instead of densities."""
 
 import pytest
 import torch
@@ -26,11 +27,14 @@ def distance_reward(actions: torch.Tensor) -> torch.Tensor:
     return -((actions[:, 0] - TARGET) ** 2).sum(-1)
 
 
-@pytest.mark.parametrize("sde_steps, lora", [("all", None), ("one", None), ("all", PolicyLoraSpec(r=8, alpha=16.0))])
-def test_ppo_moves_the_vla_toward_the_rewarded_action(checkpoint, sde_steps, lora):
+@pytest.mark.parametrize("sde_steps, lora, likelihood", [("all", None, "flow_sde"), ("one", None, "flow_sde"),
+                                                         ("all", PolicyLoraSpec(r=8, alpha=16.0), "flow_sde"),
+                                                         ("all", None, "fpo")])
+def test_ppo_moves_the_vla_toward_the_rewarded_action(checkpoint, sde_steps, lora, likelihood):
     torch.manual_seed(0)
     policy = build_policy("pi0_smollm2", checkpoint=checkpoint, action_dim=4, chunk=2, cameras={"rgb": CAMERA},
-                          state_key="proprio", value_hidden=8, instruction="reach", sde_steps=sde_steps)
+                          state_key="proprio", value_hidden=8, instruction="reach", sde_steps=sde_steps,
+                          likelihood=likelihood)
     if lora is not None:
         apply_policy_lora(policy, lora)
     model = NormalizedPolicy(policy, {}, 10.0)
