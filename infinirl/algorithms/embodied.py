@@ -239,7 +239,7 @@ def embodied_gae(
 
 @ADVANTAGES.register("embodied_grpo")
 def embodied_grpo(
-    inputs: EnvAdvantageInputs, *, eps: float = 1e-6, norm_by_std: bool = True
+    inputs: EnvAdvantageInputs, *, eps: float = 1e-6, norm_by_std: bool = True, baseline: bool = True
 ) -> AdvantageOutput:
     """Embodied GRPO: each env's *first* episode return, group-normalised across envs that were
     reset to the same state (same task and seed), broadcast to every step of that episode.
@@ -248,8 +248,12 @@ def embodied_grpo(
     episode has not ended). Steps after the first done belong to an episode that started from a
     different state, so they are outside ``mask`` and get advantage 0 (as RLinf does). Normalisation
     is ``(R - mean_g) / (std_g + eps)`` with the unbiased group std, or only the mean with
-    ``norm_by_std=False``. Outputs are shaped like ``rewards``.
+    ``norm_by_std=False``; ``baseline=False`` keeps the raw return ``R`` (REINFORCE without a
+    baseline: with a 0/1 success reward only successful episodes get a gradient, and no chunk is
+    pushed away). Outputs are shaped like ``rewards``.
     """
+    if not baseline and norm_by_std:
+        raise ValueError("embodied_grpo: baseline=False keeps the raw returns; it needs norm_by_std=False")
     if not isinstance(inputs, EnvAdvantageInputs):
         raise TypeError(f"embodied_grpo needs EnvAdvantageInputs, got {type(inputs).__name__}")
     chunk = inputs.chunk_size
@@ -271,7 +275,7 @@ def embodied_grpo(
         device=episode_return.device,
     )
     stats = group_stats(episode_return, index, num_groups)
-    centred = episode_return - stats.mean
+    centred = episode_return - stats.mean if baseline else episode_return
     scores = centred / (stats.std + eps) if norm_by_std else centred
     weight = first_episode.to(rewards.dtype)
     return AdvantageOutput(

@@ -66,6 +66,11 @@ class AlgorithmConfig:
     """grpo: consecutive envs sharing a reset seed (>= 2, must divide env.num_envs)."""
     grpo_norm_by_std: bool = True
     """grpo: divide by the group's return std (False: only subtract the group mean)."""
+    grpo_baseline: bool = True
+    """grpo: subtract the group's mean return. False: the raw first-episode return is the advantage
+    (REINFORCE without a baseline, with ``grpo_norm_by_std=false``): with success as the reward
+    (``env.kwargs.reward_mode=sparse``) only the decisions of successful episodes are reinforced and
+    failed ones are left alone rather than pushed away."""
     gamma: float = bounded(0.99, gt=0, le=1)
     """Discount per decision (per chunk when chunk > 1). ppo only."""
     gae_lambda: float = bounded(0.95, ge=0, le=1)
@@ -125,7 +130,8 @@ ALGORITHMS: dict[str, EmbodiedAlgorithm] = {
     "ppo": EmbodiedAlgorithm(advantage="embodied_gae",
                              advantage_kwargs=lambda a: {"gamma": a.gamma, "lam": a.gae_lambda, "level": a.gae_level},
                              critic=True, grouped=False),
-    "grpo": EmbodiedAlgorithm(advantage="embodied_grpo", advantage_kwargs=lambda a: {"norm_by_std": a.grpo_norm_by_std},
+    "grpo": EmbodiedAlgorithm(advantage="embodied_grpo", advantage_kwargs=lambda a: {"norm_by_std": a.grpo_norm_by_std,
+                                                                      "baseline": a.grpo_baseline},
                               critic=False, grouped=True),
 }
 
@@ -236,6 +242,16 @@ class EmbodiedConfig(RunConfig):
     """Online scaling of the env component (env and rollout on disjoint slots): a command file and/or
     a policy on the env ranks' busy ratio (see infinirl.runtime.scaling)."""
 
+    def _check_groups(self) -> None:
+        if ALGORITHMS[self.algorithm.name].grouped and self.env.num_envs % self.algorithm.group_size:
+            size, envs = self.algorithm.group_size, self.env.num_envs
+            raise ConfigError(f"algorithm.group_size={size} does not divide env.num_envs={envs}: envs run in "
+                              f"groups of algorithm.group_size sharing a reset seed; pick a divisor of "
+                              f"env.num_envs or set env.num_envs to a multiple of {size}")
+        if not self.algorithm.grpo_baseline and self.algorithm.grpo_norm_by_std:
+            raise ConfigError("algorithm.grpo_baseline=false keeps the raw returns, which dividing by the group's "
+                              "std would rescale per group; set algorithm.grpo_norm_by_std=false with it")
+
     def check(self) -> None:
         from infinirl.components.embodied_policy import registered_policies
 
@@ -258,11 +274,7 @@ class EmbodiedConfig(RunConfig):
         for key in (key for key, used in per_step_rates.items() if used and self.actor.compile):
             raise ConfigError(f"{key} changes the learning rate at every step, which actor.compile's fused step "
                               f"(its rate fixed when compiled) cannot; set actor.compile=false or remove {key}")
-        if ALGORITHMS[self.algorithm.name].grouped and self.env.num_envs % self.algorithm.group_size:
-            size, envs = self.algorithm.group_size, self.env.num_envs
-            raise ConfigError(f"algorithm.group_size={size} does not divide env.num_envs={envs}: envs run in "
-                              f"groups of algorithm.group_size sharing a reset seed; pick a divisor of "
-                              f"env.num_envs or set env.num_envs to a multiple of {size}")
+        self._check_groups()
         if self.env.stage_processes and self.rollout.transport != "socket":
             raise ConfigError(f"env.stage_processes=true streams each stage over its own socket; "
                               f"rollout.transport={self.rollout.transport} is not supported with it: set "

@@ -79,6 +79,11 @@ def test_grpo_config_is_checked_before_anything_starts():
         grpo_cfg(algorithm={"name": "grpo", "group_size": 1, "mini_batches": 2})
     with pytest.raises(ConfigError, match="algorithm.name"):
         grpo_cfg(algorithm={"name": "a2c"})
+    with pytest.raises(ConfigError, match=r"^algorithm.grpo_baseline=false keeps the raw returns.*"
+                                          r"set algorithm.grpo_norm_by_std=false"):
+        grpo_cfg(algorithm={"name": "grpo", "group_size": 2, "mini_batches": 2, "grpo_baseline": False})
+    grpo_cfg(algorithm={"name": "grpo", "group_size": 2, "mini_batches": 2, "grpo_baseline": False,
+                        "grpo_norm_by_std": False})
     with pytest.raises(ConfigError, match=r"partial_rollout is for language-model generation"):
         grpo_cfg(algorithm={"name": "ppo", "asynchronous": {"max_staleness": 1, "partial_rollout": True}})
     grpo_cfg(algorithm={"name": "ppo", "group_size": 3, "mini_batches": 2})  # group_size is grpo's only

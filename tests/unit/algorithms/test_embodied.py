@@ -274,3 +274,15 @@ def test_embodied_grpo_hand_computed_with_group_ids_and_chunks():
 def test_embodied_grpo_all_equal_returns_give_zero():
     inputs = EnvAdvantageInputs(rewards=torch.ones(4, 4), dones=torch.zeros(4, 4), group_size=4)
     assert torch.equal(embodied_grpo(inputs).advantages, torch.zeros(4, 4))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_embodied_grpo_without_baseline_is_the_raw_first_episode_return(seed):
+    inputs = random_env_inputs(seed, envs=6)
+    out = embodied_grpo(inputs, norm_by_std=False, baseline=False)
+    ends = (inputs.dones | inputs.truncations).tolist()
+    _, ret, first = ref_embodied_grpo(inputs.rewards.tolist(), ends, [n // 2 for n in range(6)], 1e-6, False)
+    torch.testing.assert_close(out.advantages, torch.tensor(ret, dtype=torch.float64))
+    assert torch.equal(out.mask, torch.tensor(first))
+    with pytest.raises(ValueError, match="baseline=False keeps the raw returns; it needs norm_by_std=False"):
+        embodied_grpo(inputs, baseline=False)
