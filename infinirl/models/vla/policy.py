@@ -1,4 +1,5 @@
-"""π0 / π0.5 as a :class:`~infinirl.models.policies.base.Policy`: flow-SDE log-probs for PPO/GRPO.
+"""π0 / π0.5 as a :class:`~infinirl.models.policies.base.Policy`: flow-SDE log-probs for PPO/GRPO
+(or Flow Policy Optimization's flow-matching-loss scores, ``likelihood="fpo"``).
 
 Registered names: ``pi0``, ``pi05`` and ``pi0_smollm2`` (:class:`PiZeroPolicy`; the checkpoint
 folder must be of that family). The denoising loop is the flow head's (:mod:`infinirl.models.policies.flow`): ``N``
