@@ -239,7 +239,8 @@ def embodied_gae(
 
 @ADVANTAGES.register("embodied_grpo")
 def embodied_grpo(
-    inputs: EnvAdvantageInputs, *, eps: float = 1e-6, norm_by_std: bool = True, baseline: bool = True
+    inputs: EnvAdvantageInputs, *, eps: float = 1e-6, norm_by_std: bool = True, baseline: bool = True,
+    per_episode: bool = False,
 ) -> AdvantageOutput:
     """Embodied GRPO: each env's *first* episode return, group-normalised across envs that were
     reset to the same state (same task and seed), broadcast to every step of that episode.
@@ -250,7 +251,9 @@ def embodied_grpo(
     is ``(R - mean_g) / (std_g + eps)`` with the unbiased group std, or only the mean with
     ``norm_by_std=False``; ``baseline=False`` keeps the raw return ``R`` (REINFORCE without a
     baseline: with a 0/1 success reward only successful episodes get a gradient, and no chunk is
-    pushed away). Outputs are shaped like ``rewards``.
+    pushed away). ``per_episode=True`` scales each env's advantages by the mean first-episode
+    length over its own, so that every episode weighs the same in a loss averaged over decisions
+    (short solved episodes as much as long ones). Outputs are shaped like ``rewards``.
     """
     if not baseline and norm_by_std:
         raise ValueError("embodied_grpo: baseline=False keeps the raw returns; it needs norm_by_std=False")
@@ -278,6 +281,9 @@ def embodied_grpo(
     centred = episode_return - stats.mean if baseline else episode_return
     scores = centred / (stats.std + eps) if norm_by_std else centred
     weight = first_episode.to(rewards.dtype)
+    if per_episode:
+        lengths = weight.sum(dim=0)
+        scores = scores * lengths.mean() / lengths.clamp_min(1.0)
     return AdvantageOutput(
         advantages=restore(scores[None] * weight),
         returns=restore(episode_return[None] * weight),

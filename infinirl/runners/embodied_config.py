@@ -71,6 +71,10 @@ class AlgorithmConfig:
     (REINFORCE without a baseline, with ``grpo_norm_by_std=false``): with success as the reward
     (``env.kwargs.reward_mode=sparse``) only the decisions of successful episodes are reinforced and
     failed ones are left alone rather than pushed away."""
+    grpo_per_episode: bool = False
+    """grpo: every episode weighs the same in the update, whatever its length (each env's advantages
+    scaled by the mean first-episode length over its own). The policy loss averages over decisions,
+    so otherwise a task whose solved episodes are long outweighs one solved in a few decisions."""
     gamma: float = bounded(0.99, gt=0, le=1)
     """Discount per decision (per chunk when chunk > 1). ppo only."""
     gae_lambda: float = bounded(0.95, ge=0, le=1)
@@ -131,7 +135,8 @@ ALGORITHMS: dict[str, EmbodiedAlgorithm] = {
                              advantage_kwargs=lambda a: {"gamma": a.gamma, "lam": a.gae_lambda, "level": a.gae_level},
                              critic=True, grouped=False),
     "grpo": EmbodiedAlgorithm(advantage="embodied_grpo", advantage_kwargs=lambda a: {"norm_by_std": a.grpo_norm_by_std,
-                                                                      "baseline": a.grpo_baseline},
+                                                                      "baseline": a.grpo_baseline,
+                                                                      "per_episode": a.grpo_per_episode},
                               critic=False, grouped=True),
 }
 

@@ -286,3 +286,19 @@ def test_embodied_grpo_without_baseline_is_the_raw_first_episode_return(seed):
     assert torch.equal(out.mask, torch.tensor(first))
     with pytest.raises(ValueError, match="baseline=False keeps the raw returns; it needs norm_by_std=False"):
         embodied_grpo(inputs, baseline=False)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_embodied_grpo_per_episode_weighs_every_episode_the_same(seed):
+    inputs = random_env_inputs(seed, envs=6)
+    out = embodied_grpo(inputs, norm_by_std=False, baseline=False, per_episode=True)
+    ends = (inputs.dones | inputs.truncations).tolist()
+    _, ret, first = ref_embodied_grpo(inputs.rewards.tolist(), ends, [n // 2 for n in range(6)], 1e-6, False)
+    lengths = [sum(first[s][n] for s in range(len(first))) for n in range(6)]
+    mean_length = sum(lengths) / 6
+    expected = [[ret[s][n] * mean_length / lengths[n] for n in range(6)] for s in range(len(ret))]
+    torch.testing.assert_close(out.advantages, torch.tensor(expected, dtype=torch.float64))
+    # each episode's advantages sum to its return times the mean length, whatever its own length
+    totals = out.advantages.sum(0)
+    returns = torch.tensor([ret[0][n] for n in range(6)], dtype=torch.float64)
+    torch.testing.assert_close(totals, returns * mean_length)
