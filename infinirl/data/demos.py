@@ -48,6 +48,7 @@ __all__ = [
     "demos_command",
     "metaworld_features",
     "record_episode",
+    "record_policy_episodes",
     "resolve_metaworld_tasks",
 ]
 
@@ -212,7 +213,7 @@ def record_episode(env: Any, expert: Any, seed: int, image_key: str) -> tuple[di
     episode ends: ``(frames, succeeded, env instruction)``."""
     obs = env.reset(seeds=[seed])
     instruction = obs["instruction"][0]
-    steps: dict[str, list] = {key: [] for key in ("state", "env_state", "rgb", "action", "reward", "success", "done")}
+    steps = _new_steps()
     while True:
         row = {key: value[0] for key, value in obs.items()}
         action = expert.act(row)
@@ -224,7 +225,13 @@ def record_episode(env: Any, expert: Any, seed: int, image_key: str) -> tuple[di
         obs = result.obs
         if success or done:
             break
-    frames = {
+    frames = _episode_frames(steps, image_key)
+    return frames, success, instruction
+
+
+def _episode_frames(steps: dict[str, list], image_key: str) -> dict[str, np.ndarray]:
+    """One recorded episode's per-step lists -> the dataset's columns (:func:`metaworld_features`)."""
+    return {
         "observation.state": np.stack(steps["state"]).astype(np.float32),
         "observation.environment_state": np.stack(steps["env_state"]).astype(np.float32),
         image_key: np.stack(steps["rgb"]),
@@ -234,7 +241,50 @@ def record_episode(env: Any, expert: Any, seed: int, image_key: str) -> tuple[di
         # The recording stops at the first success: the stored episode ends there either way.
         "next.done": np.asarray([*([False] * (len(steps["done"]) - 1)), True]),
     }
-    return frames, success, instruction
+
+
+def _new_steps() -> dict[str, list]:
+    return {key: [] for key in ("state", "env_state", "rgb", "action", "reward", "success", "done")}
+
+
+def record_policy_episodes(env: Any, policy: Any, seeds: list[int],
+                           image_key: str) -> list[tuple[dict[str, np.ndarray], bool]]:
+    """Run a chunked ``policy`` (acting deterministically: a flow policy's ODE sampler from a fresh
+    noise draw) in ``env``, a vector env stepping one action at a time, once from the layout of each
+    of ``seeds`` (rounds of ``env.num_envs``); every step is recorded as :func:`record_episode`
+    records it, until the first success or the episode's end. Per seed: ``(frames, succeeded)``.
+
+    The envs of a round start together, so they all plan (``policy.act``, ``policy.chunk`` actions
+    executed) at the same steps: one batched forward pass per chunk for the whole round."""
+    from infinirl.models.policies.base import prepare_obs
+
+    out: list[tuple[dict[str, np.ndarray], bool]] = []
+    num_envs, chunk = env.num_envs, int(policy.chunk)
+    for start in range(0, len(seeds), num_envs):
+        batch = [int(s) for s in seeds[start:start + num_envs]]
+        obs = env.reset(seeds=batch + [batch[-1]] * (num_envs - len(batch)))
+        active = np.arange(num_envs) < len(batch)
+        steps = [_new_steps() for _ in batch]
+        succeeded = np.zeros(len(batch), dtype=bool)
+        plan, t = None, 0
+        while active.any():
+            if t % chunk == 0:
+                plan = policy.act(prepare_obs(obs), deterministic=True).actions.detach().cpu().numpy()
+                plan = plan.reshape(num_envs, chunk, -1)
+            action = plan[:, t % chunk]
+            result = env.step(action, env_mask=active, autoreset=False)
+            for i in np.flatnonzero(active):
+                success, done = bool(result.info["success"][i]), bool(result.done[i])
+                for key, value in (("state", obs["proprio"][i]), ("env_state", obs["state"][i]),
+                                   ("rgb", obs["rgb"][i]), ("action", action[i]), ("reward", result.reward[i]),
+                                   ("success", success), ("done", done)):
+                    steps[i][key].append(value)
+                if success or done:
+                    succeeded[i] = success
+                    active[i] = False
+            obs, t = result.obs, t + 1
+        out += [(_episode_frames(s, image_key), bool(ok)) for s, ok in zip(steps, succeeded, strict=True)]
+    return out
 
 
 def _instruction(task: str, env_instruction: str, style: str) -> str:

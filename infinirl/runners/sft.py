@@ -168,6 +168,20 @@ class DemoFrames:
     def __len__(self) -> int:
         return len(self.action)
 
+    def extended(self, other: DemoFrames) -> DemoFrames:
+        """These frames followed by ``other``'s (its episodes and tasks joined to ours by their
+        wording); the normalisation statistics stay ours."""
+        if other.camera_key != self.camera_key or other.images.shape[1:] != self.images.shape[1:]:
+            raise ValueError(f"cannot join frames of {other.camera_key} {tuple(other.images.shape[1:])} to "
+                             f"{self.camera_key} {tuple(self.images.shape[1:])}")
+        tasks = self.tasks + [task for task in other.tasks if task not in self.tasks]
+        remap = torch.tensor([tasks.index(task) for task in other.tasks], dtype=torch.long)
+        return DemoFrames(camera_key=self.camera_key, images=torch.cat([self.images, other.images]),
+                          state=torch.cat([self.state, other.state]), action=torch.cat([self.action, other.action]),
+                          episode_end=torch.cat([self.episode_end, other.episode_end + len(self)]),
+                          task_index=torch.cat([self.task_index, remap[other.task_index]]), tasks=tasks,
+                          stats=self.stats)
+
     @property
     def image_size(self) -> int:
         return int(self.images.shape[1])
@@ -298,8 +312,11 @@ class SFTFlow:
 
     def __init__(self, cfg: SFTConfig, demos: DemoFrames, tasks: dict[str, tuple[str, str]]):
         from infinirl.models.policies.base import build_policy
+        from infinirl.runners.sft_rft import RejectionSampling
 
         self.cfg, self.demos, self.tasks = cfg, demos, tasks
+        self.base_demos = demos
+        self.rft = RejectionSampling(cfg, tasks, demos.camera_key, demos.image_size)
         self.device = compute_device(cfg.device)
         self.vla = build_model(cfg, demos, {env_text: wording for env_text, wording in tasks.values()})
         self.vla.to(self.device)  # before the optimizer exists: its state follows the parameters
@@ -322,12 +339,15 @@ class SFTFlow:
             panels=(Panel(title="flow-matching loss", y=("train/loss",), x="step", x_label="optimizer steps"),
                     Panel(title="held-out success rate", y=("eval/success_rate",), x="step",
                           x_label="optimizer steps"),
-                    Panel(title="learning rate", y=("train/lr",), x="step", x_label="optimizer steps")))
+                    Panel(title="learning rate", y=("train/lr",), x="step", x_label="optimizer steps"),
+                    *((Panel(title="success of the RFT rounds' episodes", y=("rft/success_rate",), x="step",
+                             x_label="optimizer steps"),) if self.rft.enabled else ())))
 
     def start(self, iteration: int) -> None:
         """Nothing to sync: the model lives in this process."""
 
     def step(self, iteration: int) -> dict:
+        rft_metrics = self._rft_round() if self.rft.due(iteration) else {}
         cfg, t0 = self.cfg, time.perf_counter()
         lr = learning_rate(iteration, cfg)
         for group in self.optimizer.param_groups:
@@ -343,8 +363,20 @@ class SFTFlow:
         seconds = time.perf_counter() - t0
         return {"train/loss": float(loss.detach()), "train/grad_norm": float(grad_norm), "train/lr": lr,
                 "train/peak_memory_bytes": peak_memory_bytes(self.device),
-                "train/samples": self.samples, "time/step_s": seconds,
-                "time/samples_per_s": len(indices) / max(seconds, 1e-9)}
+                "train/samples": self.samples, "train/frames": len(self.demos), "time/step_s": seconds,
+                "time/samples_per_s": len(indices) / max(seconds, 1e-9), **rft_metrics}
+
+    def _rft_round(self) -> dict:
+        """Collect a rejection-sampling round with the current weights; its successes join the data."""
+        path, metrics = self.rft.collect(self.policy, self.vla)
+        if path is not None:
+            self.demos = self.demos.extended(self._read_round(path))
+        return metrics
+
+    def _read_round(self, path: Path) -> DemoFrames:
+        from infinirl.data.lerobot_dataset import LeRobotDatasetReader
+
+        return DemoFrames.read(LeRobotDatasetReader(path), self.demos.camera_key)
 
     # ------------------------------------------------------------------ evaluation
     def _env(self, task: str):
@@ -387,7 +419,7 @@ class SFTFlow:
         policy.mkdir()
         write_vla_files(self.vla, policy)  # inside the checkpoint's temporary folder: renamed whole
         torch_save_atomic(self.optimizer.state_dict(), os.path.join(folder, OPTIMIZER_FILE))
-        return {"samples": self.samples}
+        return {"samples": self.samples, "rft_kept": list(self.rft.kept)}
 
     def load(self, folder: str, state: dict) -> None:
         from infinirl.models.vla.checkpoint import load_weights
@@ -395,6 +427,10 @@ class SFTFlow:
         load_weights(self.vla.model, Path(folder) / POLICY_DIR / "model.safetensors")
         self.optimizer.load_state_dict(torch.load(os.path.join(folder, OPTIMIZER_FILE), weights_only=True))
         self.samples = int(state["samples"])
+        self.rft.kept = [int(k) for k in state.get("rft_kept", [])]
+        self.demos = self.base_demos
+        for path in self.rft.saved_rounds():
+            self.demos = self.demos.extended(self._read_round(path))
 
     # ------------------------------------------------------------------ the end
     def finish(self, output_dir: str) -> dict:
@@ -407,3 +443,4 @@ class SFTFlow:
         for env in self.envs.values():
             env.close()
         self.envs = {}
+        self.rft.close()

@@ -14,7 +14,7 @@ from typing import ClassVar, Literal
 from infinirl.config import ConfigError, bounded
 from infinirl.runners.run_config import EvalSchedule, RunConfig
 
-__all__ = ["DataConfig", "DemoConfig", "ModelConfig", "OptimConfig", "SFTConfig", "SFTEvalConfig"]
+__all__ = ["DataConfig", "DemoConfig", "ModelConfig", "OptimConfig", "RFTConfig", "SFTConfig", "SFTEvalConfig"]
 
 
 @dataclass(kw_only=True)
@@ -95,6 +95,24 @@ class OptimConfig:
 
 
 @dataclass(kw_only=True)
+class RFTConfig:
+    """Rejection-sampling fine-tuning (expert iteration): every ``every`` optimizer steps the policy
+    being trained acts in each task's MetaWorld env on new training layouts, its successful episodes
+    are kept (written to ``<output_dir>/rft/round_<k>``, a LeRobotDataset) and join the data it
+    clones from. RL with success as the reward, through the behaviour-cloning loss."""
+
+    every: int = bounded(0, ge=0)
+    """Optimizer steps between collection rounds; 0: off. With ``model.init`` the first round runs
+    before the first step (the initial policy's successes); a new model's first round waits ``every``."""
+    episodes_per_task: int = bounded(40, ge=1)
+    """Episodes tried per task each round (the successful ones are kept)."""
+    num_envs: int = bounded(8, ge=1)
+    """Envs of a task acting together (one batched policy pass per action chunk)."""
+    seed: int = bounded(0, ge=0)
+    """Layouts and sampling noise of each round derive from it (never a held-out layout)."""
+
+
+@dataclass(kw_only=True)
 class SFTEvalConfig(EvalSchedule):
     every: int = bounded(100, ge=0)
     tasks: list[str] = field(default_factory=list)
@@ -130,6 +148,7 @@ class SFTConfig(RunConfig):
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     eval: SFTEvalConfig = field(default_factory=SFTEvalConfig)
+    rft: RFTConfig = field(default_factory=RFTConfig)
 
     def check(self) -> None:
         if self.auto_placement:

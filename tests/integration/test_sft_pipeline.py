@@ -82,3 +82,41 @@ def test_a_device_that_is_not_there_is_one_line_before_the_data_is_read(tmp_path
     with pytest.raises(ConfigError, match=rf"^device='{missing}': this machine has \d+ CUDA device"):
         run(make_cfg(tmp_path / "out", tmp_path / "data", device=missing))
     assert not (tmp_path / "data").exists() and not (tmp_path / "out").exists()
+
+
+def test_rejection_sampling_rounds_join_the_data_and_resume_exactly(tmp_path, monkeypatch):
+    """RFT rounds with MetaWorld's scripted expert acting in place of the tiny VLA (which solves
+    nothing in a few steps), so that every round keeps episodes: they are written as LeRobotDatasets,
+    join the cloned frames, and a run resumed between rounds reads them back bit for bit."""
+    from infinirl.data.lerobot_dataset import LeRobotDatasetReader
+    from infinirl.runners.sft_rft import RejectionSampling
+    from tests.unit.data.test_demos import ExpertChunkPolicy
+
+    collect = RejectionSampling.collect
+    monkeypatch.setattr(RejectionSampling, "collect",
+                        lambda self, policy, vla: collect(self, ExpertChunkPolicy("reach-v3", chunk=2), vla))
+    data = tmp_path / "demos"
+    rft = {"every": 1, "episodes_per_task": 2, "num_envs": 2}
+    straight = run(make_cfg(tmp_path / "straight", data, rft=rft))
+    rows = rows_of(tmp_path / "straight" / "metrics.jsonl")
+    assert [r.get("rft/round") for r in rows] == [None, 1, 2]  # a new model's first round waits `every` steps
+    assert [r.get("rft/kept_episodes") for r in rows[1:]] == [2, 2]
+    assert rows[1]["rft/success/reach-v3"] == 1.0 and rows[1]["rft/success_rate"] == 1.0
+    base = rows[0]["train/frames"]
+    assert rows[1]["train/frames"] == base + rows[1]["rft/kept_frames"]
+    assert rows[2]["train/frames"] == rows[1]["train/frames"] + rows[2]["rft/kept_frames"]
+    round_1 = LeRobotDatasetReader(tmp_path / "straight" / "rft" / "round_0001")
+    assert round_1.num_episodes == 2 and round_1.tasks == ["reach a goal position"]
+
+    killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", 2)
+    resumed = run(make_cfg(tmp_path / "resumed", data, rft=rft))
+    assert resumed["weights_sha256"] == straight["weights_sha256"]
+    assert rows_of(tmp_path / "resumed" / "metrics.jsonl")[-1]["train/frames"] == rows[-1]["train/frames"]
+
+    (tmp_path / "lost").mkdir()
+    killed_after_checkpoint(tmp_path / "straight", tmp_path / "lost" / "run", 2)
+    import shutil
+
+    shutil.rmtree(tmp_path / "lost" / "run" / "rft" / "round_0001")
+    with pytest.raises(FileNotFoundError, match="round_0001 is missing: the checkpoint counts its episodes"):
+        run(make_cfg(tmp_path / "lost" / "run", data, rft=rft))

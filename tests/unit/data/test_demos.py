@@ -14,11 +14,31 @@ from infinirl.data.demos import (  # noqa: E402
     METAWORLD_FPS,
     METAWORLD_INSTRUCTIONS,
     METAWORLD_STATE_NAMES,
+    record_episode,
+    record_policy_episodes,
     resolve_metaworld_tasks,
 )
 from infinirl.data.lerobot_dataset import LeRobotDatasetReader  # noqa: E402
 from infinirl.envs import make_env  # noqa: E402
 from infinirl.envs.experts import EXPERTS, make_expert, metaworld_expert_tasks  # noqa: E402
+from infinirl.models.policies.base import PolicyStep  # noqa: E402
+
+
+class ExpertChunkPolicy:
+    """MetaWorld's scripted expert behind the policy interface: a batch of observations in, a chunk
+    of ``chunk`` actions per env out (the expert's action for the observation, repeated)."""
+
+    def __init__(self, task: str, chunk: int = 1):
+        self.expert, self.chunk, self.calls = make_expert("metaworld", task), chunk, 0
+
+    def act(self, obs, deterministic=False):
+        import torch
+
+        self.calls += 1
+        rows = [{"state": np.asarray(state)} for state in obs["state"]]
+        actions = np.stack([self.expert.act(row) for row in rows])
+        return PolicyStep(actions=torch.as_tensor(np.repeat(actions[:, None], self.chunk, axis=1)),
+                          logprobs=torch.zeros(len(rows)))
 
 
 def test_metaworld_expert_succeeds_on_reach_from_our_state_observation():
@@ -110,3 +130,30 @@ def test_demos_command_refuses_bad_arguments_in_one_line(tmp_path, capsys):
     assert "already exists" in error("metaworld", "--tasks", "reach-v3", "--episodes-per-task", "1",
                                      "--out", str(tmp_path / "taken"))
     assert not (tmp_path / "x").exists()
+
+
+def test_batched_policy_recording_equals_one_env_recording():
+    seeds = [11, 12, 13]
+    key = "observation.images.corner"
+    kwargs = dict(num_workers=0, obs_mode="state+rgb", camera="corner", image_size=16, terminate_on_success=True)
+    with make_env("metaworld:reach-v3", 2, **kwargs) as env:
+        batched = record_policy_episodes(env, ExpertChunkPolicy("reach-v3"), seeds, key)
+    with make_env("metaworld:reach-v3", 1, **kwargs) as env:
+        single = [record_episode(env, make_expert("metaworld", "reach-v3"), seed, key) for seed in seeds]
+    assert [success for _, success in batched] == [success for _, success, _ in single] == [True] * 3
+    for (frames, _), (expected, _, _) in zip(batched, single, strict=True):
+        assert frames.keys() == expected.keys()
+        for name in frames:
+            np.testing.assert_array_equal(frames[name], expected[name], err_msg=name)
+        assert frames["next.done"][-1] and not frames["next.done"][:-1].any()
+
+
+def test_policy_recording_plans_once_per_chunk_for_the_whole_batch():
+    policy = ExpertChunkPolicy("reach-v3", chunk=4)
+    with make_env("metaworld:reach-v3", 3, num_workers=0, obs_mode="state+rgb", image_size=16,
+                  terminate_on_success=True, max_episode_steps=10) as env:
+        episodes = record_policy_episodes(env, policy, [1, 2, 3], "observation.images.corner")
+    assert policy.calls == 3  # 10 steps of every env, planned at steps 0, 4 and 8
+    for frames, success in episodes:
+        assert len(frames["action"]) == 10 and not success
+        np.testing.assert_array_equal(frames["action"][0], frames["action"][3])  # one chunk's actions

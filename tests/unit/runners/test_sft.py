@@ -111,3 +111,43 @@ def test_config_errors_name_the_key(raw, message):
     with pytest.raises(ConfigError) as error:
         to_dataclass(SFTConfig, raw)
     assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_extended_frames_join_episodes_and_tasks_by_wording(demos, tmp_path):
+    other = DemoFrames.read(synthetic_dataset(tmp_path / "other", episodes=(2, 4)))
+    other.tasks = ["open the top drawer", "wipe the table"]  # one shared task, one new, in another order
+    joined = demos.extended(other)
+    assert len(joined) == 14 and joined.tasks == ["pick up the cube", "open the top drawer", "wipe the table"]
+    assert joined.task_index[8:].tolist() == [1, 1, 2, 2, 2, 2]
+    assert joined.episode_end.tolist() == [5] * 5 + [8] * 3 + [10] * 2 + [14] * 4
+    _, actions, valid = joined.batch(torch.tensor([9]), chunk=3)
+    assert valid.tolist() == [[True, False, False]]  # the chunk stops at the joined episode's end
+    assert torch.equal(actions[0, 0], other.action[1])
+    assert joined.stats is demos.stats
+    other.camera_key = "observation.images.wrist"
+    with pytest.raises(ValueError, match="cannot join frames of observation.images.wrist"):
+        demos.extended(other)
+
+
+def test_rft_round_seeds_are_distinct_repeatable_and_never_held_out():
+    from infinirl.runners.sft_rft import round_seeds
+    from infinirl.runners.sim_config import eval_seeds
+
+    seeds = [round_seeds(0, r, t, 50) for r in (1, 2) for t in (0, 1)]
+    flat = [s for group in seeds for s in group]
+    assert len(set(flat)) == len(flat)
+    assert round_seeds(0, 2, 1, 50) == seeds[3] and round_seeds(1, 2, 1, 50) != seeds[3]
+    assert max(flat) < min(eval_seeds(0, 1))
+
+
+def test_rft_rounds_are_due_every_n_steps_and_first_with_an_initial_policy():
+    from infinirl.runners.sft_rft import RejectionSampling
+
+    def due(**model):
+        cfg = to_dataclass(SFTConfig, {"rft": {"every": 3}, "model": model})
+        return [i for i in range(10) if RejectionSampling(cfg, {}, CAMERA, 16).due(i)]
+
+    assert due() == [3, 6, 9]
+    assert due(init="runs/sft/policy") == [0, 3, 6, 9]
+    off = RejectionSampling(to_dataclass(SFTConfig, {}), {}, CAMERA, 16)
+    assert not off.enabled and not any(off.due(i) for i in range(10))
