@@ -255,7 +255,7 @@ def record_policy_episodes(env: Any, policy: Any, seeds: list[int],
     records it, until the first success or the episode's end. Per seed: ``(frames, succeeded)``.
 
     The envs of a round start together, so they all plan (``policy.act``, ``policy.chunk`` actions
-    executed) at the same steps: one batched forward pass per chunk for the whole round."""
+    executed) at the same steps: one batched forward pass per chunk for the episodes still running."""
     from infinirl.models.policies.base import prepare_obs
 
     out: list[tuple[dict[str, np.ndarray], bool]] = []
@@ -268,9 +268,12 @@ def record_policy_episodes(env: Any, policy: Any, seeds: list[int],
         succeeded = np.zeros(len(batch), dtype=bool)
         plan, t = None, 0
         while active.any():
-            if t % chunk == 0:
-                plan = policy.act(prepare_obs(obs), deterministic=True).actions.detach().cpu().numpy()
-                plan = plan.reshape(num_envs, chunk, -1)
+            if t % chunk == 0:  # only the episodes still running plan: a solved one costs nothing more
+                rows = np.flatnonzero(active)
+                running = {key: np.asarray(value)[rows] for key, value in obs.items()}
+                planned = policy.act(prepare_obs(running), deterministic=True).actions.detach().cpu().numpy()
+                plan = np.zeros((num_envs, chunk, planned.size // (len(rows) * chunk)), dtype=planned.dtype)
+                plan[rows] = planned.reshape(len(rows), chunk, -1)
             action = plan[:, t % chunk]
             result = env.step(action, env_mask=active, autoreset=False)
             for i in np.flatnonzero(active):

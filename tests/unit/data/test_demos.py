@@ -29,12 +29,13 @@ class ExpertChunkPolicy:
     of ``chunk`` actions per env out (the expert's action for the observation, repeated)."""
 
     def __init__(self, task: str, chunk: int = 1):
-        self.expert, self.chunk, self.calls = make_expert("metaworld", task), chunk, 0
+        self.expert, self.chunk, self.calls, self.batch_sizes = make_expert("metaworld", task), chunk, 0, []
 
     def act(self, obs, deterministic=False):
         import torch
 
         self.calls += 1
+        self.batch_sizes.append(len(obs["state"]))
         rows = [{"state": np.asarray(state)} for state in obs["state"]]
         actions = np.stack([self.expert.act(row) for row in rows])
         return PolicyStep(actions=torch.as_tensor(np.repeat(actions[:, None], self.chunk, axis=1)),
@@ -136,16 +137,21 @@ def test_batched_policy_recording_equals_one_env_recording():
     seeds = [11, 12, 13]
     key = "observation.images.corner"
     kwargs = dict(num_workers=0, obs_mode="state+rgb", camera="corner", image_size=16, terminate_on_success=True)
+    policy = ExpertChunkPolicy("reach-v3")
     with make_env("metaworld:reach-v3", 2, **kwargs) as env:
-        batched = record_policy_episodes(env, ExpertChunkPolicy("reach-v3"), seeds, key)
+        batched = record_policy_episodes(env, policy, seeds, key)
     with make_env("metaworld:reach-v3", 1, **kwargs) as env:
         single = [record_episode(env, make_expert("metaworld", "reach-v3"), seed, key) for seed in seeds]
     assert [success for _, success in batched] == [success for _, success, _ in single] == [True] * 3
+    lengths = [len(frames["action"]) for frames, _ in batched]
+    assert len(set(lengths[:2])) == 2, "the two envs of the first round end at different steps"
     for (frames, _), (expected, _, _) in zip(batched, single, strict=True):
         assert frames.keys() == expected.keys()
         for name in frames:
             np.testing.assert_array_equal(frames[name], expected[name], err_msg=name)
         assert frames["next.done"][-1] and not frames["next.done"][:-1].any()
+    first_round = max(lengths[:2])
+    assert policy.batch_sizes[:first_round] == [2] * min(lengths[:2]) + [1] * (first_round - min(lengths[:2]))
 
 
 def test_policy_recording_plans_once_per_chunk_for_the_whole_batch():
