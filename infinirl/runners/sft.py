@@ -54,6 +54,9 @@ def run(cfg: SFTConfig) -> dict:
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
     compute_device(cfg.device)  # a GPU that is not there fails here, before the dataset is read
+    if cfg.model.init and not Path(cfg.model.init).exists():  # before demonstrations are generated
+        raise ConfigError(f"model.init={cfg.model.init}: no such folder; `infinirl train sft_vla_metaworld` writes "
+                          "one to runs/sft_vla_metaworld/policy")
     with RunLoop(cfg, run_start_time()) as loop:
         reader = open_dataset(cfg)
         tasks = task_instructions(list(cfg.eval.tasks or cfg.data.generate.tasks), reader.tasks)

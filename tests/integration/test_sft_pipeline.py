@@ -71,6 +71,9 @@ def test_bad_data_and_tasks_fail_before_training(tmp_path):
         run(make_cfg(tmp_path / "out", tmp_path / "new", data={"path": str(tmp_path / "new"),
                                                                 "generate": {"tasks": ["nope-v3"]}}))
     assert not (tmp_path / "new").exists()
+    with pytest.raises(ConfigError, match=r"^model.init=.*nope: no such folder; `infinirl train sft_vla_metaworld`"):
+        run(make_cfg(tmp_path / "out", tmp_path / "new", model={"init": str(tmp_path / "nope")}))
+    assert not (tmp_path / "new").exists()  # refused before any demonstration is generated
 
 
 def test_a_device_that_is_not_there_is_one_line_before_the_data_is_read(tmp_path):
