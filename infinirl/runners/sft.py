@@ -9,7 +9,9 @@ episode's end are padding, left out of the loss), shifts the images a few pixels
 takes one AdamW step on the flow-matching loss (gradients clipped, cosine or constant learning
 rate after a linear warm-up). Every ``eval.every`` iterations the policy acts deterministically
 (π0's ODE sampler, ``n_action_steps`` actions of each chunk executed) in each evaluation task's
-MetaWorld env from the rendered camera, on held-out seeds, and its success rate is logged.
+MetaWorld env from the rendered camera, on held-out seeds, and its success rate is logged. With
+``rft.every`` the policy's own solved episodes on new layouts join the frames every so many steps
+(rejection-sampling fine-tuning: :mod:`infinirl.runners.sft_rft`).
 
 It runs in the driver process (one small model, no components to place), on ``device`` (the CPU,
 or a GPU). Checkpoints hold the
