@@ -22,11 +22,11 @@ import numpy as np
 import torch
 
 from infinirl.runners.sft_config import SFTConfig
+from infinirl.runners.sim_config import EVAL_SEED_BASE
 
 __all__ = ["RFT_DIR", "RejectionSampling", "round_dir", "round_seeds"]
 
 RFT_DIR = "rft"
-_SEED_LIMIT = 2**31  # held-out layouts are seeded from 2**31 up: training rounds stay below
 
 
 def round_dir(output_dir: str, round_index: int) -> Path:
@@ -36,7 +36,7 @@ def round_dir(output_dir: str, round_index: int) -> Path:
 def round_seeds(seed: int, round_index: int, task_position: int, count: int) -> list[int]:
     """The layouts of a round's episodes of one task: distinct per (seed, round, task), never held out."""
     state = np.random.SeedSequence([seed, round_index, task_position]).generate_state(count, dtype=np.uint64)
-    return [int(s % _SEED_LIMIT) for s in state]
+    return [int(s % EVAL_SEED_BASE) for s in state]  # held-out layouts start at EVAL_SEED_BASE
 
 
 def _noise_seed(seed: int, round_index: int) -> int:
@@ -49,6 +49,7 @@ class RejectionSampling:
     def __init__(self, cfg: SFTConfig, tasks: dict[str, tuple[str, str]], camera_key: str, image_size: int):
         self.cfg, self.tasks = cfg, tasks
         self.camera_key, self.image_size = camera_key, image_size
+        self.camera = camera_key.rsplit(".", 1)[-1]  # observation.images.<camera>: the env's camera name
         self.kept: list[int] = []
         """Successful episodes kept by each round so far (round k is ``kept[k - 1]``)."""
         self.envs: dict[str, object] = {}
@@ -69,7 +70,7 @@ class RejectionSampling:
         if task not in self.envs:
             rft = self.cfg.rft
             self.envs[task] = make_env(f"metaworld:{task}", min(rft.num_envs, rft.episodes_per_task), seed=rft.seed,
-                                       num_workers=0, obs_mode="state+rgb", camera=self.camera_key.split(".")[-1],
+                                       num_workers=0, obs_mode="state+rgb", camera=self.camera,
                                        image_size=self.image_size, terminate_on_success=True)
         return self.envs[task]
 
@@ -80,7 +81,7 @@ class RejectionSampling:
         from infinirl.data.lerobot_dataset import LeRobotDatasetWriter
 
         rft, round_index, t0 = self.cfg.rft, len(self.kept) + 1, time.perf_counter()
-        features = metaworld_features(self.camera_key.split(".")[-1], self.image_size)
+        features = metaworld_features(self.camera, self.image_size)
         writer = LeRobotDatasetWriter(round_dir(self.cfg.output_dir, round_index), fps=METAWORLD_FPS,
                                       features=features, robot_type="sawyer", overwrite=True)
         metrics: dict[str, float] = {}
