@@ -178,13 +178,15 @@ def build_root(config: dict) -> None:
     mount("tmpfs", root, "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0755")
     for path in SYSTEM_PATHS:
         add_system_path(root, path)
-    for path in config["read_only_paths"]:
-        if not os.path.exists(root + path):
-            bind_read_only(path, root + path)
     add_devices(root)
     os.makedirs(root + "/proc")
     mount("proc", root + "/proc", "proc", MS_NOSUID | MS_NODEV | MS_NOEXEC)
     add_work_dir(root, config)
+    # After /tmp exists: an interpreter installed under /tmp (a virtualenv made with mktemp) is then
+    # mounted inside the work tmpfs instead of claiming /tmp before it.
+    for path in config["read_only_paths"]:
+        if not os.path.exists(root + path):
+            bind_read_only(path, root + path)
     mount(None, root, None, MS_REMOUNT | MS_RDONLY | MS_NOSUID | MS_NODEV)
     pivot_into(root)
 

@@ -276,3 +276,16 @@ def test_code_cannot_undo_the_mounts(isolated):
             "print([libc.umount2(p, 2) for p in (b'/tmp', b'/', b'/usr')], os.path.exists('/home'))")
     result = isolated.run_sync(code)
     assert result.stdout == "[-1, -1, -1] False\n", result
+
+
+def test_an_interpreter_in_a_virtualenv_under_tmp_runs_code(isolated, tmp_path):
+    """A virtualenv made under /tmp (mktemp) is mounted inside the sandbox's own /tmp work dir."""
+    import subprocess
+    import sys
+
+    assert str(tmp_path).startswith("/tmp/")
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    sandbox = Sandbox(isolated.limits, python=str(venv / "bin" / "python"))
+    result = sandbox.run_sync("print(6 * 7)")
+    assert result.error is None and result.stdout.strip() == "42", result
