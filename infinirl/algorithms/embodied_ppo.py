@@ -97,7 +97,8 @@ WholeStepFactory = Callable[..., Any]
 
 def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank: int = 0, world_size: int = 1,
                all_reduce_grads: Callable[[], None] = _no_reduction, *, generator: torch.Generator,
-               whole_step: WholeStepFactory | None = None) -> dict:
+               whole_step: WholeStepFactory | None = None,
+               anchor: Callable[[int], tuple[torch.Tensor, dict]] | None = None) -> dict:
     """The PPO epochs of one iteration on ``model`` (a ``NormalizedPolicy``, possibly sharded).
 
     ``batch`` (tensors, flat over ``B = T * N`` decisions): ``obs`` dict, ``actions``
@@ -111,6 +112,9 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     order. ``all_reduce_grads()`` sums ``p.grad`` over ranks after each backward pass.
     ``whole_step`` (see :data:`WholeStepFactory`): with ``ppo.compile``, the factory of the compiled
     whole optimizer step; None where the model cannot be compiled whole (then only the loss is).
+    ``anchor(step)`` (optional; eager steps only): a further loss term and its metrics for optimizer
+    step ``step`` (0-based within the update), added to the PPO loss of that step once the policy
+    trains (PPO's behaviour-cloning anchor, :mod:`infinirl.components.demo_anchor`).
     """
     factor = max(0.0, 1.0 - iteration / max(1, ppo.total_iterations)) if ppo.anneal_lr else 1.0
     if ppo.anneal_lr or ppo.desired_kl is not None or ppo.warmup_steps:
@@ -149,7 +153,7 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
         row_keys += ("behaviour_logprobs",)
     if "extras" in batch:
         columns["extras"] = batch["extras"]
-    for _ in range(ppo.epochs):
+    for epoch in range(ppo.epochs):
         order = torch.randperm(size, generator=generator).to(device)  # drawn on CPU: same order on any device
         # One gather per epoch; each mini-batch is then a slice (a view), not a gather per tensor.
         shuffled = _rows(columns, order)
@@ -166,10 +170,12 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                 metrics["train/grad_norm"] = grad_norm.detach()
             else:
                 loss, metrics = minibatch_loss(model, ppo, rank, world_size, model_args, whole, rows)
-                if ppo.desired_kl is not None and not warmup:  # before the step, as rsl_rl does
-                    _adapt_rates(optimizer, ppo, factor, metrics["train/approx_kl"], world_size)
-                if ppo.warmup_steps and not warmup:
-                    _ramp_rates(optimizer, ppo, factor, parts.policy)
+                if not warmup:
+                    _policy_step_rates(optimizer, ppo, factor, metrics["train/approx_kl"], world_size, parts.policy)
+                if anchor is not None and not warmup:
+                    extra, extra_metrics = anchor(epoch * ppo.mini_batches + m)
+                    loss = loss + extra
+                    metrics.update(extra_metrics)
                 metrics.update(_eager_step(optimizer, loss, parts, all_reduce_grads))
             # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
             for key, value in metrics.items():
@@ -201,6 +207,16 @@ def _set_rates(optimizer, ppo: PPOSpec, factor: float) -> None:
     its warm-up ramp (``ramp``, :func:`_ramp_rates`)."""
     for group in optimizer.param_groups:
         group["lr"] = group.get("base_lr", ppo.lr) * factor * group.get("kl_scale", 1.0) * group.get("ramp", 1.0)
+
+
+def _policy_step_rates(optimizer, ppo: PPOSpec, factor: float, approx_kl: torch.Tensor, world_size: int,
+                       policy_params: list) -> None:
+    """The rates of a step that trains the policy, set before it: adapted to the mini-batch's KL
+    (``desired_kl``, before the step as rsl_rl does) and ramped (``warmup_steps``)."""
+    if ppo.desired_kl is not None:
+        _adapt_rates(optimizer, ppo, factor, approx_kl, world_size)
+    if ppo.warmup_steps:
+        _ramp_rates(optimizer, ppo, factor, policy_params)
 
 
 def _ramp_rates(optimizer, ppo: PPOSpec, factor: float, policy_params: list) -> None:

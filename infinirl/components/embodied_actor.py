@@ -27,6 +27,7 @@ import torch
 
 from infinirl.algorithms import embodied_ppo
 from infinirl.algorithms.embodied_ppo import PPOSpec, ppo_minibatch_loss, ppo_objective
+from infinirl.components.demo_anchor import DemoAnchor, DemoAnchorSpec
 from infinirl.components.embodied_policy import compute_device, critic_lr_of, module_device
 from infinirl.components.embodied_rollout import PolicySpec
 from infinirl.engines.parallel import DATA_PARALLEL
@@ -61,13 +62,14 @@ def minibatch_order_generator(seed: int, iteration: int) -> torch.Generator:
 
 
 def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank: int = 0, world_size: int = 1,
-               all_reduce_grads: Callable[[], None] = lambda: None) -> dict:
+               all_reduce_grads: Callable[[], None] = lambda: None, anchor: DemoAnchor | None = None) -> dict:
     """:func:`infinirl.algorithms.embodied_ppo.ppo_update` as the actor runs it: mini-batch orders
-    from :func:`minibatch_order_generator`, and the whole optimizer step compiled (``ppo.compile``)
-    where ``ppo.strategy`` allows it."""
+    from :func:`minibatch_order_generator`, the whole optimizer step compiled (``ppo.compile``)
+    where ``ppo.strategy`` allows it, and the behaviour-cloning ``anchor``'s loss in every step."""
+    extra = None if anchor is None else (lambda step: anchor.loss(model, iteration, step))
     return embodied_ppo.ppo_update(model, optimizer, batch, iteration, ppo, rank, world_size, all_reduce_grads,
                                    generator=minibatch_order_generator(ppo.seed, iteration),
-                                   whole_step=DATA_PARALLEL.get(ppo.strategy).whole_step)
+                                   whole_step=DATA_PARALLEL.get(ppo.strategy).whole_step, anchor=extra)
 
 
 def _to_tensor(value: Any, device: torch.device | str = "cpu") -> Any:
@@ -90,7 +92,8 @@ class EmbodiedActorWorker(Worker, WeightSource):
     GPU, with NCCL between ranks) or on the CPU (``device="cpu"``, gloo)."""
 
     def __init__(self, policy_spec: PolicySpec, observation_spec: dict, action_space, ppo: PPOSpec,
-                 num_threads: int = 1, device: str = "auto", lora: PolicyLoraSpec | None = None):
+                 num_threads: int = 1, device: str = "auto", lora: PolicyLoraSpec | None = None,
+                 anchor: DemoAnchorSpec | None = None):
         # 0: every core this process may run on (actor.num_threads): the on-policy update runs while
         # the envs and the rollout wait, so it may use the cores they leave idle.
         limit_threads(num_threads or len(os.sched_getaffinity(0)))
@@ -106,6 +109,8 @@ class EmbodiedActorWorker(Worker, WeightSource):
         self.model = self.parallel.wrap(policy.to(self.compute))
         lr_of = None if ppo.value_lr is None else critic_lr_of(policy, ppo.lr, ppo.value_lr)
         self.optimizer = self.parallel.build_optimizer(self.model, ppo.lr, ppo.adam_eps, lr_of)
+        self.anchor = (None if anchor is None else
+                       DemoAnchor(anchor, policy.policy.demo_chunk, self.rank, self.world_size))
 
     def compute_device(self) -> str:
         """Where this rank's policy is (``"cpu"``, ``"cuda:0"``), read off its parameters."""
@@ -120,7 +125,7 @@ class EmbodiedActorWorker(Worker, WeightSource):
         batch = _to_tensor(batch, self.compute)
         start = time.perf_counter()
         metrics = ppo_update(self.model, self.optimizer, batch, iteration, self.ppo, self.rank, self.world_size,
-                             self._reduce_gradients)
+                             self._reduce_gradients, self.anchor)
         metrics["time/actor_update_s"] = time.perf_counter() - start
         self.model.update_obs_stats({k: batch["obs"][k] for k in self.model.keys})
         metrics["train/num_threads"] = torch.get_num_threads()  # what actor.num_threads resolved to

@@ -133,10 +133,18 @@ class NormalizedPolicy(nn.Module):
     def value(self, obs) -> torch.Tensor:
         return self.policy.value(self.normalize(obs))
 
-    def forward(self, obs, actions, extras=None, with_entropy: bool = True, obs_normalized: bool = False):
+    def forward(self, obs, actions, extras=None, with_entropy: bool = True, obs_normalized: bool = False, *,
+                demo_mask: torch.Tensor | None = None):
         """``evaluate`` as a tuple ``(logprobs, entropy, values)``: the call FSDP2's hooks see.
         ``obs_normalized``: ``obs`` already went through :meth:`normalize` (the trainer normalises a
-        whole batch once, its statistics being fixed during an update)."""
+        whole batch once, its statistics being fixed during an update).
+
+        ``demo_mask`` given: ``obs`` / ``actions`` are dataset frames, ``demo_mask`` their validity
+        and ``extras`` their draws, and the result is the policy's
+        :meth:`~infinirl.models.policies.base.Policy.demo_loss` (through ``forward`` too, so a
+        sharded model gathers its weights for it as for the PPO loss)."""
+        if demo_mask is not None:
+            return self.policy.demo_loss(obs, actions, action_mask=demo_mask, draws=extras)
         if obs_normalized:
             out = self.policy.evaluate(obs, actions, extras=extras, with_entropy=with_entropy)
         else:

@@ -32,9 +32,11 @@ trajectories are collected while the actor trains (:mod:`infinirl.runners.async_
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import queue
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -42,6 +44,7 @@ import torch
 
 from infinirl.algorithms import EnvAdvantageInputs, compute_advantages
 from infinirl.algorithms.embodied_ppo import PPOSpec, critic_parameter_ids
+from infinirl.components.demo_anchor import DemoAnchor, DemoAnchorSpec
 from infinirl.components.embodied_actor import EmbodiedActorWorker, actor_process_env
 from infinirl.components.embodied_policy import ReturnNormalizer, critic_lr_of
 from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec, merge_task_success
@@ -91,7 +94,8 @@ def run(cfg: EmbodiedConfig) -> dict:
                                                     host_env, cfg.rollout.num_threads, cfg.rollout.compile,
                                                     cfg.rollout.device)),
                 "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo,
-                                                cfg.actor.num_threads, cfg.actor.device, cfg.actor.lora),
+                                                cfg.actor.num_threads, cfg.actor.device, cfg.actor.lora,
+                                                anchor_spec(cfg)),
                           actor_process_env(cfg.actor.num_threads)),
             }
             if not host_env:
@@ -133,7 +137,45 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
         _check_critic_warmup(cfg, policy)
     if ALGORITHMS[cfg.algorithm.name].grouped:
         _check_one_task_per_group(cfg)
+    if cfg.algorithm.bc.data is not None:
+        _check_bc_anchor(cfg, policy)
     return observation_spec, action_space, policy_spec
+
+
+def anchor_spec(cfg: EmbodiedConfig) -> DemoAnchorSpec | None:
+    """The actor's behaviour-cloning anchor (``algorithm.bc``), or None."""
+    bc = cfg.algorithm.bc
+    if bc.data is None:
+        return None
+    return DemoAnchorSpec(data=bc.data, coef=bc.coef, decay=bc.decay, batch_size=bc.batch_size,
+                          augment_shift=bc.augment_shift, camera_key=bc.camera_key, seed=cfg.seed)
+
+
+def _check_bc_anchor(cfg: EmbodiedConfig, policy) -> None:
+    """``algorithm.bc``: a policy that can clone, a dataset that exists, and its frames through the
+    policy's cloning loss once (cameras, state and action sizes), all before any worker starts."""
+    from infinirl.data.lerobot_dataset import LeRobotDatasetError
+
+    bc = cfg.algorithm.bc
+    if policy.policy.demo_refusal:
+        raise ConfigError(f"algorithm.bc: policy {cfg.policy.name}: {policy.policy.demo_refusal}; "
+                          "remove algorithm.bc.data")
+    if not Path(bc.data).is_dir():
+        raise ConfigError(f"algorithm.bc.data={bc.data}: no such folder; `infinirl train sft_vla_metaworld` "
+                          "generates the demonstrations it clones into its data.path")
+    spec = anchor_spec(cfg)
+    try:
+        anchor = DemoAnchor(dataclasses.replace(spec, batch_size=min(2, bc.batch_size)), policy.policy.demo_chunk)
+        with torch.no_grad():
+            anchor.loss(policy, 0, 0)
+    except LeRobotDatasetError as exc:
+        raise ConfigError(f"algorithm.bc.data: {exc}") from None
+    except ConfigError as exc:
+        message = str(exc).replace("data.camera_key", "algorithm.bc.camera_key")  # DemoFrames names SFT's keys
+        raise ConfigError(message.replace("data.path", "algorithm.bc.data")) from None
+    except (ValueError, KeyError, RuntimeError) as exc:
+        raise ConfigError(f"algorithm.bc.data={bc.data}: its frames do not fit policy {cfg.policy.name}: "
+                          f"{exc}") from None
 
 
 def _check_value_lr(cfg: EmbodiedConfig, policy) -> None:

@@ -55,6 +55,27 @@ class PolicyConfig:
 
 
 @dataclass(kw_only=True)
+class BCAnchorConfig:
+    """PPO's behaviour-cloning anchor (DAPG's cloning term; :mod:`infinirl.components.demo_anchor`):
+    every policy step of the update also minimises the policy's cloning loss on demonstrations."""
+
+    data: str | None = None
+    """A LeRobotDataset folder of demonstrations (e.g. the one `infinirl train sft_vla_metaworld`
+    generated and cloned the policy on); None: no anchor. The policy must have a ``demo_loss``
+    (the VLA families)."""
+    coef: float = bounded(1.0, gt=0)
+    """The cloning loss's weight beside the PPO loss, in iteration 0."""
+    decay: float = bounded(1.0, gt=0, le=1)
+    """The weight's factor per iteration (``coef * decay**iteration``; DAPG decays it, 1 keeps it)."""
+    batch_size: int = bounded(32, ge=1)
+    """Dataset frames per optimizer step (over all actor ranks)."""
+    augment_shift: int = bounded(0, ge=0)
+    """Shift the frames' images by up to this many pixels (the SFT runner's ``data.augment_shift``)."""
+    camera_key: str | None = None
+    """The dataset's camera (``observation.images.<name>``); None: its only one."""
+
+
+@dataclass(kw_only=True)
 class AlgorithmConfig:
     name: Literal["ppo", "grpo"] = "ppo"
     """ppo: GAE advantages on a learned critic (the policy's value head is trained).
@@ -113,6 +134,8 @@ class AlgorithmConfig:
     """ppo: the first `critic_warmup` iterations train the critic only; the policy's weights stay
     exactly as they are. A new value head on a pretrained policy predicts nothing yet: without the
     warm-up the first policy updates follow advantages of an unfitted critic."""
+    bc: BCAnchorConfig = field(default_factory=BCAnchorConfig)
+    """Clone demonstrations beside the policy gradient (off unless ``bc.data`` is set)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -276,6 +299,9 @@ class EmbodiedConfig(RunConfig):
                               "set actor.anneal_iterations >= iterations (0 = iterations)")
         per_step_rates = {"actor.desired_kl": self.actor.desired_kl is not None,
                           "actor.warmup_steps": bool(self.actor.warmup_steps)}
+        if self.algorithm.bc.data is not None and self.actor.compile:
+            raise ConfigError("algorithm.bc.data adds a cloning loss to each step, which actor.compile's fused step "
+                              "(the PPO loss alone) cannot; set actor.compile=false or remove algorithm.bc.data")
         for key in (key for key, used in per_step_rates.items() if used and self.actor.compile):
             raise ConfigError(f"{key} changes the learning rate at every step, which actor.compile's fused step "
                               f"(its rate fixed when compiled) cannot; set actor.compile=false or remove {key}")

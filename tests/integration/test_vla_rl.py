@@ -5,6 +5,7 @@ exactly. The checkpoint is a tiny random one of the family (what `infinirl train
 writes, at test size)."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -136,3 +137,56 @@ def test_the_shipped_steering_config_validates_and_refuses_lora(tmp_path, checkp
     with pytest.raises(ConfigError, match="^actor.lora: policy pi0_smollm2_steered: the VLA is frozen") as error:
         run(bad)
     assert "\n" not in str(error.value) and not (tmp_path / "bad").exists()
+
+
+@pytest.fixture(scope="module")
+def demonstrations(tmp_path_factory):
+    from tests.unit.runners.test_sft import synthetic_dataset
+
+    root = tmp_path_factory.mktemp("demos") / "ds"
+    synthetic_dataset(root)
+    return str(root)
+
+
+def anchored_cfg(output_dir, checkpoint, demonstrations, **bc):
+    return make_cfg(output_dir, checkpoint, actor={"anneal_lr": False, "lr": 1e-3, "lora": {"r": 2, "alpha": 4.0},
+                                                   "value_lr": 1e-2},
+                    algorithm={"epochs": 1, "mini_batches": 2, "critic_warmup": 1,
+                               "bc": {"data": demonstrations, "coef": 2.0, "decay": 0.5, "batch_size": 4, **bc}})
+
+
+@pytest.mark.slow  # two short runs with a VLA (pytest -m slow tests/integration)
+def test_the_bc_anchor_clones_the_demonstrations_beside_ppo_and_resumes_exactly(ray_cluster, tmp_path, checkpoint,
+                                                                               demonstrations):
+    """``algorithm.bc``: from the first policy iteration every step also lowers the VLA's
+    flow-matching loss on the dataset (weighted ``coef * decay**iteration``); a resumed run draws
+    the same frames and ends with the same weights."""
+    straight = run(anchored_cfg(tmp_path / "straight", checkpoint, demonstrations))
+    rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
+    first, second = (r for r in rows if "train/approx_kl" in r)
+    assert "train/bc_loss" not in first  # the critic's warm-up: the policy, and so the anchor, waits
+    assert second["train/bc_loss"] > 0 and second["train/bc_weight"] == 2.0 * 0.5
+    killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", 1)
+    resumed = run(anchored_cfg(tmp_path / "resumed", checkpoint, demonstrations))
+    assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
+
+
+def test_a_bc_anchor_that_cannot_work_is_one_line_before_any_worker_starts(tmp_path, checkpoint, demonstrations):
+    cases = [
+        (anchored_cfg(tmp_path / "a", checkpoint, str(tmp_path / "nope")),
+         r"^algorithm.bc.data=.*nope: no such folder; `infinirl train sft_vla_metaworld` generates"),
+        (anchored_cfg(tmp_path / "b", checkpoint, demonstrations, camera_key="observation.images.wrist"),
+         r"^algorithm.bc.camera_key='observation.images.wrist': the dataset at .* has cameras"),
+        (make_cfg(tmp_path / "c", checkpoint, policy=steered_policy(checkpoint), actor={"lr": 1e-3},
+                  algorithm={"epochs": 1, "mini_batches": 2, "bc": {"data": demonstrations}}),
+         r"^algorithm.bc: policy pi0_smollm2_steered: the VLA is frozen .*; remove algorithm.bc.data"),
+    ]
+    for cfg, message in cases:
+        with pytest.raises(ConfigError, match=message) as error:
+            run(cfg)
+        assert "\n" not in str(error.value) and not Path(cfg.output_dir).exists()
+    with pytest.raises(ConfigError, match=r"^algorithm.bc.data adds a cloning loss to each step, which "
+                                          r"actor.compile's fused step") as error:
+        make_cfg(tmp_path / "d", checkpoint, actor={"compile": True},
+                 algorithm={"epochs": 1, "mini_batches": 2, "bc": {"data": demonstrations}})
+    assert "\n" not in str(error.value)

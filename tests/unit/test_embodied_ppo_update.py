@@ -540,3 +540,37 @@ def test_decoupled_ppo_on_on_policy_data_is_plain_ppo():
                          dataclasses.replace(PPO, is_cap=2.0))
     torch.testing.assert_close(flat(decoupled), flat(plain), rtol=0, atol=1e-5)
     assert metrics["train/is_weight_mean"] == pytest.approx(1.0, abs=1e-5)
+
+
+def test_an_anchor_loss_joins_every_policy_step_and_none_of_the_critics_warmup():
+    """``anchor(step)`` is asked once per optimizer step, in order, from the first iteration the
+    policy trains; its loss is added to that step's PPO loss (an anchor of zero gradient leaves the
+    update bit for bit as without one; one with a gradient moves the weights elsewhere)."""
+    from infinirl.algorithms import embodied_ppo
+    from infinirl.components.embodied_actor import minibatch_order_generator
+    from infinirl.engines.parallel import DATA_PARALLEL
+
+    build, batch = policy_and_batch()
+    ppo = dataclasses.replace(PPO, critic_warmup=1, total_iterations=3)
+    steps = ppo.epochs * ppo.mini_batches
+
+    def train(anchor_of):
+        model = build()
+        optimizer = DATA_PARALLEL.get("ddp")(0, 1).build_optimizer(model, ppo.lr, ppo.adam_eps)
+        asked, metrics = [], []
+        for iteration in range(3):
+            def anchor(step, model=model, iteration=iteration):
+                asked.append((iteration, step))
+                return anchor_of(model), {"train/bc_loss": torch.tensor(float(step))}
+            metrics.append(embodied_ppo.ppo_update(model, optimizer, batch, iteration, ppo,
+                                                   generator=minibatch_order_generator(ppo.seed, iteration),
+                                                   anchor=None if anchor_of is None else anchor))
+        return model, asked, metrics
+
+    plain, _, _ = train(None)
+    zero, asked, metrics = train(lambda model: 0.0 * sum(p.sum() for p in model.parameters()))
+    assert asked == [(i, s) for i in (1, 2) for s in range(steps)]
+    assert "train/bc_loss" not in metrics[0] and metrics[1]["train/bc_loss"] == (steps - 1) / 2
+    assert torch.equal(flat(plain), flat(zero))
+    pulled, _, _ = train(lambda model: sum((p ** 2).sum() for p in model.parameters()))
+    assert not torch.allclose(flat(plain), flat(pulled))

@@ -61,6 +61,9 @@ class Policy(nn.Module):
     """Names of the submodules that form the critic (``actor.value_lr`` trains them at its rate)."""
     lora_refusal: str | None = None
     """Why ``actor.lora`` cannot apply to this policy (refused before any worker starts); None: it can."""
+    demo_refusal: str | None = "it has no loss on LeRobotDataset frames (demo_loss)"
+    """Why PPO's behaviour-cloning anchor (``algorithm.bc``) cannot train this policy on a dataset of
+    demonstrations (refused before any worker starts); None: :meth:`demo_loss` is implemented."""
 
     def act(self, obs: dict[str, torch.Tensor], deterministic: bool = False) -> PolicyStep:
         raise NotImplementedError
@@ -71,6 +74,25 @@ class Policy(nn.Module):
 
     def value(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         raise NotImplementedError(f"{type(self).__name__} has no value head")
+
+    @property
+    def demo_chunk(self) -> int:
+        """Actions per demonstration chunk :meth:`demo_loss` takes (a VLA's whole ``chunk_size``)."""
+        return self.chunk
+
+    def demo_draws(self, batch: int) -> dict[str, torch.Tensor]:
+        """The random draws :meth:`demo_loss` needs for ``batch`` frames (a flow-matching policy's
+        noise and times; row ``i`` is frame ``i``'s), from torch's global generator. Drawn for a
+        whole batch and sliced per rank, so data-parallel ranks clone as one would."""
+        return {}
+
+    def demo_loss(self, observation: dict[str, Any], actions: torch.Tensor, action_mask: torch.Tensor | None = None,
+                  draws: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+        """The cloning loss on dataset frames: ``observation`` in the dataset's LeRobot keys
+        (``observation.images.<camera>``, ``observation.state``, ``task``), ``actions``
+        ``[B, demo_chunk, A]`` in env units, ``action_mask`` ``[B, demo_chunk]`` the real rows,
+        ``draws`` these frames' rows of :meth:`demo_draws` (None: drawn here)."""
+        raise NotImplementedError(f"{type(self).__name__}: {self.demo_refusal}")
 
 
 def prepare_obs(obs: dict[str, Any], device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:

@@ -83,6 +83,7 @@ class PiZeroPolicy(Policy):
     """
 
     critic_modules = ("value_net",)
+    demo_refusal = None
 
     family: str | None = "pi0"
 
@@ -302,6 +303,23 @@ class PiZeroPolicy(Policy):
         logprobs = self._credited(gaussian_logprob(chain[rows, steps + 1], mean, std.log()))
         entropy = self._credited(gaussian_entropy(std.log())) if with_entropy else None
         return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._values(prefix))
+
+    @property
+    def demo_chunk(self) -> int:
+        return self.vla.config.chunk_size
+
+    def demo_draws(self, batch: int) -> dict[str, torch.Tensor]:
+        """Flow matching's noise (padded action dims) and times, as :meth:`~.model.PiZero.loss_elements` draws them."""
+        config = self.vla.config
+        return {"noise": torch.randn(batch, config.chunk_size, config.max_action_dim),
+                "time": self.vla.model.sample_time(batch)}
+
+    def demo_loss(self, observation, actions, action_mask=None, draws=None) -> torch.Tensor:
+        """The checkpoint's own flow-matching loss (:meth:`~infinirl.models.vla.VLA.loss`, the one SFT
+        minimises) on dataset frames: the VLA's processor reads the LeRobot keys directly."""
+        draws = draws or {}
+        return self.vla.loss(observation, actions, noise=draws.get("noise"), time=draws.get("time"),
+                             action_mask=action_mask)
 
     def value(self, obs) -> torch.Tensor:
         if self.value_net is None:

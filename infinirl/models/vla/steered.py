@@ -58,6 +58,7 @@ class NoiseSteering:
 
     critic_modules = ("value_net",)
     lora_refusal = "the VLA is frozen and the update never runs it, so adapters on it would not train"
+    demo_refusal = "the VLA is frozen and only the noise policy trains, which demonstrations do not label"
 
     def __init__(self, *args, noise_hidden: Sequence[int] = (256, 256), noise_std: float = 1.0,
                  noise_bound: float = 2.5, value_head: bool = True, **kwargs):

@@ -10,8 +10,9 @@ import torch
 pytest.importorskip("pyarrow")
 
 from infinirl.config import ConfigError, to_dataclass  # noqa: E402
+from infinirl.data.demo_frames import DemoFrames, random_shift  # noqa: E402
 from infinirl.data.lerobot_dataset import LeRobotDatasetReader, LeRobotDatasetWriter  # noqa: E402
-from infinirl.runners.sft import DemoFrames, learning_rate, random_shift, task_instructions  # noqa: E402
+from infinirl.runners.sft import learning_rate, task_instructions  # noqa: E402
 from infinirl.runners.sft_config import SFTConfig  # noqa: E402
 from tests.unit.models.test_vla_smollm2 import CAMERA, tiny_vla  # noqa: E402
 
