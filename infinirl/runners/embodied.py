@@ -147,7 +147,8 @@ def anchor_spec(cfg: EmbodiedConfig) -> DemoAnchorSpec | None:
     bc = cfg.algorithm.bc
     if bc.data is None:
         return None
-    return DemoAnchorSpec(data=bc.data, coef=bc.coef, decay=bc.decay, batch_size=bc.batch_size,
+    # resolved here: the actor's process may start in another working directory
+    return DemoAnchorSpec(data=str(Path(bc.data).resolve()), coef=bc.coef, decay=bc.decay, batch_size=bc.batch_size,
                           augment_shift=bc.augment_shift, camera_key=bc.camera_key, seed=cfg.seed)
 
 
