@@ -283,10 +283,9 @@ def _eager_step(optimizer, loss: torch.Tensor, parts: _GradParts, all_reduce_gra
 def critic_parameter_ids(model) -> set[int]:
     """``id`` of every parameter under the policy's ``critic_modules`` (``model`` may wrap the
     policy, as ``.policy`` or ``.module``; matched by name, as the critic's learning rate is)."""
-    inner = model
-    while not hasattr(inner, "critic_modules") and (hasattr(inner, "policy") or hasattr(inner, "module")):
-        inner = getattr(inner, "policy", None) or inner.module
-    modules = tuple(getattr(inner, "critic_modules", ()))
+    from infinirl.models.policies.base import inner_policy
+
+    modules = tuple(getattr(inner_policy(model), "critic_modules", ()))
     return {id(p) for name, p in model.named_parameters()
             if any(f".{module}." in f".{name}." for module in modules)}
 

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from infinirl.models.policies.base import inner_policy
+
 __all__ = ["DemoAnchor", "DemoAnchorSpec"]
 
 
@@ -82,15 +84,9 @@ class DemoAnchor:
         """``model``'s weighted cloning loss on this rank's frames of the step, and its metrics
         (the unweighted loss, the weight). ``model`` is the trainer's policy (a ``NormalizedPolicy``,
         possibly sharded): called through ``forward`` with ``demo_mask``."""
-        observation, actions, valid, draws = self.batch(iteration, step, unwrapped_policy(model))
+        observation, actions, valid, draws = self.batch(iteration, step, inner_policy(model))
         raw = model(observation, actions, draws, demo_mask=valid)
         weight = self.spec.weight(iteration)
         return weight * self.share * raw, {"train/bc_loss": raw.detach(),
                                             "train/bc_weight": torch.tensor(weight, dtype=torch.float64)}
 
-
-def unwrapped_policy(model):
-    """The :class:`~infinirl.models.policies.base.Policy` inside the trainer's wrappers."""
-    while not hasattr(model, "demo_draws"):
-        model = getattr(model, "module", None) or model.policy
-    return model
