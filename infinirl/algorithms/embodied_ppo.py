@@ -29,8 +29,8 @@ import torch
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
 
-__all__ = ["PPOSpec", "compiled_minibatch_loss", "critic_parameter_ids", "ppo_minibatch_loss", "ppo_objective",
-           "ppo_objective_of_outputs", "ppo_update"]
+__all__ = ["PPOSpec", "compiled_minibatch_loss", "critic_parameter_ids", "inner_policy", "ppo_minibatch_loss",
+           "ppo_objective", "ppo_objective_of_outputs", "ppo_update"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -280,11 +280,17 @@ def _eager_step(optimizer, loss: torch.Tensor, parts: _GradParts, all_reduce_gra
     return metrics
 
 
+def inner_policy(model):
+    """The :class:`Policy` inside a trainer's wrappers (``.policy`` of a ``NormalizedPolicy``,
+    ``.module`` of a data-parallel wrapper); ``model`` itself when it wraps none."""
+    while not hasattr(model, "critic_modules") and (hasattr(model, "policy") or hasattr(model, "module")):
+        model = getattr(model, "policy", None) or model.module
+    return model
+
+
 def critic_parameter_ids(model) -> set[int]:
     """``id`` of every parameter under the policy's ``critic_modules`` (``model`` may wrap the
     policy, as ``.policy`` or ``.module``; matched by name, as the critic's learning rate is)."""
-    from infinirl.models.policies.base import inner_policy
-
     modules = tuple(getattr(inner_policy(model), "critic_modules", ()))
     return {id(p) for name, p in model.named_parameters()
             if any(f".{module}." in f".{name}." for module in modules)}

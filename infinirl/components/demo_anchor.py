@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from infinirl.models.policies.base import inner_policy
+from infinirl.algorithms.embodied_ppo import inner_policy
 
 __all__ = ["DemoAnchor", "DemoAnchorSpec"]
 

@@ -95,14 +95,6 @@ class Policy(nn.Module):
         raise NotImplementedError(f"{type(self).__name__}: {self.demo_refusal}")
 
 
-def inner_policy(model):
-    """The :class:`Policy` inside a trainer's wrappers (``.policy`` of a ``NormalizedPolicy``,
-    ``.module`` of a data-parallel wrapper); ``model`` itself when it wraps none."""
-    while not hasattr(model, "critic_modules") and (hasattr(model, "policy") or hasattr(model, "module")):
-        model = getattr(model, "policy", None) or model.module
-    return model
-
-
 def prepare_obs(obs: dict[str, Any], device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
     """Env numpy observations -> tensors (text fields such as ``instruction`` are left as lists)."""
     out: dict[str, Any] = {}
