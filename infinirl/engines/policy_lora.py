@@ -1,9 +1,10 @@
 """LoRA on a robot policy (a VLA's backbone), for the embodied actor's PPO/GRPO updates.
 
 A VLA fine-tuned with RL keeps most of its weights: adapters on its linear layers train, so do the
-modules named in ``train_fully`` (the value head, new on top of a pretrained model), everything else
-is frozen. Adam then keeps state for the adapters only and the backward pass stops below the lowest
-trained layer, which is what makes RL on a large policy fit a small machine.
+modules named in ``train_fully`` (the value head, new on top of a pretrained model) and the
+policy's ``fresh_modules`` (other new heads); everything else is frozen. Adam then keeps state for
+the adapters only and the backward pass stops below the lowest trained layer, which is what makes
+RL on a large policy fit a small machine.
 
 The rollout holds a plain policy: :func:`merged_policy_weights` folds each adapter into its base
 weight (``W + scaling * B @ A``) under the plain module's names, so weight sync, digests and the
@@ -24,7 +25,7 @@ from torch import nn
 
 from infinirl.engines.lora import LoraMergePlan, lora_merge_plan, merged_full_weights
 
-__all__ = ["PolicyLoraSpec", "apply_policy_lora", "lora_targets", "merged_policy_weights"]
+__all__ = ["PolicyLoraSpec", "apply_policy_lora", "lora_targets", "merged_policy_weights", "trained_fully"]
 
 
 @dataclass(kw_only=True)
@@ -64,10 +65,18 @@ def _under(name: str, modules: Iterable[str]) -> bool:
     return any(f".{m}." in dotted for m in modules)
 
 
+def trained_fully(policy: nn.Module, spec: PolicyLoraSpec) -> list[str]:
+    """``spec.train_fully`` and the policy's ``fresh_modules`` (heads new on top of the pretrained
+    model; found on any module inside the trainer's wrappers)."""
+    fresh = {name for module in policy.modules() for name in getattr(module, "fresh_modules", ())}
+    return [*spec.train_fully, *sorted(fresh - set(spec.train_fully))]
+
+
 def lora_targets(policy: nn.Module, spec: PolicyLoraSpec) -> list[str]:
     """Full names of the linear layers ``spec`` adapts; ValueError naming the key when none match."""
+    full = trained_fully(policy, spec)
     linear = [name for name, module in policy.named_modules()
-              if isinstance(module, nn.Linear) and not _under(name, spec.train_fully)]
+              if isinstance(module, nn.Linear) and not _under(name, full)]
     if spec.target_modules == "all-linear":
         chosen = linear
     else:
@@ -92,8 +101,9 @@ def apply_policy_lora(policy: nn.Module, spec: PolicyLoraSpec) -> LoraMergePlan:
     config = LoraConfig(r=spec.r, lora_alpha=spec.alpha, lora_dropout=spec.dropout, target_modules=targets,
                         bias="none")
     inject_adapter_in_model(config, policy)
+    full = trained_fully(policy, spec)
     for name, parameter in policy.named_parameters():
-        parameter.requires_grad_(".lora_A." in name or ".lora_B." in name or _under(name, spec.train_fully))
+        parameter.requires_grad_(".lora_A." in name or ".lora_B." in name or _under(name, full))
     return lora_merge_plan(policy)
 
 

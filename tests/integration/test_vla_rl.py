@@ -74,13 +74,16 @@ def test_ppo_with_lora_on_the_vla_trains_the_adapters_and_resumes_exactly(ray_cl
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
 
 
-def test_flow_policy_optimization_trains_the_vla_and_resumes_exactly(ray_cluster, tmp_path, checkpoint):
+@pytest.mark.parametrize("likelihood", [{"likelihood": "fpo", "fpo_samples": 2}, {"likelihood": "flow_noise"}],
+                         ids=["fpo", "flow_noise"])
+def test_other_likelihoods_train_the_vla_and_resume_exactly(ray_cluster, tmp_path, checkpoint, likelihood):
     """``likelihood: fpo``: the rollout acts with the ODE sampler and records each chunk's
-    flow-matching draws; the adapted trainer scores them as the merged-weight rollout did, the
+    flow-matching draws; ``flow_noise``: the rollout samples with the learned std (a head LoRA
+    trains in full). The adapted trainer scores the chunks as the merged-weight rollout did, the
     policy moves, and a resumed run ends with the same weights."""
     def make(output_dir):
         cfg = make_cfg(output_dir, checkpoint)
-        cfg.policy.kwargs.update(likelihood="fpo", fpo_samples=2)
+        cfg.policy.kwargs.update(likelihood)
         return cfg
 
     straight = run(make(tmp_path / "straight"))

@@ -61,6 +61,10 @@ class Policy(nn.Module):
     """Names of the submodules that form the critic (``actor.value_lr`` trains them at its rate)."""
     lora_refusal: str | None = None
     """Why ``actor.lora`` cannot apply to this policy (refused before any worker starts); None: it can."""
+    fresh_modules: tuple[str, ...] = ()
+    """Submodules with no pretrained weights besides the value head (e.g. a learned exploration-noise
+    head): ``actor.lora`` trains them in full whatever ``train_fully`` names, as adapters on a
+    zero-initialised layer would be a low-rank copy of a layer that should learn freely."""
     demo_refusal: str | None = "it has no loss on LeRobotDataset frames (demo_loss)"
     """Why PPO's behaviour-cloning anchor (``algorithm.bc``) cannot train this policy on a dataset of
     demonstrations (refused before any worker starts); None: :meth:`demo_loss` is implemented."""

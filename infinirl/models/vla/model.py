@@ -156,8 +156,10 @@ class PiZero(nn.Module):
         return torch.cat(pieces, dim=1), starts, cond
 
     def velocity(self, prefix: PrefixCache, state: torch.Tensor | None, x_t: torch.Tensor,
-                 time: torch.Tensor) -> torch.Tensor:
-        """``v(x_t, t)`` ``[B, chunk, max_action_dim]`` (π0 convention) against a cached prefix."""
+                 time: torch.Tensor, return_hidden: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """``v(x_t, t)`` ``[B, chunk, max_action_dim]`` (π0 convention) against a cached prefix; with
+        ``return_hidden`` also the expert's output at the action tokens ``[B, chunk, width]`` (what
+        ``action_out_proj`` reads; a noise head reads it too)."""
         suffix, starts, cond = self.embed_suffix(state, x_t, time)
         batch, length = suffix.shape[:2]
         suffix_pad = torch.ones(batch, length, dtype=torch.bool, device=suffix.device)
@@ -166,7 +168,9 @@ class PiZero(nn.Module):
         positions = prefix.pad_mask.long().sum(-1, keepdim=True) + torch.cumsum(suffix_pad.long(), dim=1) - 1
         (out,), _ = mixture_forward([Stream(self.expert, suffix, cond)], attention_bias(mask, suffix.dtype),
                                     positions, self.rotary, past=prefix.kv)
-        return self.action_out_proj(out[:, -self.config.chunk_size:])
+        hidden = out[:, -self.config.chunk_size:]
+        velocity = self.action_out_proj(hidden)
+        return (velocity, hidden) if return_hidden else velocity
 
     # --- sampling and training ---------------------------------------------------------------
 

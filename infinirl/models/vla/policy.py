@@ -1,5 +1,6 @@
 """π0 / π0.5 as a :class:`~infinirl.models.policies.base.Policy`: flow-SDE log-probs for PPO/GRPO
-(or Flow Policy Optimization's flow-matching-loss scores, ``likelihood="fpo"``).
+(or pi_RL's Flow-Noise, ``likelihood="flow_noise"``, or Flow Policy Optimization's
+flow-matching-loss scores, ``likelihood="fpo"``).
 
 Registered names: ``pi0``, ``pi05`` and ``pi0_smollm2`` (:class:`PiZeroPolicy`; the checkpoint
 folder must be of that family). The denoising loop is the flow head's (:mod:`infinirl.models.policies.flow`): ``N``
@@ -7,6 +8,12 @@ steps ``tau_k = k / N`` from ``x_0 ~ N(0, I)``, each a Gaussian transition from
 :func:`~infinirl.models.policies.flow.flow_sde_transition` (marginal-preserving flow SDE,
 Flow-GRPO's ``sigma_k``), with π0's network as the velocity: π0 time ``t = 1 - tau`` and velocity
 ``v = -v_pi0``. Deterministic acting is π0's own Euler sampler, step for step.
+
+Flow-Noise (pi_RL's second variant, ReinFlow's noise) keeps each step's mean at the Euler step and
+learns its std: a linear ``std_net`` on the action expert's output at the action tokens (what
+``action_out_proj`` reads), squashed into ``[min_std, max_std]`` per element and starting at the
+middle of that range (zero weights). It trains with the policy (``fresh_modules``: under LoRA it
+trains in full), its entropy is learnable, and deployment (deterministic acting) is the ODE.
 
 The chain lives in the model's space (normalised, padded ``[chunk_size, max_action_dim]``); the
 env receives the first ``chunk`` rows and ``action_dim`` dims, unnormalised. Log-probs sum the
@@ -44,7 +51,7 @@ if TYPE_CHECKING:
 __all__ = ["PiZeroFivePolicy", "PiZeroPolicy", "PiZeroSmolLM2Policy"]
 
 SDE_STEPS = ("all", "one")
-LIKELIHOODS = ("flow_sde", "fpo")
+LIKELIHOODS = ("flow_sde", "flow_noise", "fpo")
 FPO_KEYS = ("fpo_action", "fpo_noise", "fpo_time")
 
 
@@ -76,10 +83,12 @@ class PiZeroPolicy(Policy):
             value loss trains the value head only and the VLM's weights move for the policy alone
             (RLinf's ``detach_critic_input`` for π0).
         likelihood: ``"flow_sde"`` (explore with noise along the denoising path, whose Gaussian
-            log-probs PPO ratios use) or ``"fpo"`` (Flow Policy Optimization: act with the
-            policy's own ODE sampler, so the policy trained is the one evaluated, and score an
-            action chunk by minus its flow-matching loss at ``fpo_samples`` recorded (time, noise)
-            draws; PPO's ratio ``exp(L_old - L_new)`` then needs no density).
+            log-probs PPO ratios use), ``"flow_noise"`` (the same path with Euler means and
+            learned stds) or ``"fpo"`` (Flow Policy Optimization: act with the policy's own ODE
+            sampler, so the policy trained is the one evaluated, and score an action chunk by minus
+            its flow-matching loss at ``fpo_samples`` recorded (time, noise) draws; PPO's ratio
+            ``exp(L_old - L_new)`` then needs no density).
+        min_std / max_std: the range of ``flow_noise``'s learned std (model space: normalised actions).
     """
 
     critic_modules = ("value_net",)
@@ -92,7 +101,8 @@ class PiZeroPolicy(Policy):
                  state_key: str = "state", instruction_key: str = "instruction", num_steps: int | None = None,
                  noise_level: float = 0.5, sde_steps: str = "all", value_head: bool = True, value_hidden: int = 256,
                  dtype: str = "float32", instruction: str | None = None, detach_critic: bool = False,
-                 likelihood: str = "flow_sde", fpo_samples: int = 8):
+                 likelihood: str = "flow_sde", fpo_samples: int = 8, min_std: float = 0.08,
+                 max_std: float = 0.16):
         # Imported here, not at the top: the policy registry imports this module in every process
         # that builds any policy, and transformers' model classes take seconds to import.
         from infinirl.models.vla.vla import VLA, load_vla
@@ -106,6 +116,8 @@ class PiZeroPolicy(Policy):
             raise ValueError(f"fpo_samples must be at least 1, got {fpo_samples}")
         if noise_level <= 0:
             raise ValueError("flow_sde needs noise_level > 0 (its log-probs are Gaussian densities)")
+        if likelihood == "flow_noise" and not 0 < min_std < max_std:
+            raise ValueError(f"flow_noise needs 0 < min_std < max_std, got min_std={min_std}, max_std={max_std}")
         if isinstance(checkpoint, VLA):
             if checkpoint.config.family != self.family:
                 raise ValueError(f"the VLA given is a '{checkpoint.config.family}' model, not '{self.family}'")
@@ -132,6 +144,13 @@ class PiZeroPolicy(Policy):
         width = config.architecture.vlm.width
         self.value_net = (nn.Sequential(nn.Linear(width, value_hidden), nn.SiLU(), nn.Linear(value_hidden, 1))
                           if value_head else None)
+        self.min_std, self.max_std = float(min_std), float(max_std)
+        self.std_net = None
+        if likelihood == "flow_noise":
+            self.std_net = nn.Linear(config.architecture.expert.width, config.max_action_dim)
+            nn.init.zeros_(self.std_net.weight)
+            nn.init.zeros_(self.std_net.bias)
+            self.fresh_modules = ("std_net",)
 
     # --- observations ------------------------------------------------------------------------
 
@@ -176,9 +195,18 @@ class PiZeroPolicy(Policy):
                 return values
         tau, dtau = timesteps[k], timesteps[k + 1] - timesteps[k]
         time = torch.ones(x.shape[0], device=x.device) - tau
+        if self.std_net is not None:
+            v_pi0, hidden = self.vla.model.velocity(prefix, state, x, time, return_hidden=True)
+            ode = x - v_pi0.float() * per_row(dtau)
+            return ode, self.learned_std(hidden), ode
         v = -self.vla.model.velocity(prefix, state, x, time).float()
         mean, std = flow_sde_transition(x, v, per_row(tau), per_row(dtau), per_row(sigmas[k]))
         return mean, std.expand_as(mean), x + v * per_row(dtau)
+
+    def learned_std(self, hidden: torch.Tensor) -> torch.Tensor:
+        """Flow-Noise's std ``[B, chunk_size, max_action_dim]`` from the expert's action-token outputs."""
+        squashed = torch.sigmoid(self.std_net(hidden.float()))
+        return self.min_std + (self.max_std - self.min_std) * squashed
 
     def _credited(self, values: torch.Tensor) -> torch.Tensor:
         """``[B, chunk_size, max_action_dim]`` -> the executed coordinates summed over dims ``[B, chunk]``."""

@@ -22,6 +22,20 @@ def plain_policy(checkpoint):
                         state_key="proprio", value_hidden=8)
 
 
+def test_a_fresh_noise_head_trains_in_full_not_through_adapters(checkpoint):
+    """Flow-Noise's std head is new (zero weights): adapters on it would be a rank-r copy of a
+    layer that should learn freely, so LoRA trains it in full though ``train_fully`` omits it."""
+    torch.manual_seed(0)
+    policy = build_policy("pi0_smollm2", checkpoint=checkpoint, action_dim=4, chunk=2, cameras={"rgb": CAMERA},
+                          state_key="proprio", value_hidden=8, likelihood="flow_noise")
+    spec = PolicyLoraSpec(r=2, alpha=4.0)
+    assert not any("std_net" in t for t in lora_targets(policy, spec))
+    apply_policy_lora(policy, spec)
+    trainable = {n for n, p in policy.named_parameters() if p.requires_grad}
+    assert {"std_net.weight", "std_net.bias", "value_net.0.weight"} <= trainable
+    assert not any(n.startswith("std_net.") and ".lora_" in n for n, _ in policy.named_parameters())
+
+
 def logprobs_of(policy, step):
     return policy.evaluate(env_obs(), step.actions, step.extras).logprobs
 

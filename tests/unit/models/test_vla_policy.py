@@ -201,3 +201,76 @@ def test_fpo_needs_its_draws_and_a_known_likelihood():
         pi.evaluate(obs, torch.zeros(2, 2, 3), {"chain": torch.zeros(2, 3)})
     with pytest.raises(ValueError, match="likelihood must be one of"):
         policy("pi0", likelihood="elbo")
+
+
+def reference_flow_noise_logprob(pi, obs, chain, mask):
+    """Float64 loop: each step's Gaussian written out with the Euler step as its mean and the noise
+    head's squashed output as its std, summed over the executed rows/dims and the stochastic steps."""
+    inputs = pi.inputs(obs)
+    prefix = pi.vla.model.encode_prefix(inputs.images, inputs.image_masks, inputs.tokens, inputs.token_mask)
+    steps = pi.num_steps
+    weight, bias = pi.std_net.weight.double(), pi.std_net.bias.double()
+    total = torch.zeros(chain.shape[0], pi.chunk, dtype=torch.float64)
+    for k in range(steps):
+        x = chain[:, k].double()
+        t = torch.full((x.shape[0],), 1.0 - k / steps)
+        v_pi0, hidden = pi.vla.model.velocity(prefix, inputs.state, x.float(), t, return_hidden=True)
+        mean = x - v_pi0.double() / steps
+        std = pi.min_std + (pi.max_std - pi.min_std) / (1 + torch.exp(-(hidden.double() @ weight.T + bias)))
+        logp = torch.distributions.Normal(mean, std).log_prob(chain[:, k + 1].double())
+        total += logp[:, :pi.chunk, :pi.action_dim].sum(-1) * mask[:, k, None]
+    return total
+
+
+def flow_noise_policy(family, **kwargs):
+    torch.manual_seed(6)
+    pi = policy(family, likelihood="flow_noise", min_std=0.05, max_std=0.3, **kwargs)
+    with torch.no_grad():  # a trained head: stds that vary by element, not the initial middle
+        pi.std_net.weight.normal_(0.0, 0.5)
+        pi.std_net.bias.normal_(0.0, 0.5)
+    return pi
+
+
+def test_flow_noise_logprobs_match_evaluate_and_a_float64_loop(case):
+    family, _ = case
+    pi = flow_noise_policy(family)
+    obs = env_obs(family)
+    torch.manual_seed(7)
+    step = pi.act(obs)
+    evaluated = pi.evaluate(obs, step.actions, step.extras)
+    torch.testing.assert_close(evaluated.logprobs, step.logprobs, atol=1e-4, rtol=1e-5)
+    with torch.no_grad():
+        expected = reference_flow_noise_logprob(pi, obs, step.extras["chain"], step.extras["sde_mask"])
+    torch.testing.assert_close(evaluated.logprobs.double(), expected, atol=1e-3, rtol=1e-5)
+    # the learned std is trained by the log-probs (and the entropy), with the expert below it
+    pi.zero_grad()
+    (evaluated.logprobs.sum() + evaluated.entropy.sum()).backward()
+    assert pi.std_net.weight.grad.abs().sum() > 0
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in pi.vla.model.expert.parameters())
+    # one stochastic step a row: the one-pass evaluation gives the same densities
+    mask = torch.nn.functional.one_hot(torch.tensor([1, pi.num_steps - 1]), pi.num_steps).bool()
+    chain = pi.denoise(pi.inputs(obs), torch.randn_like(step.extras["chain"][:, 0]), mask=mask)[0]
+    fast = pi.evaluate(obs, step.actions, {"chain": chain, "sde_mask": mask})
+    with torch.no_grad():
+        torch.testing.assert_close(fast.logprobs.double(), reference_flow_noise_logprob(pi, obs, chain, mask),
+                                   atol=1e-3, rtol=1e-5)
+
+
+def test_flow_noise_acts_deterministically_with_the_ode_and_starts_mid_range():
+    obs = env_obs("pi0")
+    noise_policy = policy("pi0", likelihood="flow_noise", min_std=0.05, max_std=0.3)
+    plain = policy("pi0")
+    plain.load_state_dict(noise_policy.state_dict(), strict=False)
+    inputs = noise_policy.inputs(obs)
+    noise = torch.randn(2, 4, 8)
+    ode_chain = noise_policy.denoise(inputs, noise, deterministic=True)[0]
+    torch.testing.assert_close(ode_chain, plain.denoise(plain.inputs(obs), noise, deterministic=True)[0])
+    prefix = noise_policy._prefix(inputs)
+    _, std, _ = noise_policy.transition(prefix, inputs.state, noise, 0)
+    torch.testing.assert_close(std, torch.full_like(std, 0.175))
+    assert noise_policy.fresh_modules == ("std_net",) and plain.std_net is None
+
+
+def test_flow_noise_std_range_is_checked():
+    with pytest.raises(ValueError, match="flow_noise needs 0 < min_std < max_std, got min_std=0.2, max_std=0.1"):
+        policy("pi0", likelihood="flow_noise", min_std=0.2, max_std=0.1)
