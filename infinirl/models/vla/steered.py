@@ -32,21 +32,13 @@ from torch import nn
 from infinirl.models.policies.base import POLICIES, PolicyEval, PolicyStep
 from infinirl.models.policies.heads import gaussian_entropy
 from infinirl.models.policies.mlp import gaussian_logprob
-from infinirl.models.vla.policy import PiZeroFivePolicy, PiZeroPolicy, PiZeroSmolLM2Policy, pooled_prefix
+from infinirl.models.vla.frozen import FrozenVLA, mlp
+from infinirl.models.vla.policy import PiZeroFivePolicy, PiZeroPolicy, PiZeroSmolLM2Policy
 
 __all__ = ["NoiseSteering", "PiZeroFiveSteeredPolicy", "PiZeroSmolLM2SteeredPolicy", "PiZeroSteeredPolicy"]
 
 
-def _mlp(width: int, hidden: Sequence[int], out: int) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for size in hidden:
-        layers += [nn.Linear(width, size), nn.SiLU()]
-        width = size
-    layers.append(nn.Linear(width, out))
-    return nn.Sequential(*layers)
-
-
-class NoiseSteering:
+class NoiseSteering(FrozenVLA):
     """Turns a :class:`~infinirl.models.vla.policy.PiZeroPolicy` subclass into its steered form.
 
     Args (besides the VLA policy's; its flow-SDE options do not apply):
@@ -56,8 +48,6 @@ class NoiseSteering:
             standard normal's bulk, so the mean stays within a few standard deviations of it.
     """
 
-    critic_modules = ("value_net",)
-    lora_refusal = "the VLA is frozen and the update never runs it, so adapters on it would not train"
     demo_refusal = "the VLA is frozen and only the noise policy trains, which demonstrations do not label"
 
     def __init__(self, *args, noise_hidden: Sequence[int] = (256, 256), noise_std: float = 1.0,
@@ -65,32 +55,17 @@ class NoiseSteering:
         if noise_std <= 0 or noise_bound <= 0:
             raise ValueError(f"noise_std and noise_bound must be > 0, got {noise_std} and {noise_bound}")
         super().__init__(*args, value_head=False, **kwargs)
-        self.vla.requires_grad_(False)
+        features = self._freeze()
         config = self.vla.config
         self.noise_shape = (config.chunk_size, config.max_action_dim)
         size = math.prod(self.noise_shape)
-        features = config.architecture.vlm.width + config.max_state_dim
-        self.noise_net = _mlp(features, noise_hidden, size)
-        nn.init.zeros_(self.noise_net[-1].weight)
-        nn.init.zeros_(self.noise_net[-1].bias)
+        self.noise_net = mlp(features, noise_hidden, size, zero_last=True)
         self.noise_log_std = nn.Parameter(torch.full((size,), math.log(noise_std)))
         self.noise_bound = float(noise_bound)
         self.has_value_head = value_head
-        self.value_net = _mlp(features, noise_hidden, 1) if value_head else None
+        self.value_net = mlp(features, noise_hidden, 1) if value_head else None
 
-    # --- features and the noise distribution --------------------------------------------------
-
-    @torch.no_grad()
-    def features(self, obs) -> tuple[torch.Tensor, object, object]:
-        """``[B, width + max_state_dim]``: the mean prefix hidden state and the normalised state
-        (zeros where the family tokenises its state); also the inputs and the prefix."""
-        x = self.inputs(obs)
-        prefix = self._prefix(x)
-        pooled = pooled_prefix(prefix.hidden, prefix.pad_mask)
-        width = self.vla.config.max_state_dim
-        state = (x.state.float().reshape(len(pooled), -1)[:, :width] if x.state is not None
-                 else torch.zeros(len(pooled), width, device=pooled.device))
-        return torch.cat([pooled, state], dim=-1), x, prefix
+    # --- the noise distribution --------------------------------------------------
 
     def noise_distribution(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``mu`` ``[B, chunk_size * max_action_dim]`` and ``log sigma`` (broadcast to it)."""
@@ -102,18 +77,6 @@ class NoiseSteering:
         out = torch.zeros(values.shape[0], self.chunk, dtype=values.dtype, device=values.device)
         out[:, 0] = values
         return out
-
-    def _critic(self, features: torch.Tensor) -> torch.Tensor | None:
-        return None if self.value_net is None else self.value_net(features).squeeze(-1)
-
-    @torch.no_grad()
-    def decode(self, x, prefix, noise: torch.Tensor) -> torch.Tensor:
-        """The VLA's deterministic sampler from ``noise`` ``[B, chunk_size, max_action_dim]``: the
-        env's action chunk ``[B, chunk, action_dim]``."""
-        current = noise.float()
-        for k in range(self.num_steps):
-            _, _, current = self.transition(prefix, x.state, current, k)
-        return self.vla.processor.actions_out(current)[:, :self.chunk, :self.action_dim]
 
     # --- the Policy interface ----------------------------------------------------------------
 

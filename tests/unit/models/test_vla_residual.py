@@ -1,0 +1,120 @@
+"""The residual VLA (``pi0_smollm2_residual``, :mod:`infinirl.models.vla.residual`): RL adds a small
+Gaussian policy's chunk to the frozen VLA's noise-free chunk. At the start its noise-free action is
+the VLA's from noise 0; its log-probs are the residual's Gaussian density per action (float64
+reference), recomputed by the trainer from the batch alone; only the two small networks train; PPO
+moves its noise-free action toward a rewarded one outside what the VLA produces."""
+
+import pytest
+import torch
+
+from infinirl.algorithms.embodied_ppo import PPOSpec, ppo_update
+from infinirl.components.embodied_policy import NormalizedPolicy
+from infinirl.models.policies.base import build_policy
+from infinirl.models.vla import save_vla
+from tests.unit.models.test_vla_smollm2 import CAMERA, tiny_vla
+
+BATCH = 32
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    torch.manual_seed(0)
+    return str(save_vla(tiny_vla(), tmp_path_factory.mktemp("vla") / "policy"))
+
+
+def policy(checkpoint, name="pi0_smollm2_residual", **options):
+    torch.manual_seed(0)
+    return build_policy(name, checkpoint=checkpoint, action_dim=4, chunk=2, cameras={"rgb": CAMERA},
+                        state_key="proprio", instruction="reach", **options)
+
+
+def observations(batch=BATCH, seed=1):
+    generator = torch.Generator().manual_seed(seed)
+    return {"rgb": torch.randint(0, 256, (batch, 16, 16, 3), dtype=torch.uint8, generator=generator),
+            "proprio": torch.randn(batch, 4, generator=generator)}
+
+
+def test_at_the_start_its_noise_free_action_is_the_vlas_from_noise_zero(checkpoint, monkeypatch):
+    residual, plain = policy(checkpoint, residual_std=0.3), policy(checkpoint, name="pi0_smollm2")
+    obs = observations()
+    noise_free = residual.act(obs, deterministic=True)
+    with monkeypatch.context() as patch:
+        patch.setattr(torch, "randn", lambda *shape, device=None, **kwargs: torch.zeros(*shape, device=device))
+        reference = plain.act(obs, deterministic=True)
+    torch.testing.assert_close(noise_free.actions, reference.actions, rtol=0, atol=1e-6)
+    assert torch.equal(noise_free.extras["residual"], torch.zeros_like(noise_free.extras["residual"]))
+    torch.manual_seed(3)
+    sampled = residual.act(obs)
+    torch.testing.assert_close(sampled.actions - noise_free.actions, sampled.extras["residual"], rtol=0, atol=1e-6)
+    assert 0.25 < float(sampled.extras["residual"].std()) < 0.35
+
+
+def test_logprobs_are_the_residuals_density_and_the_trainer_recomputes_them_from_the_batch(checkpoint, monkeypatch):
+    residual = policy(checkpoint)
+    with torch.no_grad():
+        residual.residual_net[-1].bias.normal_(0.0, 0.5)  # a mean away from 0
+        residual.residual_log_std.normal_(-1.5, 0.2)
+    step = residual.act(observations())
+    assert step.logprobs.shape == (BATCH, 2) and step.actions.shape == (BATCH, 2, 4)
+    taken, inputs = step.extras["residual"].double(), step.extras["features"].double()
+    raw = residual.residual_net.double()(inputs).reshape(BATCH, 2, 4)
+    mean = residual.residual_bound * torch.tanh(raw / residual.residual_bound)
+    std = residual.residual_log_std.double().exp()
+    normal = torch.distributions.Normal(mean, std)
+    torch.testing.assert_close(step.logprobs.double(), normal.log_prob(taken).sum(-1), rtol=1e-5, atol=1e-4)
+    residual.float()
+
+    def no_vla(*args, **kwargs):
+        raise AssertionError("evaluate ran the VLA")
+
+    monkeypatch.setattr(residual.vla.model, "encode_prefix", no_vla)
+    evaluated = residual.evaluate({}, step.actions, step.extras)
+    torch.testing.assert_close(evaluated.logprobs, step.logprobs, rtol=0, atol=1e-5)
+    torch.testing.assert_close(evaluated.entropy.double(), normal.entropy().sum(-1), rtol=1e-5, atol=1e-4)
+    torch.testing.assert_close(evaluated.values, step.values, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match=r"needs extras\['residual'\]"):
+        residual.evaluate({}, step.actions, {"features": step.extras["features"]})
+
+
+def test_only_the_residual_policy_and_the_critic_train(checkpoint):
+    residual = policy(checkpoint)
+    trainable = {name.split(".")[0] for name, p in residual.named_parameters() if p.requires_grad}
+    assert trainable == {"residual_net", "residual_log_std", "value_net"}
+    assert residual.critic_modules == ("value_net",)
+    assert "frozen" in residual.lora_refusal and "residual" in residual.demo_refusal
+
+
+def test_bad_residual_options_are_refused(checkpoint):
+    with pytest.raises(ValueError, match="residual_std and residual_bound must be > 0"):
+        policy(checkpoint, residual_std=0.0)
+
+
+def test_ppo_moves_the_noise_free_action_to_a_rewarded_one_the_vla_does_not_produce(checkpoint):
+    """A one-step bandit: reward minus the squared distance of the first executed action to the
+    VLA's noise-free action shifted by 0.5 in every dim."""
+    residual = policy(checkpoint, residual_hidden=(32,))
+    model = NormalizedPolicy(residual, {}, 10.0)
+    obs = observations(seed=2)
+    frame = {key: value[:1].expand(BATCH, *value.shape[1:]).clone() for key, value in obs.items()}
+    target = residual.base(frame)[0][:, 0] + 0.5
+
+    def reward(actions):
+        return -((actions[:, 0] - target) ** 2).sum(-1)
+
+    optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=3e-2)
+    ppo = PPOSpec(lr=3e-2, anneal_lr=False, epochs=4, mini_batches=2, critic=False, max_grad_norm=1.0)
+    generator = torch.Generator().manual_seed(2)
+    with torch.no_grad():
+        before = float(reward(model.act(frame, deterministic=True).actions).mean())
+    for iteration in range(15):
+        with torch.no_grad():
+            step = model.act(frame)
+        r = reward(step.actions)
+        batch = {"obs": frame, "actions": step.actions, "logprobs": step.logprobs, "values": torch.zeros(BATCH),
+                 "advantages": r - r.mean(), "returns": r, "extras": step.extras,
+                 "step_mask": torch.ones(step.actions.shape[:2], dtype=torch.bool)}
+        ppo_update(model, optimizer, batch, iteration, ppo, generator=generator)
+    with torch.no_grad():
+        after = float(reward(model.act(frame, deterministic=True).actions).mean())
+    assert before == pytest.approx(-1.0, abs=1e-5)  # four dims 0.5 away
+    assert after > before / 10, (before, after)
