@@ -108,24 +108,28 @@ def test_the_shipped_rl_after_sft_config_validates():
     assert cfg.policy.name == "pi0_smollm2" and cfg.actor.lora is not None
 
 
-def steered_policy(checkpoint):
-    return {"name": "pi0_smollm2_steered", "chunk": 2, "normalize_obs": False,
+FROZEN_FORMS = {"steered": {"noise_hidden": [8]}, "residual": {"residual_hidden": [8]}}
+
+
+def frozen_policy(checkpoint, form="steered"):
+    return {"name": f"pi0_smollm2_{form}", "chunk": 2, "normalize_obs": False,
             "kwargs": {"checkpoint": checkpoint, "action_dim": 4, "chunk": 2, "cameras": {"rgb": CAMERA},
-                       "state_key": "proprio", "noise_hidden": [8]}}
+                       "state_key": "proprio", **FROZEN_FORMS[form]}}
 
 
-def steered_cfg(output_dir, checkpoint):
-    return make_cfg(output_dir, checkpoint, policy=steered_policy(checkpoint),
+def frozen_cfg(output_dir, checkpoint, form="steered"):
+    return make_cfg(output_dir, checkpoint, policy=frozen_policy(checkpoint, form),
                     actor={"anneal_lr": False, "lr": 1e-3, "value_lr": 1e-2},
                     algorithm={"epochs": 2, "mini_batches": 2, "critic_warmup": 1})
 
 
-def test_steering_the_vla_through_its_noise_trains_end_to_end(ray_cluster, tmp_path, checkpoint):
-    """``pi0_smollm2_steered``: the rollout records the noise and the VLA's features, the trainer's
-    log-probs of them agree with the rollout's, the critic trains alone in iteration 1 and the noise
-    policy from iteration 2."""
-    result = run(steered_cfg(tmp_path / "steered", checkpoint))
-    rows = [json.loads(line) for line in (tmp_path / "steered" / "metrics.jsonl").read_text().splitlines()]
+@pytest.mark.parametrize("form", FROZEN_FORMS)
+def test_a_frozen_vla_steered_or_corrected_trains_end_to_end(ray_cluster, tmp_path, checkpoint, form):
+    """``pi0_smollm2_steered`` / ``_residual``: the rollout records the noise (the residual) and the
+    VLA's features, the trainer's log-probs of them agree with the rollout's, the critic trains
+    alone in iteration 1 and the small policy from iteration 2."""
+    result = run(frozen_cfg(tmp_path / form, checkpoint, form))
+    rows = [json.loads(line) for line in (tmp_path / form / "metrics.jsonl").read_text().splitlines()]
     first, second = (r for r in rows if "train/approx_kl" in r)
     assert all(r["train/logprob_mismatch"] < 1e-5 for r in (first, second))
     assert first["train/grad_norm_policy"] == 0.0 and first["train/grad_norm_critic"] > 0.0
@@ -133,11 +137,12 @@ def test_steering_the_vla_through_its_noise_trains_end_to_end(ray_cluster, tmp_p
     assert result["actor_weights_sha256"]
 
 
-def test_the_shipped_steering_config_validates_and_refuses_lora(tmp_path, checkpoint):
-    cfg = build_config("ppo_vla_metaworld_steered", [])[1]
-    assert cfg.policy.name == "pi0_smollm2_steered" and cfg.actor.lora is None
-    bad = make_cfg(tmp_path / "bad", checkpoint, policy=steered_policy(checkpoint))
-    with pytest.raises(ConfigError, match="^actor.lora: policy pi0_smollm2_steered: the VLA is frozen") as error:
+@pytest.mark.parametrize("form", FROZEN_FORMS)
+def test_the_shipped_frozen_vla_configs_validate_and_refuse_lora(tmp_path, checkpoint, form):
+    cfg = build_config(f"ppo_vla_metaworld_{form}", [])[1]
+    assert cfg.policy.name == f"pi0_smollm2_{form}" and cfg.actor.lora is None
+    bad = make_cfg(tmp_path / "bad", checkpoint, policy=frozen_policy(checkpoint, form))
+    with pytest.raises(ConfigError, match=f"^actor.lora: policy pi0_smollm2_{form}: the VLA is frozen") as error:
         run(bad)
     assert "\n" not in str(error.value) and not (tmp_path / "bad").exists()
 
@@ -180,7 +185,7 @@ def test_a_bc_anchor_that_cannot_work_is_one_line_before_any_worker_starts(tmp_p
          r"^algorithm.bc.data=.*nope: no such folder; `infinirl train sft_vla_metaworld` generates"),
         (anchored_cfg(tmp_path / "b", checkpoint, demonstrations, camera_key="observation.images.wrist"),
          r"^algorithm.bc.camera_key='observation.images.wrist': the dataset at .* has cameras"),
-        (make_cfg(tmp_path / "c", checkpoint, policy=steered_policy(checkpoint), actor={"lr": 1e-3},
+        (make_cfg(tmp_path / "c", checkpoint, policy=frozen_policy(checkpoint), actor={"lr": 1e-3},
                   algorithm={"epochs": 1, "mini_batches": 2, "bc": {"data": demonstrations}}),
          r"^algorithm.bc: policy pi0_smollm2_steered: the VLA is frozen .*; remove algorithm.bc.data"),
     ]

@@ -25,7 +25,10 @@ are sampled but not credited, as in pi_RL): ``[B, chunk]``, one per executed act
 Observations: the env's dict (``rgb`` uint8 ``[B, H, W, 3]``, ``state``, ``instruction``: list of
 str) is renamed to the checkpoint's keys by ``cameras`` (env key -> checkpoint camera key),
 ``state_key`` and ``instruction_key``. An optional critic (``value_head``) reads the mean of the
-VLM's prefix hidden states.
+VLM's prefix hidden states (``critic_input="prefix"``, π0.5's and RLinf's ``value_after_vlm``), or
+of the action expert's outputs at the executed action tokens (``"expert"``, pi_RL's π0 critic: π0's
+VLM never sees the state, its expert does), from one expert pass at time 1 with the noise at its
+mean (0), so the value is a function of the observation alone.
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ __all__ = ["PiZeroFivePolicy", "PiZeroPolicy", "PiZeroSmolLM2Policy"]
 
 SDE_STEPS = ("all", "one")
 LIKELIHOODS = ("flow_sde", "flow_noise", "fpo")
+CRITIC_INPUTS = ("prefix", "expert")
 FPO_KEYS = ("fpo_action", "fpo_noise", "fpo_time")
 
 
@@ -78,9 +82,11 @@ class PiZeroPolicy(Policy):
             runner hands policies only the array fields; one task per env makes it fixed).
         num_steps: denoising steps (default: the checkpoint's ``num_inference_steps``).
         noise_level: Flow-SDE's ``a``; sde_steps: ``"all"`` or ``"one"`` stochastic step(s).
-        value_head: add a critic on the pooled prefix; value_hidden: its hidden width.
-        detach_critic: the critic reads the prefix without back-propagating into the VLM, so the
-            value loss trains the value head only and the VLM's weights move for the policy alone
+        value_head: add a critic (on ``critic_input``); value_hidden: its hidden width.
+        critic_input: what the critic reads, ``"prefix"`` (the VLM's) or ``"expert"`` (the action
+            expert's output, one more expert pass per decision).
+        detach_critic: the critic reads its input without back-propagating into the VLA, so the
+            value loss trains the value head only and the VLA's weights move for the policy alone
             (RLinf's ``detach_critic_input`` for π0).
         likelihood: ``"flow_sde"`` (explore with noise along the denoising path, whose Gaussian
             log-probs PPO ratios use), ``"flow_noise"`` (the same path with Euler means and
@@ -102,7 +108,7 @@ class PiZeroPolicy(Policy):
                  noise_level: float = 0.5, sde_steps: str = "all", value_head: bool = True, value_hidden: int = 256,
                  dtype: str = "float32", instruction: str | None = None, detach_critic: bool = False,
                  likelihood: str = "flow_sde", fpo_samples: int = 8, min_std: float = 0.08,
-                 max_std: float = 0.16):
+                 max_std: float = 0.16, critic_input: str = "prefix"):
         # Imported here, not at the top: the policy registry imports this module in every process
         # that builds any policy, and transformers' model classes take seconds to import.
         from infinirl.models.vla.vla import VLA, load_vla
@@ -112,6 +118,8 @@ class PiZeroPolicy(Policy):
             raise ValueError(f"sde_steps must be one of {SDE_STEPS}, got {sde_steps!r}")
         if likelihood not in LIKELIHOODS:
             raise ValueError(f"likelihood must be one of {LIKELIHOODS}, got {likelihood!r}")
+        if critic_input not in CRITIC_INPUTS:
+            raise ValueError(f"critic_input must be one of {CRITIC_INPUTS}, got {critic_input!r}")
         if fpo_samples < 1:
             raise ValueError(f"fpo_samples must be at least 1, got {fpo_samples}")
         if noise_level <= 0:
@@ -140,8 +148,8 @@ class PiZeroPolicy(Policy):
             raise ValueError(f"cameras maps to {unknown}, which the checkpoint does not have: "
                              f"{list(config.camera_keys)}")
         self.state_key, self.instruction_key, self.instruction = state_key, instruction_key, instruction
-        self.has_value_head, self.detach_critic = value_head, detach_critic
-        width = config.architecture.vlm.width
+        self.has_value_head, self.detach_critic, self.critic_input = value_head, detach_critic, critic_input
+        width = config.architecture.vlm.width if critic_input == "prefix" else config.architecture.expert.width
         self.value_net = (nn.Sequential(nn.Linear(width, value_hidden), nn.SiLU(), nn.Linear(value_hidden, 1))
                           if value_head else None)
         self.min_std, self.max_std = float(min_std), float(max_std)
@@ -172,11 +180,20 @@ class PiZeroPolicy(Policy):
     def _prefix(self, x: VLAInputs) -> PrefixCache:
         return self.vla.model.encode_prefix(x.images, x.image_masks, x.tokens, x.token_mask)
 
-    def _values(self, prefix: PrefixCache) -> torch.Tensor | None:
+    def _values(self, prefix: PrefixCache, state: torch.Tensor | None) -> torch.Tensor | None:
         if self.value_net is None:
             return None
-        hidden = prefix.hidden.detach() if self.detach_critic else prefix.hidden
-        return self.value_net(pooled_prefix(hidden, prefix.pad_mask)).squeeze(-1)
+        if self.critic_input == "prefix":
+            hidden = prefix.hidden.detach() if self.detach_critic else prefix.hidden
+            return self.value_net(pooled_prefix(hidden, prefix.pad_mask)).squeeze(-1)
+        config = self.vla.config
+        batch = prefix.pad_mask.shape[0]
+        device = prefix.pad_mask.device
+        # The noise's mean at pi0 time 1 (pure noise): a pass that depends on the observation only, so V(s).
+        x = torch.zeros(batch, config.chunk_size, config.max_action_dim, device=device)
+        _, hidden = self.vla.model.velocity(prefix, state, x, torch.ones(batch, device=device), return_hidden=True)
+        hidden = hidden[:, :self.chunk].float().mean(1)
+        return self.value_net(hidden.detach() if self.detach_critic else hidden).squeeze(-1)
 
     # --- denoising ---------------------------------------------------------------------------
 
@@ -249,7 +266,7 @@ class PiZeroPolicy(Policy):
         chain, logprobs, mask, prefix = self.denoise(x, noise, deterministic or fpo)
         actions = self.vla.processor.actions_out(chain[:, -1])[:, :self.chunk, :self.action_dim]
         with torch.no_grad():
-            values = self._values(prefix)
+            values = self._values(prefix, x.state)
             if fpo:
                 extras = self._fpo_draws(chain[:, -1])
                 # Evaluation acts deterministically and never reads log-probs: skip the scoring pass.
@@ -311,7 +328,8 @@ class PiZeroPolicy(Policy):
             if with_entropy:
                 ent = self._credited(gaussian_entropy(std.log()))
                 entropy = entropy + torch.where(keep, ent, torch.zeros_like(ent))
-        return PolicyEval(logprobs=logprobs, entropy=entropy if with_entropy else None, values=self._values(prefix))
+        return PolicyEval(logprobs=logprobs, entropy=entropy if with_entropy else None,
+                          values=self._values(prefix, x.state))
 
     def _evaluate_fpo(self, obs, extras) -> PolicyEval:
         missing = [key for key in FPO_KEYS if not extras or key not in extras]
@@ -320,7 +338,7 @@ class PiZeroPolicy(Policy):
         x = self.inputs(obs)
         prefix = self._prefix(x)
         return PolicyEval(logprobs=self._fpo_scores(prefix, x.state, extras), entropy=None,
-                          values=self._values(prefix))
+                          values=self._values(prefix, x.state))
 
     def _evaluate_one_step(self, prefix: PrefixCache, state: torch.Tensor | None, chain: torch.Tensor,
                            steps: torch.Tensor, with_entropy: bool) -> PolicyEval:
@@ -330,7 +348,7 @@ class PiZeroPolicy(Policy):
         mean, std, _ = self.transition(prefix, state, chain[rows, steps], steps)
         logprobs = self._credited(gaussian_logprob(chain[rows, steps + 1], mean, std.log()))
         entropy = self._credited(gaussian_entropy(std.log())) if with_entropy else None
-        return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._values(prefix))
+        return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._values(prefix, state))
 
     @property
     def demo_chunk(self) -> int:
@@ -352,7 +370,8 @@ class PiZeroPolicy(Policy):
     def value(self, obs) -> torch.Tensor:
         if self.value_net is None:
             raise NotImplementedError("this pi0 policy was built with value_head=False")
-        return self._values(self._prefix(self.inputs(obs)))
+        x = self.inputs(obs)
+        return self._values(self._prefix(x), x.state)
 
 
 @POLICIES.register("pi05")

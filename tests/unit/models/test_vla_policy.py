@@ -112,6 +112,38 @@ def test_detached_critic_trains_the_value_head_only():
     assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.parameters())
     pi.zero_grad()
 
+@pytest.mark.parametrize("family", FAMILIES)
+def test_expert_critic_reads_the_action_experts_output_at_the_noises_mean(family):
+    """``critic_input="expert"`` (pi_RL's π0 critic): the value head on the expert's outputs at the
+    executed action tokens, averaged, from one pass at time 1 with zero noise: the same value for
+    every noise draw, in act, evaluate (all steps and one step) and value; gradients reach the
+    expert, and with ``detach_critic`` the value head only."""
+    pi = policy(family, critic_input="expert")
+    obs = env_obs(family)
+    x = pi.inputs(obs)
+    prefix = pi._prefix(x)
+    config = pi.vla.config
+    zero = torch.zeros(2, config.chunk_size, config.max_action_dim)
+    _, hidden = pi.vla.model.velocity(prefix, x.state, zero, torch.ones(2), return_hidden=True)
+    expected = pi.value_net(hidden[:, :pi.chunk].mean(1)).squeeze(-1)
+    torch.manual_seed(3)
+    first, second = pi.act(obs), pi.act(obs)
+    assert not torch.equal(first.actions, second.actions)
+    for values in (first.values, second.values, pi.value(obs), pi.evaluate(obs, first.actions, first.extras).values):
+        torch.testing.assert_close(values, expected, rtol=1e-5, atol=1e-6)
+    one = policy(family, critic_input="expert", sde_steps="one")
+    step = one.act(obs)
+    torch.testing.assert_close(one.evaluate(obs, step.actions, step.extras).values, step.values, rtol=1e-5, atol=1e-6)
+    for detach in (False, True):
+        critic = policy(family, critic_input="expert", detach_critic=detach)
+        critic.value(obs).sum().backward()
+        expert_grad = sum(float(p.grad.abs().sum()) for p in critic.vla.model.expert.parameters() if p.grad is not None)
+        assert (expert_grad == 0.0) == detach
+        assert all(p.grad is not None for p in critic.value_net.parameters())
+    with pytest.raises(ValueError, match="critic_input must be one of"):
+        policy(family, critic_input="vlm")
+
+
 def test_one_stochastic_step():
     pi = policy("pi0", sde_steps="one", value_head=False)
     obs = env_obs("pi0")
