@@ -7,31 +7,18 @@ moves its noise-free action toward a rewarded one outside what the VLA produces.
 import pytest
 import torch
 
-from infinirl.algorithms.embodied_ppo import PPOSpec, ppo_update
 from infinirl.components.embodied_policy import NormalizedPolicy
-from infinirl.models.policies.base import build_policy
-from infinirl.models.vla import save_vla
-from tests.unit.models.test_vla_smollm2 import CAMERA, tiny_vla
-
-BATCH = 32
+from tests.unit.models.test_vla_steered import BATCH, observations, ppo_on_a_bandit, tiny_checkpoint
+from tests.unit.models.test_vla_steered import policy as steered_or_plain
 
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
-    torch.manual_seed(0)
-    return str(save_vla(tiny_vla(), tmp_path_factory.mktemp("vla") / "policy"))
+    return tiny_checkpoint(tmp_path_factory)
 
 
 def policy(checkpoint, name="pi0_smollm2_residual", **options):
-    torch.manual_seed(0)
-    return build_policy(name, checkpoint=checkpoint, action_dim=4, chunk=2, cameras={"rgb": CAMERA},
-                        state_key="proprio", instruction="reach", **options)
-
-
-def observations(batch=BATCH, seed=1):
-    generator = torch.Generator().manual_seed(seed)
-    return {"rgb": torch.randint(0, 256, (batch, 16, 16, 3), dtype=torch.uint8, generator=generator),
-            "proprio": torch.randn(batch, 4, generator=generator)}
+    return steered_or_plain(checkpoint, name=name, **options)
 
 
 def test_at_the_start_its_noise_free_action_is_the_vlas_from_noise_zero(checkpoint, monkeypatch):
@@ -101,20 +88,6 @@ def test_ppo_moves_the_noise_free_action_to_a_rewarded_one_the_vla_does_not_prod
     def reward(actions):
         return -((actions[:, 0] - target) ** 2).sum(-1)
 
-    optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=3e-2)
-    ppo = PPOSpec(lr=3e-2, anneal_lr=False, epochs=4, mini_batches=2, critic=False, max_grad_norm=1.0)
-    generator = torch.Generator().manual_seed(2)
-    with torch.no_grad():
-        before = float(reward(model.act(frame, deterministic=True).actions).mean())
-    for iteration in range(15):
-        with torch.no_grad():
-            step = model.act(frame)
-        r = reward(step.actions)
-        batch = {"obs": frame, "actions": step.actions, "logprobs": step.logprobs, "values": torch.zeros(BATCH),
-                 "advantages": r - r.mean(), "returns": r, "extras": step.extras,
-                 "step_mask": torch.ones(step.actions.shape[:2], dtype=torch.bool)}
-        ppo_update(model, optimizer, batch, iteration, ppo, generator=generator)
-    with torch.no_grad():
-        after = float(reward(model.act(frame, deterministic=True).actions).mean())
+    before, after = ppo_on_a_bandit(model, frame, reward)
     assert before == pytest.approx(-1.0, abs=1e-5)  # four dims 0.5 away
     assert after > before / 10, (before, after)

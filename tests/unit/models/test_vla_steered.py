@@ -16,10 +16,14 @@ from tests.unit.models.test_vla_smollm2 import CAMERA, tiny_vla
 BATCH = 32
 
 
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
+def tiny_checkpoint(tmp_path_factory) -> str:
     torch.manual_seed(0)
     return str(save_vla(tiny_vla(), tmp_path_factory.mktemp("vla") / "policy"))
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    return tiny_checkpoint(tmp_path_factory)
 
 
 def policy(checkpoint, name="pi0_smollm2_steered", **options):
@@ -101,12 +105,19 @@ def test_ppo_steers_the_noise_free_action_toward_the_rewarded_one(checkpoint):
     def reward(actions):
         return -((actions[:, 0] - target) ** 2).sum(-1)
 
+    before, after = ppo_on_a_bandit(model, frame, reward)
+    assert after > before / 10, (before, after)  # rewards are negative: a tenth of the squared distance
+
+
+def ppo_on_a_bandit(model, frame, reward, iterations=15):
+    """PPO (no critic, advantages reward minus the batch mean) on one repeated frame: the mean
+    reward of the noise-free action before and after."""
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=3e-2)
     ppo = PPOSpec(lr=3e-2, anneal_lr=False, epochs=4, mini_batches=2, critic=False, max_grad_norm=1.0)
     generator = torch.Generator().manual_seed(2)
     with torch.no_grad():
         before = float(reward(model.act(frame, deterministic=True).actions).mean())
-    for iteration in range(15):
+    for iteration in range(iterations):
         with torch.no_grad():
             step = model.act(frame)
         r = reward(step.actions)
@@ -116,4 +127,4 @@ def test_ppo_steers_the_noise_free_action_toward_the_rewarded_one(checkpoint):
         ppo_update(model, optimizer, batch, iteration, ppo, generator=generator)
     with torch.no_grad():
         after = float(reward(model.act(frame, deterministic=True).actions).mean())
-    assert after > before / 10, (before, after)  # rewards are negative: a tenth of the squared distance
+    return before, after
