@@ -108,13 +108,16 @@ def test_the_shipped_rl_after_sft_config_validates():
     assert cfg.policy.name == "pi0_smollm2" and cfg.actor.lora is not None
 
 
-FROZEN_FORMS = {"steered": {"noise_hidden": [8]}, "residual": {"residual_hidden": [8]}}
+FROZEN_FORMS = {"steered": ("steered", {"noise_hidden": [8]}), "residual": ("residual", {"residual_hidden": [8]}),
+                "residual_pixels": ("residual", {"residual_hidden": [8], "residual_pixels": True, "pixel_features": 8,
+                                                 "pixel_size": 16})}
 
 
 def frozen_policy(checkpoint, form="steered"):
-    return {"name": f"pi0_smollm2_{form}", "chunk": 2, "normalize_obs": False,
+    name, options = FROZEN_FORMS[form]
+    return {"name": f"pi0_smollm2_{name}", "chunk": 2, "normalize_obs": False,
             "kwargs": {"checkpoint": checkpoint, "action_dim": 4, "chunk": 2, "cameras": {"rgb": CAMERA},
-                       "state_key": "proprio", **FROZEN_FORMS[form]}}
+                       "state_key": "proprio", **options}}
 
 
 def frozen_cfg(output_dir, checkpoint, form="steered"):
@@ -125,9 +128,9 @@ def frozen_cfg(output_dir, checkpoint, form="steered"):
 
 @pytest.mark.parametrize("form", FROZEN_FORMS)
 def test_a_frozen_vla_steered_or_corrected_trains_end_to_end(ray_cluster, tmp_path, checkpoint, form):
-    """``pi0_smollm2_steered`` / ``_residual``: the rollout records the noise (the residual) and the
-    VLA's features, the trainer's log-probs of them agree with the rollout's, the critic trains
-    alone in iteration 1 and the small policy from iteration 2."""
+    """``pi0_smollm2_steered`` / ``_residual`` (also with its CNNs on the frames): the rollout
+    records the noise (the residual) and the VLA's features, the trainer's log-probs of them agree
+    with the rollout's, the critic trains alone in iteration 1 and the small policy from iteration 2."""
     result = run(frozen_cfg(tmp_path / form, checkpoint, form))
     rows = [json.loads(line) for line in (tmp_path / form / "metrics.jsonl").read_text().splitlines()]
     first, second = (r for r in rows if "train/approx_kl" in r)
@@ -137,7 +140,7 @@ def test_a_frozen_vla_steered_or_corrected_trains_end_to_end(ray_cluster, tmp_pa
     assert result["actor_weights_sha256"]
 
 
-@pytest.mark.parametrize("form", FROZEN_FORMS)
+@pytest.mark.parametrize("form", ["steered", "residual"])
 def test_the_shipped_frozen_vla_configs_validate_and_refuse_lora(tmp_path, checkpoint, form):
     cfg = build_config(f"ppo_vla_metaworld_{form}", [])[1]
     assert cfg.policy.name == f"pi0_smollm2_{form}" and cfg.actor.lora is None

@@ -14,7 +14,11 @@ directly, close to the cloned behaviour:
   ``sigma`` is a learned vector, one per action dim (``residual_std`` at the start);
 * the action is ``b(s) + r``; ``f`` and the critic read the VLA's features (mean prefix hidden
   state, normalised state) and the base chunk, which travel with the batch (``extras``): the
-  trainer's update runs the two MLPs only, never the VLA.
+  trainer's update runs the two MLPs only, never the VLA;
+* with ``residual_pixels``, ``f`` and the critic each also read the camera frame through a small
+  CNN of their own (trained by PPO, the critic's at the value rate): the VLA's pooled features keep
+  little of where things are, which a correction of the hand's motion may need. The frame is the
+  observation's, so the update runs the CNNs on the batch's frames (still never the VLA).
 
 PPO's log-probs are per executed action (the chunk's actions are independent given ``s``), the
 Gaussian densities of the recorded residual.
@@ -31,10 +35,25 @@ from torch import nn
 from infinirl.models.policies.base import POLICIES, PolicyEval, PolicyStep
 from infinirl.models.policies.heads import gaussian_entropy
 from infinirl.models.policies.mlp import gaussian_logprob
+from infinirl.models.sac_encoders import PIXELS_PREFIX, PixelEncoder
 from infinirl.models.vla.frozen import FrozenVLA, mlp
 from infinirl.models.vla.policy import PiZeroFivePolicy, PiZeroPolicy, PiZeroSmolLM2Policy
 
 __all__ = ["PiZeroFiveResidualPolicy", "PiZeroResidualPolicy", "PiZeroSmolLM2ResidualPolicy", "ResidualCorrection"]
+
+
+def _frame_encoder(size: int, width: int) -> PixelEncoder:
+    """A small CNN on one camera's uint8 ``size x size`` frames."""
+    return PixelEncoder({"frame": (size, size)}, state_dim=0, feature_dim=width)
+
+
+def _resized(frames: torch.Tensor, size: int) -> torch.Tensor:
+    """uint8 ``[B, H, W, 3]`` frames at ``size x size`` (bilinear; unchanged when they are)."""
+    if tuple(frames.shape[1:3]) == (size, size):
+        return frames
+    chw = torch.nn.functional.interpolate(frames.permute(0, 3, 1, 2).float(), size=(size, size), mode="bilinear",
+                                          antialias=True, align_corners=False)
+    return chw.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1)
 
 
 class ResidualCorrection(FrozenVLA):
@@ -44,16 +63,28 @@ class ResidualCorrection(FrozenVLA):
         residual_hidden: the residual policy's and the critic's hidden widths.
         residual_std: ``sigma`` at the start, in the env's action units.
         residual_bound: the largest residual mean per dim (``tanh`` squashed).
+        residual_pixels: the residual policy and the critic also read the first camera's frames
+            through CNNs of their own (:class:`~infinirl.models.sac_encoders.PixelEncoder`,
+            ``pixel_features`` wide, frames resized to ``pixel_size``).
     """
 
     demo_refusal = "the VLA is frozen and only the residual policy trains, which demonstrations do not label"
 
     def __init__(self, *args, residual_hidden: Sequence[int] = (256, 256), residual_std: float = 0.2,
-                 residual_bound: float = 1.0, value_head: bool = True, **kwargs):
+                 residual_bound: float = 1.0, residual_pixels: bool = False, pixel_features: int = 64,
+                 pixel_size: int = 64, value_head: bool = True, **kwargs):
         if residual_std <= 0 or residual_bound <= 0:
             raise ValueError(f"residual_std and residual_bound must be > 0, got {residual_std} and {residual_bound}")
         super().__init__(*args, value_head=False, **kwargs)
         features = self._freeze() + self.chunk * self.action_dim
+        self.pixel_key = next(iter(self.cameras)) if residual_pixels else None
+        self.residual_encoder = self.value_encoder = None
+        if residual_pixels:
+            self.pixel_size = int(pixel_size)
+            self.residual_encoder = _frame_encoder(self.pixel_size, pixel_features)
+            self.value_encoder = _frame_encoder(self.pixel_size, pixel_features) if value_head else None
+            self.critic_modules = ("value_net", "value_encoder")
+            features += pixel_features
         self.residual_net = mlp(features, residual_hidden, self.chunk * self.action_dim, zero_last=True)
         self.residual_log_std = nn.Parameter(torch.full((self.action_dim,), math.log(residual_std)))
         self.residual_bound = float(residual_bound)
@@ -69,9 +100,22 @@ class ResidualCorrection(FrozenVLA):
         base = self.decode(x, prefix, noise)
         return base, torch.cat([features, base.reshape(len(base), -1)], dim=-1)
 
-    def residual_distribution(self, inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``mu`` ``[B, chunk, action_dim]`` and ``log sigma`` (broadcast to it)."""
-        raw = self.residual_net(inputs).reshape(-1, self.chunk, self.action_dim)
+    def _with_pixels(self, inputs: torch.Tensor, obs, encoder: nn.Module | None) -> torch.Tensor:
+        if encoder is None:
+            return inputs
+        if obs is None or self.pixel_key not in obs:
+            raise ValueError(f"residual_pixels reads the observation's {self.pixel_key!r} frames, which it lacks")
+        frames = _resized(torch.as_tensor(obs[self.pixel_key]).to(inputs.device), self.pixel_size)
+        return torch.cat([inputs, encoder({PIXELS_PREFIX + "frame": frames})], dim=-1)
+
+    def _critic_of(self, inputs: torch.Tensor, obs) -> torch.Tensor | None:
+        return None if self.value_net is None else self._critic(self._with_pixels(inputs, obs, self.value_encoder))
+
+    def residual_distribution(self, inputs: torch.Tensor, obs=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``mu`` ``[B, chunk, action_dim]`` and ``log sigma`` (broadcast to it); ``obs`` carries the
+        frames with ``residual_pixels``."""
+        raw = self.residual_net(self._with_pixels(inputs, obs, self.residual_encoder)).reshape(-1, self.chunk,
+                                                                                                 self.action_dim)
         mean = self.residual_bound * torch.tanh(raw / self.residual_bound)
         return mean, self.residual_log_std.expand_as(mean)
 
@@ -80,28 +124,28 @@ class ResidualCorrection(FrozenVLA):
     def act(self, obs, deterministic: bool = False) -> PolicyStep:
         base, inputs = self.base(obs)
         with torch.no_grad():
-            mean, log_std = self.residual_distribution(inputs)
+            mean, log_std = self.residual_distribution(inputs, obs)
             residual = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)
             logprobs = gaussian_logprob(residual, mean, log_std).sum(-1)
-            values = self._critic(inputs)
+            values = self._critic_of(inputs, obs)
         return PolicyStep(actions=base + residual, logprobs=logprobs, values=values,
                           extras={"residual": residual, "features": inputs})
 
     def evaluate(self, obs, actions, extras=None, with_entropy: bool = True) -> PolicyEval:
         """Log-probs of the recorded residual under the present residual policy: the two MLPs on
-        the recorded features, no VLA pass."""
+        the recorded features (and the CNNs on the frames), no VLA pass."""
         if not extras or "residual" not in extras or "features" not in extras:
             raise ValueError("a residual VLA's evaluate needs extras['residual'] and extras['features'] from act()")
         inputs = extras["features"].detach().float()
-        mean, log_std = self.residual_distribution(inputs)
+        mean, log_std = self.residual_distribution(inputs, obs)
         logprobs = gaussian_logprob(extras["residual"].detach().float(), mean, log_std).sum(-1)
         entropy = gaussian_entropy(log_std).sum(-1) if with_entropy else None
-        return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._critic(inputs))
+        return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._critic_of(inputs, obs))
 
     def value(self, obs) -> torch.Tensor:
         if self.value_net is None:
             raise NotImplementedError("this residual VLA was built with value_head=False")
-        return self._critic(self.base(obs)[1])
+        return self._critic_of(self.base(obs)[1], obs)
 
 
 @POLICIES.register("pi0_residual")

@@ -63,6 +63,31 @@ def test_logprobs_are_the_residuals_density_and_the_trainer_recomputes_them_from
         residual.evaluate({}, step.actions, {"features": step.extras["features"]})
 
 
+def test_with_pixels_cnns_of_their_own_read_the_frames_and_train(checkpoint):
+    """``residual_pixels``: the residual policy and the critic each read the camera frame through a
+    CNN of their own (the critic's trains at the value rate); the start is still the VLA's
+    noise-free action, evaluate recomputes the log-probs from the batch's frames with gradients
+    into the policy's CNN, and a batch without the frames is named."""
+    residual, plain = policy(checkpoint, residual_pixels=True), policy(checkpoint)
+    obs = observations()
+    torch.testing.assert_close(residual.act(obs, deterministic=True).actions,
+                               plain.act(obs, deterministic=True).actions, rtol=0, atol=1e-6)
+    with torch.no_grad():
+        residual.residual_net[-1].weight.normal_(0.0, 0.1)  # the frames now move the mean
+    step = residual.act(obs)
+    evaluated = residual.evaluate(obs, step.actions, step.extras)
+    torch.testing.assert_close(evaluated.logprobs, step.logprobs, rtol=0, atol=1e-5)
+    torch.testing.assert_close(evaluated.values, step.values, rtol=0, atol=1e-6)
+    (evaluated.logprobs.sum() + evaluated.values.sum()).backward()
+    for encoder in (residual.residual_encoder, residual.value_encoder):
+        assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in encoder.parameters())
+    assert residual.critic_modules == ("value_net", "value_encoder")
+    shifted = {**obs, "rgb": torch.roll(obs["rgb"], 3, dims=1)}
+    assert not torch.allclose(residual.evaluate(shifted, step.actions, step.extras).logprobs, step.logprobs)
+    with pytest.raises(ValueError, match="reads the observation's 'rgb' frames, which it lacks"):
+        residual.evaluate({}, step.actions, step.extras)
+
+
 def test_only_the_residual_policy_and_the_critic_train(checkpoint):
     residual = policy(checkpoint)
     trainable = {name.split(".")[0] for name, p in residual.named_parameters() if p.requires_grad}
