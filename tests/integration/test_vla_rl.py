@@ -74,13 +74,14 @@ def test_ppo_with_lora_on_the_vla_trains_the_adapters_and_resumes_exactly(ray_cl
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
 
 
-@pytest.mark.parametrize("likelihood", [{"likelihood": "fpo", "fpo_samples": 2}, {"likelihood": "flow_noise"}],
-                         ids=["fpo", "flow_noise"])
-def test_other_likelihoods_train_the_vla_and_resume_exactly(ray_cluster, tmp_path, checkpoint, likelihood):
+@pytest.mark.parametrize("likelihood", [{"likelihood": "fpo", "fpo_samples": 2}, {"likelihood": "flow_noise"},
+                                        {"critic_input": "expert"}], ids=["fpo", "flow_noise", "expert_critic"])
+def test_other_likelihoods_and_critics_train_the_vla_and_resume_exactly(ray_cluster, tmp_path, checkpoint, likelihood):
     """``likelihood: fpo``: the rollout acts with the ODE sampler and records each chunk's
     flow-matching draws; ``flow_noise``: the rollout samples with the learned std (a head LoRA
-    trains in full). The adapted trainer scores the chunks as the merged-weight rollout did, the
-    policy moves, and a resumed run ends with the same weights."""
+    trains in full); ``critic_input: expert``: the value head on the action expert's output. The
+    adapted trainer scores the chunks as the merged-weight rollout did, the policy moves, and a
+    resumed run ends with the same weights."""
     def make(output_dir):
         cfg = make_cfg(output_dir, checkpoint)
         cfg.policy.kwargs.update(likelihood)
