@@ -117,7 +117,19 @@ def prepare_obs(obs: dict[str, Any], device: torch.device | str = "cpu") -> dict
 def build_policy(name: str, **kwargs) -> Policy:
     """Instantiate a registered policy (``mlp_gaussian``, ...) with its keyword options."""
     _import_builtin_policies()
-    return POLICIES.get(name)(**kwargs)
+    cls = POLICIES.get(name)
+    _check_switches(cls, kwargs)
+    return cls(**kwargs)
+
+
+def _check_switches(cls: type, kwargs: dict) -> None:
+    """Options declared ``bool`` in any ``__init__`` along the class's MRO must be booleans: a
+    config's ``residual_pixels=maybe`` is a string, which Python would take as true."""
+    for klass in cls.__mro__:
+        init = klass.__dict__.get("__init__")
+        for option, annotation in getattr(init, "__annotations__", {}).items():
+            if annotation in ("bool", bool) and option in kwargs and not isinstance(kwargs[option], bool):
+                raise ValueError(f"{option} must be true or false, got {kwargs[option]!r}")
 
 
 def _import_builtin_policies() -> None:

@@ -45,6 +45,15 @@ def test_registered_names_and_build():
         assert POLICIES.get(name) is not None
 
 
+def test_switches_must_be_booleans():
+    """An option declared ``bool`` (here the base class's ``value_head``, and a mixin's along the
+    MRO for the VLA forms) refuses a string a config override left unparsed."""
+    with pytest.raises(ValueError, match="^value_head must be true or false, got 'maybe'$"):
+        build_policy("mlp_gaussian", obs_dim=3, action_dim=2, value_head="maybe")
+    with pytest.raises(ValueError, match="^residual_pixels must be true or false, got 1$"):
+        build_policy("pi0_smollm2_residual", checkpoint="unused", action_dim=4, residual_pixels=1)
+
+
 # --- MLP Gaussian ----------------------------------------------------------------------------
 
 
