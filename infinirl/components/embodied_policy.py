@@ -228,6 +228,12 @@ def policy_kwargs(name: str, options: Mapping[str, Any], observation_spec: Mappi
     proprio_key = kwargs.get("proprio_key", _default(params, "proprio_key", "proprio"))
     if proprio_key in observation_spec and "proprio_dim" in params and "proprio_dim" not in kwargs:
         kwargs["proprio_dim"] = int(np.prod(observation_spec[proprio_key].shape))
+    critic_obs = kwargs.get("critic_obs")
+    if critic_obs is not None and "critic_obs_dim" in params:
+        if critic_obs not in observation_spec:
+            raise ValueError(f"critic_obs={critic_obs!r} is not an observation field of this env; it has "
+                             f"{sorted(observation_spec)}")
+        fill("critic_obs_dim", int(np.prod(observation_spec[critic_obs].shape)))
     for key in ("hidden", "channels", "kernels", "strides", "value_hidden", "image_shape"):
         if isinstance(kwargs.get(key), list):
             kwargs[key] = tuple(kwargs[key])

@@ -111,7 +111,8 @@ def test_the_shipped_rl_after_sft_config_validates():
 
 FROZEN_FORMS = {"steered": ("steered", {"noise_hidden": [8]}), "residual": ("residual", {"residual_hidden": [8]}),
                 "residual_pixels": ("residual", {"residual_hidden": [8], "residual_pixels": True, "pixel_features": 8,
-                                                 "pixel_size": 16})}
+                                                 "pixel_size": 16}),
+                "residual_privileged_critic": ("residual", {"residual_hidden": [8], "critic_obs": "state"})}
 
 
 def frozen_policy(checkpoint, form="steered"):
@@ -147,6 +148,16 @@ def test_the_shipped_frozen_vla_configs_validate_and_refuse_lora(tmp_path, check
     assert cfg.policy.name == f"pi0_smollm2_{form}" and cfg.actor.lora is None
     bad = make_cfg(tmp_path / "bad", checkpoint, policy=frozen_policy(checkpoint, form))
     with pytest.raises(ConfigError, match=f"^actor.lora: policy pi0_smollm2_{form}: the VLA is frozen") as error:
+        run(bad)
+    assert "\n" not in str(error.value) and not (tmp_path / "bad").exists()
+
+
+def test_a_privileged_critic_field_the_env_lacks_is_refused_before_anything_starts(tmp_path, checkpoint):
+    policy = frozen_policy(checkpoint, "residual_privileged_critic")
+    policy["kwargs"]["critic_obs"] = "objects"
+    bad = make_cfg(tmp_path / "bad", checkpoint, policy=policy, actor={"anneal_lr": False, "lr": 1e-3})
+    with pytest.raises(ConfigError, match=r"critic_obs='objects' is not an observation field of this env; it has "
+                                          r"\['instruction', 'proprio', 'rgb', 'state'\]") as error:
         run(bad)
     assert "\n" not in str(error.value) and not (tmp_path / "bad").exists()
 

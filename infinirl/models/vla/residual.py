@@ -66,13 +66,16 @@ class ResidualCorrection(FrozenVLA):
         residual_pixels: the residual policy and the critic also read the first camera's frames
             through CNNs of their own (:class:`~infinirl.models.sac_encoders.PixelEncoder`,
             ``pixel_features`` wide, frames resized to ``pixel_size``).
+        critic_obs: an observation field the critic alone also reads (:class:`FrozenVLA`);
+            ``critic_obs_dim`` its size (filled from the env's spec by the embodied runner).
     """
 
     demo_refusal = "the VLA is frozen and only the residual policy trains, which demonstrations do not label"
 
     def __init__(self, *args, residual_hidden: Sequence[int] = (256, 256), residual_std: float = 0.2,
                  residual_bound: float = 1.0, residual_pixels: bool = False, pixel_features: int = 64,
-                 pixel_size: int = 64, value_head: bool = True, **kwargs):
+                 pixel_size: int = 64, critic_obs: str | None = None, critic_obs_dim: int | None = None,
+                 value_head: bool = True, **kwargs):
         if residual_std <= 0 or residual_bound <= 0:
             raise ValueError(f"residual_std and residual_bound must be > 0, got {residual_std} and {residual_bound}")
         super().__init__(*args, value_head=False, **kwargs)
@@ -89,7 +92,8 @@ class ResidualCorrection(FrozenVLA):
         self.residual_log_std = nn.Parameter(torch.full((self.action_dim,), math.log(residual_std)))
         self.residual_bound = float(residual_bound)
         self.has_value_head = value_head
-        self.value_net = mlp(features, residual_hidden, 1) if value_head else None
+        critic_width = features + self._privileged_width(critic_obs, critic_obs_dim)
+        self.value_net = mlp(critic_width, residual_hidden, 1) if value_head else None
 
     def base(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
         """The VLA's noise-free chunk ``[B, chunk, action_dim]`` and the residual policy's input
@@ -109,7 +113,7 @@ class ResidualCorrection(FrozenVLA):
         return torch.cat([inputs, encoder({PIXELS_PREFIX + "frame": frames})], dim=-1)
 
     def _critic_of(self, inputs: torch.Tensor, obs) -> torch.Tensor | None:
-        return None if self.value_net is None else self._critic(self._with_pixels(inputs, obs, self.value_encoder))
+        return None if self.value_net is None else self._critic(self._with_pixels(inputs, obs, self.value_encoder), obs)
 
     def residual_distribution(self, inputs: torch.Tensor, obs=None) -> tuple[torch.Tensor, torch.Tensor]:
         """``mu`` ``[B, chunk, action_dim]`` and ``log sigma`` (broadcast to it); ``obs`` carries the

@@ -46,12 +46,15 @@ class NoiseSteering(FrozenVLA):
         noise_std: ``sigma`` at the start (1: the VLA's own noise).
         noise_bound: ``mu`` is ``noise_bound * tanh(.)``: the VLA has only seen noise near the
             standard normal's bulk, so the mean stays within a few standard deviations of it.
+        critic_obs: an observation field the critic alone also reads (:class:`FrozenVLA`);
+            ``critic_obs_dim`` its size (filled from the env's spec by the embodied runner).
     """
 
     demo_refusal = "the VLA is frozen and only the noise policy trains, which demonstrations do not label"
 
     def __init__(self, *args, noise_hidden: Sequence[int] = (256, 256), noise_std: float = 1.0,
-                 noise_bound: float = 2.5, value_head: bool = True, **kwargs):
+                 noise_bound: float = 2.5, critic_obs: str | None = None, critic_obs_dim: int | None = None,
+                 value_head: bool = True, **kwargs):
         if noise_std <= 0 or noise_bound <= 0:
             raise ValueError(f"noise_std and noise_bound must be > 0, got {noise_std} and {noise_bound}")
         super().__init__(*args, value_head=False, **kwargs)
@@ -63,7 +66,8 @@ class NoiseSteering(FrozenVLA):
         self.noise_log_std = nn.Parameter(torch.full((size,), math.log(noise_std)))
         self.noise_bound = float(noise_bound)
         self.has_value_head = value_head
-        self.value_net = mlp(features, noise_hidden, 1) if value_head else None
+        critic_width = features + self._privileged_width(critic_obs, critic_obs_dim)
+        self.value_net = mlp(critic_width, noise_hidden, 1) if value_head else None
 
     # --- the noise distribution --------------------------------------------------
 
@@ -86,7 +90,7 @@ class NoiseSteering(FrozenVLA):
             mean, log_std = self.noise_distribution(features)
             flat = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)
             logprobs = gaussian_logprob(flat, mean, log_std).sum(-1)
-            values = self._critic(features)
+            values = self._critic(features, obs)
         actions = self.decode(x, prefix, flat.reshape(-1, *self.noise_shape))
         return PolicyStep(actions=actions, logprobs=self._per_decision(logprobs), values=values,
                           extras={"noise": flat, "features": features})
@@ -100,12 +104,12 @@ class NoiseSteering(FrozenVLA):
         mean, log_std = self.noise_distribution(features)
         logprobs = self._per_decision(gaussian_logprob(extras["noise"].detach().float(), mean, log_std).sum(-1))
         entropy = self._per_decision(gaussian_entropy(log_std).sum(-1)) if with_entropy else None
-        return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._critic(features))
+        return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._critic(features, obs))
 
     def value(self, obs) -> torch.Tensor:
         if self.value_net is None:
             raise NotImplementedError("this steered VLA was built with value_head=False")
-        return self._critic(self.features(obs)[0])
+        return self._critic(self.features(obs)[0], obs)
 
 
 @POLICIES.register("pi0_steered")
