@@ -4,7 +4,8 @@ Modules, one job each:
 
 * ``registry``     the generic ``Registry`` and the four algorithm registries;
 * ``advantages``   token-level estimators (gae, grpo, dr_grpo, rloo, reinforce_pp[_baseline]);
-* ``embodied``     env-rollout estimators (embodied_gae at chunk/action level, embodied_grpo);
+* ``embodied``     env-rollout estimators (embodied_gae at chunk/action level, embodied_grpo,
+                   normalize_per_task);
 * ``embodied_ppo`` the embodied PPO objective and its epochs of mini-batch steps (PPO, embodied GRPO);
 * ``losses``       PPO clip (clip-higher, dual clip, TIS / decoupled PPO), value and entropy losses;
 * ``kl``           k1/k2/k3 KL estimators as a loss term or a per-token reward penalty;
@@ -33,7 +34,7 @@ from infinirl.algorithms.aggregation import (
     aggregate_locally,
     aggregation_normaliser,
 )
-from infinirl.algorithms.embodied import EnvAdvantageInputs, embodied_gae, embodied_grpo
+from infinirl.algorithms.embodied import EnvAdvantageInputs, embodied_gae, embodied_grpo, normalize_per_task
 from infinirl.algorithms.embodied_ppo import PPOSpec, ppo_objective
 from infinirl.algorithms.filters import (
     DynamicSamplingBuffer,
@@ -97,6 +98,7 @@ __all__ = [
     "dr_grpo",
     "embodied_gae",
     "embodied_grpo",
+    "normalize_per_task",
     "entropy_from_logits",
     "entropy_loss",
     "explained_variance",

@@ -30,7 +30,7 @@ from infinirl.algorithms.advantages import AdvantageOutput
 from infinirl.algorithms.groups import group_index, group_stats
 from infinirl.algorithms.registry import ADVANTAGES
 
-__all__ = ["EnvAdvantageInputs", "embodied_gae", "embodied_grpo"]
+__all__ = ["EnvAdvantageInputs", "embodied_gae", "embodied_grpo", "normalize_per_task"]
 
 
 @dataclass(frozen=True)
@@ -289,3 +289,35 @@ def embodied_grpo(
         returns=restore(episode_return[None] * weight),
         mask=restore(first_episode),
     )
+
+
+def normalize_per_task(advantages: torch.Tensor, env_tasks: torch.Tensor, mask: torch.Tensor | None = None,
+                       eps: float = 1e-8) -> torch.Tensor:
+    """Advantages ``[T, N]`` or ``[T, N, C]`` shifted and scaled to mean 0 and std 1 (Bessel)
+    within each task: env ``n`` runs task ``env_tasks[n]``; statistics over the entries inside
+    ``mask`` (all if None); entries outside it are returned unchanged.
+
+    Why: on a multi-task env one policy's update weighs the tasks by the scale of their
+    advantages, which follows the scale of their shaped rewards, not how much there is to gain;
+    a task whose returns vary little (or whose critic fits well) then hardly moves the policy.
+    Normalised per task, every task's decisions pull with the same overall strength (the
+    multi-task normalisation PopArt motivates, Hessel et al. 2019)."""
+    if env_tasks.shape != (advantages.shape[1],):
+        raise ValueError(f"env_tasks must be [N]=({advantages.shape[1]},), one task per env column; "
+                         f"got {tuple(env_tasks.shape)}")
+    if mask is None:
+        mask = torch.ones_like(advantages, dtype=torch.bool)
+    if mask.shape != advantages.shape:
+        raise ValueError(f"mask must have the advantages' shape {tuple(advantages.shape)}, got {tuple(mask.shape)}")
+    labels = env_tasks.to(advantages.device).reshape(1, -1, *([1] * (advantages.dim() - 2))).expand_as(advantages)
+    inside = mask.to(torch.bool)
+    wide = advantages.to(torch.float64)
+    out = wide.clone()
+    for task in torch.unique(env_tasks).tolist():
+        cells = inside & (labels == task)
+        values = wide[cells]
+        if values.numel() == 0:
+            continue
+        std = values.std() if values.numel() > 1 else values.new_zeros(())
+        out[cells] = (values - values.mean()) / (std + eps)
+    return out.to(advantages.dtype)

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from infinirl.algorithms import EnvAdvantageInputs, compute_advantages
+from infinirl.algorithms import EnvAdvantageInputs, compute_advantages, normalize_per_task
 from infinirl.algorithms.embodied_ppo import PPOSpec, critic_parameter_ids
 from infinirl.components.demo_anchor import DemoAnchor, DemoAnchorSpec
 from infinirl.components.embodied_actor import EmbodiedActorWorker, actor_process_env
@@ -137,6 +137,9 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
         _check_critic_warmup(cfg, policy)
     if ALGORITHMS[cfg.algorithm.name].grouped:
         _check_one_task_per_group(cfg)
+        if cfg.algorithm.normalize_advantages_per_task:
+            raise ConfigError(f"algorithm.normalize_advantages_per_task: algorithm.name={cfg.algorithm.name} "
+                              "normalises its advantages within groups of one task already; remove it")
     if cfg.algorithm.bc.data is not None:
         _check_bc_anchor(cfg, policy)
     return observation_spec, action_space, policy_spec
@@ -222,9 +225,9 @@ def ppo_spec(cfg: EmbodiedConfig) -> PPOSpec:
                    desired_kl=cfg.actor.desired_kl, warmup_steps=cfg.actor.warmup_steps)
 
 
-def _env_task_count(cfg: EmbodiedConfig) -> tuple[int, bool]:
-    """How many tasks ``env.name`` spreads over its envs, and whether its factory can give
-    consecutive envs one task (``task_block``)."""
+def _env_tasks(cfg: EmbodiedConfig) -> tuple[list[str], bool]:
+    """The tasks ``env.name`` spreads over its envs (names, or indices as text; none for a
+    one-task env), and whether its factory can give consecutive envs one task (``task_block``)."""
     from dataclasses import fields, is_dataclass
 
     from infinirl.envs.registry import ENVS
@@ -233,6 +236,13 @@ def _env_task_count(cfg: EmbodiedConfig) -> tuple[int, bool]:
     factory = ENVS.get(family)(task or None, **cfg.env.kwargs)
     tasks = getattr(factory, "tasks", None) or getattr(factory, "task_indices", None) or ()
     blocks = is_dataclass(factory) and any(f.name == "task_block" for f in fields(factory))
+    return [str(t) for t in tasks], blocks
+
+
+def _env_task_count(cfg: EmbodiedConfig) -> tuple[int, bool]:
+    """How many tasks ``env.name`` spreads over its envs, and whether its factory can give
+    consecutive envs one task (``task_block``)."""
+    tasks, blocks = _env_tasks(cfg)
     return max(len(tasks), 1), blocks
 
 
@@ -244,6 +254,20 @@ def task_block(cfg: EmbodiedConfig) -> int:
         return 1
     tasks, _ = _env_task_count(cfg)
     return cfg.algorithm.group_size if tasks > 1 else 1
+
+
+def env_task_columns(cfg: EmbodiedConfig, rollout_ranks: int) -> tuple[torch.Tensor, list[str]]:
+    """The task index of every env column of an iteration's trajectory, and the tasks' names.
+
+    The trajectory joins the rollout ranks' envs in rank order, each rank's pipeline stages in
+    order; env ``i`` of a stage runs task ``(i // task_block) % tasks`` (the env factories'
+    rule)."""
+    names = _env_tasks(cfg)[0] or ["0"]
+    tasks, block = len(names), task_block(cfg)
+    sizes = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // rollout_ranks,
+                    stages=cfg.rollout.pipeline_stages).stage_sizes()
+    stage = [(torch.arange(size) // block) % tasks for size in sizes]
+    return torch.cat(stage * rollout_ranks), names
 
 
 def _check_one_task_per_group(cfg: EmbodiedConfig) -> None:
@@ -352,6 +376,8 @@ class EmbodiedFlow:
         self.algorithm = ALGORITHMS[cfg.algorithm.name]
         self.group_size = cfg.algorithm.group_size if self.algorithm.grouped else 1
         self.return_norm = ReturnNormalizer(cfg.env.num_envs, cfg.algorithm.gamma)
+        self.env_tasks = (env_task_columns(cfg, rollout.world_size) if cfg.algorithm.normalize_advantages_per_task
+                          else None)
         self.env_steps = 0
         eta = cfg.algorithm.asynchronous.max_staleness
         self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_collect,
@@ -569,6 +595,12 @@ class EmbodiedFlow:
                                     truncations=truncated, final_values=_tensor(traj["final_values"]),
                                     group_size=self.group_size if algorithm.grouped else None)
         out = compute_advantages(algorithm.advantage, inputs, **algorithm.advantage_kwargs(alg))
+        task_metrics = {}
+        if self.env_tasks is not None:
+            columns, names = self.env_tasks
+            for k, name in enumerate(names):  # each task's scale before, to see what the normalisation evens out
+                task_metrics[f"train/advantage_std/{name}"] = float(out.advantages[:, columns == k].std())
+            out = dataclasses.replace(out, advantages=normalize_per_task(out.advantages, columns, out.mask))
 
         def flat(array: Any) -> Any:
             if isinstance(array, dict):
@@ -585,6 +617,7 @@ class EmbodiedFlow:
         batch["advantage_mask"] = flat(out.mask.to(torch.bool))
         metrics = {"train/advantage_mean": float(out.advantages.mean()),
                    "train/advantage_std": float(out.advantages.std()), "train/return_mean": float(out.returns.mean())}
+        metrics.update(task_metrics)
         if scale_rewards:
             metrics["train/reward_scale"] = 1.0 / float(torch.sqrt(self.return_norm.rms.var + self.return_norm.epsilon))
         if algorithm.grouped:

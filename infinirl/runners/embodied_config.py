@@ -121,6 +121,11 @@ class AlgorithmConfig:
     normalize_advantages: bool = True
     """Per mini-batch (statistics of the whole mini-batch over all ranks). ppo only: grpo's
     advantages are already normalised within each group, and are used as they are."""
+    normalize_advantages_per_task: bool = False
+    """ppo on a multi-task env: each iteration's advantages normalised within each task (mean 0,
+    std 1 over that task's envs) before the per-mini-batch normalisation, so every task pulls the
+    shared policy as hard, whatever the scale of its shaped reward. Refused with grpo (its groups
+    share a task and are normalised already)."""
     asynchronous: AsyncConfig = field(default_factory=AsyncConfig)
     """Collect the next iterations' trajectories while the actor trains, up to `max_staleness`
     weight versions ahead (docs/embodied.md#asynchronous-training)."""

@@ -100,6 +100,29 @@ def test_grpo_on_two_tasks_trains_a_task_per_group_and_evaluates_both(ray_cluste
     assert last["eval/episodes/reach-v3"] == 2 and last["eval/episodes/push-v3"] == 2
     assert "train/group_return_std_mean" in last
 
+def test_ppo_on_two_tasks_normalises_advantages_per_task_and_grpo_refuses_it(ray_cluster, tmp_path):
+    """``algorithm.normalize_advantages_per_task``: each task's advantage scale before the
+    normalisation is logged (two pipeline stages: the columns' tasks restart in each); grpo, whose
+    groups are normalised already, is refused before anything starts."""
+    pytest.importorskip("metaworld")
+    two = {"name": "metaworld:reach-v3,push-v3", "num_envs": 4, "max_episode_steps": 8}
+    cfg = make_cfg(tmp_path / "run", 1, PLACEMENTS["pipelined"][0], 2, env=two, rollout_steps=8,
+                   algorithm={"epochs": 1, "mini_batches": 2, "normalize_advantages_per_task": True},
+                   eval={"every": 0, "episodes": 2, "num_envs": 2, "video_episodes": 0})
+    run(cfg)
+    last = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()][-1]
+    assert last["train/advantage_std/reach-v3"] > 0 and last["train/advantage_std/push-v3"] > 0
+    assert abs(last["train/advantage_std"] - 1.0) < 0.05  # the trainer's advantages: each task at std 1
+    assert last["train/grad_norm"] > 0
+    grpo = make_cfg(tmp_path / "grpo", 1, PLACEMENTS["collocated"][0], 1, env=two, rollout_steps=8,
+                    algorithm={"name": "grpo", "group_size": 2, "mini_batches": 2,
+                               "normalize_advantages_per_task": True})
+    with pytest.raises(ConfigError, match=r"^algorithm.normalize_advantages_per_task: algorithm.name=grpo "
+                                          r"normalises its advantages within groups of one task already") as error:
+        run(grpo)
+    assert "\n" not in str(error.value) and not (tmp_path / "grpo").exists()
+
+
 def test_grpo_runs_and_resumes_exactly(ray_cluster, tmp_path):
     """Embodied GRPO (collocated: the cheap placement; seed groups across ranks and stages are
     checked in tests/unit/test_embodied_grpo.py): 20-step episodes in 32-step rollouts, so each env's

@@ -12,6 +12,7 @@ from infinirl.algorithms import (
     TokenAdvantageInputs,
     embodied_gae,
     embodied_grpo,
+    normalize_per_task,
 )
 
 SEEDS = [0, 1, 2]
@@ -302,3 +303,55 @@ def test_embodied_grpo_per_episode_weighs_every_episode_the_same(seed):
     totals = out.advantages.sum(0)
     returns = torch.tensor([ret[0][n] for n in range(6)], dtype=torch.float64)
     torch.testing.assert_close(totals, returns * mean_length)
+
+
+# --- advantages normalised within each task -------------------------------------------------------
+
+
+def _per_task_reference(advantages, env_tasks, mask):
+    """Slow float64 reference: every task's entries (its envs' columns, inside the mask) shifted
+    and scaled to mean 0, std 1 (Bessel); entries outside the mask unchanged."""
+    out = advantages.double().clone()
+    for task in sorted(set(env_tasks.tolist())):
+        cells = [(t, n) + rest for t in range(advantages.shape[0]) for n in range(advantages.shape[1])
+                 if int(env_tasks[n]) == task
+                 for rest in ([()] if advantages.dim() == 2 else [(c,) for c in range(advantages.shape[2])])
+                 if bool(mask[(t, n) + rest])]
+        values = torch.tensor([float(advantages[cell]) for cell in cells], dtype=torch.float64)
+        mean = values.mean()
+        std = values.std() if len(values) > 1 else torch.tensor(0.0, dtype=torch.float64)
+        for cell in cells:
+            out[cell] = (float(advantages[cell]) - mean) / (std + 1e-8)
+    return out
+
+
+@pytest.mark.parametrize("shape", [(5, 6), (4, 6, 3)])
+def test_per_task_normalisation_matches_a_float64_reference(shape):
+    generator = torch.Generator().manual_seed(0)
+    advantages = torch.randn(*shape, generator=generator) * torch.tensor([1.0, 5.0, 0.2] * 2).reshape(
+        1, 6, *([1] * (len(shape) - 2)))
+    env_tasks = torch.tensor([0, 1, 2, 0, 1, 2])
+    mask = torch.rand(*shape, generator=generator) > 0.2
+    out = normalize_per_task(advantages, env_tasks, mask)
+    torch.testing.assert_close(out.double(), _per_task_reference(advantages, env_tasks, mask), rtol=1e-5, atol=1e-5)
+    for task in range(3):  # each task's scale is now 1, whatever it was
+        cells = out[:, env_tasks == task][mask[:, env_tasks == task]]
+        assert abs(float(cells.mean())) < 1e-5 and abs(float(cells.std()) - 1.0) < 1e-4
+
+
+def test_per_task_normalisation_is_invariant_to_the_envs_order_and_to_each_tasks_scale():
+    generator = torch.Generator().manual_seed(1)
+    advantages = torch.randn(8, 4, generator=generator)
+    env_tasks = torch.tensor([0, 1, 0, 1])
+    out = normalize_per_task(advantages, env_tasks)
+    order = torch.tensor([3, 0, 2, 1])
+    torch.testing.assert_close(normalize_per_task(advantages[:, order], env_tasks[order]), out[:, order])
+    scaled = advantages * torch.tensor([10.0, 0.1, 10.0, 0.1]) + torch.tensor([3.0, -2.0, 3.0, -2.0])
+    torch.testing.assert_close(normalize_per_task(scaled, env_tasks), out, rtol=1e-4, atol=1e-4)
+
+
+def test_per_task_normalisation_names_bad_shapes():
+    with pytest.raises(ValueError, match=r"env_tasks must be \[N\]=\(4,\)"):
+        normalize_per_task(torch.zeros(3, 4), torch.zeros(3, dtype=torch.long))
+    with pytest.raises(ValueError, match="mask must have the advantages' shape"):
+        normalize_per_task(torch.zeros(3, 4), torch.zeros(4, dtype=torch.long), torch.ones(3, 5, dtype=torch.bool))
