@@ -12,7 +12,7 @@ workers run with) before it sleeps in the kernel. An update is thousands of shor
 so the helper thread is put to sleep and woken between nearly every pair of them.
 
 Two processes, each with the actor's OpenMP settings (``OMP_WAIT_POLICY=PASSIVE`` from
-``runtime.cluster``, ``GOMP_SPINCOUNT`` from ``embodied_actor.actor_process_env``) and every core:
+``runtime.cluster``, ``GOMP_SPINCOUNT`` from ``utils.threads.spin_wait_env``) and every core:
 
   one_team:  build the CNN policy and run ``ppo_update`` on one worker thread (how a Worker rank
              computes now: constructor and methods on its compute thread);
@@ -164,10 +164,10 @@ def _beside_idle_ray(command: list[str], env: dict) -> subprocess.CompletedProce
 
 
 def _child_env() -> dict:
-    from infinirl.components.embodied_actor import actor_process_env
     from infinirl.runtime.cluster import WORKER_ENV_DEFAULTS
+    from infinirl.utils.threads import spin_wait_env
 
-    env = {**os.environ, **WORKER_ENV_DEFAULTS, **actor_process_env(0)}
+    env = {**os.environ, **WORKER_ENV_DEFAULTS, **spin_wait_env(0)}
     env["PYTHONPATH"] = os.pathsep.join(p for p in (REPO_ROOT, env.get("PYTHONPATH")) if p)
     return env
 

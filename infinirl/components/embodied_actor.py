@@ -36,20 +36,8 @@ from infinirl.runtime import WeightSource, Worker
 from infinirl.utils.memory import peak_memory_bytes
 from infinirl.utils.threads import limit_threads
 
-__all__ = ["EmbodiedActorWorker", "PPOSpec", "actor_process_env", "minibatch_order_generator", "ppo_minibatch_loss",
+__all__ = ["EmbodiedActorWorker", "PPOSpec", "minibatch_order_generator", "ppo_minibatch_loss",
            "ppo_objective", "ppo_update"]
-
-
-def actor_process_env(num_threads: int) -> dict[str, str]:
-    """Environment variables an actor rank's process starts with, for ``actor.num_threads``.
-
-    Every worker waits passively in OpenMP (``OMP_WAIT_POLICY=PASSIVE``, see runtime.cluster): a
-    thread that finishes a parallel region sleeps at once, so idle processes give the cores back.
-    An actor with several threads runs the update's small kernels back to back, and waking a
-    sleeping thread for each costs more than the kernel: let its threads spin ~3 ms first
-    (``GOMP_SPINCOUNT``, libgomp's own default when no policy is set), then sleep. Read once, when
-    torch loads OpenMP: hence set from the process's start."""
-    return {} if num_threads == 1 else {"GOMP_SPINCOUNT": "300000"}
 
 
 _CHECKPOINT = "actor.pt"

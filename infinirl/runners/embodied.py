@@ -45,7 +45,7 @@ import torch
 from infinirl.algorithms import EnvAdvantageInputs, compute_advantages, normalize_per_task
 from infinirl.algorithms.embodied_ppo import PPOSpec, critic_parameter_ids
 from infinirl.components.demo_anchor import DemoAnchor, DemoAnchorSpec
-from infinirl.components.embodied_actor import EmbodiedActorWorker, actor_process_env
+from infinirl.components.embodied_actor import EmbodiedActorWorker
 from infinirl.components.embodied_policy import ReturnNormalizer, critic_lr_of
 from infinirl.components.embodied_rollout import EmbodiedRolloutWorker, PolicySpec, merge_task_success
 from infinirl.components.env_worker import (
@@ -74,6 +74,7 @@ from infinirl.runners.sim_config import check_env_options, episode_metrics, eval
 from infinirl.runtime import sync_weights
 from infinirl.runtime.placement import place, resized_spec
 from infinirl.runtime.scaling import BusyRatioPolicy, ScaleCommands
+from infinirl.utils.threads import spin_wait_env
 
 
 @register_runner("embodied", EmbodiedConfig, "PPO / embodied GRPO for robot policies in vectorised simulators "
@@ -82,6 +83,8 @@ def run(cfg: EmbodiedConfig) -> dict:
     with RunLoop(cfg, run_start_time()) as loop:
         observation_spec, action_space, policy_spec = _check_env_and_policy(cfg)
         ppo = ppo_spec(cfg)
+
+        process_env = worker_process_env(cfg)
 
         def launches(plan) -> dict:
             host_env, env_spec = _layout(cfg, plan)
@@ -92,11 +95,11 @@ def run(cfg: EmbodiedConfig) -> dict:
             launched = {
                 "rollout": (EmbodiedRolloutWorker, (env_spec, policy_spec, observation_spec, action_space, cfg.seed,
                                                     host_env, cfg.rollout.num_threads, cfg.rollout.compile,
-                                                    cfg.rollout.device)),
+                                                    cfg.rollout.device), process_env["rollout"]),
                 "actor": (EmbodiedActorWorker, (policy_spec, observation_spec, action_space, ppo,
                                                 cfg.actor.num_threads, cfg.actor.device, cfg.actor.lora,
                                                 anchor_spec(cfg)),
-                          actor_process_env(cfg.actor.num_threads)),
+                          process_env["actor"]),
             }
             if not host_env:
                 launched["env"] = (EnvWorker, (env_spec, cfg.rollout.num_threads, plan.world_size("rollout")))
@@ -143,6 +146,13 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
     if cfg.algorithm.bc.data is not None:
         _check_bc_anchor(cfg, policy)
     return observation_spec, action_space, policy_spec
+
+
+def worker_process_env(cfg: EmbodiedConfig) -> dict[str, dict[str, str]]:
+    """The environment variables the rollout and actor ranks' processes start with: OpenMP spins
+    briefly in a rank that computes with several threads (``spin_wait_env``; measured on the VLA
+    demos' acting by ``benchmarks/omp_wait.py``)."""
+    return {"rollout": spin_wait_env(cfg.rollout.num_threads), "actor": spin_wait_env(cfg.actor.num_threads)}
 
 
 def anchor_spec(cfg: EmbodiedConfig) -> DemoAnchorSpec | None:

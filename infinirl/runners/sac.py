@@ -37,6 +37,7 @@ from infinirl.runners.sac_config import SACConfig
 from infinirl.runners.sim_config import check_env_options, episode_metrics, eval_seeds
 from infinirl.runtime import sync_weights
 from infinirl.utils import torch_save_atomic
+from infinirl.utils.threads import spin_wait_env
 
 _PENDING = "pending_batch.pt"  # with collect_ahead: the next iteration's batch, collected before the save
 
@@ -59,8 +60,9 @@ def run(cfg: SACConfig) -> dict:
                                seed=cfg.seed)
         launches = {
             "learner": (SACLearnerWorker, (net, update, obs_dim, action_space, cfg.learner.num_threads,
-                                           cfg.learner.device)),
-            "collector": (SACCollectorWorker, (env, net, obs_dim, action_space, cfg.seed, cfg.collector.num_threads)),
+                                           cfg.learner.device), spin_wait_env(cfg.learner.num_threads)),
+            "collector": (SACCollectorWorker, (env, net, obs_dim, action_space, cfg.seed, cfg.collector.num_threads),
+                          spin_wait_env(cfg.collector.num_threads)),
         }
         return run_components(cfg, loop, lambda plan: launches,
                               lambda groups, plan: SACFlow(cfg, groups["collector"], groups["learner"]))

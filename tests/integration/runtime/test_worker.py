@@ -137,7 +137,7 @@ def test_sync_methods_run_on_the_compute_thread_and_async_ones_do_not(ray_cluste
 
 
 def test_launch_env_vars_are_set_from_the_process_start(ray_cluster):
-    """What OpenMP reads when torch loads (actor_process_env) must be there before any import."""
+    """What OpenMP reads when torch loads (spin_wait_env) must be there before any import."""
     group = WorkerGroup.launch(Echo, "env_at_start", num_ranks=1, env_vars={"GOMP_SPINCOUNT": "12345"})
     try:
         start = group.initial_environ().wait()[0]
