@@ -57,6 +57,7 @@ from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
 from infinirl.runners.run_support import run_components, run_start_time
 from infinirl.runtime import Channel, Tracer, sync_weights
+from infinirl.utils.threads import spin_wait_env
 
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
 # reference (KL), and the critic's values and regression targets.
@@ -114,7 +115,18 @@ def _launches(cfg: ReasoningConfig) -> dict:
         "critic": (CriticWorker, (cfg.critic_model_path, cfg.critic, cfg.critic.value_clip, cfg.num_threads)),
         "reference": (ReferenceWorker, (cfg.model.path, _reference_engine(cfg), cfg.num_threads)),
     }
-    return {name: specs[name] for name in cfg.components()}
+    spins = worker_process_env(cfg)
+    return {name: (*specs[name], spins[name]) for name in cfg.components()}
+
+
+def worker_process_env(cfg: ReasoningConfig) -> dict[str, dict[str, str]]:
+    """Per component, the environment variables its processes start with: OpenMP spins briefly in
+    a rank that computes with several threads (``spin_wait_env``): generation and the update are
+    thousands of short parallel regions each, and under the workers' passive waiting every one of
+    them would wake a sleeping helper thread."""
+    rollout_threads = cfg.rollout.num_threads or cfg.num_threads
+    return {"actor": spin_wait_env(cfg.num_threads), "rollout": spin_wait_env(rollout_threads),
+            "reward": {}, "critic": spin_wait_env(cfg.num_threads), "reference": spin_wait_env(cfg.num_threads)}
 
 
 def _reference_engine(cfg: ReasoningConfig):

@@ -27,3 +27,15 @@ def test_embodied_rollout_and_actor_ranks_spin_by_their_own_threads():
     env = worker_process_env(cfg)
     assert env["rollout"] == {"GOMP_SPINCOUNT": "300000"}  # the VLA demos act with two threads
     assert env["actor"] == {}
+
+
+def test_reasoning_ranks_spin_by_their_own_threads():
+    from infinirl.runners.reasoning import worker_process_env
+    from infinirl.runners.reasoning_config import ReasoningConfig
+
+    spins = {"GOMP_SPINCOUNT": "300000"}
+    default = worker_process_env(to_dataclass(ReasoningConfig, {}))  # num_threads 0: every core
+    assert default["actor"] == default["rollout"] == default["reference"] == spins
+    assert default["reward"] == {}  # verifiers run no parallel torch
+    one = worker_process_env(to_dataclass(ReasoningConfig, {"num_threads": 1, "rollout": {"num_threads": 2}}))
+    assert one["actor"] == one["critic"] == {} and one["rollout"] == spins
