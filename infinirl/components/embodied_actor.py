@@ -111,6 +111,7 @@ class EmbodiedActorWorker(Worker, WeightSource):
         ``time/actor_update_s`` is the PPO update alone (this rank): the runner's ``time/train_s``
         also holds the advantages, moving the batch here and waiting for the slowest rank."""
         batch = _to_tensor(batch, self.compute)
+        self.model.fit_input_stats(batch.get("extras"))  # every rank sees the whole batch: the same statistics
         start = time.perf_counter()
         metrics = ppo_update(self.model, self.optimizer, batch, iteration, self.ppo, self.rank, self.world_size,
                              self._reduce_gradients, self.anchor)

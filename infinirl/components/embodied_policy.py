@@ -152,6 +152,14 @@ class NormalizedPolicy(nn.Module):
         return out.logprobs, out.entropy, out.values
 
     @torch.no_grad()
+    def fit_input_stats(self, extras: Mapping[str, torch.Tensor] | None) -> None:
+        """Lets a policy that standardises inputs of its own (the residual VLA's
+        ``residual_input_norm``) fit them on a training batch's ``extras``, before the update."""
+        fit = getattr(self.policy, "fit_input_stats", None)
+        if fit is not None:
+            fit(extras)
+
+    @torch.no_grad()
     def update_obs_stats(self, obs: Mapping[str, torch.Tensor]) -> None:
         for key in self.keys:
             self.obs_rms[key].update(obs[key])

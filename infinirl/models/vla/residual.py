@@ -15,6 +15,10 @@ directly, close to the cloned behaviour:
 * the action is ``b(s) + r``; ``f`` and the critic read the VLA's features (mean prefix hidden
   state, normalised state) and the base chunk, which travel with the batch (``extras``): the
   trainer's update runs the two MLPs only, never the VLA;
+* with ``residual_input_norm``, those inputs are standardised per dimension with the mean and std
+  of the first batch the trainer sees (then fixed: buffers, saved and synced with the weights). The
+  VLA's pooled features vary mostly between tasks; what tells one layout of a task from another
+  (where the button is) is a direction of small variance that a raw MLP is slow to pick up;
 * with ``residual_pixels``, ``f`` and the critic each also read the camera frame through a small
   CNN of their own (trained by PPO, the critic's at the value rate): the VLA's pooled features keep
   little of where things are, which a correction of the hand's motion may need. The frame is the
@@ -32,6 +36,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from infinirl.components.embodied_policy import RunningMeanStd
 from infinirl.models.policies.base import POLICIES, PolicyEval, PolicyStep
 from infinirl.models.policies.heads import gaussian_entropy
 from infinirl.models.policies.mlp import gaussian_logprob
@@ -40,6 +45,9 @@ from infinirl.models.vla.frozen import FrozenVLA, mlp
 from infinirl.models.vla.policy import PiZeroFivePolicy, PiZeroPolicy, PiZeroSmolLM2Policy
 
 __all__ = ["PiZeroFiveResidualPolicy", "PiZeroResidualPolicy", "PiZeroSmolLM2ResidualPolicy", "ResidualCorrection"]
+
+
+_INPUT_CLIP = 10.0  # standardised inputs beyond 10 std are clipped, as the observation normaliser does
 
 
 def _frame_encoder(size: int, width: int) -> PixelEncoder:
@@ -66,6 +74,8 @@ class ResidualCorrection(FrozenVLA):
         residual_pixels: the residual policy and the critic also read the first camera's frames
             through CNNs of their own (:class:`~infinirl.models.sac_encoders.PixelEncoder`,
             ``pixel_features`` wide, frames resized to ``pixel_size``).
+        residual_input_norm: standardise the MLPs' inputs (features and base chunk) with the first
+            training batch's statistics (:meth:`fit_input_stats`).
         critic_obs: an observation field the critic alone also reads (:class:`FrozenVLA`);
             ``critic_obs_dim`` its size (filled from the env's spec by the embodied runner).
     """
@@ -74,12 +84,13 @@ class ResidualCorrection(FrozenVLA):
 
     def __init__(self, *args, residual_hidden: Sequence[int] = (256, 256), residual_std: float = 0.2,
                  residual_bound: float = 1.0, residual_pixels: bool = False, pixel_features: int = 64,
-                 pixel_size: int = 64, critic_obs: str | None = None, critic_obs_dim: int | None = None,
-                 value_head: bool = True, **kwargs):
+                 pixel_size: int = 64, residual_input_norm: bool = False, critic_obs: str | None = None,
+                 critic_obs_dim: int | None = None, value_head: bool = True, **kwargs):
         if residual_std <= 0 or residual_bound <= 0:
             raise ValueError(f"residual_std and residual_bound must be > 0, got {residual_std} and {residual_bound}")
         super().__init__(*args, value_head=False, **kwargs)
         features = self._freeze() + self.chunk * self.action_dim
+        self.input_rms = RunningMeanStd((features,)) if residual_input_norm else None
         self.pixel_key = next(iter(self.cameras)) if residual_pixels else None
         self.residual_encoder = self.value_encoder = None
         if residual_pixels:
@@ -104,7 +115,30 @@ class ResidualCorrection(FrozenVLA):
         base = self.decode(x, prefix, noise)
         return base, torch.cat([features, base.reshape(len(base), -1)], dim=-1)
 
+    @torch.no_grad()
+    def fit_input_stats(self, extras) -> None:
+        """With ``residual_input_norm``: the first call sets the inputs' standardisation from
+        ``extras['features']`` (a training batch's); later calls keep it. Until then the inputs pass
+        unchanged, which the zero-initialised output layer makes harmless: the residual's mean is 0
+        either way."""
+        if self.input_rms is None or float(self.input_rms.count) >= 1.0:
+            return
+        if not extras or "features" not in extras:
+            raise ValueError("residual_input_norm fits its statistics on extras['features'] from act(), which the "
+                             "batch lacks")
+        features = torch.as_tensor(extras["features"]).to(self.input_rms.mean.device, torch.float64)
+        features = features.reshape(-1, self.input_rms.mean.shape[0])
+        self.input_rms.mean.copy_(features.mean(0))
+        self.input_rms.var.copy_(features.var(0, unbiased=False))
+        self.input_rms.count.fill_(float(len(features)))
+
+    def _normalized(self, inputs: torch.Tensor) -> torch.Tensor:
+        if self.input_rms is None or float(self.input_rms.count) < 1.0:
+            return inputs
+        return self.input_rms.normalize(inputs, _INPUT_CLIP).to(inputs.device)
+
     def _with_pixels(self, inputs: torch.Tensor, obs, encoder: nn.Module | None) -> torch.Tensor:
+        inputs = self._normalized(inputs)
         if encoder is None:
             return inputs
         if obs is None or self.pixel_key not in obs:

@@ -88,6 +88,47 @@ def test_with_pixels_cnns_of_their_own_read_the_frames_and_train(checkpoint):
         residual.evaluate({}, step.actions, step.extras)
 
 
+def test_input_norm_standardises_with_the_first_training_batch_then_keeps_it(checkpoint):
+    """``residual_input_norm``: until the trainer fits it the inputs pass unchanged (the zero output
+    layer makes the start the VLA's either way); the first batch's ``extras['features']`` set the
+    per-dimension mean and std (float64 reference), later batches do not move them, the statistics
+    are buffers (saved and synced with the weights), and the MLPs read the standardised inputs."""
+    residual, plain = policy(checkpoint, residual_input_norm=True), policy(checkpoint)
+    obs = observations()
+    first = residual.act(obs)
+    torch.testing.assert_close(residual.act(obs, deterministic=True).actions,
+                               plain.act(obs, deterministic=True).actions, rtol=0, atol=1e-6)
+    model = NormalizedPolicy(residual, {}, 10.0)
+    model.fit_input_stats(first.extras)
+    features = first.extras["features"].double()
+    torch.testing.assert_close(residual.input_rms.mean, features.mean(0), rtol=0, atol=1e-9)
+    torch.testing.assert_close(residual.input_rms.var, features.var(0, unbiased=False), rtol=1e-6, atol=1e-9)
+    model.fit_input_stats({"features": first.extras["features"] + 5.0})
+    torch.testing.assert_close(residual.input_rms.mean, features.mean(0), rtol=0, atol=1e-9)
+    assert {"input_rms.mean", "input_rms.var", "input_rms.count"} <= set(residual.state_dict())
+    torch.testing.assert_close(residual.act(obs, deterministic=True).actions,
+                               plain.act(obs, deterministic=True).actions, rtol=0, atol=1e-6)
+
+    with torch.no_grad():
+        residual.residual_net[-1].weight.normal_(0.0, 0.1)
+    step = residual.act(obs)
+    standardised = ((features - features.mean(0)) / (features.var(0, unbiased=False) + 1e-8).sqrt()).clamp(-10, 10)
+    raw = residual.residual_net.double()(standardised).reshape(BATCH, 2, 4)
+    residual.float()
+    mean = residual.residual_bound * torch.tanh(raw / residual.residual_bound)
+    normal = torch.distributions.Normal(mean, residual.residual_log_std.double().exp())
+    torch.testing.assert_close(step.logprobs.double(), normal.log_prob(step.extras["residual"].double()).sum(-1),
+                               rtol=1e-5, atol=1e-4)
+    evaluated = residual.evaluate({}, step.actions, step.extras)
+    torch.testing.assert_close(evaluated.logprobs, step.logprobs, rtol=0, atol=1e-5)
+
+    unfitted = policy(checkpoint, residual_input_norm=True)
+    with pytest.raises(ValueError, match=r"residual_input_norm fits its statistics on extras\['features'\]"):
+        unfitted.fit_input_stats({"residual": first.extras["residual"]})
+    NormalizedPolicy(plain, {}, 10.0).fit_input_stats(first.extras)  # a policy without input statistics: no-op
+    assert plain.input_rms is None
+
+
 def test_only_the_residual_policy_and_the_critic_train(checkpoint):
     residual = policy(checkpoint)
     trainable = {name.split(".")[0] for name, p in residual.named_parameters() if p.requires_grad}
