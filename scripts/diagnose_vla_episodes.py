@@ -1,0 +1,137 @@
+"""Where a MetaWorld policy's hand ends against where the task's object is, episode by episode.
+
+A policy that fails some layouts of a task and solves others may ignore where the object is and
+replay one motion (a behaviour-cloned VLA from few demonstrations does). This runs a trained
+embodied run's policy (its ``config.json`` and latest checkpoint; ``--untrained`` for the policy as
+the run built it, e.g. a frozen VLA's noise-free start) noise-free on held-out layouts of one task,
+and prints per episode the object's start position, the hand's end position and the outcome, then
+how much the hand's end follows the object: the least-squares slope of the hand's end x (y) on the
+object's x (y) over the episodes, 1 where it goes where the object is, 0 where it ignores it.
+
+    python scripts/diagnose_vla_episodes.py runs/ppo_vla_metaworld_residual --task button-press-topdown-v3
+    python scripts/diagnose_vla_episodes.py runs/ppo_vla_metaworld_residual --task button-press-topdown-v3 --untrained
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+import torch
+
+# MetaWorld's observation vector: the hand's position, the gripper's opening, the first object's position
+_HAND, _OBJECT = slice(0, 3), slice(4, 7)
+
+
+def _fail(message: str) -> None:
+    sys.exit(f"diagnose_vla_episodes: {message}")
+
+
+def load_run(run_dir: str, untrained: bool):
+    """The run's config and its policy (weights of the latest checkpoint unless ``untrained``)."""
+    from infinirl.components.embodied_policy import build_embodied_policy
+    from infinirl.envs.registry import make_env
+
+    path = os.path.join(run_dir, "config.json")
+    if not os.path.isfile(path):
+        _fail(f"{path} not found: give the output_dir of an embodied run (infinirl train ...)")
+    cfg = json.load(open(path))
+    if cfg.get("runner") != "embodied" or not cfg["env"]["name"].startswith("metaworld"):
+        _fail(f"{path} is not an embodied MetaWorld run (runner {cfg.get('runner')!r}, env {cfg['env']['name']!r})")
+    probe = make_env(cfg["env"]["name"], 1, **cfg["env"].get("kwargs", {}))
+    try:
+        spec, space = probe.observation_spec, probe.action_space
+    finally:
+        probe.close()
+    pol = cfg["policy"]
+    model = build_embodied_policy(pol["name"], pol.get("kwargs", {}), spec, space, pol.get("chunk", 1),
+                                  pol.get("normalize_obs", False), pol.get("normalize_keys"), pol.get("obs_clip", 10.0))
+    if not untrained:
+        root = os.path.join(run_dir, "checkpoints")
+        steps = sorted(d for d in os.listdir(root) if d.startswith("iter_")) if os.path.isdir(root) else []
+        if not steps:
+            _fail(f"no checkpoint under {root}: the run saved none (save_every), or pass --untrained")
+        state = torch.load(os.path.join(root, steps[-1], "actor", "actor.pt"), map_location="cpu", weights_only=False)
+        model.load_state_dict(state["model"])
+        print(f"weights: {os.path.join(root, steps[-1])}")
+    return cfg, model.eval()
+
+
+def _rounded(vector: np.ndarray) -> list[float]:
+    return [round(float(v), 3) for v in vector]
+
+
+def run_episode(env, model, seed: int, max_steps: int) -> dict:
+    obs = env.reset(seed=seed)
+    start = obs["state"].copy()
+    hands, steps, success = [], 0, False
+    while steps < max_steps and not success:
+        batch = {key: (torch.as_tensor(value)[None] if isinstance(value, np.ndarray) else [value])
+                 for key, value in obs.items()}
+        with torch.no_grad():
+            chunk = model.act(batch, deterministic=True).actions[0].reshape(model.chunk, -1).numpy()
+        for action in chunk:
+            step = env.step(action)
+            obs, steps = step.obs, steps + 1
+            hands.append(obs["state"][_HAND].copy())
+            if step.success or step.truncated or step.terminated or steps >= max_steps:
+                success = success or step.success
+                break
+        if step.truncated or step.terminated:
+            break
+    objects = obs["state"][_OBJECT]
+    return {"seed": seed, "success": bool(success), "steps": steps, "object_start": _rounded(start[_OBJECT]),
+            "hand_end": _rounded(hands[-1]),
+            "closest_hand_object_m": round(float(np.linalg.norm(np.array(hands) - objects, axis=1).min()), 3)}
+
+
+def follow_slopes(rows: list[dict]) -> list[float]:
+    """Least-squares slope of the hand's end on the object's start, for x and y."""
+    objects = np.array([r["object_start"] for r in rows])
+    hands = np.array([r["hand_end"] for r in rows])
+    slopes = []
+    for axis in (0, 1):
+        spread = objects[:, axis] - objects[:, axis].mean()
+        denominator = float((spread ** 2).sum())
+        slopes.append(float((spread * (hands[:, axis] - hands[:, axis].mean())).sum() / denominator)
+                      if denominator > 0 else float("nan"))
+    return slopes
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", help="an embodied run's output_dir")
+    parser.add_argument("--task", required=True, help="one MetaWorld task of the run, e.g. button-press-topdown-v3")
+    parser.add_argument("--episodes", type=int, default=30)
+    parser.add_argument("--untrained", action="store_true", help="the policy as the run built it, no checkpoint")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args(argv)
+    if args.episodes < 2:
+        _fail(f"--episodes {args.episodes}: at least 2 (the slopes need a spread of layouts)")
+    torch.set_num_threads(args.threads)
+    from infinirl.envs.metaworld_env import MetaWorldSubEnv
+    from infinirl.runners.sim_config import EVAL_SEED_BASE
+
+    cfg, model = load_run(args.run, args.untrained)
+    tasks = cfg["env"]["name"].split(":", 1)[1].split(",")
+    if args.task not in tasks:
+        _fail(f"--task {args.task!r} is not one of the run's tasks {tasks}")
+    kwargs = {k: v for k, v in cfg["env"].get("kwargs", {}).items() if k in ("obs_mode", "image_size", "camera")}
+    env = MetaWorldSubEnv(args.task, terminate_on_success=True, **kwargs)
+    max_steps = cfg["env"].get("max_episode_steps") or 200
+    rows = []
+    for k in range(args.episodes):
+        rows.append(run_episode(env, model, EVAL_SEED_BASE + k, max_steps))
+        print(json.dumps(rows[-1]), flush=True)
+    env.close()
+    slope_x, slope_y = follow_slopes(rows)
+    success_rate = float(np.mean([r["success"] for r in rows]))
+    print(json.dumps({"task": args.task, "episodes": len(rows), "success_rate": success_rate,
+                      "hand_follows_object_x": round(slope_x, 3), "hand_follows_object_y": round(slope_y, 3)}))
+
+
+if __name__ == "__main__":
+    main()
