@@ -4,9 +4,11 @@ A policy that fails some layouts of a task and solves others may ignore where th
 replay one motion (a behaviour-cloned VLA from few demonstrations does). This runs a trained
 embodied run's policy (its ``config.json`` and latest checkpoint; ``--untrained`` for the policy as
 the run built it, e.g. a frozen VLA's noise-free start) noise-free on held-out layouts of one task,
-and prints per episode the object's start position, the hand's end position and the outcome, then
-how much the hand's end follows the object: the least-squares slope of the hand's end x (y) on the
-object's x (y) over the episodes, 1 where it goes where the object is, 0 where it ignores it.
+and prints per episode the object's start position, the hand's position after ``--at-step`` steps
+(50: before the demo's tasks are solved, so every episode is compared at the same point of its
+motion; the end would compare a solved episode's last step with a failed one's drift) and the
+outcome, then how much the hand follows the object: the least-squares slope of the hand's x (y)
+on the object's x (y) over the episodes, 1 where it goes where the object is, 0 where it ignores it.
 
     python scripts/diagnose_vla_episodes.py runs/ppo_vla_metaworld_residual --task button-press-topdown-v3
     python scripts/diagnose_vla_episodes.py runs/ppo_vla_metaworld_residual --task button-press-topdown-v3 --untrained
@@ -64,7 +66,7 @@ def _rounded(vector: np.ndarray) -> list[float]:
     return [round(float(v), 3) for v in vector]
 
 
-def run_episode(env, model, seed: int, max_steps: int) -> dict:
+def run_episode(env, model, seed: int, max_steps: int, at_step: int) -> dict:
     obs = env.reset(seed=seed)
     start = obs["state"].copy()
     hands, steps, success = [], 0, False
@@ -84,14 +86,14 @@ def run_episode(env, model, seed: int, max_steps: int) -> dict:
             break
     objects = obs["state"][_OBJECT]
     return {"seed": seed, "success": bool(success), "steps": steps, "object_start": _rounded(start[_OBJECT]),
-            "hand_end": _rounded(hands[-1]),
+            "hand": _rounded(hands[min(at_step, len(hands)) - 1]),
             "closest_hand_object_m": round(float(np.linalg.norm(np.array(hands) - objects, axis=1).min()), 3)}
 
 
 def follow_slopes(rows: list[dict]) -> list[float]:
-    """Least-squares slope of the hand's end on the object's start, for x and y."""
+    """Least-squares slope of the hand's position on the object's start, for x and y."""
     objects = np.array([r["object_start"] for r in rows])
-    hands = np.array([r["hand_end"] for r in rows])
+    hands = np.array([r["hand"] for r in rows])
     slopes = []
     for axis in (0, 1):
         spread = objects[:, axis] - objects[:, axis].mean()
@@ -107,8 +109,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--task", required=True, help="one MetaWorld task of the run, e.g. button-press-topdown-v3")
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--untrained", action="store_true", help="the policy as the run built it, no checkpoint")
+    parser.add_argument("--at-step", type=int, default=50, help="the step whose hand position is compared")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
+    if args.at_step < 1:
+        _fail(f"--at-step {args.at_step}: at least 1")
     if args.episodes < 2:
         _fail(f"--episodes {args.episodes}: at least 2 (the slopes need a spread of layouts)")
     torch.set_num_threads(args.threads)
@@ -124,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
     max_steps = cfg["env"].get("max_episode_steps") or 200
     rows = []
     for k in range(args.episodes):
-        rows.append(run_episode(env, model, EVAL_SEED_BASE + k, max_steps))
+        rows.append(run_episode(env, model, EVAL_SEED_BASE + k, max_steps, args.at_step))
         print(json.dumps(rows[-1]), flush=True)
     env.close()
     slope_x, slope_y = follow_slopes(rows)

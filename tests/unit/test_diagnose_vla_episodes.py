@@ -1,5 +1,5 @@
 """scripts/diagnose_vla_episodes.py: how much a policy's hand follows the task's object (slopes of
-its end position on the object's), and its one-line refusals of what it cannot diagnose."""
+its position on the object's), and its one-line refusals of what it cannot diagnose."""
 
 import json
 import os
@@ -14,7 +14,7 @@ from diagnose_vla_episodes import follow_slopes, main  # noqa: E402
 
 
 def rows(objects, hands):
-    return [{"object_start": list(o), "hand_end": list(h)} for o, h in zip(objects, hands)]
+    return [{"object_start": list(o), "hand": list(h)} for o, h in zip(objects, hands)]
 
 
 def test_the_slope_is_one_where_the_hand_goes_to_the_object_and_zero_where_it_ignores_it():
@@ -33,5 +33,7 @@ def test_what_it_cannot_diagnose_is_one_line(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({"runner": "reasoning", "env": {"name": "gym:Pendulum-v1"}}))
     with pytest.raises(SystemExit, match=r"is not an embodied MetaWorld run \(runner 'reasoning'"):
         main([str(tmp_path), "--task", "reach-v3"])
+    with pytest.raises(SystemExit, match=r"--at-step 0: at least 1"):
+        main([str(tmp_path), "--task", "reach-v3", "--at-step", "0"])
     with pytest.raises(SystemExit, match=r"--episodes 1: at least 2"):
         main([str(tmp_path), "--task", "reach-v3", "--episodes", "1"])
