@@ -12,6 +12,10 @@ on the object's x (y) over the episodes, 1 where it goes where the object is, 0 
 
     python scripts/diagnose_vla_episodes.py runs/ppo_vla_metaworld_residual --task button-press-topdown-v3
     python scripts/diagnose_vla_episodes.py runs/ppo_vla_metaworld_residual --task button-press-topdown-v3 --untrained
+
+``--probe N`` (a frozen VLA's policy: steered or residual) also asks whether the policy *could* know
+where the object is: a ridge regression from the VLA's features (what the small networks read) of
+``N`` freshly reset layouts to the object's x and y, its R² on a held-out quarter.
 """
 
 from __future__ import annotations
@@ -90,6 +94,39 @@ def run_episode(env, model, seed: int, max_steps: int, at_step: int) -> dict:
             "closest_hand_object_m": round(float(np.linalg.norm(np.array(hands) - objects, axis=1).min()), 3)}
 
 
+def ridge_r2(features: np.ndarray, targets: np.ndarray, penalty: float = 10.0) -> list[float]:
+    """R² per target column of a ridge regression (features standardised on the fitting rows) fitted
+    on the first three quarters of the rows and scored on the last quarter."""
+    if len(features) < 8:
+        raise ValueError(f"ridge_r2 needs at least 8 rows, got {len(features)}")
+    split = len(features) * 3 // 4
+    mean, std = features[:split].mean(0), features[:split].std(0) + 1e-6
+    x = (features - mean) / std
+    fit, held = x[:split], x[split:]
+    offset = targets[:split].mean(0)
+    # the dual form: as many unknowns as fitting rows, however wide the features
+    weights = fit.T @ np.linalg.solve(fit @ fit.T + penalty * np.eye(split), targets[:split] - offset)
+    residual = ((held @ weights + offset - targets[split:]) ** 2).sum(0)
+    spread = ((targets[split:] - targets[split:].mean(0)) ** 2).sum(0)
+    return [float(v) for v in 1.0 - residual / spread]
+
+
+def probe_features(model, env, count: int) -> list[float]:
+    """R² of the object's x and y read linearly off the frozen VLA's features at ``count`` resets."""
+    policy = model.policy
+    if not hasattr(policy, "features"):
+        _fail(f"--probe reads a frozen VLA's features; {type(policy).__name__} has none")
+    rows, objects = [], []
+    for k in range(count):
+        obs = env.reset(seed=k)
+        batch = {key: (torch.as_tensor(value)[None] if isinstance(value, np.ndarray) else [value])
+                 for key, value in obs.items()}
+        with torch.no_grad():
+            rows.append(policy.features(model.normalize(batch))[0][0].float().numpy())
+        objects.append(obs["state"][_OBJECT][:2])
+    return ridge_r2(np.array(rows, np.float64), np.array(objects, np.float64))
+
+
 def follow_slopes(rows: list[dict]) -> list[float]:
     """Least-squares slope of the hand's position on the object's start, for x and y."""
     objects = np.array([r["object_start"] for r in rows])
@@ -110,10 +147,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--untrained", action="store_true", help="the policy as the run built it, no checkpoint")
     parser.add_argument("--at-step", type=int, default=50, help="the step whose hand position is compared")
+    parser.add_argument("--probe", type=int, default=0, help="layouts for the features' ridge probe (0: none)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
     if args.at_step < 1:
         _fail(f"--at-step {args.at_step}: at least 1")
+    if args.probe and args.probe < 8:
+        _fail(f"--probe {args.probe}: at least 8 layouts (a quarter of them is held out)")
     if args.episodes < 2:
         _fail(f"--episodes {args.episodes}: at least 2 (the slopes need a spread of layouts)")
     torch.set_num_threads(args.threads)
@@ -131,11 +171,13 @@ def main(argv: list[str] | None = None) -> None:
     for k in range(args.episodes):
         rows.append(run_episode(env, model, EVAL_SEED_BASE + k, max_steps, args.at_step))
         print(json.dumps(rows[-1]), flush=True)
+    probe = probe_features(model, env, args.probe) if args.probe else None
     env.close()
     slope_x, slope_y = follow_slopes(rows)
     success_rate = float(np.mean([r["success"] for r in rows]))
     print(json.dumps({"task": args.task, "episodes": len(rows), "success_rate": success_rate,
-                      "hand_follows_object_x": round(slope_x, 3), "hand_follows_object_y": round(slope_y, 3)}))
+                      "hand_follows_object_x": round(slope_x, 3), "hand_follows_object_y": round(slope_y, 3),
+                      **({"features_probe_r2_xy": [round(v, 3) for v in probe]} if probe else {})}))
 
 
 if __name__ == "__main__":

@@ -11,6 +11,8 @@ import pytest
 
 pytest.importorskip("metaworld")
 
+import torch  # noqa: E402
+
 from infinirl.cli import build_config  # noqa: E402
 from infinirl.config import ConfigError, to_dataclass  # noqa: E402
 from infinirl.models.vla import save_vla  # noqa: E402
@@ -140,6 +142,28 @@ def test_a_frozen_vla_steered_or_corrected_trains_end_to_end(ray_cluster, tmp_pa
     assert first["train/grad_norm_policy"] == 0.0 and first["train/grad_norm_critic"] > 0.0
     assert second["train/grad_norm_policy"] > 0.0 and second["train/approx_kl"] != 0.0
     assert result["actor_weights_sha256"]
+
+
+def test_the_residuals_input_standardisation_is_fitted_on_the_first_batch_and_reaches_the_rollout(
+        ray_cluster, tmp_path, checkpoint):
+    """``residual_input_norm``: the trainer fits the statistics on its first batch (2 envs x 3
+    decisions) and keeps them; they travel with the weights, so once the residual trains (iteration
+    3, after the critic's warm-up and a first policy update) the rollout's log-probs still agree
+    with the trainer's."""
+    policy = frozen_policy(checkpoint, "residual")
+    policy["kwargs"]["residual_input_norm"] = True
+    cfg = make_cfg(tmp_path / "norm", checkpoint, policy=policy, iterations=3,
+                   actor={"anneal_lr": False, "lr": 1e-3, "value_lr": 1e-2},
+                   algorithm={"epochs": 2, "mini_batches": 2, "critic_warmup": 1})
+    run(cfg)
+    rows = [json.loads(line) for line in (tmp_path / "norm" / "metrics.jsonl").read_text().splitlines()]
+    trained = [r for r in rows if "train/approx_kl" in r]
+    assert len(trained) == 3 and trained[1]["train/approx_kl"] != 0.0
+    assert all(r["train/logprob_mismatch"] < 1e-5 for r in trained)
+    model = torch.load(tmp_path / "norm" / "checkpoints" / "iter_000003" / "actor" / "actor.pt",
+                       map_location="cpu", weights_only=False)["model"]
+    assert float(model["policy.input_rms.count"]) == 6.0
+    assert float(model["policy.input_rms.var"].min()) >= 0.0 and bool(model["policy.input_rms.mean"].abs().sum() > 0)
 
 
 @pytest.mark.parametrize("form", ["steered", "residual"])

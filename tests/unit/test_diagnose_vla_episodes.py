@@ -5,12 +5,13 @@ import json
 import os
 import sys
 
+import numpy as np
 import pytest
 
 SCRIPTS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "scripts")
 sys.path.insert(0, SCRIPTS)
 
-from diagnose_vla_episodes import follow_slopes, main  # noqa: E402
+from diagnose_vla_episodes import follow_slopes, main, ridge_r2  # noqa: E402
 
 
 def rows(objects, hands):
@@ -27,6 +28,17 @@ def test_the_slope_is_one_where_the_hand_goes_to_the_object_and_zero_where_it_ig
     assert follow_slopes(rows(objects, half)) == pytest.approx([0.5, 0.0])
 
 
+def test_the_ridge_probe_reads_a_linear_target_and_not_noise():
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(200, 50))
+    readable = features[:, :2] @ np.array([[1.0, 0.5], [-0.3, 2.0]])
+    noise = rng.normal(size=(200, 2))
+    assert min(ridge_r2(features, readable, penalty=1e-3)) > 0.99
+    assert max(ridge_r2(features, noise, penalty=1e-3)) < 0.2
+    with pytest.raises(ValueError, match="at least 8 rows"):
+        ridge_r2(features[:5], readable[:5])
+
+
 def test_what_it_cannot_diagnose_is_one_line(tmp_path):
     with pytest.raises(SystemExit, match=r"config.json not found: give the output_dir of an embodied run"):
         main([str(tmp_path), "--task", "reach-v3"])
@@ -35,5 +47,7 @@ def test_what_it_cannot_diagnose_is_one_line(tmp_path):
         main([str(tmp_path), "--task", "reach-v3"])
     with pytest.raises(SystemExit, match=r"--at-step 0: at least 1"):
         main([str(tmp_path), "--task", "reach-v3", "--at-step", "0"])
+    with pytest.raises(SystemExit, match=r"--probe 4: at least 8 layouts"):
+        main([str(tmp_path), "--task", "reach-v3", "--probe", "4"])
     with pytest.raises(SystemExit, match=r"--episodes 1: at least 2"):
         main([str(tmp_path), "--task", "reach-v3", "--episodes", "1"])
