@@ -36,17 +36,22 @@ def _fail(message: str) -> None:
     sys.exit(f"diagnose_vla_episodes: {message}")
 
 
-def load_run(run_dir: str, untrained: bool):
-    """The run's config and its policy (weights of the latest checkpoint unless ``untrained``)."""
-    from infinirl.components.embodied_policy import build_embodied_policy
-    from infinirl.envs.registry import make_env
-
+def read_config(run_dir: str) -> dict:
+    """The run's ``config.json``; a one-line exit unless it is an embodied MetaWorld run."""
     path = os.path.join(run_dir, "config.json")
     if not os.path.isfile(path):
         _fail(f"{path} not found: give the output_dir of an embodied run (infinirl train ...)")
     cfg = json.load(open(path))
     if cfg.get("runner") != "embodied" or not cfg["env"]["name"].startswith("metaworld"):
         _fail(f"{path} is not an embodied MetaWorld run (runner {cfg.get('runner')!r}, env {cfg['env']['name']!r})")
+    return cfg
+
+
+def load_policy(cfg: dict, run_dir: str, untrained: bool):
+    """The run's policy (weights of the latest checkpoint unless ``untrained``)."""
+    from infinirl.components.embodied_policy import build_embodied_policy
+    from infinirl.envs.registry import make_env
+
     probe = make_env(cfg["env"]["name"], 1, **cfg["env"].get("kwargs", {}))
     try:
         spec, space = probe.observation_spec, probe.action_space
@@ -63,7 +68,7 @@ def load_run(run_dir: str, untrained: bool):
         state = torch.load(os.path.join(root, steps[-1], "actor", "actor.pt"), map_location="cpu", weights_only=False)
         model.load_state_dict(state["model"])
         print(f"weights: {os.path.join(root, steps[-1])}")
-    return cfg, model.eval()
+    return model.eval()
 
 
 def _rounded(vector: np.ndarray) -> list[float]:
@@ -160,10 +165,11 @@ def main(argv: list[str] | None = None) -> None:
     from infinirl.envs.metaworld_env import MetaWorldSubEnv
     from infinirl.runners.sim_config import EVAL_SEED_BASE
 
-    cfg, model = load_run(args.run, args.untrained)
+    cfg = read_config(args.run)
     tasks = cfg["env"]["name"].split(":", 1)[1].split(",")
     if args.task not in tasks:
         _fail(f"--task {args.task!r} is not one of the run's tasks {tasks}")
+    model = load_policy(cfg, args.run, args.untrained)
     kwargs = {k: v for k, v in cfg["env"].get("kwargs", {}).items() if k in ("obs_mode", "image_size", "camera")}
     env = MetaWorldSubEnv(args.task, terminate_on_success=True, **kwargs)
     max_steps = cfg["env"].get("max_episode_steps") or 200

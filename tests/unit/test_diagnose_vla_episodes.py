@@ -45,6 +45,9 @@ def test_what_it_cannot_diagnose_is_one_line(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({"runner": "reasoning", "env": {"name": "gym:Pendulum-v1"}}))
     with pytest.raises(SystemExit, match=r"is not an embodied MetaWorld run \(runner 'reasoning'"):
         main([str(tmp_path), "--task", "reach-v3"])
+    (tmp_path / "config.json").write_text(json.dumps({"runner": "embodied", "env": {"name": "metaworld:reach-v3"}}))
+    with pytest.raises(SystemExit, match=r"--task 'push-v3' is not one of the run's tasks \['reach-v3'\]"):
+        main([str(tmp_path), "--task", "push-v3"])
     with pytest.raises(SystemExit, match=r"--at-step 0: at least 1"):
         main([str(tmp_path), "--task", "reach-v3", "--at-step", "0"])
     with pytest.raises(SystemExit, match=r"--probe 4: at least 8 layouts"):
