@@ -71,6 +71,12 @@ def load_policy(cfg: dict, run_dir: str, untrained: bool):
     return model.eval()
 
 
+def _one_env_batch(obs: dict) -> dict:
+    """One env's observation as a batch of one: arrays gain a leading axis, the instruction a list."""
+    return {key: (torch.as_tensor(value)[None] if isinstance(value, np.ndarray) else [value])
+            for key, value in obs.items()}
+
+
 def _rounded(vector: np.ndarray) -> list[float]:
     return [round(float(v), 3) for v in vector]
 
@@ -80,8 +86,7 @@ def run_episode(env, model, seed: int, max_steps: int, at_step: int) -> dict:
     start = obs["state"].copy()
     hands, steps, success = [], 0, False
     while steps < max_steps and not success:
-        batch = {key: (torch.as_tensor(value)[None] if isinstance(value, np.ndarray) else [value])
-                 for key, value in obs.items()}
+        batch = _one_env_batch(obs)
         with torch.no_grad():
             chunk = model.act(batch, deterministic=True).actions[0].reshape(model.chunk, -1).numpy()
         for action in chunk:
@@ -124,8 +129,7 @@ def probe_features(model, env, count: int) -> list[float]:
     rows, objects = [], []
     for k in range(count):
         obs = env.reset(seed=k)
-        batch = {key: (torch.as_tensor(value)[None] if isinstance(value, np.ndarray) else [value])
-                 for key, value in obs.items()}
+        batch = _one_env_batch(obs)
         with torch.no_grad():
             rows.append(policy.features(model.normalize(batch))[0][0].float().numpy())
         objects.append(obs["state"][_OBJECT][:2])
