@@ -124,6 +124,13 @@ class NormalizedPolicy(nn.Module):
             out[key] = self.obs_rms[key].normalize(obs[key], self.clip)
         return out
 
+    @property
+    def held_noise_every(self) -> int:
+        return int(getattr(self.policy, "held_noise_every", 0))
+
+    def hold_noise(self, seed: int) -> None:
+        self.policy.hold_noise(seed)
+
     def act(self, obs, deterministic: bool = False) -> PolicyStep:
         return self.policy.act(self.normalize(obs), deterministic=deterministic)
 

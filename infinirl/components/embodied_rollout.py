@@ -86,6 +86,12 @@ def _sampling_generator(device: torch.device) -> torch.Generator:
     return torch.default_generator
 
 
+def _held_noise_seed(stage_seed: int, window: int) -> int:
+    """The seed of a stage's held exploration noise (:attr:`Policy.held_noise_every`) in one window
+    of decisions: the same for every decision of the window, whatever order stages are served in."""
+    return int(np.random.default_rng([stage_seed, window, 0x401D]).integers(2**62))
+
+
 def host(tensor: torch.Tensor) -> np.ndarray:
     """A policy output (no grad) as a numpy array, copied off the GPU when the policy runs there."""
     return (tensor if tensor.device.type == "cpu" else tensor.cpu()).numpy()
@@ -327,7 +333,8 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         (``_RemoteEndpoint.ready``): a stage whose simulation finished first is not kept waiting
         behind a slower one. The order of service does not change what is
         collected: each decision draws its noise from a seed of its own stage and step
-        (:meth:`_decision_seeds`), and each stage records into its own buffer."""
+        (:meth:`_decision_seeds`; its held part, if any, from one of its stage and window),
+        and each stage records into its own buffer."""
         chunk = self.policy.chunk
         stages = endpoint.num_stages
         buffers = [_StageBuffer() for _ in range(stages)]
@@ -335,6 +342,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
         running = [_RunningEpisodes() for _ in range(stages)]
         seeds = self._decision_seeds(iteration, stages)
         generator = _sampling_generator(module_device(self.policy))
+        held_every = int(getattr(self.policy, "held_noise_every", 0))  # a policy holding part of its noise
         steps_done = [0] * stages
         active = list(range(stages))
         restarted = 0
@@ -364,6 +372,8 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                     infer_s += time.perf_counter() - start
                     continue
                 generator.manual_seed(seeds[stage] + t)
+                if held_every:
+                    self.policy.hold_noise(_held_noise_seed(seeds[stage], t // held_every))
                 step = self._act(tensors)
                 policy_actions = host(step.actions)  # one copy off the device, for the env and the record
                 actions = env_actions(policy_actions, chunk)

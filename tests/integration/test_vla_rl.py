@@ -114,7 +114,8 @@ def test_the_shipped_rl_after_sft_config_validates():
 FROZEN_FORMS = {"steered": ("steered", {"noise_hidden": [8]}), "residual": ("residual", {"residual_hidden": [8]}),
                 "residual_pixels": ("residual", {"residual_hidden": [8], "residual_pixels": True, "pixel_features": 8,
                                                  "pixel_size": 16}),
-                "residual_privileged_critic": ("residual", {"residual_hidden": [8], "critic_obs": "state"})}
+                "residual_privileged_critic": ("residual", {"residual_hidden": [8], "critic_obs": "state"}),
+                "residual_held_noise": ("residual", {"residual_hidden": [8], "held_noise": 0.5, "held_noise_every": 2})}
 
 
 def frozen_policy(checkpoint, form="steered"):
@@ -132,9 +133,10 @@ def frozen_cfg(output_dir, checkpoint, form="steered"):
 
 @pytest.mark.parametrize("form", FROZEN_FORMS)
 def test_a_frozen_vla_steered_or_corrected_trains_end_to_end(ray_cluster, tmp_path, checkpoint, form):
-    """``pi0_smollm2_steered`` / ``_residual`` (also with its CNNs on the frames): the rollout
-    records the noise (the residual) and the VLA's features, the trainer's log-probs of them agree
-    with the rollout's, the critic trains alone in iteration 1 and the small policy from iteration 2."""
+    """``pi0_smollm2_steered`` / ``_residual`` (also with its CNNs on the frames, a privileged
+    critic, held noise): the rollout records the noise (the residual) and the VLA's features, the
+    trainer's log-probs of them agree with the rollout's, the critic trains alone in iteration 1
+    and the small policy from iteration 2."""
     result = run(frozen_cfg(tmp_path / form, checkpoint, form))
     rows = [json.loads(line) for line in (tmp_path / form / "metrics.jsonl").read_text().splitlines()]
     first, second = (r for r in rows if "train/approx_kl" in r)

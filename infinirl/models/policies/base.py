@@ -69,6 +69,15 @@ class Policy(nn.Module):
     """Why PPO's behaviour-cloning anchor (``algorithm.bc``) cannot train this policy on a dataset of
     demonstrations (refused before any worker starts); None: :meth:`demo_loss` is implemented."""
 
+    held_noise_every: int = 0
+    """Decisions for which part of the exploration noise is held (0: none): the rollout then calls
+    :meth:`hold_noise` before each sampled decision with a seed that changes every
+    ``held_noise_every`` decisions of an env stage."""
+
+    def hold_noise(self, seed: int) -> None:
+        """The seed of the held part of the next sampled :meth:`act`'s noise (policies with
+        ``held_noise_every > 0``)."""
+
     def act(self, obs: dict[str, torch.Tensor], deterministic: bool = False) -> PolicyStep:
         raise NotImplementedError
 

@@ -22,7 +22,18 @@ directly, close to the cloned behaviour:
 * with ``residual_pixels``, ``f`` and the critic each also read the camera frame through a small
   CNN of their own (trained by PPO, the critic's at the value rate): the VLA's pooled features keep
   little of where things are, which a correction of the hand's motion may need. The frame is the
-  observation's, so the update runs the CNNs on the batch's frames (still never the VLA).
+  observation's, so the update runs the CNNs on the batch's frames (still never the VLA);
+* with ``held_noise`` (a fraction ``beta`` of the noise's variance), exploration is correlated in
+  time, as generalised state-dependent exploration (gSDE, Raffin et al. 2022) is: the sampled
+  residual is ``mu + sigma * (sqrt(1 - beta) * xi + sqrt(beta) * z(s) . w)`` with ``xi`` fresh
+  every decision, ``z(s)`` the residual network's last hidden layer scaled to unit length and ``w``
+  a standard normal matrix per env drawn anew every ``held_noise_every`` decisions (the rollout
+  seeds it, :meth:`hold_noise`). The frozen VLA barely corrects the hand's position (it replays a
+  motion), so independent noise averages out within a few steps, while a held part keeps pushing one
+  way for the whole window: episodes then differ by the centimetres a layout-dependent detour needs,
+  not by millimetres. As ``z . w`` is standard normal for a unit ``z``, each residual's density is
+  still ``N(mu, sigma^2)``: the log-probs, and so PPO's ratio, are unchanged (the decisions'
+  correlation is what they ignore, as gSDE's do).
 
 PPO's log-probs are per executed action (the chunk's actions are independent given ``s``), the
 Gaussian densities of the recorded residual.
@@ -76,6 +87,8 @@ class ResidualCorrection(FrozenVLA):
             ``pixel_features`` wide, frames resized to ``pixel_size``).
         residual_input_norm: standardise the MLPs' inputs (features and base chunk) with the first
             training batch's statistics (:meth:`fit_input_stats`).
+        held_noise: the fraction of the exploration noise's variance held over decisions (0: none).
+        held_noise_every: decisions a held draw lasts (within one rollout iteration).
         critic_obs: an observation field the critic alone also reads (:class:`FrozenVLA`);
             ``critic_obs_dim`` its size (filled from the env's spec by the embodied runner).
     """
@@ -84,10 +97,14 @@ class ResidualCorrection(FrozenVLA):
 
     def __init__(self, *args, residual_hidden: Sequence[int] = (256, 256), residual_std: float = 0.2,
                  residual_bound: float = 1.0, residual_pixels: bool = False, pixel_features: int = 64,
-                 pixel_size: int = 64, residual_input_norm: bool = False, critic_obs: str | None = None,
-                 critic_obs_dim: int | None = None, value_head: bool = True, **kwargs):
+                 pixel_size: int = 64, residual_input_norm: bool = False, held_noise: float = 0.0,
+                 held_noise_every: int = 5, critic_obs: str | None = None, critic_obs_dim: int | None = None,
+                 value_head: bool = True, **kwargs):
         if residual_std <= 0 or residual_bound <= 0:
             raise ValueError(f"residual_std and residual_bound must be > 0, got {residual_std} and {residual_bound}")
+        if not 0.0 <= held_noise <= 1.0 or int(held_noise_every) < 1:
+            raise ValueError(f"held_noise must be in [0, 1] and held_noise_every >= 1, got {held_noise} and "
+                             f"{held_noise_every}")
         super().__init__(*args, value_head=False, **kwargs)
         features = self._freeze() + self.chunk * self.action_dim
         self.input_rms = RunningMeanStd((features,)) if residual_input_norm else None
@@ -102,6 +119,9 @@ class ResidualCorrection(FrozenVLA):
         self.residual_net = mlp(features, residual_hidden, self.chunk * self.action_dim, zero_last=True)
         self.residual_log_std = nn.Parameter(torch.full((self.action_dim,), math.log(residual_std)))
         self.residual_bound = float(residual_bound)
+        self.held_noise = float(held_noise)
+        self.held_noise_every = int(held_noise_every) if held_noise > 0 else 0
+        self._held_seed: int | None = None
         self.has_value_head = value_head
         critic_width = features + self._privileged_width(critic_obs, critic_obs_dim)
         self.value_net = mlp(critic_width, residual_hidden, 1) if value_head else None
@@ -152,18 +172,45 @@ class ResidualCorrection(FrozenVLA):
     def residual_distribution(self, inputs: torch.Tensor, obs=None) -> tuple[torch.Tensor, torch.Tensor]:
         """``mu`` ``[B, chunk, action_dim]`` and ``log sigma`` (broadcast to it); ``obs`` carries the
         frames with ``residual_pixels``."""
-        raw = self.residual_net(self._with_pixels(inputs, obs, self.residual_encoder)).reshape(-1, self.chunk,
-                                                                                                 self.action_dim)
+        return self._distribution_and_latent(inputs, obs)[:2]
+
+    def _distribution_and_latent(self, inputs: torch.Tensor, obs) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``mu``, ``log sigma`` and the residual network's last hidden layer ``[B, hidden]``."""
+        latent = self.residual_net[:-1](self._with_pixels(inputs, obs, self.residual_encoder))
+        raw = self.residual_net[-1](latent).reshape(-1, self.chunk, self.action_dim)
         mean = self.residual_bound * torch.tanh(raw / self.residual_bound)
-        return mean, self.residual_log_std.expand_as(mean)
+        return mean, self.residual_log_std.expand_as(mean), latent
+
+    def hold_noise(self, seed: int) -> None:
+        """The next sampled :meth:`act` draws its held matrices ``w`` from ``seed`` (one use);
+        without one (e.g. a stochastic evaluation) they are drawn afresh each decision."""
+        self._held_seed = int(seed)
+
+    @torch.compiler.disable
+    def _held_part(self, latent: torch.Tensor) -> torch.Tensor:
+        """``z(s) . w`` per env, chunk position and dim ``[B, chunk, action_dim]``: standard normal."""
+        z = latent.detach().float()
+        z = z / z.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        shape = (len(z), z.shape[-1], self.chunk * self.action_dim)
+        seed, self._held_seed = self._held_seed, None
+        generator = None if seed is None else torch.Generator(z.device).manual_seed(seed)
+        w = torch.randn(shape, generator=generator, device=z.device)
+        return torch.einsum("bl,blo->bo", z, w).reshape(-1, self.chunk, self.action_dim)
+
+    def _exploration(self, mean: torch.Tensor, latent: torch.Tensor) -> torch.Tensor:
+        """Standard normal noise per residual, part of it held (``held_noise``)."""
+        noise = torch.randn_like(mean)
+        if self.held_noise > 0:
+            noise = math.sqrt(1.0 - self.held_noise) * noise + math.sqrt(self.held_noise) * self._held_part(latent)
+        return noise
 
     # --- the Policy interface ----------------------------------------------------------------
 
     def act(self, obs, deterministic: bool = False) -> PolicyStep:
         base, inputs = self.base(obs)
         with torch.no_grad():
-            mean, log_std = self.residual_distribution(inputs, obs)
-            residual = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)
+            mean, log_std, latent = self._distribution_and_latent(inputs, obs)
+            residual = mean if deterministic else mean + log_std.exp() * self._exploration(mean, latent)
             logprobs = gaussian_logprob(residual, mean, log_std).sum(-1)
             values = self._critic_of(inputs, obs)
         return PolicyStep(actions=base + residual, logprobs=logprobs, values=values,

@@ -129,6 +129,56 @@ def test_input_norm_standardises_with_the_first_training_batch_then_keeps_it(che
     assert plain.input_rms is None
 
 
+def test_held_noise_is_the_gsde_draw_of_its_seed_and_keeps_the_residuals_density(checkpoint):
+    """``held_noise`` beta: the sampled residual is ``mu + sigma * (sqrt(1 - beta) * xi + sqrt(beta)
+    * z . w)``, ``z`` the residual network's unit-length last hidden layer and ``w`` drawn from the
+    seed the rollout gives (float64 reference); the same seed holds the same draw, a new one
+    redraws, and the log-probs stay the ``N(mu, sigma^2)`` density of what was taken."""
+    residual = policy(checkpoint, held_noise=0.36, held_noise_every=3)
+    assert residual.held_noise_every == 3 and policy(checkpoint).held_noise_every == 0
+    with torch.no_grad():
+        residual.residual_net[-1].weight.normal_(0.0, 0.1)
+        residual.residual_log_std.normal_(-1.0, 0.2)
+    obs = observations()
+    residual.held_noise = 0.0  # the same call without the held part gives xi
+    torch.manual_seed(5)
+    independent = residual.act(obs)
+    residual.held_noise = 0.36
+    torch.manual_seed(5)
+    residual.hold_noise(11)
+    step = residual.act(obs)
+
+    inputs = step.extras["features"].double()
+    net = residual.residual_net.double()
+    latent = net[:-1](inputs)
+    mean = residual.residual_bound * torch.tanh(net[-1](latent).reshape(BATCH, 2, 4) / residual.residual_bound)
+    std = residual.residual_log_std.double().exp()
+    residual.float()
+    xi = (independent.extras["residual"].double() - mean) / std
+    w = torch.randn(BATCH, latent.shape[-1], 8, generator=torch.Generator().manual_seed(11)).double()
+    held = torch.einsum("bl,blo->bo", latent / latent.norm(dim=-1, keepdim=True), w).reshape(BATCH, 2, 4)
+    expected = mean + std * (0.8 * xi + 0.6 * held)
+    torch.testing.assert_close(step.extras["residual"].double(), expected, rtol=0, atol=1e-5)
+    normal = torch.distributions.Normal(mean, std)
+    torch.testing.assert_close(step.logprobs.double(), normal.log_prob(expected).sum(-1), rtol=1e-5, atol=1e-4)
+    torch.testing.assert_close(residual.evaluate({}, step.actions, step.extras).logprobs, step.logprobs,
+                               rtol=0, atol=1e-5)
+
+    residual.held_noise = 1.0
+    draws = []
+    for global_seed, held_seed in ((1, 7), (2, 7), (3, 8), (4, None)):
+        torch.manual_seed(global_seed)
+        if held_seed is not None:
+            residual.hold_noise(held_seed)
+        draws.append(residual.act(obs).extras["residual"])
+    assert torch.equal(draws[0], draws[1])  # held: the decision's own seed does not change it
+    assert not torch.allclose(draws[0], draws[2]) and not torch.allclose(draws[0], draws[3])
+    taken = torch.stack([residual.act(obs).extras["residual"] for _ in range(40)])  # w fresh each call
+    with torch.no_grad():
+        standardised = (taken - residual.residual_distribution(step.extras["features"])[0]) / std.float()
+    assert abs(float(standardised.mean())) < 0.05 and abs(float(standardised.std()) - 1.0) < 0.05
+
+
 def test_only_the_residual_policy_and_the_critic_train(checkpoint):
     residual = policy(checkpoint)
     trainable = {name.split(".")[0] for name, p in residual.named_parameters() if p.requires_grad}
@@ -140,6 +190,9 @@ def test_only_the_residual_policy_and_the_critic_train(checkpoint):
 def test_bad_residual_options_are_refused(checkpoint):
     with pytest.raises(ValueError, match="residual_std and residual_bound must be > 0"):
         policy(checkpoint, residual_std=0.0)
+    for options in ({"held_noise": 1.5}, {"held_noise": -0.1}, {"held_noise": 0.5, "held_noise_every": 0}):
+        with pytest.raises(ValueError, match="held_noise must be in"):
+            policy(checkpoint, **options)
 
 
 def test_ppo_moves_the_noise_free_action_to_a_rewarded_one_the_vla_does_not_produce(checkpoint):
