@@ -116,6 +116,8 @@ class EmbodiedActorWorker(Worker, WeightSource):
         metrics = ppo_update(self.model, self.optimizer, batch, iteration, self.ppo, self.rank, self.world_size,
                              self._reduce_gradients, self.anchor)
         metrics["time/actor_update_s"] = time.perf_counter() - start
+        # after the update, as the observation statistics: the next batch acts and updates with one readout
+        metrics.update(self.model.fit_readout(batch["obs"], batch.get("extras")))
         self.model.update_obs_stats({k: batch["obs"][k] for k in self.model.keys})
         metrics["train/num_threads"] = torch.get_num_threads()  # what actor.num_threads resolved to
         metrics["train/peak_memory_bytes"] = peak_memory_bytes(self.compute)  # this rank's

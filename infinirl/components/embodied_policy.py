@@ -167,6 +167,13 @@ class NormalizedPolicy(nn.Module):
             fit(extras)
 
     @torch.no_grad()
+    def fit_readout(self, obs: Mapping[str, torch.Tensor], extras: Mapping[str, torch.Tensor] | None) -> dict:
+        """Lets a policy with a readout fitted on training batches (the residual VLA's
+        ``residual_readout``) fold in an updated batch's raw ``obs`` and ``extras``; its metrics."""
+        fit = getattr(self.policy, "fit_readout", None)
+        return fit(obs, extras) if fit is not None else {}
+
+    @torch.no_grad()
     def update_obs_stats(self, obs: Mapping[str, torch.Tensor]) -> None:
         for key in self.keys:
             self.obs_rms[key].update(obs[key])
@@ -213,6 +220,10 @@ class ReturnNormalizer:
         self.rms.count.fill_(state["count"])
 
 
+# policy kwargs naming an observation field, and the kwarg the field's flat size fills
+_OBS_FIELD_OPTIONS = (("critic_obs", "critic_obs_dim"), ("residual_readout", "residual_readout_dim"))
+
+
 def policy_kwargs(name: str, options: Mapping[str, Any], observation_spec: Mapping[str, Any], action_space,
                   chunk: int) -> dict[str, Any]:
     """The constructor arguments of registered policy ``name``: ``options`` plus the shape
@@ -243,12 +254,13 @@ def policy_kwargs(name: str, options: Mapping[str, Any], observation_spec: Mappi
     proprio_key = kwargs.get("proprio_key", _default(params, "proprio_key", "proprio"))
     if proprio_key in observation_spec and "proprio_dim" in params and "proprio_dim" not in kwargs:
         kwargs["proprio_dim"] = int(np.prod(observation_spec[proprio_key].shape))
-    critic_obs = kwargs.get("critic_obs")
-    if critic_obs is not None and "critic_obs_dim" in params:
-        if critic_obs not in observation_spec:
-            raise ValueError(f"critic_obs={critic_obs!r} is not an observation field of this env; it has "
-                             f"{sorted(observation_spec)}")
-        fill("critic_obs_dim", int(np.prod(observation_spec[critic_obs].shape)))
+    for field_key, dim_key in _OBS_FIELD_OPTIONS:
+        field = kwargs.get(field_key)
+        if field is not None and dim_key in params:
+            if field not in observation_spec:
+                raise ValueError(f"policy.kwargs.{field_key}={field!r} is not an observation field of this env; it "
+                                 f"has {sorted(observation_spec)}")
+            fill(dim_key, int(np.prod(observation_spec[field].shape)))
     for key in ("hidden", "channels", "kernels", "strides", "value_hidden", "image_shape"):
         if isinstance(kwargs.get(key), list):
             kwargs[key] = tuple(kwargs[key])

@@ -162,10 +162,31 @@ def test_the_residuals_input_standardisation_is_fitted_on_the_first_batch_and_re
     trained = [r for r in rows if "train/approx_kl" in r]
     assert len(trained) == 3 and trained[1]["train/approx_kl"] != 0.0
     assert all(r["train/logprob_mismatch"] < 1e-5 for r in trained)
+
     model = torch.load(tmp_path / "norm" / "checkpoints" / "iter_000003" / "actor" / "actor.pt",
                        map_location="cpu", weights_only=False)["model"]
     assert float(model["policy.input_rms.count"]) == 6.0
     assert float(model["policy.input_rms.var"].min()) >= 0.0 and bool(model["policy.input_rms.mean"].abs().sum() > 0)
+
+
+def test_the_residuals_readout_is_fitted_after_each_update_and_reaches_the_rollout(ray_cluster, tmp_path, checkpoint):
+    """``residual_readout``: the trainer fits the ridge readout of the env's ``state`` after each
+    update and scores it on the next batch before folding that in; the fit travels with the
+    weights, so the rollout's log-probs agree with the trainer's once the residual reads it."""
+    policy = frozen_policy(checkpoint, "residual")
+    policy["kwargs"]["residual_readout"] = "state"
+    cfg = make_cfg(tmp_path / "readout", checkpoint, policy=policy, iterations=3,
+                   actor={"anneal_lr": False, "lr": 1e-3, "value_lr": 1e-2},
+                   algorithm={"epochs": 2, "mini_batches": 2, "critic_warmup": 1})
+    run(cfg)
+    rows = [json.loads(line) for line in (tmp_path / "readout" / "metrics.jsonl").read_text().splitlines()]
+    trained = [r for r in rows if "train/approx_kl" in r]
+    assert len(trained) == 3 and trained[2]["train/approx_kl"] != 0.0
+    assert "train/readout_r2" not in trained[0] and all("train/readout_r2" in r for r in trained[1:])
+    assert all(r["train/logprob_mismatch"] < 1e-5 for r in trained)
+    model = torch.load(tmp_path / "readout" / "checkpoints" / "iter_000003" / "actor" / "actor.pt",
+                       map_location="cpu", weights_only=False)["model"]
+    assert float(model["policy.readout.count"]) == 18.0 and model["policy.readout.weight"].dtype == torch.float64
 
 
 @pytest.mark.parametrize("form", ["steered", "residual"])
@@ -178,11 +199,12 @@ def test_the_shipped_frozen_vla_configs_validate_and_refuse_lora(tmp_path, check
     assert "\n" not in str(error.value) and not (tmp_path / "bad").exists()
 
 
-def test_a_privileged_critic_field_the_env_lacks_is_refused_before_anything_starts(tmp_path, checkpoint):
-    policy = frozen_policy(checkpoint, "residual_privileged_critic")
-    policy["kwargs"]["critic_obs"] = "objects"
+@pytest.mark.parametrize("option", ["critic_obs", "residual_readout"])
+def test_a_privileged_field_the_env_lacks_is_refused_before_anything_starts(tmp_path, checkpoint, option):
+    policy = frozen_policy(checkpoint, "residual")
+    policy["kwargs"][option] = "objects"
     bad = make_cfg(tmp_path / "bad", checkpoint, policy=policy, actor={"anneal_lr": False, "lr": 1e-3})
-    with pytest.raises(ConfigError, match=r"critic_obs='objects' is not an observation field of this env; it has "
+    with pytest.raises(ConfigError, match=rf"{option}='objects' is not an observation field of this env; it has "
                                           r"\['instruction', 'proprio', 'rgb', 'state'\]") as error:
         run(bad)
     assert "\n" not in str(error.value) and not (tmp_path / "bad").exists()

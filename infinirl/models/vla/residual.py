@@ -33,7 +33,15 @@ directly, close to the cloned behaviour:
   way for the whole window: episodes then differ by the centimetres a layout-dependent detour needs,
   not by millimetres. As ``z . w`` is standard normal for a unit ``z``, each residual's density is
   still ``N(mu, sigma^2)``: the log-probs, and so PPO's ratio, are unchanged (the decisions'
-  correlation is what they ignore, as gSDE's do).
+  correlation is what they ignore, as gSDE's do);
+* with ``residual_readout`` (an observation field the simulator gives in training, e.g. MetaWorld's
+  ``state``), ``f`` and the critic also read a linear readout of that field from the features: a
+  ridge regression (:class:`~infinirl.models.ridge_readout.RidgeReadout`) refitted after every
+  update on all the training batches so far, its prediction standardised per value. The pooled
+  features do hold where the object is (a ridge probe reads it off them almost exactly:
+  ``scripts/diagnose_vla_episodes.py --probe``), but along directions of small variance that PPO's gradient on a raw MLP barely follows; the readout
+  hands the residual a few well-scaled numbers instead. Acting needs the features only, never the
+  field: the deployed policy computes its estimate from the camera, instruction and proprio.
 
 PPO's log-probs are per executed action (the chunk's actions are independent given ``s``), the
 Gaussian densities of the recorded residual.
@@ -51,6 +59,7 @@ from infinirl.components.embodied_policy import RunningMeanStd
 from infinirl.models.policies.base import POLICIES, PolicyEval, PolicyStep
 from infinirl.models.policies.heads import gaussian_entropy
 from infinirl.models.policies.mlp import gaussian_logprob
+from infinirl.models.ridge_readout import RidgeReadout
 from infinirl.models.sac_encoders import PIXELS_PREFIX, PixelEncoder
 from infinirl.models.vla.frozen import FrozenVLA, mlp
 from infinirl.models.vla.policy import PiZeroFivePolicy, PiZeroPolicy, PiZeroSmolLM2Policy
@@ -89,6 +98,10 @@ class ResidualCorrection(FrozenVLA):
             training batch's statistics (:meth:`fit_input_stats`).
         held_noise: the fraction of the exploration noise's variance held over decisions (0: none).
         held_noise_every: decisions a held draw lasts (within one rollout iteration).
+        residual_readout: an observation field (a flat vector seen in training) the residual
+            policy and the critic read as a ridge readout of the features; ``residual_readout_dim``
+            its size (filled from the env's spec by the embodied runner), ``readout_penalty`` the
+            ridge term (:class:`~infinirl.models.ridge_readout.RidgeReadout`).
         critic_obs: an observation field the critic alone also reads (:class:`FrozenVLA`);
             ``critic_obs_dim`` its size (filled from the env's spec by the embodied runner).
     """
@@ -98,7 +111,9 @@ class ResidualCorrection(FrozenVLA):
     def __init__(self, *args, residual_hidden: Sequence[int] = (256, 256), residual_std: float = 0.2,
                  residual_bound: float = 1.0, residual_pixels: bool = False, pixel_features: int = 64,
                  pixel_size: int = 64, residual_input_norm: bool = False, held_noise: float = 0.0,
-                 held_noise_every: int = 5, critic_obs: str | None = None, critic_obs_dim: int | None = None,
+                 held_noise_every: int = 5, residual_readout: str | None = None,
+                 residual_readout_dim: int | None = None, readout_penalty: float = 1e-2,
+                 critic_obs: str | None = None, critic_obs_dim: int | None = None,
                  value_head: bool = True, **kwargs):
         if residual_std <= 0 or residual_bound <= 0:
             raise ValueError(f"residual_std and residual_bound must be > 0, got {residual_std} and {residual_bound}")
@@ -108,6 +123,14 @@ class ResidualCorrection(FrozenVLA):
         super().__init__(*args, value_head=False, **kwargs)
         features = self._freeze() + self.chunk * self.action_dim
         self.input_rms = RunningMeanStd((features,)) if residual_input_norm else None
+        self.readout_obs, self.readout = residual_readout, None
+        if residual_readout is not None:
+            if not residual_readout_dim or residual_readout_dim <= 0:
+                raise ValueError(f"residual_readout={residual_readout!r} needs residual_readout_dim, the field's "
+                                 "size (the embodied runner fills it from the env's observation spec)")
+            self.readout = RidgeReadout(features, int(residual_readout_dim), penalty=readout_penalty,
+                                        clip=_INPUT_CLIP)
+            features += int(residual_readout_dim)
         self.pixel_key = next(iter(self.cameras)) if residual_pixels else None
         self.residual_encoder = self.value_encoder = None
         if residual_pixels:
@@ -157,8 +180,29 @@ class ResidualCorrection(FrozenVLA):
             return inputs
         return self.input_rms.normalize(inputs, _INPUT_CLIP).to(inputs.device)
 
+    @torch.no_grad()
+    def fit_readout(self, obs, extras) -> dict[str, float]:
+        """With ``residual_readout``: scores the readout on a training batch it has not seen (R²
+        averaged over the field's values that vary; ``train/readout_r2``, absent before the first
+        fit), folds the batch in and refits. Called after
+        the update, so a batch's acting and its update read the same readout."""
+        if self.readout is None:
+            return {}
+        if not extras or "features" not in extras:
+            raise ValueError("residual_readout fits on extras['features'] from act(), which the batch lacks")
+        if obs is None or self.readout_obs not in obs:
+            raise ValueError(f"residual_readout={self.readout_obs!r}: the training batch's observation lacks that "
+                             "field")
+        x, y = extras["features"], obs[self.readout_obs]
+        score = self.readout.score(x, y)
+        self.readout.accumulate(x, y)
+        self.readout.refit()
+        return {} if math.isnan(score) else {"train/readout_r2": score}
+
     def _with_pixels(self, inputs: torch.Tensor, obs, encoder: nn.Module | None) -> torch.Tensor:
-        inputs = self._normalized(inputs)
+        raw, inputs = inputs, self._normalized(inputs)
+        if self.readout is not None:
+            inputs = torch.cat([inputs, self.readout(raw)], dim=-1)
         if encoder is None:
             return inputs
         if obs is None or self.pixel_key not in obs:

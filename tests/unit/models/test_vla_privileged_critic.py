@@ -80,3 +80,15 @@ def test_the_runner_fills_the_fields_size_from_the_env_spec_and_names_an_unknown
     with pytest.raises(ValueError, match=r"critic_obs='goal' is not an observation field of this env; it has "
                                          r"\['proprio', 'rgb', 'state'\]"):
         policy_kwargs("pi0_smollm2_residual", {"critic_obs": "goal"}, spec, Space(), 2)
+
+
+def test_the_runner_fills_the_readout_fields_size_and_names_an_unknown_field():
+    class Space:
+        is_discrete, shape = False, (4,)
+        low, high = -np.ones(4), np.ones(4)
+
+    spec = {"state": ArraySpec((39,), "float32"), "proprio": ArraySpec((4,), "float32")}
+    kwargs = policy_kwargs("pi0_smollm2_residual", {"residual_readout": "state"}, spec, Space(), 2)
+    assert kwargs["residual_readout_dim"] == 39 and "critic_obs_dim" not in kwargs
+    with pytest.raises(ValueError, match=r"policy.kwargs.residual_readout='goal' is not an observation field"):
+        policy_kwargs("pi0_smollm2_residual", {"residual_readout": "goal"}, spec, Space(), 2)

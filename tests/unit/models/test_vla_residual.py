@@ -210,3 +210,54 @@ def test_ppo_moves_the_noise_free_action_to_a_rewarded_one_the_vla_does_not_prod
     before, after = ppo_on_a_bandit(model, frame, reward)
     assert before == pytest.approx(-1.0, abs=1e-5)  # four dims 0.5 away
     assert after > before / 10, (before, after)
+
+
+def test_readout_of_a_training_field_is_fitted_after_updates_and_acting_needs_the_features_only(checkpoint):
+    """``residual_readout``: the residual policy and the critic also read a ridge readout of an
+    observation field from the features. Unfitted it reads 0 (the start is the VLA's noise-free
+    action); the trainer's :meth:`fit_readout` scores it on the batch (nan before any fit), folds the
+    batch in and refits; the MLPs then read ``[features, readout(features)]`` (float64 reference),
+    the trainer recomputes the log-probs from the batch without the field, the fit is buffers
+    (saved and synced), and acting never needs the field."""
+    from infinirl.models.ridge_readout import RidgeReadout
+
+    residual, plain = policy(checkpoint, residual_readout="state", residual_readout_dim=5), policy(checkpoint)
+    obs = observations()
+    torch.testing.assert_close(residual.act(obs, deterministic=True).actions,
+                               plain.act(obs, deterministic=True).actions, rtol=0, atol=1e-6)
+    first = residual.act(obs)
+    targets = first.extras["features"][:, :5] * 3.0 + torch.randn(BATCH, 5) * 0.01  # a field the features hold
+    model = NormalizedPolicy(residual, {}, 10.0)
+    metrics = model.fit_readout({"state": targets}, first.extras)
+    assert metrics == {}  # nothing to score before the first fit
+    assert residual.readout.fitted and float(residual.readout.count) == BATCH
+    assert model.fit_readout({"state": targets}, first.extras)["train/readout_r2"] > 0.9  # now fitted: a score
+    reference = RidgeReadout(first.extras["features"].shape[1], 5, penalty=residual.readout.penalty)
+    for _ in range(2):
+        reference.accumulate(first.extras["features"], targets)
+    reference.refit()
+    torch.testing.assert_close(residual.readout.weight, reference.weight)
+    assert {"readout.weight", "readout.bias", "readout.sum_xx", "readout.count"} <= set(residual.state_dict())
+
+    with torch.no_grad():
+        residual.residual_net[-1].weight.normal_(0.0, 0.1)
+    step = residual.act(obs)  # no 'state': acting reads the features only
+    features = step.extras["features"].double()
+    readout = (features @ residual.readout.weight + residual.readout.bias).clamp(-10, 10)
+    raw = residual.residual_net.double()(torch.cat([features, readout], dim=-1)).reshape(BATCH, 2, 4)
+    residual.float()
+    mean = residual.residual_bound * torch.tanh(raw / residual.residual_bound)
+    normal = torch.distributions.Normal(mean, residual.residual_log_std.double().exp())
+    torch.testing.assert_close(step.logprobs.double(), normal.log_prob(step.extras["residual"].double()).sum(-1),
+                               rtol=1e-5, atol=1e-4)
+    evaluated = residual.evaluate({"state": targets}, step.actions, step.extras)
+    torch.testing.assert_close(evaluated.logprobs, step.logprobs, rtol=0, atol=1e-5)
+    assert not torch.allclose(readout.float(), torch.zeros_like(readout.float()))
+
+    with pytest.raises(ValueError, match=r"residual_readout='state': the training batch's observation lacks"):
+        model.fit_readout({}, first.extras)
+    with pytest.raises(ValueError, match=r"residual_readout fits on extras\['features'\]"):
+        model.fit_readout({"state": targets}, {"residual": first.extras["residual"]})
+    with pytest.raises(ValueError, match=r"residual_readout='state' needs residual_readout_dim"):
+        policy(checkpoint, residual_readout="state")
+    assert NormalizedPolicy(plain, {}, 10.0).fit_readout({"state": targets}, first.extras) == {}
