@@ -224,6 +224,19 @@ class ReturnNormalizer:
 _OBS_FIELD_OPTIONS = (("critic_obs", "critic_obs_dim"), ("residual_readout", "residual_readout_dim"))
 
 
+def _fill_field_sizes(kwargs: dict[str, Any], params, observation_spec: Mapping[str, Any]) -> None:
+    """Fills the size of each observation field a policy kwarg names (``_OBS_FIELD_OPTIONS``);
+    a field the env lacks is refused with the fields it has."""
+    for field_key, dim_key in _OBS_FIELD_OPTIONS:
+        field = kwargs.get(field_key)
+        if field is None or dim_key not in params:
+            continue
+        if field not in observation_spec:
+            raise ValueError(f"policy.kwargs.{field_key}={field!r} is not an observation field of this env; it has "
+                             f"{sorted(observation_spec)}")
+        kwargs.setdefault(dim_key, int(np.prod(observation_spec[field].shape)))
+
+
 def policy_kwargs(name: str, options: Mapping[str, Any], observation_spec: Mapping[str, Any], action_space,
                   chunk: int) -> dict[str, Any]:
     """The constructor arguments of registered policy ``name``: ``options`` plus the shape
@@ -254,13 +267,7 @@ def policy_kwargs(name: str, options: Mapping[str, Any], observation_spec: Mappi
     proprio_key = kwargs.get("proprio_key", _default(params, "proprio_key", "proprio"))
     if proprio_key in observation_spec and "proprio_dim" in params and "proprio_dim" not in kwargs:
         kwargs["proprio_dim"] = int(np.prod(observation_spec[proprio_key].shape))
-    for field_key, dim_key in _OBS_FIELD_OPTIONS:
-        field = kwargs.get(field_key)
-        if field is not None and dim_key in params:
-            if field not in observation_spec:
-                raise ValueError(f"policy.kwargs.{field_key}={field!r} is not an observation field of this env; it "
-                                 f"has {sorted(observation_spec)}")
-            fill(dim_key, int(np.prod(observation_spec[field].shape)))
+    _fill_field_sizes(kwargs, params, observation_spec)
     for key in ("hidden", "channels", "kernels", "strides", "value_hidden", "image_shape"):
         if isinstance(kwargs.get(key), list):
             kwargs[key] = tuple(kwargs[key])

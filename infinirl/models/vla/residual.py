@@ -39,9 +39,10 @@ directly, close to the cloned behaviour:
   ridge regression (:class:`~infinirl.models.ridge_readout.RidgeReadout`) refitted after every
   update on all the training batches so far, its prediction standardised per value. The pooled
   features do hold where the object is (a ridge probe reads it off them almost exactly:
-  ``scripts/diagnose_vla_episodes.py --probe``), but along directions of small variance that PPO's gradient on a raw MLP barely follows; the readout
-  hands the residual a few well-scaled numbers instead. Acting needs the features only, never the
-  field: the deployed policy computes its estimate from the camera, instruction and proprio.
+  ``scripts/diagnose_vla_episodes.py --probe``), but along directions of small variance that PPO's
+  gradient on a raw MLP barely follows; the readout hands the residual a few well-scaled numbers.
+  Acting needs the features only, never the field: the deployed policy computes its estimate from
+  the camera, instruction and proprio.
 
 PPO's log-probs are per executed action (the chunk's actions are independent given ``s``), the
 Gaussian densities of the recorded residual.
