@@ -169,12 +169,15 @@ def test_the_residuals_input_standardisation_is_fitted_on_the_first_batch_and_re
     assert float(model["policy.input_rms.var"].min()) >= 0.0 and bool(model["policy.input_rms.mean"].abs().sum() > 0)
 
 
-def test_the_residuals_readout_is_fitted_after_each_update_and_reaches_the_rollout(ray_cluster, tmp_path, checkpoint):
+@pytest.mark.parametrize("groups", [1, 2])
+def test_the_residuals_readout_is_fitted_after_each_update_and_reaches_the_rollout(ray_cluster, tmp_path, checkpoint,
+                                                                                   groups):
     """``residual_readout``: the trainer fits the ridge readout of the env's ``state`` after each
     update and scores it on the next batch before folding that in; the fit travels with the
-    weights, so the rollout's log-probs agree with the trainer's once the residual reads it."""
+    weights, so the rollout's log-probs agree with the trainer's once the residual reads it. With
+    ``readout_groups`` the rows' instruction keys travel in the batch."""
     policy = frozen_policy(checkpoint, "residual")
-    policy["kwargs"]["residual_readout"] = "state"
+    policy["kwargs"].update(residual_readout="state", readout_groups=groups)
     cfg = make_cfg(tmp_path / "readout", checkpoint, policy=policy, iterations=3,
                    actor={"anneal_lr": False, "lr": 1e-3, "value_lr": 1e-2},
                    algorithm={"epochs": 2, "mini_batches": 2, "critic_warmup": 1})
@@ -186,7 +189,9 @@ def test_the_residuals_readout_is_fitted_after_each_update_and_reaches_the_rollo
     assert all(r["train/logprob_mismatch"] < 1e-5 for r in trained)
     model = torch.load(tmp_path / "readout" / "checkpoints" / "iter_000003" / "actor" / "actor.pt",
                        map_location="cpu", weights_only=False)["model"]
-    assert float(model["policy.readout.count"]) == 18.0 and model["policy.readout.weight"].dtype == torch.float64
+    counts, keys = model["policy.readout.count"], model["policy.readout.keys"]
+    assert float(counts.sum()) == 18.0 and model["policy.readout.weight"].dtype == torch.float64
+    assert groups == 1 or bool((keys[counts > 0] != 0).all())  # each group that fitted has its instruction's key
 
 
 @pytest.mark.parametrize("form", ["steered", "residual"])

@@ -50,6 +50,7 @@ Gaussian densities of the recorded residual.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Sequence
 
@@ -69,6 +70,11 @@ __all__ = ["PiZeroFiveResidualPolicy", "PiZeroResidualPolicy", "PiZeroSmolLM2Res
 
 
 _INPUT_CLIP = 10.0  # standardised inputs beyond 10 std are clipped, as the observation normaliser does
+
+
+def instruction_key(text: str) -> int:
+    """A stable nonzero int64 key of an instruction (the same in every process and run)."""
+    return int.from_bytes(hashlib.blake2b(str(text).encode(), digest_size=7).digest(), "little") + 1
 
 
 def _frame_encoder(size: int, width: int) -> PixelEncoder:
@@ -102,7 +108,8 @@ class ResidualCorrection(FrozenVLA):
         residual_readout: an observation field (a flat vector seen in training) the residual
             policy and the critic read as a ridge readout of the features; ``residual_readout_dim``
             its size (filled from the env's spec by the embodied runner), ``readout_penalty`` the
-            ridge term (:class:`~infinirl.models.ridge_readout.RidgeReadout`).
+            ridge term (:class:`~infinirl.models.ridge_readout.RidgeReadout`); ``readout_groups``
+            > 1 fits one readout per instruction (up to that many), keyed by its hash.
         critic_obs: an observation field the critic alone also reads (:class:`FrozenVLA`);
             ``critic_obs_dim`` its size (filled from the env's spec by the embodied runner).
     """
@@ -113,7 +120,7 @@ class ResidualCorrection(FrozenVLA):
                  residual_bound: float = 1.0, residual_pixels: bool = False, pixel_features: int = 64,
                  pixel_size: int = 64, residual_input_norm: bool = False, held_noise: float = 0.0,
                  held_noise_every: int = 5, residual_readout: str | None = None,
-                 residual_readout_dim: int | None = None, readout_penalty: float = 1e-2,
+                 residual_readout_dim: int | None = None, readout_penalty: float = 1e-2, readout_groups: int = 1,
                  critic_obs: str | None = None, critic_obs_dim: int | None = None,
                  value_head: bool = True, **kwargs):
         if residual_std <= 0 or residual_bound <= 0:
@@ -130,7 +137,7 @@ class ResidualCorrection(FrozenVLA):
                 raise ValueError(f"residual_readout={residual_readout!r} needs residual_readout_dim, the field's "
                                  "size (the embodied runner fills it from the env's observation spec)")
             self.readout = RidgeReadout(features, int(residual_readout_dim), penalty=readout_penalty,
-                                        clip=_INPUT_CLIP)
+                                        clip=_INPUT_CLIP, groups=readout_groups)
             features += int(residual_readout_dim)
         self.pixel_key = next(iter(self.cameras)) if residual_pixels else None
         self.residual_encoder = self.value_encoder = None
@@ -181,6 +188,19 @@ class ResidualCorrection(FrozenVLA):
             return inputs
         return self.input_rms.normalize(inputs, _INPUT_CLIP).to(inputs.device)
 
+    def _readout_keys(self, obs, batch: int) -> torch.Tensor | None:
+        """With ``readout_groups > 1``: each row's group key, a hash of its instruction."""
+        if self.readout is None or self.readout.groups == 1:
+            return None
+        return torch.tensor([instruction_key(text) for text in self._instructions(obs, batch)], dtype=torch.int64)
+
+    def _recorded_keys(self, extras) -> torch.Tensor | None:
+        if self.readout is None or self.readout.groups == 1:
+            return None
+        if "readout_key" not in extras:
+            raise ValueError("readout_groups > 1 reads extras['readout_key'] from act(), which the batch lacks")
+        return extras["readout_key"]
+
     @torch.no_grad()
     def fit_readout(self, obs, extras) -> dict[str, float]:
         """With ``residual_readout``: scores the readout on a training batch it has not seen (R²
@@ -194,16 +214,16 @@ class ResidualCorrection(FrozenVLA):
         if obs is None or self.readout_obs not in obs:
             raise ValueError(f"residual_readout={self.readout_obs!r}: the training batch's observation lacks that "
                              "field")
-        x, y = extras["features"], obs[self.readout_obs]
-        score = self.readout.score(x, y)
-        self.readout.accumulate(x, y)
+        x, y, keys = extras["features"], obs[self.readout_obs], self._recorded_keys(extras)
+        score = self.readout.score(x, y, keys)
+        self.readout.accumulate(x, y, keys)
         self.readout.refit()
         return {} if math.isnan(score) else {"train/readout_r2": score}
 
-    def _with_pixels(self, inputs: torch.Tensor, obs, encoder: nn.Module | None) -> torch.Tensor:
+    def _with_pixels(self, inputs: torch.Tensor, obs, encoder: nn.Module | None, keys=None) -> torch.Tensor:
         raw, inputs = inputs, self._normalized(inputs)
         if self.readout is not None:
-            inputs = torch.cat([inputs, self.readout(raw)], dim=-1)
+            inputs = torch.cat([inputs, self.readout(raw, keys)], dim=-1)
         if encoder is None:
             return inputs
         if obs is None or self.pixel_key not in obs:
@@ -211,17 +231,20 @@ class ResidualCorrection(FrozenVLA):
         frames = _resized(torch.as_tensor(obs[self.pixel_key]).to(inputs.device), self.pixel_size)
         return torch.cat([inputs, encoder({PIXELS_PREFIX + "frame": frames})], dim=-1)
 
-    def _critic_of(self, inputs: torch.Tensor, obs) -> torch.Tensor | None:
-        return None if self.value_net is None else self._critic(self._with_pixels(inputs, obs, self.value_encoder), obs)
+    def _critic_of(self, inputs: torch.Tensor, obs, keys=None) -> torch.Tensor | None:
+        if self.value_net is None:
+            return None
+        return self._critic(self._with_pixels(inputs, obs, self.value_encoder, keys), obs)
 
-    def residual_distribution(self, inputs: torch.Tensor, obs=None) -> tuple[torch.Tensor, torch.Tensor]:
+    def residual_distribution(self, inputs: torch.Tensor, obs=None, keys=None) -> tuple[torch.Tensor, torch.Tensor]:
         """``mu`` ``[B, chunk, action_dim]`` and ``log sigma`` (broadcast to it); ``obs`` carries the
         frames with ``residual_pixels``."""
-        return self._distribution_and_latent(inputs, obs)[:2]
+        return self._distribution_and_latent(inputs, obs, keys)[:2]
 
-    def _distribution_and_latent(self, inputs: torch.Tensor, obs) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _distribution_and_latent(self, inputs: torch.Tensor, obs,
+                                 keys=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``mu``, ``log sigma`` and the residual network's last hidden layer ``[B, hidden]``."""
-        latent = self.residual_net[:-1](self._with_pixels(inputs, obs, self.residual_encoder))
+        latent = self.residual_net[:-1](self._with_pixels(inputs, obs, self.residual_encoder, keys))
         raw = self.residual_net[-1](latent).reshape(-1, self.chunk, self.action_dim)
         mean = self.residual_bound * torch.tanh(raw / self.residual_bound)
         return mean, self.residual_log_std.expand_as(mean), latent
@@ -254,12 +277,15 @@ class ResidualCorrection(FrozenVLA):
     def act(self, obs, deterministic: bool = False) -> PolicyStep:
         base, inputs = self.base(obs)
         with torch.no_grad():
-            mean, log_std, latent = self._distribution_and_latent(inputs, obs)
+            keys = self._readout_keys(obs, len(inputs))
+            mean, log_std, latent = self._distribution_and_latent(inputs, obs, keys)
             residual = mean if deterministic else mean + log_std.exp() * self._exploration(mean, latent)
             logprobs = gaussian_logprob(residual, mean, log_std).sum(-1)
-            values = self._critic_of(inputs, obs)
-        return PolicyStep(actions=base + residual, logprobs=logprobs, values=values,
-                          extras={"residual": residual, "features": inputs})
+            values = self._critic_of(inputs, obs, keys)
+        extras = {"residual": residual, "features": inputs}
+        if keys is not None:
+            extras["readout_key"] = keys
+        return PolicyStep(actions=base + residual, logprobs=logprobs, values=values, extras=extras)
 
     def evaluate(self, obs, actions, extras=None, with_entropy: bool = True) -> PolicyEval:
         """Log-probs of the recorded residual under the present residual policy: the two MLPs on
@@ -267,15 +293,17 @@ class ResidualCorrection(FrozenVLA):
         if not extras or "residual" not in extras or "features" not in extras:
             raise ValueError("a residual VLA's evaluate needs extras['residual'] and extras['features'] from act()")
         inputs = extras["features"].detach().float()
-        mean, log_std = self.residual_distribution(inputs, obs)
+        keys = self._recorded_keys(extras)
+        mean, log_std = self.residual_distribution(inputs, obs, keys)
         logprobs = gaussian_logprob(extras["residual"].detach().float(), mean, log_std).sum(-1)
         entropy = gaussian_entropy(log_std).sum(-1) if with_entropy else None
-        return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._critic_of(inputs, obs))
+        return PolicyEval(logprobs=logprobs, entropy=entropy, values=self._critic_of(inputs, obs, keys))
 
     def value(self, obs) -> torch.Tensor:
         if self.value_net is None:
             raise NotImplementedError("this residual VLA was built with value_head=False")
-        return self._critic_of(self.base(obs)[1], obs)
+        inputs = self.base(obs)[1]
+        return self._critic_of(inputs, obs, self._readout_keys(obs, len(inputs)))
 
 
 @POLICIES.register("pi0_residual")

@@ -78,7 +78,7 @@ def test_constant_columns_read_zero_and_do_not_break_the_solve():
     out = readout(torch.tensor(x))
     assert torch.isfinite(out).all()
     assert torch.all(out[:, 1] == 0)
-    assert torch.all(readout.weight[3] == 0)  # the constant input carries no weight
+    assert torch.all(readout.weight[0, 3] == 0)  # the constant input carries no weight
     np.testing.assert_allclose(out[:, 0].numpy(), (x[:, 0] - x[:, 0].mean()) / x[:, 0].std(), atol=1e-4)
 
 
@@ -98,7 +98,7 @@ def test_its_sums_stay_float64_when_the_module_is_cast():
     readout.refit()
     before = readout(torch.tensor(x[:4], dtype=torch.float32))
     wrapper = torch.nn.Sequential(readout).to(torch.bfloat16).float()
-    assert all(buffer.dtype == torch.float64 for buffer in wrapper[0].buffers())
+    assert all(buffer.dtype == torch.float64 for name, buffer in wrapper[0].named_buffers() if name != "keys")
     torch.testing.assert_close(wrapper[0](torch.tensor(x[:4], dtype=torch.float32)), before)
 
 
@@ -114,7 +114,7 @@ def test_state_dict_round_trip_keeps_the_fit():
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    ({"in_dim": 0, "out_dim": 2}, "in_dim and out_dim"),
+    ({"in_dim": 0, "out_dim": 2}, "in_dim, out_dim and groups >= 1"),
     ({"in_dim": 3, "out_dim": 2, "penalty": 0.0}, "penalty must be > 0"),
 ])
 def test_bad_arguments_are_refused(kwargs, match):
@@ -125,3 +125,33 @@ def test_bad_arguments_are_refused(kwargs, match):
 def test_rows_must_pair_up():
     with pytest.raises(ValueError, match="3 input rows against 2 target rows"):
         RidgeReadout(4, 2).accumulate(torch.zeros(3, 4), torch.zeros(2, 2))
+
+
+def test_groups_fit_one_readout_per_key_as_separate_readouts_would():
+    """Rows keyed by group: each group's fit is the one a readout of its rows alone gives, keys
+    take groups in order of first appearance, an unknown key reads 0 and is left out of the score,
+    and more keys than groups are refused."""
+    (xa, ya), (xb, yb) = _data(seed=0), _data(seed=5)
+    grouped = RidgeReadout(xa.shape[1], ya.shape[1], groups=3)
+    x, y = torch.tensor(np.concatenate([xa, xb])), torch.tensor(np.concatenate([ya, yb]))
+    keys = torch.tensor([7] * len(xa) + [3] * len(xb))
+    order = torch.randperm(len(x), generator=torch.Generator().manual_seed(0))
+    grouped.accumulate(x[order[:250]], y[order[:250]], keys[order[:250]])
+    grouped.accumulate(x[order[250:]], y[order[250:]], keys[order[250:]])
+    grouped.refit()
+    assert grouped.keys.tolist() == [3, 7, 0]  # sorted within the first batch
+    for key, (xs, ys) in ((7, (xa, ya)), (3, (xb, yb))):
+        alone = RidgeReadout(xs.shape[1], ys.shape[1])
+        alone.accumulate(torch.tensor(xs), torch.tensor(ys))
+        alone.refit()
+        query = torch.tensor(xs[:20])
+        torch.testing.assert_close(grouped(query, torch.full((20,), key)), alone(query), rtol=1e-6, atol=1e-6)
+    assert torch.all(grouped(torch.tensor(xa[:4]), torch.full((4,), 99)) == 0)
+    mixed_keys = torch.tensor([7] * 300 + [99] * 300)
+    noisy_y = np.concatenate([ya, np.random.default_rng(1).normal(size=ya.shape) * 1e3])
+    assert grouped.score(torch.tensor(np.concatenate([xa, xa])), torch.tensor(noisy_y), mixed_keys) > 0.99
+    grouped.accumulate(torch.tensor(xa[:2]), torch.tensor(ya[:2]), torch.tensor([11, 11]))  # the third group
+    with pytest.raises(ValueError, match="holds 3 groups and a batch brings 4 keys: raise its groups"):
+        grouped.accumulate(torch.tensor(xa[:2]), torch.tensor(ya[:2]), torch.tensor([12, 12]))
+    with pytest.raises(ValueError, match="groups=3 needs a key per row"):
+        grouped(torch.tensor(xa[:2]))

@@ -11,6 +11,10 @@ from infinirl.components.embodied_policy import NormalizedPolicy
 from tests.unit.models.test_vla_steered import BATCH, observations, ppo_on_a_bandit, tiny_checkpoint
 from tests.unit.models.test_vla_steered import policy as steered_or_plain
 
+# two VLA passes on the same inputs may run different oneDNN kernels (seen on a loaded CPU), which differ in
+# the last float32 bits of the actions (O(1) in size): "starts as the VLA" is checked to 1e-4
+START_ATOL = 1e-4
+
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
@@ -28,11 +32,12 @@ def test_at_the_start_its_noise_free_action_is_the_vlas_from_noise_zero(checkpoi
     with monkeypatch.context() as patch:
         patch.setattr(torch, "randn", lambda *shape, device=None, **kwargs: torch.zeros(*shape, device=device))
         reference = plain.act(obs, deterministic=True)
-    torch.testing.assert_close(noise_free.actions, reference.actions, rtol=0, atol=1e-6)
+    torch.testing.assert_close(noise_free.actions, reference.actions, rtol=0, atol=START_ATOL)
     assert torch.equal(noise_free.extras["residual"], torch.zeros_like(noise_free.extras["residual"]))
     torch.manual_seed(3)
     sampled = residual.act(obs)
-    torch.testing.assert_close(sampled.actions - noise_free.actions, sampled.extras["residual"], rtol=0, atol=1e-6)
+    torch.testing.assert_close(sampled.actions - noise_free.actions, sampled.extras["residual"], rtol=0,
+                               atol=START_ATOL)
     assert 0.25 < float(sampled.extras["residual"].std()) < 0.35
 
 
@@ -71,7 +76,7 @@ def test_with_pixels_cnns_of_their_own_read_the_frames_and_train(checkpoint):
     residual, plain = policy(checkpoint, residual_pixels=True), policy(checkpoint)
     obs = observations()
     torch.testing.assert_close(residual.act(obs, deterministic=True).actions,
-                               plain.act(obs, deterministic=True).actions, rtol=0, atol=1e-6)
+                               plain.act(obs, deterministic=True).actions, rtol=0, atol=START_ATOL)
     with torch.no_grad():
         residual.residual_net[-1].weight.normal_(0.0, 0.1)  # the frames now move the mean
     step = residual.act(obs)
@@ -97,7 +102,7 @@ def test_input_norm_standardises_with_the_first_training_batch_then_keeps_it(che
     obs = observations()
     first = residual.act(obs)
     torch.testing.assert_close(residual.act(obs, deterministic=True).actions,
-                               plain.act(obs, deterministic=True).actions, rtol=0, atol=1e-6)
+                               plain.act(obs, deterministic=True).actions, rtol=0, atol=START_ATOL)
     model = NormalizedPolicy(residual, {}, 10.0)
     model.fit_input_stats(first.extras)
     features = first.extras["features"].double()
@@ -107,7 +112,7 @@ def test_input_norm_standardises_with_the_first_training_batch_then_keeps_it(che
     torch.testing.assert_close(residual.input_rms.mean, features.mean(0), rtol=0, atol=1e-9)
     assert {"input_rms.mean", "input_rms.var", "input_rms.count"} <= set(residual.state_dict())
     torch.testing.assert_close(residual.act(obs, deterministic=True).actions,
-                               plain.act(obs, deterministic=True).actions, rtol=0, atol=1e-6)
+                               plain.act(obs, deterministic=True).actions, rtol=0, atol=START_ATOL)
 
     with torch.no_grad():
         residual.residual_net[-1].weight.normal_(0.0, 0.1)
@@ -224,7 +229,7 @@ def test_readout_of_a_training_field_is_fitted_after_updates_and_acting_needs_th
     residual, plain = policy(checkpoint, residual_readout="state", residual_readout_dim=5), policy(checkpoint)
     obs = observations()
     torch.testing.assert_close(residual.act(obs, deterministic=True).actions,
-                               plain.act(obs, deterministic=True).actions, rtol=0, atol=1e-6)
+                               plain.act(obs, deterministic=True).actions, rtol=0, atol=START_ATOL)
     first = residual.act(obs)
     targets = first.extras["features"][:, :5] * 3.0 + torch.randn(BATCH, 5) * 0.01  # a field the features hold
     model = NormalizedPolicy(residual, {}, 10.0)
@@ -243,7 +248,7 @@ def test_readout_of_a_training_field_is_fitted_after_updates_and_acting_needs_th
         residual.residual_net[-1].weight.normal_(0.0, 0.1)
     step = residual.act(obs)  # no 'state': acting reads the features only
     features = step.extras["features"].double()
-    readout = (features @ residual.readout.weight + residual.readout.bias).clamp(-10, 10)
+    readout = (features @ residual.readout.weight[0] + residual.readout.bias[0]).clamp(-10, 10)
     raw = residual.residual_net.double()(torch.cat([features, readout], dim=-1)).reshape(BATCH, 2, 4)
     residual.float()
     mean = residual.residual_bound * torch.tanh(raw / residual.residual_bound)
@@ -261,3 +266,33 @@ def test_readout_of_a_training_field_is_fitted_after_updates_and_acting_needs_th
     with pytest.raises(ValueError, match=r"residual_readout='state' needs residual_readout_dim"):
         policy(checkpoint, residual_readout="state")
     assert NormalizedPolicy(plain, {}, 10.0).fit_readout({"state": targets}, first.extras) == {}
+
+
+def test_readout_groups_fit_one_readout_per_instruction(checkpoint):
+    """``readout_groups``: rows are keyed by a hash of their instruction (recorded in extras, so
+    the trainer's update and fit need no text), each instruction gets a readout fitted on its rows
+    alone, and the trainer's log-probs still match the rollout's."""
+    from infinirl.models.ridge_readout import RidgeReadout
+    from infinirl.models.vla.residual import instruction_key
+
+    residual = policy(checkpoint, residual_readout="state", residual_readout_dim=3, readout_groups=2)
+    texts = ["press the button"] * (BATCH // 2) + ["open the door"] * (BATCH // 2)
+    obs = {**observations(), "instruction": texts}
+    first = residual.act(obs)
+    keys = first.extras["readout_key"]
+    assert keys.tolist() == [instruction_key(t) for t in texts] and instruction_key("open the door") == keys[-1]
+    targets = first.extras["features"][:, :3] * torch.tensor([1.0, -2.0, 0.5]) + 1.0
+    residual.fit_readout({"state": targets}, first.extras)
+    half = slice(0, BATCH // 2)
+    alone = RidgeReadout(first.extras["features"].shape[1], 3, penalty=residual.readout.penalty)
+    alone.accumulate(first.extras["features"][half], targets[half])
+    alone.refit()
+    torch.testing.assert_close(residual.readout(first.extras["features"][half], keys[half]),
+                               alone(first.extras["features"][half]), rtol=1e-5, atol=1e-5)
+    with torch.no_grad():
+        residual.residual_net[-1].weight.normal_(0.0, 0.1)
+    step = residual.act(obs)
+    torch.testing.assert_close(residual.evaluate({}, step.actions, step.extras).logprobs, step.logprobs,
+                               rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match=r"readout_groups > 1 reads extras\['readout_key'\]"):
+        residual.evaluate({}, step.actions, {k: v for k, v in step.extras.items() if k != "readout_key"})
