@@ -146,25 +146,29 @@ def test_a_frozen_vla_steered_or_corrected_trains_end_to_end(ray_cluster, tmp_pa
     assert result["actor_weights_sha256"]
 
 
+def three_residual_iterations(output_dir, checkpoint, **options) -> tuple[list[dict], dict]:
+    """Three iterations of the tiny residual VLA with ``options`` (critic alone in the first, the
+    residual updated from the second): the rows with an update, and the last checkpoint's weights."""
+    policy = frozen_policy(checkpoint, "residual")
+    policy["kwargs"].update(options)
+    run(make_cfg(output_dir, checkpoint, policy=policy, iterations=3,
+                 actor={"anneal_lr": False, "lr": 1e-3, "value_lr": 1e-2},
+                 algorithm={"epochs": 2, "mini_batches": 2, "critic_warmup": 1}))
+    rows = [json.loads(line) for line in (output_dir / "metrics.jsonl").read_text().splitlines()]
+    model = torch.load(output_dir / "checkpoints" / "iter_000003" / "actor" / "actor.pt", map_location="cpu",
+                       weights_only=False)["model"]
+    return [r for r in rows if "train/approx_kl" in r], model
+
+
 def test_the_residuals_input_standardisation_is_fitted_on_the_first_batch_and_reaches_the_rollout(
         ray_cluster, tmp_path, checkpoint):
     """``residual_input_norm``: the trainer fits the statistics on its first batch (2 envs x 3
     decisions) and keeps them; they travel with the weights, so once the residual trains (iteration
     3, after the critic's warm-up and a first policy update) the rollout's log-probs still agree
     with the trainer's."""
-    policy = frozen_policy(checkpoint, "residual")
-    policy["kwargs"]["residual_input_norm"] = True
-    cfg = make_cfg(tmp_path / "norm", checkpoint, policy=policy, iterations=3,
-                   actor={"anneal_lr": False, "lr": 1e-3, "value_lr": 1e-2},
-                   algorithm={"epochs": 2, "mini_batches": 2, "critic_warmup": 1})
-    run(cfg)
-    rows = [json.loads(line) for line in (tmp_path / "norm" / "metrics.jsonl").read_text().splitlines()]
-    trained = [r for r in rows if "train/approx_kl" in r]
+    trained, model = three_residual_iterations(tmp_path / "norm", checkpoint, residual_input_norm=True)
     assert len(trained) == 3 and trained[1]["train/approx_kl"] != 0.0
     assert all(r["train/logprob_mismatch"] < 1e-5 for r in trained)
-
-    model = torch.load(tmp_path / "norm" / "checkpoints" / "iter_000003" / "actor" / "actor.pt",
-                       map_location="cpu", weights_only=False)["model"]
     assert float(model["policy.input_rms.count"]) == 6.0
     assert float(model["policy.input_rms.var"].min()) >= 0.0 and bool(model["policy.input_rms.mean"].abs().sum() > 0)
 
@@ -176,19 +180,11 @@ def test_the_residuals_readout_is_fitted_after_each_update_and_reaches_the_rollo
     update and scores it on the next batch before folding that in; the fit travels with the
     weights, so the rollout's log-probs agree with the trainer's once the residual reads it. With
     ``readout_groups`` the rows' instruction keys travel in the batch."""
-    policy = frozen_policy(checkpoint, "residual")
-    policy["kwargs"].update(residual_readout="state", readout_groups=groups)
-    cfg = make_cfg(tmp_path / "readout", checkpoint, policy=policy, iterations=3,
-                   actor={"anneal_lr": False, "lr": 1e-3, "value_lr": 1e-2},
-                   algorithm={"epochs": 2, "mini_batches": 2, "critic_warmup": 1})
-    run(cfg)
-    rows = [json.loads(line) for line in (tmp_path / "readout" / "metrics.jsonl").read_text().splitlines()]
-    trained = [r for r in rows if "train/approx_kl" in r]
+    trained, model = three_residual_iterations(tmp_path / "readout", checkpoint, residual_readout="state",
+                                               readout_groups=groups)
     assert len(trained) == 3 and trained[2]["train/approx_kl"] != 0.0
     assert "train/readout_r2" not in trained[0] and all("train/readout_r2" in r for r in trained[1:])
     assert all(r["train/logprob_mismatch"] < 1e-5 for r in trained)
-    model = torch.load(tmp_path / "readout" / "checkpoints" / "iter_000003" / "actor" / "actor.pt",
-                       map_location="cpu", weights_only=False)["model"]
     counts, keys = model["policy.readout.count"], model["policy.readout.keys"]
     assert float(counts.sum()) == 18.0 and model["policy.readout.weight"].dtype == torch.float64
     assert groups == 1 or bool((keys[counts > 0] != 0).all())  # each group that fitted has its instruction's key
