@@ -133,6 +133,9 @@ class ResidualCorrection(FrozenVLA):
         self.input_rms = RunningMeanStd((features,)) if residual_input_norm else None
         self.readout_obs, self.readout = residual_readout, None
         if residual_readout is not None:
+            if int(readout_groups) < 1 or not readout_penalty > 0:
+                raise ValueError(f"readout_groups must be >= 1 and readout_penalty > 0, got {readout_groups} and "
+                                 f"{readout_penalty}")
             if not residual_readout_dim or residual_readout_dim <= 0:
                 raise ValueError(f"residual_readout={residual_readout!r} needs residual_readout_dim, the field's "
                                  "size (the embodied runner fills it from the env's observation spec)")

@@ -265,6 +265,8 @@ def test_readout_of_a_training_field_is_fitted_after_updates_and_acting_needs_th
         model.fit_readout({"state": targets}, {"residual": first.extras["residual"]})
     with pytest.raises(ValueError, match=r"residual_readout='state' needs residual_readout_dim"):
         policy(checkpoint, residual_readout="state")
+    with pytest.raises(ValueError, match=r"readout_groups must be >= 1 and readout_penalty > 0, got 0 and 0.01"):
+        policy(checkpoint, residual_readout="state", residual_readout_dim=5, readout_groups=0)
     assert NormalizedPolicy(plain, {}, 10.0).fit_readout({"state": targets}, first.extras) == {}
 
 
