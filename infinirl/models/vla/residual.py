@@ -208,8 +208,8 @@ class ResidualCorrection(FrozenVLA):
     def fit_readout(self, obs, extras) -> dict[str, float]:
         """With ``residual_readout``: scores the readout on a training batch it has not seen (R²
         averaged over the field's values that vary; ``train/readout_r2``, absent before the first
-        fit), folds the batch in and refits. Called after
-        the update, so a batch's acting and its update read the same readout."""
+        fit), folds the batch in and refits. Called after the update, so a batch's acting and its
+        update read the same readout."""
         if self.readout is None:
             return {}
         if not extras or "features" not in extras:
