@@ -4,7 +4,7 @@ Why: PyTorch runs bf16 matrix products fast on x86 CPUs with AVX512-BF16 or AMX,
 that have only AVX2 (AMD Zen 2/3, older Intel) it takes a slow path, many times slower than float32,
 which turns a training step of minutes into one of tens of minutes. On such a CPU a requested
 ``bfloat16`` becomes ``float32`` (with one warning), for the trainer's compute dtype and the
-rollout's weights alike. ``INFINIRL_CPU_BF16=1`` keeps bf16 anyway. Other architectures (Arm) keep
+rollout's weights alike, and for a VLA policy's weights on a CPU-only host. ``INFINIRL_CPU_BF16=1`` keeps bf16 anyway. Other architectures (Arm) keep
 what was asked: we do not guess there.
 """
 
@@ -17,7 +17,7 @@ import warnings
 
 import torch
 
-__all__ = ["cpu_bf16_is_fast", "resolve_cpu_dtype"]
+__all__ = ["cpu_bf16_is_fast", "resolve_cpu_dtype", "resolve_weights_dtype"]
 
 _BF16_NAMES = ("bfloat16", "bf16")
 
@@ -39,6 +39,16 @@ def resolve_cpu_dtype(name: str) -> str:
         _warn_once()
         return "float32"
     return name
+
+
+def resolve_weights_dtype(name: str) -> torch.dtype:
+    """The dtype a policy's weights load in: ``name``, except bf16 on a CPU-only host without native bf16.
+
+    For models built before they know their device (a VLA policy loads its checkpoint, then its
+    worker moves it): with a CUDA device visible the weights will compute there, so bf16 is kept.
+    """
+    resolved = name if torch.cuda.is_available() else resolve_cpu_dtype(name)
+    return getattr(torch, resolved)
 
 
 @functools.cache

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
+from infinirl.engines.cpu_dtype import resolve_weights_dtype
 from infinirl.models.policies.base import POLICIES, Policy, PolicyEval, PolicyStep
 from infinirl.models.policies.flow import flow_sde_sigmas, flow_sde_transition, flow_timesteps
 from infinirl.models.policies.heads import gaussian_entropy
@@ -133,7 +134,7 @@ class PiZeroPolicy(Policy):
         else:
             arch = VLAArchitecture.from_json(architecture) if architecture else None
             self.vla = load_vla(Path(checkpoint), family=self.family, architecture=arch, tokenizer=tokenizer,
-                                dtype=getattr(torch, dtype))
+                                dtype=resolve_weights_dtype(dtype))
         config = self.vla.config
         if action_dim > config.action_dim or chunk > config.chunk_size:
             raise ValueError(f"the env wants chunks of {chunk} x {action_dim}, the checkpoint gives "

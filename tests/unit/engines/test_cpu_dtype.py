@@ -55,3 +55,28 @@ def test_the_override_keeps_bf16(monkeypatch):
     finally:
         monkeypatch.delenv("INFINIRL_CPU_BF16")
         cpu_dtype.cpu_bf16_is_fast.cache_clear()
+
+
+def test_policy_weights_keep_bf16_where_a_gpu_will_compute_them(native_bf16, monkeypatch):
+    native_bf16(False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert cpu_dtype.resolve_weights_dtype("bfloat16") is torch.bfloat16
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.warns(UserWarning, match="INFINIRL_CPU_BF16=1"):
+        assert cpu_dtype.resolve_weights_dtype("bfloat16") is torch.float32
+    assert cpu_dtype.resolve_weights_dtype("float32") is torch.float32
+    native_bf16(True)
+    assert cpu_dtype.resolve_weights_dtype("bfloat16") is torch.bfloat16
+
+
+def test_a_vla_policy_asked_for_bf16_on_a_cpu_without_it_loads_float32(native_bf16, tmp_path_factory):
+    from tests.unit.models.test_vla_steered import policy, tiny_checkpoint
+
+    checkpoint = tiny_checkpoint(tmp_path_factory)
+    native_bf16(False)
+    with pytest.warns(UserWarning, match="INFINIRL_CPU_BF16=1"):
+        slow_cpu = policy(checkpoint, name="pi0_smollm2_residual", dtype="bfloat16")
+    assert {p.dtype for p in slow_cpu.vla.parameters()} == {torch.float32}
+    native_bf16(True)
+    fast_cpu = policy(checkpoint, name="pi0_smollm2_residual", dtype="bfloat16")
+    assert {p.dtype for p in fast_cpu.vla.parameters()} == {torch.bfloat16}

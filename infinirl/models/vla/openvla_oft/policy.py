@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from infinirl.engines.cpu_dtype import resolve_weights_dtype
 from infinirl.models.policies.base import POLICIES, Policy, PolicyEval, PolicyStep
 from infinirl.models.policies.mlp import gaussian_logprob
 
@@ -65,7 +66,7 @@ class OpenVLAOFTPolicy(Policy):
         vision = read_architecture(architecture) if architecture else None
         self.vla = load_openvla_oft(Path(checkpoint), head=head, unnorm_key=unnorm_key, platform=platform,
                                     num_images=num_images, vision=vision, resize=resize_images,
-                                    dtype=getattr(torch, dtype))
+                                    dtype=resolve_weights_dtype(dtype))
         spec = self.vla.config.platform
         if action_dim != spec.action_dim or not 1 <= chunk <= spec.chunk_size:
             raise ValueError(f"the env wants chunks of {chunk} x {action_dim}, the checkpoint gives "
