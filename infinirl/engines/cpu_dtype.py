@@ -4,8 +4,8 @@ Why: PyTorch runs bf16 matrix products fast on x86 CPUs with AVX512-BF16 or AMX,
 that have only AVX2 (AMD Zen 2/3, older Intel) it takes a slow path, many times slower than float32,
 which turns a training step of minutes into one of tens of minutes. On such a CPU a requested
 ``bfloat16`` becomes ``float32`` (with one warning), for the trainer's compute dtype and the
-rollout's weights alike, and for a VLA policy's weights on a CPU-only host. ``INFINIRL_CPU_BF16=1`` keeps bf16 anyway. Other architectures (Arm) keep
-what was asked: we do not guess there.
+rollout's weights alike, and for a VLA policy's weights on a CPU-only host. ``INFINIRL_CPU_BF16=1``
+keeps bf16 anyway. Other architectures (Arm) keep what was asked: we do not guess there.
 """
 
 from __future__ import annotations
