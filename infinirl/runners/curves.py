@@ -20,6 +20,8 @@ class Panel:
     y_range: tuple[float, float] | None = None
     target: float | None = None
     """A dashed horizontal line (e.g. the success rate a demo aims at)."""
+    legend: tuple[str, ...] = ()
+    """The lines' names in the legend, in the order of ``y`` (default: the keys)."""
 
 
 def plot_panels(rows: Sequence[dict], panels: Sequence[Panel], path: str, title: str) -> str | None:
@@ -35,8 +37,9 @@ def plot_panels(rows: Sequence[dict], panels: Sequence[Panel], path: str, title:
         return None
     fig, axes = plt.subplots(1, len(drawn), figsize=(5 * len(drawn), 3.6), squeeze=False)
     for ax, (panel, series) in zip(axes[0], drawn):
+        names = dict(zip(panel.y, panel.legend))
         for key, (xs, ys) in series.items():
-            ax.plot(xs, ys, marker="o", markersize=3, label=key)
+            ax.plot(xs, ys, marker="o", markersize=3, label=names.get(key, key))
         if len(series) > 1:
             ax.legend(fontsize=8)
         if panel.y_range is not None:
