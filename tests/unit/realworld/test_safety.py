@@ -72,8 +72,9 @@ def test_clip_reaches_the_robot_and_is_logged(sim_arm, caplog):
 
 def test_silent_commander_makes_the_watchdog_hold(sim_arm):
     sim_arm.act(sim_arm.observe().current_target(sim_arm.spec))
-    assert wait_until(lambda: sim_arm.event_counts["watchdog_hold"] == 1)
-    assert sim_arm.driver.mode == "holding" and sim_arm.driver.stats.holds == 1
+    # the watchdog records the event, then holds the driver: wait for both, not the event alone
+    assert wait_until(lambda: sim_arm.event_counts["watchdog_hold"] == 1 and sim_arm.driver.mode == "holding")
+    assert sim_arm.driver.stats.holds == 1
     sim_arm.act(sim_arm.observe().current_target(sim_arm.spec))  # a command resumes
     assert wait_until(lambda: sim_arm.driver.mode == "running" or sim_arm.event_counts["watchdog_hold"] == 2)
 
