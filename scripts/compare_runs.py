@@ -72,12 +72,14 @@ def main(argv: list[str] | None = None) -> str:
     runs = dict(parse_run(spec) for spec in args.runs)
     panels = [parse_panel(spec) for spec in args.panel]
     keys = [key for key, _ in panels]
-    rows = labelled_rows({label: read_metrics(run) for label, run in runs.items()}, keys, args.start)
+    metrics = {label: read_metrics(run) for label, run in runs.items()}
+    never = [key for key in keys if not any(key in row for rows in metrics.values() for row in rows)]
+    if never:
+        _fail(f"none of the runs logged {never}: a panel is a key of their metrics.jsonl")
+    rows = labelled_rows(metrics, keys, args.start)
     figure = [Panel(title=title, y=tuple(f"{key}|{label}" for label in runs), legend=tuple(runs),
                     target=args.target if i == 0 else None) for i, (key, title) in enumerate(panels)]
     path = plot_panels(rows, figure, args.out, args.title)
-    if path is None:
-        _fail(f"none of the runs logged {keys}")
     print(path)
     return path
 

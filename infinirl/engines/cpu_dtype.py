@@ -20,6 +20,8 @@ import torch
 __all__ = ["cpu_bf16_is_fast", "resolve_cpu_dtype", "resolve_weights_dtype"]
 
 _BF16_NAMES = ("bfloat16", "bf16")
+_WEIGHT_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "bf16": torch.bfloat16,
+                  "float16": torch.float16}
 
 
 @functools.cache
@@ -47,8 +49,10 @@ def resolve_weights_dtype(name: str) -> torch.dtype:
     For models built before they know their device (a VLA policy loads its checkpoint, then its
     worker moves it): with a CUDA device visible the weights will compute there, so bf16 is kept.
     """
+    if name not in _WEIGHT_DTYPES:
+        raise ValueError(f"dtype {name!r} is not one of {sorted(_WEIGHT_DTYPES)}: set policy.kwargs.dtype to one")
     resolved = name if torch.cuda.is_available() else resolve_cpu_dtype(name)
-    return getattr(torch, resolved)
+    return _WEIGHT_DTYPES[resolved]
 
 
 @functools.cache

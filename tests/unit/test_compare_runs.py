@@ -43,6 +43,7 @@ def test_it_draws_the_runs_into_one_png(tmp_path):
     (["nolabel", "--panel", "x"], "is not LABEL=RUN_DIR"),
     (["a={missing}", "--panel", "x"], "metrics.jsonl not found"),
     (["a={run}", "--panel", "never/logged"], "none of the runs logged ['never/logged']"),
+    (["a={run}", "--panel", "eval/success_rate", "--panel", "typo"], "none of the runs logged ['typo']"),
 ])
 def test_what_it_cannot_draw_is_refused_in_one_line(tmp_path, capsys, args, message):
     run = write_run(tmp_path / "run", {20: 0.6})

@@ -67,6 +67,8 @@ def test_policy_weights_keep_bf16_where_a_gpu_will_compute_them(native_bf16, mon
     assert cpu_dtype.resolve_weights_dtype("float32") is torch.float32
     native_bf16(True)
     assert cpu_dtype.resolve_weights_dtype("bfloat16") is torch.bfloat16
+    with pytest.raises(ValueError, match="dtype 'bfloat17' is not one of .* set policy.kwargs.dtype"):
+        cpu_dtype.resolve_weights_dtype("bfloat17")
 
 
 def test_a_vla_policy_asked_for_bf16_on_a_cpu_without_it_loads_float32(native_bf16, tmp_path_factory):
