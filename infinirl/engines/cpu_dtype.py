@@ -17,11 +17,26 @@ import warnings
 
 import torch
 
-__all__ = ["cpu_bf16_is_fast", "resolve_cpu_dtype", "resolve_weights_dtype"]
+__all__ = ["cpu_bf16_is_fast", "resolve_cpu_dtype", "resolve_dtype", "resolve_weights_dtype"]
 
 _BF16_NAMES = ("bfloat16", "bf16")
-_WEIGHT_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "bf16": torch.bfloat16,
-                  "float16": torch.float16}
+_DTYPE_ALIASES = {
+    "float32": torch.float32, "fp32": torch.float32, "float": torch.float32,
+    "bfloat16": torch.bfloat16, "bf16": torch.bfloat16,
+    "float16": torch.float16, "fp16": torch.float16, "half": torch.float16,
+}
+
+
+def resolve_dtype(dtype: torch.dtype | str) -> torch.dtype:
+    """Accept ``torch.bfloat16`` or config-friendly strings like ``"bf16"`` / ``"float32"``."""
+    if isinstance(dtype, torch.dtype):
+        return dtype
+    try:
+        return _DTYPE_ALIASES[str(dtype).lower()]
+    except KeyError:
+        raise ValueError(
+            f"unknown dtype {dtype!r}; use one of {sorted(_DTYPE_ALIASES)} or a torch.dtype"
+        ) from None
 
 
 @functools.cache
@@ -49,10 +64,13 @@ def resolve_weights_dtype(name: str) -> torch.dtype:
     For models built before they know their device (a VLA policy loads its checkpoint, then its
     worker moves it): with a CUDA device visible the weights will compute there, so bf16 is kept.
     """
-    if name not in _WEIGHT_DTYPES:
-        raise ValueError(f"dtype {name!r} is not one of {sorted(_WEIGHT_DTYPES)}: set policy.kwargs.dtype to one")
-    resolved = name if torch.cuda.is_available() else resolve_cpu_dtype(name)
-    return _WEIGHT_DTYPES[resolved]
+    try:
+        dtype = resolve_dtype(name)
+    except ValueError as error:
+        raise ValueError(f"policy.kwargs.dtype: {error}") from None
+    if dtype is torch.bfloat16 and not torch.cuda.is_available():
+        return resolve_dtype(resolve_cpu_dtype("bfloat16"))
+    return dtype
 
 
 @functools.cache

@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 from transformers import AutoModelForCausalLM, AutoTokenizer, LlamaConfig, LlamaForCausalLM
 
+from infinirl.engines.cpu_dtype import resolve_dtype
 from infinirl.models import smollm2
 
 # Named models we can produce with no hub access: name -> function returning a local folder.
@@ -21,11 +22,6 @@ EMBEDDED_MODELS = {smollm2.MODEL_NAME: smollm2.ensure_converted}
 
 WEIGHT_SUFFIXES = (".safetensors", ".bin", ".gguf")
 
-_DTYPE_ALIASES = {
-    "float32": torch.float32, "fp32": torch.float32, "float": torch.float32,
-    "bfloat16": torch.bfloat16, "bf16": torch.bfloat16,
-    "float16": torch.float16, "fp16": torch.float16, "half": torch.float16,
-}
 
 # ChatML, as SmolLM2 uses: lets tests of chat-templated prompts run on the tiny tokenizer.
 CHATML_TEMPLATE = (
@@ -34,18 +30,6 @@ CHATML_TEMPLATE = (
     "{% endfor %}"
     "{% if add_generation_prompt %}{{ '<|im_start|>assistant\n' }}{% endif %}"
 )
-
-
-def resolve_dtype(dtype: torch.dtype | str) -> torch.dtype:
-    """Accept ``torch.bfloat16`` or config-friendly strings like ``"bf16"`` / ``"float32"``."""
-    if isinstance(dtype, torch.dtype):
-        return dtype
-    try:
-        return _DTYPE_ALIASES[str(dtype).lower()]
-    except KeyError:
-        raise ValueError(
-            f"unknown dtype {dtype!r}; use one of {sorted(_DTYPE_ALIASES)} or a torch.dtype"
-        ) from None
 
 
 def find_weight_files(folder: Path) -> list[Path]:

@@ -67,7 +67,7 @@ def test_policy_weights_keep_bf16_where_a_gpu_will_compute_them(native_bf16, mon
     assert cpu_dtype.resolve_weights_dtype("float32") is torch.float32
     native_bf16(True)
     assert cpu_dtype.resolve_weights_dtype("bfloat16") is torch.bfloat16
-    with pytest.raises(ValueError, match="dtype 'bfloat17' is not one of .* set policy.kwargs.dtype"):
+    with pytest.raises(ValueError, match="policy.kwargs.dtype: unknown dtype 'bfloat17'; use one of"):
         cpu_dtype.resolve_weights_dtype("bfloat17")
 
 
