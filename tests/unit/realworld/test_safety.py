@@ -84,8 +84,8 @@ def test_stalled_heartbeat_stops_the_sim_arm():
                       SafetyConfig(command_deadline_s=None, heartbeat_deadline_s=0.2))
     robot.connect()
     try:
-        assert wait_until(lambda: robot.event_counts["heartbeat_stop"] == 1)
-        assert robot.driver.mode == "stopped"
+        # the monitor records the event, then stops the driver: wait for both, not the event alone
+        assert wait_until(lambda: robot.event_counts["heartbeat_stop"] == 1 and robot.driver.mode == "stopped")
         with pytest.raises(RobotStoppedError):
             robot.act(robot.observe().current_target(robot.spec))
         robot.reset()
