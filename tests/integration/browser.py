@@ -27,3 +27,7 @@ BROWSER_SKIPS = [
                        reason="needs Playwright: pip install playwright (the system Chromium is used)"),
     pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium: apt-get install chromium (or set INFINIRL_CHROMIUM)"),
 ]
+BROWSER_AVAILABLE = CHROMIUM is not None and importlib.util.find_spec("playwright") is not None
+# A test of a page's API that its browser twin repeats click for click: the default tier runs the
+# API one only where the browser one is skipped (pytest -m slow runs both).
+COVERED_BY_THE_BROWSER = [pytest.mark.slow] if BROWSER_AVAILABLE else []

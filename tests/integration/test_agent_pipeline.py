@@ -9,7 +9,8 @@ from tests.integration.resume import killed_after_checkpoint
 from tests.integration.test_reasoning_pipeline import make_cfg
 
 # A random model's tokens contain an "e" often: every trajectory really takes several turns.
-AGENT = {"rollout": {"group_size": 2, "max_new_tokens": 6,
+# Sampled at 0.6: the trainer must score the model's tokens with logits / 0.6 too, not the untempered policy.
+AGENT = {"rollout": {"group_size": 2, "max_new_tokens": 6, "temperature": 0.6,
                      "agent": {"env": "infinirl.agents.toy_envs:EchoEnv", "env_options": {"answers": 2},
                                "max_turns": 3, "max_response_tokens": 40, "schedule": "lockstep"}}}
 
@@ -26,18 +27,11 @@ def test_agent_rollouts_train_on_model_tokens_and_resume_exactly(ray_cluster, ti
     assert all(r["agent/observation_tokens_mean"] > 0 for r in train)
     assert all(r["agent/echoes_mean"] > 0 for r in train)
     assert all(r["agent/knows_problem_mean"] == r["agent/echoes_mean"] for r in train), "envs get their problem"
-    # the trainer scores the model's tokens as the rollout sampled them, environment tokens excluded
+    # the trainer scores the model's tokens as the rollout sampled them (at its temperature),
+    # environment tokens excluded
     assert all(r["train/logprob_mismatch_mean"] < 1e-3 for r in train)
     assert any(r["train/grad_norm"] > 0 for r in train)
     check_pinned("reasoning_agent", tmp_path / "straight", [
         "rollout/reward_mean", "rollout/response_length_mean", "agent/turns_mean", "agent/observation_tokens_mean",
         "train/loss", "train/grad_norm"])
 
-
-def test_the_trainer_scores_multi_turn_samples_at_the_rollout_temperature(ray_cluster, tiny_llama_dir, tmp_path):
-    """Sampled at 0.6, the trainer's log-probs are those of logits / 0.6 too, not of the untempered policy."""
-    tempered = {"rollout": {**AGENT["rollout"], "temperature": 0.6}}
-    run(make_cfg(tiny_llama_dir, tmp_path / "run", iterations=1, save_every=0, eval={"every": 0}, **tempered))
-    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    train = [r for r in rows if "train/logprob_mismatch_mean" in r]
-    assert train and all(r["train/logprob_mismatch_mean"] < 1e-3 for r in train)

@@ -30,44 +30,49 @@ PENDULUM = ["env.name=gym:Pendulum-v1", "env.num_envs=2", "rollout_steps=16", "s
             "eval.env_kwargs={}", "loggers=[]", "cluster.log_to_driver=false"]
 
 
-@pytest.mark.parametrize("whom", ["group", "driver"])
-def test_ctrl_c_or_sigterm_stops_after_the_iteration_with_a_checkpoint_and_the_run_resumes(tmp_path, whom):
+def start_until(command: list[str], metrics, rows: int):
+    """``command`` in a session of its own (a terminal's process group), once ``metrics`` has ``rows`` lines."""
+    import subprocess
+    import time
+
+    proc = subprocess.Popen(command, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    deadline = time.monotonic() + 240
+    while not (metrics.exists() and len(metrics.read_text().splitlines()) >= rows) and proc.poll() is None:
+        assert time.monotonic() < deadline, f"the run logged no iteration {rows} in 240 s"
+        time.sleep(0.1)
+    return proc
+
+
+def test_ctrl_c_or_sigterm_stops_after_the_iteration_with_a_checkpoint_and_the_run_resumes(tmp_path):
     """Ctrl-C reaches the driver and the Ray processes it started (the terminal's process group);
     a scheduler's SIGTERM reaches the driver: both end the run after the current iteration, with a
-    checkpoint there, exit 0, and the same command resumes from it."""
+    checkpoint there, exit 0, and the same command resumes from it. Here Ctrl-C stops the first
+    run, the same command resumes it, and SIGTERM stops that one."""
     import json
     import os
     import signal
-    import subprocess
     import sys
-    import time
 
     pytest.importorskip("gymnasium")
     command = [sys.executable, "-m", "infinirl.cli", "train", "ppo_metaworld_reach", *PENDULUM,
-               f"output_dir={tmp_path}"]
-    proc = subprocess.Popen([*command, "iterations=400"], start_new_session=True, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    metrics = tmp_path / "metrics.jsonl"
-    deadline = time.monotonic() + 240
-    while not (metrics.exists() and len(metrics.read_text().splitlines()) >= 2) and proc.poll() is None:
-        assert time.monotonic() < deadline, "the run logged no iteration in 240 s"
-        time.sleep(0.1)
-    if whom == "group":
-        os.killpg(proc.pid, signal.SIGINT)
-    else:
-        proc.send_signal(signal.SIGTERM)
-    out, err = proc.communicate(timeout=180)
-    assert proc.returncode == 0, err[-3000:]
-    summary = json.loads((tmp_path / "summary.json").read_text())
-    stopped = summary["stopped_at"]
-    assert 2 <= stopped < 400
-    assert f"stopped by {'SIGINT' if whom == 'group' else 'SIGTERM'} after iteration {stopped}" in out + err
-    assert sorted(os.listdir(tmp_path / "checkpoints")) == [f"iter_{stopped:06d}"]
-    assert [json.loads(line)["step"] for line in metrics.read_text().splitlines()] == list(range(1, stopped + 1))
-    if whom == "driver":
-        return
-    resumed = subprocess.run([*command, f"iterations={stopped + 2}"], capture_output=True, text=True, timeout=300)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert f"resumed from {tmp_path / 'checkpoints' / f'iter_{stopped:06d}'} at iteration {stopped}" in resumed.stdout
-    assert "stopped_at" not in json.loads((tmp_path / "summary.json").read_text())
-    assert [json.loads(line)["step"] for line in metrics.read_text().splitlines()] == list(range(1, stopped + 3))
+               f"output_dir={tmp_path}", "iterations=400"]
+    metrics, checkpoints = tmp_path / "metrics.jsonl", tmp_path / "checkpoints"
+    stops = []
+    for signal_name, whom in (("SIGINT", "group"), ("SIGTERM", "driver")):
+        resumed_from = stops[-1] if stops else None
+        proc = start_until(command, metrics, (resumed_from or 1) + 1)
+        if whom == "group":
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=180)
+        assert proc.returncode == 0, err[-3000:]
+        stopped = json.loads((tmp_path / "summary.json").read_text())["stopped_at"]
+        assert (resumed_from or 1) + 1 <= stopped < 400
+        assert f"stopped by {signal_name} after iteration {stopped}" in out + err
+        if resumed_from:
+            assert f"resumed from {checkpoints / f'iter_{resumed_from:06d}'} at iteration {resumed_from}" in out
+        stops.append(stopped)
+        assert sorted(os.listdir(checkpoints)) == [f"iter_{s:06d}" for s in stops]
+        assert [json.loads(line)["step"] for line in metrics.read_text().splitlines()] == list(range(1, stopped + 1))

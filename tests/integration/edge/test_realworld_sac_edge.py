@@ -24,7 +24,7 @@ from infinirl.edge.emulator import EmulatorSpec, LinkEmulator  # noqa: E402
 from infinirl.realworld.replay import ReplayStore  # noqa: E402
 from infinirl.runners.realworld_sac import run  # noqa: E402
 from infinirl.runners.realworld_sac_config import RealWorldSACConfig  # noqa: E402
-from tests.integration.browser import BROWSER_SKIPS, CHROMIUM  # noqa: E402
+from tests.integration.browser import BROWSER_SKIPS, CHROMIUM, COVERED_BY_THE_BROWSER  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -184,7 +184,8 @@ def person_with_a_browser(base: str, seen: dict) -> None:
 PEOPLE = {"api": person_at_the_trainer, "browser": person_with_a_browser}
 
 
-@pytest.mark.parametrize("who", ["api", pytest.param("browser", marks=BROWSER_SKIPS)])
+@pytest.mark.parametrize("who", [pytest.param("api", marks=COVERED_BY_THE_BROWSER),
+                                 pytest.param("browser", marks=BROWSER_SKIPS)])
 def test_the_edge_robots_intervention_page_is_served_at_the_trainer_through_the_link(ray_cluster, tmp_path, pki, who):
     """interventions.device=web at the edge, edge.page_listen at the trainer: a person at the trainer
     opens the page (the edge opens no port), takes over, steers and marks a success, through the
