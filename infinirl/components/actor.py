@@ -51,5 +51,5 @@ class ActorWorker(EngineWorker, WeightSource):
         # The entropy pass costs a [tokens, vocab] softmax: only pay for it when it is used.
         return self.engine.train_step(shard, loss_fn, with_entropy=self.objective.entropy_coef > 0)
 
-    def weights_for_sync(self):
-        return self.engine.state_dict_for_sync(dtype=self.sync_dtype)
+    def weights_for_sync(self, changed_only: bool = False):
+        return self.engine.state_dict_for_sync(dtype=self.sync_dtype, changed_only=changed_only)

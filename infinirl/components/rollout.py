@@ -71,8 +71,11 @@ class RolloutWorker(Worker, WeightSink):
         channel.flush()
         return len(chunks)
 
-    def load_weights(self, named_tensors, version: int) -> None:
-        self.engine.load_weights(named_tensors, version)
+    def load_weights(self, named_tensors, version: int, changed_only: bool = False) -> None:
+        if changed_only:
+            self.engine.load_weights(named_tensors, version, changed_only=True)
+        else:
+            self.engine.load_weights(named_tensors, version)
 
     def offload(self) -> None:
         self.engine.offload()

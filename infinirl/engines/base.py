@@ -130,10 +130,12 @@ class InferenceEngine(ABC):
 
     @abstractmethod
     def load_weights(
-        self, named_tensors: Iterable[tuple[str, torch.Tensor]], version: int
+        self, named_tensors: Iterable[tuple[str, torch.Tensor]], version: int, changed_only: bool = False
     ) -> None:
         """Overwrite the weights with the trainer's (bit-exact when dtypes match) and tag later
-        samples with ``version``. ``named_tensors`` may be a generator, so buckets can stream."""
+        samples with ``version``. ``named_tensors`` may be a generator, so buckets can stream.
+        ``changed_only``: the trainer sends only the weights training changes; allowed once this
+        engine has loaded a full set from it (an engine may refuse: it then gets full syncs)."""
 
     @property
     @abstractmethod

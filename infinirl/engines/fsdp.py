@@ -45,7 +45,13 @@ from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONS
 from infinirl.engines.distributed import compute_dtype, init_distributed, resolve_device_type, select_device
 from infinirl.engines.fsdp_checkpoint import load_model_and_optimizer, read_engine_state, save_sharded_checkpoint
 from infinirl.engines.logprobs import aligned_logprobs, aligned_values
-from infinirl.engines.lora import LoraMergePlan, apply_lora, lora_merge_plan, merged_full_weights
+from infinirl.engines.lora import (
+    LoraMergePlan,
+    apply_lora,
+    changing_weight_names,
+    lora_merge_plan,
+    merged_full_weights,
+)
 from infinirl.engines.micro_batches import (
     as_tensordict,
     filler_batch,
@@ -121,6 +127,7 @@ class FSDPTrainEngine:
         self.mesh = init_device_mesh(self.device.type, (self.world_size,))
         mp_policy = MixedPrecisionPolicy(param_dtype=self.compute_dtype, reduce_dtype=torch.float32)
         self.model = shard(model, mesh=self.mesh, mp_policy=mp_policy)
+        self._changing_weights = changing_weight_names(self.model, self._lora_plan)
 
         self.optimizer: torch.optim.Optimizer | None = None
         self.scheduler: torch.optim.lr_scheduler.LambdaLR | None = None
@@ -387,7 +394,7 @@ class FSDPTrainEngine:
     # ------------------------------------------------------------------ weight export
 
     def state_dict_for_sync(
-        self, dtype: torch.dtype | None = None
+        self, dtype: torch.dtype | None = None, changed_only: bool = False
     ) -> Iterator[tuple[str, torch.Tensor]]:
         """Yield ``(name, full tensor)`` per parameter, named like the HF model's ``state_dict()``.
 
@@ -395,9 +402,12 @@ class FSDPTrainEngine:
         at a time so peak memory is one full parameter, which suits bucketed sync. Every rank must
         consume the iterator to the end. LoRA adapters are merged into their base weights and
         their own entries are not yielded. Tensors stay on the engine's device; ``dtype`` casts.
+        ``changed_only``: only the weights training can change (the trainable ones, and each LoRA
+        layer's merged weight), for a receiver that holds this engine's full export already.
         """
         self._require_on_device("state_dict_for_sync")
-        yield from merged_full_weights(self.model.state_dict(), self._lora_plan, dtype)
+        only = self._changing_weights if changed_only else None
+        yield from merged_full_weights(self.model.state_dict(), self._lora_plan, dtype, only=only)
 
     # ------------------------------------------------------------------ checkpoints
 

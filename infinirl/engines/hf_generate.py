@@ -109,6 +109,7 @@ class HFGenerateEngine(InferenceEngine):
         self._vocab_size = model.get_input_embeddings().weight.shape[0]
         self._max_positions = getattr(model.config, "max_position_embeddings", None)
         self._weight_version = 0
+        self._holds_full_sync = False  # a full set of the trainer's weights loaded (changed-only syncs build on it)
         self.weight_refresh = None
         """Partial rollouts: called between decode steps; True when it has just loaded new weights."""
         self._offloaded = False
@@ -299,17 +300,24 @@ class HFGenerateEngine(InferenceEngine):
         return self._weight_version
 
     def load_weights(
-        self, named_tensors: Iterable[tuple[str, torch.Tensor]], version: int
+        self, named_tensors: Iterable[tuple[str, torch.Tensor]], version: int, changed_only: bool = False
     ) -> None:
         """Copy tensors into the model by state-dict name, then adopt ``version``.
 
         Every weight must be sent (a tied weight under either of its names is enough): a silently
-        partial update would tag samples from a half-old model with the new version. Tensors are
-        copied as they stream in, so on an error the model may be partly updated, but the version
-        stays old. ``copy_`` is bit-exact when dtypes match and rounds like ``.to()`` otherwise.
+        partial update would tag samples from a half-old model with the new version. The exception
+        is ``changed_only``, the trainer's declaration that it sends only what training changes;
+        it is accepted only after a full load from the trainer (the rest of the model is then
+        exactly the trainer's). Tensors are copied as they stream in, so on an error the model may
+        be partly updated, but the version stays old. ``copy_`` is bit-exact when dtypes match and
+        rounds like ``.to()`` otherwise.
         """
         if not isinstance(version, int):
             raise TypeError(f"load_weights: version must be an int, got {version!r}")
+        if changed_only and not self._holds_full_sync:
+            raise ValueError(f"load_weights(changed_only=True): this engine has not loaded a full set of the "
+                             f"trainer's weights yet, so the weights left out may not be the trainer's; send "
+                             f"every weight first. weight_version stays {self._weight_version}")
         targets = self.model.state_dict(keep_vars=True)
         unique_names = {id(t): name for name, t in targets.items()}
         loaded: set[int] = set()
@@ -330,11 +338,12 @@ class HFGenerateEngine(InferenceEngine):
                 target.copy_(tensor)
                 loaded.add(id(target))
         missing = [name for key, name in unique_names.items() if key not in loaded]
-        if missing:
+        if missing and not changed_only:
             raise ValueError(
                 f"load_weights: {len(missing)} weights were not sent (e.g. {missing[:3]}); "
                 f"send the full state dict. weight_version stays {self._weight_version}"
             )
+        self._holds_full_sync = True
         self._weight_version = version
 
     # ------------------------------------------------------------------------ offload / reload

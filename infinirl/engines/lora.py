@@ -6,7 +6,7 @@ exported weights are ``W + scaling * B @ A`` under ``W``'s HF name, with no adap
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Container, Iterator, Mapping
 
 import torch
 from torch import nn
@@ -14,7 +14,8 @@ from torch import nn
 from infinirl.engines.sharding import full_tensor
 from infinirl.engines.train_base import LoraSettings
 
-__all__ = ["LORA_ADAPTER", "LoraMergePlan", "apply_lora", "hf_name", "lora_merge_plan", "merged_full_weights"]
+__all__ = ["LORA_ADAPTER", "LoraMergePlan", "apply_lora", "changing_weight_names", "hf_name", "lora_merge_plan",
+           "merged_full_weights"]
 
 LORA_ADAPTER = "default"  # peft's name of the one adapter we add
 _PEFT_PREFIX = "base_model.model."
@@ -72,9 +73,21 @@ def lora_merge_plan(model: nn.Module) -> LoraMergePlan:
     }
 
 
+def changing_weight_names(model: nn.Module, plan: LoraMergePlan) -> frozenset[str]:
+    """The state-dict names of the weights training can change: every trainable parameter but the
+    adapters themselves (under each of a tied weight's names), and each LoRA layer's base weight,
+    which its adapter is merged into for export. A LoRA run on the top layers changes a fraction
+    of the model; the rest is what the rollout already holds."""
+    names = {name for name, param in model.named_parameters(remove_duplicate=False)
+             if param.requires_grad and ".lora_A." not in name and ".lora_B." not in name}
+    return frozenset(names | {f"{module_name}.base_layer.weight" for module_name in plan})
+
+
 def merged_full_weights(state_dict: Mapping[str, torch.Tensor], plan: LoraMergePlan,
-                        dtype: torch.dtype | None = None) -> Iterator[tuple[str, torch.Tensor]]:
-    """``(HF name, full tensor)`` of every entry of a (possibly sharded, possibly LoRA) state dict.
+                        dtype: torch.dtype | None = None,
+                        only: Container[str] | None = None) -> Iterator[tuple[str, torch.Tensor]]:
+    """``(HF name, full tensor)`` of every entry of a (possibly sharded, possibly LoRA) state dict,
+    or of the entries named in ``only`` (state-dict names, e.g. :func:`changing_weight_names`).
 
     Each sharded tensor is gathered on its own (a collective: every rank must consume the iterator
     to the end), so peak memory is one full parameter. Adapters are merged into their base
@@ -82,6 +95,8 @@ def merged_full_weights(state_dict: Mapping[str, torch.Tensor], plan: LoraMergeP
     """
     for name, tensor in state_dict.items():
         if plan and (".lora_A." in name or ".lora_B." in name):
+            continue
+        if only is not None and name not in only:
             continue
         full = full_tensor(tensor.detach())
         module_name, _, leaf = name.rpartition(".base_layer.")

@@ -194,9 +194,10 @@ class TrainEngine(Protocol):
         """One optimizer step over this rank's share of a mini-batch; returns metrics."""
 
     def state_dict_for_sync(
-        self, dtype: torch.dtype | None = None
+        self, dtype: torch.dtype | None = None, changed_only: bool = False
     ) -> Iterator[tuple[str, torch.Tensor]]:
-        """Full (unsharded) weights under the HF model's ``state_dict()`` names, for the rollout."""
+        """Full (unsharded) weights under the HF model's ``state_dict()`` names, for the rollout;
+        ``changed_only``: only those training can change (the receiver holds the rest already)."""
 
     def save_checkpoint(self, path: str) -> None:
         """Write model, optimizer, scheduler, step and RNG atomically to directory ``path``."""

@@ -244,7 +244,7 @@ class VLLMEngine(InferenceEngine):
         return self._weight_version
 
     def load_weights(
-        self, named_tensors: Iterable[tuple[str, torch.Tensor]], version: int
+        self, named_tensors: Iterable[tuple[str, torch.Tensor]], version: int, changed_only: bool = False
     ) -> None:
         """Stream HF-named tensors into the running model (in place), then adopt ``version``.
 
@@ -252,10 +252,14 @@ class VLLMEngine(InferenceEngine):
         released as they are loaded. Every weight of the checkpoint must be sent (a tied LM head
         under either name); otherwise a ``ValueError`` names what is missing and the version stays
         old (the sent weights are loaded by then, like ``HFGenerateEngine``). The prefix cache is
-        reset, so no KV block computed with the old weights is reused.
+        reset, so no KV block computed with the old weights is reused. ``changed_only`` is refused:
+        sleep mode may discard the weights such a sync leaves out.
         """
         if not isinstance(version, int):
             raise TypeError(f"load_weights: version must be an int, got {version!r}")
+        if changed_only:
+            raise ValueError("VLLMEngine.load_weights(changed_only=True): not supported (sleep mode may discard "
+                             "the weights it leaves out); send every weight")
         if self._offloaded and self._sleep_mode and not self._weights_awake:
             self.llm.wake_up(tags=["weights"])
             self._weights_awake = True

@@ -141,23 +141,30 @@ class WeightPusher:
     (:func:`~infinirl.runtime.start_weight_sync`): each rollout rank loads them after the requests
     queued on it before, which is what fixes every batch's producing version."""
 
-    def __init__(self, trainer, rollout, asynchronous: bool, interrupt: bool = False):
+    def __init__(self, trainer, rollout, asynchronous: bool, interrupt: bool = False, changed_only: bool = False):
         self.trainer, self.rollout, self.asynchronous = trainer, rollout, asynchronous
         self.interrupt = interrupt  # partial rollouts: staged beside the running generations
+        # After the first push, send only what training changes (a LoRA run's merged layers): the
+        # first one makes the rest of every rollout rank's model the trainer's. Not with staging,
+        # where a newer version may replace one a rank never loaded.
+        self.changed_only = changed_only and not interrupt
+        self._sent_full = False
         self._loading: list = []  # published versions the rollout ranks have not loaded yet
 
     def push(self, version: int) -> float:
         """Send ``version``; the seconds the trainer spent on it."""
         from infinirl.runtime import start_weight_sync, sync_weights
 
+        changed_only, self._sent_full = self.changed_only and self._sent_full, True
         if not self.asynchronous:
-            return sync_weights(self.trainer, self.rollout, version=version).seconds
+            return sync_weights(self.trainer, self.rollout, version=version, changed_only=changed_only).seconds
         for pending in self._loading:  # an earlier load that failed raises its root cause here
             if pending.done():
                 pending.wait()
         self._loading = [p for p in self._loading if not p.done()]
         start = time.perf_counter()
-        pending = start_weight_sync(self.trainer, self.rollout, version=version, interrupt=self.interrupt)
+        pending = start_weight_sync(self.trainer, self.rollout, version=version, interrupt=self.interrupt,
+                                    changed_only=changed_only)
         if self.interrupt:
             # Staged on every rank before the next batch is submitted, so that batch starts on
             # this version (the staleness bound holds); staging does not wait for the generations.

@@ -65,6 +65,9 @@ OLD_LOGPROBS, REF_LOGPROBS, VALUES, RETURNS = "old_logprobs", "ref_logprobs", "v
 # What a forward-only pass needs of a batch (the rest stays in the driver); the response mask lets
 # the engine skip the LM head over prompt positions.
 _FORWARD_KEYS = (INPUT_IDS, ATTENTION_MASK, POSITION_IDS, RESPONSE_MASK)
+# Rollout engines that take changed-only weight syncs after a full one (a LoRA actor then sends its
+# merged layers only); vLLM's sleep mode may discard weights, so it gets every weight each time.
+CHANGED_ONLY_ENGINES = frozenset({"hf"})
 
 
 @dataclass
@@ -155,7 +158,9 @@ class ReasoningFlow:
         self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_ahead,
                                                            self._collect_ahead)
         self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None,
-                                    interrupt=cfg.algorithm.asynchronous.partial_rollout)
+                                    interrupt=cfg.algorithm.asynchronous.partial_rollout,
+                                    changed_only=(cfg.rollout.sync_changed_only
+                                                  and cfg.rollout.engine in CHANGED_ONLY_ENGINES))
         self.spec = LoopSpec(
             name="reasoning", title="reasoning RL", headline="eval/greedy_accuracy",
             progress=(ProgressField(label="reward", key="rollout/reward_mean"),

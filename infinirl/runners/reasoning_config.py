@@ -50,6 +50,11 @@ class RolloutConfig:
     """Inference engine by registered name: hf (transformers, runs anywhere) | vllm (optional extra)."""
     engine_options: dict[str, Any] = field(default_factory=dict)
     """Extra keyword options passed to the engine's constructor."""
+    sync_changed_only: bool = True
+    """After the first weight sync, send the rollout only the weights training changes (a LoRA
+    actor on the top layers: their merged projections, a quarter of SmolLM2-135M's bytes); false:
+    every weight each time. The hf engine only (vLLM, and staged partial-rollout syncs, always get
+    every weight)."""
     max_prompt_length: int = bounded(1024, ge=1)
     """Longest prompt (tokens, chat template and system prompt included) the run accepts. A longer
     training or eval prompt stops the run with an error naming it, rather than silently eating

@@ -4,6 +4,9 @@ The trainer group's ranks mix in ``WeightSource`` and implement ``weights_for_sy
 is called, so a sharded trainer can gather; rank 0's tensors are the ones sent). The rollout
 group's ranks mix in ``WeightSink`` and implement ``load_weights(named_tensors, version)``.
 ``sync_weights(trainer, rollout, version)`` moves them and returns per-sync statistics.
+``changed_only=True`` sends only the weights training can change (``weights_for_sync(changed_only=True)``,
+e.g. the merged LoRA layers), to receivers that loaded a full sync before (``load_weights(...,
+changed_only=True)`` refuses otherwise).
 
 Paths (``method=``):
 - ``object_store`` (CPU default): each bucket is one flat byte buffer ``ray.put`` once and mapped
@@ -83,13 +86,16 @@ class WeightSource:
     """Mixin for the trainer's Worker. Implement ``weights_for_sync``."""
 
     def weights_for_sync(self) -> Iterable[tuple[str, torch.Tensor]]:
+        """Every weight; a source that can tell which ones training changes also takes
+        ``changed_only`` (see :func:`sync_weights`)."""
         raise NotImplementedError(f"{type(self).__name__} must implement weights_for_sync()")
 
-    def _infinirl_publish_weights(self, bucket_bytes: int, cuda_ipc: bool) -> list | None:
+    def _infinirl_publish_weights(self, bucket_bytes: int, cuda_ipc: bool, changed_only: bool = False) -> list | None:
         """Rank 0's buckets: object-store copies, or (``cuda_ipc``) IPC handles to private GPU
         copies. Torch keeps a sent CUDA block alive until every receiver has released it, so the
         trainer may step on (and drop its references) before the receivers have loaded."""
-        named = self.weights_for_sync()  # every rank runs this (a sharded gather needs all ranks)
+        # every rank runs this (a sharded gather needs all ranks)
+        named = self.weights_for_sync(changed_only=True) if changed_only else self.weights_for_sync()
         if self.rank != 0:
             for _ in named:  # drain generators so collective gathers complete on every rank
                 pass
@@ -135,7 +141,7 @@ class WeightSink:
     def load_weights(self, named_tensors: list[tuple[str, torch.Tensor]], version: int) -> None:
         raise NotImplementedError(f"{type(self).__name__} must implement load_weights()")
 
-    def _infinirl_receive_weights(self, published: list, version: int) -> int:
+    def _infinirl_receive_weights(self, published: list, version: int, changed_only: bool = False) -> int:
         received = [0]
 
         def tensors():  # one pass over every bucket: engines may require the full state at once
@@ -144,7 +150,10 @@ class WeightSink:
                 received[0] += flat.numel()
                 yield from split_bucket(flat, metas)
 
-        self.load_weights(tensors(), version)
+        if changed_only:
+            self.load_weights(tensors(), version, changed_only=True)
+        else:
+            self.load_weights(tensors(), version)
         self.weight_version = version
         self._drop_staged(up_to=version)  # an older staged version must not come back later
         return received[0]
@@ -265,9 +274,11 @@ def sync_weights(
     method: str = "auto",
     bucket_bytes: int = DEFAULT_BUCKET_BYTES,
     group: WeightSyncGroup | None = None,
+    changed_only: bool = False,
 ) -> SyncStats:
-    """Copy the trainer's weights into every rollout rank and stamp them with ``version``."""
-    return start_weight_sync(source, sink, version, method, bucket_bytes, group).wait()
+    """Copy the trainer's weights into every rollout rank and stamp them with ``version``;
+    ``changed_only``: only those training can change, to ranks that loaded a full sync before."""
+    return start_weight_sync(source, sink, version, method, bucket_bytes, group, changed_only=changed_only).wait()
 
 
 @dataclass
@@ -300,6 +311,7 @@ def start_weight_sync(
     bucket_bytes: int = DEFAULT_BUCKET_BYTES,
     group: WeightSyncGroup | None = None,
     interrupt: bool = False,
+    changed_only: bool = False,
 ) -> PendingSync:
     """:func:`sync_weights` without waiting for the receivers: returns once the trainer has
     published its weights, so it can train on while the rollout ranks finish their queued requests
@@ -309,10 +321,16 @@ def start_weight_sync(
     sync in flight); ``collective`` blocks the trainer's next call until the receivers join the broadcast.
 
     ``interrupt``: stage the weights on each rank beside its running calls instead of queueing
-    them behind (see :class:`WeightSink`); the pending sync is done once every rank has them."""
+    them behind (see :class:`WeightSink`); the pending sync is done once every rank has them.
+
+    ``changed_only`` (object store and CUDA IPC, queued): see :func:`sync_weights`."""
     start = time.perf_counter()
     if method == "auto":
         method = "collective" if group is not None else ("cuda_ipc" if _share_a_gpu(source, sink) else "object_store")
+    if changed_only and (interrupt or method == "collective"):
+        raise ValueError("start_weight_sync(changed_only=True) is for queued object-store or CUDA IPC syncs: a "
+                         "staged version may replace an older one a rank never loaded, and the collective path "
+                         "broadcasts every weight")
     if method == "collective":
         if interrupt:
             raise ValueError("start_weight_sync(interrupt=True) stages object-store or CUDA IPC buckets; "
@@ -325,9 +343,11 @@ def start_weight_sync(
         return PendingSync(version, method, len(metas), start, [send, received], bytes_from=0)
     if method not in ("object_store", "cuda_ipc"):
         raise ValueError(f"unknown weight-sync method {method!r}; use auto, object_store, cuda_ipc or collective")
-    published = source.call("_infinirl_publish_weights", bucket_bytes, method == "cuda_ipc").wait()[0]
-    receive = "_infinirl_stage_weights" if interrupt else "_infinirl_receive_weights"
-    received = sink.call(receive, published, version)
+    published = source.call("_infinirl_publish_weights", bucket_bytes, method == "cuda_ipc", changed_only).wait()[0]
+    if interrupt:
+        received = sink.call("_infinirl_stage_weights", published, version)
+    else:
+        received = sink.call("_infinirl_receive_weights", published, version, changed_only)
     return PendingSync(version, method, len(published), start, [received])
 
 

@@ -122,6 +122,19 @@ def test_ppo_with_a_lora_actor_scores_kl_against_its_base(ray_cluster, tiny_llam
     assert all(r["train/value_loss"] > 0 for r in rows[1:])
 
 
+def test_a_lora_actor_on_the_top_layer_sends_the_rollout_only_what_it_changes(ray_cluster, tiny_llama_dir,
+                                                                              tmp_path):
+    """The main job's actor (LoRA on the top layers): after the first weight sync, only the merged
+    adapted layers go to the rollout, whose model stays exactly the trainer's: batches 2 and 3,
+    generated after syncs of versions that moved far (lr 5e-2), the second changed-only, score as
+    the rollout sampled them."""
+    lora = {"actor": {"lr": 5e-2, "lora": {"r": 4, "alpha": 8, "target_modules": "all-linear", "top_layers": 1}}}
+    run(make_cfg(tiny_llama_dir, tmp_path, iterations=3, save_every=0, eval={"every": 0}, **lora))
+    rows = [r for r in read_rows(tmp_path) if "train/loss" in r]
+    assert len(rows) == 3 and all(r["train/grad_norm"] > 0 for r in rows)
+    assert all(r["train/logprob_mismatch_mean"] < 1e-3 for r in rows), [r["train/logprob_mismatch_mean"] for r in rows]
+
+
 def test_a_prompt_over_max_prompt_length_fails_naming_the_key(tiny_llama_dir, tmp_path):
     from infinirl.engines.base import SamplingParams
     from infinirl.runners.reasoning import ReasoningFlow

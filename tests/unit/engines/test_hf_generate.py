@@ -337,6 +337,23 @@ def test_load_weights_rejects_unknown_missing_and_misshaped(tiny):
     assert engine.weight_version == 0
 
 
+def test_changed_only_loads_follow_a_full_load_and_keep_the_rest(tiny):
+    """A changed-only sync is refused until the engine holds a full one (the weights it leaves out
+    would be the engine's own, maybe not the trainer's); after it, the sent weights are copied, the
+    rest kept, and the version adopted."""
+    model, tokenizer = tiny
+    engine = HFGenerateEngine(tiny_causal_lm(tokenizer="byte", seed=1)[0], tokenizer)
+    norm = ("model.norm.weight", torch.full_like(dict(model.named_parameters())["model.norm.weight"], 0.5))
+    with pytest.raises(ValueError, match=r"has not loaded a full set .* weight_version stays 0"):
+        engine.load_weights([norm], version=1, changed_only=True)
+    engine.load_weights(model.named_parameters(), version=1)
+    engine.load_weights([norm], version=2, changed_only=True)
+    assert engine.weight_version == 2
+    ours, theirs = engine.model.state_dict(), model.state_dict()
+    assert torch.equal(ours["model.norm.weight"], norm[1])
+    assert all(torch.equal(ours[k], theirs[k]) for k in ours if k != "model.norm.weight")
+
+
 def test_offload_reload_round_trip(engine):
     greedy = SamplingParams(max_new_tokens=6, greedy=True)
     before = engine.generate(PROMPTS, greedy)

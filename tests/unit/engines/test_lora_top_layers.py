@@ -66,6 +66,24 @@ def test_only_the_top_layers_get_adapters_and_train():
     assert changed and all(".layers.2." in n or ".layers.3." in n for n in changed), sorted(changed)
 
 
+def test_a_changed_only_export_is_the_merged_adapted_layers_of_the_full_one():
+    """``state_dict_for_sync(changed_only=True)``: exactly the weights an update can change (the
+    top layers' adapted projections, adapters merged), equal to the full export's; embeddings,
+    norms and the layers below stay out."""
+    eng = engine(top_layers=2)
+    for _ in range(2):
+        eng.train_step(batch(), loss_fn)
+    full = dict(eng.state_dict_for_sync())
+    changing = dict(eng.state_dict_for_sync(changed_only=True))
+    projections = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
+    module = {"q_proj": "self_attn", "k_proj": "self_attn", "v_proj": "self_attn", "o_proj": "self_attn"}
+    assert set(changing) == {f"model.layers.{layer}.{module.get(p, 'mlp')}.{p}.weight"
+                             for layer in (2, 3) for p in projections}
+    assert all(torch.equal(changing[name], full[name]) for name in changing)
+    initial = dict(engine(top_layers=2).state_dict_for_sync())
+    assert {n for n in full if not torch.equal(full[n], initial[n])} <= set(changing)  # nothing else moved
+
+
 def test_backward_does_not_reach_the_frozen_layers():
     eng = engine(top_layers=1)
     seen: list[bool] = []
