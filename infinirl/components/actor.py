@@ -52,4 +52,6 @@ class ActorWorker(EngineWorker, WeightSource):
         return self.engine.train_step(shard, loss_fn, with_entropy=self.objective.entropy_coef > 0)
 
     def weights_for_sync(self, changed_only: bool = False):
-        return self.engine.state_dict_for_sync(dtype=self.sync_dtype, changed_only=changed_only)
+        if changed_only:
+            return self.engine.state_dict_for_sync(dtype=self.sync_dtype, changed_only=True)
+        return self.engine.state_dict_for_sync(dtype=self.sync_dtype)

@@ -110,6 +110,7 @@ class HFGenerateEngine(InferenceEngine):
         self._max_positions = getattr(model.config, "max_position_embeddings", None)
         self._weight_version = 0
         self._holds_full_sync = False  # a full set of the trainer's weights loaded (changed-only syncs build on it)
+        self._changed_only_names: frozenset[str] | None = None  # what the first changed-only sync sent
         self.weight_refresh = None
         """Partial rollouts: called between decode steps; True when it has just loaded new weights."""
         self._offloaded = False
@@ -343,8 +344,20 @@ class HFGenerateEngine(InferenceEngine):
                 f"load_weights: {len(missing)} weights were not sent (e.g. {missing[:3]}); "
                 f"send the full state dict. weight_version stays {self._weight_version}"
             )
+        if changed_only:
+            self._check_changed_only_names(frozenset(unique_names[key] for key in loaded))
         self._holds_full_sync = True
         self._weight_version = version
+
+    def _check_changed_only_names(self, sent: frozenset[str]) -> None:
+        """What training changes does not change between syncs: a changed-only sync that sends
+        nothing, or other weights than the first one did, means the trainer's idea of it broke."""
+        expected = self._changed_only_names if self._changed_only_names is not None else sent
+        if not sent or sent != expected:
+            raise ValueError(f"load_weights(changed_only=True): sent {len(sent)} weights, the first changed-only "
+                             f"sync {len(expected)}; differing: {sorted(sent ^ expected)[:3]}. The version stays "
+                             f"{self._weight_version} (the sent weights are loaded)")
+        self._changed_only_names = sent
 
     # ------------------------------------------------------------------------ offload / reload
 

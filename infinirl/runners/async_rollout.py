@@ -151,6 +151,10 @@ class WeightPusher:
         self._sent_full = False
         self._loading: list = []  # published versions the rollout ranks have not loaded yet
 
+    def sent_full(self) -> None:
+        """Every rollout rank has loaded a full sync sent around this pusher (a resume's)."""
+        self._sent_full = True
+
     def push(self, version: int) -> float:
         """Send ``version``; the seconds the trainer spent on it."""
         from infinirl.runtime import start_weight_sync, sync_weights

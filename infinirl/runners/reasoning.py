@@ -172,6 +172,7 @@ class ReasoningFlow:
     def start(self, iteration: int) -> None:
         if iteration:  # resumed: the rollout engine still holds the initial weights
             sync_weights(self.actor, self.rollout, version=iteration)
+            self.weights.sent_full()
 
     def step(self, step: int) -> dict:
         t0 = time.perf_counter()

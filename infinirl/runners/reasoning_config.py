@@ -52,7 +52,7 @@ class RolloutConfig:
     """Extra keyword options passed to the engine's constructor."""
     sync_changed_only: bool = True
     """After the first weight sync, send the rollout only the weights training changes (a LoRA
-    actor on the top layers: their merged projections, a quarter of SmolLM2-135M's bytes); false:
+    actor on the top layers: their merged projections, a fifth of SmolLM2-135M's bytes); false:
     every weight each time. The hf engine only (vLLM, and staged partial-rollout syncs, always get
     every weight)."""
     max_prompt_length: int = bounded(1024, ge=1)

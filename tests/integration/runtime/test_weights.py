@@ -35,8 +35,15 @@ class Trainer(Worker, WeightSource):
             for p in self.model.parameters():
                 p.add_(torch.randn_like(p.float()).to(p.dtype))
 
-    def weights_for_sync(self):
-        return self.model.state_dict().items()
+    def weights_for_sync(self, changed_only: bool = False):
+        return [(k, v) for k, v in self.model.state_dict().items() if not changed_only or k in self.CHANGING]
+
+    CHANGING = ("2.weight", "2.bias")  # what train_the_head changes
+
+    def train_the_head(self):
+        with torch.no_grad():
+            for p in self.model[2].parameters():
+                p.add_(torch.randn_like(p.float()).to(p.dtype))
 
     def state(self):
         return {k: v.clone() for k, v in self.model.state_dict().items()}
@@ -64,10 +71,15 @@ class Rollout(Worker, WeightSink):
             versions.append(self.weight_version)
         return versions
 
-    def load_weights(self, named_tensors, version):
-        own = self.model.state_dict()
+    def load_weights(self, named_tensors, version, changed_only=False):
+        own, sent = self.model.state_dict(), set()
         for name, tensor in named_tensors:
             own[name].copy_(tensor)
+            sent.add(name)
+        self.last_sent = (sorted(sent), changed_only)
+
+    def sent(self):
+        return self.last_sent
 
     def state(self):
         return {k: v.clone() for k, v in self.model.state_dict().items()}
@@ -121,6 +133,33 @@ def test_sync_is_bit_exact_and_versioned(ray_cluster, method):
     finally:
         trainer.shutdown()
         rollout.shutdown()
+
+
+def test_a_changed_only_sync_sends_what_the_source_says_changes(ray_cluster):
+    """After a full sync, ``changed_only`` publishes the source's ``weights_for_sync(changed_only=True)``
+    and tells the receivers so; their model is the trainer's all the same."""
+    trainer = WorkerGroup.launch(Trainer, "actor", num_ranks=1)
+    rollout = WorkerGroup.launch(Rollout, "rollout", num_ranks=2)
+    try:
+        trainer.train_a_bit().wait()
+        full = sync_weights(trainer, rollout, version=1)
+        trainer.train_the_head().wait()
+        changed = sync_weights(trainer, rollout, version=2, changed_only=True)
+        assert 0 < changed.bytes < full.bytes
+        assert rollout.sent().wait() == [(["2.bias", "2.weight"], True)] * 2
+        expected = trainer.state().wait()[0]
+        for received in rollout.state().wait():
+            assert all(torch.equal(received[name], expected[name]) for name in expected)
+        assert rollout.version().wait() == [2, 2]
+    finally:
+        trainer.shutdown()
+        rollout.shutdown()
+
+
+def test_changed_only_needs_a_queued_object_store_or_cuda_ipc_sync():
+    for method, interrupt in (("collective", False), ("object_store", True)):
+        with pytest.raises(ValueError, match="changed_only=True"):
+            start_weight_sync(None, None, version=1, method=method, interrupt=interrupt, changed_only=True)
 
 
 def test_collective_needs_group(ray_cluster):

@@ -340,7 +340,7 @@ def test_load_weights_rejects_unknown_missing_and_misshaped(tiny):
 def test_changed_only_loads_follow_a_full_load_and_keep_the_rest(tiny):
     """A changed-only sync is refused until the engine holds a full one (the weights it leaves out
     would be the engine's own, maybe not the trainer's); after it, the sent weights are copied, the
-    rest kept, and the version adopted."""
+    rest kept, and the version adopted; later ones must send the same weights as the first."""
     model, tokenizer = tiny
     engine = HFGenerateEngine(tiny_causal_lm(tokenizer="byte", seed=1)[0], tokenizer)
     norm = ("model.norm.weight", torch.full_like(dict(model.named_parameters())["model.norm.weight"], 0.5))
@@ -352,6 +352,12 @@ def test_changed_only_loads_follow_a_full_load_and_keep_the_rest(tiny):
     ours, theirs = engine.model.state_dict(), model.state_dict()
     assert torch.equal(ours["model.norm.weight"], norm[1])
     assert all(torch.equal(ours[k], theirs[k]) for k in ours if k != "model.norm.weight")
+    other = ("model.embed_tokens.weight", theirs["model.embed_tokens.weight"])
+    for sent in ([other], [norm, other], []):  # what training changes does not change between syncs
+        with pytest.raises(ValueError, match=r"the first changed-only sync 1; .* version stays 2"):
+            engine.load_weights(sent, version=3, changed_only=True)
+    engine.load_weights([norm], version=3, changed_only=True)
+    assert engine.weight_version == 3
 
 
 def test_offload_reload_round_trip(engine):
