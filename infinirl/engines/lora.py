@@ -53,11 +53,20 @@ def apply_lora(model: nn.Module, settings: LoraSettings, fully_trained: list[str
         layers_to_transform=layers,
     )
     peft_model = get_peft_model(model, config)
+    embeddings = peft_model.get_input_embeddings()
+    embedding_weight = getattr(embeddings, "weight", None)
     for name, module in peft_model.named_modules():
         if isinstance(module, LoraLayer) and not isinstance(module, LoraLinear):
             raise ValueError(
                 f"LoRA target {name!r} is a {type(module).__name__}; only nn.Linear targets are "
                 "supported (their merge for weight sync is implemented). Narrow target_modules."
+            )
+        base_weight = getattr(getattr(module, "base_layer", None), "weight", None)
+        if isinstance(module, LoraLayer) and embedding_weight is not None and base_weight is embedding_weight:
+            raise ValueError(
+                f"LoRA target {name!r} shares its weight with the input embeddings (tie_word_embeddings): the "
+                "merged export would change the rollout's embeddings as well, which the trainer's adapter does "
+                "not. Leave it out of lora.target_modules (all-linear does)."
             )
     return peft_model
 

@@ -99,3 +99,18 @@ def test_backward_does_not_reach_the_frozen_layers():
 def test_top_layers_out_of_range_is_a_clear_error():
     with pytest.raises(ValueError, match="top_layers=9.*4 decoder layers"):
         engine(top_layers=9)
+
+
+def test_a_target_tied_to_the_input_embeddings_is_refused():
+    """A LoRA ``lm_head`` on a tied-embedding model: its merged export would also change the
+    rollout's input embeddings, which the trainer's adapter leaves alone."""
+    from infinirl.engines.lora import apply_lora
+
+    torch.manual_seed(0)
+    tied = LlamaForCausalLM(LlamaConfig(vocab_size=64, hidden_size=32, intermediate_size=64, num_hidden_layers=1,
+                                        num_attention_heads=4, num_key_value_heads=2, tie_word_embeddings=True))
+    with pytest.raises(ValueError, match=r"LoRA target '.*lm_head' shares its weight with the input embeddings"):
+        apply_lora(tied, LoraSettings(r=4, alpha=8, target_modules=["q_proj", "lm_head"]))
+    untied = four_layer_llama()  # tie_word_embeddings off: an adapted lm_head merges into its own weight
+    apply_lora(untied, LoraSettings(r=4, alpha=8, target_modules=["q_proj", "lm_head"]))
+
