@@ -53,8 +53,10 @@ def apply_lora(model: nn.Module, settings: LoraSettings, fully_trained: list[str
         layers_to_transform=layers,
     )
     peft_model = get_peft_model(model, config)
-    embeddings = peft_model.get_input_embeddings()
-    embedding_weight = getattr(embeddings, "weight", None)
+    try:  # a model without input embeddings (or one that does not say) has nothing to tie to
+        embedding_weight = getattr(peft_model.get_input_embeddings(), "weight", None)
+    except (AttributeError, NotImplementedError):
+        embedding_weight = None
     for name, module in peft_model.named_modules():
         if isinstance(module, LoraLayer) and not isinstance(module, LoraLinear):
             raise ValueError(
