@@ -37,6 +37,34 @@ def _vllm(model: str, dtype: str, device: str, max_batch_size: int, options: dic
     return VLLMEngine(model, dtype=dtype, device=device, max_batch_size=max_batch_size, **options)
 
 
+#: The engine class behind each built-in factory and the arguments the factory fills itself: what
+#: ``rollout.engine_options`` may name is read off its signature (an engine from a plugin is not checked).
+_OPTIONS_OF: dict[str, tuple[str, str, tuple[str, ...]]] = {
+    "hf": ("infinirl.engines.hf_generate", "HFGenerateEngine", ("model", "tokenizer", "max_batch_size")),
+    "vllm": ("infinirl.engines.vllm_engine", "VLLMEngine", ("model", "dtype", "device", "max_batch_size")),
+}
+
+
+def check_engine_options(name: str, options: dict[str, Any], key: str) -> None:
+    """Refuse an option engine ``name`` does not take, naming ``key.<option>``, before any worker starts."""
+    from infinirl.config import ConfigError
+
+    if name not in _OPTIONS_OF or not options:
+        return
+    import importlib
+
+    from infinirl.envs.options import keyword_names
+
+    module, cls, filled = _OPTIONS_OF[name]
+    taken, open_ended = keyword_names(getattr(importlib.import_module(module), cls))
+    for option in options:
+        if option in filled:
+            raise ConfigError(f"{key}.{option}: the runner sets it for the {name} engine; remove it from {key}")
+        if not open_ended and option not in taken:
+            allowed = ", ".join(sorted(taken - set(filled))) or "no options"
+            raise ConfigError(f"{key}.{option}: the {name} engine takes {allowed}")
+
+
 def build_rollout_engine(name: str, model: str, dtype: str, device: str, max_batch_size: int,
                          options: dict[str, Any] | None = None) -> InferenceEngine:
     if device == "cpu":

@@ -102,7 +102,7 @@ class EvalConfig:
         return [self.k] if isinstance(self.k, int) else list(self.k)
 
     def validate(self) -> None:
-        from infinirl.engines.registry import ROLLOUT_ENGINES
+        from infinirl.engines.registry import ROLLOUT_ENGINES, check_engine_options
         from infinirl.runners.run_config import validate_placement
 
         if not self.samples and not self.greedy:
@@ -119,6 +119,7 @@ class EvalConfig:
         if self.rollout.engine not in ROLLOUT_ENGINES:
             raise ConfigError(f"rollout.engine={self.rollout.engine!r} is not registered; "
                               f"registered: {', '.join(ROLLOUT_ENGINES.names())}")
+        check_engine_options(self.rollout.engine, self.rollout.engine_options, "rollout.engine_options")
         plan = self.resolve()
         needed = {"rollout", "reward"} | ({"actor"} if plan.checkpoint else set())
         missing = needed - set(self.placement)

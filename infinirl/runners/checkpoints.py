@@ -17,7 +17,7 @@ import shutil
 from typing import Any
 
 from infinirl.config import ConfigError
-from infinirl.utils import write_json_atomic
+from infinirl.utils import replace_directory, write_json_atomic
 
 __all__ = ["Checkpoints", "config_changes"]
 
@@ -46,8 +46,7 @@ class Checkpoints:
         write_json_atomic(os.path.join(tmp, STATE_FILE), state)
         write_json_atomic(os.path.join(tmp, MANIFEST_FILE), _manifest(tmp))
         final = self.path_of(index)
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
+        replace_directory(tmp, final)  # a same-numbered folder is kept aside until the new one is in place
         if self.keep:
             self.prune(self.keep)
         return final

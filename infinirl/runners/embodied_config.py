@@ -275,6 +275,22 @@ class EmbodiedConfig(RunConfig):
     """Online scaling of the env component (env and rollout on disjoint slots): a command file and/or
     a policy on the env ranks' busy ratio (see infinirl.runtime.scaling)."""
 
+    def _anneals_over_iterations(self) -> bool:
+        return self.actor.anneal_lr and not self.actor.anneal_iterations
+
+    def resume_may_change(self, key: str) -> bool:
+        # The learning rate's decay horizon is `iterations` here: the checkpoint's iterations ran on the
+        # old schedule, so a new length would half-apply a different one.
+        if key == "iterations" and self._anneals_over_iterations():
+            return False
+        return super().resume_may_change(key)
+
+    def resume_refusal_hint(self, key: str) -> str:
+        if key == "iterations" and self._anneals_over_iterations():
+            return ("the learning rate decays to 0 over iterations (actor.anneal_lr with actor.anneal_iterations=0); "
+                    "to make a run extendable, start it with actor.anneal_iterations set to its final length")
+        return super().resume_refusal_hint(key)
+
     def _check_groups(self) -> None:
         if ALGORITHMS[self.algorithm.name].grouped and self.env.num_envs % self.algorithm.group_size:
             size, envs = self.algorithm.group_size, self.env.num_envs

@@ -27,6 +27,9 @@ What the loop owns:
   just written), the curves and the summary (``stopped_at``), skips the flow's end artifacts and
   returns; ``infinirl train`` with the same config resumes from it. A second Ctrl-C interrupts at
   once.
+* **starting over**: a run that starts at iteration 0 (``resume=false``, or no checkpoint yet) in a
+  folder holding an earlier run's records moves them to ``earlier/<time>/`` first, so the old
+  checkpoints are neither pruned among the new ones nor resumed later as this run's.
 * **failure**: an output folder the run created and never logged to is removed again.
 """
 
@@ -62,6 +65,10 @@ __all__ = ["Flow", "LoopSpec", "ProgressField", "RunLoop"]
 DRIVER_RNG_FILE = "driver_rng.pt"
 SUMMARY_FILE = "summary.json"
 CONFIG_HISTORY_FILE = "config_history.jsonl"
+EARLIER_RUNS_DIR = "earlier"
+#: What a run writes into its output folder that a run starting over there would mix with its own.
+EARLIER_RUN_RECORDS = ("checkpoints", "metrics.jsonl", CONFIG_HISTORY_FILE, SUMMARY_FILE, "curves.png",
+                       "config.json", "tensorboard", "wandb", "swanlab")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -121,6 +128,7 @@ class RunLoop:
         self.checkpoints = Checkpoints(cfg.output_dir, keep=cfg.keep_checkpoints)
         self.logger: MetricsLogger | None = None
         self.resume_from: tuple[str, dict] | None = None
+        self._history_record: dict | None = None
         self._created_output = False
 
     # ------------------------------------------------------------------ before any worker starts
@@ -129,6 +137,8 @@ class RunLoop:
         try:
             _check_writable(self.cfg.output_dir)
             self.resume_from = self._find_resume_point()
+            if self.resume_from is None:
+                self._set_earlier_run_aside()
         except BaseException:
             self._remove_unused_output()
             raise
@@ -144,27 +154,60 @@ class RunLoop:
         if found is None:
             return None
         path, state = found
+        iteration = _iteration_of(state)
+        if self.cfg.iterations < iteration:
+            raise ConfigError(f"iterations={self.cfg.iterations} is below the {iteration} iterations {path} has "
+                              f"already run; set iterations >= {iteration} to resume it, or start over with "
+                              "resume=false")
         recorded = state.get("config")
         if recorded is not None:
-            self._check_config(path, recorded, _iteration_of(state))
+            self._check_config(path, recorded, iteration)
         return found
+
+    def _set_earlier_run_aside(self) -> None:
+        """A run starting at iteration 0 in a folder holding an earlier run's records (``resume=false``,
+        or a run that stopped before its first checkpoint) moves them to ``earlier/<time>/``: its
+        checkpoints would otherwise be pruned with the new ones and resumed later as if they were
+        this run's, and its metrics overwritten."""
+        output = self.cfg.output_dir
+        present = [name for name in EARLIER_RUN_RECORDS if os.path.lexists(os.path.join(output, name))]
+        if not any(name in present for name in ("checkpoints", "metrics.jsonl")):
+            return
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        target = os.path.join(output, EARLIER_RUNS_DIR, stamp)
+        suffix = 1
+        while os.path.exists(target):
+            suffix += 1
+            target = os.path.join(output, EARLIER_RUNS_DIR, f"{stamp}-{suffix}")
+        os.makedirs(target)
+        for name in present:
+            os.replace(os.path.join(output, name), os.path.join(target, name))
+        print(f"starting over: the earlier run's records in {output} ({', '.join(present)}) moved to {target}",
+              flush=True)
 
     def _check_config(self, path: str, recorded: dict, iteration: int) -> None:
         changes = config_changes(recorded, to_plain(self.cfg))
         refused = {k: v for k, v in changes.items() if not self.cfg.resume_may_change(k)}
         if refused:
             listed = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in refused.items())
+            hints = "".join(f" ({hint})" for hint in filter(None, map(self.cfg.resume_refusal_hint, refused)))
             raise ConfigError(f"resume: the config differs from the one {path} was written with ({listed}); the "
-                              "checkpoint's state was built with the old values, so resuming would half-apply them. "
-                              "Restore those values to continue, or start over with resume=false (or a new "
+                              "checkpoint's state was built with the old values, so resuming would half-apply them"
+                              f"{hints}. Restore those values to continue, or start over with resume=false (or a new "
                               "output_dir)")
         if changes:
-            record = {"iteration": iteration, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                      "changes": {k: {"old": old, "new": new} for k, (old, new) in changes.items()}}
-            with open(os.path.join(self.cfg.output_dir, CONFIG_HISTORY_FILE), "a") as handle:
-                handle.write(json.dumps(record, default=str) + "\n")
+            # Written once the run has resumed (``run``): a run that fails before that applied nothing.
+            self._history_record = {"iteration": iteration, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                                    "changes": {k: {"old": old, "new": new} for k, (old, new) in changes.items()}}
             shown = ", ".join(f"{k} {old!r} -> {new!r}" for k, (old, new) in changes.items())
             print(f"resume: applying changed keys ({shown}); recorded in {CONFIG_HISTORY_FILE}", flush=True)
+
+    def _record_config_changes(self) -> None:
+        if self._history_record is None:
+            return
+        with open(os.path.join(self.cfg.output_dir, CONFIG_HISTORY_FILE), "a") as handle:
+            handle.write(json.dumps(self._history_record, default=str) + "\n")
+        self._history_record = None
 
     # ------------------------------------------------------------------ the loop
     def run(self, flow: Flow) -> dict:
@@ -174,6 +217,7 @@ class RunLoop:
         start = self._resume(flow)
         self.logger = MetricsLogger(cfg.output_dir, cfg.loggers, to_plain(cfg), start_step=start)
         flow.start(start)
+        self._record_config_changes()
         latest_eval: dict = {}
         if start == 0 and cfg.eval.at_start:
             latest_eval = self._evaluate(flow, 0, None)

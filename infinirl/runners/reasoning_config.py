@@ -193,7 +193,7 @@ class ReasoningConfig(RunConfig):
     # ------------------------------------------------------------------ cross-field rules
     def check(self) -> None:
         from infinirl.algorithms import ADVANTAGES, AGGREGATIONS, KL_ESTIMATORS
-        from infinirl.engines.registry import ROLLOUT_ENGINES
+        from infinirl.engines.registry import ROLLOUT_ENGINES, check_engine_options
 
         check_model_path(self.model.path, "model.path")
         batch = self.prompts_per_step * self.rollout.group_size
@@ -211,8 +211,10 @@ class ReasoningConfig(RunConfig):
         ):
             if value not in registry:
                 raise ConfigError(f"{key}={value!r} is not registered; registered: {', '.join(registry.names())}")
+        check_engine_options(self.rollout.engine, self.rollout.engine_options, "rollout.engine_options")
         self._tie_actor_temperature()
         self._check_kl_and_reference()
+        self._check_advantage_kwargs()
         self._check_critic()
         self._check_off_policy()
         self._check_agent()
@@ -280,9 +282,19 @@ class ReasoningConfig(RunConfig):
         for key in ("gamma", "lam"):
             if not 0.0 <= kwargs.get(key, 1.0) <= 1.0:
                 raise ConfigError(f"algorithm.advantage_kwargs.{key}={kwargs[key]} must be in [0, 1]")
-        unknown = set(kwargs) - {"gamma", "lam"}
+
+    def _check_advantage_kwargs(self) -> None:
+        """The estimator's options are read off its signature: a misspelt one would otherwise stop the run
+        at its first advantage computation, after every model has loaded."""
+        from infinirl.algorithms import ADVANTAGES
+        from infinirl.envs.options import keyword_names
+
+        name = self.algorithm.advantage
+        taken, _ = keyword_names(ADVANTAGES.get(name), skip=("inputs",))
+        unknown = sorted(set(self.algorithm.advantage_kwargs) - taken)
         if unknown:
-            raise ConfigError(f"algorithm.advantage_kwargs: gae takes gamma and lam, not {', '.join(sorted(unknown))}")
+            allowed = ", ".join(sorted(taken)) or "no options"
+            raise ConfigError(f"algorithm.advantage_kwargs: {name} takes {allowed}, not {', '.join(unknown)}")
 
 
 #: Estimators that read one reward per sequence (ignoring per-token rewards such as a KL penalty).

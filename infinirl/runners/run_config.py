@@ -59,7 +59,7 @@ class RunConfig:
     effect as intended (throughput settings that do not change what is learned)."""
 
     runner: str = ""
-    seed: int = 0
+    seed: int = bounded(0, ge=0)
     iterations: int = bounded(20, ge=1)
     """Iterations of the runner's step (one rollout and one update each)."""
     output_dir: str = "runs/run"
@@ -149,6 +149,10 @@ class RunConfig:
         shared = ("iterations", "output_dir", "resume", "save_every", "keep_checkpoints", "loggers", "eval",
                   "placement", "cluster")
         return any(key == p or key.startswith(p + ".") for p in (*shared, *self.RESUME_MAY_CHANGE))
+
+    def resume_refusal_hint(self, key: str) -> str:
+        """Why a change of ``key`` is refused on resume where the general reason does not say it, and what to do."""
+        return ""
 
 
 def validate_placement(placement: dict[str, str], known, runner: str) -> None:

@@ -223,3 +223,63 @@ def test_a_full_disk_while_checkpointing_keeps_the_previous_checkpoint(tmp_path)
     assert sorted(os.listdir(checkpoints)) == ["iter_000002"]  # no half-written folder left
     summary = run(toy(tmp_path, iterations=4, save_every=2))  # and it resumes
     assert summary["iterations"] == 4
+
+
+def test_starting_over_moves_the_earlier_runs_records_aside(tmp_path, capsys):
+    """resume=false in a folder with an earlier run's checkpoints: pruning must not delete the new
+    run's checkpoints in favour of the old ones, nor a later resume pick the old run up."""
+    earlier = run(toy(tmp_path, iterations=4, save_every=2))
+    cfg = toy(tmp_path, iterations=2, save_every=2, keep_checkpoints=1, resume=False)
+    run(cfg)
+    assert "starting over: the earlier run's records" in capsys.readouterr().out
+    assert os.listdir(os.path.join(cfg.output_dir, "checkpoints")) == ["iter_000002"]
+    [stamp] = os.listdir(os.path.join(cfg.output_dir, "earlier"))
+    kept = os.path.join(cfg.output_dir, "earlier", stamp)
+    assert sorted(os.listdir(os.path.join(kept, "checkpoints"))) == ["iter_000002", "iter_000004"]
+    assert json.load(open(os.path.join(kept, "summary.json")))["weights"] == earlier["weights"]
+    assert [r["step"] for r in rows_of(cfg)] == [0, 1, 2]
+    resumed = run(toy(tmp_path, iterations=4, save_every=2))  # resumes the new run, not the earlier one
+    assert "resumed from" in capsys.readouterr().out and resumed["weights"] == earlier["weights"]
+    assert [r["step"] for r in rows_of(cfg)] == [0, 1, 2, 3, 4]
+
+
+def test_a_length_below_what_the_checkpoint_ran_is_refused(tmp_path):
+    run(toy(tmp_path, iterations=4, save_every=4))
+    with pytest.raises(ConfigError, match=r"iterations=2 is below the 4 iterations .*iter_000004 has already run; "
+                                          r"set iterations >= 4 to resume it, or start over with resume=false"):
+        run(toy(tmp_path, iterations=2))
+
+
+class FailsToStart(ToyFlow):
+    def start(self, iteration: int) -> None:
+        raise RuntimeError("the cluster did not start")
+
+
+def test_a_config_change_is_recorded_only_once_the_run_resumed(tmp_path):
+    run(toy(tmp_path, iterations=2))
+    cfg = toy(tmp_path, iterations=4, batch=16)
+    with pytest.raises(RuntimeError, match="did not start"), RunLoop(cfg) as loop:
+        loop.run(FailsToStart(cfg))
+    history = os.path.join(cfg.output_dir, "config_history.jsonl")
+    assert not os.path.exists(history)  # nothing was applied
+    run(cfg)
+    assert [json.loads(line)["changes"] for line in open(history)] == [
+        {"batch": {"old": 8, "new": 16}, "iterations": {"old": 2, "new": 4}}]
+
+
+def test_an_embodied_run_annealing_over_its_length_cannot_be_lengthened_on_resume(tmp_path):
+    from infinirl.config import to_plain
+    from infinirl.runners.embodied_config import EmbodiedConfig
+
+    def embodied(**raw) -> EmbodiedConfig:
+        return to_dataclass(EmbodiedConfig, {"env": {"name": "metaworld:reach-v3", "num_envs": 4}, "rollout_steps": 8,
+                                             "output_dir": str(tmp_path / "run"), **raw})
+
+    recorded = to_plain(embodied(iterations=2))
+    with pytest.raises(ConfigError, match=r"\(iterations: 2 -> 4\).*half-apply them \(the learning rate decays to 0 "
+                                          r"over iterations .*start it with actor.anneal_iterations"):
+        RunLoop(embodied(iterations=4))._check_config("ckpt", recorded, 2)
+    RunLoop(embodied(iterations=4, actor={"anneal_lr": False}))._check_config(
+        "ckpt", to_plain(embodied(iterations=2, actor={"anneal_lr": False})), 2)
+    RunLoop(embodied(iterations=4, actor={"anneal_iterations": 8}))._check_config(
+        "ckpt", to_plain(embodied(iterations=2, actor={"anneal_iterations": 8})), 2)
