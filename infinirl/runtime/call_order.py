@@ -23,14 +23,21 @@ class CallOrder:
     def __init__(self):
         self._next: dict[str, int] = defaultdict(int)
         self._given_up: dict[str, set[int]] = defaultdict(set)
+        self._skipped: dict[str, set[int]] = defaultdict(set)
         self._waiting: dict[tuple[str, int], asyncio.Future] = {}
 
     async def wait_turn(self, caller: str, seq: int, resume: bool = False) -> None:
         """Wait until call ``seq`` of ``caller`` may start. ``resume``: a caller not seen yet
-        continues at ``seq`` (a restarted actor picks up the numbering where its caller is)."""
+        continues at ``seq`` (a restarted actor picks up the numbering where its caller is).
+        Raises ``CancelledError`` for a call its caller gave up (:meth:`skip`) before it arrived."""
+        if seq in self._skipped[caller]:
+            self._skipped[caller].discard(seq)
+            raise asyncio.CancelledError(f"call {seq} was given up by its caller")
         if resume and caller not in self._next:
             self._next[caller] = seq
-        if self._next[caller] == seq:
+        if self._next[caller] >= seq:
+            # Its turn has passed without it: a call retried after a restart that arrives behind
+            # a later one runs at once rather than waiting for a turn that never comes back.
             return
         turn = asyncio.get_running_loop().create_future()
         self._waiting[(caller, seq)] = turn
@@ -41,6 +48,17 @@ class CallOrder:
             self._given_up[caller].add(seq)
             self._hand_on(caller)
             raise
+
+    def skip(self, caller: str, seq: int) -> None:
+        """The caller gave call ``seq`` up before it reached this actor (Ray could not submit or
+        deliver it, or it was cancelled on the way): later calls do not wait for it, and should it
+        still arrive it does not run. A call that started, or arrived and waits, is left alone
+        (a waiting one gives its own turn up when cancelled)."""
+        if seq < self._next[caller] or (caller, seq) in self._waiting:
+            return
+        self._skipped[caller].add(seq)
+        self._given_up[caller].add(seq)
+        self._hand_on(caller)
 
     def end_turn(self, caller: str, seq: int) -> None:
         """Call ``seq`` has started: the next call of ``caller`` may start."""

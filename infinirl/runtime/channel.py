@@ -235,7 +235,7 @@ class Channel:
         """Declare this process a consumer before its first get: same-process producers may then
         hand items over by reference, and producers waiting for space learn if it dies."""
         self._register("consumer")
-        self._call(self._actor.register_consumer.remote(os.getpid()))
+        self._call(self._actor.register_consumer.remote(os.getpid(), _node_id()))
 
     def register_producer(self) -> None:
         """Declare this process a producer before its first put, so that consumers waiting on
@@ -283,12 +283,13 @@ class Channel:
             self._note_consumers(self._call(registration))
         return self._consumers_on_this_node
 
-    def _note_consumers(self, consumers: tuple[list[int], list[str]]) -> None:
-        """Learn the consumers from a reply of the channel: their pids, their nodes."""
-        pids, nodes = consumers
-        # By-reference hand-over is only safe when every consumer seen so far is this process,
-        # shared memory only while every live consumer is on this node.
-        self._consumers_here_only = bool(pids) and set(pids) == {os.getpid()}
+    def _note_consumers(self, consumers: tuple[list, list[str]]) -> None:
+        """Learn the consumers from a reply of the channel: their (pid, node), their nodes."""
+        seen, nodes = consumers
+        # By-reference hand-over is only safe when every consumer seen so far is this process (the
+        # same pid on this node: pids repeat across nodes), shared memory only while every live
+        # consumer is on this node.
+        self._consumers_here_only = bool(seen) and {tuple(c) for c in seen} == {(os.getpid(), _node_id())}
         self._consumers_on_this_node = shared_memory_reaches(_node_id(), nodes)
         self._consumers_known = True
 

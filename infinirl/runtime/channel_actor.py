@@ -59,8 +59,9 @@ class _Item:
         self.pinned_node = pinned_node(envelope)  # only processes on this node can
 
     def serves(self, pid: int, node: str | None) -> bool:
-        return (self.pinned_pid is None or self.pinned_pid == pid) and (
-            self.pinned_node is None or self.pinned_node == node)
+        if self.pinned_pid is not None:  # the producer's own process: same pid on the same node
+            return self.pinned_pid == pid and self.envelope.producer_node == node
+        return self.pinned_node is None or self.pinned_node == node
 
 
 @dataclass
@@ -86,7 +87,7 @@ class ChannelActor:
         self.closed = False
         self.cond = asyncio.Condition()
         self.order = CallOrder()
-        self.consumer_pids: set[int] = set()
+        self.consumers: set[tuple[int, str | None]] = set()  # (pid, node): pids repeat across nodes
         self.peers: dict[str, _Peer] = {}
         self.watches: set[asyncio.Task] = set()
         self.node_id = ray.get_runtime_context().get_node_id()
@@ -108,20 +109,20 @@ class ChannelActor:
         peer.roles.add(role)
         return self._consumers()
 
-    def _consumers(self) -> tuple[list[int], list[str]]:
-        """What a producer needs to pick an item's path: the pids of the consumers seen so far (for
-        same-process items), the nodes of the live registered consumers (for shared memory)."""
-        return sorted(self.consumer_pids), sorted(self._live_consumer_nodes())
+    def _consumers(self) -> tuple[list[tuple[int, str | None]], list[str]]:
+        """What a producer needs to pick an item's path: the (pid, node) of the consumers seen so far
+        (for same-process items), the nodes of the live registered consumers (for shared memory)."""
+        return sorted(self.consumers, key=str), sorted(self._live_consumer_nodes())
 
     def _live_consumer_nodes(self) -> set[str]:
         return {p.node for p in self.peers.values() if "consumer" in p.roles and not p.death}
 
-    async def register_consumer(self, pid: int) -> None:
-        self.consumer_pids.add(pid)
+    async def register_consumer(self, pid: int, node: str | None = None) -> None:
+        self.consumers.add((pid, node))
 
     async def _watch(self, peer_id: str, host, node_id: str, pid: int, start: int) -> None:
         if host is not None:
-            death = await _until_host_dies(host)
+            death = await until_host_dies(host)
         elif node_id == self.node_id:
             while processes.alive(pid, start):
                 await asyncio.sleep(PID_POLL_S)
@@ -299,7 +300,7 @@ class ChannelActor:
                        request: str | None = None, node: str | None = None):
         """Wait for one item, then also take up to ``max_items - 1`` more already waiting (prefetch);
         ``None`` if abandoned."""
-        self.consumer_pids.add(pid)
+        self.consumers.add((pid, node))
         async with self.cond:
             await self._wait_for(lambda: self._can_end_get(key, pid, node, peer_id, request), _deadline(timeout),
                                  f"get on key {key!r}", timeout)
@@ -317,7 +318,7 @@ class ChannelActor:
         returns once the total equals it, once the next item would exceed it, or (with what it
         has) once the channel is closed and drained, every producer died, or the timeout expired.
         An item heavier than the target comes alone. ``None`` if abandoned (nothing taken)."""
-        self.consumer_pids.add(pid)
+        self.consumers.add((pid, node))
         deadline = _deadline(timeout)
         taken: list[_Item] = []
         total = 0.0
@@ -377,7 +378,7 @@ def _deadline(timeout: float | None) -> float | None:
     return None if timeout is None or math.isinf(timeout) else time.monotonic() + timeout
 
 
-async def _until_host_dies(host) -> str:
+async def until_host_dies(host) -> str:
     """Wait until a worker rank's host actor is dead for good; returns why. A rank that Ray
     restarts is alive again once restarted, and watched on."""
     while True:

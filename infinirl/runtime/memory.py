@@ -17,6 +17,7 @@ from collections import deque
 
 import ray
 
+from infinirl.runtime import processes
 from infinirl.runtime.ray_defaults import NAMESPACE
 
 LOCK_ACTOR_NAME = "infinirl.device_lock"
@@ -27,8 +28,12 @@ class _DeviceLockActor:
         self.owner: dict[str, str] = {}
         self.waiters: deque[tuple[frozenset, str, asyncio.Event]] = deque()
         self.history: list[tuple[str, float, float]] = []
+        self.watches: dict[str, asyncio.Task] = {}  # holder -> the task that frees its devices if it dies
 
-    async def acquire(self, devices: list[str], holder: str, timeout: float | None) -> float:
+    async def acquire(self, devices: list[str], holder: str, timeout: float | None, host=None) -> float:
+        """Wait (FIFO) until ``holder`` owns every one of ``devices``; returns the seconds waited.
+        ``host``: the holder's worker host actor; should its process die holding the devices,
+        they are released, so a crashed holder never blocks the others for good."""
         want = frozenset(devices)
         event = asyncio.Event()
         self.waiters.append((want, holder, event))
@@ -36,16 +41,40 @@ class _DeviceLockActor:
         start = time.time()
         try:
             await asyncio.wait_for(event.wait(), timeout)
-        except asyncio.TimeoutError:
+        except (asyncio.TimeoutError, asyncio.CancelledError) as exc:
+            if event.is_set():  # granted in the same pass as the timeout or the cancellation
+                if isinstance(exc, asyncio.CancelledError):  # nobody will use or release them
+                    await self.release(list(want), holder)
+                    raise
+                return self._granted(holder, host, start)
             self.waiters = deque(w for w in self.waiters if w[2] is not event)
+            self._grant()  # those behind this waiter may go now
+            if isinstance(exc, asyncio.CancelledError):
+                raise
             busy = {d: self.owner[d] for d in want if d in self.owner}
             raise TimeoutError(f"{holder} waited {timeout}s for devices held by {busy}") from None
+        return self._granted(holder, host, start)
+
+    def _granted(self, holder: str, host, start: float) -> float:
+        if host is not None and holder not in self.watches:
+            self.watches[holder] = asyncio.ensure_future(self._free_when_dead(holder, host))
         return time.time() - start
+
+    async def _free_when_dead(self, holder: str, host) -> None:
+        from infinirl.runtime.channel_actor import until_host_dies
+
+        await until_host_dies(host)
+        self.watches.pop(holder, None)
+        await self.release([d for d, owner in self.owner.items() if owner == holder], holder)
 
     async def release(self, devices: list[str], holder: str) -> None:
         for device in devices:
             if self.owner.get(device) == holder:
                 del self.owner[device]
+        if holder not in self.owner.values():
+            watch = self.watches.pop(holder, None)
+            if watch is not None:
+                watch.cancel()
         self._grant()
 
     def _grant(self) -> None:
@@ -88,7 +117,7 @@ def device_turn(worker, timeout: float | None = None, devices: list[str] | None 
     lock = device_lock_actor()
     keys = devices or device_keys(worker)
     holder = f"{worker.component}[{worker.rank}]@{os.getpid()}"
-    ray.get(lock.acquire.remote(keys, holder, timeout))
+    ray.get(lock.acquire.remote(keys, holder, timeout, processes.host_handle()))
     try:
         worker.reload()
         yield

@@ -15,6 +15,7 @@ process.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import datetime
 import itertools
 import os
@@ -36,6 +37,8 @@ _lock = threading.Lock()
 _ids = itertools.count()
 _comm = ThreadPoolExecutor(max_workers=1, thread_name_prefix="infinirl-p2p")
 TIMEOUT = datetime.timedelta(seconds=300)
+WATCH_S = 0.5
+"""How often a consumer's pull checks that its producer is still serving it."""
 
 
 def available() -> bool:
@@ -106,13 +109,51 @@ def _pull(body: Offer) -> list[torch.Tensor]:
 
         store = dist.TCPStore(addr, port, 2, is_master=True, timeout=TIMEOUT, wait_for_workers=False)
     serving = body.host._infinirl_p2p_serve.remote(body.item, key, addr, port, backend)
-    group = _groups.get(key) or _join(key, store, rank=1, backend=backend)
     buffers = [torch.empty(shape, dtype=DTYPE_BY_NAME[dtype], device=device)
                for shape, dtype in zip(body.shapes, body.dtypes)]
-    for buffer in buffers:
-        group.recv([buffer], 0, 0).wait()
+
+    def receive() -> None:
+        group = _groups.get(key) or _join(key, store, rank=1, backend=backend)
+        for buffer in buffers:
+            group.recv([buffer], 0, 0).wait()
+
+    # The join and the receives wait for the producer for up to TIMEOUT; watched from here, a
+    # producer that died or failed to serve ends the pull at once with its own error.
+    receiving = concurrent.futures.Future()
+    threading.Thread(target=_run_into, args=(receiving, receive), name="infinirl-p2p-pull", daemon=True).start()
+    while True:
+        try:
+            receiving.result(timeout=WATCH_S)
+            break
+        except concurrent.futures.TimeoutError:
+            finished, _ = ray.wait([serving], timeout=0)
+            if finished:
+                _raise_if_serving_failed(serving, key, body)
     ray.get(serving)  # surfaces a producer-side failure
     return buffers
+
+
+def _run_into(future: concurrent.futures.Future, fn) -> None:
+    try:
+        fn()
+    except BaseException as exc:
+        future.set_exception(exc)
+    else:
+        future.set_result(None)
+
+
+def _raise_if_serving_failed(serving, key: tuple, body: Offer) -> None:
+    """The producer answered the pull while this side still waits: if it failed, the pair's group
+    is left with a receive nobody will match (forgotten, so the next pull makes a new one) and the
+    producer's error is raised."""
+    try:
+        ray.get(serving)
+    except Exception as exc:
+        _groups.pop(key, None)
+        from infinirl.runtime.errors import ChannelError
+
+        raise ChannelError(f"p2p item {body.item} from process {body.producer_pid}: the producer could not send it "
+                           f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from exc
 
 
 def _join(key: tuple, store, rank: int, backend: str):

@@ -141,12 +141,15 @@ def unpack_many(envelopes: list[Envelope]) -> list[Any]:
 
 def discard(envelope: Envelope) -> None:
     """Forget an envelope no consumer will ever unpack (its put failed): its shared-memory segment
-    goes back to the pool, its same-process item is dropped. Other paths need nothing."""
+    goes back to the pool, its same-process item and its p2p tensors are dropped. Other paths need
+    nothing."""
     if envelope.path == "shm" and envelope.producer_pid == os.getpid():
         shm_pool.pool().release(envelope.body)
     elif envelope.path == "local":
         with _local_lock:
             _local_items.pop(envelope.local_id, None)
+    elif envelope.path == "p2p" and envelope.producer_pid == os.getpid():
+        p2p.release(envelope.body.item)  # the outbox would hold its tensors (GPU memory, maybe) forever
 
 
 def pinned_pid(envelope: Envelope) -> int | None:

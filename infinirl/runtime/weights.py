@@ -206,9 +206,13 @@ class WeightSink:
                 yield from split_bucket(flat, metas)
 
         named = tensors()
-        self.load_weights(named, version)
-        for _ in named:  # a sink that stopped early must still take part in every broadcast
-            pass
+        try:
+            self.load_weights(named, version)
+        finally:
+            # A sink that stopped early, or failed, must still take part in every broadcast: the
+            # trainer would otherwise wait in one until the group's timeout, hiding this error.
+            for _ in named:
+                pass
         self.weight_version = version
         return received[0]
 
@@ -298,7 +302,19 @@ class PendingSync:
         return all(handle.done() for handle in self.handles)
 
     def wait(self, timeout: float | None = None) -> SyncStats:
-        results = [handle.wait(timeout) for handle in self.handles]
+        # The first failure of any side is raised as it happens: a receiver that died would otherwise
+        # be reported only after the sender's wait in a collective ran into its timeout.
+        deadline = None if timeout is None else time.monotonic() + timeout
+        pending = list(self.handles)
+        while len(pending) > 1:
+            for handle in [h for h in pending if h.done()]:
+                handle.wait(0)  # raises its failure
+                pending.remove(handle)
+            if deadline is not None and time.monotonic() > deadline:
+                break  # the wait below names what is still running
+            time.sleep(0.01)
+        remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+        results = [handle.wait(remaining) for handle in self.handles]
         return SyncStats(self.version, self.method, results[self.bytes_from][0], self.buckets,
                          time.perf_counter() - self.started)
 

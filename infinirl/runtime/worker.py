@@ -160,8 +160,9 @@ class GroupHandle:
         stops with ``CallCancelled`` and frees the rank for its next call, while one that
         computes (or blocks elsewhere) runs to its end first. ``wait()`` then raises
         ``CallCancelled`` for a rank whose call was cancelled."""
-        for ref in self._refs:
+        for ref, rank, seq in zip(self._refs, self.ranks, self._seqs):
             cancel_quietly(ref)
+            self._group._skip(rank, seq)  # a call Ray cancels before it reaches the rank
 
     def wait(self, timeout: float | None = None) -> list:
         if self._results is not None:
@@ -384,9 +385,22 @@ class WorkerGroup:
         for rank, args in calls:
             seq = self._seq[rank]
             self._seq[rank] += 1
-            refs.append(self._actors[rank].execute.remote(method, args, kwargs, self._caller, seq))
+            try:
+                refs.append(self._actors[rank].execute.remote(method, args, kwargs, self._caller, seq))
+            except BaseException:  # e.g. an argument that cannot be pickled: the number is never used
+                self._skip(rank, seq)
+                raise
             seqs.append(seq)
         return GroupHandle(self, method, [rank for rank, _ in calls], refs, seqs)
+
+    def _skip(self, rank: int, seq: int) -> None:
+        """Tell ``rank`` that call ``seq`` will not run, so its later calls do not wait for it."""
+        if seq < 0:
+            return
+        try:
+            self._actors[rank].skip_call.remote(self._caller, seq)
+        except Exception:  # the rank is gone: nothing waits there
+            pass
 
     def __getstate__(self):
         raise TypeError(
@@ -449,12 +463,17 @@ class WorkerGroup:
             what = (f"returned a value of type {returned} that could not be serialised to send back "
                     f"({reason}); the rank is alive and takes further calls")
         else:
+            self._skip(rank, seq)  # it never started: later calls must not wait for its turn
             what = f"could not be run or answered by Ray ({reason}); the rank is alive"
         return self._error(rank, method, _first_line_block(str(exc)), what)
 
     def _died(self, rank: int, method: str, ray_message: str) -> WorkerError:
         info = self.rank_info[rank] if rank < len(self.rank_info) else {}
-        crash_pid, crash = crash_logs.last_process_crash(info.get("crash_log"))
+        log = info.get("crash_log")
+        if log is None and rank < len(self.contexts) and self.contexts[rank].crash_log_name:
+            # Died before it reported (in its Worker's constructor): the log is where launch named it.
+            log = str(CRASH_LOG_DIR / self.contexts[rank].crash_log_name)
+        crash_pid, crash = crash_logs.last_process_crash(log)
         text = (crash + "\n" if crash else "") + _first_line_block(ray_message)
         return self._error(rank, method, text, "died (process exited)", pid=crash_pid)
 

@@ -178,6 +178,10 @@ class WorkerHost:
         if len(self._returned_types) > _RETURNED_TYPES_KEPT:
             del self._returned_types[next(iter(self._returned_types))]
 
+    async def skip_call(self, caller: str, seq: int) -> None:
+        """Call ``seq`` of ``caller`` will not arrive (or must not run): later calls stop waiting for it."""
+        self._order.skip(caller, seq)
+
     async def returned_type(self, caller: str, seq: int) -> str | None:
         """The type of what call ``seq`` of ``caller`` returned (None: unknown, or it never ran);
         asked by the driver when Ray could not send a result back."""

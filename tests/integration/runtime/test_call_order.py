@@ -72,3 +72,53 @@ def test_a_restarted_actor_resumes_a_callers_numbering():
         await asyncio.wait_for(order.wait_turn("c", 8, resume=True), 30)
 
     asyncio.run(main())
+
+
+def test_a_call_given_up_before_it_arrived_neither_blocks_later_calls_nor_runs():
+    """Ray could not submit or deliver call 1 (or it was cancelled on its way): ``skip``."""
+
+    async def main():
+        order, started = CallOrder(), []
+        tasks = _run_calls(order, started, "c", [0, 2])
+        await _settle()
+        assert started == [0]  # call 2 waits for call 1
+        order.skip("c", 1)
+        await asyncio.wait_for(asyncio.gather(*tasks.values()), 30)
+        late = _run_calls(order, started, "c", [1])[1]  # should it arrive after all, it does not run
+        await asyncio.wait([late], timeout=30)
+        return started, late.cancelled()
+
+    started, cancelled = asyncio.run(main())
+    assert started == [0, 2] and cancelled
+
+
+def test_skipping_a_call_that_started_or_waits_changes_nothing():
+    async def main():
+        order, started = CallOrder(), []
+        tasks = _run_calls(order, started, "c", [0, 2, 1])
+        await _settle()
+        order.skip("c", 0)  # started
+        order.skip("c", 2)  # arrived, waiting: it runs in its turn
+        await asyncio.wait_for(asyncio.gather(*tasks.values()), 30)
+        return started
+
+    assert asyncio.run(main()) == [0, 1, 2]
+
+
+def test_a_retried_call_arriving_behind_a_later_one_after_a_restart_runs():
+    """A restarted actor continues at the first number it sees; an earlier one retried behind it
+    must not wait for a turn that has passed."""
+
+    async def main():
+        order, started = CallOrder(), []
+
+        async def call(seq: int) -> None:
+            await order.wait_turn("c", seq, resume=True)
+            started.append(seq)
+            order.end_turn("c", seq)
+
+        await asyncio.wait_for(call(8), 30)
+        await asyncio.wait_for(call(7), 30)
+        return started
+
+    assert asyncio.run(main()) == [8, 7]

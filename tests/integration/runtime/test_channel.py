@@ -9,7 +9,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from infinirl.runtime import Channel, ChannelClosed, ChannelError, Worker, WorkerGroup
+from infinirl.runtime import Channel, ChannelClosed, ChannelError, Worker, WorkerError, WorkerGroup
 from infinirl.runtime.transport import pack, unpack
 from tests.conftest import ship_by_value
 
@@ -323,6 +323,14 @@ class P2PProducer(Worker):
             sent.append(float(item["x"].sum()))
         return sent
 
+    def outbox_after_a_refused_put(self, full: Channel) -> int:
+        from infinirl.runtime import p2p
+
+        full.put(torch.zeros(1000))
+        with pytest.raises(TimeoutError):
+            full.put(torch.ones(1000), timeout=0.2)
+        return len(p2p._outbox)  # the queued item's tensors only: the refused one's are released
+
 
 class P2PConsumer(Worker):
     def consume(self, ch: Channel, n: int):
@@ -344,6 +352,17 @@ def test_p2p_transport_between_workers(ray_cluster):
         got = consumer.consume(ch, 6)
         sent = producer.produce(ch, 6).wait(timeout=120)[0]
         assert got.wait(timeout=120)[0] == sent
+        full = Channel.create(f"p2p-full-{time.time_ns()}", transport="p2p", maxsize=1)
+        assert producer.outbox_after_a_refused_put(full).wait(timeout=60) == [1]
+        # An item whose producer died before serving it: the consumer's pull ends at once with
+        # that error, not after the pair group's 300-s timeout.
+        orphaned = Channel.create(f"p2p-orphan-{time.time_ns()}", transport="p2p")
+        producer.produce(orphaned, 1).wait(timeout=60)
+        producer.shutdown()
+        start = time.monotonic()
+        with pytest.raises(WorkerError, match="the producer could not send it"):
+            consumer.consume(orphaned, 1).wait(timeout=120)
+        assert time.monotonic() - start < 60
     finally:
         producer.shutdown()
         consumer.shutdown()
@@ -469,3 +488,14 @@ def test_a_cancelled_wait_without_its_own_cancel_ends_with_call_cancelled(ray_cl
     assert not thread.is_alive()
     assert "test[rank 0].put() was cancelled" in str(out["error"])
     ray.kill(deaf)
+
+
+def test_a_same_process_item_is_served_only_to_its_pid_on_its_node():
+    """Process ids repeat across nodes (containers): a same-process item must not reach another
+    node's process that happens to have the producer's pid."""
+    from infinirl.runtime.channel_actor import _Item
+    from infinirl.runtime.transport import Envelope
+
+    item = _Item(Envelope("local", 1234, "node-a", local_id=1), 1.0)
+    assert item.serves(1234, "node-a")
+    assert not item.serves(1234, "node-b") and not item.serves(99, "node-a")

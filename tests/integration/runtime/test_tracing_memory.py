@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from infinirl.runtime import Tracer, Worker, WorkerGroup, device_turn
+from infinirl.runtime import Tracer, Worker, WorkerError, WorkerGroup, device_turn
 from infinirl.runtime.tracing import union_length
 from tests.conftest import ship_by_value
 
@@ -77,3 +77,51 @@ def test_collocated_components_take_turns_and_spans_are_recorded(ray_cluster):
     finally:
         a.shutdown()
         b.shutdown()
+
+
+class DiesHolding(Sharer):
+    def hold_and_die(self):
+        import os
+
+        with device_turn(self, devices=["shared-device"]):
+            os._exit(5)
+
+    def pid(self):
+        import os
+
+        return os.getpid()
+
+
+def test_a_holder_that_dies_holding_the_devices_frees_them(ray_cluster, deliberate_deaths):
+    dying = WorkerGroup.launch(DiesHolding, "dies-holding", num_ranks=1)
+    other = WorkerGroup.launch(Sharer, "waits", num_ranks=1)
+    deliberate_deaths(*dying.pid().wait(timeout=60))
+    try:
+        with pytest.raises(WorkerError, match="died"):
+            dying.hold_and_die().wait(timeout=60)
+        start, end = other.take_turn(0.1).wait(timeout=60)[0]
+        assert end > start
+    finally:
+        dying.shutdown()
+        other.shutdown()
+
+
+def test_the_device_lock_forgets_waiters_that_timed_out_or_were_cancelled():
+    import asyncio
+
+    from infinirl.runtime.memory import _DeviceLockActor
+
+    async def main():
+        lock = _DeviceLockActor()
+        await lock.acquire(["d"], "a", None)
+        with pytest.raises(TimeoutError, match=r"b waited 0.05s for devices held by \{'d': 'a'\}"):
+            await lock.acquire(["d"], "b", 0.05)
+        cancelled = asyncio.ensure_future(lock.acquire(["d"], "c", None))
+        await asyncio.sleep(0.01)
+        cancelled.cancel()
+        await asyncio.sleep(0.01)
+        await lock.release(["d"], "a")
+        await asyncio.wait_for(lock.acquire(["d"], "e", None), 5)  # neither b nor c got it
+        return await lock.holders()
+
+    assert asyncio.run(main()) == {"d": "e"}

@@ -8,6 +8,7 @@ from infinirl.runtime import (
     WeightSource,
     WeightSyncGroup,
     Worker,
+    WorkerError,
     WorkerGroup,
     start_weight_sync,
     sync_weights,
@@ -71,7 +72,14 @@ class Rollout(Worker, WeightSink):
             versions.append(self.weight_version)
         return versions
 
+    def fail_next_load(self):
+        self.failing = True
+
     def load_weights(self, named_tensors, version, changed_only=False):
+        if getattr(self, "failing", False):
+            self.failing = False
+            next(iter(named_tensors))
+            raise ValueError("bad shape")
         own, sent = self.model.state_dict(), set()
         for name, tensor in named_tensors:
             own[name].copy_(tensor)
@@ -130,6 +138,13 @@ def test_sync_is_bit_exact_and_versioned(ray_cluster, method):
                     assert received[name].dtype == expected[name].dtype
                     assert torch.equal(received[name], expected[name]), name
             assert rollout.version().wait() == [version, version]
+        # A receiver whose load fails: its error reaches the driver at once (not the trainer's
+        # broadcast timing out), and the ranks stay in step for the next sync.
+        rollout.fail_next_load(ranks=[1]).wait()
+        with pytest.raises(WorkerError, match="bad shape"):
+            sync_weights(trainer, rollout, version=3, method=method, bucket_bytes=16 * 1024, group=group)
+        sync_weights(trainer, rollout, version=4, method=method, bucket_bytes=16 * 1024, group=group)
+        assert rollout.version().wait() == [4, 4]
     finally:
         trainer.shutdown()
         rollout.shutdown()

@@ -198,6 +198,11 @@ def test_an_unserialisable_result_is_reported_and_the_rank_stays_usable(ray_clus
         assert "cannot pickle '_thread.lock' object" in text
         assert "died" not in text and "process exited" not in text
         assert group.add(1).wait(timeout=60) == [1]
+        # An argument Ray cannot send: the call is never submitted, and its number in the rank's
+        # call order must not make every later call wait for it.
+        with pytest.raises(Exception, match="pickle"):
+            group.add(threading.Lock())
+        assert group.add(2).wait(timeout=60) == [2]
     finally:
         group.shutdown()
 
@@ -278,6 +283,26 @@ class Crashy(Worker):
 
     def crash_always(self):
         os._exit(4)
+
+
+class SegfaultsInInit(Worker):
+    def __init__(self):
+        import faulthandler
+
+        faulthandler._sigsegv()
+
+
+def test_a_segfault_in_the_constructor_is_reported_with_its_stack(ray_cluster):
+    from infinirl.runtime.worker import CRASH_LOG_DIR
+
+    try:
+        with pytest.raises(WorkerError) as info:
+            WorkerGroup.launch(SegfaultsInInit, "initsegv", num_ranks=1, ready_timeout_s=120)
+        text = str(info.value)
+        assert info.value.method == "__init__" and "Segmentation fault" in text and "__init__" in text
+    finally:
+        for log in CRASH_LOG_DIR.glob("initsegv-rank*"):
+            log.unlink()
 
 
 class Segfaults(Worker):
