@@ -129,6 +129,12 @@ def _pull(body: Offer) -> list[torch.Tensor]:
             finished, _ = ray.wait([serving], timeout=0)
             if finished:
                 _raise_if_serving_failed(serving, key, body)
+        except Exception:  # the pair's connection broke (an existing group whose producer died)
+            _groups.pop(key, None)
+            finished, _ = ray.wait([serving], timeout=WATCH_S * 10)
+            if finished:
+                _raise_if_serving_failed(serving, key, body)
+            raise
     ray.get(serving)  # surfaces a producer-side failure
     return buffers
 

@@ -354,14 +354,19 @@ def test_p2p_transport_between_workers(ray_cluster):
         assert got.wait(timeout=120)[0] == sent
         full = Channel.create(f"p2p-full-{time.time_ns()}", transport="p2p", maxsize=1)
         assert producer.outbox_after_a_refused_put(full).wait(timeout=60) == [1]
-        # An item whose producer died before serving it: the consumer's pull ends at once with
-        # that error, not after the pair group's 300-s timeout.
-        orphaned = Channel.create(f"p2p-orphan-{time.time_ns()}", transport="p2p")
-        producer.produce(orphaned, 1).wait(timeout=60)
-        producer.shutdown()
+        # Items whose producer died before serving them, from a producer the consumer has a pair
+        # group with and from one it has none with yet: the pull ends at once with that error, not
+        # after the pair group's 300-s timeout.
+        stranger = WorkerGroup.launch(P2PProducer, "p2p-producer-2", num_ranks=1)
+        orphaned = {}
+        for group in (producer, stranger):
+            orphaned[group.component] = Channel.create(f"p2p-orphan-{time.time_ns()}", transport="p2p")
+            group.produce(orphaned[group.component], 1).wait(timeout=60)
+            group.shutdown()
         start = time.monotonic()
-        with pytest.raises(WorkerError, match="the producer could not send it"):
-            consumer.consume(orphaned, 1).wait(timeout=120)
+        for ch in orphaned.values():
+            with pytest.raises(WorkerError, match="the producer could not send it"):
+                consumer.consume(ch, 1).wait(timeout=120)
         assert time.monotonic() - start < 60
     finally:
         producer.shutdown()
