@@ -116,7 +116,7 @@ CASES = {
     "reference base without LoRA": ([*R, "actor.lora=null", "reference.mode=actor_base",
                                      "algorithm.objective.kl_coef=0.1"], "reference.mode=actor_base needs actor.lora"),
     "gae option misspelt": ([*R, "algorithm.advantage=gae", "algorithm.advantage_kwargs={lambda: 0.9}"],
-                            "gae takes gamma and lam, not lambda"),
+                            "gae takes gamma, lam, not lambda"),
     "prompt over the limit": ([*TINY, "rollout.max_prompt_length=4"], "rollout.max_prompt_length=4: eval prompt"),
     # reasoning: files
     "model folder missing": ([*R, "model.path=/no/such/model"], "model.path='/no/such/model' is not a folder"),
