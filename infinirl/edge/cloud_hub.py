@@ -14,6 +14,12 @@ with the edge's certificate name and a dash (:class:`~infinirl.edge.edge_client.
 them so); an edge sending another id is disconnected, so no edge can shadow another's episodes. Seen ids are kept in
 memory; pass ``seen_ids`` (e.g. from the replay store) when the cloud restarts.
 
+An episode that cannot be decoded is skipped and not acknowledged (the edge keeps it and resends it
+on its next link), counted (``corrupt_episodes``), logged as an error and kept, one line naming the
+error, in :attr:`CloudHub.episode_errors`; the link goes on. Any other failure of an edge's episode
+receiver closes that edge's link with a reason naming the error (``receive_failures``, and a line in
+``episode_errors``), so it never stops reading while the link looks alive.
+
 :meth:`CloudHub.publish` makes a weight version the newest; every edge gets it as soon as it
 acknowledged the previous push (one push in flight per edge, so versions never queue up on a slow
 link: an edge that falls behind skips to the newest). The hub keeps, per edge name, the exact
@@ -52,6 +58,7 @@ _POLL_S = 0.1
 class HubOptions:
     send_timeout_s: float = 60.0
     max_refusals_kept: int = 100
+    max_episode_errors_kept: int = 100
     link: LinkOptions = field(default_factory=LinkOptions)
     tunnel: TunnelOptions = field(default_factory=TunnelOptions)
 
@@ -73,6 +80,8 @@ class CloudHub:
         self.on_episode = on_episode
         self.counts: Counter[str] = Counter()
         self.refusals: deque[str] = deque(maxlen=self.options.max_refusals_kept)
+        # one line per episode skipped as undecodable and per episode receiver that failed (its link closed)
+        self.episode_errors: deque[str] = deque(maxlen=self.options.max_episode_errors_kept)
         self._listener = CloudListener(*listen, server_context(files), options=self.options.link)
         self.address = self._listener.address
         self.commit_acks = commit_acks
@@ -151,7 +160,7 @@ class CloudHub:
             edges = sorted(self._edges)
         with self._deliver_lock:
             return {**self.counts, "edges": edges, "episodes_seen": len(self._seen),
-                    "refusals": len(self.refusals)}
+                    "refusals": len(self.refusals), "episode_errors": len(self.episode_errors)}
 
     def close(self, timeout: float = 5.0) -> None:
         self._stop.set()
@@ -225,7 +234,13 @@ class CloudHub:
                     payload = link.recv(protocol.EPISODES, timeout=1.0)
                 except TimeoutError:
                     continue
-                episode_id, episode = decode_episode(payload)
+                try:
+                    episode_id, episode = decode_episode(payload)
+                    if not isinstance(episode_id, str):
+                        raise ValueError(f"episode id {episode_id!r} is not a string")
+                except Exception as exc:  # the payload is the only input: whatever fails, it is corrupt
+                    self._skip_corrupt(link, payload, exc)
+                    continue
                 if not episode_id.startswith(f"{link.peer}-"):  # an edge cannot shadow another's episodes
                     link.close(f"edge {link.peer} sent episode id {episode_id!r} outside its namespace "
                                f"'{link.peer}-...'")
@@ -235,11 +250,32 @@ class CloudHub:
                 self.counts["episode_bytes"] += len(payload)
                 if not self._take(link, episode_id, episode):
                     return
-        except (LinkError, TimeoutError) as exc:
+        except LinkError as exc:
             logger.info("edge %s: episode stream ended (%s)", link.peer, exc)
+        except Exception as exc:  # whatever it is, the link must not outlive its receiver
+            # Left open, the link would stop reading every stream once this one's inbox filled (and
+            # not count as dead, its inbox being ours to drain): robot calls would wait for answers
+            # that cannot come. Closed, the edge reconnects and resends what was not acknowledged.
+            reason = (f"the cloud's episode receiver for edge {link.peer} failed ({exc!r}); the edge resends "
+                      "what was not acknowledged on its next link")
+            self.counts["receive_failures"] += 1
+            self.episode_errors.append(reason)
+            logger.error("%s", reason, exc_info=not isinstance(exc, TimeoutError))
+            link.close(reason)
         finally:
             with self._lock:
                 self._links.pop(id(link), None)
+
+    def _skip_corrupt(self, link: Link, payload: bytes, exc: Exception) -> None:
+        """An episode that cannot be decoded is skipped, reported and not acknowledged: the edge keeps
+        it (and resends it on its next link; until then it takes one of the edge's in-flight slots)
+        while the link goes on. Closing the link for it instead would stop every episode, weight push
+        and robot call of the edge, again on each reconnect, as the edge resends its oldest first."""
+        reason = (f"edge {link.peer}: an episode of {len(payload)} bytes could not be decoded ({exc!r}); skipped "
+                  "and not acknowledged, the edge keeps it")
+        self.counts["corrupt_episodes"] += 1
+        self.episode_errors.append(reason)
+        logger.error("%s", reason)
 
     def _take(self, link: Link, episode_id: str, episode: dict) -> bool:
         """Deliver a new id, acknowledge it when due; False when the delivery failed (link closed)."""

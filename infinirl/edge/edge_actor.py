@@ -28,12 +28,12 @@ HOLD_VERSION = -2
 
 
 def hold_action(env) -> np.ndarray:
-    """The action that keeps a :class:`~infinirl.realworld.robot_env.RobotEnv`'s robot where it is:
-    zero motion for the delta entries, the previous value for the absolute ones (the gripper)."""
-    action = np.asarray(env.last_action, np.float32).copy()
-    if env.spec.action_mode == "delta":
-        action[:env.robot_spec.target_size] = 0.0
-    return action
+    """The action that keeps a :class:`~infinirl.realworld.robot_env.RobotEnv`'s robot where it is
+    (:meth:`~infinirl.realworld.robot_env.RobotEnv.hold_action`): zero motion for the delta entries,
+    the present target for the absolute ones (the gripper; every entry in absolute mode). Not the
+    previous action: after a reset that is all zeros, which commands a half-open gripper and, in
+    absolute mode, the middle of the arm's range."""
+    return np.asarray(env.hold_action(), np.float32)
 
 
 def load_weights(actor: torch.nn.Module, tensors: Mapping[str, np.ndarray]) -> None:

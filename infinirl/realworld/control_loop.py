@@ -51,7 +51,7 @@ from infinirl.realworld.intervention.human_reward import SuccessLabelWriter, hum
 from infinirl.realworld.intervention.metrics import intervention_stats
 from infinirl.realworld.intervention.spec import InterventionSpec
 from infinirl.realworld.robot_env import RobotEnv, RobotEnvSpec
-from infinirl.realworld.safety import SafeRobot, SafetyConfig
+from infinirl.realworld.safety import SafeRobot, SafetyConfig, UnknownPoseError
 
 __all__ = ["VERSION_TENSOR", "EmbodimentActionMask", "PolicyLayout", "RobotControlLoop", "RobotSetup", "connect_robot",
            "embodiment_action_mask", "policy_layouts", "resolve_robot", "unit_box"]
@@ -298,12 +298,16 @@ class RobotControlLoop:
                 break  # the human's mark ended the episode
             try:
                 step = self.env.step(action[:self.action_dim])
-            except RobotStoppedError as exc:  # the safety layer stopped the robot: keep what was collected
-                logger.warning("%s: episode ended by a safety stop (%s)", self.kind, exc)
+            except (RobotStoppedError, UnknownPoseError) as exc:
+                # The safety layer stopped or held the robot: keep what was collected; the next
+                # episode's reset re-reads the pose.
+                logger.warning("%s: episode ended by the safety layer (%s)", self.kind, exc)
                 self.counts["safety_aborts"] += 1
                 break
             obs = self._padded(step.obs)
             self.counts["late_steps"] += int(step.late)
+            if step.non_finite:
+                self.counts["non_finite_actions"] += 1
             if self._record(recorder, action, obs, step, version, given):
                 break
         if previous is not None:  # stopped before this episode's first poll

@@ -14,7 +14,9 @@ filter) and gives the learning code what it expects of an environment:
   moves the arm's target (joints or end effector) by ``action * max_step`` from the last target,
   where ``max_step`` is the motion the safety filter allows per control period; ``"absolute"``
   maps the action affinely onto the spec's command bounds. The gripper entry is always absolute
-  (``-1`` closed, ``1`` open). The command is clipped to the spec's command bounds;
+  (``-1`` closed, ``1`` open). The command is clipped to the spec's command bounds. A NaN or
+  infinite entry holds that entry for the step (:meth:`RobotEnv.hold_action`) and is reported
+  (``RobotStep.non_finite``); :meth:`RobotEnv.hold_action` is the action that keeps the robot where it is;
 * **pace**: one :meth:`RobotEnv.step` is one control period in wall-clock time: the env sleeps
   until the period after the previous step ends (a late step is not made up for), then observes;
 * **reward**: a weighted sum of :data:`REWARDS` components over the observation after the step
@@ -33,6 +35,7 @@ filter) and gives the learning code what it expects of an environment:
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -46,6 +49,8 @@ from infinirl.registry import Registry
 
 __all__ = ["OBSERVATIONS", "REWARDS", "ObservationSource", "RewardComponent", "RewardTerm", "RobotEnv",
            "RobotEnvSpec", "RobotStep", "action_to_command"]
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -237,6 +242,8 @@ class RobotStep:
     success: bool
     late: bool
     """The step ran past its control period (the policy or the link was too slow)."""
+    non_finite: bool = False
+    """Entries of the action were NaN or infinite; those entries held (see :meth:`RobotEnv.step`)."""
 
 
 def max_target_step(spec: RobotSpec, safety: SafetyConfig) -> np.ndarray:
@@ -282,6 +289,7 @@ class RobotEnv:
         self.steps = 0
         self.episode_return = 0.0
         self.late_steps = 0
+        self.non_finite_actions = 0
         self.rewards = [(weight, REWARDS.get(name).bind(self, spec.reward_options.get(name, {})))
                         for name, weight in spec.rewards.items()]
 
@@ -312,13 +320,41 @@ class RobotEnv:
         self.last_action = np.zeros(self.robot_spec.command_size)
         return self._obs(observation)
 
+    def hold_action(self) -> np.ndarray:
+        """The normalised action that keeps the robot where it is: its command is the present target
+        (the last command sent, or after ``reset`` the observed target). Delta entries are zero; the
+        absolute ones (every entry in ``"absolute"`` mode, the gripper in ``"delta"`` mode) map the
+        target back into ``[-1, 1]`` (a target beyond the command bounds holds at the nearest bound)."""
+        if self._reference is None:
+            raise RuntimeError("RobotEnv.hold_action before reset()")
+        low, high = self.robot_spec.action_low, self.robot_spec.action_high
+        span = high - low
+        # an entry whose bounds coincide has one command whatever the action: 0 stands for it
+        action = np.divide(2.0 * (self._reference - low), span, out=np.ones_like(span), where=span > 0) - 1.0
+        action = np.clip(action, -1.0, 1.0)
+        if self.spec.action_mode == "delta":
+            action[:self.robot_spec.target_size] = 0.0
+        return action
+
     def step(self, action: np.ndarray) -> RobotStep:
+        """One control period with ``action``. A NaN or infinite entry (a diverged policy) holds that
+        entry (:meth:`hold_action`'s value) for this step; the step reports it (``non_finite``, and
+        :attr:`non_finite_actions` counts such steps) and neither the target nor ``last_action`` ever
+        holds a non-finite value, so the next finite action moves the robot again."""
         if self._reference is None:
             raise RuntimeError("RobotEnv.step before reset()")
+        action = np.asarray(action, np.float64).reshape(-1)
+        bad = ~np.isfinite(action)
+        non_finite = action.shape == (self.action_dim,) and bool(bad.any())  # a wrong shape fails below
+        if non_finite:
+            self.non_finite_actions += 1
+            logger.warning("%s: action %s has non-finite entries %s; holding them this step", self.robot_spec.kind,
+                           action.tolist(), np.flatnonzero(bad).tolist())
+            action = np.where(bad, self.hold_action(), action)
         command = action_to_command(action, self._reference, self.robot_spec, self.spec.action_mode, self.max_step)
         self.robot.act(command)
         self._reference = command
-        self.last_action = np.clip(np.asarray(action, np.float64).reshape(-1), -1.0, 1.0)
+        self.last_action = np.clip(action, -1.0, 1.0)
         self._heartbeat()
         late = self._wait_for_period()
         observation = self.last_observation = self.robot.observe()
@@ -336,7 +372,7 @@ class RobotEnv:
         self.episode_return += reward
         truncated = not terminated and self.steps >= self.spec.max_episode_steps
         return RobotStep(obs=obs, reward=float(reward), terminated=terminated, truncated=truncated,
-                         success=success, late=late)
+                         success=success, late=late, non_finite=non_finite)
 
     def _wait_for_period(self) -> bool:
         period = self.robot_spec.control_period_s

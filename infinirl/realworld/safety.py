@@ -7,9 +7,13 @@
 * position limits: joint angles to the spec's joint limits (``joint_position`` robots), the
   end-effector target to the workspace box (``ee_position`` robots), the gripper to 0 .. 1;
 * velocity: each joint (or the end effector) moves at most ``velocity_scale`` times the spec's
-  top speed per control period from the last target.
+  top speed per control period from the last target. The position limits are applied once more
+  after it, so a command is within them even from a pose beyond them (the limit wins there).
 
-Each clipped entry is a :class:`ClipRecord`, logged as a warning and counted.
+Each clipped entry is a :class:`ClipRecord`, logged as a warning and counted. The last target (or
+the reported pose it starts from) is not trusted either: when it is not finite the filter raises
+:class:`UnknownPoseError`, and :class:`SafeRobot` holds the driver, records an ``unknown_pose``
+event, sends nothing and raises it to the caller; the next command re-reads the pose.
 
 :class:`SafeRobot` wraps a driver with the filter and a monitor thread:
 
@@ -32,11 +36,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from infinirl.realworld.driver import RobotDriver, RobotObservation, RobotSpec, RobotStoppedError
+from infinirl.realworld.driver import RobotDriver, RobotError, RobotObservation, RobotSpec, RobotStoppedError
 
-__all__ = ["ClipRecord", "SafeRobot", "SafetyConfig", "SafetyEvent", "SafetyFilter"]
+__all__ = ["ClipRecord", "SafeRobot", "SafetyConfig", "SafetyEvent", "SafetyFilter", "UnknownPoseError"]
 
 logger = logging.getLogger(__name__)
+
+
+class UnknownPoseError(RobotError):
+    """The pose motion would be limited from (the last target, or the robot's reported pose) is not
+    finite: no command is safe to send until the robot reports a finite one."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -70,7 +79,7 @@ class ClipRecord:
 
 @dataclass(frozen=True, kw_only=True)
 class SafetyEvent:
-    """``watchdog_hold`` or ``heartbeat_stop``, at ``time`` (``time.monotonic()``)."""
+    """``watchdog_hold``, ``heartbeat_stop`` or ``unknown_pose``, at ``time`` (``time.monotonic()``)."""
 
     kind: str
     time: float
@@ -93,9 +102,15 @@ class SafetyFilter:
 
     def __call__(self, command: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, list[ClipRecord]]:
         """``command`` made safe to send after ``reference`` (the last target sent, or the present
-        pose), and a record of each entry changed."""
+        pose), and a record of each entry changed. Raises :class:`UnknownPoseError` when ``reference``
+        is not finite: motion cannot be limited from an unknown pose, and a non-finite command entry
+        would be replaced by it."""
         requested = self.spec.check_command(command)
         reference = self.spec.check_command(reference)
+        unknown = np.flatnonzero(~np.isfinite(reference))
+        if unknown.size:
+            raise UnknownPoseError(f"{self.spec.kind}: the pose to limit motion from is not finite at entries "
+                                   f"{unknown.tolist()} ({reference.tolist()}); nothing is sent")
         safe = requested.copy()
         records: list[ClipRecord] = []
         bad = ~np.isfinite(safe)
@@ -109,6 +124,9 @@ class SafetyFilter:
         low = reference[:size] - self._max_step
         high = reference[:size] + self._max_step
         self._clip(safe, slice(0, size), low, high, "velocity", records)
+        # The limits again, last: from a pose beyond them (a robot pushed there, a sensor's offset) the
+        # velocity window lies outside them too, and the limits win over the velocity bound.
+        self._clip(safe, slice(0, size), self._low, self._high, self._limit_kind, records)
         return safe, records
 
     @staticmethod
@@ -164,7 +182,16 @@ class SafeRobot(RobotDriver):
                 raise RobotStoppedError(f"{self.spec.kind} was stopped by the safety layer; reset() re-arms it")
             if self._reference is None:
                 self._reference = self.driver.observe().current_target(self.spec)
-            safe, records = self.filter(command, self._reference)
+            try:
+                safe, records = self.filter(command, self._reference)
+            except UnknownPoseError as exc:
+                # The driver's own hold keeps the pose without a target from us; the next command
+                # re-reads the pose, so a reading that recovers resumes.
+                self._event("unknown_pose", str(exc))
+                self._reference = None
+                self.driver.hold()
+                self._holding = True
+                raise
             for record in records:
                 self.clips.append(record)
                 self.clip_counts[record.kind] += 1
