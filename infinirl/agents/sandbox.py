@@ -8,8 +8,9 @@ run's own), file size and disk (a size-limited tmpfs), open files. Isolation, wh
 are available (as root, or as a user with unprivileged user namespaces): no network (a fresh network
 namespace), a private PID namespace, a root filesystem holding only the system directories and the
 Python installation read-only, a fresh /tmp as the working directory, and an unprivileged uid. Where
-they are not, the code runs as an unprivileged uid (when root) with sockets refused in Python; the
-result names the isolation it got. ``docs/agents.md`` has the details.
+they are not, the code runs as an unprivileged uid (when root) with sockets refused (a seccomp filter
+where the kernel takes one, else in Python only), and processes that leave its session are hunted
+down afterwards; the result names the isolation it got. ``docs/agents.md`` has the details.
 """
 
 from __future__ import annotations
@@ -17,9 +18,11 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import enum
+import errno
 import json
 import math
 import os
+import secrets
 import shutil
 import signal
 import sys
@@ -40,6 +43,12 @@ CODE_NAME = "main.py"
 NOBODY = 65534
 READ_CHUNK = 65536
 DRAIN_AFTER_EXIT_S = 5.0  # after the sandbox is dead its pipes close at once; this only bounds a bug
+ESCAPE_GRACE_S = 0.5  # after the launcher is gone, how long its pipes may stay open before holders are hunted
+EXIT_POLL_S = 0.01
+ESCAPE_SWEEPS = 5  # rounds of killing escaped processes: each round also gets the children of the last
+# Every process the code starts inherits this variable (unless it clears its environment), so the ones
+# that leave the launcher's session can still be found and killed under the "process" isolation.
+RUN_TOKEN_VARIABLE = "INFINIRL_SANDBOX_RUN"
 # Numeric libraries start one thread per core by default, each reserving address space.
 CODE_ENV = {
     "PATH": "/usr/local/bin:/usr/bin:/bin",
@@ -273,7 +282,7 @@ class Sandbox:
         """:meth:`run` from synchronous code (not from inside a running event loop)."""
         return asyncio.run(self.run(code, **kwargs))
 
-    def _config(self, folder: Path, limits: SandboxLimits, status_fd: int) -> dict:
+    def _config(self, folder: Path, limits: SandboxLimits, status_fd: int, token: str) -> dict:
         return {
             "status_fd": status_fd,
             "isolation": limits.isolation,
@@ -293,7 +302,7 @@ class Sandbox:
             "python": os.path.abspath(self.python),
             "runner": RUNNER_SOURCE,
             "code_name": CODE_NAME,
-            "env": CODE_ENV,
+            "env": {**CODE_ENV, RUN_TOKEN_VARIABLE: token},
         }
 
     def _prepare(self, folder: Path, code: str, files: Mapping[str, str | bytes], limits: SandboxLimits) -> None:
@@ -313,9 +322,11 @@ class Sandbox:
             return SandboxResult(stdout="", stderr="", exit_code=None, wall_time_s=0.0,
                                  error=f"sandbox could not prepare the run: {error}")
         status_read, status_write = os.pipe()
+        token = secrets.token_hex(16)
+        status: dict = {}
         try:
             config_path = folder / "config.json"
-            config_path.write_text(json.dumps(self._config(folder, limits, status_write)))
+            config_path.write_text(json.dumps(self._config(folder, limits, status_write, token)))
             process = await asyncio.create_subprocess_exec(
                 sys.executable, "-I", "-S", str(LAUNCHER), str(config_path),
                 stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
@@ -324,12 +335,16 @@ class Sandbox:
             )
             os.close(status_write)
             status_write = -1
-            outcome = await self._supervise(process, stdin, limits)
+            outcome = await self._supervise(process, stdin, limits, token)
             status = await read_status(status_read)
         finally:
             os.close(status_read)
             if status_write >= 0:
                 os.close(status_write)
+            if status.get("isolation") != "namespaces":
+                # Killing the launcher's session misses processes that left it (setsid, setpgid) with
+                # their stdio closed; a PID namespace takes everything, so only "process" needs this.
+                kill_escaped(code_uid(limits), token)
         killed_for, out, err = outcome
         return SandboxResult(
             stdout=out.text(), stderr=err.text(),
@@ -344,31 +359,56 @@ class Sandbox:
             error=status.get("error"),
         )
 
-    async def _supervise(self, process, stdin, limits: SandboxLimits):
+    async def _supervise(self, process, stdin, limits: SandboxLimits, token: str):
         """Feed stdin, read both streams, and kill the sandbox's session at the wall-time limit or
-        when an output stream passes its limit."""
+        when an output stream passes its limit.
+
+        A process that left the session (possible under the "process" isolation) may hold the
+        output pipes open after the launcher is gone: such holders are killed, and every wait after
+        the launcher's end or the wall-time kill is bounded, so whatever could not be killed cannot
+        hang the caller (the run then reports the wall-time limit and the output read so far)."""
+        loop = asyncio.get_running_loop()
+        started = loop.time()
         overflow = asyncio.Event()
         out = BoundedReader(process.stdout, limits.max_output_bytes, overflow)
         err = BoundedReader(process.stderr, limits.max_output_bytes, overflow)
+        pipes = pipe_inodes(process)
         readers = [asyncio.ensure_future(out.read()), asyncio.ensure_future(err.read())]
         feeder = asyncio.ensure_future(feed(process, stdin)) if stdin is not None else None
-        waiter = asyncio.ensure_future(process.wait())
+        # Not process.wait(): it also waits for the pipes to close, which an escaped process can prevent.
+        exited = asyncio.ensure_future(wait_exit(process))
         overflowed = asyncio.ensure_future(overflow.wait())
+        uid = code_uid(limits)
         killed_for = None
         try:
-            await asyncio.wait([waiter, overflowed], timeout=limits.wall_time_s,
+            await asyncio.wait([exited, overflowed], timeout=limits.wall_time_s,
                                return_when=asyncio.FIRST_COMPLETED)
-            if not waiter.done():
+            if exited.done():
+                # The launcher killed its session on the way out, so the pipes close at once unless a
+                # process that left the session holds them: kill those, within the wall time.
+                if not await settled(readers, ESCAPE_GRACE_S):
+                    kill_escaped(uid, token, pipes)
+                    left = limits.wall_time_s - (loop.time() - started)
+                    if not await settled(readers, max(left, ESCAPE_GRACE_S)):
+                        killed_for = LimitHit.WALL_TIME
+            else:
                 killed_for = LimitHit.OUTPUT if overflow.is_set() else LimitHit.WALL_TIME
                 kill_session(process)
-                await waiter
-            await asyncio.wait_for(asyncio.gather(*readers), DRAIN_AFTER_EXIT_S)
+            if killed_for is not None and not await settled([exited, *readers], ESCAPE_GRACE_S):
+                kill_escaped(uid, token, pipes)
+                await settled([exited, *readers], DRAIN_AFTER_EXIT_S)
         finally:
-            for task in [*readers, overflowed] + ([feeder] if feeder else []):
+            drained = all(reader.done() for reader in readers)
+            for task in [*readers, overflowed, exited] + ([feeder] if feeder else []):
                 task.cancel()
-            if not waiter.done():  # cancelled from outside: leave nothing running, and reap it
+            if process.returncode is None:  # cancelled from outside: leave nothing running, and reap it
                 kill_session(process)
-                await asyncio.wait([waiter], timeout=DRAIN_AFTER_EXIT_S)
+                reaper = asyncio.ensure_future(wait_exit(process))
+                await settled([reaper], DRAIN_AFTER_EXIT_S)
+                reaper.cancel()
+            if not drained:  # whatever still holds the pipes is not to keep these fds open here too
+                kill_escaped(uid, token, pipes)
+                close_pipes(process)
         return killed_for, out, err
 
 
@@ -389,3 +429,118 @@ def kill_session(process) -> None:
             os.killpg(process.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
+
+
+async def wait_exit(process) -> int:
+    """The launcher's exit status, as soon as it has exited (whatever still holds its pipes)."""
+    while process.returncode is None:
+        await asyncio.sleep(EXIT_POLL_S)
+    return process.returncode
+
+
+async def settled(tasks, timeout: float) -> bool:
+    """Whether every task finished within ``timeout`` seconds (they are left running either way)."""
+    _, pending = await asyncio.wait(tasks, timeout=timeout)
+    return not pending
+
+
+def code_uid(limits: SandboxLimits) -> int:
+    """The uid the code runs as (as the host sees it)."""
+    return limits.sandbox_uid if os.getuid() == 0 else os.getuid()
+
+
+def pipe_inodes(process) -> set[int]:
+    """The inodes of the run's stdout and stderr pipes: a process holding a write end of one of them
+    belongs to the run (this process holds only the read ends)."""
+    inodes = set()
+    for fd in (1, 2):
+        transport = process._transport.get_pipe_transport(fd)  # asyncio has no public accessor
+        pipe = transport.get_extra_info("pipe") if transport is not None else None
+        if pipe is not None:
+            inodes.add(os.fstat(pipe.fileno()).st_ino)
+    return inodes
+
+
+def close_pipes(process) -> None:
+    transport = getattr(process, "_transport", None)
+    if transport is not None:
+        transport.close()  # the launcher has exited: this only closes our ends of its pipes
+
+
+def real_uid(pid: str) -> int:
+    """The process's real uid. /proc/PID's owner is it, except that a process that made itself
+    non-dumpable may show as root; its status file still tells."""
+    owner = os.stat(f"/proc/{pid}").st_uid
+    if owner != 0 or os.getuid() != 0:
+        return owner
+    with open(f"/proc/{pid}/status", "rb") as handle:
+        for line in handle:
+            if line.startswith(b"Uid:"):
+                return int(line.split()[1])
+    return owner
+
+
+def belongs_to_run(pid: str, token: str, pipes: set[int]) -> bool:
+    """Whether process ``pid`` carries the run's token in its environment or holds a write end of
+    one of its output pipes."""
+    try:
+        with open(f"/proc/{pid}/environ", "rb") as handle:
+            if f"{RUN_TOKEN_VARIABLE}={token}".encode() in handle.read().split(b"\0"):
+                return True
+        links = {f"pipe:[{inode}]" for inode in pipes}
+        for fd in os.listdir(f"/proc/{pid}/fd") if links else ():
+            if os.readlink(f"/proc/{pid}/fd/{fd}") in links:
+                with open(f"/proc/{pid}/fdinfo/{fd}", "rb") as info:
+                    flags = next(int(line.split()[1], 8) for line in info if line.startswith(b"flags:"))
+                if flags & (os.O_WRONLY | os.O_RDWR):
+                    return True
+    except (OSError, StopIteration, ValueError):  # gone meanwhile, or not ours to inspect
+        pass
+    return False
+
+
+def kill_if_of_run(pid: str, token: str, pipes: set[int]) -> bool:
+    """SIGKILL process ``pid`` if it belongs to the run; whether it did. The signal goes through a
+    pidfd opened before the process is inspected, so a pid recycled meanwhile is never hit (kernels
+    without pidfds get a plain kill)."""
+    try:
+        handle = os.pidfd_open(int(pid))
+    except OSError as error:
+        if error.errno != errno.ENOSYS:
+            return False  # gone already
+        handle = None
+    try:
+        if not belongs_to_run(pid, token, pipes):
+            return False
+        if handle is None:
+            os.kill(int(pid), signal.SIGKILL)
+        else:
+            signal.pidfd_send_signal(handle, signal.SIGKILL)
+        return True
+    except OSError:
+        return False
+    finally:
+        if handle is not None:
+            os.close(handle)
+
+
+def kill_escaped(uid: int, token: str, pipes: set[int] = frozenset()) -> int:
+    """SIGKILL every process of ``uid`` that belongs to the run (its token or its pipes); the
+    number killed. Best effort, for the "process" isolation: a process that leaves the session,
+    clears its environment and closes the run's pipes is not found."""
+    me, total = os.getpid(), 0
+    for _ in range(ESCAPE_SWEEPS):
+        killed = 0
+        for entry in os.listdir("/proc"):
+            if not entry.isdigit() or int(entry) == me:
+                continue
+            try:
+                if real_uid(entry) != uid:
+                    continue
+            except (OSError, ValueError):
+                continue
+            killed += kill_if_of_run(entry, token, pipes)
+        total += killed
+        if not killed:
+            break
+    return total

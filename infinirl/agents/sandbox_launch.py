@@ -17,8 +17,9 @@ left in the PID namespace; ``init`` dies with the launcher (PDEATHSIG), so killi
 session kills the whole sandbox.
 
 Without namespaces (``isolation`` "process"): the code's process drops to the sandbox uid when root,
-sets the same limits, and the runner replaces the socket constructors with ones that raise. Files the
-uid can read stay readable; see docs/agents.md.
+sets the same limits, and the runner refuses sockets: a seccomp filter on the socket syscalls that
+every process the code starts inherits (where the kernel takes one), and socket constructors that
+raise, for a readable error. Files the uid can read stay readable; see docs/agents.md.
 
 Everything the parent must know goes as JSON lines through the status pipe: the isolation achieved,
 a limit seen (processes), the code's exit status and CPU time, or the error that stopped the setup.

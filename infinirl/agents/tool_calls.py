@@ -20,7 +20,8 @@ object of arguments for a tool with several. Only the registered tools' names ar
 tags are ordinary text.
 
 Parsing never raises: a turn yields the well-formed calls (known tool, arguments that fit its schema)
-and a :class:`ToolCallError` with a message for the model for each malformed one. A call whose
+and a :class:`ToolCallError` with a message for the model for each malformed one (JSON nested too
+deeply or holding a number too long to convert included), in the order written. A call whose
 closing tag is missing at the very end of the text counts as closed, because engines may drop the
 stop string they stopped at (:meth:`CallFormat.stop_strings`).
 """
@@ -72,10 +73,17 @@ class ToolCallError:
 
 @dataclasses.dataclass(kw_only=True, frozen=True)
 class ParsedTurn:
-    """The calls of one model turn, in the order written, and the malformed ones."""
+    """The calls of one model turn, in the order written, and the malformed ones. ``items`` holds
+    both in the order written (a turn's answers go back in that order: Hermes responses carry no
+    call id); built without it, it is the calls followed by the errors."""
 
     calls: tuple[ToolCall, ...] = ()
     errors: tuple[ToolCallError, ...] = ()
+    items: tuple[ToolCall | ToolCallError, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.items:
+            object.__setattr__(self, "items", (*self.calls, *self.errors))
 
     @property
     def has_calls(self) -> bool:
@@ -86,6 +94,19 @@ class ParsedTurn:
 def quote(text: str) -> str:
     text = text.strip()
     return repr(text if len(text) <= MAX_QUOTED_CHARS else text[:MAX_QUOTED_CHARS] + "...")
+
+
+def json_problem(error: ValueError | RecursionError) -> str:
+    """Why a JSON text could not be read, for the model. Besides syntax errors, the decoder raises
+    RecursionError for deep nesting and a plain ValueError for an integer past Python's digit limit
+    (``sys.get_int_max_str_digits``)."""
+    if isinstance(error, json.JSONDecodeError):
+        return error.msg
+    if isinstance(error, RecursionError):
+        return "nested too deeply"
+    if "integer string conversion" in str(error):
+        return "a number too long to read"
+    return str(error)[:MAX_QUOTED_CHARS]
 
 
 def check_call(name: Any, arguments: Any, tools: Mapping[str, Tool], text: str) -> ToolCall | ToolCallError:
@@ -103,7 +124,17 @@ def check_call(name: Any, arguments: Any, tools: Mapping[str, Tool], text: str) 
 
 def collect(results: Sequence[ToolCall | ToolCallError]) -> ParsedTurn:
     return ParsedTurn(calls=tuple(r for r in results if isinstance(r, ToolCall)),
-                      errors=tuple(r for r in results if isinstance(r, ToolCallError)))
+                      errors=tuple(r for r in results if isinstance(r, ToolCallError)), items=tuple(results))
+
+
+def guarded(parse_one, span: str, *args) -> ToolCall | ToolCallError:
+    """One call's parse, whatever its text: a failure the parser did not foresee (reading or
+    checking deeply nested or oversized values) makes this call malformed, not the whole turn."""
+    try:
+        return parse_one(span, *args)
+    except (ValueError, RecursionError) as error:
+        return ToolCallError(message=f"the tool call could not be read ({json_problem(error)}): {quote(span)}",
+                             text=span)
 
 
 class CallFormat(abc.ABC):
@@ -143,17 +174,16 @@ class HermesFormat(CallFormat):
     def parse(self, text: str, tools: Mapping[str, Tool]) -> ParsedTurn:
         if not isinstance(text, str):
             return ParsedTurn(errors=(ToolCallError(message="the turn is not text", text=repr(text)),))
-        return collect([self.parse_one(match.group(0), match.group(1), tools)
+        return collect([guarded(self.parse_one, match.group(0), match.group(1), tools)
                         for match in self.PATTERN.finditer(text)])
 
     def parse_one(self, span: str, body: str, tools: Mapping[str, Tool]) -> ToolCall | ToolCallError:
         expected = '{"name": <tool name>, "arguments": {<argument>: <value>, ...}}'
         try:
             call = json.loads(body)
-        except (json.JSONDecodeError, RecursionError) as error:
-            reason = getattr(error, "msg", "nested too deeply")
-            return ToolCallError(message=f"invalid JSON in {self.OPEN} ({reason}): {quote(body)}; expected {expected}",
-                                 text=span)
+        except (ValueError, RecursionError) as error:
+            return ToolCallError(message=f"invalid JSON in {self.OPEN} ({json_problem(error)}): {quote(body)}; "
+                                         f"expected {expected}", text=span)
         if not isinstance(call, dict):
             return ToolCallError(message=f"a tool call must be a JSON object {expected}; got {quote(body)}",
                                  text=span)
@@ -161,9 +191,9 @@ class HermesFormat(CallFormat):
         if isinstance(arguments, str):  # some models write the arguments as a JSON string
             try:
                 arguments = json.loads(arguments)
-            except json.JSONDecodeError as error:
-                return ToolCallError(message=f"\"arguments\" is not a JSON object ({error.msg}): {quote(arguments)}",
-                                     text=span)
+            except (ValueError, RecursionError) as error:
+                return ToolCallError(message=f"\"arguments\" is not a JSON object ({json_problem(error)}): "
+                                             f"{quote(arguments)}", text=span)
         return check_call(call.get("name"), arguments, tools, span)
 
     def format_call(self, name: str, arguments: Mapping[str, Any], tools: Mapping[str, Tool]) -> str:
@@ -211,7 +241,7 @@ class TagFormat(CallFormat):
             return ParsedTurn(errors=(ToolCallError(message="the turn is not text", text=repr(text)),))
         if not tools:
             return ParsedTurn()
-        return collect([self.parse_one(match.group(0), match.group(1), match.group(2), tools)
+        return collect([guarded(self.parse_one, match.group(0), match.group(1), match.group(2), tools)
                         for match in self.pattern(tools).finditer(text)])
 
     def parse_one(self, span: str, name: str, body: str, tools: Mapping[str, Tool]) -> ToolCall | ToolCallError:
@@ -225,16 +255,16 @@ class TagFormat(CallFormat):
             if schema.get("type", "string") == "string":
                 return check_call(name, {key: body}, tools, span)
             try:
-                return check_call(name, {key: json.loads(body)}, tools, span)
-            except json.JSONDecodeError as error:
-                return ToolCallError(message=f"<{name}> expects a JSON {schema.get('type')} ({error.msg}): "
+                value = json.loads(body)
+            except (ValueError, RecursionError) as error:
+                return ToolCallError(message=f"<{name}> expects a JSON {schema.get('type')} ({json_problem(error)}): "
                                              f"{quote(body)}", text=span)
+            return check_call(name, {key: value}, tools, span)
         try:
             arguments = json.loads(body)
-        except (json.JSONDecodeError, RecursionError) as error:
-            reason = getattr(error, "msg", "nested too deeply")
-            return ToolCallError(message=f"<{name}> expects a JSON object of arguments ({reason}): {quote(body)}",
-                                 text=span)
+        except (ValueError, RecursionError) as error:
+            return ToolCallError(message=f"<{name}> expects a JSON object of arguments ({json_problem(error)}): "
+                                         f"{quote(body)}", text=span)
         return check_call(name, arguments, tools, span)
 
     def format_call(self, name: str, arguments: Mapping[str, Any], tools: Mapping[str, Tool]) -> str:

@@ -1,7 +1,8 @@
 """The tool-calling environment (``rollout.agent.env: tools``): each model turn that ends with a
 tool call is parsed in the configured call format, its calls run (concurrently, each with its
-tool's timeout), and the results, or what was wrong with a call, come back as the observation. A
-turn without a call is the answer and ends the trajectory."""
+tool's timeout), and the results, or what was wrong with a call, come back as the observation, one
+per call in the order the calls were written. A turn without a call is the answer and ends the
+trajectory."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from infinirl.agents.loop import AGENT_ENVS, AgentEnv, AgentStep
-from infinirl.agents.tool_calls import make_call_format
+from infinirl.agents.tool_calls import ToolCallError, make_call_format
 from infinirl.agents.tools import call_tool, make_tool
 
 __all__ = ["ToolEnv"]
@@ -43,9 +44,18 @@ class ToolEnv(AgentEnv):
             return AgentStep(done=True)
         calls = list(parsed.calls[:self.max_calls_per_turn])
         results = asyncio.run(_run_all(self.tools, calls)) if calls else []
-        texts = [r.text for r in results] + [e.message for e in parsed.errors]
-        texts += [f"Error: at most {self.max_calls_per_turn} tool calls per turn; {call.name!r} was not run"
-                  for call in parsed.calls[self.max_calls_per_turn:]]
+        # One answer per call, in the order the calls were written: Hermes responses carry no call
+        # id, so the model can only match them by position.
+        answers = iter(results)
+        texts, well_formed = [], 0
+        for item in parsed.items:
+            if isinstance(item, ToolCallError):
+                texts.append(item.message)
+            elif well_formed < self.max_calls_per_turn:
+                well_formed += 1
+                texts.append(next(answers).text)
+            else:
+                texts.append(f"Error: at most {self.max_calls_per_turn} tool calls per turn; {item.name!r} was not run")
         failed = bool(parsed.errors) or len(parsed.calls) > len(calls) or any(not r.ok for r in results)
         return AgentStep(observation=self.format.format_results(texts), error=failed,
                          info={"tool_calls": len(calls), "tool_s": sum(r.wall_time_s for r in results)})

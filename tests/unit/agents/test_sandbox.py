@@ -8,14 +8,19 @@ the suite is shared, and a limit that failed to apply must not be able to take i
 import asyncio
 import os
 import shutil
+import signal
 import socket
 import sys
 import tempfile
+import threading
+import time
+import uuid
 from pathlib import Path
 
 import pytest
 
 from infinirl.agents.sandbox import NOBODY, LimitHit, Sandbox, SandboxLimits
+from infinirl.agents.sandbox_runner import SECCOMP_ARCHES, seccomp_program
 
 SMALL = SandboxLimits(wall_time_s=4.0, cpu_time_s=2.0, memory_bytes=512 << 20, max_processes=8,
                       max_output_bytes=4096)
@@ -179,6 +184,165 @@ def test_process_count_is_bounded(isolated):
     result = isolated.run_sync(code)
     # RLIMIT_NPROC counted in the run's own user namespace; the kernel admits a process or two more.
     assert 1 <= int(result.stdout) <= SMALL.max_processes + 1, result
+
+
+def marked_processes(marker: str) -> list[int]:
+    """Live processes whose command line holds ``marker`` (only the test's own escapees do)."""
+    pids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                argv = Path(f"/proc/{entry}/cmdline").read_bytes()
+                state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
+            except OSError:
+                continue
+            if marker.encode() in argv and state != "Z":
+                pids.append(int(entry))
+    return pids
+
+
+def kill_marked(marker: str) -> None:
+    for pid in marked_processes(marker):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+
+
+def run_bounded(sandbox: Sandbox, code: str, limits: SandboxLimits, bound_s: float = 60.0):
+    """The run's result, or None when it had not returned after ``bound_s`` (a hang, not a timing)."""
+    results = []
+    thread = threading.Thread(target=lambda: results.append(sandbox.run_sync(code, limits=limits)), daemon=True)
+    thread.start()
+    thread.join(bound_s)
+    return results[0] if results else None
+
+
+# A child that leaves the sandbox's session (or process group) and would live on for a long time.
+# The marker in its argv lets the test find, and in any case kill, exactly the processes it made.
+ESCAPE = """
+import os, subprocess, sys, time
+marker = {marker!r}
+lingerer = [sys.executable, "-c", "import time; time.sleep(1000)", marker]
+if {style!r} == "nondumpable":  # its /proc entry may then belong to root
+    lingerer[2] = "import ctypes, time; ctypes.CDLL(None).prctl(4, 0, 0, 0, 0); time.sleep(1000)"
+if {style!r} == "detached":  # stdio closed: nothing keeps the run's pipes open
+    subprocess.Popen(lingerer, start_new_session=True, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                     stderr=subprocess.DEVNULL)
+elif os.fork() == 0:  # keeps stdout and stderr open
+    os.setpgid(0, 0) if {style!r} == "setpgid" else os.setsid()
+    os.execv(sys.executable, lingerer)
+print("main done", flush=True)
+if {main_sleeps!r}:
+    time.sleep(1000)
+"""
+
+
+@pytest.mark.parametrize("style, main_sleeps", [("setsid", False), ("setpgid", False), ("detached", False),
+                                                ("setsid", True), ("nondumpable", False)])
+def test_escaped_children_neither_hang_the_run_nor_outlive_it(any_sandbox, style, main_sleeps):
+    if style == "nondumpable" and os.getuid() != 0 and any_sandbox.limits.isolation == "process":
+        pytest.skip("a non-dumpable process of one's own uid cannot be inspected without root")
+    marker = f"infinirl-escape-{uuid.uuid4().hex}"
+    limits = SandboxLimits(**{**any_sandbox.limits.__dict__, "wall_time_s": 2.0})
+    try:
+        result = run_bounded(any_sandbox, ESCAPE.format(marker=marker, style=style, main_sleeps=main_sleeps), limits)
+        assert result is not None, "the run hung on a process that left the sandbox's session"
+        assert result.error is None and "main done" in result.stdout, result
+        if main_sleeps:
+            assert result.limit == LimitHit.WALL_TIME and result.exit_code is None, result
+        else:
+            assert result.exit_code == 0 and result.limit is None, result
+        deadline = time.monotonic() + 30  # SIGKILL is delivered at once; this only bounds a failure
+        while marked_processes(marker) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert marked_processes(marker) == [], "a process the code started outlived the run"
+    finally:
+        kill_marked(marker)
+
+
+@pytest.mark.parametrize("main_sleeps", [False, True])
+def test_a_pipe_holder_that_cannot_be_killed_does_not_hang_the_run(process_mode, monkeypatch, main_sleeps):
+    """With the hunt for escaped processes disabled, the waits alone bound the run: it ends as a
+    wall-time kill with the output read so far."""
+    import infinirl.agents.sandbox as sandbox_module
+
+    monkeypatch.setattr(sandbox_module, "kill_escaped", lambda *args, **kwargs: 0)
+    marker = f"infinirl-escape-{uuid.uuid4().hex}"
+    limits = SandboxLimits(**{**process_mode.limits.__dict__, "wall_time_s": 2.0})
+    try:
+        result = run_bounded(process_mode, ESCAPE.format(marker=marker, style="setsid", main_sleeps=main_sleeps),
+                             limits)
+        assert result is not None, "the run hung on a process that left the sandbox's session"
+        assert result.limit == LimitHit.WALL_TIME and result.exit_code is None, result
+        assert "main done" in result.stdout, result
+    finally:
+        kill_marked(marker)
+
+
+NETWORK_FROM_CHILDREN = """
+import ctypes, subprocess, sys
+connect = "import socket; socket.create_connection(('127.0.0.1', {port}), timeout=2); print('connected')"
+attempts = {{
+    "python": [sys.executable, "-c", connect],
+    "isolated python": [sys.executable, "-I", "-S", "-c", connect],
+    "bash": ["bash", "-c", "exec 3<>/dev/tcp/127.0.0.1/{port} && echo connected"],
+}}
+for name, argv in attempts.items():
+    run = subprocess.run(argv, capture_output=True, text=True, timeout=20)
+    print(name, run.returncode, run.stdout.strip() or "-", run.stderr.strip().splitlines()[-1:])
+print("ctypes", ctypes.CDLL(None, use_errno=True).socket(2, 1, 0), ctypes.get_errno())
+"""
+
+
+def test_children_and_ctypes_get_no_network_under_process_isolation(process_mode):
+    if shutil.which("bash") is None:
+        pytest.skip("no bash on this machine")
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+        limits = SandboxLimits(**{**process_mode.limits.__dict__, "wall_time_s": 60.0, "cpu_time_s": 10.0})
+        result = process_mode.run_sync(NETWORK_FROM_CHILDREN.format(port=port), limits=limits)
+        server.setblocking(False)
+        with pytest.raises(BlockingIOError):  # nothing reached the server
+            server.accept()
+    assert result.exit_code == 0, result
+    lines = result.stdout.splitlines()
+    assert [line.split()[0] for line in lines] == ["python", "isolated", "bash", "ctypes"], result
+    assert "connected" not in result.stdout, result
+    for line in lines[:3]:
+        assert "Permission denied" in line or "PermissionError" in line, line
+    assert lines[3] == "ctypes -1 13", result  # socket(2) refused with EACCES
+
+
+def run_filter(program, arch: int, nr: int) -> int:
+    """The action a classic-BPF seccomp program returns for a system call (only what it uses)."""
+    pc, accumulator = 0, 0
+    while True:
+        code, jump_true, jump_false, k = program[pc]
+        if code == 0x20:  # load a word of seccomp_data: nr at 0, arch at 4
+            accumulator = {0: nr, 4: arch}[k]
+        elif code in (0x15, 0x35):  # jump if equal / greater or equal
+            taken = accumulator == k if code == 0x15 else accumulator >= k
+            pc += jump_true if taken else jump_false
+        elif code == 0x06:
+            return k
+        else:
+            raise AssertionError(f"unexpected instruction {code:#x}")
+        pc += 1
+
+
+@pytest.mark.parametrize("machine", sorted(SECCOMP_ARCHES))
+def test_the_seccomp_filter_refuses_exactly_the_socket_calls(machine):
+    """Checks the program for every architecture it knows, including those this machine is not."""
+    arch, refused = SECCOMP_ARCHES[machine]
+    program = seccomp_program(machine)
+    allow, deny, kill = 0x7FFF0000, 0x00050000 | 13, 0x80000000
+    for nr in range(512):
+        assert run_filter(program, arch, nr) == (deny if nr in refused else allow), nr
+    assert run_filter(program, 0x40000003, 102) == kill  # i386's socketcall on x86_64, say
+    if machine == "x86_64":
+        assert run_filter(program, arch, 0x40000000 | 41) == deny  # the x32 ABI's socket
+    assert seccomp_program("mips") is None
 
 
 # ----------------------------------------------------------------------------- isolation

@@ -86,6 +86,12 @@ def test_hermes_several_calls_and_string_arguments():
     ('{"name": "calculator", "arguments": [1]}', "must be a JSON object"),
     ('{"name": "search", "arguments": {"query": "q", "k": "3"}}', "'k' must be of type integer"),
     ("[" * 100_000, "invalid JSON"),
+    pytest.param('{"name": "calculator", "arguments": "' + "[" * 100_000 + '"}', '"arguments" is not a JSON object',
+                 id="deep-arguments-string"),
+    pytest.param('{"name": "repeat", "arguments": {"times": ' + "9" * 5000 + "}}",
+                 "invalid JSON in <tool_call> (a number too long", id="huge-integer"),
+    pytest.param('{"name": "repeat", "arguments": "{\\"times\\": ' + "9" * 5000 + '}"}',
+                 '"arguments" is not a JSON object', id="huge-integer-in-arguments-string"),
 ])
 def test_hermes_malformed_calls_are_messages(body, message):
     parsed = make_call_format("hermes").parse(f"<tool_call>{body}</tool_call>", TOOLS)
@@ -102,11 +108,48 @@ def test_hermes_malformed_calls_are_messages(body, message):
     ('<search>["q"]</search>', "must be a JSON object"),
     ("<repeat>three</repeat>", "expects a JSON integer"),
     ('<repeat>"3"</repeat>', "'times' must be of type integer"),
+    pytest.param("<repeat>" + "[" * 100_000 + "</repeat>", "expects a JSON integer (nested too deeply)",
+                 id="deep-sole-argument"),
+    pytest.param("<repeat>" + "9" * 5000 + "</repeat>", "expects a JSON integer (a number too long",
+                 id="huge-sole-integer"),
+    pytest.param('<search>{"query": "q", "k": ' + "9" * 5000 + "}</search>",
+                 "expects a JSON object of arguments (a number too long", id="huge-integer-argument"),
+    pytest.param("<search>" + "[" * 100_000 + "</search>", "expects a JSON object of arguments (nested too deeply)",
+                 id="deep-arguments"),
 ])
 def test_tag_malformed_calls_are_messages(text, message):
     parsed = make_call_format("tags").parse(text, TOOLS)
     assert parsed.calls == () and len(parsed.errors) == 1
     assert message in parsed.errors[0].message, parsed.errors
+    assert len(parsed.errors[0].message) < 600
+
+
+@pytest.mark.parametrize("format_name, bad", [
+    ("hermes", '<tool_call>{"name": "calculator", "arguments": "' + "[" * 100_000 + '"}</tool_call>'),
+    ("hermes", '<tool_call>{"name": "repeat", "arguments": {"times": ' + "9" * 5000 + "}}</tool_call>"),
+    ("tags", "<repeat>" + "[" * 100_000 + "</repeat>"),
+    ("tags", "<repeat>" + "9" * 5000 + "</repeat>"),
+], ids=["hermes-deep", "hermes-huge-integer", "tags-deep", "tags-huge-integer"])
+def test_an_unreadable_call_keeps_the_other_calls_of_its_turn(format_name, bad):
+    fmt = make_call_format(format_name)
+    good = [fmt.format_call("calculator", {"expression": "1+2"}, TOOLS), fmt.format_call("repeat", {"times": 2}, TOOLS)]
+    parsed = fmt.parse(f"{good[0]} then {bad} then {good[1]}", TOOLS)
+    assert [(c.name, c.arguments) for c in parsed.calls] == [("calculator", {"expression": "1+2"}),
+                                                             ("repeat", {"times": 2})]
+    assert len(parsed.errors) == 1
+    assert [type(item).__name__ for item in parsed.items] == ["ToolCall", "ToolCallError", "ToolCall"]
+
+
+def test_items_keep_the_written_order_of_calls_and_errors():
+    fmt = make_call_format("hermes")
+    text = ('<tool_call>{"name": "calculator", "arguments": {"expression": "1+"}}</tool_call>'
+            '<tool_call>{"name": "calc", "arguments": {"expression": "1"}}</tool_call>'
+            '<tool_call>{"name": "calculator", "arguments": {"expression": "2+2"}}</tool_call>')
+    parsed = fmt.parse(text, TOOLS)
+    assert [getattr(item, "name", None) for item in parsed.items] == ["calculator", None, "calculator"]
+    assert parsed.calls == (parsed.items[0], parsed.items[2]) and parsed.errors == (parsed.items[1],)
+    direct = ParsedTurn(calls=parsed.calls, errors=parsed.errors)  # built without items: calls, then errors
+    assert direct.items == (*parsed.calls, *parsed.errors)
 
 
 def test_text_without_calls():

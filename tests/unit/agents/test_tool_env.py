@@ -1,5 +1,8 @@
 """The tool-calling agent environment and the agent config's checks."""
 
+import json
+import re
+
 import pytest
 
 from infinirl.agents.registered import resolve_agent_env
@@ -32,6 +35,23 @@ def test_calls_beyond_the_per_turn_limit_are_refused_with_a_message():
     env = ToolEnv(tools=["calculator"], max_calls_per_turn=1)
     step = env.step("<calculator>1+1</calculator><calculator>2+2</calculator>")
     assert step.error and "2" in step.observation and "at most 1 tool calls" in step.observation
+
+
+def test_the_ith_response_answers_the_ith_call():
+    env = ToolEnv(tools=["calculator"], call_format="hermes", max_calls_per_turn=3)  # "1+" counts: it runs
+    calls = [{"name": "calculator", "arguments": {"expression": "1+"}},
+             {"name": "calc", "arguments": {"expression": "1"}},
+             {"name": "calculator", "arguments": {"expression": "2+2"}},
+             {"name": "calculator", "arguments": {"expression": "3+3"}},
+             {"name": "calculator", "arguments": {"expression": "4+4"}}]
+    turn = "".join(f"<tool_call>{json.dumps(call)}</tool_call>" for call in calls)
+    step = env.step(turn)
+    responses = re.findall(r"<tool_response>\n(.*?)\n</tool_response>", step.observation, re.DOTALL)
+    assert len(responses) == len(calls), step.observation
+    assert responses[0].startswith("Error") and "unknown tool 'calc'" in responses[1]
+    assert responses[2:4] == ["4", "6"]
+    assert "at most 3 tool calls" in responses[4] and "'calculator' was not run" in responses[4]
+    assert step.error and step.info["tool_calls"] == 3
 
 
 def test_hermes_format():
