@@ -20,9 +20,35 @@ from infinirl.registry import Registry
 ANSWER_MARKER = "####"
 
 # A number as people and models write it: optional sign, digits with optional thousands commas,
-# optional decimals; or a bare decimal like ".5".
-_NUMBER = re.compile(r"[-+]?(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?|[-+]?\.\d+")
+# optional decimals, or a bare decimal like ".5"; optionally in scientific notation ("2.5e2").
+# It is read whole or not at all: digits glued on by a comma, a slash, a point or another digit
+# ("1,2345", "3/4", "1.2.3") make no number rather than a truncated one.
+_NUMBER_BODY = r"[-+]?(?:(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?|\.\d+)(?:[eE][-+]?\d+)?"
+_NUMBER = re.compile(r"(?<![\d.])(?<!\d[,/])" + _NUMBER_BODY + r"(?![\d]|[.,/]\d|[eE][-+]?\d)")
+_WHOLE_NUMBER = re.compile(_NUMBER_BODY)
+MAX_DECIMAL_EXPONENT = 1000  # "1e999999999" is a number nobody means, and a costly Fraction to build
+# Signs other than ASCII '-' that models and typeset sources use: the minus sign and the fullwidth
+# and small hyphen-minus always; figure and en dashes only where a sign goes (not in "5–7").
+_MINUS_SIGNS = str.maketrans({"\u2212": "-", "\uff0d": "-", "\ufe63": "-"})
+_DASH_AS_MINUS = re.compile(r"(?<![\w.])[\u2012\u2013](?=\.?\d)")
 _ANSWER_LABEL = re.compile(r"answer\s*(?:is)?\s*[:=]\s*", re.IGNORECASE)
+# What follows a markdown heading's "####" rather than an answer: "Step 2: Compute",
+# "1. Understanding the Problem", "Final Answer", anything ending in ':'.
+_HEADING = re.compile(
+    r"(?:step|part|case|stage|phase)\s*\d+\b.*"
+    r"|\d+[.)]\s+[^\W\d][^\d]*"
+    r"|.*:"
+    r"|(?:(?:the|my|final|short|detailed|complete|step[- ]by[- ]step)\s+)*"
+    r"(?:answers?|solutions?|explanations?|conclusions?|summary|results?|verification|check|calculations?|"
+    r"reasoning|analysis|approach|work|method|steps?|problem|understanding the problem|given|notes?)",
+    re.IGNORECASE,
+)
+
+
+def normalize_minus(text: str) -> str:
+    """``text`` with typographic minus signs written as ``-``."""
+    return _DASH_AS_MINUS.sub("-", text.translate(_MINUS_SIGNS))
+
 
 AnswerExtractor = Callable[[str], "str | None"]
 ANSWER_EXTRACTORS: Registry[AnswerExtractor] = Registry("answer extractor")
@@ -33,28 +59,36 @@ def parse_number(text: str | None) -> Fraction | None:
 
     Exact (Fraction, via Decimal) so ``"0.1"`` equals ``"0.10"`` without float rounding surprises.
     Currency signs, percent signs and surrounding punctuation are ignored because GSM8K answers
-    and model outputs carry them freely.
+    and model outputs carry them freely; ``"−5"`` (U+2212) is -5 and ``"2.5e2"`` is 250. A malformed
+    number (``"1,2345"``, ``"3/4"``) or one beyond 1e±1000 is None.
     """
     if text is None:
         return None
-    cleaned = text.strip().strip("$%,;:!?()[]{} \t\n").rstrip(".").replace(",", "").replace("$", "")
-    if not cleaned:
+    cleaned = normalize_minus(text).strip().strip("$%,;:!?()[]{} \t\n").rstrip(".").replace("$", "")
+    if not _WHOLE_NUMBER.fullmatch(cleaned):
         return None
     try:
-        return Fraction(Decimal(cleaned))
+        value = Decimal(cleaned.replace(",", ""))
     except (InvalidOperation, ValueError):
         return None
+    if value and abs(value.adjusted()) > MAX_DECIMAL_EXPONENT:
+        return None
+    return Fraction(value)
 
 
 @ANSWER_EXTRACTORS.register("marker")
 def extract_after_marker(text: str, marker: str = ANSWER_MARKER) -> str | None:
-    """The rest of the line after the *last* ``####`` (models sometimes restate the marker)."""
-    position = text.rfind(marker)
-    if position < 0:
-        return None
-    tail = text[position + len(marker) :].strip()
-    first_line = tail.splitlines()[0].strip() if tail else ""
-    return first_line or None
+    """The rest of the line after the last ``####`` followed by an answer (models sometimes restate
+    the marker). A markdown heading (``#### Step 2: Compute``, ``#### Final Answer``) is not one:
+    see `_HEADING`; with no answer after any marker, None, so ``auto`` goes on to ``\\boxed{}``."""
+    end = len(text)
+    while (position := text.rfind(marker, 0, end)) >= 0:
+        end = position
+        tail = text[position + len(marker) :].strip()
+        first_line = tail.splitlines()[0].strip() if tail else ""
+        if first_line and not _HEADING.fullmatch(first_line):
+            return first_line
+    return None
 
 
 @ANSWER_EXTRACTORS.register("boxed")
@@ -86,18 +120,23 @@ def extract_after_answer_label(text: str) -> str | None:
     return first_line or None
 
 
+def find_numbers(text: str) -> list[str]:
+    """Every number in ``text`` (see `_NUMBER`), in order, commas removed and minus signs as ``-``."""
+    return [number.replace(",", "") for number in _NUMBER.findall(normalize_minus(text))]
+
+
 @ANSWER_EXTRACTORS.register("last_number")
 def extract_last_number(text: str) -> str | None:
     """The last number in the text, commas removed: the most forgiving convention."""
-    numbers = _NUMBER.findall(text)
-    return numbers[-1].replace(",", "") if numbers else None
+    numbers = find_numbers(text)
+    return numbers[-1] if numbers else None
 
 
 def extract_first_number(text: str | None) -> str | None:
     """The first number in ``text`` (used on the short segment after a marker)."""
     if text is None:
         return None
-    match = _NUMBER.search(text)
+    match = _NUMBER.search(normalize_minus(text))
     return match.group(0).replace(",", "") if match else None
 
 

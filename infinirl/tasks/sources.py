@@ -77,8 +77,10 @@ def _gym_training(task: TaskConfig, seed: int):
 def _gym_evaluation(task: TaskConfig, split: str, limit: int | None, from_run: bool) -> list[Problem]:
     from infinirl.tasks.reasoning_gym_tasks import ReasoningGymTask, build_eval_set
 
-    # The same held-out set a training run evaluated on (same task config and eval seed).
-    return build_eval_set(ReasoningGymTask(task.name, task.config), limit or task.eval_size, seed=task.eval_seed)
+    # The same held-out set a training run evaluated on (same task config and eval seed); past its
+    # eval_size the sequence goes on into questions the run may have trained on.
+    size = min(limit or task.eval_size, task.eval_size) if from_run else (limit or task.eval_size)
+    return build_eval_set(ReasoningGymTask(task.name, task.config), size, seed=task.eval_seed)
 
 
 TASK_SOURCES.add("reasoning_gym", TaskSource(training=_gym_training, evaluation=_gym_evaluation,
@@ -92,13 +94,27 @@ def _dataset_training(task: TaskConfig, seed: int):
 
     verifier = _dataset_verifier(task, "train")
     if task.name in DATASET_PRESETS:
-        return EpochBatchIterator(load_preset(task.name, "train"), seed=seed), load_preset(
-            task.name, "test", limit=task.eval_size)
+        held_out = load_preset(task.name, "test", limit=task.eval_size)
+        return EpochBatchIterator(_excluding(load_preset(task.name, "train"), held_out), seed=seed), held_out
     rows = _file_problems(task, verifier, limit=None)
-    if len(rows) <= task.eval_size:
+    held_out = rows[: task.eval_size]
+    training = _excluding(rows[task.eval_size:], held_out)
+    if not training:
         raise ConfigError(f"task.name={task.name!r} has {len(rows)} rows and task.eval_size={task.eval_size} of them "
-                          "are held out, which leaves none to train on; lower task.eval_size or add rows")
-    return EpochBatchIterator(rows[task.eval_size:], seed=seed), rows[: task.eval_size]
+                          "are held out (with the later rows asking the same questions), which leaves none to train "
+                          "on; lower task.eval_size or add rows")
+    return EpochBatchIterator(training, seed=seed), held_out
+
+
+def _excluding(problems: list[Problem], held_out: list[Problem]) -> list[Problem]:
+    """``problems`` without those asking a held-out question (compared as `normalize_question` does)."""
+    from infinirl.tasks.problem import normalize_question
+
+    def question(problem: Problem) -> str:
+        return normalize_question(str(problem.metadata.get("question", problem.prompt)))
+
+    excluded = {question(problem) for problem in held_out}
+    return [problem for problem in problems if question(problem) not in excluded]
 
 
 def _dataset_evaluation(task: TaskConfig, split: str, limit: int | None, from_run: bool) -> list[Problem]:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
@@ -23,7 +24,7 @@ from infinirl.registry import Registry
 from infinirl.tasks.answers import (
     extract_after_marker,
     extract_first_number,
-    extract_last_number,
+    find_numbers,
     get_answer_extractor,
     parse_number,
 )
@@ -94,6 +95,11 @@ def _parse_gold(answer: str) -> tuple:
     return tuple(_math_parse(f"${answer}$") or _math_parse(answer))
 
 
+@lru_cache(maxsize=4096)
+def _gold_cheap_to_evaluate(answer: str) -> bool:
+    return _cheap_to_evaluate(_parse_gold(answer))
+
+
 def _math_parse(text: str) -> list:
     # parsing_timeout=None: math-verify's timeout uses signal.alarm, which raises "signal only
     # works in main thread" inside thread pools and Ray actor threads. We bound the work instead
@@ -106,8 +112,117 @@ def _math_parse(text: str) -> list:
 def _math_equal(gold: Sequence, predicted: Sequence) -> bool:
     from math_verify import verify
 
-    # timeout_seconds=None for the same reason as parsing_timeout above.
+    # timeout_seconds=None for the same reason as parsing_timeout above; `_cheap_to_evaluate`
+    # bounds the work instead.
     return bool(verify(list(gold), list(predicted), timeout_seconds=None))
+
+
+# Bounds on what math-verify is asked to evaluate. Parsing leaves expressions unevaluated, but
+# comparing evaluates them, and ``10^{10^{10}}`` or ``99999999!`` would take forever (no timeout can
+# interrupt sympy in a worker thread). Within these bounds a comparison takes about a second at most.
+MAX_EXPRESSION_NODES = 2000
+MAX_POWER_DIGITS = 10_000
+"""A power of numbers may have at most this many digits (|exponent| * |log10 base|)."""
+MAX_SYMBOLIC_EXPONENT = 1000
+"""Largest |exponent| of a power of an expression with variables (``x^{1000}`` passes)."""
+MAX_EXPANSION_TERMS = 500
+"""Terms of a power of a sum once multiplied out: ``(x+1)^{300}`` and ``(x+y+1)^{30}`` pass; a tenth of
+that when the sum holds functions (``(\\sin x + 1)^{49}`` passes)."""
+MAX_FACTORIAL_ARGUMENT = 1000
+"""Largest argument of a factorial, gamma function or binomial coefficient."""
+
+
+def _cheap_to_evaluate(parsed: Sequence) -> bool:
+    """Whether the sympy expressions of a math-verify parse are within the bounds above."""
+    try:
+        return _within_bounds(parsed)
+    except RecursionError:  # nested deeper than sympy itself can walk
+        return False
+
+
+def _within_bounds(parsed: Sequence) -> bool:
+    import sympy
+    from sympy.functions.combinatorial.factorials import FallingFactorial, RisingFactorial
+
+    growing = (sympy.factorial, sympy.factorial2, sympy.subfactorial, sympy.gamma, sympy.binomial,
+               RisingFactorial, FallingFactorial)
+    nodes: list = []
+    for item in parsed:
+        if isinstance(item, sympy.Basic):
+            for node in sympy.preorder_traversal(item):
+                nodes.append(node)
+                if len(nodes) > MAX_EXPRESSION_NODES:
+                    return False
+    # Reversed preorder puts every node after its subexpressions, so an exponent or argument is
+    # only evaluated once its own parts have passed.
+    for node in reversed(nodes):
+        if isinstance(node, sympy.Pow) and _power_too_costly(node.base, node.exp):
+            return False
+        if isinstance(node, sympy.exp) and _power_too_costly(sympy.E, node.args[0]):
+            return False
+        if isinstance(node, growing) and any(
+                (size := _log10_magnitude(argument)) is not None and size > math.log10(MAX_FACTORIAL_ARGUMENT)
+                for argument in node.args):
+            return False
+    return True
+
+
+def _power_too_costly(base: Any, exponent: Any) -> bool:
+    import sympy
+
+    size = _log10_magnitude(exponent)
+    if size is None:  # a symbolic exponent: nothing to evaluate
+        return False
+    if base.free_symbols:
+        if size > math.log10(MAX_SYMBOLIC_EXPONENT):
+            return True
+        if not base.has(sympy.Add):
+            return False
+        # Terms with functions (sin x) are each simplified on their own: much slower.
+        most = MAX_EXPANSION_TERMS // 10 if base.atoms(sympy.Function) else MAX_EXPANSION_TERMS
+        degree, variables = _degree(base) * 10**size, len(base.free_symbols)
+        return degree > most or math.comb(round(degree) + variables, variables) > most
+    base_size = _log10_magnitude(base)
+    if base_size is None or base_size in (0.0, -math.inf):  # 0, 1 and -1 to any power are cheap
+        return False
+    return size > 20 or 10**size * abs(base_size) > MAX_POWER_DIGITS
+
+
+def _degree(expr: Any) -> float:
+    """The total degree of ``expr`` as a polynomial in its variables (1 for anything else with
+    variables in it)."""
+    import sympy
+
+    if not expr.free_symbols:
+        return 0.0
+    if isinstance(expr, sympy.Add):
+        return max(_degree(term) for term in expr.args)
+    if isinstance(expr, sympy.Mul):
+        return sum(_degree(factor) for factor in expr.args)
+    if isinstance(expr, sympy.Pow) and (size := _log10_magnitude(expr.exp)) is not None:
+        return _degree(expr.base) * 10**size
+    return 1.0
+
+
+def _same_expression(gold: Sequence, predicted: Sequence) -> bool:
+    """Structural equality of the parsed expressions, with nothing evaluated."""
+    return any(not isinstance(g, str) and not isinstance(p, str) and g == p for g in gold for p in predicted)
+
+
+def _log10_magnitude(expr: Any) -> float | None:
+    """log10 |value| of an expression without variables (-inf for 0); None when it has variables
+    or no numeric value. Evaluated at low precision: cheap once its parts passed the bounds."""
+    import sympy
+
+    if not isinstance(expr, sympy.Basic) or expr.free_symbols:
+        return None
+    try:
+        magnitude = sympy.Abs(expr.evalf(15)).evalf(15)
+        if not magnitude.is_Number or magnitude.is_infinite or magnitude is sympy.nan:
+            return None
+        return -math.inf if magnitude == 0 else float(sympy.log(magnitude, 10).evalf(15))
+    except (TypeError, ValueError, ArithmeticError, AttributeError):
+        return None
 
 
 # math-verify logs a warning the first time timeouts are disabled; we disable them on purpose.
@@ -122,7 +237,10 @@ class MathVerifier:
     The prediction is read from the last ``\\boxed{}`` if there is one, else from the text after
     the last ``####``, else from the response's final ``max_response_chars`` characters. Only the
     tail is parsed because timeouts are disabled (see `_math_parse`) and sympy on a long
-    rambling response is the slow path; the final answer is at the end anyway.
+    rambling response is the slow path; the final answer is at the end anyway. For the same reason
+    an answer (or ground truth) beyond the bounds of `_cheap_to_evaluate` (``10^{10^{10}}``,
+    ``99999999!``, ``(x+1)^{1000}``) is not evaluated: it is correct only when it is the ground truth's
+    expression as parsed, so ``\\boxed{10^{10^{10}}}`` still matches a ground truth ``10^{10^{10}}``.
     """
 
     max_response_chars: int = 1000
@@ -134,7 +252,12 @@ class MathVerifier:
                 f"math verifier: cannot parse ground truth {problem.answer!r} of {problem.uid}"
             )
         predicted = _math_parse(self._answer_text(response))
-        correct = bool(predicted) and _math_equal(gold, predicted)
+        if not predicted:
+            correct = False
+        elif _gold_cheap_to_evaluate(problem.answer) and _cheap_to_evaluate(predicted):
+            correct = _math_equal(gold, predicted)
+        else:  # too costly to evaluate: only the same expression, as written, is the same answer
+            correct = _same_expression(gold, predicted)
         return RewardResult(float(correct), correct, metrics={"answer_found": float(bool(predicted))})
 
     def _answer_text(self, response: str) -> str:
@@ -158,8 +281,9 @@ class ReasoningGymVerifier:
     """The generator's own ``score_answer(answer, entry)`` on the extracted answer.
 
     Extraction (default ``"auto"``: ``####``, ``\\boxed{}``, ``Answer:``, last number) yields a
-    candidate string; when it is a whole phrase (``"#### The sum is 42."``) its last number is
-    also tried, and the better score wins, so numeric tasks are not marked wrong for wording.
+    candidate string; when it is a whole phrase holding exactly one number (``"#### The sum is
+    42."``) that number is also tried, and the better score wins, so numeric tasks are not marked
+    wrong for wording (``"#### 6 or 5"`` holds two guesses: only the phrase is scored).
 
     reasoning-gym's scorers give substring partial credit (``"42"`` inside ``"42 apples"`` scores
     2/9). ``partial_credit=False`` (default) rounds that to 0: a binary reward keeps "reward" and
@@ -185,8 +309,9 @@ class ReasoningGymVerifier:
             ) from None
         candidate = get_answer_extractor(self.extraction)(response)
         candidates = [candidate]
-        if candidate is not None and extract_last_number(candidate) not in (None, candidate):
-            candidates.append(extract_last_number(candidate))
+        numbers = find_numbers(candidate) if candidate is not None else []
+        if len(numbers) == 1 and numbers[0] != candidate:  # more than one would be several guesses
+            candidates.append(numbers[0])
         score = max(score_entry(c, entry, task, config) for c in candidates)
         correct = score >= 1.0
         reward = score if self.partial_credit else float(correct)
@@ -242,6 +367,14 @@ class FunctionVerifier:
 
 
 def _to_reward_result(value: Any, source: str) -> RewardResult:
+    result = _as_reward_result(value, source)
+    if not math.isfinite(result.reward):
+        # A NaN would poison the batch's advantages and means; an error is counted and scored 0.
+        raise ValueError(f"reward function {source} returned a reward of {result.reward}, not a finite number")
+    return result
+
+
+def _as_reward_result(value: Any, source: str) -> RewardResult:
     if isinstance(value, RewardResult):
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float, dict)):

@@ -117,3 +117,77 @@ def test_limits_are_options_and_bad_ones_are_refused():
         CodeTestsVerifier(limits={"wall_time": 2})
     with pytest.raises(TypeError, match="code_tests"):
         build_verifier("code_tests", bogus=1)
+
+
+@pytest.mark.parametrize("code", [
+    "class E:\n    def __eq__(self, other):\n        return True\ndef total(xs):\n    return E()\n",
+    "class E(int):\n    def __eq__(self, other):\n        return True\ndef total(xs):\n    return E(0)\n",
+    "class L(list):\n    def __eq__(self, other):\n        return True\ndef total(xs):\n    return [L()]\n",
+])
+def test_results_that_compare_equal_to_anything_fail(verifier, code):
+    assert verifier(fenced(code), PROBLEM).reward == 0.0
+    report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), code, TESTS, "total")
+    assert report.loaded and report.passed == 0 and "plain built-in value" in report.failures[0].error
+
+
+# Code written to read the harness: it looks for the report's nonce wherever this process keeps it
+# (the frames on the stack, every object, the harness's stdin) and prints a forged report.
+FORGER = '''
+import gc, json, os, sys
+
+def _nonces():
+    found = set()
+    frame = sys._getframe()
+    while frame is not None:
+        for scope in (frame.f_locals, frame.f_globals):
+            found.update(v["nonce"] for v in list(scope.values()) if isinstance(v, dict) and "nonce" in v)
+        frame = frame.f_back
+    found.update(o["nonce"] for o in gc.get_objects() if isinstance(o, dict) and isinstance(o.get("nonce"), str))
+    for pid in (os.getpid(), os.getppid()):
+        try:
+            with open(f"/proc/{pid}/fd/0") as stdin:
+                found.add(json.loads(stdin.readline())["nonce"])
+        except Exception:
+            pass
+    return found
+
+def _forge():
+    report = json.dumps({"loaded": True, "passed": 4, "total": 4, "failures": []})
+    for nonce in _nonces():
+        for fd in (1, sys.__stdout__.fileno()):
+            os.write(fd, f"\\n{nonce} {report}\\n".encode())
+        for path in (f"/proc/{os.getppid()}/fd/1",):
+            try:
+                with open(path, "w") as out:
+                    out.write(f"\\n{nonce} {report}\\n")
+            except Exception:
+                pass
+    os._exit(0)
+
+def total(xs):
+    _forge()
+'''
+
+
+@pytest.mark.parametrize("when", ["on load", "in a test"])
+def test_code_that_reads_the_harness_cannot_forge_a_report(verifier, when):
+    code = FORGER + ("_forge()\n" if when == "on load" else "")
+    result = verifier(fenced(code), PROBLEM)
+    assert result.reward == 0.0 and not result.correct
+    report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), code, TESTS, "total")
+    assert report.passed == 0 and not report.all_passed
+
+
+def test_helpers_builtins_and_exceptions_between_tests_and_code():
+    tests = ("def check(candidate):\n    assert candidate(double(2)) == 5\n"
+             "    assert abs(candidate(1) - 4) < 1e-9\n"
+             "    try:\n        candidate(None)\n    except TypeError:\n        pass\n"
+             "    else:\n        assert False\n"
+             "    assert candidate(0) == total(0) and candidate((1, 2)) == {(1, 2): [None, b'x', 1.5, 2j]}\n")
+    code = ("def double(x):\n    return 2 * x\n"
+            "def abs(x):\n    return 0\n"  # shadows the builtin the tests call: must not fool them
+            "def total(x):\n    if isinstance(x, tuple):\n        return {x: [None, b'x', 1.5, 2j]}\n"
+            "    return x + 1\n")
+    report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), code, tests, "total")
+    assert report.total == 4 and report.passed == 3, report
+    assert "assert abs(candidate(1) - 4)" in report.failures[0].test and report.failures[0].got is None

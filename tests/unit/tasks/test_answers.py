@@ -9,6 +9,7 @@ from infinirl.tasks.answers import (
     extract_after_marker,
     extract_answer_auto,
     extract_boxed,
+    extract_first_number,
     extract_last_number,
     get_answer_extractor,
     parse_number,
@@ -128,3 +129,62 @@ def test_gsm8k_gold_extraction(solution, gold):
 def test_gsm8k_gold_without_marker_is_an_error():
     with pytest.raises(ValueError, match="no '#### <answer>' line"):
         extract_gsm8k_gold("a solution with no final line 12")
+
+
+@pytest.mark.parametrize(
+    ("response", "expected"),
+    [
+        ("#### Step 1: Read\nThere are 3 boxes.\n#### Step 2: Compute\nThe result is 99.", None),
+        ("#### Final Answer\n\\boxed{42}", None),
+        ("#### Final Answer:\n42", None),
+        ("#### 1. Understanding the Problem\nwe need 5", None),
+        ("#### Solution\nIt is 3", None),
+        ("#### 42\n\n#### Verification\nchecked", "42"),  # the last marker followed by an answer counts
+        ("#### The sum is 42.", "The sum is 42."),
+        ("#### Answer: 42", "Answer: 42"),
+        ("#### seven", "seven"),
+        ("#### True", "True"),
+        ("####\n12", "12"),
+    ],
+)
+def test_markdown_headings_are_not_answer_markers(response, expected):
+    assert extract_after_marker(response) == expected
+
+
+@pytest.mark.parametrize(
+    ("response", "expected"),
+    [
+        ("#### Final Answer\n\\boxed{42}", "42"),
+        ("#### Final Answer\n\nThe answer is: 42", "42"),
+        ("#### Step 1: Read\n...\n#### Step 2: Compute\nThe result is 99.", "99"),
+    ],
+)
+def test_auto_extraction_falls_back_past_headings(response, expected):
+    assert extract_answer_auto(response) == expected
+
+
+@pytest.mark.parametrize(
+    ("text", "first", "value"),
+    [
+        ("\u22125", "-5", Fraction(-5)),  # U+2212 MINUS SIGN
+        ("\u20135 degrees", "-5", Fraction(-5)),  # an en dash used as a minus
+        ("\uff0d7", "-7", Fraction(-7)),
+        ("pages 5\u20137", "5", Fraction(5)),  # an en dash in a range is not a sign
+        ("3/4", None, None),
+        ("1e3", "1e3", Fraction(1000)),
+        ("2.5e2 m", "2.5e2", Fraction(250)),
+        ("-1.5E-2", "-1.5E-2", Fraction(-3, 200)),
+        ("1,2345", None, None),
+        ("1,23", None, None),
+        ("1,234", "1234", Fraction(1234)),
+        ("1,234.5 kg", "1234.5", Fraction(2469, 2)),
+        ("12,345,678", "12345678", Fraction(12345678)),
+        ("7, then 8", "7", Fraction(7)),
+        ("1.2.3", None, None),
+        ("1e999999999", "1e999999999", None),  # an absurd exponent is not a value worth building
+        ("inf", None, None),
+    ],
+)
+def test_numbers_read_whole_or_not_at_all(text, first, value):
+    assert extract_first_number(text) == first
+    assert parse_number(first if first is not None else text) == value

@@ -79,3 +79,16 @@ def test_registered_and_safe_on_bad_gold():
     assert isinstance(get_verifier("exact_match"), ExactMatchVerifier)
     failed = safe_score("<answer>the</answer>", problem("The"))
     assert failed.error and "empty after normalisation" in failed.error and not failed.correct
+
+
+def test_unicode_punctuation_is_dropped_like_ascii():
+    assert normalize_answer("\u201cBrandor Labs\u201d") == "brandor labs"
+    assert normalize_answer("Brandor\u2019s \u00abLabs\u00bb\u2014\u2026") == normalize_answer("Brandor's Labs")
+    assert ExactMatchVerifier()("<answer>\u201cBrandor Labs\u201d</answer>", problem("Brandor Labs")).correct
+
+
+def test_answer_tags_mentioned_in_prose_do_not_hide_the_answer():
+    response = "I will put the final answer in <answer> tags once sure.\n<answer>Quenby</answer>"
+    assert extract_tagged_answer(response) == "Quenby"
+    assert ExactMatchVerifier()(response, problem("Quenby")).correct
+    assert extract_tagged_answer("The <answer> tag comes last: <answer>Quenby</answer> (an <answer>") == "Quenby"

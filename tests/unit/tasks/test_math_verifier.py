@@ -1,6 +1,7 @@
 """The math-verify based verifier: LaTeX equivalence, answer location, and thread safety."""
 
 import json
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
@@ -80,3 +81,25 @@ def test_math500_gold_answers_verify_against_themselves():
         results = list(pool.map(lambda r: safe_score(f"\\boxed{{{r['answer']}}}", math_problem(r["answer"])), rows))
     failures = [(row["answer"], res.error) for row, res in zip(rows, results) if not res.correct]
     assert failures == []
+
+
+@pytest.mark.parametrize("answer", ["10^{10^{10}}", "9^{9^{9^{9}}}", "99999999!", "2^{2^{40}}", "(10^{1000})^{1000}",
+                                    "x^{10^{9}}", "\\binom{10^{9}}{5 \\cdot 10^{8}}", "e^{10^{10^{10}}}",
+                                    "+".join(["x"] * 3000)])
+def test_answers_too_costly_to_evaluate_are_wrong_not_hangs(answer):
+    results = []
+    worker = threading.Thread(target=lambda: results.append(safe_score(f"\\boxed{{{answer}}}", math_problem("5"))),
+                              daemon=True)
+    worker.start()
+    worker.join(timeout=30)
+    assert results, f"scoring {answer!r} did not finish"
+    assert results[0].error is None and not results[0].correct
+
+
+@pytest.mark.parametrize(("gold", "response"), [
+    ("1024", "\\boxed{2^{10}}"), ("3628800", "\\boxed{10!}"), ("2^{100}", "\\boxed{2^{100}}"),
+    ("10^{10^{10}}", "\\boxed{10^{10^{10}}}"),  # too costly to evaluate, but the ground truth as written
+])
+def test_large_answers_still_verify(gold, response):
+    result = safe_score(response, math_problem(gold))
+    assert result.error is None and result.correct

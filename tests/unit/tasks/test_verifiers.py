@@ -92,6 +92,40 @@ def test_reasoning_gym_without_metadata_reports_how_to_build_problems():
     assert result.reward == 0.0 and "build_eval_set" in result.error
 
 
+@pytest.mark.parametrize(
+    ("response", "gold", "correct"),
+    [
+        ("#### Step 1: Read\n...\n#### Step 2: Compute\nThe result is 99.", "2", False),
+        ("#### Final Answer\n#### 42", "42", True),
+        ("#### \u22125", "5", False),
+        ("#### \u22125", "-5", True),
+        ("#### 3/4", "3", False),
+        ("#### 1e3", "1", False),
+        ("#### 1e3", "1000", True),
+        ("#### 1,2345", "1234", False),
+        ("#### 2.5e2", "250", True),
+    ],
+)
+def test_gsm8k_reads_whole_numbers_and_not_headings(response, gold, correct):
+    assert build_verifier("gsm8k")(response, numeric_problem(gold)).correct is correct
+
+
+def test_math_verifier_skips_a_heading_marker():
+    problem = Problem(uid="m/0", prompt="q", answer="42", verifier="math")
+    assert safe_score("#### Final Answer\n\nThe answer is 42", problem).correct
+    assert not safe_score("#### Step 1: Read\n...\n#### Step 42: Compute\nThe result is 99.", problem).correct
+
+
+def test_reasoning_gym_headings_and_guesses(chain_sum_problems):
+    for problem in [p for p in chain_sum_problems if int(p.answer) > 0]:  # a step number is positive
+        answer = int(problem.answer)
+        assert safe_score(f"#### Final Answer\n\\boxed{{{answer}}}", problem).correct
+        steps = f"#### Step 1: Read\n...\n#### Step {answer}: Compute\nThe result is {answer + 57}."
+        assert not safe_score(steps, problem).correct
+        assert not safe_score(f"#### {answer + 1} or {answer}", problem).correct  # two guesses
+        assert safe_score(f"#### It is {answer} in total", problem).correct
+
+
 # --- never crash -----------------------------------------------------------------------------
 
 
@@ -183,6 +217,12 @@ def user_module(tmp_path, monkeypatch):
             def raises(response, problem):
                 raise ValueError("user bug")
 
+            def not_a_number(response, problem):
+                return float("nan")
+
+            def infinite(response, problem):
+                return {"reward": float("inf"), "correct": True}
+
             class Scorers:
                 @staticmethod
                 def nested(response, problem):
@@ -216,7 +256,7 @@ def test_problem_can_name_a_user_function(user_module):
 @pytest.mark.parametrize(
     ("function", "message"),
     [("missing_reward", "without 'reward'; keys: \\['score'\\]"), ("wrong_type", "returned str"),
-     ("raises", "user bug")],
+     ("raises", "user bug"), ("not_a_number", "not a finite number"), ("infinite", "not a finite number")],
 )
 def test_user_function_failures_become_sample_errors(user_module, function, message):
     result = safe_score("x", numeric_problem("1", verifier=f"{user_module}:{function}"))
@@ -225,6 +265,7 @@ def test_user_function_failures_become_sample_errors(user_module, function, mess
     import re
 
     assert re.search(message, result.error)
+    assert summarize_rewards([result])["verifier_errors"] == 1.0
 
 
 @pytest.mark.parametrize(

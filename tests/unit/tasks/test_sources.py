@@ -1,0 +1,42 @@
+"""Task sources: a training run's held-out problems, and evaluating only those with ``from_run``."""
+
+import json
+
+import pytest
+
+from infinirl.config import ConfigError
+from infinirl.tasks.config import TaskConfig
+from infinirl.tasks.problem import normalize_question
+from infinirl.tasks.sources import eval_problems, training_problems
+
+
+def test_reasoning_gym_eval_of_a_run_is_its_held_out_set_whatever_the_limit():
+    task = TaskConfig()
+    _, held_out = training_problems(task, seed=0)
+    assert len(held_out) == task.eval_size
+    assert eval_problems(task, "test", 200, from_run=True) == held_out
+    assert eval_problems(task, "test", 10, from_run=True) == held_out[:10]
+    assert len(eval_problems(task, "test", 100)) == 100  # not a run's task: as many as asked for
+
+
+def write_rows(path, questions):
+    path.write_text("".join(json.dumps({"question": q, "answer": str(i)}) + "\n" for i, q in enumerate(questions)))
+    return path
+
+
+def test_data_file_training_excludes_held_out_questions_by_text(tmp_path):
+    # "What is 1+1?" is held out (row 1) and repeats further down, differing in case and spacing only.
+    questions = ["What is 0+0?", "What is 1+1?", "What is 2+2?", "What is 3+3?", "what is  1+1?", "What is 4+4?"]
+    task = TaskConfig(source="dataset", name=str(write_rows(tmp_path / "rows.jsonl", questions)), verifier="math",
+                      eval_size=2)
+    stream, held_out = training_problems(task, seed=0)
+    held_out_keys = {normalize_question(p.metadata["question"]) for p in held_out}
+    assert held_out_keys == {"what is 0+0?", "what is 1+1?"}
+    trained = {normalize_question(p.metadata["question"]) for p in stream.next_batch(12)}
+    assert trained == {"what is 2+2?", "what is 3+3?", "what is 4+4?"}
+
+
+def test_data_file_with_nothing_left_to_train_on_is_refused(tmp_path):
+    path = write_rows(tmp_path / "rows.jsonl", ["Q a", "Q b", "q  a", "Q B"])
+    with pytest.raises(ConfigError, match="leaves none to train on"):
+        training_problems(TaskConfig(source="dataset", name=str(path), verifier="math", eval_size=2), seed=0)
