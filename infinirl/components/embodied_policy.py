@@ -209,6 +209,10 @@ class ReturnNormalizer:
         std = float(torch.sqrt(self.rms.var + self.epsilon))
         return rewards / std
 
+    def end_episodes(self) -> None:
+        """Every env's episode ended (the next rollout resets them): their running returns restart."""
+        self.returns[:] = 0.0
+
     def state_dict(self) -> dict:
         return {"returns": self.returns.tolist(), "mean": float(self.rms.mean), "var": float(self.rms.var),
                 "count": float(self.rms.count)}

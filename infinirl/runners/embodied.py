@@ -592,17 +592,25 @@ class EmbodiedFlow:
         action_level = alg.gae_level == "action"
         rewards = _tensor(traj["step_rewards"] if action_level else traj["rewards"]).to(torch.float32)
         terminated = _tensor(traj["terminated"])
-        truncated = _tensor(traj["truncated"])
+        # A step both terminated and out of time (gymnasium's TimeLimit sets truncated whatever
+        # terminated says) ended the task: no bootstrap from V(final obs).
+        truncated = _tensor(traj["truncated"]) & ~terminated
         dones = terminated | truncated
+        final_values = _tensor(traj["final_values"])
         scale_rewards = alg.normalize_rewards and not algorithm.grouped
         if scale_rewards:
             rewards = self.return_norm.scale(rewards, dones)
+            # Every iteration resets every env: a return running on would join unrelated episodes.
+            self.return_norm.end_episodes()
         values = _tensor(traj["values"])
         if action_level:
             values = values[..., None].expand_as(rewards)
+            if not algorithm.grouped:
+                dones, truncated, final_values = _at_last_executed_action(
+                    _tensor(traj["step_mask"]), dones, truncated, final_values)
         inputs = EnvAdvantageInputs(rewards=rewards, dones=dones, values=values,
                                     bootstrap_values=_tensor(traj["bootstrap_values"]),
-                                    truncations=truncated, final_values=_tensor(traj["final_values"]),
+                                    truncations=truncated, final_values=final_values,
                                     group_size=self.group_size if algorithm.grouped else None)
         out = compute_advantages(algorithm.advantage, inputs, **algorithm.advantage_kwargs(alg))
         task_metrics = {}
@@ -725,6 +733,16 @@ def group_metrics(out, num_envs: int, group_size: int) -> dict:
         "train/group_return_std_zero_frac": float((first.amax(dim=1) == first.amin(dim=1)).to(torch.float32).mean()),
         "train/advantage_mask_frac": float(kept.to(torch.float32).mean()),
     }
+
+
+def _at_last_executed_action(step_mask: torch.Tensor, *per_chunk: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """``[T, N]`` episode-end flags (and values) of chunks placed on the chunk's last executed action
+    (``step_mask`` ``[T, N, C]``): an env stops at the action its episode ended on, so the actions
+    after it never ran and must not stand between that action and the end in action-level GAE."""
+    chunk = step_mask.shape[-1]
+    last = chunk - 1 - step_mask.flip(-1).to(torch.int64).argmax(-1)
+    at_last = torch.nn.functional.one_hot(last, chunk).bool()
+    return tuple(torch.where(at_last, flags[..., None], torch.zeros((), dtype=flags.dtype)) for flags in per_chunk)
 
 
 def _tensor(array: np.ndarray) -> torch.Tensor:

@@ -251,3 +251,40 @@ def test_grpo_action_level_with_chunks_masks_per_action_and_trains():
         tensors["logprobs"] = model(tensors["obs"], tensors["actions"], None, False)[0]
     metrics = ppo_update(model, torch.optim.Adam(model.parameters()), tensors, 0, ppo_spec(cfg))
     assert metrics["train/logprob_mismatch"] < 1e-6 and np.isfinite(metrics["train/policy_loss"])
+
+
+def _ppo_flow(**algorithm):
+    return EmbodiedFlow(grpo_cfg(algorithm={"name": "ppo", "mini_batches": 2, **algorithm}), None, None, None)
+
+
+def test_a_step_both_terminated_and_out_of_time_is_not_bootstrapped():
+    """gymnasium's TimeLimit sets truncated whatever terminated says: the task ended, V(final obs)
+    must not stand in for what follows."""
+    both = _trajectory()
+    both["truncated"][2, 1] = True
+    both["final_values"][2, 1] = 100.0
+    plain = _ppo_flow(normalize_rewards=False).advantages(_trajectory())[0]["advantages"]
+    np.testing.assert_array_equal(_ppo_flow(normalize_rewards=False).advantages(both)[0]["advantages"], plain)
+
+
+def test_action_level_gae_ends_an_episode_on_the_action_it_ended_on():
+    """An env stops at the action its episode ended on; the chunk's later actions never ran and must
+    not sit between that action and the episode's end."""
+    flow = EmbodiedFlow(grpo_cfg(policy={"name": "mlp_gaussian", "kwargs": {"hidden": [8]}, "chunk": 2},
+                                 algorithm={"name": "ppo", "mini_batches": 2, "gae_level": "action",
+                                            "normalize_rewards": False}), None, None, None)
+    traj = _trajectory()
+    step_rewards = np.stack([traj["rewards"], np.zeros_like(traj["rewards"])], axis=-1)
+    traj.update(step_rewards=step_rewards, rewards=step_rewards.sum(-1), values=np.full((5, 4), 10.0, np.float32),
+                actions=np.zeros((5, 4, 2, 1), np.float32), logprobs=np.zeros((5, 4, 2), np.float32),
+                step_mask=np.ones((5, 4, 2), bool))
+    traj["step_mask"][2, 1, 1] = False  # env 1's episode ended on the chunk's first action
+    advantages = flow.advantages(traj)[0]["advantages"].reshape(5, 4, 2)
+    assert advantages[2, 1, 0] == pytest.approx(traj["step_rewards"][2, 1, 0] - 10.0)
+
+
+def test_the_running_return_restarts_with_every_iteration():
+    """Each iteration resets every env, so the reward scale's running return must not carry on."""
+    flow = _ppo_flow()
+    flow.advantages(_trajectory())
+    assert not flow.return_norm.returns.any()
