@@ -299,6 +299,22 @@ def _check_one_task_per_group(cfg: EmbodiedConfig) -> None:
                           f"env.num_envs={envs} must be a multiple of {size * tasks} (group_size x tasks)")
 
 
+def task_blocks_conflict(cfg: EmbodiedConfig, rollout_ranks: int, stages: int) -> str | None:
+    """Why ``rollout_ranks`` ranks of ``stages`` pipeline stages cannot give every group of a grouped
+    algorithm on a multi-task env one task (each stage's env count a multiple of group_size x tasks),
+    or None when they can. The runner refuses such a layout; the scheduler never proposes one."""
+    block = task_block(cfg)
+    if block == 1:
+        return None
+    tasks, _ = _env_task_count(cfg)
+    sizes = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // rollout_ranks, stages=stages).stage_sizes()
+    if any(size % (block * tasks) for size in sizes):
+        return (f"algorithm.name={cfg.algorithm.name} on {tasks} tasks gives each group of {block} envs one task, in "
+                f"every rollout rank and pipeline stage: their env counts {sizes} must be multiples of "
+                f"{block * tasks}; use fewer ranks/stages or more envs")
+    return None
+
+
 def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
     """Collocated env (inside the rollout's process) or not, and one env rank's :class:`EnvSpec`."""
     host_env = plan.relation("env", "rollout") == "collocated"
@@ -327,12 +343,9 @@ def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
     kwargs = dict(cfg.env.kwargs)
     block = task_block(cfg)
     if block > 1:
-        tasks, _ = _env_task_count(cfg)
-        sizes = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // rollout_ranks, stages=stages).stage_sizes()
-        if any(size % (block * tasks) for size in sizes):
-            raise ConfigError(f"algorithm.name={cfg.algorithm.name} on {tasks} tasks gives each group of {block} envs "
-                              f"one task, in every rollout rank and pipeline stage: their env counts {sizes} must "
-                              f"be multiples of {block * tasks}; use fewer ranks/stages or more envs")
+        conflict = task_blocks_conflict(cfg, rollout_ranks, stages)
+        if conflict:
+            raise ConfigError(conflict)
         kwargs["task_block"] = block
     spec = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // rollout_ranks, stages=stages,
                    num_workers=cfg.env.num_workers, max_episode_steps=cfg.env.max_episode_steps,

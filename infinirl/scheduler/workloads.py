@@ -163,6 +163,11 @@ def _embodied_check(cfg, candidate: Candidate) -> str | None:
         return "env and rollout pair rank for rank"
     if cfg.env.num_envs % (a["env"].ranks * candidate.depth):
         return "env.num_envs is not divisible by env ranks x pipeline stages"
+    from infinirl.runners.embodied import task_blocks_conflict
+
+    conflict = task_blocks_conflict(cfg, a["rollout"].ranks, candidate.depth)
+    if conflict:
+        return conflict
     per_mini = cfg.env.num_envs * cfg.rollout_steps // cfg.algorithm.mini_batches
     if per_mini % a["actor"].ranks:
         return "a mini-batch does not split evenly over the actor's ranks"

@@ -169,3 +169,24 @@ def test_sac_collecting_ahead_on_its_own_slot_overlaps_collection_and_learning(f
     apart = max(collect, learn) if cfg.collect_ahead else collect + learn
     assert by_layout[False] == pytest.approx(apart + 0.1)
     assert entries[0].placement["collector"] != entries[0].placement["learner"] or not cfg.collect_ahead
+
+
+def test_grouped_multi_task_candidates_give_every_group_one_task():
+    """GRPO on two tasks needs each rank's and stage's envs in blocks of group_size x tasks: the
+    search proposes only layouts the runner accepts."""
+    from infinirl.runners.embodied import task_blocks_conflict
+
+    cfg = build_config("grpo_metaworld_reach", ["env.name='metaworld:reach-v3,push-v3'", "env.num_envs=16",
+                                                "algorithm.group_size=4"])[1]
+    gib = float(GiB)
+    costs = {"collect/env": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=0.3 * gib),
+             "collect/rollout": WorkCost(per_unit_s=4e-4, memory_fixed_bytes=0.4 * gib),
+             "update/actor": WorkCost(per_unit_s=5e-4, comm_s=0.2, memory_fixed_bytes=0.7 * gib),
+             "sync/actor": WorkCost(per_unit_s=0.0, fixed_s=0.01), "sync/rollout": WorkCost(per_unit_s=0.0)}
+    inventory = ClusterInventory.cpu_only(1, 4)
+    profile = _profile("embodied", costs, inventory=inventory)
+    entries = search(cfg, RUNNER_MODELS.get(cfg.runner), workload_of(cfg, profile), inventory)
+    assert entries
+    for entry in entries:
+        ranks = entry.candidate.allocations["rollout"].ranks
+        assert task_blocks_conflict(cfg, ranks, entry.candidate.depth) is None
