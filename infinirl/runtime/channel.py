@@ -49,7 +49,6 @@ from infinirl.runtime.transport import (
     pack,
     shared_memory_reaches,
     unpack,
-    unpack_many,
 )
 
 DEFAULT_KEY = "default"
@@ -207,7 +206,7 @@ class Channel:
         target = self._check_target(target_weight)
         self._register("consumer")
         taken = self._get(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
-        return unpack_many([envelope for envelope, _ in taken])
+        return self._unpack_batch(key, taken)
 
     def give_back_prefetched(self) -> int:
         """Return the items ``get`` prefetched but did not hand out yet to the front of their
@@ -268,7 +267,31 @@ class Channel:
         target = self._check_target(target_weight)
         self._register("consumer")
         taken = await self._aget(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
-        return unpack_many([envelope for envelope, _ in taken])
+        return self._unpack_batch(key, taken)
+
+    def _unpack_batch(self, key, taken: list[tuple[Envelope, float]]) -> list:
+        """The items a batch get took, unpacked (object-store payloads fetched in one round trip).
+        One that cannot be (its producer's shared memory or object is gone) raises its error, but
+        only after every other item went back to the front of the queue in its order (those already
+        read re-packed): one lost item does not take the rest of the batch with it."""
+        refs = [envelope.body[0] for envelope, _ in taken if envelope.path == "object_store"]
+        try:
+            fetched = iter(ray.get(refs)) if len(refs) > 1 else None
+        except Exception:  # an object is lost: fetched one at a time below, so the others are kept
+            fetched = None
+        values: list = []
+        for index, (envelope, _) in enumerate(taken):
+            try:
+                if fetched is not None and envelope.path == "object_store":
+                    values.append(unbox(next(fetched)))
+                else:
+                    values.append(unpack(envelope))
+            except Exception:
+                back = [(pack(value), weight) for value, (_, weight) in zip(values, taken)] + taken[index + 1:]
+                if back:
+                    self._call(self._actor.give_back.remote(key, back))
+                raise
+        return values
 
     # ------------------------------------------------------------------ internals
     def _pack(self, item: Any) -> Envelope:

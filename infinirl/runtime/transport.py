@@ -130,15 +130,6 @@ def unpack(envelope: Envelope) -> Any:
     raise ValueError(f"unknown transport path {envelope.path!r}")
 
 
-def unpack_many(envelopes: list[Envelope]) -> list[Any]:
-    """``unpack`` of several envelopes, fetching every object-store payload in one ``ray.get``
-    (one round trip to the object store instead of one per item)."""
-    refs = [e.body[0] for e in envelopes if e.path == "object_store"]
-    fetched = iter(ray.get(refs)) if len(refs) > 1 else None
-    return [unbox(next(fetched)) if fetched is not None and e.path == "object_store" else unpack(e)
-            for e in envelopes]
-
-
 def discard(envelope: Envelope) -> None:
     """Forget an envelope no consumer will ever unpack (its put failed): its shared-memory segment
     goes back to the pool, its same-process item and its p2p tensors are dropped. Other paths need

@@ -150,8 +150,29 @@ def test_an_item_whose_producer_exited_unread_fails_with_the_cause(ray_cluster):
     deadline = time.monotonic() + 60
     while os.path.exists(f"/proc/{pid}") and time.monotonic() < deadline:
         time.sleep(0.1)
-    with pytest.raises(ChannelError, match=f"shared memory of pid {pid} cannot be read: that process exited"):
+    unreadable = f"shared memory of pid {pid} cannot be read: that process exited"
+    with pytest.raises(ChannelError, match=unreadable):
         ch.get(timeout=30)
+
+
+def test_an_unreadable_item_in_a_batch_loses_only_itself(ray_cluster):
+    """The items a batch get took with an unreadable one go back to the queue in their order (the
+    one read before it re-packed), and its error is raised."""
+    ch = fresh()
+    ch.register_consumer()
+    ch.put("first")
+    producer = WorkerGroup.launch(Producer, "shm-gone-batch", num_ranks=1)
+    try:
+        pid = producer.produce(ch, [3]).wait(timeout=120)[0][1]
+    finally:
+        producer.shutdown()
+    ch.put("last")
+    deadline = time.monotonic() + 60
+    while os.path.exists(f"/proc/{pid}") and time.monotonic() < deadline:
+        time.sleep(0.1)
+    with pytest.raises(ChannelError, match=f"shared memory of pid {pid} cannot be read"):
+        ch.get_batch(3, timeout=30)
+    assert ch.get_batch(2, timeout=30) == ["first", "last"]
 
 
 def _raw_get(ch: Channel, node: str, timeout: float = 30):
