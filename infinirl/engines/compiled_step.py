@@ -33,6 +33,7 @@ import weakref
 
 import torch
 
+from infinirl.engines.master_weights import MasterWeightAdam
 from infinirl.runtime.compute_thread import on_compute_thread
 
 __all__ = ["CompiledAdamStep", "adam_", "adam_corrections", "clip_by_total_norm", "inductor_options"]
@@ -169,6 +170,9 @@ class CompiledAdamStep:
         group = optimizer.param_groups[0]
         unsupported = {key: group.get(key) for key in ("weight_decay", "amsgrad", "maximize")
                        if group.get(key)}
+        if isinstance(optimizer, MasterWeightAdam):
+            raise ValueError("bf16/fp16 trainable weights step through float32 master copies "
+                             "(engines.master_weights), which the compiled step does not keep: set actor.compile=false")
         if type(optimizer) is not torch.optim.Adam or unsupported:
             raise ValueError(f"the compiled step implements plain Adam; got {type(optimizer).__name__} with "
                              f"{unsupported or 'its defaults'}: use actor.compile=false for other optimizers")

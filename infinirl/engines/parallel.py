@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from infinirl.engines.compiled_step import CompiledAdamStep
+from infinirl.engines.master_weights import adam_for
 from infinirl.engines.sharding import full_tensor, shard
 from infinirl.registry import Registry
 from infinirl.utils.atomic import torch_save_atomic
@@ -75,8 +76,9 @@ class DataParallel:
     def build_optimizer(self, model: nn.Module, lr: float, eps: float,
                         lr_of: Callable[[str], float] | None = None) -> torch.optim.Adam:
         """Adam over ``model``'s parameters at ``lr``, or at ``lr_of(name)`` per parameter (see
-        :func:`param_groups`)."""
-        return torch.optim.Adam(param_groups(model, lr, lr_of), lr=lr, eps=eps)
+        :func:`param_groups`); with float32 master weights where trainable ones are bf16/fp16
+        (:func:`~infinirl.engines.master_weights.adam_for`)."""
+        return adam_for(param_groups(model, lr, lr_of), lr=lr, eps=eps)
 
     def reduce_gradients(self, model: nn.Module) -> None:
         """Sum every ``p.grad`` over the ranks (after the backward pass, before clipping)."""
@@ -123,7 +125,7 @@ class ReplicatedDataParallel(DataParallel):
                         lr_of: Callable[[str], float] | None = None) -> torch.optim.Adam:
         # Fused Adam: one kernel per step instead of a Python loop over parameters, which matters
         # for a small policy's many small steps.
-        return torch.optim.Adam(param_groups(model, lr, lr_of), lr=lr, eps=eps, fused=True)
+        return adam_for(param_groups(model, lr, lr_of), lr=lr, eps=eps, fused=True)
 
     def reduce_gradients(self, model: nn.Module) -> None:
         if self.world_size == 1:

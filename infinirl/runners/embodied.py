@@ -122,7 +122,7 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
     try:
         observation_spec, action_space = probe_env_specs(cfg.env.name, cfg.env.kwargs)
         policy_spec = PolicySpec(name=cfg.policy.name, options=dict(cfg.policy.kwargs), chunk=cfg.policy.chunk,
-                                 normalize_obs=cfg.policy.normalize_obs,
+                                 normalize_obs=cfg.normalizes_obs(),
                                  normalize_keys=tuple(cfg.policy.normalize_keys) or None, obs_clip=cfg.policy.obs_clip)
         policy = policy_spec.build(observation_spec, action_space)
     except (ValueError, TypeError, KeyError, OSError) as exc:  # OSError: a checkpoint folder or file missing

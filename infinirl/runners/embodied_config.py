@@ -45,9 +45,10 @@ class PolicyConfig:
     """Constructor options (e.g. {hidden: [64, 64]}); shape arguments are filled from the env."""
     chunk: int = bounded(1, ge=1)
     """Actions per decision (action chunking); the env executes all of them before the next decision."""
-    normalize_obs: bool = True
+    normalize_obs: bool | None = None
     """Running mean/std normalisation of float observation fields (trained, synced and checkpointed
-    with the weights)."""
+    with the weights). None: on, except for policies that normalise their own inputs (the VLAs, with
+    their checkpoint's statistics), for which true is refused (it would normalise twice)."""
     normalize_keys: list[str] = field(default_factory=list)
     """Fields to normalise; empty = every float field (state, proprio). Images are never normalised."""
     obs_clip: float = bounded(10.0, gt=0)
@@ -301,6 +302,23 @@ class EmbodiedConfig(RunConfig):
             raise ConfigError("algorithm.grpo_baseline=false keeps the raw returns, which dividing by the group's "
                               "std would rescale per group; set algorithm.grpo_norm_by_std=false with it")
 
+    def _policy_normalizes_own_inputs(self) -> bool:
+        from infinirl.models.policies.base import POLICIES
+
+        return bool(getattr(POLICIES.get(self.policy.name), "normalizes_own_inputs", False))
+
+    def normalizes_obs(self) -> bool:
+        """Whether the runner's running normaliser applies (``policy.normalize_obs``, None resolved)."""
+        if self.policy.normalize_obs is None:
+            return not self._policy_normalizes_own_inputs()
+        return self.policy.normalize_obs
+
+    def _check_normalizer(self) -> None:
+        if self.policy.normalize_obs and self._policy_normalizes_own_inputs():
+            raise ConfigError(f"policy.normalize_obs=true: policy {self.policy.name} normalises its own inputs (its "
+                              "checkpoint's statistics), a running normaliser would do it twice; set "
+                              "policy.normalize_obs=false")
+
     def check(self) -> None:
         from infinirl.components.embodied_policy import registered_policies
 
@@ -314,6 +332,7 @@ class EmbodiedConfig(RunConfig):
         policies = registered_policies()
         if self.policy.name not in policies:
             raise ConfigError(f"policy.name={self.policy.name!r} is not registered; registered: {', '.join(policies)}")
+        self._check_normalizer()
         if self.actor.anneal_lr and 0 < self.actor.anneal_iterations < self.iterations:
             raise ConfigError(f"actor.anneal_iterations={self.actor.anneal_iterations} < iterations={self.iterations}: "
                               "the learning rate would reach 0 before the run ends and the rest would not train; "

@@ -34,3 +34,21 @@ def test_the_libero_vla_configs_need_a_checkpoint_before_anything_runs():
 
     with pytest.raises(ConfigError, match="needs policy.kwargs.checkpoint"):
         build_config("grpo_openvla_oft_libero", [])
+
+
+@pytest.mark.parametrize("name", ["grpo_openvla_oft_libero", "ppo_pi0_libero"])
+def test_the_vla_configs_refuse_a_second_observation_normaliser(name):
+    """A VLA normalises its state / proprio with its checkpoint's statistics: the runner's running
+    normaliser in front would feed it twice-normalised values."""
+    from infinirl.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^policy.normalize_obs=true: policy \w+ normalises its own inputs .* "
+                                          "set policy.normalize_obs=false$"):
+        build_config(name, ["policy.kwargs.checkpoint=/models/vla", "policy.normalize_obs=true"])
+    _, cfg = build_config(name, ["policy.kwargs.checkpoint=/models/vla"])  # as shipped: off
+    assert not cfg.policy.normalize_obs and not cfg.normalizes_obs()
+    # left unset, it resolves off for a VLA and on for a plain policy
+    _, cfg = build_config(name, ["policy.kwargs.checkpoint=/models/vla", "policy.normalize_obs=null"])
+    assert cfg.policy.normalize_obs is None and not cfg.normalizes_obs()
+    _, plain = build_config("ppo_metaworld_reach", [])
+    assert plain.normalizes_obs()

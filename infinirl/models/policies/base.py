@@ -69,6 +69,10 @@ class Policy(nn.Module):
     """Why PPO's behaviour-cloning anchor (``algorithm.bc``) cannot train this policy on a dataset of
     demonstrations (refused before any worker starts); None: :meth:`demo_loss` is implemented."""
 
+    normalizes_own_inputs: bool = False
+    """The policy normalises its observation inputs itself (a VLA, with its checkpoint's statistics): the
+    runner's running normaliser (``policy.normalize_obs``) would normalise them twice and is refused."""
+
     held_noise_every: int = 0
     """Decisions for which part of the exploration noise is held (0: none): the rollout then calls
     :meth:`hold_noise` before each sampled decision with a seed that changes every

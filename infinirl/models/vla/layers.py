@@ -50,12 +50,19 @@ from transformers.models.llama.modeling_llama import eager_attention_forward as 
 from infinirl.models.vla.config import GemmaSpec, LlamaSpec
 from infinirl.registry import Registry
 
-__all__ = ["STACK_KINDS", "AdaptiveRMSNorm", "DecoderBlock", "DecoderStack", "GemmaStack", "KVCache", "MASKED",
-           "StackKind", "Stream", "attention_bias", "block_mask", "gemma_config", "llama_config", "mixture_forward"]
+__all__ = ["STACK_KINDS", "AdaptiveRMSNorm", "DecoderBlock", "DecoderStack", "GemmaStack", "KVCache", "StackKind",
+           "Stream", "attention_bias", "block_mask", "gemma_config", "llama_config", "masked_value", "mixture_forward"]
 
-# openpi's mask value: large but finite, so a query that may attend nothing (a padding token) gets
-# uniform weights instead of NaNs, which would otherwise leak into the cache through 0 * NaN.
-MASKED = -2.3819763e38
+
+def masked_value(dtype: torch.dtype) -> float:
+    """The additive bias of a masked key in ``dtype``: large but finite (as openpi's -2.38e38), so a query
+    that may attend nothing (a padding token) gets uniform weights instead of NaNs, which would otherwise
+    leak into the cache through 0 * NaN. Half of the most negative value of ``dtype`` or float32, whichever
+    is narrower: openpi's constant is -inf in float16 (whose range ends at -65504); the full minimum
+    overflows to -inf once a negative score is added to it (half leaves room for any score smaller than
+    the other half); and transformers' attention takes the softmax in float32, where float64's minimum
+    is -inf."""
+    return max(torch.finfo(dtype).min, torch.finfo(torch.float32).min) / 2
 
 
 class AdaptiveRMSNorm(nn.Module):
@@ -203,9 +210,9 @@ def block_mask(pad_mask: torch.Tensor, blocks: torch.Tensor) -> torch.Tensor:
 
 
 def attention_bias(mask: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """Boolean ``[B, Q, K]`` -> additive ``[B, 1, Q, K]`` (0 where allowed, :data:`MASKED` elsewhere)."""
+    """Boolean ``[B, Q, K]`` -> additive ``[B, 1, Q, K]`` (0 where allowed, :func:`masked_value` elsewhere)."""
     zero = torch.zeros((), dtype=dtype, device=mask.device)
-    return torch.where(mask[:, None], zero, torch.tensor(MASKED, dtype=dtype, device=mask.device))
+    return torch.where(mask[:, None], zero, torch.tensor(masked_value(dtype), dtype=dtype, device=mask.device))
 
 
 def _project(layer: DecoderBlock, hidden: torch.Tensor, cond: torch.Tensor | None):

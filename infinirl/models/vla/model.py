@@ -137,8 +137,10 @@ class PiZero(nn.Module):
                      time: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Suffix embeddings ``[B, S, W]``, their block starts ``[B, S]`` and the adaRMS condition."""
         batch, width = x_t.shape[0], self.config.architecture.expert.width
-        time = time.to(self.dtype)
-        embedded_time = time_embedding(time, width, self.config.min_period, self.config.max_period)
+        # from times in at least float32, cast after (as openpi): bfloat16 keeps 8 bits of t, which would
+        # turn the fastest features (periods down to 4e-3) by a quarter period
+        precise = time.to(torch.promote_types(self.dtype, torch.float32))
+        embedded_time = time_embedding(precise, width, self.config.min_period, self.config.max_period).to(self.dtype)
         actions = self.action_in_proj(x_t.to(self.dtype))
         if self.config.switches.adarms_time:
             cond = F.silu(self.time_mlp_out(F.silu(self.time_mlp_in(embedded_time))))

@@ -100,6 +100,7 @@ class PiZeroPolicy(Policy):
 
     critic_modules = ("value_net",)
     demo_refusal = None
+    normalizes_own_inputs = True  # the state, with the checkpoint's statistics (processor)
 
     family: str | None = "pi0"
 

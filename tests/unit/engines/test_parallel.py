@@ -14,6 +14,7 @@ import torch.multiprocessing as mp
 from torch import nn
 
 from infinirl.engines.distributed import init_distributed
+from infinirl.engines.master_weights import MasterWeightAdam
 from infinirl.engines.parallel import DATA_PARALLEL, FullyShardedDataParallel, ReplicatedDataParallel
 from infinirl.registry import UnknownNameError
 
@@ -108,3 +109,66 @@ def test_ddp_sums_the_gradients_of_two_ranks(tmp_path):
     grads = torch.load(tmp_path / "grads.pt")
     for index, grad in enumerate(grads):
         assert torch.equal(grad, torch.full_like(grad, float(index + (10 + index))))
+
+
+def bf16_linear() -> nn.Linear:
+    """Weights near 0.01 (bf16 spacing ~6e-5), where 20 Adam steps of 5e-6 move a float32 weight by an ulp or two."""
+    torch.manual_seed(0)
+    linear = nn.Linear(16, 16)
+    with torch.no_grad():
+        for p in linear.parameters():
+            p.copy_(p.sign() * (0.008 + 0.004 * torch.rand_like(p)))
+    return linear.to(torch.bfloat16)
+
+
+def bf16_step(model: nn.Module, optimizer: torch.optim.Optimizer, seed: int) -> None:
+    x = torch.randn(8, 16, generator=torch.Generator().manual_seed(seed))
+    optimizer.zero_grad(set_to_none=True)
+    (model(x.to(torch.bfloat16)).float() ** 2).sum().backward()
+    optimizer.step()
+
+
+@pytest.mark.parametrize("name", ["ddp", "fsdp"])
+def test_bf16_weights_train_through_float32_masters_and_resume_exactly(name, tmp_path):
+    """At lr 5e-6 Adam's steps are far below bf16's spacing: stepped in place the weights never move.
+    The optimizer steps float32 masters (the same updates as float32 Adam given the same gradients) and
+    hands the parameters their rounding; a checkpoint carries the masters, so resuming is exact."""
+    strategy = DATA_PARALLEL.get(name)(0, 1)
+    model = strategy.wrap(bf16_linear())
+    optimizer = strategy.build_optimizer(model, lr=5e-6, eps=1e-8)
+    reference = bf16_linear().float()  # the same initial values, in float32
+    reference_optimizer = torch.optim.Adam(reference.parameters(), lr=5e-6, eps=1e-8)
+    in_place = bf16_linear()  # the same steps on the bf16 weights themselves
+    in_place_optimizer = torch.optim.Adam(in_place.parameters(), lr=5e-6, eps=1e-8)
+    for seed in range(20):
+        bf16_step(in_place, in_place_optimizer, seed)
+    for seed in range(20):
+        bf16_step(model, optimizer, seed)
+        # the reference steps with the very gradients the bf16 model got, cast up
+        for mine, ref in zip(model.parameters(), reference.parameters(), strict=True):
+            grad = mine.grad.full_tensor() if hasattr(mine.grad, "full_tensor") else mine.grad
+            ref.grad = grad.float()
+        reference_optimizer.step()
+    weights = dict(strategy.full_weights(model))
+    for key, tensor in reference.state_dict().items():
+        assert weights[key].dtype == torch.bfloat16
+        assert torch.equal(weights[key], tensor.to(torch.bfloat16)), key  # the float32 run, rounded
+        moved = weights[key] != bf16_linear().state_dict()[key]
+        assert moved.float().mean() > 0.5, key  # most weights moved by the float32 run's amount
+        assert torch.equal(in_place.state_dict()[key], bf16_linear().state_dict()[key]), key  # stuck without masters
+
+    file = tmp_path / "actor.pt"
+    strategy.save_checkpoint(model, optimizer, file)
+    bf16_step(model, optimizer, 100)
+    expected = {key: tensor.clone() for key, tensor in strategy.full_weights(model)}
+    restored = strategy.wrap(bf16_linear())
+    restored_optimizer = strategy.build_optimizer(restored, lr=5e-6, eps=1e-8)
+    strategy.load_checkpoint(restored, restored_optimizer, file, torch.device("cpu"))
+    bf16_step(restored, restored_optimizer, 100)
+    for key, tensor in strategy.full_weights(restored):
+        assert torch.equal(tensor, expected[key]), key
+
+
+def test_float32_models_keep_plain_adam():
+    assert type(ReplicatedDataParallel(0, 1).build_optimizer(build(), lr=1e-3, eps=1e-8)) is torch.optim.Adam
+    assert type(ReplicatedDataParallel(0, 1).build_optimizer(bf16_linear(), lr=1e-3, eps=1e-8)) is MasterWeightAdam

@@ -51,7 +51,7 @@ def test_discrete_act_evaluate_agree_and_match_a_float64_categorical(discrete):
     torch.testing.assert_close(new.entropy.double(), entropy, rtol=1e-4, atol=1e-4)
     # the env actions are the sampled tokens' bins, unnormalised
     bins = discrete.vla.model.token_actions(discrete.vla.model.slice_to_token(tokens.flatten(1)))
-    torch.testing.assert_close(step.actions.double(), discrete.vla.processor.actions_out(bins)[:, :3].float().double())
+    torch.testing.assert_close(step.actions.double(), discrete.vla.processor.env_actions(bins)[:, :3].float().double())
 
 
 def test_discrete_deterministic_is_the_arg_max(discrete):
@@ -83,7 +83,7 @@ def test_l1_gaussian_act_evaluate_agree_and_match_the_formula(l1):
     std = math.exp(-0.5)
     density = (-((normalized.double() - mean) ** 2) / (2 * std ** 2) - math.log(std) - 0.5 * math.log(2 * math.pi))
     torch.testing.assert_close(new.logprobs.double(), density[:, :3].sum(-1), rtol=1e-4, atol=1e-4)
-    torch.testing.assert_close(step.actions.double(), l1.vla.processor.actions_out(normalized)[:, :3].float().double())
+    torch.testing.assert_close(step.actions.double(), l1.vla.processor.env_actions(normalized)[:, :3].float().double())
     (new.logprobs.sum()).backward()
     assert l1.log_std.grad is not None and l1.vla.model.action_head.fc2.weight.grad.abs().sum() > 0
     l1.zero_grad(set_to_none=True)
@@ -92,7 +92,9 @@ def test_l1_gaussian_act_evaluate_agree_and_match_the_formula(l1):
 def test_l1_deterministic_is_the_reference_chunk(l1):
     step = l1.act(observation(), deterministic=True)
     expected = torch.stack([reference()[f"{i}.l1.actions"] for i in range(2)])[:, :3]
-    torch.testing.assert_close(step.actions.double(), expected, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(step.actions[..., :6].double(), expected[..., :6], rtol=1e-5, atol=1e-5)
+    # the gripper as OFT's LIBERO eval sends it: normalize_gripper_action, then invert_gripper_action
+    torch.testing.assert_close(step.actions[..., 6].double(), -torch.sign(2 * expected[..., 6] - 1))
 
 
 def test_policy_checks():
@@ -100,3 +102,27 @@ def test_policy_checks():
         build("discrete", action_dim=6)
     with pytest.raises(ValueError, match="evaluate needs extras"):
         build("l1").evaluate(observation(), torch.zeros(2, 3, 7), {})
+
+
+def test_libero_gripper_goes_to_the_env_as_oft_eval_sends_it(discrete):
+    """OFT learns LIBERO's gripper as 0 = close, 1 = open (unnormalised); LIBERO takes -1 = open, +1 = close."""
+    processor = discrete.vla.processor
+    normalized = torch.zeros(5, 8, 7)
+    normalized[:, :, -1] = torch.tensor([0.0, 0.2, 0.5, 0.8, 1.0])[:, None]
+    out = processor.env_actions(normalized)
+    assert out[:, 0, -1].tolist() == [1.0, 1.0, 0.0, -1.0, -1.0]  # close, close, (sign 0 as OFT), open, open
+    torch.testing.assert_close(out[..., :-1], processor.actions_out(normalized)[..., :-1])
+    # the policy's env actions take that path, its log-probs still score the sampled tokens
+    torch.manual_seed(0)
+    step = discrete.act(observation())
+    assert set(step.actions[..., -1].unique().tolist()) <= {-1.0, 0.0, 1.0}
+    # a platform without OpenVLA's flip (ALOHA) passes the gripper through unnormalised
+    from dataclasses import replace
+
+    from infinirl.models.vla.openvla_oft.config import PLATFORMS
+    assert PLATFORMS["libero"].invert_gripper and not PLATFORMS["aloha"].invert_gripper
+    processor.config = replace(processor.config, platform=replace(processor.config.platform, invert_gripper=False))
+    try:
+        torch.testing.assert_close(processor.env_actions(normalized), processor.actions_out(normalized))
+    finally:
+        processor.config = replace(processor.config, platform=PLATFORMS["libero"])

@@ -102,3 +102,41 @@ def test_bfloat16_runs_near_the_float32_reference(family):
     assert actions.dtype == torch.float32
     scale = ref["sampled_actions"].abs().max().item()
     assert (actions - ref["sampled_actions"]).abs().max().item() <= 0.05 * scale
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_float16_runs_near_the_float32_reference(family):
+    """float16's range ends at -65504: the mask bias must stay finite there, or a fully masked row
+    (a padding token, a missing camera) turns to NaN and leaks into every row through the cache."""
+    from infinirl.models.vla.layers import masked_value
+
+    assert torch.isinf(torch.tensor(-2.3819763e38, dtype=torch.float16))  # openpi's constant
+    assert torch.isfinite(torch.tensor(masked_value(torch.float16), dtype=torch.float16) - 30000)  # plus a score
+    vla = load(family, dtype=torch.float16)
+    ref = reference(family)
+    actions = vla.predict_action_chunk(raw_observation(family), noise=ref["noise"])
+    assert torch.isfinite(actions).all()
+    scale = ref["sampled_actions"].abs().max().item()
+    assert (actions - ref["sampled_actions"]).abs().max().item() <= 0.05 * scale
+
+
+def test_bfloat16_time_embedding_is_computed_from_float32_times():
+    """The sine-cosine features of t are computed in float32 and then cast: bfloat16 keeps 8 bits of t
+    (0.7373 becomes 0.7383), which would turn the fastest features (period 4e-3) by a quarter turn."""
+    from infinirl.models.vla.model import time_embedding
+
+    vla = load("pi05", dtype=torch.bfloat16)
+    model, config = vla.model, vla.model.config
+    time = torch.tensor([0.7373, 0.123456], dtype=torch.float32)
+    x_t = torch.zeros(2, config.chunk_size, config.max_action_dim)
+    with torch.no_grad():
+        _, _, cond = model.embed_suffix(None, x_t, time)
+        width = config.architecture.expert.width
+
+        def condition(embedded):
+            return torch.nn.functional.silu(model.time_mlp_out(torch.nn.functional.silu(model.time_mlp_in(embedded))))
+
+        exact = time_embedding(time, width, config.min_period, config.max_period).to(torch.bfloat16)
+        rounded = time_embedding(time.to(torch.bfloat16), width, config.min_period, config.max_period)
+        assert torch.equal(cond, condition(exact))
+        assert not torch.equal(exact, rounded)

@@ -47,16 +47,22 @@ class ViTSpec:
 
 @dataclass(frozen=True, kw_only=True)
 class Platform:
-    """OFT's per-robot constants (``NUM_ACTIONS_CHUNK``, ``ACTION_DIM``, ``PROPRIO_DIM``, normalisation)."""
+    """OFT's per-robot constants (``NUM_ACTIONS_CHUNK``, ``ACTION_DIM``, ``PROPRIO_DIM``, normalisation).
+
+    ``invert_gripper``: OpenVLA's data loader stored this robot's gripper as 0 = close, 1 = open (left
+    unnormalised), while its env takes -1 = open, +1 = close; OFT's eval turns the last action dim ``g``
+    into ``-sign(2g - 1)`` before stepping (``normalize_gripper_action`` + ``invert_gripper_action``).
+    """
 
     chunk_size: int
     action_dim: int
     proprio_dim: int
     normalization: str = "bounds_q99"
+    invert_gripper: bool = False
 
 
 PLATFORMS = {
-    "libero": Platform(chunk_size=8, action_dim=7, proprio_dim=8, normalization="bounds_q99"),
+    "libero": Platform(chunk_size=8, action_dim=7, proprio_dim=8, normalization="bounds_q99", invert_gripper=True),
     "aloha": Platform(chunk_size=25, action_dim=14, proprio_dim=14, normalization="bounds"),
     "bridge": Platform(chunk_size=5, action_dim=7, proprio_dim=7, normalization="bounds_q99"),
 }

@@ -11,8 +11,9 @@ Two heads, one interface (``logprobs`` ``[B, chunk]``: per executed action, summ
   ``[-1, 1]`` action space, with a *learnable*, state-independent log-std per action dim
   (``init_log_std``); ``extras["normalized"]`` holds the sample that ``evaluate`` scores.
 
-The env receives the first ``chunk`` actions, unnormalised with the chosen dataset's statistics;
-only those are credited. Observations: ``cameras`` lists the env's image keys, primary first;
+The env receives the first ``chunk`` actions, unnormalised with the chosen dataset's statistics
+(and, on LIBERO, the gripper mapped to the env's -1 = open / +1 = close as OFT's eval does); only
+those are credited. Observations: ``cameras`` lists the env's image keys, primary first;
 ``proprio_key`` the raw state (when the checkpoint has a proprio projector); ``instruction_key``
 a list of str. An optional critic (``value_head``) reads the mean of the action positions' hidden states.
 """
@@ -49,6 +50,7 @@ class OpenVLAOFTPolicy(Policy):
     """
 
     critic_modules = ("value_net",)
+    normalizes_own_inputs = True  # the proprio, with the chosen dataset's statistics (processor)
 
     def __init__(self, checkpoint: str, action_dim: int, chunk: int = 1, head: str = "discrete",
                  unnorm_key: str | None = None, platform: str = "libero", num_images: int = 1,
@@ -107,7 +109,9 @@ class OpenVLAOFTPolicy(Policy):
         return torch.log_softmax(logits, -1).reshape(batch, -1, self.action_dim, logits.shape[-1])
 
     def _env_actions(self, normalized: torch.Tensor) -> torch.Tensor:
-        return self.vla.processor.actions_out(normalized)[:, :self.chunk].float()
+        # after sampling: the log-probs score the model's own (normalised) chunk, the env gets its gripper
+        # convention (the processor's env_actions)
+        return self.vla.processor.env_actions(normalized)[:, :self.chunk].float()
 
     # --- the Policy interface ----------------------------------------------------------------
 

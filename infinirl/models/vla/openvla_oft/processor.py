@@ -10,7 +10,8 @@
   with ``<s>``, then Llama-2's "▁" (29871) appended unless already last, as OFT does.
 * Proprio (OFT's ``normalize_proprio``) and actions (``_unnormalize_actions``): the platform's
   bounds (``min``/``max``) or ``q01``/``q99`` of the chosen dataset (``unnorm_key``), dims whose
-  ``mask`` is false passed through; proprio clipped to ``[-1, 1]``.
+  ``mask`` is false passed through; proprio clipped to ``[-1, 1]``. :meth:`OFTProcessor.env_actions`
+  adds OFT's eval-time gripper mapping for the env (LIBERO's -1 = open, +1 = close).
 """
 
 from __future__ import annotations
@@ -158,6 +159,16 @@ class OFTProcessor(nn.Module):
         low, high, mask = self.action_bounds.to(normalized.device)
         x = normalized.to(torch.float64)
         return torch.where(mask.bool(), 0.5 * (x + 1) * (high - low + EPS) + low, x)
+
+    def env_actions(self, normalized: torch.Tensor) -> torch.Tensor:
+        """What the env executes: :meth:`actions_out`, then, on a platform whose gripper OpenVLA's data
+        loader flipped (``Platform.invert_gripper``, LIBERO), the last dim ``g`` (0 = close, 1 = open)
+        binarised into the env's -1 = open / +1 = close as OFT's eval does: ``-sign(2g - 1)``."""
+        actions = self.actions_out(normalized)
+        if not self.config.platform.invert_gripper:
+            return actions
+        gripper = -torch.sign(2 * actions[..., -1:] - 1)
+        return torch.cat([actions[..., :-1], gripper], dim=-1)
 
     def actions_in(self, actions: torch.Tensor) -> torch.Tensor:
         """Env units -> ``[-1, 1]`` (the inverse of :meth:`actions_out`, for demonstrations)."""
