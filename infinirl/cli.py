@@ -210,7 +210,8 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
     robots.add_argument("--kinds", action="store_true", help="list the registered driver kinds and exit")
     record = sub.add_parser("record", help="append a finished run's summary (or a benchmark's JSON file) to the "
                                            "results file, with its command, host and date")
-    record.add_argument("source", help="a run's output_dir (its summary.json) or a JSON file")
+    record.add_argument("source", help="a run's output_dir (its summary.json), a JSON file, or a "
+                        "benchmark's saved output (its last line is the JSON)")
     record.add_argument("--to", default="docs/results.md", help="the results file (default: docs/results.md)")
     record.add_argument("--title", default=None, help="the entry's title (default: the run's)")
     demos = sub.add_parser("demos", help="record scripted-expert demonstrations as a LeRobotDataset (v3.0) for "

@@ -69,11 +69,31 @@ def record_run(source: str | os.PathLike, to: str | os.PathLike, title: str | No
     if not file.is_file():
         raise FileNotFoundError(f"{file} does not exist: a run writes summary.json when it finishes; pass a finished "
                                 "run's output_dir or a benchmark's JSON line saved to a file")
-    result = json.loads(file.read_text())
+    result = _read_result(file)
     entry = format_entry(title=title or result.get("title") or source.name, command=result.get("command", "?"),
                          result=result, host=result.get("host") or host_probe())
     append_entry(to, entry)
     return entry
+
+
+def _read_result(file: Path) -> dict:
+    """The JSON object in ``file``: the whole file (a summary.json), or else its last line, so a
+    benchmark's saved stdout works too (benchmarks print their result as the last line)."""
+    text = file.read_text(errors="replace")
+    lines = [line for line in text.splitlines() if line.strip()]
+    for candidate in (text, lines[-1] if lines else ""):
+        try:
+            result = json.loads(candidate)
+            break
+        except json.JSONDecodeError:
+            continue
+    else:
+        raise ValueError(f"{file} holds no JSON result: it must hold a run's summary.json object, or a benchmark's "
+                         "saved output whose last line is the JSON it prints; pass such a file")
+    if not isinstance(result, dict):
+        raise ValueError(f"{file} holds a JSON {type(result).__name__}, not the result object a run's summary.json "
+                         "or a benchmark's last line holds; pass that file instead")
+    return result
 
 
 def _cpu_model() -> str:

@@ -9,6 +9,7 @@ path, so a missing run, checkpoint or dataset is a `ConfigError` naming its key,
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from dataclasses import dataclass, field
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from infinirl.agents.loop import AgentConfig
-from infinirl.config import ConfigError, bounded, to_dataclass
+from infinirl.config import ConfigError, bounded, to_dataclass, to_plain
 from infinirl.engines.train_base import TrainEngineConfig
 from infinirl.models.model_paths import check_model_path
 from infinirl.runtime import ClusterConfig
@@ -44,9 +45,11 @@ class EvalRolloutConfig:
     engine_options: dict[str, Any] = field(default_factory=dict)
     max_batch_size: int = bounded(64, ge=1)
     """Sequences decoded together per rollout rank; one call carries max_batch_size // n prompts."""
-    agent: AgentConfig | None = None
-    """Multi-turn rollouts with tools (as training's ``rollout.agent``). None: the run's agent with
-    run_dir, else single-turn; ``single_turn=true`` turns it off (the no-tools baseline)."""
+    agent: dict[str, Any] | None = None
+    """Multi-turn rollouts with tools (the keys of training's ``rollout.agent``). With run_dir the
+    keys given are laid over the run's ``rollout.agent`` (so ``rollout.agent.max_turns=2`` keeps the
+    run's env and options), else over the agent defaults. None: the run's agent with run_dir, else
+    single-turn; ``single_turn=true`` turns it off (the no-tools baseline)."""
 
 
 @dataclass(kw_only=True)
@@ -61,14 +64,16 @@ class EvalConfig:
     task: TaskConfig | None = None
     """Problems and verifier (same keys as training). None: the run's task (its held-out set)
     with run_dir, else the default reasoning-gym chain_sum task. Setting any task key replaces the
-    whole task, e.g. task.source=dataset task.name=gsm8k."""
+    whole task, e.g. task.source=dataset task.name=gsm8k; a task naming the run's own data (same
+    source, name, config, eval_size and eval_seed: e.g. only system_prompt changed) is still
+    evaluated on the run's held-out set only."""
     split: str = "test"
     """Split of a dataset preset (gsm8k: train|test)."""
     limit: int | None = bounded(None, ge=1)
     """Evaluate only the first N problems (None: the whole dataset; reasoning-gym tasks draw
-    task.eval_size problems)."""
+    task.eval_size problems). On a run's own task at most its task.eval_size held-out problems."""
     samples: int = bounded(4, ge=0)
-    """Sampled responses per problem for pass@k (0: greedy only)."""
+    """Sampled responses per problem for pass@k (0: greedy only, and k is not used)."""
     k: int | list[int] = field(default_factory=lambda: [1, 4])
     """pass@k values to report, each <= samples (unbiased estimator over the samples)."""
     greedy: bool = True
@@ -83,7 +88,9 @@ class EvalConfig:
     seed: int = 0
     """Sampling seed: the same config gives the same samples whatever the number of rollout ranks."""
     output: str | None = None
-    """Results JSON. None: <run_dir>/eval/<task>-iter_<N>.json, or runs/eval/<task>-<model>.json."""
+    """Results JSON. None: <run_dir>/eval/<task>-iter_<N>.json, or runs/eval/<task>-<model>.json,
+    with -<hash> before .json when a setting that changes the results differs from its default
+    (see `EvalConfig.result_settings`), so evaluations with other settings never overwrite each other."""
     single_turn: bool = False
     """Evaluate without any agent loop, even a run's: one turn, no tools."""
     per_problem: bool = True
@@ -107,7 +114,7 @@ class EvalConfig:
 
         if not self.samples and not self.greedy:
             raise ConfigError("samples=0 and greedy=false: nothing to evaluate; set samples>0 or greedy=true")
-        for k in self.ks:
+        for k in self.ks if self.samples else ():  # samples=0: greedy only, no pass@k to report
             if k < 1:
                 raise ConfigError(f"k={k}: every k must be >= 1")
             if k > self.samples:
@@ -136,34 +143,53 @@ class EvalConfig:
         model_path = self.model.path or (run["model"]["path"] if run else "smollm2-135m-instruct")
         check_model_path(model_path, "model.path" if self.model.path or not run else
                          f"model.path (from {run_dir / RUN_CONFIG_FILE})")
-        if self.task is not None:
-            task = self.task
-        elif run is not None:
-            task = _convert(TaskConfig, run.get("task"), f"{run_dir / RUN_CONFIG_FILE}: task")
-        else:
-            task = TaskConfig()
+        where = str(run_dir / RUN_CONFIG_FILE) if run_dir else ""
+        run_task = _convert(TaskConfig, run.get("task"), f"{where}: task") if run else None
+        task, max_new, stops, agent = self._with_run_defaults(run, run_task, where)
         verifier = verifier_for(task, self.split)
-        run_rollout = (run or {}).get("rollout", {})
-        max_new = self.max_new_tokens or (run_rollout.get("max_new_tokens") if run else None) or 256
-        stops = self.stop_strings if self.stop_strings is not None else list(run_rollout.get("stop_strings", []))
-        actor = _convert(TrainEngineConfig, run.get("actor"), f"{run_dir / RUN_CONFIG_FILE}: actor") if run else None
-        agent = self.rollout.agent
-        if agent is None and run_rollout.get("agent"):
-            agent = _convert(AgentConfig, run_rollout["agent"], f"{run_dir / RUN_CONFIG_FILE}: rollout.agent")
-        if self.single_turn:
-            agent = None
+        actor = _convert(TrainEngineConfig, run.get("actor"), f"{where}: actor") if run else None
         numbered = _CHECKPOINT_DIR.match(checkpoint.name) if checkpoint else None
         step = int(numbered.group(1)) if numbered else (0 if self.checkpoint == INITIAL and run_dir else None)
-        label = task_label(task, self.split)
         if self.output:
             output = Path(self.output)
-        elif run_dir:
-            output = run_dir / "eval" / f"{label}-{checkpoint.name if checkpoint else INITIAL}.json"
         else:
-            output = Path("runs") / "eval" / f"{label}-{Path(model_path).name}.json"
+            # Without run_dir the model is in the name; with it, model.path only says where the base moved.
+            defaults = EvalConfig(model=EvalModelConfig(path=self.model.path))
+            default_settings = defaults.result_settings(*defaults._with_run_defaults(run, run_task, where))
+            changed = {k: v for k, v in self.result_settings(task, max_new, stops, agent).items()
+                       if default_settings.get(k, _UNSET) != v}
+            stem = checkpoint.name if checkpoint else INITIAL if run_dir else Path(model_path).name
+            name = f"{task_label(task, self.split)}-{stem}{f'-{_digest(changed)}' if changed else ''}.json"
+            output = (run_dir if run_dir else Path("runs")) / "eval" / name
         return EvalPlan(run_dir=run_dir, checkpoint=checkpoint, step=step, model_path=model_path, actor=actor,
                         task=task, verifier=verifier, max_new_tokens=max_new, stop_strings=stops, output=output,
-                        task_from_run=self.task is None and run is not None, agent=agent)
+                        task_from_run=run_task is not None and _same_data(task, run_task), agent=agent)
+
+    def _with_run_defaults(self, run: dict | None, run_task: TaskConfig | None,
+                           where: str) -> tuple[TaskConfig, int, list[str], AgentConfig | None]:
+        """The task, response budget, stop strings and agent: each as given, else the run's, else the default."""
+        run_rollout = (run or {}).get("rollout", {})
+        task = self.task or run_task or TaskConfig()
+        max_new = self.max_new_tokens or run_rollout.get("max_new_tokens") or 256
+        stops = self.stop_strings if self.stop_strings is not None else list(run_rollout.get("stop_strings", []))
+        agent = None if self.single_turn else _agent(run_rollout.get("agent"), self.rollout.agent, where)
+        return task, max_new, stops, agent
+
+    def result_settings(self, task: TaskConfig, max_new_tokens: int, stop_strings: list[str],
+                        agent: AgentConfig | None) -> dict[str, Any]:
+        """Every setting that changes what an evaluation measures, with the run's values filled in
+        (the task, sampling, the response budget, the agent, the engine and its batch size, which
+        decides each call's sampling seed); not where it runs or how it reports progress."""
+        settings: dict[str, Any] = {
+            "task": to_plain(task), "split": self.split, "limit": self.limit, "greedy": self.greedy,
+            "samples": self.samples, "max_new_tokens": max_new_tokens, "stop_strings": list(stop_strings),
+            "agent": to_plain(agent), "model.rollout_dtype": self.model.rollout_dtype,
+            "rollout.engine": self.rollout.engine, "rollout.engine_options": to_plain(self.rollout.engine_options),
+            "rollout.max_batch_size": self.rollout.max_batch_size}
+        if self.samples:  # with greedy decoding only, these change nothing
+            settings.update(k=self.ks, temperature=self.temperature, top_p=self.top_p, top_k=self.top_k,
+                            seed=self.seed)
+        return settings
 
 
 @dataclass(kw_only=True)
@@ -185,8 +211,9 @@ class EvalPlan:
     agent: AgentConfig | None = None
     """Multi-turn rollouts with this agent (None: single-turn)."""
     task_from_run: bool = False
-    """The task is the run's: a data file then contributes only its held-out rows (the first
-    task.eval_size; the run trained on the rest)."""
+    """The task names the run's own data (the run's task, or one differing only in how prompts are
+    shaped or scored): only its held-out part is evaluated, e.g. a data file's first task.eval_size
+    rows (the run trained on the rest)."""
 
 
 INITIAL = "initial"
@@ -203,10 +230,12 @@ def _find_checkpoint(run_dir: str | None, checkpoint: str) -> tuple[Path | None,
         if checkpoint == INITIAL:
             raise ConfigError(f"checkpoint={INITIAL!r} needs run_dir=<training output_dir>: it evaluates that run's "
                               "starting model in the run's setting")
-        if not (given / "actor").is_dir():
+        if not given.name.endswith(".tmp") and not (given / "actor").is_dir():
             raise ConfigError(f"checkpoint={checkpoint!r} needs run_dir=<training output_dir>, or a path to a "
                               "checkpoint folder (runs/<name>/checkpoints/iter_N, holding actor/)")
-        return given.resolve().parent.parent, given  # <run>/checkpoints/iter_N
+        run_root = given.resolve().parent.parent  # <run>/checkpoints/iter_N
+        _check_checkpoint(checkpoint, given, [name for _, name in Checkpoints(str(run_root)).completed()])
+        return run_root, given
     root = Path(run_dir).expanduser()
     if not root.is_dir():
         raise ConfigError(f"run_dir={run_dir!r} is not a folder; pass a training run's output_dir "
@@ -226,10 +255,23 @@ def _find_checkpoint(run_dir: str | None, checkpoint: str) -> tuple[Path | None,
         chosen = ckpts / checkpoint
     else:
         chosen = given
-    if not (chosen / "actor").is_dir():
-        raise ConfigError(f"checkpoint={checkpoint!r}: {chosen} is not a checkpoint folder (no actor/ inside); "
-                          f"checkpoints of {run_dir}: {', '.join(done.values()) or 'none'}")
+    _check_checkpoint(checkpoint, chosen, list(done.values()))
     return root, chosen
+
+
+def _check_checkpoint(checkpoint: str, folder: Path, finished: list[str]) -> None:
+    """``folder`` is a whole checkpoint: committed (not a ``.tmp`` save in progress or abandoned),
+    with actor/ and every file its manifest lists, as resume checks it; else a ConfigError."""
+    from infinirl.runners.checkpoints import verify_checkpoint
+
+    others = f"finished checkpoints of {folder.parent}: {', '.join(finished) or 'none'}"
+    if folder.name.endswith(".tmp"):
+        raise ConfigError(f"checkpoint={checkpoint!r}: {folder} is a save that never finished (a checkpoint is "
+                          f"renamed from .tmp only once complete); pick a finished one ({others})")
+    if not (folder / "actor").is_dir():
+        raise ConfigError(f"checkpoint={checkpoint!r}: {folder} is not a checkpoint folder (no actor/ inside); "
+                          f"{others}")
+    verify_checkpoint(str(folder), fix=f"evaluate another checkpoint with checkpoint=<iteration> ({others})")
 
 
 def _read_run_config(run_dir: Path) -> dict:
@@ -253,3 +295,41 @@ def _convert(cls: type, data: Any, where: str):
         return to_dataclass(cls, data or {})
     except (ConfigError, TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from None
+
+
+def _agent(run_agent: dict | None, given: dict | None, where: str) -> AgentConfig | None:
+    """The agent of an evaluation: the keys given laid over the run's ``rollout.agent`` (nested
+    mappings key by key), so one changed key keeps the rest of the run's agent."""
+    run_config = _convert(AgentConfig, run_agent, f"{where}: rollout.agent") if run_agent else None
+    if given is None:
+        return run_config
+    return to_dataclass(AgentConfig, _lay_over(run_agent or {}, given), "rollout.agent")
+
+
+def _lay_over(base: dict, top: dict) -> dict:
+    out = dict(base)
+    for key, value in top.items():
+        out[key] = _lay_over(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+# What selects a task's problems (and so which of them a run held out), besides its name; the
+# other task keys only shape the prompts or the scoring.
+_DATA_KEYS = ("source", "config", "eval_size", "eval_seed")
+
+
+def _same_data(task: TaskConfig, run_task: TaskConfig) -> bool:
+    """``task`` names the run's own problems, so only the run's held-out part may be evaluated."""
+    def data(t: TaskConfig) -> tuple:
+        file = Path(t.name).expanduser()  # a data file named by another path is still the same file
+        return tuple(getattr(t, k) for k in _DATA_KEYS) + (file.resolve() if file.is_file() else t.name,)
+
+    return data(task) == data(run_task)
+
+
+def _digest(settings: dict) -> str:
+    """A short name for a set of settings, the same for the same settings on any machine."""
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:8]
+
+
+_UNSET = object()

@@ -19,7 +19,7 @@ from typing import Any
 from infinirl.config import ConfigError
 from infinirl.utils import replace_directory, write_json_atomic
 
-__all__ = ["Checkpoints", "config_changes"]
+__all__ = ["Checkpoints", "config_changes", "verify_checkpoint"]
 
 STATE_FILE = "runner_state.json"
 MANIFEST_FILE = "manifest.json"
@@ -71,9 +71,7 @@ class Checkpoints:
         if not done:
             return None
         path = os.path.join(self.root, done[-1][1])
-        state = _read_state(path)
-        _verify_manifest(path)
-        return path, state
+        return path, verify_checkpoint(path)
 
     def prune(self, keep: int) -> None:
         """Delete all but the newest ``keep`` checkpoints."""
@@ -94,26 +92,36 @@ def _manifest(folder: str) -> dict[str, int]:
     return dict(sorted(sizes.items()))
 
 
-def _unusable(folder: str, file: str, why: str) -> ConfigError:
-    return ConfigError(f"checkpoint file {file} {why}; start over with resume=false, or delete {folder} to resume "
-                       "from the checkpoint before it")
+def verify_checkpoint(folder: str, fix: str | None = None) -> dict:
+    """The driver state of the committed checkpoint ``folder``, after its files are checked against
+    its manifest. A missing, unreadable, truncated or altered file is a ConfigError naming it and
+    ``fix`` (default: how to resume without this checkpoint), so resume and ``infinirl eval`` refuse
+    the same damage before any worker reads it."""
+    state = _read_state(folder, fix)
+    _verify_manifest(folder, fix)
+    return state
 
 
-def _read_state(folder: str) -> dict:
+def _unusable(folder: str, file: str, why: str, fix: str | None = None) -> ConfigError:
+    fix = fix or f"start over with resume=false, or delete {folder} to resume from the checkpoint before it"
+    return ConfigError(f"checkpoint file {file} {why}; {fix}")
+
+
+def _read_state(folder: str, fix: str | None = None) -> dict:
     path = os.path.join(folder, STATE_FILE)
     try:
         with open(path) as handle:
             state = json.load(handle)
     except FileNotFoundError:
-        raise _unusable(folder, path, "is missing") from None
+        raise _unusable(folder, path, "is missing", fix) from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise _unusable(folder, path, f"is not valid JSON ({exc})") from None
+        raise _unusable(folder, path, f"is not valid JSON ({exc})", fix) from None
     if not isinstance(state, dict):
-        raise _unusable(folder, path, "does not hold a mapping")
+        raise _unusable(folder, path, "does not hold a mapping", fix)
     return state
 
 
-def _verify_manifest(folder: str) -> None:
+def _verify_manifest(folder: str, fix: str | None = None) -> None:
     path = os.path.join(folder, MANIFEST_FILE)
     if not os.path.exists(path):  # written by a version without manifests: nothing to compare
         return
@@ -121,14 +129,16 @@ def _verify_manifest(folder: str) -> None:
         with open(path) as handle:
             expected = json.load(handle)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise _unusable(folder, path, f"is not valid JSON ({exc})") from None
+        raise _unusable(folder, path, f"is not valid JSON ({exc})", fix) from None
+    if not isinstance(expected, dict):
+        raise _unusable(folder, path, "does not hold a mapping", fix)
     for relative, size in expected.items():
         file = os.path.join(folder, relative)
         if not os.path.isfile(file):
-            raise _unusable(folder, file, "is missing")
+            raise _unusable(folder, file, "is missing", fix)
         actual = os.path.getsize(file)
         if actual != size:
-            raise _unusable(folder, file, f"is truncated or altered ({actual} bytes, written with {size})")
+            raise _unusable(folder, file, f"is truncated or altered ({actual} bytes, written with {size})", fix)
 
 
 def config_changes(old: dict, new: dict, prefix: str = "") -> dict[str, tuple[Any, Any]]:

@@ -50,7 +50,7 @@ from infinirl.config import ConfigError, to_plain
 from infinirl.results import host_probe
 from infinirl.runners.checkpoints import Checkpoints, config_changes
 from infinirl.runners.curves import Panel, plot_panels
-from infinirl.runners.metrics_log import MetricsLogger, read_metrics
+from infinirl.runners.metrics_log import METRICS_FILE, MetricsLogger, read_metrics
 from infinirl.runners.run_config import RunConfig
 from infinirl.utils import (
     capture_rng_state,
@@ -67,7 +67,7 @@ SUMMARY_FILE = "summary.json"
 CONFIG_HISTORY_FILE = "config_history.jsonl"
 EARLIER_RUNS_DIR = "earlier"
 #: What a run writes into its output folder that a run starting over there would mix with its own.
-EARLIER_RUN_RECORDS = ("checkpoints", "metrics.jsonl", CONFIG_HISTORY_FILE, SUMMARY_FILE, "curves.png",
+EARLIER_RUN_RECORDS = ("checkpoints", METRICS_FILE, CONFIG_HISTORY_FILE, SUMMARY_FILE, "curves.png",
                        "config.json", "tensorboard", "wandb", "swanlab")
 
 
@@ -162,6 +162,11 @@ class RunLoop:
         recorded = state.get("config")
         if recorded is not None:
             self._check_config(path, recorded, iteration)
+        metrics = os.path.join(self.cfg.output_dir, METRICS_FILE)
+        if os.path.exists(metrics):
+            # A damaged row is named now, before any worker starts; a last row cut off mid-write is
+            # dropped (with a warning) when the logger reopens the file.
+            read_metrics(metrics, warn=False)
         return found
 
     def _set_earlier_run_aside(self) -> None:
@@ -171,7 +176,7 @@ class RunLoop:
         this run's, and its metrics overwritten."""
         output = self.cfg.output_dir
         present = [name for name in EARLIER_RUN_RECORDS if os.path.lexists(os.path.join(output, name))]
-        if not any(name in present for name in ("checkpoints", "metrics.jsonl")):
+        if not any(name in present for name in ("checkpoints", METRICS_FILE)):
             return
         stamp = time.strftime("%Y%m%dT%H%M%S")
         target = os.path.join(output, EARLIER_RUNS_DIR, stamp)

@@ -9,12 +9,15 @@ from __future__ import annotations
 import json
 import numbers
 import os
+import sys
 from collections.abc import Sequence
 
+from infinirl.config import ConfigError
 from infinirl.runners.loggers import LOGGERS, Sink, require_logger
 from infinirl.utils import atomic_open, write_json_atomic
 
 CONFIG_FILE = "config.json"
+METRICS_FILE = "metrics.jsonl"
 
 
 class MetricsLogger:
@@ -27,11 +30,12 @@ class MetricsLogger:
         os.makedirs(output_dir, exist_ok=True)
         run_name = run_name or os.path.basename(os.path.abspath(output_dir))
         write_json_atomic(os.path.join(output_dir, CONFIG_FILE), config)
-        self.path = os.path.join(output_dir, "metrics.jsonl")
+        self.path = os.path.join(output_dir, METRICS_FILE)
         self.rows_logged = 0
         self._keep_rows_up_to(start_step)
         self._jsonl = open(self.path, "a")
-        self._sinks: list[Sink] = [LOGGERS.get(name)(output_dir, run_name, config) for name in loggers]
+        self._sinks: list[Sink] = [LOGGERS.get(name)(output_dir, run_name, config, start_step=start_step)
+                                   for name in loggers]
 
     def _keep_rows_up_to(self, step: int) -> None:
         """A fresh run starts an empty file; a resumed one drops rows logged after its checkpoint."""
@@ -67,6 +71,27 @@ def _scalar(value) -> float | None:
     return None
 
 
-def read_metrics(path: str) -> list[dict]:
-    with open(path) as handle:
-        return [json.loads(line) for line in handle if line.strip()]
+def read_metrics(path: str, warn: bool = True) -> list[dict]:
+    """The rows of a ``metrics.jsonl``. A last line that is not JSON was cut off when the run was
+    killed while logging it: it is dropped (with a warning unless ``warn=False``), as resuming drops
+    every row after its checkpoint anyway. A damaged line anywhere else is a ConfigError naming the
+    file and line, since the rows after it cannot be trusted either."""
+    with open(path, errors="replace") as handle:
+        lines = [(number, line) for number, line in enumerate(handle, 1) if line.strip()]
+    rows = []
+    for index, (number, line) in enumerate(lines):
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError as exc:
+            if index == len(lines) - 1:
+                if warn:
+                    print(f"infinirl: {path} line {number} was cut off mid-write (the run was killed while "
+                          "logging); dropping it", file=sys.stderr, flush=True)
+                break
+            raise ConfigError(f"{path} line {number} is not a JSON row ({exc.msg}); repair or delete that line, "
+                              "or start over with resume=false") from None
+        if not isinstance(row, dict):
+            raise ConfigError(f"{path} line {number} is not a JSON object of metrics; repair or delete that line, "
+                              "or start over with resume=false")
+        rows.append(row)
+    return rows

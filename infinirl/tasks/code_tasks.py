@@ -36,7 +36,7 @@ from infinirl.tasks.code_problems import FUNCTION_FAMILIES, generate_function
 from infinirl.tasks.config import TaskConfig
 from infinirl.tasks.problem import Problem, normalize_question
 from infinirl.tasks.prompts import render_prompt
-from infinirl.tasks.sources import TASK_SOURCES, TaskSource
+from infinirl.tasks.sources import TASK_SOURCES, TaskSource, held_out_size
 
 __all__ = ["CODE_PROMPT_TEMPLATE", "FunctionStream", "FunctionTaskOptions", "build_function_eval_set", "code_problem",
            "humaneval_path", "load_humaneval", "visible_tests_from_docstring"]
@@ -274,7 +274,7 @@ def _evaluation(task: TaskConfig, split: str, limit: int | None, from_run: bool)
     verifier = _verifier(task, split)
     if task.name == "humaneval":
         return load_humaneval(limit, verifier)
-    size = min(limit or task.eval_size, task.eval_size) if from_run else (limit or task.eval_size)
+    size = held_out_size(task, limit) if from_run else (limit or task.eval_size)
     return build_function_eval_set(FunctionTaskOptions.from_task(task), size, task.eval_seed, verifier)
 
 

@@ -19,7 +19,8 @@ from infinirl.registry import Registry
 from infinirl.tasks.config import TaskConfig
 from infinirl.tasks.problem import Problem
 
-__all__ = ["TASK_SOURCES", "TaskSource", "eval_problems", "task_label", "training_problems", "verifier_for"]
+__all__ = ["TASK_SOURCES", "TaskSource", "eval_problems", "held_out_size", "task_label", "training_problems",
+           "verifier_for"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,8 +80,16 @@ def _gym_evaluation(task: TaskConfig, split: str, limit: int | None, from_run: b
 
     # The same held-out set a training run evaluated on (same task config and eval seed); past its
     # eval_size the sequence goes on into questions the run may have trained on.
-    size = min(limit or task.eval_size, task.eval_size) if from_run else (limit or task.eval_size)
+    size = held_out_size(task, limit) if from_run else (limit or task.eval_size)
     return build_eval_set(ReasoningGymTask(task.name, task.config), size, seed=task.eval_seed)
+
+
+def held_out_size(task: TaskConfig, limit: int | None) -> int:
+    """How many of a run's own problems to evaluate: at most the ``task.eval_size`` it held out."""
+    if limit and limit > task.eval_size:
+        print(f"eval: limit={limit} is capped at the run's task.eval_size={task.eval_size}: only its held-out "
+              "problems are evaluated, the run trained on the others", flush=True)
+    return min(limit or task.eval_size, task.eval_size)
 
 
 TASK_SOURCES.add("reasoning_gym", TaskSource(training=_gym_training, evaluation=_gym_evaluation,
@@ -124,7 +133,7 @@ def _dataset_evaluation(task: TaskConfig, split: str, limit: int | None, from_ru
     if task.name in DATASET_PRESETS:
         return load_preset(task.name, split, limit=limit)
     if from_run:  # the run trained on all but the first eval_size rows
-        limit = min(limit or task.eval_size, task.eval_size)
+        limit = held_out_size(task, limit)
     return _file_problems(task, verifier, limit)
 
 

@@ -2,28 +2,48 @@
 task; bad input is a config error naming the key, before any worker starts."""
 
 import json
+import os
 
 import pytest
 
-from infinirl.cli import main
+from infinirl.agents.loop import AgentConfig
+from infinirl.cli import build_config, main
 from infinirl.config import ConfigError, to_dataclass, to_plain
 from infinirl.evaluation.config import EvalConfig
+from infinirl.runners.checkpoints import Checkpoints
 from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.tasks.datasets import preset_path
 
 
-def fake_run(root, steps=(2, 4)):
-    """A run folder as the reasoning runner leaves it: config.json and checkpoints/step_N/actor/."""
+def fake_run(root, steps=(2, 4), agent=None):
+    """A run folder as the reasoning runner leaves it: config.json and checkpoints/step_N/ with
+    actor/ and runner_state.json (step_N folders predate manifests)."""
     run = ReasoningConfig(output_dir=str(root))
     run.actor.lora = {"r": 4, "alpha": 8.0}
     run.rollout.max_new_tokens = 17
     run.rollout.stop_strings = ["\n\n"]
     run.task.name, run.task.eval_size = "basic_arithmetic", 5
     root.mkdir(parents=True, exist_ok=True)
-    (root / "config.json").write_text(json.dumps(to_plain(run)))
+    raw = to_plain(run)
+    raw["rollout"]["agent"] = agent
+    (root / "config.json").write_text(json.dumps(raw))
     for step in steps:
         (root / "checkpoints" / f"step_{step:06d}" / "actor").mkdir(parents=True)
+        (root / "checkpoints" / f"step_{step:06d}" / "runner_state.json").write_text(json.dumps({"step": step}))
     (root / "checkpoints" / "step_000009.tmp" / "actor").mkdir(parents=True)  # unfinished save: ignored
+    return root
+
+
+def committed_run(root, steps=(2, 4)):
+    """A run folder whose checkpoints were written as the loop writes them: iter_N with a manifest."""
+    fake_run(root, steps=())
+    folders = Checkpoints(str(root))
+    for step in steps:
+        tmp = folders.begin(step)
+        os.makedirs(os.path.join(tmp, "actor"))
+        with open(os.path.join(tmp, "actor", "weights.distcp"), "w") as handle:
+            handle.write("w" * 100)
+        folders.commit(tmp, step, {"iteration": step})
     return root
 
 
@@ -59,7 +79,7 @@ def test_initial_checkpoint_is_the_runs_starting_model_in_the_runs_setting(tmp_p
     with pytest.raises(ConfigError, match="checkpoint='initial' needs run_dir"):
         to_dataclass(EvalConfig, {"checkpoint": "initial"}).resolve()
 
-def test_a_runs_data_file_contributes_only_its_held_out_rows(tmp_path):
+def test_a_runs_data_file_contributes_only_its_held_out_rows(tmp_path, capsys, monkeypatch):
     from infinirl.evaluation.runner import load_problems
 
     data = tmp_path / "rows.jsonl"
@@ -69,9 +89,109 @@ def test_a_runs_data_file_contributes_only_its_held_out_rows(tmp_path):
     raw["task"].update(source="dataset", name=str(data), verifier="math", eval_size=3)
     (run / "config.json").write_text(json.dumps(raw))
     plan = to_dataclass(EvalConfig, {"run_dir": str(run)}).resolve()
-    assert [p.uid for p in load_problems(plan, "test", None)] == ["rows/0", "rows/1", "rows/2"]
-    own = to_dataclass(EvalConfig, {"run_dir": str(run), "task": {**raw["task"]}}).resolve()
-    assert len(load_problems(own, "test", None)) == 10  # a task given explicitly: the whole file
+    held_out = ["rows/0", "rows/1", "rows/2"]
+    assert [p.uid for p in load_problems(plan, "test", None)] == held_out
+    # The run's task stated again, only its prompt changed (the file named by another path): still
+    # the run's data, so still only its held-out rows, and results of their own.
+    monkeypatch.chdir(tmp_path)
+    restated = {**raw["task"], "name": "rows.jsonl", "system_prompt": "Think step by step."}
+    own = to_dataclass(EvalConfig, {"run_dir": str(run), "task": restated}).resolve()
+    assert own.task_from_run and [p.uid for p in load_problems(own, "test", None)] == held_out
+    assert own.output != plan.output and own.output.parent == plan.output.parent
+    assert [p.uid for p in load_problems(own, "test", 8)] == held_out  # limit is capped at eval_size ...
+    assert "limit=8 is capped at the run's task.eval_size=3" in capsys.readouterr().out  # ... and says so
+    other = to_dataclass(EvalConfig, {"run_dir": str(run), "task": {**raw["task"], "eval_size": 6}}).resolve()
+    assert not other.task_from_run and len(load_problems(other, "test", None)) == 10  # another split: the file
+
+
+def test_a_runs_generator_task_stated_again_is_its_held_out_set(tmp_path, capsys):
+    from infinirl.evaluation.runner import load_problems
+
+    run = fake_run(tmp_path / "run")
+    task = {**json.loads((run / "config.json").read_text())["task"], "system_prompt": "Answer with a number."}
+    plan = to_dataclass(EvalConfig, {"run_dir": str(run), "task": task, "limit": 50}).resolve()
+    assert plan.task_from_run and plan.task.system_prompt == "Answer with a number."
+    assert len(load_problems(plan, "test", 50)) == 5  # the run's eval_size, not the generator's next 45
+    assert "capped at the run's task.eval_size=5" in capsys.readouterr().out
+
+
+def test_default_output_names_tell_result_changing_settings_apart(tmp_path):
+    run = fake_run(tmp_path / "run")
+
+    def output(**raw):
+        return to_dataclass(EvalConfig, {"run_dir": str(run), **raw}).resolve().output.name
+
+    default = "basic_arithmetic-step_000004.json"
+    assert output() == default  # defaults keep the documented name
+    assert output(max_new_tokens=17, stop_strings=["\n\n"], progress=False, num_threads=2) == default
+    changed = {"limit": 3, "samples": 8, "temperature": 0.7, "max_new_tokens": 64, "split": "train",
+               "greedy": False, "seed": 1, "rollout": {"max_batch_size": 8}, "model": {"rollout_dtype": "bfloat16"}}
+    names = {key: output(**{key: value}) for key, value in changed.items()}
+    names["agent"] = output(rollout={"agent": {"max_turns": 2}})
+    assert output(single_turn=True, rollout={"agent": {"max_turns": 2}}) == default  # the run has no agent
+    for key, name in names.items():
+        assert name.startswith("basic_arithmetic-step_000004-") and name != default, key
+    assert len(set(names.values())) == len(names)  # every setting gives results of their own
+    assert output(limit=3) == names["limit"]  # the same settings: the same name, run after run
+    assert output(samples=0) == output(samples=0, temperature=0.5, k=[1, 8])  # greedy only: sampling is unused
+    base = to_dataclass(EvalConfig, {}).resolve().output
+    assert str(base) == "runs/eval/chain_sum-smollm2-135m-instruct.json"
+    assert to_dataclass(EvalConfig, {"limit": 2}).resolve().output.name.startswith("chain_sum-smollm2-135m-instruct-")
+
+
+def test_a_damaged_or_unfinished_checkpoint_is_refused_before_workers_start(tmp_path, capsys):
+    run = committed_run(tmp_path / "run")
+    plan = to_dataclass(EvalConfig, {"run_dir": str(run)}).resolve()
+    assert plan.checkpoint == run / "checkpoints" / "iter_000004" and plan.step == 4
+    os.truncate(run / "checkpoints" / "iter_000004" / "actor" / "weights.distcp", 10)
+    with pytest.raises(ConfigError, match=r"iter_000004/actor/weights.distcp is truncated or altered \(10 bytes, "
+                                          r"written with 100\); evaluate another checkpoint with checkpoint="
+                                          r".*iter_000002, iter_000004"):
+        to_dataclass(EvalConfig, {"run_dir": str(run)})
+    assert to_dataclass(EvalConfig, {"run_dir": str(run), "checkpoint": "2"}).resolve().step == 2
+    (run / "checkpoints" / "iter_000002" / "runner_state.json").unlink()
+    with pytest.raises(ConfigError, match="iter_000002/runner_state.json is missing"):
+        to_dataclass(EvalConfig, {"run_dir": str(run), "checkpoint": "iter_000002"})
+    unfinished = Checkpoints(str(run)).begin(6)
+    os.makedirs(os.path.join(unfinished, "actor"))
+    for given in ("iter_000006.tmp", unfinished):
+        with pytest.raises(ConfigError, match=r"iter_000006.tmp is a save that never finished"):
+            to_dataclass(EvalConfig, {"run_dir": str(run), "checkpoint": given})
+        with pytest.raises(ConfigError, match=r"iter_000006.tmp is a save that never finished"):
+            to_dataclass(EvalConfig, {"checkpoint": str(run / "checkpoints" / "iter_000006.tmp")})
+    assert main(["eval", f"run_dir={run}", "checkpoint=iter_000006.tmp"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "pick a finished one" in err
+
+
+def test_one_agent_key_given_keeps_the_rest_of_the_runs_agent(tmp_path):
+    agent = {"env": "tools", "env_options": {"call_format": "hermes", "max_calls_per_turn": 2}, "max_turns": 3,
+             "schedule": "lockstep"}
+    run = fake_run(tmp_path / "run", agent=agent)
+    assert to_plain(to_dataclass(EvalConfig, {"run_dir": str(run)}).resolve().agent) == {**to_plain(AgentConfig()),
+                                                                                         **agent}
+    _, cfg = build_config("eval", [f"run_dir={run}", "rollout.agent.max_turns=2",
+                                   "rollout.agent.env_options.max_calls_per_turn=1"], "eval")
+    plan = cfg.resolve()
+    assert plan.agent.max_turns == 2 and plan.agent.schedule == "lockstep" and plan.agent.env == "tools"
+    assert plan.output.name.startswith("basic_arithmetic-step_000004-")
+    single = to_dataclass(EvalConfig, {"run_dir": str(run), "single_turn": True}).resolve()
+    assert single.agent is None and single.output.name not in (plan.output.name, "basic_arithmetic-step_000004.json")
+    assert plan.agent.env_options == {"call_format": "hermes", "max_calls_per_turn": 1}
+    assert to_dataclass(EvalConfig, {"rollout": {"agent": {"max_turns": 2}}}).resolve().agent.env_options == {}
+    with pytest.raises(ConfigError, match="unknown config key 'rollout.agent.max_trns'"):
+        to_dataclass(EvalConfig, {"run_dir": str(run), "rollout": {"agent": {"max_trns": 2}}})
+    with pytest.raises(ConfigError, match="rollout.agent.max_turns=0 must be >= 1"):
+        to_dataclass(EvalConfig, {"run_dir": str(run), "rollout": {"agent": {"max_turns": 0}}})
+
+
+def test_greedy_only_needs_no_k():
+    from infinirl.evaluation.runner import sampling_passes
+
+    cfg = to_dataclass(EvalConfig, {"samples": 0})  # k keeps its default [1, 4]: not used without samples
+    assert list(sampling_passes(cfg, cfg.resolve())) == ["greedy"]
+    with pytest.raises(ConfigError, match="k=8 is larger than samples=4"):
+        to_dataclass(EvalConfig, {"samples": 4, "k": 8})
 
 
 def test_k_may_be_one_number():
@@ -110,6 +230,7 @@ def test_cli_rejects_bad_input_naming_the_key(tmp_path, capsys):
     assert "checkpoint='7'" in err and "step_000002, step_000004" in err
     assert "checkpoint=latest" in error_of(f"run_dir={fake_run(tmp_path / 'fresh', steps=())}")
     (tmp_path / "noconfig" / "checkpoints" / "step_000001" / "actor").mkdir(parents=True)
+    (tmp_path / "noconfig" / "checkpoints" / "step_000001" / "runner_state.json").write_text("{}")
     assert "has no config.json" in error_of(f"run_dir={tmp_path / 'noconfig'}")
     assert "unknown config key 'task.nme'" in error_of("task.nme=gsm8k")
     assert "is a training config" in error_of("grpo_chain_sum")

@@ -134,3 +134,85 @@ def test_swanlab_local_values_land(tmp_path, monkeypatch):
     config_yaml = glob.glob(str(tmp_path / "swanlab" / "run-*" / "files" / "config.yaml"))
     assert config_yaml and "lr" in open(config_yaml[0]).read()
     assert not glob.glob(str(tmp_path / "run-*"))  # the run lives under swanlab/, not loose in output_dir
+
+
+def write_rows(path, steps, tail=""):
+    with open(path, "w") as handle:
+        handle.writelines(json.dumps({"step": s, "train/loss": float(s)}) + "\n" for s in steps)
+        handle.write(tail)
+
+
+def test_a_row_cut_off_mid_write_is_dropped_on_resume(tmp_path, capsys):
+    """A run killed while writing its last row leaves half a line; resuming drops it with a warning."""
+    write_rows(tmp_path / "metrics.jsonl", [1, 2, 3, 4], tail='{"step": 5, "train/lo')
+    assert [r["step"] for r in read_metrics(str(tmp_path / "metrics.jsonl"))] == [1, 2, 3, 4]
+    assert "metrics.jsonl line 5 was cut off mid-write" in capsys.readouterr().err
+    logger = MetricsLogger(str(tmp_path), [], CONFIG, start_step=3)
+    logger.log({"train/loss": 0.5}, step=4)
+    logger.close()
+    assert [(r["step"], r["train/loss"]) for r in read_metrics(str(tmp_path / "metrics.jsonl"))] == [
+        (1, 1.0), (2, 2.0), (3, 3.0), (4, 0.5)]
+
+
+def test_a_damaged_row_before_the_last_is_named_with_its_line(tmp_path):
+    from infinirl.config import ConfigError
+
+    path = tmp_path / "metrics.jsonl"
+    write_rows(path, [1, 2, 3])
+    lines = path.read_text().splitlines(keepends=True)
+    path.write_text(lines[0] + '{"step": 2, "train\n' + lines[2])
+    with pytest.raises(ConfigError, match=r"metrics.jsonl line 2 is not a JSON row .*repair or delete that line"):
+        MetricsLogger(str(tmp_path), [], CONFIG, start_step=3)
+    path.write_text(lines[0] + "[2]\n" + lines[2])
+    with pytest.raises(ConfigError, match=r"metrics.jsonl line 2 is not a JSON object"):
+        read_metrics(str(path))
+
+
+def test_tensorboard_after_resume_shows_each_step_once(tmp_path):
+    """A run checkpointed at step 3 logged steps 4 and 5 before it crashed; the resumed run logs
+    4 to 6 again. TensorBoard shows steps 1 to 6 once each, 4 and 5 with the resumed run's values."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    crashed = MetricsLogger(str(tmp_path), ["tensorboard"], CONFIG)
+    for step in range(1, 6):
+        crashed.log({"train/loss": float(step)}, step=step)
+    crashed.close()
+    resumed = MetricsLogger(str(tmp_path), ["tensorboard"], CONFIG, start_step=3)
+    for step in range(4, 7):
+        resumed.log({"train/loss": 10.0 * step}, step=step)
+    resumed.close()
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    assert [(e.step, e.value) for e in events.Scalars("train/loss")] == [
+        (1, 1.0), (2, 2.0), (3, 3.0), (4, 40.0), (5, 50.0), (6, 60.0)]
+
+
+def _resumed_twice(tmp_path, loggers):
+    """Log steps 1-2, then resume at step 2 and log step 3; the logger folder's stored run id."""
+    first = MetricsLogger(str(tmp_path), loggers, CONFIG)
+    for step in (1, 2):
+        first.log({"train/loss": float(step)}, step=step)
+    first.close()
+    run_id = (tmp_path / loggers[0] / "run_id").read_text().strip()
+    second = MetricsLogger(str(tmp_path), loggers, CONFIG, start_step=2)
+    second.log({"train/loss": 3.0}, step=3)
+    second.close()
+    assert (tmp_path / loggers[0] / "run_id").read_text().strip() == run_id
+    return run_id
+
+
+@pytest.mark.skipif(importlib.util.find_spec("wandb") is None, reason="wandb not installed (extra: loggers)")
+def test_wandb_resume_continues_the_same_run(tmp_path, monkeypatch):
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    run_id = _resumed_twice(tmp_path, ["wandb"])
+    runs = glob.glob(str(tmp_path / "wandb" / "offline-run-*"))
+    assert len(runs) == 2 and all(r.endswith(f"-{run_id}") for r in runs)  # one run, synced as one
+
+
+@pytest.mark.skipif(importlib.util.find_spec("swanlab") is None, reason="swanlab not installed (extra: loggers)")
+def test_swanlab_resume_continues_the_same_run(tmp_path, monkeypatch):
+    monkeypatch.delenv("SWANLAB_MODE", raising=False)
+    run_id = _resumed_twice(tmp_path, ["swanlab"])
+    runs = glob.glob(str(tmp_path / "swanlab" / "run-*" / "run-*.swanlab"))
+    assert len(runs) == 2 and all(r.endswith(f"run-{run_id}.swanlab") for r in runs)

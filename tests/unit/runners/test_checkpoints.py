@@ -7,7 +7,7 @@ import os
 import pytest
 
 from infinirl.config import ConfigError
-from infinirl.runners.checkpoints import Checkpoints, config_changes
+from infinirl.runners.checkpoints import Checkpoints, config_changes, verify_checkpoint
 
 
 def _commit(folders: Checkpoints, index: int, payload: str = "") -> str:
@@ -71,6 +71,21 @@ def test_a_corrupt_driver_state_is_named(tmp_path):
         handle.write("{not json")
     with pytest.raises(ConfigError, match=r"runner_state.json is not valid JSON"):
         Checkpoints(str(tmp_path)).latest()
+
+
+def test_verify_checkpoint_checks_one_folder_as_resume_does_with_the_callers_fix(tmp_path):
+    """`infinirl eval` checks the checkpoint it loads the same way, naming its own way out."""
+    folders = Checkpoints(str(tmp_path))
+    final = _commit(folders, 3, payload="x" * 50)
+    assert verify_checkpoint(final) == {"iteration": 3}
+    os.truncate(os.path.join(final, "actor", "weights.bin"), 5)
+    with pytest.raises(ConfigError, match=r"weights.bin is truncated or altered \(5 bytes, written with 50\); "
+                                          r"pick another$"):
+        verify_checkpoint(final, fix="pick another")
+    with open(os.path.join(final, "manifest.json"), "w") as handle:
+        handle.write("[1, 2]")
+    with pytest.raises(ConfigError, match=r"manifest.json does not hold a mapping; start over with resume=false"):
+        verify_checkpoint(final)
 
 
 def test_config_changes_lists_every_changed_leaf():

@@ -169,6 +169,36 @@ def test_a_changed_key_the_checkpoint_cannot_honour_is_refused_before_anything_r
     run(toy(tmp_path, iterations=4, lr=0.5, resume=False))  # starting over is always possible
 
 
+def test_resume_after_a_crash_mid_log_keeps_each_step_once(tmp_path, capsys):
+    """Killed while writing step 5's row, after its checkpoint at 3: resuming drops the cut-off row
+    and the rows and TensorBoard steps past the checkpoint, so every step is there once."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = toy(tmp_path, iterations=6, save_every=3, loggers=["tensorboard"], **{"eval": {"every": 0}})
+    with pytest.raises(RuntimeError, match="the step failed"):
+        run(cfg, fail_at=4)
+    with open(os.path.join(cfg.output_dir, "metrics.jsonl"), "a") as handle:
+        handle.write('{"step": 5, "train/lo')
+    run(cfg)
+    assert "line 6 was cut off mid-write" in capsys.readouterr().err
+    assert [r["step"] for r in rows_of(cfg)] == [0, 1, 2, 3, 4, 5, 6]
+    events = EventAccumulator(os.path.join(cfg.output_dir, "tensorboard"))
+    events.Reload()
+    assert [e.step for e in events.Scalars("train/loss")] == [1, 2, 3, 4, 5, 6]
+
+
+def test_a_damaged_metrics_row_is_refused_before_anything_runs(tmp_path):
+    cfg = toy(tmp_path, iterations=4, save_every=2)
+    run(toy(tmp_path, iterations=2))
+    path = os.path.join(cfg.output_dir, "metrics.jsonl")
+    lines = open(path).read().splitlines(keepends=True)
+    with open(path, "w") as handle:
+        handle.write(lines[0] + "{garbage\n" + "".join(lines[1:]))
+    with pytest.raises(ConfigError, match=r"metrics.jsonl line 2 is not a JSON row"):
+        with RunLoop(cfg):
+            raise AssertionError("workers would start here")
+
+
 def test_a_failed_run_removes_the_output_folder_it_created_but_keeps_one_with_results(tmp_path):
     cfg = toy(tmp_path, iterations=3, **{"eval": {"at_start": False}})
     with pytest.raises(RuntimeError, match="the step failed"):
