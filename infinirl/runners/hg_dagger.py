@@ -18,7 +18,8 @@ dataset and behaviour cloning).
   ``dagger/dataset_rows``, ``train/bc_loss`` and ``dagger/novice_error`` (the policy's squared error
   on the iteration's human labels before training on them).
 * **evaluation**: ``eval.episodes`` deterministic episodes per robot with no human
-  (``eval/success_rate``: the policy alone).
+  (``eval/success_rate``: the policy alone); after the last iteration robot rank 0 films
+  ``eval.video_episodes`` more into ``<output_dir>/eval.mp4`` (a robot without a camera: none).
 """
 
 from __future__ import annotations
@@ -82,7 +83,10 @@ class HGDAggerFlow:
     """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
 
     def __init__(self, cfg: HGDAggerConfig, robots, learner):
+        from infinirl.runners.realworld_sac import RobotSteps
+
         self.cfg, self.robots, self.learner = cfg, robots, learner
+        self.steps = RobotSteps()
         self.spec = LoopSpec(
             name="hg_dagger", headline="eval/success_rate", target=cfg.eval.target,
             title=f"HG-DAgger {cfg.robot.kind} with {cfg.interventions.device}",
@@ -138,7 +142,7 @@ class HGDAggerFlow:
                    "dagger/added_rows": float(added["added"]), "dagger/dataset_rows": float(added["size"]),
                    "train/bc_loss": trained["loss"],
                    "train/updates": float(trained["updates"]), "pipeline/version": float(trained["version"]),
-                   "env/steps": float(sum(r["counts"].get("steps", 0) for r in robots)),
+                   "env/steps": self.steps.update(robots),
                    "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots)),
                    "time/iteration_s": time.perf_counter() - started}
         if novice_error == novice_error:  # NaN: the human labelled no step this iteration
@@ -157,14 +161,18 @@ class HGDAggerFlow:
     # ------------------------------------------------------------------ checkpoints
     def save(self, folder: str) -> dict:
         self.learner.save_checkpoint(os.path.join(folder, "learner")).wait()
-        return {}
+        return {"env_steps": self.steps.total}
 
     def load(self, folder: str, state: dict) -> None:
         self.learner.load_checkpoint(os.path.join(folder, "learner")).wait()
+        self.steps.restore(state.get("env_steps", 0), self.robots)  # absent from checkpoints of earlier versions
 
     def finish(self, output_dir: str) -> dict:
+        from infinirl.runners.realworld_sac import record_eval_video
+
+        video = record_eval_video(self.robots, self.cfg.eval.video_episodes, output_dir)
         size = self.learner.dataset_size().wait()[0]
-        return {"dataset_rows": size, "version": self.learner.published_version().wait()[0]}
+        return {"dataset_rows": size, "version": self.learner.published_version().wait()[0], "video": video}
 
     def close(self) -> None:
         try:

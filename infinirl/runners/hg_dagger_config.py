@@ -16,12 +16,13 @@ from infinirl.runners.realworld_sac_config import (
     InterventionConfig,
     RobotConfig,
     TaskConfig,
+    check_demo_options,
     known_names,
 )
 from infinirl.runners.run_config import RunConfig
 from infinirl.runners.sac_config import NetworkConfig, WorkerConfig
 
-__all__ = ["BCConfig", "DaggerConfig", "HGDAggerConfig"]
+__all__ = ["BCConfig", "DaggerConfig", "DaggerInterventionConfig", "HGDAggerConfig"]
 
 
 @dataclass(kw_only=True)
@@ -37,6 +38,7 @@ class DaggerConfig:
     demo_policy: str = "sawyer_goal"
     """Scripted demo policy of the initial demonstrations (infinirl/realworld/demos.py)."""
     demo_options: dict[str, Any] = field(default_factory=dict)
+    """Options of the demo policy (metaworld_expert: task); checked against it before any worker starts."""
     demo_noise_std: float = bounded(0.1, ge=0)
 
 
@@ -51,8 +53,14 @@ class BCConfig:
     weight_decay: float = bounded(0.0, ge=0)
 
 
-def _default_interventions() -> InterventionConfig:
-    return InterventionConfig(device="simulated_human", options={"expert": "sawyer_goal"})
+@dataclass(kw_only=True)
+class DaggerInterventionConfig(InterventionConfig):
+    as_demos: bool = False
+    """RLPD's (realworld_sac); refused here: every step the human gives joins the aggregate anyway."""
+
+
+def _default_interventions() -> DaggerInterventionConfig:
+    return DaggerInterventionConfig(device="simulated_human", options={"expert": "sawyer_goal"})
 
 
 @dataclass(kw_only=True)
@@ -67,8 +75,10 @@ class HGDAggerEvalConfig(EvalConfig):
 class HGDAggerConfig(RunConfig):
     RUNNER: ClassVar[str] = "hg_dagger"
     DEFAULT_PLACEMENT: ClassVar[dict[str, str]] = {"robot": "0", "learner": "0"}
+    # interventions.as_demos never had an effect here: checkpoints written when it defaulted to true resume.
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("robot.command_deadline_s", "robot.heartbeat_deadline_s",
-                                                    "learner.num_threads", "actor.num_threads")
+                                                    "learner.num_threads", "actor.num_threads",
+                                                    "interventions.as_demos")
 
     output_dir: str = "runs/hg_dagger"
     iterations: int = bounded(10, ge=1)
@@ -77,7 +87,7 @@ class HGDAggerConfig(RunConfig):
     robot: RobotConfig = field(default_factory=RobotConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
-    interventions: InterventionConfig = field(default_factory=_default_interventions)
+    interventions: DaggerInterventionConfig = field(default_factory=_default_interventions)
     """The human (or simulated human) who takes over; HG-DAgger needs a device."""
     dagger: DaggerConfig = field(default_factory=DaggerConfig)
     bc: BCConfig = field(default_factory=BCConfig)
@@ -101,8 +111,12 @@ class HGDAggerConfig(RunConfig):
             raise ConfigError("interventions.device is unset: HG-DAgger learns from a human who takes over; name a "
                               "device, e.g. interventions.device=simulated_human")
         self.interventions.check()
+        if self.interventions.as_demos:
+            raise ConfigError("interventions.as_demos=true feeds RLPD's demonstrations store (realworld_sac); "
+                              "HG-DAgger aggregates every step the human gives already: remove it")
         if self.dagger.initial_demos:
             known_names(DEMO_POLICIES, [self.dagger.demo_policy], "dagger.demo_policy")
+            check_demo_options(self.dagger.demo_policy, self.dagger.demo_options, "dagger.demo_options")
             if self.task.action_mode != "delta":
                 raise ConfigError("dagger.initial_demos > 0 needs task.action_mode=delta (the scripted demo policies "
                                   "emit delta actions)")

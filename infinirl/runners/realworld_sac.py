@@ -52,7 +52,8 @@ from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.realworld_sac_config import RealWorldNetworkConfig, RealWorldSACConfig
 from infinirl.runners.run_support import launch_all, run_staged, run_start_time
 
-__all__ = ["RealWorldSACFlow", "env_spec_of", "net_spec_of", "robot_setup_of", "run"]
+__all__ = ["RealWorldSACFlow", "RobotSteps", "env_spec_of", "net_spec_of", "record_eval_video", "robot_setup_of",
+           "run"]
 
 
 @register_runner("realworld_sac", RealWorldSACConfig,
@@ -168,7 +169,7 @@ def net_spec_of(cfg) -> SACNetSpec:
     return SACNetSpec(actor_hidden=tuple(network.actor_hidden), critic_hidden=tuple(network.critic_hidden),
                       num_critics=network.num_critics, activation=network.activation,
                       log_std_min=network.log_std_min, log_std_max=network.log_std_max, obs_key="state",
-                      actor=network.actor, flow=dict(network.flow),
+                      layer_norm=network.layer_norm, actor=network.actor, flow=dict(network.flow),
                       normalize_state=bool(getattr(network, "normalize_state", False)), **encoder)
 
 
@@ -219,6 +220,43 @@ def _learner_launch(cfg: RealWorldSACConfig, net: SACNetSpec, shape: dict):
                                     cfg.learner.device, shape.get("action_mask"), shape.get("embodiments", 1))
 
 
+def record_eval_video(robots, episodes: int, output_dir: str) -> str | None:
+    """``episodes`` deterministic episodes of robot rank 0 filmed into ``<output_dir>/eval.mp4``; None
+    when there are none, or when the robot has no camera (the run says so)."""
+    if not episodes:
+        return None
+    result = robots.call("record_video", episodes, os.path.join(output_dir, "eval.mp4"), ranks=[0]).wait()[0]
+    if "skipped" in result:
+        print(f"eval video skipped: {result['skipped']}", flush=True)
+        return None
+    return result["path"]
+
+
+class RobotSteps:
+    """``env/steps``: the robots' training steps over the whole run. A robot counts from when its
+    control loop was built, so a resumed run starts from what its checkpoint counted, less what the
+    robots had already counted when it resumed (an edge node may outlive the trainer it served)."""
+
+    def __init__(self) -> None:
+        self.total = 0
+        """As of the last :meth:`update`: what a checkpoint saves."""
+        self.offset = 0
+
+    @staticmethod
+    def counted(robots: list[dict]) -> int:
+        return int(sum(r["counts"].get("steps", 0) for r in robots))
+
+    def update(self, robots: list[dict]) -> float:
+        """The run's steps, from the robots' ``stats()``."""
+        self.total = self.offset + self.counted(robots)
+        return float(self.total)
+
+    def restore(self, total: int, robots) -> None:
+        """Continue from a checkpoint's ``total``; ``robots``: the group, asked once what it counted so far."""
+        self.total = int(total)
+        self.offset = self.total - self.counted(robots.stats().wait(timeout=60))
+
+
 def _per_kind(robots: list[dict]) -> dict:
     """``rollout/<kind>/success_rate`` and ``.../episode_return_mean`` of the window's training
     episodes, when the run has several kinds."""
@@ -247,6 +285,7 @@ class RealWorldSACFlow:
         self.pending_sync = None
         self.running = False
         self.owed_updates = 0.0  # sync mode: fractional updates carried to the next turn
+        self.steps = RobotSteps()
         self.spec = LoopSpec(
             name="realworld_sac", headline="eval/success_rate",
             title=f"SAC ({cfg.pipeline.mode}) {'+'.join(e.kind for e in cfg.robot.fleet) or cfg.robot.kind}",
@@ -338,7 +377,7 @@ class RealWorldSACFlow:
             "replay/transitions": float(status["store_transitions"]),
             "replay/episodes": float(status["store_episodes"]),
             "replay/demo_transitions": float(status["demo_transitions"]),
-            "env/steps": float(sum(r["counts"].get("steps", 0) for r in robots)),
+            "env/steps": self.steps.update(robots),
             "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots)),
             "robot/safety_aborts": float(sum(r["counts"].get("safety_aborts", 0) for r in robots)),
             "robot/safety_clips": float(sum(sum(r["safety_clips"].values()) for r in robots)),
@@ -376,10 +415,11 @@ class RealWorldSACFlow:
     # ------------------------------------------------------------------ checkpoints
     def save(self, folder: str) -> dict:
         self.learner.save_checkpoint(os.path.join(folder, "learner")).wait()
-        return {"mode": self.cfg.pipeline.mode}
+        return {"mode": self.cfg.pipeline.mode, "env_steps": self.steps.total}
 
     def load(self, folder: str, state: dict) -> None:
         self.learner.load_checkpoint(os.path.join(folder, "learner")).wait()
+        self.steps.restore(state.get("env_steps", 0), self.robots)  # absent from checkpoints of earlier versions
         status = self.learner.status().wait()[0]
         print(f"restored the learner at version {status['version']} ({status['updates']} updates); the replay "
               f"store holds {status['store_episodes']} episodes ({status['store_transitions']} transitions)",
@@ -397,17 +437,10 @@ class RealWorldSACFlow:
     def _record_video(self, output_dir: str) -> str | None:
         """``eval.video_episodes`` of robot rank 0 into ``eval.mp4`` (while the robots still run: the
         control loop films them between two training episodes)."""
-        if not self.cfg.eval.video_episodes:
-            return None
-        if self.cfg.pipeline.transport == "edge":  # the frames stay at the edge (only training data goes up)
+        if self.cfg.eval.video_episodes and self.cfg.pipeline.transport == "edge":  # only training data goes up
             print("eval video skipped: the robot is at the edge, and its camera frames stay there", flush=True)
             return None
-        result = self.robots.call("record_video", self.cfg.eval.video_episodes, os.path.join(output_dir, "eval.mp4"),
-                                  ranks=[0]).wait()[0]
-        if "skipped" in result:
-            print(f"eval video skipped: {result['skipped']}", flush=True)
-            return None
-        return result["path"]
+        return record_eval_video(self.robots, self.cfg.eval.video_episodes, output_dir)
 
     def _stop(self) -> None:
         if self.running:

@@ -16,7 +16,8 @@ from infinirl.runners.run_config import EvalSchedule, RunConfig
 from infinirl.runners.sac_config import AlgorithmConfig, LearnerConfig, NetworkConfig, WorkerConfig
 
 __all__ = ["CNNConfig", "EdgeLinkConfig", "EvalConfig", "InterventionConfig", "RealWorldNetworkConfig",
-           "RealWorldSACConfig", "RobotConfig", "TaskConfig", "known_names", "parse_address"]
+           "RealWorldSACConfig", "RobotConfig", "TaskConfig", "check_demo_options", "known_names",
+           "parse_address"]
 
 
 @dataclass(kw_only=True)
@@ -344,6 +345,7 @@ class RealWorldSACConfig(RunConfig):
             raise ConfigError("task.observations is empty; name at least one source, e.g. [proprio]")
         if self.demos.episodes:
             known_names(DEMO_POLICIES, [self.demos.policy], "demos.policy")
+            check_demo_options(self.demos.policy, self.demos.options, "demos.options")
             if self.task.action_mode != "delta":
                 raise ConfigError("demos.episodes > 0 needs task.action_mode=delta (the scripted demo policies "
                                   "emit delta actions)")
@@ -390,6 +392,32 @@ class RealWorldSACConfig(RunConfig):
                                                                              and len(learner.indices) > 1):
             raise ConfigError(f"placement.learner={self.placement['learner']!r}: the learner is one rank on one "
                               "device or CPU slot (e.g. '0')")
+
+
+_DEMO_ARGUMENTS_OF_THE_RUNNER = ("env", "seed", "noise_std")
+"""What :func:`~infinirl.realworld.demos.make_demo_policy` passes a demo policy itself."""
+
+
+def check_demo_options(policy: str, options: dict, key: str) -> None:
+    """The options of a registered scripted demo policy against its constructor, so that a misspelt
+    one is a ConfigError naming it here rather than a TypeError in a robot worker."""
+    import inspect
+
+    from infinirl.realworld.demos import DEMO_POLICIES
+
+    signature = inspect.signature(DEMO_POLICIES.get(policy))
+    named = [name for name, p in signature.parameters.items() if name not in _DEMO_ARGUMENTS_OF_THE_RUNNER
+             and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    for name in options:
+        if name in _DEMO_ARGUMENTS_OF_THE_RUNNER:
+            raise ConfigError(f"{key}.{name}: the runner passes the robot env, the run's seed and the demo noise "
+                              f"itself; remove {name} from {key}")
+    try:
+        signature.bind_partial(**options)
+    except TypeError as exc:
+        unknown = [name for name in options if name not in signature.parameters]
+        where = f"{key}.{unknown[0]}: not an option of" if unknown else f"{key}: {exc} for"
+        raise ConfigError(f"{where} demo policy {policy!r}; its options: {', '.join(named) or 'none'}") from None
 
 
 def known_names(registry, names, key: str) -> None:

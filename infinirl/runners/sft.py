@@ -42,7 +42,7 @@ from infinirl.runners.sim_config import eval_seeds
 from infinirl.utils import torch_save_atomic
 from infinirl.utils.memory import peak_memory_bytes
 
-__all__ = ["SFTFlow", "learning_rate", "rollout_episodes", "run", "task_instructions"]
+__all__ = ["SFTFlow", "learning_rate", "load_optimizer_state", "rollout_episodes", "run", "task_instructions"]
 
 POLICY_DIR = "policy"
 OPTIMIZER_FILE = "optimizer.pt"
@@ -154,6 +154,7 @@ def build_model(cfg: SFTConfig, demos: DemoFrames, instructions: dict[str, str])
             vla = load_vla(model.init, family=model.family)
         except (ValueError, FileNotFoundError) as exc:
             raise ConfigError(f"model.init: {exc}") from None
+        _check_init_fits(vla.config, cfg, demos)
         vla.config.instructions.update(instructions)
         return vla
     try:
@@ -171,6 +172,24 @@ def build_model(cfg: SFTConfig, demos: DemoFrames, instructions: dict[str, str])
         raise ConfigError(f"model: {exc}") from None
 
 
+def _check_init_fits(config, cfg: SFTConfig, demos: DemoFrames) -> None:
+    """``model.init``'s own sizes govern (the model.* sizes are those of a new model): the executed
+    part of a chunk and the demonstrations must fit them, or training fails deep in the first step."""
+    init, steps = cfg.model.init, cfg.model.n_action_steps
+    if steps > config.chunk_size:
+        raise ConfigError(f"model.n_action_steps={steps} exceeds the chunk of model.init={init} ({config.chunk_size} "
+                          f"actions per decision); set model.n_action_steps <= {config.chunk_size}")
+    for key, dataset_dim, model_dim in (("observation.state", demos.state.shape[1], config.state_dim),
+                                        ("action", demos.action.shape[1], config.action_dim)):
+        if dataset_dim != model_dim:
+            raise ConfigError(f"data.path: the dataset's {key} has {dataset_dim} dimensions but model.init={init} "
+                              f"was trained on {model_dim}; clone from demonstrations of the same robot, or train a "
+                              "new model (model.init=null)")
+    if demos.camera_key not in config.camera_keys:
+        raise ConfigError(f"data.camera_key: the dataset's camera {demos.camera_key!r} is not one model.init={init} "
+                          f"reads ({', '.join(config.camera_keys)}); record the demonstrations with that camera")
+
+
 def trainable_parameters(vla, cfg: SFTConfig) -> list[torch.nn.Parameter]:
     """Freeze what the config keeps fixed; the rest, in a stable order, for the optimizer."""
     vlm = vla.model.vlm
@@ -178,6 +197,13 @@ def trainable_parameters(vla, cfg: SFTConfig) -> list[torch.nn.Parameter]:
         parameter.requires_grad_(cfg.model.train_language_model)
     vlm.embed_tokens.weight.requires_grad_(cfg.model.train_embeddings)
     return [p for p in vla.model.parameters() if p.requires_grad]
+
+
+def load_optimizer_state(optimizer: torch.optim.Optimizer, path: str) -> None:
+    """The optimizer state saved at ``path``, wherever it was saved from: ``device`` may change on
+    resume (a GPU run continued on a CPU-only machine), and the optimizer moves each state tensor to
+    its parameter's device as it loads."""
+    optimizer.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
 
 
 def weights_digest(module: torch.nn.Module) -> str:
@@ -333,7 +359,7 @@ class SFTFlow:
         from infinirl.models.vla.checkpoint import load_weights
 
         load_weights(self.vla.model, Path(folder) / POLICY_DIR / "model.safetensors")
-        self.optimizer.load_state_dict(torch.load(os.path.join(folder, OPTIMIZER_FILE), weights_only=True))
+        load_optimizer_state(self.optimizer, os.path.join(folder, OPTIMIZER_FILE))
         self.samples = int(state["samples"])
         self.rft.kept = [int(k) for k in state.get("rft_kept", [])]
         self.demos = self.base_demos

@@ -56,7 +56,8 @@ class ModelConfig:
     family: Literal["pi0_smollm2"] = "pi0_smollm2"
     """The VLA family trained (π0's design on SmolLM2-135M's first layers)."""
     init: str | None = None
-    """Start from this checkpoint folder of the family instead of a new model."""
+    """Start from this checkpoint folder of the family instead of a new model: its own sizes and chunk
+    apply (the size keys below are a new model's); n_action_steps and the dataset must fit them."""
     smollm2: str | None = None
     """SmolLM2-135M folder (transformers layout); None: the embedded model."""
     language_layers: int = bounded(4, ge=1, le=30)
@@ -150,12 +151,35 @@ class SFTConfig(RunConfig):
     eval: SFTEvalConfig = field(default_factory=SFTEvalConfig)
     rft: RFTConfig = field(default_factory=RFTConfig)
 
+    def _refused_on_resume(self, key: str) -> bool:
+        # The cosine schedule spans `iterations`: the checkpoint's steps ran on the old span, so a new
+        # length would continue on a different curve than the one the run started on.
+        if key == "iterations" and self.optim.lr_schedule == "cosine":
+            return True
+        # With RFT the evaluation tasks are also the tasks each round collects in, and a task's place
+        # in that list seeds its layouts: a new list changes what is trained on, not only what is evaluated.
+        return key == "eval.tasks" and self.rft.every > 0
+
+    def resume_may_change(self, key: str) -> bool:
+        return not self._refused_on_resume(key) and super().resume_may_change(key)
+
+    def resume_refusal_hint(self, key: str) -> str:
+        if key == "iterations" and self._refused_on_resume(key):
+            return ("optim.lr_schedule=cosine decays over iterations; to make a run extendable, start it with "
+                    "optim.lr_schedule=constant")
+        if key == "eval.tasks" and self._refused_on_resume(key):
+            return ("with rft.every > 0, eval.tasks also names the tasks the RFT rounds collect in and seeds their "
+                    "layouts; to change them, start a new run from this one's policy (model.init=<a checkpoint's "
+                    "policy folder>)")
+        return super().resume_refusal_hint(key)
+
     def check(self) -> None:
         if self.auto_placement:
             raise ConfigError("placement=auto: sft trains in one process of the driver, with no components to place; "
                               "its device key chooses where (device=auto: the first GPU, else the CPU)")
         model = self.model
-        if model.n_action_steps > model.chunk_size:
+        # With model.init the loaded model's chunk governs (checked against it once loaded, in the runner).
+        if model.init is None and model.n_action_steps > model.chunk_size:
             raise ConfigError(f"model.n_action_steps={model.n_action_steps} must be <= model.chunk_size="
                               f"{model.chunk_size} (the executed part of each predicted chunk)")
         if model.expert_width % 18:

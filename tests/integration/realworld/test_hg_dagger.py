@@ -61,3 +61,106 @@ def test_hg_dagger_resumes_with_its_dataset(tmp_path):
     assert [r["step"] for r in again] == [1, 2]
     assert again[1]["dagger/dataset_rows"] == first[0]["dagger/dataset_rows"] + again[1]["dagger/added_rows"]
     assert again[1]["pipeline/version"] == first[0]["pipeline/version"] + 1
+    # New robot workers count from 0: the resumed run's steps go on from the checkpoint's by its one episode.
+    assert again[1]["env/steps"] == first[0]["env/steps"] + again[1]["rollout/episode_length_mean"]
+
+
+def config(**raw):
+    from infinirl.config import to_dataclass
+    from infinirl.runners.hg_dagger_config import HGDAggerConfig
+
+    return to_dataclass(HGDAggerConfig, {"output_dir": "runs/test_hg_dagger", **raw})
+
+
+@pytest.mark.parametrize("raw, message", [
+    ({"dagger": {"demo_policy": "metaworld_expert", "demo_options": {"taks": "push-v3"}}},
+     "dagger.demo_options.taks: not an option of demo policy 'metaworld_expert'; its options: task"),
+    ({"dagger": {"demo_options": {"task": "reach-v3"}}},
+     "dagger.demo_options.task: not an option of demo policy 'sawyer_goal'; its options: none"),
+    ({"dagger": {"demo_options": {"seed": 3}}}, "dagger.demo_options.seed: the runner passes the robot env"),
+    ({"interventions": {"device": "simulated_human", "as_demos": True}},
+     "interventions.as_demos=true feeds RLPD's demonstrations store (realworld_sac)"),
+])
+def test_config_errors_name_the_key_before_any_worker_starts(raw, message):
+    from infinirl.config import ConfigError
+
+    with pytest.raises(ConfigError) as error:
+        config(**raw).validate()
+    assert str(error.value).startswith(message) and "\n" not in str(error.value)
+    config(dagger={"demo_policy": "metaworld_expert", "demo_options": {"task": "push-v3"}}).validate()
+
+
+def test_the_robots_act_with_the_configured_network():
+    from infinirl.realworld.robot_worker import unit_box
+    from infinirl.runners.realworld_sac import net_spec_of
+
+    net = net_spec_of(config(network={"actor_hidden": [16], "layer_norm": True}))
+    assert any(type(m).__name__ == "LayerNorm" for m in net.build_actor(5, unit_box(2)).modules())
+
+
+class Done:
+    def __init__(self, value):
+        self.value = value
+
+    def wait(self, timeout=None):
+        return self.value
+
+
+class FakeRobot:
+    """One robot rank of a group: it has counted ``steps`` training steps since it was built."""
+
+    def __init__(self, steps=0):
+        self.steps, self.filmed = steps, []
+
+    def collect(self, episodes, deterministic):
+        self.steps += 10 * episodes
+        return Done([[]])
+
+    def stats(self):
+        return Done([{"counts": {"steps": self.steps}, "episodes": []}])
+
+    def call(self, method, episodes, path, ranks):
+        assert method == "record_video" and ranks == [0]
+        self.filmed.append((episodes, path))
+        return Done([{"path": path, "frames": 3, "success_rate": 0.0}])
+
+
+class FakeLearner:
+    def action_error(self, episodes):
+        return Done([float("nan")])
+
+    def aggregate(self, episodes):
+        return Done([{"added": 0, "size": 5}])
+
+    def train(self, updates):
+        return Done([{"loss": 0.1, "updates": updates, "version": 0}])
+
+    def published_version(self):
+        return Done([0])  # nothing published: no weight sync
+
+    def dataset_size(self):
+        return Done([5])
+
+    def save_checkpoint(self, path):
+        return Done([None])
+
+    load_checkpoint = save_checkpoint
+
+
+def test_env_steps_continue_across_a_resume_and_the_end_films_the_eval_video(tmp_path):
+    """The robots count their steps from when they were started, so a resumed run adds its
+    checkpoint's count; after the last iteration robot rank 0 films ``eval.video_episodes``."""
+    from infinirl.runners.hg_dagger import HGDAggerFlow
+
+    cfg = config(dagger={"episodes_per_iteration": 2})
+    first = HGDAggerFlow(cfg, FakeRobot(), FakeLearner())
+    assert first.step(0)["env/steps"] == 20
+    state = first.save(str(tmp_path))
+    resumed = HGDAggerFlow(cfg, FakeRobot(), FakeLearner())  # new robot workers count from 0
+    resumed.load(str(tmp_path), state)
+    assert resumed.step(1)["env/steps"] == 40
+    assert resumed.save(str(tmp_path)) == {"env_steps": 40}
+    summary = resumed.finish(str(tmp_path))
+    assert summary["video"] == str(tmp_path / "eval.mp4") and resumed.robots.filmed == [(1, summary["video"])]
+    quiet = HGDAggerFlow(config(eval={"video_episodes": 0}), FakeRobot(), FakeLearner())
+    assert quiet.finish(str(tmp_path))["video"] is None and quiet.robots.filmed == []

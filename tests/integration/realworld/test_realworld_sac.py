@@ -9,6 +9,7 @@ import re
 
 import numpy as np
 import pytest
+import torch
 
 # Not imported here: MetaWorld loads MuJoCo, which picks its GL backend once per process, and the
 # simulated robots choose a headless one before they import it (tests of cameras share this process).
@@ -73,6 +74,7 @@ def test_async_run_streams_versioned_episodes_and_resumes_with_the_store(ray_clu
     resumed_rows = rows_of(tmp_path / "resumed" / "metrics.jsonl")
     assert [r["step"] for r in resumed_rows] == [1, 2, 3]
     assert resumed_rows[1]["train/updates"] >= rows[0]["train/updates"]  # updates continue from the checkpoint
+    assert resumed_rows[1]["env/steps"] > rows[0]["env/steps"]  # and so do the robots' steps (new workers count from 0)
 
 
 @pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
@@ -97,6 +99,10 @@ def test_network_sections_build_the_actors_the_robots_act_with(tmp_path):
     assert isinstance(net_spec_of(make_cfg(tmp_path, 1, **FLOW)).build_actor(5, unit_box(2)), FlowSACActor)
     pixels = net_spec_of(make_cfg(tmp_path, 1, **PIXELS)).build_actor(5, unit_box(2), {"corner": (32, 32)})
     assert isinstance(pixels, EncodedActor) and list(pixels.encoder.cameras) == ["corner"]
+    normed = net_spec_of(make_cfg(tmp_path, 1, network={"actor_hidden": [32], "critic_hidden": [32],
+                                                         "layer_norm": True}))
+    assert normed.layer_norm
+    assert any(isinstance(m, torch.nn.LayerNorm) for m in normed.build_actor(5, unit_box(2)).modules())
     bad_flow = {"network": {**FLOW["network"], "flow": {"num_steps": 2, "hiden": [32]}}}
     with pytest.raises(ConfigError, match="network .actor=flow.*hiden"):  # before any worker (no cluster here)
         run(make_cfg(tmp_path / "bad_flow", 1, **bad_flow))
@@ -108,6 +114,8 @@ def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
                        ({"task": {"observations": ["pixels"]}}, "task.observations"),
                        ({"algorithm": {"batch_size": 64, "learning_starts": 10}}, "algorithm.learning_starts"),
                        ({"demos": {"episodes": 2, "policy": "nope"}}, "demos.policy"),
+                       ({"demos": {"episodes": 2, "policy": "metaworld_expert", "options": {"taks": "push-v3"}}},
+                        "demos.options.taks: not an option of demo policy 'metaworld_expert'; its options: task"),
                        ({"pipeline": {"mode": "fast"}}, "pipeline.mode"),
                        ({"network": {"encoder": "cnn"}}, "task.cameras"),
                        ({"network": {"encoder": "vit"}}, "network.encoder"),
@@ -129,6 +137,27 @@ def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
                         "image_size must be a positive int or [height, width]")):
         with pytest.raises(ConfigError, match=re.escape(key)):
             make_cfg(tmp_path / "bad", 1, **extra).validate()
+
+
+def test_env_steps_continue_from_the_checkpoint_whatever_the_robots_counted_before():
+    """A resumed run's ``env/steps`` go on from its checkpoint's: new robot workers count from 0, and a
+    robot that outlived the trainer (an edge node) had counted steps of the run that was stopped."""
+    from infinirl.runners.realworld_sac import RobotSteps
+
+    class Robots:
+        def __init__(self, steps):
+            self.steps = steps
+
+        def stats(self):
+            return type("Done", (), {"wait": lambda _, timeout=None: [{"counts": {"steps": self.steps}}]})()
+
+    for counted_before in (0, 35):
+        steps = RobotSteps()
+        steps.restore(100, Robots(counted_before))
+        assert steps.total == 100
+        assert steps.update([{"counts": {"steps": counted_before + 12}}]) == 112.0 and steps.total == 112
+    fresh = RobotSteps()
+    assert fresh.update([{"counts": {"steps": 7}}, {"counts": {}}]) == 7.0
 
 
 @pytest.mark.slow  # a whole run killed and run again (~90 s); the store's own kill -9 tests are in the unit tier

@@ -152,3 +152,89 @@ def test_rft_rounds_are_due_every_n_steps_and_first_with_an_initial_policy():
     assert due(init="runs/sft/policy") == [0, 3, 6, 9]
     off = RejectionSampling(to_dataclass(SFTConfig, {}), {}, CAMERA, 16)
     assert not off.enabled and not any(off.due(i) for i in range(10))
+
+
+def test_resume_refuses_a_new_length_under_the_cosine_schedule(tmp_path):
+    from infinirl.config import to_plain
+    from infinirl.runners.loop import RunLoop
+
+    def sft(**raw) -> SFTConfig:
+        return to_dataclass(SFTConfig, {"output_dir": str(tmp_path / "run"), "optim": {"warmup_steps": 1}, **raw})
+
+    recorded = to_plain(sft(iterations=4))
+    with pytest.raises(ConfigError, match=r"\(iterations: 4 -> 8\).*half-apply them \(optim.lr_schedule=cosine "
+                                          r"decays over iterations; .*optim.lr_schedule=constant\)") as error:
+        RunLoop(sft(iterations=8))._check_config("ckpt", recorded, 2)
+    assert "\n" not in str(error.value)
+    constant = {"warmup_steps": 1, "lr_schedule": "constant"}
+    RunLoop(sft(iterations=8, optim=constant))._check_config("ckpt", to_plain(sft(iterations=4, optim=constant)), 2)
+
+
+def test_resume_refuses_new_eval_tasks_only_when_they_are_also_the_rft_tasks(tmp_path):
+    from infinirl.config import to_plain
+    from infinirl.runners.loop import RunLoop
+
+    def sft(tasks, **raw) -> SFTConfig:
+        return to_dataclass(SFTConfig, {"output_dir": str(tmp_path / "run"), "eval": {"tasks": tasks}, **raw})
+
+    rft = {"rft": {"every": 5}}
+    with pytest.raises(ConfigError, match=r"eval.tasks: \['reach-v3'\] -> \['reach-v3', 'push-v3'\].*with "
+                                          r"rft.every > 0, eval.tasks also names the tasks the RFT rounds collect in"):
+        RunLoop(sft(["reach-v3", "push-v3"], **rft))._check_config("ckpt", to_plain(sft(["reach-v3"], **rft)), 2)
+    # Without RFT they are only evaluated: the change applies.
+    RunLoop(sft(["reach-v3", "push-v3"]))._check_config("ckpt", to_plain(sft(["reach-v3"])), 2)
+
+
+def test_optimizer_state_saved_on_a_gpu_loads_on_a_cpu_only_machine(tmp_path, monkeypatch):
+    """A checkpoint written on a GPU tags its tensors' storages cuda:0; ``device`` may change on
+    resume, so the optimizer state must load where there is no GPU."""
+    from infinirl.runners.sft import load_optimizer_state
+
+    weight = torch.nn.Parameter(torch.ones(3))
+    optimizer = torch.optim.AdamW([weight], lr=0.1)
+    weight.sum().backward()
+    optimizer.step()
+    with monkeypatch.context() as patch:  # written as a GPU run writes it
+        patch.setattr(torch.serialization, "location_tag", lambda storage: "cuda:0")
+        torch.save(optimizer.state_dict(), tmp_path / "optimizer.pt")
+    restored = torch.optim.AdamW([torch.nn.Parameter(torch.ones(3))], lr=0.1)
+    load_optimizer_state(restored, str(tmp_path / "optimizer.pt"))
+    state = next(iter(restored.state.values()))
+    assert state["exp_avg"].device.type == "cpu"
+    assert torch.equal(state["exp_avg"], next(iter(optimizer.state.values()))["exp_avg"])
+
+
+TINY_MODEL = {"language_layers": 1, "expert_width": 18, "expert_mlp_dim": 16, "vision_channels": [8, 8],
+              "chunk_size": 3, "n_action_steps": 2, "num_inference_steps": 2}
+
+
+@pytest.fixture(scope="module")
+def saved_policy(demos, tmp_path_factory):
+    from infinirl.models.vla.save import save_vla
+    from infinirl.runners.sft import build_model
+
+    vla = build_model(to_dataclass(SFTConfig, {"model": TINY_MODEL}), demos, {})
+    return save_vla(vla, tmp_path_factory.mktemp("init") / "policy")
+
+
+@pytest.mark.parametrize("model, frames, message", [
+    ({"n_action_steps": 4}, {}, r"^model.n_action_steps=4 exceeds the chunk of model.init=.* \(3 actions per "
+                                r"decision\); set model.n_action_steps <= 3$"),
+    ({}, {"state": 3}, r"^data.path: the dataset's observation.state has 3 dimensions but model.init=.* was trained "
+                       r"on 4; clone from demonstrations of the same robot"),
+    ({}, {"action": 2}, r"^data.path: the dataset's action has 2 dimensions but model.init=.* was trained on 4"),
+    ({}, {"camera_key": "observation.images.wrist"},
+     r"^data.camera_key: the dataset's camera 'observation.images.wrist' is not one model.init=.* reads"),
+])
+def test_an_initial_model_that_does_not_fit_is_a_one_line_error(demos, saved_policy, model, frames, message):
+    from dataclasses import replace
+
+    from infinirl.runners.sft import build_model
+
+    def cfg(**model) -> SFTConfig:  # model.chunk_size (8 by default) is a new model's, not checked against
+        return to_dataclass(SFTConfig, {"model": {"init": str(saved_policy), "n_action_steps": 3, **model}})
+
+    changed = {key: (getattr(demos, key)[:, :size] if isinstance(size, int) else size) for key, size in frames.items()}
+    with pytest.raises(ConfigError, match=message):
+        build_model(cfg(**model), replace(demos, **changed), {})
+    assert build_model(cfg(), demos, {}).config.chunk_size == 3
