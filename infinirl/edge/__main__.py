@@ -147,7 +147,8 @@ def _edge_node(args) -> int:
     from infinirl.realworld.safety import SafeRobot, SafetyConfig
 
     stop = _stop_event()
-    spool = EpisodeSpool(args.spool, max_bytes=int(args.spool_gib * (1 << 30)))
+    # durable: an episode the robot recorded must survive a power loss at the edge until the cloud has it
+    spool = EpisodeSpool(args.spool, max_bytes=int(args.spool_gib * (1 << 30)), durable=True)
     size = tuple(int(v) for v in args.frame_size.split("x")) if args.frame_size else None
     try:  # bad files or a refused certificate stop the node before the robot moves; an unreachable cloud not
         client = EdgeClient(args.cloud, TlsFiles.in_folder(args.certs, args.name), name=args.name, spool=spool,

@@ -2,14 +2,18 @@
 
 :class:`CloudHub` listens for edges (one accept thread; a refused one is logged and kept in
 :attr:`CloudHub.refusals`, one line each). For each connected edge it receives episodes and hands each
-new episode id to ``on_episode(edge, episode_id, episode)`` exactly once (an id seen before, from a
-resend after an outage, is not delivered again). When ``on_episode`` raises, the hub closes that
-edge's link, and the edge resends the episode on its next one. An episode is acknowledged (the edge
-then forgets it) only after ``on_episode`` returned, or with ``commit_acks=True`` only once the
-owner calls :meth:`CloudHub.commit` with its id: when the episode is in durable storage (the
-learner's replay store), so neither a trainer that dies nor a link that drops in between loses it.
-A resend of a committed id is acknowledged again at once; one of a delivered, not yet committed id
-waits for its commit, whose acknowledgement goes on the edge's link of that moment. Episode ids must start
+new episode id to ``on_episode(edge, episode_id, episode)`` once (an id seen before, from a resend
+after an outage, is not delivered again; with ``commit_acks``, see below, one not yet committed is).
+When ``on_episode`` raises, the hub closes that edge's link, and the edge resends the episode on its
+next one. An episode is acknowledged (the edge then forgets it) only after ``on_episode`` returned,
+or with ``commit_acks=True`` only once the owner calls :meth:`CloudHub.commit` with its id: when the
+episode is in durable storage (the learner's replay store), so neither a trainer that dies nor a
+link that drops in between loses it.
+A resend of a committed id is acknowledged again at once. One of a delivered, not yet committed id
+is delivered again, since the owner's report of its commit may have been lost (the owner must
+recognise ids it stored, as the replay store does by source id, and report them committed again);
+its acknowledgement follows the commit, on the edge's link of that moment. Without it, such an id
+would stay unacknowledged and hold one of the edge's in-flight slots for good. Episode ids must start
 with the edge's certificate name and a dash (:class:`~infinirl.edge.edge_client.EdgeClient` names
 them so); an edge sending another id is disconnected, so no edge can shadow another's episodes. Seen ids are kept in
 memory; pass ``seen_ids`` (e.g. from the replay store) when the cloud restarts.
@@ -209,6 +213,10 @@ class CloudHub:
         except (LinkError, OSError) as exc:
             logger.info("edge connection failed: %s", exc)
             return
+        except Exception as exc:  # the handshake closed the socket; the edge retries, and this says why
+            logger.error("edge connection at %s:%s failed during its handshake (%r)", *address[:2], exc,
+                         exc_info=True)
+            return
         if self._stop.is_set():
             link.close("the cloud is shutting down")
             return
@@ -279,9 +287,12 @@ class CloudHub:
 
     def _take(self, link: Link, episode_id: str, episode: dict) -> bool:
         """Deliver a new id, acknowledge it when due; False when the delivery failed (link closed)."""
-        with self._deliver_lock:  # one delivery per id, also across an old and a new connection
+        with self._deliver_lock:  # one delivery at a time, also across an old and a new connection
             fresh = episode_id not in self._seen
-            if fresh:
+            # Delivered, not committed: the owner's commit report may be lost, and then only a new
+            # delivery (which the owner recognises) brings the commit that acknowledges it.
+            again = not fresh and episode_id not in self._committed
+            if fresh or again:
                 try:
                     self.on_episode(link.peer, episode_id, episode)
                 except Exception as exc:  # not acknowledged: the edge resends it on its next link
@@ -294,6 +305,7 @@ class CloudHub:
                     self._committed.add(episode_id)
             due = episode_id in self._committed  # else: acknowledged by commit()
         self.counts["episodes" if fresh else "duplicates"] += 1
+        self.counts["redelivered"] += int(again)
         if due:
             link.send(protocol.EPISODE_ACKS, protocol.dump({"ids": [episode_id]}), timeout=self.options.send_timeout_s)
         return True
@@ -331,13 +343,26 @@ class CloudHub:
             acks.join(timeout=5.0)
 
     def _receive_weight_acks(self, link: Link, state: _EdgeState) -> None:
+        try:
+            self._follow_weight_acks(link, state)
+        except Exception as exc:  # a receiver gone while the link lives would leave a push pending for good
+            reason = f"edge {link.peer}: weight acknowledgements stopped ({exc!r})"
+            self.counts["receive_failures"] += 1
+            logger.error("%s; closing its link", reason, exc_info=not isinstance(exc, protocol.ProtocolError))
+            link.close(reason)
+
+    def _follow_weight_acks(self, link: Link, state: _EdgeState) -> None:
         while link.alive and not self._stop.is_set():
             try:
-                message = protocol.load(link.recv(protocol.WEIGHT_ACKS, timeout=1.0))
+                payload = link.recv(protocol.WEIGHT_ACKS, timeout=1.0)
             except TimeoutError:
                 continue
             except LinkError:
                 return
+            message = protocol.load(payload)
+            if not isinstance(message.get("refused", message.get("digest")), str):
+                raise protocol.ProtocolError(f"a weights acknowledgement with neither a digest nor a refusal: "
+                                             f"{payload[:80]!r}")
             with self._changed:
                 if "refused" in message:
                     logger.warning("edge %s refused a weight push: %s", link.peer, message["refused"])

@@ -29,11 +29,12 @@ import struct
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import BinaryIO
 
 import numpy as np
 
-__all__ = ["FrameOptions", "HeldWeights", "WeightBaseError", "decode_episode", "decode_weights", "encode_episode",
-           "encode_weights", "weights_digest", "weights_header"]
+__all__ = ["FrameOptions", "HeldWeights", "WeightBaseError", "check_episode_file", "decode_episode", "decode_weights",
+           "encode_episode", "encode_weights", "weights_digest", "weights_header"]
 
 _EPISODE_MAGIC, _WEIGHTS_MAGIC = b"IEP1", b"IWT1"
 _LENGTH = struct.Struct("!I")
@@ -137,6 +138,30 @@ def decode_episode(payload: bytes) -> tuple[str, dict[str, np.ndarray]]:
                              f"header says {field['shape']}")
         episode[field["name"]] = array.copy()
     return header["id"], episode
+
+
+def check_episode_file(handle: BinaryIO, size: int) -> str:
+    """The id of the encoded episode in ``handle`` (``size`` bytes), after checking that the bytes
+    are its header and exactly the body that header describes; ``ValueError`` naming what is wrong.
+    Reads the header only, so a folder of large episodes is checked quickly (a torn or truncated
+    file differs in its magic or its length)."""
+    prefix = handle.read(len(_EPISODE_MAGIC) + _LENGTH.size)
+    if len(prefix) < len(_EPISODE_MAGIC) + _LENGTH.size or prefix[:4] != _EPISODE_MAGIC:
+        raise ValueError(f"not an encoded episode ({size} bytes, starting {prefix[:8]!r})")
+    (length,) = _LENGTH.unpack_from(prefix, 4)
+    start = len(prefix) + length
+    if start > size:
+        raise ValueError(f"truncated: {size} bytes, but its header alone is {start}")
+    try:
+        header = json.loads(handle.read(length))
+        body = sum(int(part) for field in header["fields"] for part in field["sizes"])
+        episode_id = header["id"]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"its header is malformed ({exc!r})") from None
+    if start + body != size or not isinstance(episode_id, str):
+        raise ValueError(f"{size} bytes, but its header describes {start + body}"
+                         if start + body != size else f"episode id {episode_id!r} is not a string")
+    return episode_id
 
 
 # ---------------------------------------------------------------------------------------- weights

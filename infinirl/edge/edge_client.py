@@ -175,8 +175,13 @@ class EdgeClient:
         return True
 
     def check(self) -> None:
-        if self.error is not None:
-            raise LinkAuthError(str(self.error)) if isinstance(self.error, LinkAuthError) else self.error
+        """Raise what ended the client's thread: a refused certificate, or the failure that stopped it."""
+        error = self.error
+        if isinstance(error, LinkAuthError):
+            raise LinkAuthError(str(error))
+        if error is not None:
+            raise RuntimeError(f"edge {self.name}: the link's thread failed ({error!r}); episodes stay in "
+                               "the spool") from error
 
     def stats(self) -> dict:
         return {**self.counts, "spooled_episodes": len(self.spool), "spooled_bytes": self.spool.bytes,
@@ -196,6 +201,16 @@ class EdgeClient:
                 "weights_digest": held.digest if held else None}
 
     def _run(self) -> None:
+        try:
+            self._connect_loop()
+        except BaseException as exc:  # a dead thread must not pass for an outage: check() raises it
+            logger.error("edge %s: the link's thread failed; the client stops", self.name, exc_info=True)
+            self.error = exc
+        finally:
+            with self._changed:  # waiters look at self.error now rather than at their timeout
+                self._changed.notify_all()
+
+    def _connect_loop(self) -> None:
         backoff = self.options.reconnect_min_s
         while not self._stop.is_set():
             try:
@@ -210,12 +225,17 @@ class EdgeClient:
                 self._stop.wait(backoff * random.uniform(0.8, 1.2))
                 backoff = min(backoff * 2, self.options.reconnect_max_s)
                 continue
-            backoff = self.options.reconnect_min_s
             self.counts["connects"] += 1
             self._back_online()
             self._link, self._offline_since = link, None
+            failed = False
             try:
                 self._session(link)
+            except OSError as exc:  # e.g. the spool's disk: that may pass, so another link after the backoff
+                failed = True
+                self.counts["session_failures"] += 1
+                logger.warning("edge %s: sending failed (%r)", self.name, exc)
+                link.close(f"the edge could not send ({exc!r})")
             finally:
                 link.close("session ended")
                 self._offline_since = link.closed_at or time.monotonic()
@@ -223,6 +243,11 @@ class EdgeClient:
                 self._link = None
                 self.counts["disconnects"] += 1
                 logger.warning("edge %s: link lost (%s); reconnecting", self.name, link.closed_reason)
+            if failed:  # a failure that repeats on every link must not make the edge redial at once, in a loop
+                self._stop.wait(backoff * random.uniform(0.8, 1.2))
+                backoff = min(backoff * 2, self.options.reconnect_max_s)
+            else:
+                backoff = self.options.reconnect_min_s
 
     def _back_online(self) -> None:
         """After an outage: count it, and say how long it lasted and what the spool took meanwhile."""
@@ -243,8 +268,10 @@ class EdgeClient:
         # always answered, also without targets: unread tunnel messages would fill the stream's inbox
         with self._targets_lock:
             self.tunnel = TunnelEnd(link, targets=self.tunnel_targets, options=self.options.tunnel).start()
-        receivers = [threading.Thread(target=self._receive_acks, args=(link, in_flight), daemon=True),
-                     threading.Thread(target=self._receive_weights, args=(link,), daemon=True)]
+        receivers = [threading.Thread(target=self._receiver("acknowledgement receiver", self._receive_acks, link,
+                                                            in_flight), daemon=True),
+                     threading.Thread(target=self._receiver("weights receiver", self._receive_weights, link),
+                                      daemon=True)]
         for thread in receivers:
             thread.start()
         sent_here: set[str] = set()
@@ -257,12 +284,20 @@ class EdgeClient:
                         continue
                 episode_id = pending[0]
                 payload = self.spool.read(episode_id)
-                if payload is None:  # acknowledged meanwhile
+                if payload is None:  # acknowledged meanwhile (or its file is gone): no longer in the spool
                     continue
-                link.send(protocol.EPISODES, payload, timeout=self.options.send_timeout_s)
-                sent_here.add(episode_id)
+                # In flight before it is on the wire: an acknowledgement arriving before the add would
+                # find nothing to discard, and the slot would stay taken for the rest of the link.
                 with self._changed:
                     in_flight.add(episode_id)
+                    sent_here.add(episode_id)
+                try:
+                    link.send(protocol.EPISODES, payload, timeout=self.options.send_timeout_s)
+                except BaseException:
+                    with self._changed:
+                        in_flight.discard(episode_id)
+                        sent_here.discard(episode_id)
+                    raise
                 self.counts["episode_sends"] += 1
                 self.counts["episode_bytes"] += len(payload)
         except (LinkError, TimeoutError) as exc:
@@ -273,16 +308,31 @@ class EdgeClient:
             for thread in receivers:
                 thread.join(timeout=5.0)
 
+    def _receiver(self, what: str, receive: Callable[..., None], link: Link, *args) -> Callable[[], None]:
+        """``receive(link, *args)`` for a receiver thread: whatever fails in it closes the link with the
+        reason, for a receiver that is gone while the link looks alive would stop acknowledgements
+        (the window fills and sending stops) or weights for good; the next link starts new ones."""
+        def run() -> None:
+            try:
+                receive(link, *args)
+            except Exception as exc:
+                reason = f"the edge's {what} failed ({exc!r})"
+                logger.error("edge %s: %s; reconnecting", self.name, reason,
+                             exc_info=not isinstance(exc, protocol.ProtocolError))
+                self.counts["receive_failures"] += 1
+                link.close(reason)
+        return run
+
     def _receive_acks(self, link: Link, in_flight: set[str]) -> None:
         while link.alive:
             try:
-                message = protocol.load(link.recv(protocol.EPISODE_ACKS, timeout=1.0))
+                ids = protocol.load_episode_ids(link.recv(protocol.EPISODE_ACKS, timeout=1.0))
             except TimeoutError:
                 continue
             except LinkError:
                 return
             with self._changed:
-                for episode_id in message["ids"]:
+                for episode_id in ids:
                     in_flight.discard(episode_id)
                     self.counts["episodes_acked"] += int(self.spool.remove(episode_id))
                 self._changed.notify_all()
@@ -297,8 +347,9 @@ class EdgeClient:
                 return
             try:
                 held = decode_weights(payload, self.weights)
-            except (WeightBaseError, ValueError) as exc:
-                logger.warning("edge %s: %s", self.name, exc)
+            except Exception as exc:  # the payload is the only input (zlib.error is no ValueError): refused,
+                # so the cloud sends the next push in full rather than the link closing on every push
+                logger.warning("edge %s: %s", self.name, exc if isinstance(exc, WeightBaseError) else repr(exc))
                 self.counts["weights_refused"] += 1
                 reply = {"refused": str(exc)}
             else:

@@ -43,6 +43,9 @@ logger = logging.getLogger(__name__)
 
 PROTOCOL_VERSION = 1
 HELLO, WELCOME, HEARTBEAT = "link.hello", "link.welcome", "link.heartbeat"
+# The cloud's answer instead of a welcome when it refuses a hello: the edge must tell a refusal, which
+# is permanent, from a connection that merely dropped during the hello, which is worth retrying.
+REFUSED = "link.refused"
 _CHUNK = 1 << 16
 _POLL_S = 0.05
 # Bytes one direction may move per turn of the I/O loop: a sustained one-way flood must not keep the
@@ -103,14 +106,35 @@ def _read_frame_blocking(sock: ssl.SSLSocket, reader: FrameReader, deadline: flo
             return frames[0][0], frames[0][1], frames[1:]
 
 
+def _alert_after_close(sock: ssl.SSLSocket, deadline: float) -> ssl.SSLError | None:
+    """The TLS alert the peer sent before it closed the connection, if one is still unread."""
+    try:
+        sock.settimeout(min(max(deadline - time.monotonic(), 0.01), 1.0))
+        sock.recv(_CHUNK)
+    except (ssl.SSLEOFError, ssl.SSLZeroReturnError):
+        return None
+    except ssl.SSLError as exc:
+        return exc
+    except OSError:
+        return None
+    return None
+
+
 def _hello_payload(extra: dict | None) -> bytes:
     return json.dumps({"protocol": PROTOCOL_VERSION, **(extra or {})}).encode()
 
 
 def _parse_hello(stream: str, payload: bytes, expected: str, peer: str) -> dict:
+    if stream == REFUSED:
+        raise LinkAuthError(f"{peer} refused this edge: {payload.decode(errors='replace')}")
     if stream != expected:
         raise LinkAuthError(f"{peer} sent stream {stream!r} before its {expected!r}: not an InfiniRL edge link peer")
-    hello = json.loads(payload)
+    try:
+        hello = json.loads(payload)
+    except ValueError:
+        hello = None
+    if not isinstance(hello, dict):  # anything else is not a peer of this protocol, and .get would fail
+        raise LinkAuthError(f"{peer} sent a {expected!r} that is not a JSON object: not an InfiniRL edge link peer")
     if hello.get("protocol") != PROTOCOL_VERSION:
         raise LinkAuthError(f"{peer} speaks edge link protocol {hello.get('protocol')}, this side "
                             f"{PROTOCOL_VERSION}: run the same InfiniRL version on both ends")
@@ -158,11 +182,19 @@ class CloudListener:
             stream, payload, rest = _read_frame_blocking(sock, reader, deadline)
             hello = _parse_hello(stream, payload, HELLO, f"{who} ({peer})")
             sock.sendall(encode_frame(WELCOME, _hello_payload(self._welcome)))
+        except LinkAuthError as exc:
+            try:  # say so: the edge takes a bare close during the hello for an outage and retries
+                sock.sendall(encode_frame(REFUSED, str(exc).encode()))
+            except OSError:
+                pass
+            sock.close()
+            raise
         except (OSError, ValueError, FrameError) as exc:
             sock.close()
-            if isinstance(exc, LinkAuthError):
-                raise
             raise LinkError(f"{who} ({peer}): hello failed ({exc})") from None
+        except BaseException:
+            sock.close()
+            raise
         return Link(sock, peer=peer, hello=hello, options=self.options, reader=reader, early=rest)
 
     def close(self) -> None:
@@ -201,14 +233,23 @@ def dial(address: tuple[str, int], context: ssl.SSLContext, *, options: LinkOpti
         reader = FrameReader()
         stream, payload, rest = _read_frame_blocking(sock, reader, deadline)
         welcome = _parse_hello(stream, payload, WELCOME, where)
+    except LinkAuthError:
+        sock.close()
+        raise
+    except (ssl.SSLEOFError, ssl.SSLZeroReturnError, ConnectionError) as exc:  # LinkClosedError included
+        # A refusal is a TLS alert (or a link.refused frame); a bare close is a drop (a proxy, NAT or a
+        # cloud restarting), worth retrying, as giving up would keep the edge offline for good. Writing
+        # the hello can meet the close before the alert that came with it has been read: read it now.
+        alert = _alert_after_close(sock, deadline)
+        sock.close()
+        if alert is not None:
+            raise LinkAuthError(f"{where} refused this edge's certificate ({alert.reason or alert}); use the "
+                                "certificate and key the cloud's CA issued for this edge") from None
+        raise LinkError(f"{where} closed the connection during the hello ({exc}); retrying") from None
     except ssl.SSLError as exc:  # TLS 1.3: the server checks our certificate after our side finished
         sock.close()
         raise LinkAuthError(f"{where} refused this edge's certificate ({exc.reason or exc}); use the "
                             "certificate and key the cloud's CA issued for this edge") from None
-    except (LinkClosedError, ConnectionResetError, BrokenPipeError) as exc:
-        sock.close()
-        raise LinkAuthError(f"{where} closed the connection during the hello ({exc}): it refused this edge's "
-                            "certificate or is not an InfiniRL cloud") from None
     except BaseException:
         sock.close()
         raise
@@ -234,6 +275,7 @@ class Link:
         self._stalled: collections.deque[tuple[str, bytes]] = collections.deque(early or ())
         self._closed_reason: str | None = None
         self._more_to_read = False  # the last read stopped at its per-turn budget
+        self._paused = False  # reading stopped while a stream's inbox is full: recv wakes the I/O thread
         self.closed_at: float | None = None  # time.monotonic() when it closed
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
@@ -273,12 +315,16 @@ class Link:
         deadline = time.monotonic() + timeout
         while True:
             try:
-                return inbox.get(timeout=min(max(deadline - time.monotonic(), 0.0), _POLL_S * 4))
+                payload = inbox.get(timeout=min(max(deadline - time.monotonic(), 0.0), _POLL_S * 4))
             except queue.Empty:
                 self._raise_if_closed()
                 if time.monotonic() >= deadline:
                     raise TimeoutError(f"link to {self.peer}: nothing on stream {stream!r} "
                                        f"within {timeout} s") from None
+                continue
+            if self._paused:  # there is room now: the I/O thread reads on without waiting out its poll
+                self._wake()
+            return payload
 
     def flush(self, timeout: float) -> None:
         """Wait until every queued frame has been handed to the socket."""
@@ -385,17 +431,33 @@ class Link:
                 self._space.notify_all()
         return sent
 
+    def _watch(self, selector: selectors.BaseSelector, watched: int, events: int) -> int:
+        """Select the socket for ``events`` (none: not at all); returns them."""
+        if events != watched:
+            if not events:
+                selector.unregister(self._sock)
+            elif not watched:
+                selector.register(self._sock, events)
+            else:
+                selector.modify(self._sock, events)
+        return events
+
     def _run(self) -> None:
         selector = selectors.DefaultSelector()
         selector.register(self._wake_r, selectors.EVENT_READ)
-        selector.register(self._sock, selectors.EVENT_READ)
+        watched = 0  # the socket's events in the selector (0: not registered)
         last_rx = last_tx = time.monotonic()
         try:
             while self._closed_reason is None:
                 with self._lock:
                     pending = self._out_bytes > 0
-                selector.modify(self._sock, selectors.EVENT_READ | (selectors.EVENT_WRITE if pending else 0))
-                selector.select(timeout=0 if self._more_to_read else _POLL_S)
+                # While an inbox is full the socket stays unread, so it stays readable: selecting on that
+                # would return at once, every turn, and spin this thread. Wait for a consumer's wake-up
+                # (or the poll) instead.
+                self._paused = not self._deliver_stalled()
+                events = (0 if self._paused else selectors.EVENT_READ) | (selectors.EVENT_WRITE if pending else 0)
+                watched = self._watch(selector, watched, events)
+                selector.select(timeout=0 if self._more_to_read and not self._paused else _POLL_S)
                 try:
                     while self._wake_r.recv(4096):
                         pass

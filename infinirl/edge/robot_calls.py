@@ -5,7 +5,9 @@ The trainer drives a robot at the edge the way it drives a Ray robot worker, by 
 is one JSON frame on ``robot.call`` (cloud to edge: ``{"id", "method", "args"}``); its answer is one
 JSON frame on ``robot.reply`` (``{"id", "result", "error", "episodes": k}``) followed by ``k``
 episode frames (:func:`~infinirl.edge.codec.encode_episode`; the demonstrations a call recorded).
-Answers are JSON and episodes, never pickles: the cloud runs nothing an edge sends.
+Answers are JSON and episodes, never pickles: the cloud runs nothing an edge sends. Episode frames
+are named after their call (``reply-<id>-<index>``); the caller skips the episode frames of an answer
+it gave up waiting for, and turns a reply it cannot read into a :class:`RobotCallError`.
 
 :class:`RobotCaller` (cloud) makes one call at a time on the edge's present link; when the link
 drops during a call, it repeats the call on the next link (the calls are safe to repeat: ``start``
@@ -15,6 +17,7 @@ and ``stop`` are idempotent, a repeated ``stats`` loses at most one window's epi
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import threading
@@ -23,7 +26,7 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from infinirl.edge.codec import decode_episode, encode_episode
+from infinirl.edge.codec import check_episode_file, decode_episode, encode_episode
 from infinirl.edge.link import LinkError
 
 __all__ = ["ROBOT_CALLS", "ROBOT_REPLIES", "RobotCallError", "RobotCallServer", "RobotCaller"]
@@ -89,16 +92,56 @@ class RobotCaller:
                                          f"{timeout:.0f} s") from None
 
     def _exchange(self, link, call_id: int, method: str, payload: bytes, deadline: float):
+        def receive() -> bytes:
+            return link.recv(ROBOT_REPLIES, timeout=max(deadline - time.monotonic(), 0.01))
+
         link.send(ROBOT_CALLS, payload, timeout=max(deadline - time.monotonic(), 0.01))
         while True:
-            header = json.loads(link.recv(ROBOT_REPLIES, timeout=max(deadline - time.monotonic(), 0.01)))
-            episodes = [decode_episode(link.recv(ROBOT_REPLIES, timeout=max(deadline - time.monotonic(), 0.01)))[1]
-                        for _ in range(header.get("episodes", 0))]
-            if header["id"] != call_id:  # the answer to a call that timed out before: not ours
+            frame = receive()
+            if _is_episode(frame):  # the rest of an answer whose call timed out partway through its episodes
                 continue
+            header = self._header(frame, method)
+            if header["id"] != call_id:  # the answer to a call that timed out before: not ours
+                for _ in range(header["episodes"]):
+                    receive()
+                continue
+            episodes = []
+            for index in range(header["episodes"]):
+                episodes.append(self._episode(receive(), f"reply-{call_id}-{index}", method))
             if header.get("error"):
                 raise RobotCallError(f"edge {self.edge}: robot call {method!r} failed: {header['error']}")
             return header.get("result"), episodes
+
+    def _header(self, frame: bytes, method: str) -> dict:
+        try:
+            header = json.loads(frame)
+        except ValueError as exc:
+            header, problem = None, f"not JSON ({exc})"
+        else:
+            problem = "not a JSON object with an id and an episode count"
+        if not (isinstance(header, dict) and "id" in header and isinstance(header.get("episodes", 0), int)):
+            raise RobotCallError(f"edge {self.edge}: robot call {method!r}: unreadable reply ({problem}): "
+                                 f"{bytes(frame[:80])!r}")
+        return {**header, "episodes": header.get("episodes", 0)}
+
+    def _episode(self, frame: bytes, expected: str, method: str) -> dict:
+        try:
+            episode_id, episode = decode_episode(frame)
+        except Exception as exc:  # the frame is the only input: whatever fails, it is not an episode
+            raise RobotCallError(f"edge {self.edge}: robot call {method!r}: an episode of its answer could not be "
+                                 f"decoded ({exc!r})") from None
+        if episode_id != expected:
+            raise RobotCallError(f"edge {self.edge}: robot call {method!r}: got episode {episode_id!r} where "
+                                 f"{expected!r} belongs")
+        return episode
+
+
+def _is_episode(frame: bytes) -> bool:
+    try:
+        check_episode_file(io.BytesIO(frame), len(frame))
+    except ValueError:
+        return False
+    return True
 
 
 class RobotCallServer:
@@ -126,10 +169,17 @@ class RobotCallServer:
                 self._stop.wait(_POLL_S)
                 continue
             try:
-                call = json.loads(link.recv(ROBOT_CALLS, timeout=_POLL_S * 5))
+                payload = link.recv(ROBOT_CALLS, timeout=_POLL_S * 5)
             except TimeoutError:
                 continue
             except LinkError:
+                continue
+            try:
+                call = json.loads(payload)
+            except ValueError:
+                call = None
+            if not isinstance(call, dict):  # answered nowhere: without an id the cloud could not match it
+                logger.warning("robot calls: ignored a call that is not a JSON object: %r", payload[:80])
                 continue
             self._answer(link, call)
 

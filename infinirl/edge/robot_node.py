@@ -172,7 +172,7 @@ def run_robot_node(cfg, build_loop: Callable[[], RobotControlLoop], *, cloud: tu
     files.check()
     spool_dir = spool or cfg.edge.spool or os.path.join(cfg.output_dir, "edge", "spool")
     client = EdgeClient(cloud, files, name=name,
-                        spool=EpisodeSpool(spool_dir, max_bytes=int(cfg.edge.spool_gib * (1 << 30))),
+                        spool=EpisodeSpool(spool_dir, max_bytes=int(cfg.edge.spool_gib * (1 << 30)), durable=True),
                         frames=FrameOptions(format=cfg.edge.frame_format, quality=cfg.edge.jpeg_quality),
                         options=edge_options_of(cfg)).start()
     server = None

@@ -4,6 +4,7 @@ and the process's random-number-generator state."""
 from infinirl.utils.atomic import (
     atomic_open,
     atomic_path,
+    fsync_directory,
     replace_directory,
     torch_save_atomic,
     write_json_atomic,
@@ -14,6 +15,7 @@ from infinirl.utils.rng import capture_rng_state, restore_rng_state, seed_everyt
 __all__ = [
     "atomic_open",
     "atomic_path",
+    "fsync_directory",
     "capture_rng_state",
     "replace_directory",
     "restore_rng_state",

@@ -20,7 +20,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_open", "atomic_path", "new_file_mode", "replace_directory", "torch_save_atomic",
+__all__ = ["atomic_open", "atomic_path", "fsync_directory", "new_file_mode", "replace_directory", "torch_save_atomic",
            "write_json_atomic", "write_text_atomic"]
 
 _umask_lock = threading.Lock()
@@ -41,6 +41,15 @@ def new_file_mode() -> int:
     return 0o666 & ~mask
 
 
+def fsync_directory(path: str | os.PathLike) -> None:
+    """Make a created/renamed entry of ``path`` durable (the rename itself is in the directory)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def _temporary_beside(path: str, suffix: str, permissions: int | None = None) -> tuple[int, str]:
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
@@ -55,10 +64,10 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb", suffix: str = ".tmp",
     """Open a temporary file beside ``path`` for writing; on a clean exit it replaces ``path``.
 
     ``suffix`` ends the temporary name (writers that pick a format by extension need it, e.g.
-    ``".tmp.mp4"``). ``durable``: ``fsync`` the data before the rename, so the new file survives a
-    power loss too (replay buffers, whose contents cannot be recomputed). ``permissions``: the new
-    file's mode bits, set before any byte is written (e.g. ``0o600`` for a private key; default:
-    what a plain ``open`` gives)."""
+    ``".tmp.mp4"``). ``durable``: ``fsync`` the data before the rename and the folder after it, so
+    the new file survives a power loss too (replay buffers, whose contents cannot be recomputed).
+    ``permissions``: the new file's mode bits, set before any byte is written (e.g. ``0o600`` for a
+    private key; default: what a plain ``open`` gives)."""
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_open writes whole files: mode must be 'w' or 'wb', got {mode!r}")
     path = os.fspath(path)
@@ -70,6 +79,8 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb", suffix: str = ".tmp",
             if durable:
                 os.fsync(handle.fileno())
         os.replace(tmp, path)
+        if durable:  # the rename lives in the folder: without this a power loss may undo it
+            fsync_directory(os.path.dirname(os.path.abspath(path)))
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -30,21 +30,12 @@ from infinirl.realworld.replay.log import (
     scan_records,
 )
 from infinirl.realworld.replay.spec import EpisodeSpec
-from infinirl.utils.atomic import atomic_open
+from infinirl.utils.atomic import atomic_open, fsync_directory
 
 __all__ = ["LOG_NAME", "SEALED_NAME", "Segment", "fsync_directory"]
 
 LOG_NAME = "episodes.log"
 SEALED_NAME = "sealed.json"
-
-
-def fsync_directory(path: str) -> None:
-    """Make a created/renamed entry of ``path`` durable (the rename itself is in the directory)."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _write_all(fd: int, data) -> None:

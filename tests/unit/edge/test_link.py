@@ -3,12 +3,23 @@ streams share one connection both ways; every call has a timeout; a silent outag
 
 import socket
 import threading
+import time
 
 import pytest
 
-from infinirl.edge.credentials import TlsFiles, client_context, server_context
+from infinirl.edge.credentials import CLOUD_NAME, TlsFiles, client_context, server_context
 from infinirl.edge.emulator import EmulatorSpec, LinkEmulator
-from infinirl.edge.link import CloudListener, LinkAuthError, LinkClosedError, LinkError, LinkOptions, dial
+from infinirl.edge.frames import FrameReader, encode_frame
+from infinirl.edge.link import (
+    HELLO,
+    REFUSED,
+    CloudListener,
+    LinkAuthError,
+    LinkClosedError,
+    LinkError,
+    LinkOptions,
+    dial,
+)
 
 FAST = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=5.0)
 QUICK_TO_DIE = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=1.0)
@@ -118,6 +129,80 @@ def test_a_connection_dropped_during_the_handshake_is_retryable_not_a_refusal(cr
     finally:
         closer.join(5)
         server.close()
+
+
+def test_a_connection_dropped_during_the_hello_is_retryable_not_a_refusal(credentials):
+    """A cloud that completes the TLS handshake (this edge's certificate verified) and then closes
+    without a word, as one restarting does: an outage to retry, not a refusal that stops the edge."""
+    server = socket.create_server(("127.0.0.1", 0))
+    context = server_context(credentials["cloud"])
+
+    def accept_then_close():
+        raw, _ = server.accept()
+        raw.settimeout(5.0)
+        context.wrap_socket(raw, server_side=True).close()
+
+    closer = threading.Thread(target=accept_then_close, daemon=True)
+    closer.start()
+    try:
+        with pytest.raises(LinkError) as error:
+            dial(server.getsockname(), client_context(credentials["edge-0"]), options=FAST)
+        assert not isinstance(error.value, LinkAuthError) and "during the hello" in str(error.value)
+    finally:
+        closer.join(5)
+        server.close()
+
+
+def test_a_hello_the_cloud_refuses_is_a_refusal_at_the_edge(listener, credentials):
+    """The cloud says why it refuses a hello (here: another protocol version), so the edge tells it
+    from a connection that dropped and does not retry it."""
+    thread, result = accept_in_background(listener)
+    with pytest.raises(LinkAuthError, match="refused this edge: .*speaks edge link protocol 99"):
+        dial(listener.address, client_context(credentials["edge-0"]), options=FAST, hello={"protocol": 99})
+    thread.join()
+    assert isinstance(result["error"], LinkAuthError) and "link" not in result
+
+
+def test_a_hello_that_is_not_a_json_object_is_refused_and_closed(listener, credentials):
+    thread, result = accept_in_background(listener)
+    raw = socket.create_connection(listener.address, timeout=5.0)
+    with client_context(credentials["edge-0"]).wrap_socket(raw, server_hostname=CLOUD_NAME) as sock:
+        sock.sendall(encode_frame(HELLO, b"[1, 2]"))
+        reader, frames = FrameReader(), []
+        while not frames:
+            data = sock.recv(65536)
+            assert data, "closed without saying why"
+            frames = reader.feed(data)
+        assert frames[0][0] == REFUSED and b"not a JSON object" in frames[0][1]
+        assert sock.recv(65536) == b""  # and closed
+    thread.join()
+    assert isinstance(result["error"], LinkAuthError) and "not a JSON object" in str(result["error"])
+
+
+def test_a_full_inbox_does_not_spin_the_links_thread(credentials):
+    """While a stream's inbox is full the link stops reading (the peer's bytes wait in TCP's window):
+    its I/O thread then waits for the consumer instead of selecting on a socket that stays readable."""
+    options = LinkOptions(connect_timeout_s=5.0, heartbeat_s=0.2, dead_after_s=30.0, max_queued_frames=2)
+    with CloudListener("127.0.0.1", 0, server_context(credentials["cloud"]), options=options) as listener:
+        thread, result = accept_in_background(listener)
+        edge = dial(listener.address, client_context(credentials["edge-0"]), options=options)
+        thread.join()
+        cloud = result["link"]
+        try:
+            frames = [bytes([index]) * (1 << 16) for index in range(12)]
+            for frame in frames:
+                edge.send("s", frame, timeout=5.0)
+            edge.flush(timeout=10.0)  # on the wire: the cloud's socket has bytes its full inbox cannot take
+            clock = time.pthread_getcpuclockid(cloud._thread.ident)
+            before = time.clock_gettime(clock)
+            time.sleep(1.5)
+            spent = time.clock_gettime(clock) - before
+            assert spent < 0.3, f"the stalled link's thread used {spent:.2f} s of CPU in 1.5 s"
+            assert [cloud.recv("s", timeout=10.0) for _ in frames] == frames  # taking frees it: all arrive
+            assert cloud.alive and edge.alive
+        finally:
+            edge.close()
+            cloud.close()
 
 
 def test_a_silent_outage_closes_the_link_on_both_ends(credentials):

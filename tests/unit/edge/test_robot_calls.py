@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from infinirl.edge.cloud_hub import CloudHub, HubOptions, wait_for
+from infinirl.edge.codec import encode_episode
 from infinirl.edge.edge_client import EdgeClient, EdgeOptions
 from infinirl.edge.link import LinkOptions
-from infinirl.edge.robot_calls import RobotCaller, RobotCallError, RobotCallServer
+from infinirl.edge.robot_calls import ROBOT_CALLS, ROBOT_REPLIES, RobotCaller, RobotCallError, RobotCallServer
 
 LINK = LinkOptions(connect_timeout_s=2.0, heartbeat_s=0.2, dead_after_s=1.0)
 
@@ -76,6 +77,40 @@ def test_a_call_whose_link_drops_is_repeated_on_the_next_link(linked):
     try:
         assert RobotCaller(hub, "edge-0").call("stats", timeout=30.0) == ({"episodes": 2}, [])
         assert len(calls) == 2
+    finally:
+        server.close()
+
+
+def test_episode_frames_left_by_a_call_that_timed_out_do_not_break_the_next_call(linked):
+    """A call that gave up partway through its answer's episodes leaves the rest in the reply stream;
+    the next call skips them, and a reply it cannot read is a :class:`RobotCallError`, not a
+    ``JSONDecodeError``."""
+    hub, client = linked
+    episode = an_episode()
+    server = RobotCallServer(client, {"demonstrations": lambda n: (None, [episode] * n),
+                                      "stats": lambda: ({"episodes": 3}, [])}).start()
+    try:
+        caller = RobotCaller(hub, "edge-0")
+        for index in (1, 2):  # what an earlier call's answer still had on the way when it timed out
+            client.link.send(ROBOT_REPLIES, encode_episode(episode, episode_id=f"reply-0-{index}"), timeout=5.0)
+        assert caller.call("stats", timeout=10.0) == ({"episodes": 3}, [])
+        result, episodes = caller.call("demonstrations", 2, timeout=10.0)
+        assert result is None and len(episodes) == 2 and np.array_equal(episodes[1]["action"], episode["action"])
+        client.link.send(ROBOT_REPLIES, b"not json", timeout=5.0)
+        with pytest.raises(RobotCallError, match="'stats': unreadable reply"):
+            caller.call("stats", timeout=10.0)
+        assert caller.call("stats", timeout=10.0) == ({"episodes": 3}, [])  # its answer was read and skipped
+    finally:
+        server.close()
+
+
+def test_a_malformed_call_is_ignored_and_the_edge_answers_the_next(linked):
+    hub, client = linked
+    server = RobotCallServer(client, {"stats": lambda: ({"episodes": 1}, [])}).start()
+    try:
+        hub.link("edge-0").send(ROBOT_CALLS, b"[1, 2]", timeout=5.0)
+        hub.link("edge-0").send(ROBOT_CALLS, b"not json", timeout=5.0)
+        assert RobotCaller(hub, "edge-0").call("stats", timeout=10.0) == ({"episodes": 1}, [])
     finally:
         server.close()
 

@@ -29,6 +29,28 @@ def test_a_failed_write_keeps_the_previous_file_and_leaves_no_temporary(tmp_path
     assert os.listdir(tmp_path) == ["state.json"]
 
 
+def test_a_durable_write_fsyncs_the_file_and_then_its_folder(tmp_path, monkeypatch):
+    """The rename is an entry of the folder: only an fsync of the folder after it makes the new file
+    survive a power loss; a plain write fsyncs nothing."""
+    import stat
+
+    import infinirl.utils.atomic as atomic
+
+    synced, real_fsync = [], os.fsync
+
+    def recording(fd):
+        synced.append("folder" if stat.S_ISDIR(os.fstat(fd).st_mode) else "file")
+        real_fsync(fd)
+
+    monkeypatch.setattr(atomic.os, "fsync", recording)
+    with atomic_open(tmp_path / "plain.bin", "wb") as handle:
+        handle.write(b"x")
+    assert synced == []
+    with atomic_open(tmp_path / "kept.bin", "wb", durable=True) as handle:
+        handle.write(b"y")
+    assert synced == ["file", "folder"] and (tmp_path / "kept.bin").read_bytes() == b"y"
+
+
 def test_torch_save_atomic_round_trips_and_creates_the_folder(tmp_path):
     target = tmp_path / "deep" / "model.pt"
     torch_save_atomic({"w": torch.arange(3)}, target, durable=True)
