@@ -34,7 +34,8 @@ exceeds it is dropped (``staleness_action="drop"``, counted) or kept and only co
 
 **Checkpoints** hold the agent (weights, optimisers, generator, update count), the store's sampler
 state and the version; the store itself is already on disk and is reopened on resume, with every
-episode appended after the checkpoint still in it.
+episode appended after the checkpoint still in it (and folded into the state statistics and the
+counts on loading, as its ingest did).
 """
 
 from __future__ import annotations
@@ -371,8 +372,25 @@ class RealWorldLearnerWorker(Worker, WeightSource):
                 self.demos.load_state_dict(state["demos"])
             self.version = int(state["version"])
             self._counts.update(state["counts"])
+            self._observe_stored_since(int(state["store"]["episodes"]))
             self._snapshot = self._snap()
             self._updates_reported = self.agent.updates
+
+    def _observe_stored_since(self, first: int) -> None:
+        """Fold the episodes the store committed from id ``first`` on (after the checkpoint) into the
+        state statistics and the counts, as their ingest did before the restart: their resends are
+        recognised as stored and skipped, and those the sender heard of never come again.
+
+        The demonstrations store needs no such pass: scripted demonstrations are recorded at the
+        start, after a resume's checkpoint is loaded, and an intervened stretch appended to it after
+        the checkpoint is part of an episode folded here (its states counted once, as before)."""
+        for number in sorted(self.store.segments):  # in commit order, as they were folded in
+            ids = self.store.segments[number].episode_ids
+            for episode_id in ids[ids >= first].tolist():
+                episode = self.store.episode(episode_id)
+                self.agent.observe_states(episode["state"])
+                self._counts["episodes"] += 1
+                self._counts["steps"] += len(episode["action"])
 
     def close(self) -> None:
         self.stop()

@@ -69,6 +69,9 @@ class Segment:
         self.verified = np.zeros(0, bool)
         self._maps: dict[str, tuple[int, np.ndarray]] = {}  # field -> (rows mapped, view)
         self._fds: dict[str, int] | None = None  # the writer's append descriptors (field files + log)
+        # A failed append whose bytes could not be cut off: they sit where the next episode's rows
+        # would go, so the next append cuts them first (and refuses to write if it still cannot).
+        self._dirty_tail = False
 
     # ------------------------------------------------------------------ geometry
     def file(self, name: str) -> str:
@@ -199,39 +202,74 @@ class Segment:
 
     def append(self, steps: int, arrays: Mapping[str, np.ndarray], episode_id: int, first_position: int,
                durable: bool) -> None:
-        """Write one checked episode: field data first, then (once that is on disk) its commit record."""
+        """Write one checked episode: field data first, then (once that is on disk) its commit record.
+
+        A write or fsync that fails (a full disk, an I/O error) cuts every file back to its committed
+        bytes before the error propagates: the commit records place each episode right after the
+        previous one's rows, so bytes of a failed episode left in a file would shift every later
+        episode's rows (and this process does not check the crc32 of the episodes it wrote)."""
         assert self._fds is not None, "append on a segment that is not open for writing"
+        if self._dirty_tail:
+            self._cut_to_committed()
         crcs = []
-        for name in self.names:
-            _write_all(self._fds[name], arrays[name])
-            crcs.append(zlib.crc32(arrays[name]))
-        if durable:
+        try:
             for name in self.names:
-                os.fdatasync(self._fds[name])
-        record = EpisodeRecord(steps=steps, episode_id=episode_id, first_position=first_position, crcs=tuple(crcs))
-        _write_all(self._fds[LOG_NAME], encode_record(record))
-        if durable:
-            os.fdatasync(self._fds[LOG_NAME])
+                _write_all(self._fds[name], arrays[name])
+                crcs.append(zlib.crc32(arrays[name]))
+            if durable:
+                for name in self.names:
+                    os.fdatasync(self._fds[name])
+            record = EpisodeRecord(steps=steps, episode_id=episode_id, first_position=first_position,
+                                   crcs=tuple(crcs))
+            _write_all(self._fds[LOG_NAME], encode_record(record))
+            if durable:  # an fsync error may have dropped the record: it is cut off and the append fails
+                os.fdatasync(self._fds[LOG_NAME])
+        except BaseException as exc:
+            try:
+                self._cut_to_committed()
+            except OSError as cut:
+                exc.add_note(f"{self.path}: cutting the failed episode's bytes off failed too ({cut!r}); the next "
+                             f"append tries again before it writes")
+            raise
         self._add_records([record], verified=True)  # this process computed the crcs from the rows it wrote
 
+    def _cut_to_committed(self) -> None:
+        """Truncate every field file and the log to the bytes of the committed episodes (all there is
+        of a segment whose appends all succeeded, as its torn tail is cut on open)."""
+        self._dirty_tail = True
+        for name in self.names:
+            os.ftruncate(self._fds[name], self.rows(name) * self.spec.row_bytes(name))
+        os.ftruncate(self._fds[LOG_NAME], self.log_bytes)
+        self._dirty_tail = False
+
     def seal(self, durable: bool) -> None:
-        """Publish the segment as complete: ``sealed.json`` written atomically after the data."""
+        """Publish the segment as complete: ``sealed.json`` written atomically after the data. The
+        append descriptors stay open until it is in place, so after a failed seal the segment stays
+        open and the next append (which seals again) goes on writing."""
+        assert self._fds is not None, "seal on a segment that is not open for writing"
         log_path = os.path.join(self.path, LOG_NAME)
+        sealed_path = os.path.join(self.path, SEALED_NAME)
         with open(log_path, "rb") as handle:
             log_data = handle.read()
         meta = {"episodes": self.num_episodes, "transitions": self.transitions, "log_bytes": len(log_data),
                 "log_crc32": zlib.crc32(log_data),
                 "field_bytes": {n: self.rows(n) * self.spec.row_bytes(n) for n in self.names}}
-        for fd in (self._fds or {}).values():
+        try:
             if durable:
-                os.fsync(fd)
-            os.close(fd)
-        self._fds = None
-        with atomic_open(os.path.join(self.path, SEALED_NAME), "w", durable=durable) as handle:
-            json.dump(meta, handle)
-        if durable:
-            fsync_directory(self.path)
-        self.sealed = True
+                for fd in self._fds.values():
+                    os.fsync(fd)
+            with atomic_open(sealed_path, "w", durable=durable) as handle:
+                json.dump(meta, handle)
+            if durable:
+                fsync_directory(self.path)
+        finally:
+            # Once sealed.json is in place (even if a folder fsync after its rename failed) a reopen
+            # takes the segment as sealed against it: no episode may be appended to it any more.
+            if os.path.exists(sealed_path):
+                self.sealed = True
+                fds, self._fds = self._fds, None
+                for fd in fds.values():
+                    os.close(fd)
 
     def unmap(self) -> None:
         """Drop this process's memory maps of the field files (remapped on the next read)."""

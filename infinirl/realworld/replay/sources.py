@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 
-from infinirl.utils.atomic import atomic_open
+from infinirl.utils.atomic import atomic_open, fsync_directory
 
 __all__ = ["SOURCES_NAME", "SourceLog"]
 
@@ -57,7 +57,10 @@ class SourceLog:
             if torn or len(kept) != len(entries):  # drop the torn tail and the never-committed lines
                 with atomic_open(self.path, "w", durable=durable) as handle:
                     handle.writelines(f"{number} {source}\n" for number, source in sorted(kept.items()))
+            created = not os.path.exists(self.path)
             self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+            if created and durable:  # the new name lives in the folder: without this a power loss may drop the log
+                fsync_directory(folder)
 
     def __len__(self) -> int:
         return len(self._episode_of)
@@ -84,11 +87,18 @@ class SourceLog:
             self._write(f"{episode_id}\n".encode())
 
     def _write(self, data: bytes) -> None:
-        view = memoryview(data)
-        while view:
-            view = view[os.write(self._fd, view):]
-        if self.durable:
-            os.fsync(self._fd)
+        size = os.fstat(self._fd).st_size
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(self._fd, view):]
+            if self.durable:
+                os.fsync(self._fd)
+        except BaseException:
+            # A part of a line would run into the next line written; a whole line whose fsync failed
+            # would name a source for an episode id that a later append may give to another episode.
+            os.ftruncate(self._fd, size)
+            raise
 
     def close(self) -> None:
         if self._fd is not None:

@@ -13,7 +13,8 @@ Guarantees:
 * **Append.** ``append`` returns once the episode is committed: its rows are written (and with
   ``durable`` fsynced) and then its checksummed record is in the segment's commit log. A process
   killed at any point (``kill -9``) loses at most the episode being appended; reopening for
-  writing cuts the torn tail off the open segment's log and field files and continues.
+  writing cuts the torn tail off the open segment's log and field files and continues. An
+  append that raises (a full disk, an I/O error) leaves none of its bytes behind for the next one.
 * **Once per source.** An episode appended with a ``source_id`` (a sender's id for it, e.g. an
   edge's episode id) is stored once: appending the same source id again returns the stored
   episode's id and writes nothing, also after a crash and a reopen (:mod:`.sources`), so a sender
@@ -279,9 +280,13 @@ class ReplayStore:
                 self.sources.forget(source_id)
             raise
         self._index(active, active.num_episodes - 1)
-        if active.data_bytes >= self.options.segment_bytes:
-            active.seal(self.options.durable)
-        self._grow_cached(active, active.num_episodes - 1, arrays)
+        try:
+            if active.data_bytes >= self.options.segment_bytes:
+                active.seal(self.options.durable)  # a failed seal leaves the segment open: the next append seals
+        finally:
+            # The episode is committed even when the seal fails: the cached copy must hold its rows,
+            # or the next episode's would be put in their place.
+            self._grow_cached(active, active.num_episodes - 1, arrays)
         if active.sealed:
             self._evict()
         return episode_id

@@ -220,3 +220,43 @@ def test_the_learner_keeps_state_statistics_per_robot_kind_and_publishes_them(tm
     torch.testing.assert_close(robot.sample(obs, deterministic=True)[0],
                                learner.agent.actor.sample(obs, deterministic=True)[0])
     learner.close()
+
+
+def test_a_resumed_learner_folds_the_episodes_stored_after_its_checkpoint_into_its_state_statistics(tmp_path):
+    """Episodes committed between the checkpoint and the restart are in the store already: their
+    resends are skipped, so loading the checkpoint folds them in; the resumed learner's statistics
+    and counts are those of a learner that never stopped."""
+    from infinirl.components.sac_learner import SACNetSpec, SACUpdateSpec
+    from infinirl.realworld.learner_worker import SOURCE_ID, LearnerLoopSpec, RealWorldLearnerWorker
+
+    net = SACNetSpec(actor_hidden=(8,), critic_hidden=(8,), normalize_state=True)
+    rng = np.random.default_rng(0)
+    episodes = [{"state": (rng.normal(size=(steps + 1, 3)) * (1 + i)).astype(np.float32),
+                 "action": rng.uniform(-1, 1, (steps, 2)).astype(np.float32), "reward": np.ones(steps, np.float32),
+                 "terminated": np.zeros(steps, np.float32), "version": np.full(steps, -1, np.int64),
+                 SOURCE_ID: f"edge-a-0-{i}"} for i, steps in enumerate([4, 6, 3, 5, 7])]
+
+    def learner(folder):
+        loop = LearnerLoopSpec(replay_dir=str(folder), learning_starts=10**6, durable=False)
+        return RealWorldLearnerWorker(net, SACUpdateSpec(batch_size=4), loop, 3, 2)
+
+    whole = learner(tmp_path / "whole")
+    whole.add_and_update(episodes, num_updates=0)
+    first = learner(tmp_path / "replay")
+    first.add_and_update(episodes[:2], num_updates=0)
+    (tmp_path / "ckpt").mkdir()
+    first.save_checkpoint(str(tmp_path / "ckpt"))
+    first.add_and_update(episodes[2:4], num_updates=0)  # committed, then the run is killed
+    first.close()
+    resumed = learner(tmp_path / "replay")
+    resumed.load_checkpoint(str(tmp_path / "ckpt"))
+    resumed.add_and_update(episodes[2:], num_updates=0)  # the sender resends what it was not told was stored
+    assert resumed.status()["counts"]["duplicate_episodes"] == 2
+    want, got = whole.agent.state_normalizer.state_dict(), resumed.agent.state_normalizer.state_dict()
+    assert want.keys() == got.keys()
+    for name in want:
+        assert torch.equal(want[name], got[name]), name
+    for key in ("episodes", "steps"):
+        assert resumed.status()["counts"][key] == whole.status()["counts"][key] == (5 if key == "episodes" else 25)
+    whole.close()
+    resumed.close()

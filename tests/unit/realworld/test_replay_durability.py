@@ -1,6 +1,7 @@
 """Crash consistency (a writer process killed with SIGKILL mid-append), torn tails, damaged bytes
 in committed data, and a reader process beside the writer."""
 
+import errno
 import os
 import random
 import signal
@@ -220,3 +221,116 @@ def test_a_segment_sealed_while_a_reader_opens_it_is_taken_as_open_not_as_damage
     check_store(reader)
     reader.close()
     writer.close()
+
+
+def fail_from_call(real, n, partial=False):
+    """``real`` (``os.write``, ``os.fdatasync``) failing with ENOSPC from its ``n``-th call on; with
+    ``partial`` the ``n``-th write lands half of its bytes first, as on a disk that fills up."""
+    calls = [0]
+
+    def call(fd, *args):
+        calls[0] += 1
+        if calls[0] == n and partial and len(args[0]) > 1:
+            return real(fd, args[0][:len(args[0]) // 2])
+        if calls[0] >= n:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(fd, *args)
+
+    return call
+
+
+def check_files_hold_only_committed_bytes(store):
+    for segment in store.segments.values():
+        for name in segment.names:
+            assert os.path.getsize(segment.file(name)) == segment.rows(name) * SPEC.row_bytes(name), name
+        assert os.path.getsize(os.path.join(segment.path, LOG_NAME)) == segment.log_bytes
+
+
+@pytest.mark.parametrize("durable", [False, True])
+def test_a_write_or_fsync_that_fails_leaves_no_bytes_that_shift_later_episodes(tmp_path, monkeypatch, durable):
+    """A full disk or an I/O error part-way through an append (the process lives on): the next
+    appends' rows must start where the commit records say, in this process (which reads its own
+    episodes unchecked: no cache here, so through the memory maps) and after a reopen."""
+    options = StoreOptions(segment_bytes=SEGMENT_BYTES, durable=durable, cache_bytes=0)
+    # write calls per append: the source line, one per field, the commit record
+    failures = [("write", n) for n in range(1, len(SPEC.fields) + 3)]
+    if durable:  # fdatasync calls: one per field, then the commit record's
+        failures += [("fdatasync", n) for n in range(1, len(SPEC.fields) + 2)]
+    store = ReplayStore(str(tmp_path), SPEC, options=options)
+    for call, n in failures:
+        episode_id = store.next_episode_id
+        with monkeypatch.context() as patch:
+            patch.setattr(os, call, fail_from_call(getattr(os, call), n, partial=call == "write"))
+            with pytest.raises(OSError):
+                store.append(make_episode(episode_id), source_id=source_of(episode_id))
+        assert store.next_episode_id == episode_id and store.episode_of_source(source_of(episode_id)) is None
+        check_files_hold_only_committed_bytes(store)
+        assert store.append(make_episode(episode_id), source_id=source_of(episode_id)) == episode_id
+    assert len(store.segments) > 2  # failures in fresh segments and in ones with episodes
+    check_store(store)
+    store.close()
+    with ReplayStore(str(tmp_path), options=options) as store:
+        assert store.next_episode_id == len(failures)
+        assert store.sources.sources() == {source_of(i): i for i in range(len(failures))}
+        check_store(store)
+        store.verify()
+
+
+def test_bytes_a_failed_append_could_not_cut_off_are_cut_before_the_next_append(tmp_path, monkeypatch):
+    options = StoreOptions(segment_bytes=10**6, durable=False, cache_bytes=0)
+    store = ReplayStore(str(tmp_path), SPEC, options=options)
+    store.append(make_episode(0))
+
+    def broken(fd, size):
+        raise OSError(errno.EIO, os.strerror(errno.EIO))
+
+    with monkeypatch.context() as patch:
+        patch.setattr(os, "ftruncate", broken)
+        with monkeypatch.context() as full:
+            full.setattr(os, "write", fail_from_call(os.write, 3, partial=True))
+            with pytest.raises(OSError, match="No space") as info:
+                store.append(make_episode(1))
+        assert "the next append tries again" in " ".join(info.value.__notes__)
+        segment = store.segments[0]
+        sizes = {name: os.path.getsize(segment.file(name)) for name in segment.names}
+        assert sizes["pixels"] > segment.rows("pixels") * SPEC.row_bytes("pixels")
+        with pytest.raises(OSError, match="Input/output"):  # still not cut: nothing written after them
+            store.append(make_episode(1))
+        assert {name: os.path.getsize(segment.file(name)) for name in segment.names} == sizes
+    assert store.append(make_episode(1)) == 1
+    check_files_hold_only_committed_bytes(store)
+    check_store(store)
+    store.close()
+    with ReplayStore(str(tmp_path), options=options) as store:
+        assert store.next_episode_id == 2
+        check_store(store)
+
+
+def test_a_failed_seal_leaves_the_segment_open_for_the_next_append(tmp_path, monkeypatch):
+    """The episode whose append reached the seal is committed; the next appends go on into the same
+    segment (its copy in the cache included) and seal it."""
+    from infinirl.realworld.replay import segment as segment_module
+
+    options = StoreOptions(segment_bytes=SEGMENT_BYTES, durable=False)
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    store = ReplayStore(str(tmp_path), SPEC, options=options)
+    with monkeypatch.context() as patch:
+        patch.setattr(segment_module, "atomic_open", full_disk)
+        with pytest.raises(OSError, match="No space"):
+            while True:
+                store.append(make_episode(store.next_episode_id))
+    committed = store.next_episode_id
+    assert store.segments[0].num_episodes == committed and not store.segments[0].sealed
+    assert not os.path.exists(os.path.join(store.segments[0].path, "sealed.json"))
+    store.append(make_episode(committed))
+    assert store.segments[0].sealed and store.segments[0].num_episodes == committed + 1
+    while len(store.segments) < 3:
+        store.append(make_episode(store.next_episode_id))
+    check_store(store)  # read from the cache, which holds the segments' rows
+    store.close()
+    with ReplayStore(str(tmp_path), options=options) as store:
+        check_store(store)
+        store.verify()
