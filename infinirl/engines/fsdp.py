@@ -60,7 +60,12 @@ from infinirl.engines.micro_batches import (
     pad_columns,
     used_width,
 )
-from infinirl.engines.model_setup import enable_activation_checkpointing, pretrained_factory, value_head_name
+from infinirl.engines.model_setup import (
+    disable_dropout,
+    enable_activation_checkpointing,
+    pretrained_factory,
+    value_head_name,
+)
 from infinirl.engines.sharding import full_tensor, shard
 from infinirl.engines.shared_prefix import pack_by_prompt, packed_logprobs, supports_packed_masks
 from infinirl.engines.train_base import LossFn, LrSchedule, TrainEngineConfig, TrainOutput
@@ -114,6 +119,8 @@ class FSDPTrainEngine:
         if not isinstance(model, nn.Module):
             model = model()
         model = model.to(device=self.device, dtype=torch.float32)
+        # Before LoRA: only the model's own dropout goes; an adapter's (lora.dropout) is the user's choice.
+        disable_dropout(model)
         self._packable = supports_packed_masks(getattr(model, "config", None))
         if cfg.activation_checkpointing:
             enable_activation_checkpointing(model)
@@ -141,7 +148,7 @@ class FSDPTrainEngine:
             self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, LrSchedule(cfg))
         self.global_step = 0
         self._offloaded = False
-        seed_everything(cfg.seed + self.rank)  # runtime randomness (dropout) differs per rank
+        seed_everything(cfg.seed + self.rank)  # runtime randomness (an adapter's dropout) differs per rank
 
     @classmethod
     def from_pretrained(

@@ -1,5 +1,5 @@
 """The HF model a training role needs: a causal LM (policy, reference) or a critic built from one,
-and activation checkpointing on request."""
+without dropout, and activation checkpointing on request."""
 
 from __future__ import annotations
 
@@ -10,7 +10,40 @@ from torch import nn
 
 from infinirl.engines.train_base import TrainOutput
 
-__all__ = ["enable_activation_checkpointing", "pretrained_factory", "value_head_name"]
+__all__ = ["disable_dropout", "enable_activation_checkpointing", "pretrained_factory", "value_head_name"]
+
+
+def disable_dropout(model: nn.Module) -> None:
+    """Every dropout of ``model`` set to 0, as TRL's ``disable_dropout_in_model`` does.
+
+    The trainer's forward runs in train mode while the log-probs it is compared with (the rollout's,
+    pi_old's, the reference's) come from eval-mode passes: with dropout on (GPT-2, OPT and Phi ship
+    with it) the ratios and the KL would be noise even at the first step. Covered: ``nn.Dropout``
+    modules, the float rates some models keep on their modules and pass to functional dropout
+    (OPT's ``dropout``, Phi's ``attention_dropout``, OPT's ``layerdrop``), and the configs'
+    rate fields, read by code that builds modules or attention calls from the config later.
+    """
+    configs = {}
+    for module in model.modules():
+        if isinstance(module, nn.Dropout):
+            module.p = 0.0
+        for name, value in list(vars(module).items()):
+            if _is_dropout_rate(name, value):
+                setattr(module, name, 0.0)
+        config = getattr(module, "config", None)
+        if config is not None and hasattr(config, "to_dict"):
+            configs[id(config)] = config
+    for config in configs.values():
+        for name in list(vars(config)):
+            if _is_dropout_rate(name, getattr(config, name)):
+                setattr(config, name, 0.0)
+
+
+def _is_dropout_rate(name: str, value) -> bool:
+    """A non-zero float/int rate under a dropout-like name (``attn_pdrop``, ``hidden_dropout_prob``,
+    ``layerdrop``): module and config fields of this kind are probabilities of dropping."""
+    dropout_like = "dropout" in name or name.endswith(("pdrop", "layerdrop"))
+    return dropout_like and isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
 
 
 def enable_activation_checkpointing(model: nn.Module) -> None:

@@ -57,6 +57,7 @@ from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
 from infinirl.runners.run_support import run_components, run_start_time
 from infinirl.runtime import Channel, Tracer, sync_weights
+from infinirl.tasks.sources import verifier_for
 from infinirl.utils.threads import spin_wait_env
 
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
@@ -114,7 +115,9 @@ def _launches(cfg: ReasoningConfig) -> dict:
         "rollout": (RolloutWorker, (cfg.model.path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
                                     cfg.rollout.num_threads or cfg.num_threads, cfg.rollout.engine,
                                     cfg.rollout.engine_options, cfg.rollout.agent)),
-        "reward": (RewardWorker, (cfg.model.path, cfg.task.verifier, cfg.task.format_bonus)),
+        # Problems name their own verifier; this one (the task source's, as `infinirl eval` uses)
+        # serves any that name none.
+        "reward": (RewardWorker, (cfg.model.path, verifier_for(cfg.task, "test"), cfg.task.format_bonus)),
         "critic": (CriticWorker, (cfg.critic_model_path, cfg.critic, cfg.critic.value_clip, cfg.num_threads)),
         "reference": (ReferenceWorker, (cfg.model.path, _reference_engine(cfg), cfg.num_threads)),
     }
@@ -215,9 +218,10 @@ class ReasoningFlow:
 
     def _collect_ahead(self, batch: _AheadBatch):
         results, scored = self.collect_generation(batch.generation)
-        rewards = torch.tensor([s.reward for s in scored], dtype=torch.float32)
+        rewards, zeroed = self.rewards_of(results, scored)
         errors = sum(s.error is not None for s in scored)
-        return batch.problems, results, rewards, self._reward_metrics(rewards.tolist(), errors, rounds=1, dropped=0)
+        return batch.problems, results, rewards, self._reward_metrics(rewards.tolist(), errors, rounds=1, dropped=0,
+                                                                      zeroed=zeroed)
 
     # ------------------------------------------------------------------ stages
     def generate_batch(self, step: int):
@@ -226,14 +230,15 @@ class ReasoningFlow:
         cfg = self.cfg
         want, group = cfg.prompts_per_step, cfg.rollout.group_size
         kept_problems, kept_results, kept_rewards = [], [], []
-        rounds, dropped, errors = 0, 0, 0
+        rounds, dropped, errors, zeroed = 0, 0, 0, 0
         all_rewards = []
         while len(kept_problems) < want:
             problems = self.train_stream.next_batch(want - len(kept_problems) if rounds else want)
             results, scored = self.generate_and_score(problems, self._sampling(step, rounds))
-            rewards = torch.tensor([s.reward for s in scored], dtype=torch.float32)
+            rewards, round_zeroed = self.rewards_of(results, scored)
             all_rewards.extend(rewards.tolist())
             errors += sum(s.error is not None for s in scored)
+            zeroed += round_zeroed
             for i, problem in enumerate(problems):
                 block = slice(i * group, (i + 1) * group)
                 informative = bool(group_is_informative(rewards[block], group)[0])
@@ -246,18 +251,31 @@ class ReasoningFlow:
             rounds += 1
             if not cfg.algorithm.dynamic_sampling:
                 break
-        metrics = self._reward_metrics(all_rewards, errors, rounds, dropped)
+        metrics = self._reward_metrics(all_rewards, errors, rounds, dropped, zeroed)
         return kept_problems, kept_results, torch.tensor(kept_rewards), metrics
 
-    @staticmethod
-    def _reward_metrics(rewards: list[float], errors: int, rounds: int, dropped: int) -> dict:
-        return {
+    def rewards_of(self, results, scored) -> tuple[torch.Tensor, int]:
+        """The rewards trained on, and how many non-zero rewards of cut-off responses were zeroed
+        (``algorithm.truncated_reward=zero``). Zeroed here, before DAPO's group filter and the
+        advantages, so both see the rewards the update uses."""
+        rewards = torch.tensor([s.reward for s in scored], dtype=torch.float32)
+        if self.cfg.algorithm.truncated_reward != "zero":
+            return rewards, 0
+        cut = torch.tensor([r.finish_reason == "length" for r in results], dtype=torch.bool)
+        zeroed = int((cut & (rewards != 0)).sum())
+        return rewards.masked_fill(cut, 0.0), zeroed
+
+    def _reward_metrics(self, rewards: list[float], errors: int, rounds: int, dropped: int, zeroed: int) -> dict:
+        metrics = {
             "rollout/reward_mean": float(np.mean(rewards)),
             "rollout/accuracy": float(np.mean([r > 0.5 for r in rewards])),
             "rollout/reward_errors": float(errors),
             "rollout/generation_rounds": float(rounds),
             "rollout/dropped_groups": float(dropped),
         }
+        if self.cfg.algorithm.truncated_reward == "zero":
+            metrics["rollout/truncated_zeroed"] = float(zeroed)
+        return metrics
 
     def generate_and_score(self, problems, sampling: SamplingParams, split: str = "train"):
         """Rollout -> reward -> driver, streamed through two channels: prompts are cut into chunks,
@@ -325,7 +343,7 @@ class ReasoningFlow:
         mask = batch[RESPONSE_MASK]
         metrics = {}
         if algo.overlong_buffer:
-            rewards = rewards + overlong_penalty(batch["response_lengths"], cfg.rollout.max_new_tokens,
+            rewards = rewards + overlong_penalty(batch["response_lengths"], cfg.max_response_tokens,
                                                  algo.overlong_buffer, algo.overlong_penalty)
         token_rewards = None
         if algo.kl_reward_coef > 0:
@@ -361,7 +379,7 @@ class ReasoningFlow:
                 mini = batch[order[start : start + per_mini]]
                 normaliser = aggregation_normaliser(
                     mini["response_mask"], cfg.algorithm.objective.aggregation,
-                    **({"max_response_length": cfg.rollout.max_new_tokens}
+                    **({"max_response_length": cfg.max_response_tokens}
                        if cfg.algorithm.objective.aggregation == "seq-mean-token-sum-norm" else {}))
                 actor_mini = mini.select(*actor_keys)
                 shares = [(actor_mini[s], normaliser) for s in _slices(per_mini, world)]

@@ -90,8 +90,13 @@ class AlgorithmConfig:
     """DAPO: drop groups whose rewards are all equal and generate more until the batch is full."""
     max_extra_rounds: int = bounded(3, ge=0)
     overlong_buffer: int = bounded(0, ge=0)
-    """DAPO overlong shaping: soft penalty over the last N tokens before max_new_tokens (0 = off)."""
+    """DAPO overlong shaping: soft penalty over the last N tokens before the response cap (0 = off).
+    The cap is rollout.max_new_tokens, or rollout.agent.max_response_tokens with an agent."""
     overlong_penalty: float = 1.0
+    truncated_reward: Literal["keep", "zero"] = "keep"
+    """A response cut off at the token cap (finish reason "length"; for an agent, any budget run
+    out): keep its verifier's reward, or zero it before advantages (its answer may be a guess the
+    cut left standing; logged as `rollout/truncated_zeroed`)."""
     asynchronous: AsyncConfig = field(default_factory=AsyncConfig)
     """Rollout ahead of the trainer by up to `max_staleness` weight versions (see
     docs/reasoning.md#asynchronous-training)."""
@@ -190,6 +195,13 @@ class ReasoningConfig(RunConfig):
     def critic_model_path(self) -> str:
         return self.critic.model_path or self.model.path
 
+    @property
+    def max_response_tokens(self) -> int:
+        """The longest a response can be: one generation's cap, or an agent trajectory's (whose
+        turns are each capped by ``rollout.max_new_tokens``)."""
+        agent = self.rollout.agent
+        return agent.max_response_tokens if agent is not None else self.rollout.max_new_tokens
+
     # ------------------------------------------------------------------ cross-field rules
     def check(self) -> None:
         from infinirl.algorithms import ADVANTAGES, AGGREGATIONS, KL_ESTIMATORS
@@ -218,6 +230,7 @@ class ReasoningConfig(RunConfig):
         self._check_critic()
         self._check_off_policy()
         self._check_agent()
+        self._check_overlong()
 
     def _tie_actor_temperature(self) -> None:
         """The trainer scores tokens under the distribution the rollout samples them from
@@ -237,6 +250,13 @@ class ReasoningConfig(RunConfig):
     def _check_agent(self) -> None:
         if self.rollout.agent is not None:
             self.rollout.agent.check("rollout.agent")
+
+    def _check_overlong(self) -> None:
+        buffer, cap = self.algorithm.overlong_buffer, self.max_response_tokens
+        if buffer > cap:
+            key = "rollout.agent.max_response_tokens" if self.rollout.agent is not None else "rollout.max_new_tokens"
+            raise ConfigError(f"algorithm.overlong_buffer={buffer} is longer than the response cap {key}={cap}; "
+                              f"set it to at most {cap}")
 
     def _check_off_policy(self) -> None:
         objective, eta = self.algorithm.objective, self.algorithm.asynchronous.max_staleness

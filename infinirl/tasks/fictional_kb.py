@@ -258,9 +258,10 @@ def kb_split(kb: KnowledgeBase, heldout_fraction: float, seed: int) -> frozenset
     return frozenset(held)
 
 
-def kb_problems(kb: KnowledgeBase, kinds: Sequence[str], held_out: frozenset[str], split: str) -> list[Problem]:
+def kb_problems(kb: KnowledgeBase, kinds: Sequence[str], held_out: frozenset[str], split: str,
+                verifier: str = "exact_match") -> list[Problem]:
     """The questions of ``kinds`` whose subject is (``split="test"``) or is not (``"train"``) held out,
-    kind after kind, subjects in generation order."""
+    kind after kind, subjects in generation order, each naming ``verifier`` to be scored by."""
     if split not in ("train", "test"):
         raise ValueError(f"split={split!r}: the fictional_kb task has splits train and test (held out)")
     problems = []
@@ -271,7 +272,7 @@ def kb_problems(kb: KnowledgeBase, kinds: Sequence[str], held_out: frozenset[str
                 continue
             question = kind.template.format(subject=subject)
             problems.append(Problem(uid=f"fictional_kb/{split}/{kind_name}/{index}", prompt=question,
-                                    answer=kind.answer(kb, subject), verifier="exact_match",
+                                    answer=kind.answer(kb, subject), verifier=verifier,
                                     metadata={"kind": kind_name, "hops": kind.hops, "subject": subject}))
     return problems
 
@@ -302,14 +303,14 @@ class KBTask:
             raise ConfigError(f"task.config.kb: {exc}") from None
         return cls(kb=kb, kinds=kinds, heldout_fraction=float(options.get("heldout_fraction", 0.2)))
 
-    def split(self, split: str, eval_seed: int) -> list[Problem]:
+    def split(self, split: str, eval_seed: int, verifier: str = "exact_match") -> list[Problem]:
         kb = cached_kb(self.kb)
-        return kb_problems(kb, self.kinds, kb_split(kb, self.heldout_fraction, eval_seed), split)
+        return kb_problems(kb, self.kinds, kb_split(kb, self.heldout_fraction, eval_seed), split, verifier)
 
 
 def held_out_problems(task: TaskConfig, limit: int | None = None) -> list[Problem]:
     """The first ``limit`` (default ``task.eval_size``) held-out questions in an ``eval_seed`` order."""
-    problems = KBTask.from_task(task).split("test", task.eval_seed)
+    problems = KBTask.from_task(task).split("test", task.eval_seed, kb_verifier(task, "test"))
     random.Random(task.eval_seed).shuffle(problems)
     size = task.eval_size if limit is None else limit
     if size > len(problems):
@@ -322,7 +323,7 @@ def kb_training(task: TaskConfig, seed: int):
     from infinirl.tasks.datasets import EpochBatchIterator
 
     held_out = held_out_problems(task)
-    train = KBTask.from_task(task).split("train", task.eval_seed)
+    train = KBTask.from_task(task).split("train", task.eval_seed, kb_verifier(task, "train"))
     # Disjoint by construction (different subjects); asserted because a leak would be silent.
     overlap = {normalize_question(p.prompt) for p in train} & {normalize_question(p.prompt) for p in held_out}
     if overlap:
@@ -334,7 +335,7 @@ def kb_evaluation(task: TaskConfig, split: str, limit: int | None, from_run: boo
     if split == "test":
         return held_out_problems(task, limit)
     if split == "train":
-        problems = KBTask.from_task(task).split("train", task.eval_seed)
+        problems = KBTask.from_task(task).split("train", task.eval_seed, kb_verifier(task, "train"))
         return problems[:limit] if limit else problems
     raise ConfigError(f"split={split!r}: the fictional_kb task has splits test (held out) and train")
 

@@ -49,11 +49,14 @@ class ReasoningGymTask:
             to ..."), and the ``reasoning_gym`` verifier's ``auto`` extractor reads the answer
             whatever format the model picks; for tiny models extra answer-format instructions
             cost prompt tokens and accuracy (docs/results.md, "Prompt format of chain_sum").
+        verifier: what its problems name as their verifier (``task.verifier``: the generator's
+            own ``score_answer`` by default, or a user reward function).
     """
 
     name: str
     config: Mapping[str, Any] = field(default_factory=dict)
     prompt_template: str = RAW_TEMPLATE
+    verifier: str = "reasoning_gym"
 
     def __post_init__(self) -> None:
         for reserved in ("seed", "size"):
@@ -116,7 +119,7 @@ def entry_to_problem(task: ReasoningGymTask, entry: dict[str, Any], uid: str) ->
         uid=uid,
         prompt=render_prompt(entry["question"], task.prompt_template),
         answer=str(entry["answer"]),
-        verifier="reasoning_gym",
+        verifier=task.verifier,
         metadata={"task": task.name, "config": dict(task.config), "entry": entry},
     )
 

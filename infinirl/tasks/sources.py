@@ -70,7 +70,7 @@ def _guarded(task: TaskConfig, build: Callable):
 def _gym_training(task: TaskConfig, seed: int):
     from infinirl.tasks.reasoning_gym_tasks import ReasoningGymStream, ReasoningGymTask, build_eval_set
 
-    generator = ReasoningGymTask(task.name, task.config)
+    generator = ReasoningGymTask(task.name, task.config, verifier=task.verifier)
     held_out = build_eval_set(generator, task.eval_size, seed=task.eval_seed)
     return ReasoningGymStream(generator, seed=seed, exclude=held_out), held_out
 
@@ -81,7 +81,8 @@ def _gym_evaluation(task: TaskConfig, split: str, limit: int | None, from_run: b
     # The same held-out set a training run evaluated on (same task config and eval seed); past its
     # eval_size the sequence goes on into questions the run may have trained on.
     size = held_out_size(task, limit) if from_run else (limit or task.eval_size)
-    return build_eval_set(ReasoningGymTask(task.name, task.config), size, seed=task.eval_seed)
+    return build_eval_set(ReasoningGymTask(task.name, task.config, verifier=task.verifier), size,
+                          seed=task.eval_seed)
 
 
 def held_out_size(task: TaskConfig, limit: int | None) -> int:

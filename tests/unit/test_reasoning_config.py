@@ -118,3 +118,106 @@ def test_the_old_tis_cap_key_still_sets_is_cap():
 
     assert upgrade_renamed_overrides(ReasoningConfig, ["algorithm.objective.tis_cap=2"]) == [
         "algorithm.objective.is_cap=2"]
+
+
+# ----------------------------------------------------------------------------- response caps, cut-off responses
+
+AGENT = {"env": "infinirl.agents.toy_envs:EchoEnv", "max_response_tokens": 64}
+
+
+def test_the_response_cap_is_the_agent_trajectorys_with_an_agent():
+    assert build(rollout={"max_new_tokens": 8}).max_response_tokens == 8
+    assert build(rollout={"max_new_tokens": 8, "agent": AGENT}).max_response_tokens == 64
+    build(rollout={"max_new_tokens": 8, "agent": AGENT}, algorithm={"overlong_buffer": 16})  # per-turn cap is 8
+
+
+@pytest.mark.parametrize("rollout, message", [
+    ({"max_new_tokens": 8}, r"algorithm.overlong_buffer=16 is longer than the response cap rollout.max_new_tokens=8"),
+    ({"max_new_tokens": 8, "agent": {**AGENT, "max_response_tokens": 12}},
+     r"overlong_buffer=16 .* rollout.agent.max_response_tokens=12; set it to at most 12"),
+])
+def test_an_overlong_buffer_longer_than_the_response_cap_is_refused(rollout, message):
+    with pytest.raises(ConfigError, match=message):
+        build(rollout=rollout, algorithm={"overlong_buffer": 16})
+
+
+def test_truncated_reward_takes_keep_or_zero():
+    assert build().algorithm.truncated_reward == "keep"
+    with pytest.raises(ConfigError, match=r"algorithm.truncated_reward='drop' is not allowed.*keep, zero"):
+        build(algorithm={"truncated_reward": "drop"})
+
+
+class FakeGroup:
+    """An actor group of one rank that records what it is asked to train on."""
+
+    world_size = 1
+
+    def __init__(self):
+        self.calls = []
+
+    def call_each(self, method, args):
+        from types import SimpleNamespace
+
+        self.calls.append((method, args))
+        return SimpleNamespace(wait=lambda: [{"train/loss": 0.0}])
+
+
+def flow_of(cfg, actor=None):
+    from types import SimpleNamespace
+
+    from infinirl.runners.reasoning import ReasoningFlow
+
+    return ReasoningFlow(cfg, actor=actor, rollout=None, reward=None, tokenizer=SimpleNamespace(pad_token_id=0))
+
+
+def batch_of(response_lengths):
+    from infinirl.data.batch import pack_sequences
+
+    return pack_sequences([[1, 2]] * len(response_lengths), [[3] * n for n in response_lengths], 0)
+
+
+def test_agent_runs_shape_and_normalise_by_the_trajectory_cap():
+    import torch
+
+    from infinirl.algorithms import aggregation_normaliser, overlong_penalty
+
+    # Responses up to 64 tokens, each turn at most 8: the 8-token turn cap is no length limit here.
+    cfg = build(prompts_per_step=1, rollout={"group_size": 4, "max_new_tokens": 8, "agent": AGENT},
+                algorithm={"advantage": "dr_grpo", "overlong_buffer": 16, "overlong_penalty": 1.0,
+                           "objective": {"aggregation": "seq-mean-token-sum-norm"}})
+    lengths = [10, 40, 56, 64]
+    batch, rewards = batch_of(lengths), torch.ones(4)
+    actor = FakeGroup()
+    flow = flow_of(cfg, actor)
+    flow.add_advantages(batch, rewards)
+    shaped = rewards + overlong_penalty(torch.tensor(lengths), 64, 16, 1.0)
+    assert shaped.tolist() == [1.0, 1.0, 0.5, 0.0]  # only the last 16 of 64 tokens are penalised
+    mask = batch["response_mask"]
+    expected = (shaped - shaped.mean())[:, None] * mask  # dr_grpo: the group mean as baseline
+    torch.testing.assert_close(batch["advantages"], expected.float())
+    flow.update(batch)
+    (method, shares), = actor.calls
+    assert method == "train_step"
+    assert shares[0][1] == aggregation_normaliser(mask, "seq-mean-token-sum-norm", max_response_length=64) == 4 * 64
+
+
+@pytest.mark.parametrize("mode", ["keep", "zero"])
+def test_cut_off_responses_keep_or_lose_their_reward(mode):
+    from infinirl.engines.base import GenerationResult
+    from infinirl.tasks.problem import Problem
+    from infinirl.tasks.verifiers import RewardResult
+
+    cfg = build(prompts_per_step=2, rollout={"group_size": 2}, algorithm={"truncated_reward": mode})
+    flow = flow_of(cfg)
+    problems = [Problem(uid=f"p/{i}", prompt="q", answer="1", verifier="gsm8k") for i in range(2)]
+    finish = ["length", "stop", "length", "stop"]
+    results = [GenerationResult([1], [2], [0.0], reason, 0) for reason in finish]
+    scored = [RewardResult(1.0, True), RewardResult(1.0, True), RewardResult(0.0, False), RewardResult(0.5, False)]
+    flow.train_stream = type("Stream", (), {"next_batch": lambda self, n: problems[:n]})()
+    flow.generate_and_score = lambda batch, sampling: (results, scored)
+    _, _, rewards, metrics = flow.generate_batch(step=0)
+    if mode == "keep":
+        assert rewards.tolist() == [1.0, 1.0, 0.0, 0.5] and "rollout/truncated_zeroed" not in metrics
+    else:  # the cut-off ones score 0, before advantages; one had a reward to lose
+        assert rewards.tolist() == [0.0, 1.0, 0.0, 0.5] and metrics["rollout/truncated_zeroed"] == 1.0
+        assert metrics["rollout/reward_mean"] == pytest.approx(1.5 / 4)

@@ -493,3 +493,50 @@ def test_two_ranks_match_one_rank(tmp_path):
     restored = FSDPTrainEngine(tiny_llama, config(seed=3))
     restored.load_checkpoint(tmp_path / "ckpt")
     assert_weights_close(exported(restored), two["weights"], atol=0)
+
+
+# ----------------------------------------------------------------------------- dropout
+
+
+def tiny_gpt2(head: str = "lm"):
+    """GPT-2 keeps its default dropout (0.1 on embeddings, attention and residuals)."""
+    from transformers import GPT2Config, GPT2ForTokenClassification, GPT2LMHeadModel
+
+    cfg = GPT2Config(vocab_size=VOCAB, n_positions=64, n_embd=32, n_layer=2, n_head=4, num_labels=1,
+                     bos_token_id=1, eos_token_id=1)
+    assert cfg.resid_pdrop > 0 and cfg.attn_pdrop > 0
+    return GPT2LMHeadModel(cfg) if head == "lm" else GPT2ForTokenClassification(cfg)
+
+
+def tiny_opt():
+    """OPT drops through functional dropout with rates kept on its modules, and skips whole layers."""
+    from transformers import OPTConfig, OPTForCausalLM
+
+    return OPTForCausalLM(OPTConfig(vocab_size=VOCAB, hidden_size=32, ffn_dim=64, num_hidden_layers=2,
+                                    num_attention_heads=4, max_position_embeddings=64, word_embed_proj_dim=32,
+                                    dropout=0.1, attention_dropout=0.1, layerdrop=0.5))
+
+
+@pytest.mark.parametrize("factory, output", [(tiny_gpt2, "logprobs"), (lambda: tiny_gpt2("values"), "values"),
+                                             (tiny_opt, "logprobs")], ids=["gpt2", "gpt2-critic", "opt"])
+def test_dropout_is_off_so_train_mode_forwards_are_deterministic(factory, output):
+    engine = FSDPTrainEngine(factory, config(micro_batch_size=4), output=output)
+    rates = {k: v for k, v in engine.model.config.to_dict().items() if "drop" in k and isinstance(v, float)}
+    assert rates and not any(rates.values()), rates
+    batch = make_batch(seed=5)
+    ids = batch["input_ids"]
+    engine.model.train()
+    with torch.no_grad():
+        first, second = engine.model(input_ids=ids).logits, engine.model(input_ids=ids).logits
+    assert torch.equal(first, second)
+    # The update's forward (train mode) sees what the eval-mode scoring saw: the PPO ratio starts at 1.
+    scored = engine.compute_values(batch) if output == "values" else engine.compute_logprobs(batch)[0]
+    seen = []
+
+    def loss_fn(micro, out, _entropy):
+        seen.append(out.detach())
+        return (out * micro[RESPONSE_MASK]).sum() * 0.0, {}
+
+    engine.train_step(batch, loss_fn)
+    mask = batch[RESPONSE_MASK].bool()
+    torch.testing.assert_close(torch.cat(seen)[mask], scored[mask], atol=1e-6, rtol=0)

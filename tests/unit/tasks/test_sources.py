@@ -7,7 +7,7 @@ import pytest
 from infinirl.config import ConfigError
 from infinirl.tasks.config import TaskConfig
 from infinirl.tasks.problem import normalize_question
-from infinirl.tasks.sources import eval_problems, training_problems
+from infinirl.tasks.sources import eval_problems, training_problems, verifier_for
 
 
 def test_reasoning_gym_eval_of_a_run_is_its_held_out_set_whatever_the_limit():
@@ -40,3 +40,23 @@ def test_data_file_with_nothing_left_to_train_on_is_refused(tmp_path):
     path = write_rows(tmp_path / "rows.jsonl", ["Q a", "Q b", "q  a", "Q B"])
     with pytest.raises(ConfigError, match="leaves none to train on"):
         training_problems(TaskConfig(source="dataset", name=str(path), verifier="math", eval_size=2), seed=0)
+
+
+TOY = "infinirl.tasks.toy_rewards:response_length"
+
+
+@pytest.mark.parametrize("task", [
+    TaskConfig(eval_size=4),
+    TaskConfig(eval_size=4, verifier=TOY),
+    TaskConfig(source="dataset", name="gsm8k", eval_size=4),
+    TaskConfig(source="fictional_kb", name="fictional_kb", config={}, eval_size=4),
+    TaskConfig(source="fictional_kb", name="fictional_kb", config={}, eval_size=4, verifier=TOY),
+    TaskConfig(source="code", name="functions", config={}, eval_size=2),
+], ids=["gym", "gym-user-function", "gsm8k-preset", "kb", "kb-user-function", "code"])
+def test_problems_name_the_verifier_their_source_scores_with(task):
+    # The reward worker scores each problem by the verifier it names: the source's choice, and
+    # task.verifier where the user set one.
+    stream, held_out = training_problems(task, seed=0)
+    expected = verifier_for(task, "test")
+    assert expected != "reasoning_gym" or task.source == "reasoning_gym"
+    assert {p.verifier for p in held_out + stream.next_batch(2) + eval_problems(task, "test", 2)} == {expected}

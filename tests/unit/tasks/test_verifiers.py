@@ -168,6 +168,49 @@ def test_registry_holds_the_documented_verifiers():
     assert {"math", "gsm8k", "reasoning_gym"} <= set(VERIFIERS.names())
 
 
+# --- the reward worker: each problem by its own verifier ----------------------------------------
+
+
+def test_each_problem_is_scored_by_the_verifier_it_names(chain_sum_problems):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from infinirl.components.reward import ProblemVerifiers
+
+    # The configured verifier is the reasoning_gym default, as a run on task.source=dataset
+    # task.name=gsm8k has: the gsm8k rows name gsm8k, which must score them.
+    verifiers = ProblemVerifiers("reasoning_gym", format_bonus=0.5)
+    gym = chain_sum_problems[0]
+    unnamed = Problem(uid="t/1", prompt="q", answer="7", verifier="")
+    problems = [numeric_problem("7"), numeric_problem("7"), gym, unnamed]
+    texts = ["#### 7", "#### 8", f"#### {gym.answer}", "#### 7"]
+    with ThreadPoolExecutor(2) as pool:
+        scored = verifiers.score(texts, problems, pool)
+        unknown = verifiers.score(["#### 7"], [numeric_problem("7", verifier="nonexistent")], pool)
+    assert [s.error for s in scored[:3]] == [None, None, None]
+    assert [s.correct for s in scored[:3]] == [True, False, True]
+    assert scored[0].reward == pytest.approx(1.5) and scored[1].reward == pytest.approx(0.5)  # the format bonus too
+    assert "reasoning_gym" in scored[3].error  # no name: the configured verifier (which needs the gym's entry)
+    assert verifiers.get("gsm8k") is verifiers.get("gsm8k")  # built once per name
+    assert unknown[0].reward == 0.0 and "nonexistent" in unknown[0].error  # a counted per-sample error
+    with pytest.raises(KeyError, match="nonexistent"):  # a bad configured name fails at start
+        ProblemVerifiers("nonexistent")
+
+
+def test_reward_worker_scores_decoded_responses_by_their_problems_verifiers(tiny_byte_llama, tmp_path):
+    from infinirl.components.reward import RewardWorker
+    from infinirl.engines.base import GenerationResult
+
+    _, tokenizer = tiny_byte_llama
+    tokenizer.save_pretrained(tmp_path)
+    worker = RewardWorker(str(tmp_path), "reasoning_gym")
+    problems = [numeric_problem("7"), Problem(uid="m/0", prompt="q", answer="\\frac{1}{2}", verifier="math")]
+    results = [GenerationResult(prompt_ids=[1], response_ids=tokenizer.encode(text, add_special_tokens=False),
+                                response_logprobs=[], finish_reason="stop", weight_version=0)
+               for text in ("#### 7", "\\boxed{0.5}")]
+    scored = worker.score(results, problems)
+    assert [(s.correct, s.error) for s in scored] == [(True, None), (True, None)]
+
+
 # --- format bonus ------------------------------------------------------------------------------
 
 
