@@ -41,8 +41,9 @@ class EnvAdvantageInputs:
         rewards: ``[T, N]`` per step, or ``[T, N, C]`` per action of each executed chunk.
         dones: ``[T, N]`` or ``[T, N, C]`` bool: the episode ended with this step (either way).
             ``[T, N]`` with ``[T, N, C]`` rewards means "ended after the chunk's last action".
-        values: critic values of each step's observation: ``[T, N]`` for chunk-level GAE,
-            ``[T, N, C]`` (one per action) for action-level GAE. Needed by ``embodied_gae``.
+        values: critic values of each step's observation: ``[T, N]`` for chunk-level GAE;
+            ``[T, N, C]`` (one per action) or ``[T, N]`` (one per chunk, a critic that sees only
+            the chunk's first observation) for action-level GAE. Needed by ``embodied_gae``.
         bootstrap_values: ``[N]`` value of the observation after the last step, ``V(s_T)``.
             Needed by ``embodied_gae`` (it is ignored where the last step ended an episode).
         truncations: like ``dones``; the dones caused by a time limit (default: none).
@@ -136,6 +137,9 @@ class _TimeSeries:
     truncations: torch.Tensor
     final_values: torch.Tensor
     restore: Callable[[torch.Tensor], torch.Tensor]
+    shares_value: torch.Tensor | None = None
+    """``[S, N]`` bool: the step's successor lies in the same chunk and has the same (chunk) value,
+    so GAE does not bootstrap there (lambda 1): the chunk's actions see ``V`` of the next chunk."""
 
 
 def _chunk_level(inputs: EnvAdvantageInputs) -> _TimeSeries:
@@ -154,13 +158,24 @@ def _chunk_level(inputs: EnvAdvantageInputs) -> _TimeSeries:
 
 def _action_level(inputs: EnvAdvantageInputs) -> _TimeSeries:
     """One decision per executed action: the chunk is unrolled into ``C`` consecutive steps with
-    per-action rewards and values, so credit is assigned inside the chunk."""
+    per-action rewards, so credit is assigned inside the chunk.
+
+    With one value per chunk (``[T, N]``), every action of a chunk has the chunk's value as its
+    baseline, and inside the chunk the return runs on undiscounted by lambda to the next chunk's
+    value (``shares_value``): bootstrapping each action from the value it shares with its
+    successor would give ``r + (gamma - 1) V`` terms that do not telescope, so value would barely
+    pass from one chunk to the next and a perfect critic would not give zero advantages."""
     chunk = inputs.chunk_size
-    if chunk is None or inputs.values.dim() != 3:
+    if chunk is None:
         raise ValueError(
-            "action-level GAE needs per-action rewards and values shaped [T, N, C]; got rewards "
+            "action-level GAE needs per-action rewards shaped [T, N, C]; got rewards "
             f"{tuple(inputs.rewards.shape)}, values {tuple(inputs.values.shape)}"
         )
+    shares_value = None
+    if inputs.values.dim() == 2:
+        inside = torch.ones(*inputs.values.shape, chunk, dtype=torch.bool, device=inputs.values.device)
+        inside[..., -1] = False
+        shares_value = _flatten_actions(inside, chunk, end_of_chunk=False)
     return _TimeSeries(
         rewards=_flatten_actions(inputs.rewards, chunk, end_of_chunk=False),
         values=_flatten_actions(inputs.values, chunk, end_of_chunk=False),
@@ -172,6 +187,7 @@ def _action_level(inputs: EnvAdvantageInputs) -> _TimeSeries:
             end_of_chunk=True,
         ),
         restore=partial(_unflatten_actions, chunk=chunk),
+        shares_value=shares_value,
     )
 
 
@@ -227,10 +243,13 @@ def embodied_gae(
     successor = torch.where(dones & ~series.truncations, torch.zeros_like(successor), successor)
     deltas = series.rewards.to(values.dtype) + gamma * successor - values
     continues = (~dones).to(values.dtype)
+    trace = torch.full_like(values, lam)
+    if series.shares_value is not None:
+        trace = torch.where(series.shares_value, torch.ones_like(trace), trace)
     advantages = torch.zeros_like(values)
     running = torch.zeros_like(values[0])
     for step in range(values.shape[0] - 1, -1, -1):
-        running = deltas[step] + gamma * lam * continues[step] * running
+        running = deltas[step] + gamma * trace[step] * continues[step] * running
         advantages[step] = running
     advantages = series.restore(advantages)
     returns = advantages + series.restore(values)

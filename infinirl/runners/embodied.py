@@ -617,8 +617,11 @@ class EmbodiedFlow:
             self.return_norm.end_episodes()
         values = _tensor(traj["values"])
         if action_level:
-            values = values[..., None].expand_as(rewards)
-            if not algorithm.grouped:
+            # One value per chunk ([T, N]): action-level GAE gives every action of the chunk that
+            # baseline and runs the return on to the next chunk's value.
+            if algorithm.grouped:
+                values = values[..., None].expand_as(rewards)
+            else:
                 dones, truncated, final_values = _at_last_executed_action(
                     _tensor(traj["step_mask"]), dones, truncated, final_values)
         inputs = EnvAdvantageInputs(rewards=rewards, dones=dones, values=values,

@@ -98,7 +98,8 @@ class AlgorithmConfig:
     scaled by the mean first-episode length over its own). The policy loss averages over decisions,
     so otherwise a task whose solved episodes are long outweighs one solved in a few decisions."""
     gamma: float = bounded(0.99, gt=0, le=1)
-    """Discount per decision (per chunk when chunk > 1). ppo only."""
+    """Discount per decision: per chunk when chunk > 1 with gae_level=chunk, per executed action with
+    gae_level=action. ppo only."""
     gae_lambda: float = bounded(0.95, ge=0, le=1)
     """ppo only."""
     gae_level: Literal["chunk", "action"] = "chunk"

@@ -190,7 +190,7 @@ def test_gae_level_errors():
     inputs = random_env_inputs(0)
     with pytest.raises(ValueError, match="level"):
         embodied_gae(inputs, level="token")
-    with pytest.raises(ValueError, match="action-level GAE needs"):
+    with pytest.raises(ValueError, match="action-level GAE needs per-action rewards"):
         embodied_gae(inputs, level="action")
     with pytest.raises(ValueError, match="bootstrap_values"):
         embodied_gae(EnvAdvantageInputs(rewards=torch.zeros(2, 1), dones=torch.zeros(2, 1),
@@ -355,3 +355,71 @@ def test_per_task_normalisation_names_bad_shapes():
         normalize_per_task(torch.zeros(3, 4), torch.zeros(3, dtype=torch.long))
     with pytest.raises(ValueError, match="mask must have the advantages' shape"):
         normalize_per_task(torch.zeros(3, 4), torch.zeros(4, dtype=torch.long), torch.ones(3, 5, dtype=torch.bool))
+
+
+def ref_action_returns_with_chunk_values(rewards, dones, truncs, final_values, values, bootstrap, gamma, lam):
+    """Action-level lambda-returns when the critic gives one value per chunk, written forwards:
+    from action ``c`` of chunk ``t`` the discounted rewards to the chunk's end, then
+    ``gamma^(C-c) [(1 - lam) V_{t+1} + lam G_{t+1}]`` (G_{t+1} the return from the next chunk's
+    first action); an episode end at action ``k`` stops the sum there (plus ``gamma^(k-c+1)
+    V(final)`` for a truncation). Lists: rewards/dones/truncs/final_values [T][N][C], values
+    [T][N], bootstrap [N]. Returns G [T][N][C]."""
+    steps, envs, chunk = len(rewards), len(rewards[0]), len(rewards[0][0])
+    out = [[[0.0] * chunk for _ in range(envs)] for _ in range(steps)]
+    for n in range(envs):
+        after = bootstrap[n]  # lambda-mixture the last chunk's end bootstraps from
+        for t in reversed(range(steps)):
+            for c in range(chunk):
+                total, discount, ended = 0.0, 1.0, False
+                for k in range(c, chunk):
+                    total += discount * rewards[t][n][k]
+                    discount *= gamma
+                    if dones[t][n][k] or truncs[t][n][k]:
+                        total += discount * final_values[t][n][k] if truncs[t][n][k] else 0.0
+                        ended = True
+                        break
+                out[t][n][c] = total if ended else total + discount * after
+            after = (1 - lam) * values[t][n] + lam * out[t][n][0]
+    return out
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("per_action_dones", [False, True])
+def test_action_level_gae_with_one_value_per_chunk_matches_the_forward_lambda_return(seed, per_action_dones):
+    chunk, steps, envs = 3, 6, 4
+    full = random_env_inputs(seed, chunk=chunk, per_action_dones=per_action_dones)
+    chunk_values = full.values[..., 0].clone()
+    inputs = dataclasses.replace(full, values=chunk_values)
+    out = embodied_gae(inputs, gamma=0.9, lam=0.8, level="action")
+
+    def per_action(tensor):
+        if tensor.dim() == 3:
+            return tensor.tolist()
+        placed = torch.zeros(steps, envs, chunk, dtype=tensor.dtype)
+        placed[..., -1] = tensor
+        return placed.tolist()
+
+    returns = ref_action_returns_with_chunk_values(
+        inputs.rewards.tolist(), per_action(inputs.dones), per_action(inputs.truncations),
+        per_action(inputs.final_values), chunk_values.tolist(), inputs.bootstrap_values.tolist(), 0.9, 0.8)
+    returns = torch.tensor(returns, dtype=torch.float64)
+    torch.testing.assert_close(out.returns, returns)
+    torch.testing.assert_close(out.advantages, returns - chunk_values[..., None])
+
+
+def test_a_perfect_chunk_critic_is_a_fixed_point_of_action_level_gae():
+    """Sparse reward at the episode's end, chunks of 50 (as a VLA's): with the true chunk values
+    the value targets are those values and the first action's advantage is 0 in every chunk (a
+    shared value used as every action's bootstrap would pull the early chunks' targets far below)."""
+    chunk, steps, gamma = 50, 6, 0.99
+    rewards = torch.zeros(steps, 1, chunk, dtype=torch.float64)
+    rewards[-1, 0, -1] = 1.0
+    dones = torch.zeros(steps, 1, dtype=torch.bool)
+    dones[-1, 0] = True
+    true_values = torch.tensor([[gamma ** (chunk * (steps - 1 - t) + chunk - 1)] for t in range(steps)],
+                               dtype=torch.float64)
+    inputs = EnvAdvantageInputs(rewards=rewards, dones=dones, values=true_values,
+                                bootstrap_values=torch.zeros(1, dtype=torch.float64))
+    out = embodied_gae(inputs, gamma=gamma, lam=0.95, level="action")
+    torch.testing.assert_close(out.returns[..., 0], true_values)
+    torch.testing.assert_close(out.advantages[..., 0], torch.zeros_like(true_values))
