@@ -62,6 +62,11 @@ VERSION_TENSOR = "policy_version"
 """A one-element int64 tensor sent with the weights: the version they are, stamped where they were
 snapshotted (so a robot never labels its steps with a version other than the one it acts with)."""
 _JOIN_TIMEOUT_S = 30.0
+_OUTBOX_EPISODES = 8
+"""Finished episodes waiting for the sender. A transport slower than the robot for longer than this
+pauses the control loop between episodes rather than growing memory without limit (a camera
+episode is tens of MB)."""
+_OUTBOX_WAIT_S = 0.2
 _CONNECT_TRIES = 3
 
 
@@ -198,8 +203,9 @@ class RobotControlLoop:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._sender: threading.Thread | None = None
-        self._outbox: queue.Queue = queue.Queue()
+        self._outbox: queue.Queue = queue.Queue(maxsize=_OUTBOX_EPISODES)
         self._error: BaseException | None = None
+        self._sender_error: BaseException | None = None
         self._eval_request: tuple[Callable[[], Any], queue.Queue] | None = None
         self.intervention = intervention
         self.intervention_device = None
@@ -285,6 +291,7 @@ class RobotControlLoop:
         if human is not None:
             human.reset()
         while not self._stop.is_set():
+            self._raise_if_sender_failed()  # nothing this episode collects could be delivered any more
             if between_steps is not None:
                 between_steps()
             action, version, given = self._choose(obs, policy, deterministic, human)
@@ -399,7 +406,7 @@ class RobotControlLoop:
         def release(recorder: EpisodeRecorder) -> None:
             episode = self._finish(recorder, training=True)
             if episode is not None:
-                self._outbox.put(episode)
+                self._hand_to_sender(episode)
 
         try:
             while not self._stop.is_set():
@@ -419,10 +426,34 @@ class RobotControlLoop:
             if held is not None:
                 release(held)
         except BaseException as exc:  # reported by the next stats() / stop() call
-            logger.exception("%s control loop failed", self.kind)
-            self._error = exc
+            if exc is not self._sender_error:
+                logger.exception("%s control loop failed", self.kind)
+            self._error = self._error or exc
         finally:
-            self._outbox.put(None)
+            try:
+                self._hand_to_sender(None)
+            except BaseException:  # the sender already ended: nobody waits for the end marker
+                pass
+
+    def _hand_to_sender(self, item: dict | None) -> None:
+        """Queue ``item`` for the sender; while the outbox is full, wait for it (the transport is
+        behind), and raise the sender's error once it has failed instead of waiting forever."""
+        warned = False
+        while True:
+            self._raise_if_sender_failed()
+            try:
+                self._outbox.put(item, timeout=_OUTBOX_WAIT_S)
+                return
+            except queue.Full:
+                if not warned:
+                    logger.warning("%s: %d episodes wait for the transport; the robot pauses until one is sent",
+                                   self.kind, _OUTBOX_EPISODES)
+                    self.counts["outbox_full_waits"] += 1
+                    warned = True
+
+    def _raise_if_sender_failed(self) -> None:
+        if self._sender_error is not None:
+            raise self._sender_error
 
     def _send_loop(self, submit) -> None:
         while True:
@@ -433,8 +464,9 @@ class RobotControlLoop:
                 submit(episode)
                 self.counts["episodes_sent"] += 1
             except BaseException as exc:
-                logger.exception("%s: sending an episode failed", self.kind)
+                logger.exception("%s: sending an episode failed; the control loop stops", self.kind)
                 self._error = self._error or exc
+                self._sender_error = exc  # the control loop raises it at its next step or hand-over
                 return
 
     def stop(self) -> dict:
@@ -545,7 +577,11 @@ class RobotControlLoop:
             raise RobotError(f"{self.kind} robot control loop failed: {self._error!r}") from self._error
 
     def close(self) -> None:
-        self.stop()
-        if self.intervention_device is not None:
-            self.intervention_device.close()
-        self.robot.close()
+        try:
+            self.stop()  # raises a failure of the loop, after which the robot must still be let go
+        finally:
+            try:
+                if self.intervention_device is not None:
+                    self.intervention_device.close()
+            finally:
+                self.robot.close()

@@ -8,7 +8,9 @@ restores every setting it changed on :meth:`close`.
 
 from __future__ import annotations
 
+import errno
 import fcntl
+import logging
 import os
 import termios
 import tty
@@ -16,6 +18,8 @@ import tty
 __all__ = ["NonBlockingReader"]
 
 _READ_CHUNK = 4096
+
+logger = logging.getLogger(__name__)
 
 
 class NonBlockingReader:
@@ -43,17 +47,22 @@ class NonBlockingReader:
         self.eof = False
 
     def read_available(self) -> bytes:
-        """Every byte waiting now (``b""`` when none); never blocks."""
+        """Every byte waiting now (``b""`` when none); never blocks. Once :attr:`eof` is set (the other
+        side closed, or the device went away) nothing more is read."""
         if self.closed:
             raise RuntimeError(f"{self.what}: read after close()")
+        if self.eof:
+            return b""
         chunks = []
         while True:
             try:
                 chunk = os.read(self.fd, _READ_CHUNK)
             except BlockingIOError:
                 break
-            except OSError as exc:  # a terminal whose other side closed reads EIO
-                if exc.errno == 5:
+            except OSError as exc:
+                # A terminal whose other side closed reads EIO; an unplugged joystick reads ENODEV.
+                # Both are the device going away, not a failure of the caller.
+                if exc.errno in (errno.EIO, errno.ENODEV):
                     self.eof = True
                     break
                 raise
@@ -63,6 +72,21 @@ class NonBlockingReader:
             chunks.append(chunk)
         return b"".join(chunks)
 
+    def read_or_lost(self) -> bytes:
+        """:meth:`read_available`, except that any read error also counts as the device being gone
+        (:attr:`eof` set): a device that fails mid-run must release the robot, not stop the control
+        loop or keep replaying its last state. Logs once when the device is lost."""
+        was_eof = self.eof
+        try:
+            data = self.read_available()
+        except OSError as exc:
+            data, self.eof = b"", True
+            logger.warning("%s: reading the device failed (%s); treating it as gone", self.what, exc)
+        if self.eof and not was_eof:
+            logger.warning("%s: the device is gone (closed or unplugged); the human no longer holds control "
+                           "and the policy acts", self.what)
+        return data
+
     def close(self) -> None:
         if self.closed:
             return
@@ -71,7 +95,7 @@ class NonBlockingReader:
             if self._termios is not None:
                 termios.tcsetattr(self.fd, termios.TCSADRAIN, self._termios)
             fcntl.fcntl(self.fd, fcntl.F_SETFL, self._flags)
-        except OSError:  # the terminal went away; nothing left to restore
+        except (OSError, termios.error):  # the terminal went away; nothing left to restore
             pass
         if self._owned:
             os.close(self.fd)

@@ -69,7 +69,7 @@ class GamepadDevice(InterventionDevice):
         self.reader = NonBlockingReader(what="gamepad", path=path, fd=fd)
 
     def _events(self) -> list[tuple[int, int, int, int]]:
-        data = self._pending + self.reader.read_available()
+        data = self._pending + self.reader.read_or_lost()
         whole = len(data) - len(data) % JS_EVENT.size
         self._pending = data[whole:]
         return list(JS_EVENT.iter_unpack(data[:whole]))
@@ -91,6 +91,13 @@ class GamepadDevice(InterventionDevice):
                     self.toggled = not self.toggled
                 elif number in self.mark_buttons:
                     marks.append(self.mark_buttons[number])
+        if self.reader.eof:
+            # The pad was unplugged: its last state (a held dead-man button, a deflected stick) is
+            # stale and no release will ever arrive, so control returns to the policy for good.
+            self.buttons.clear()
+            self.axis_values.clear()
+            self.toggled = False
+            self._pending = b""
         active = self.toggled if self.takeover_toggle else self.buttons.get(self.takeover_button, False)
         if not active:
             return HumanInput(active=False, marks=tuple(marks))

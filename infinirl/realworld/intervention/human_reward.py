@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import io
 import os
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from infinirl.realworld.intervention.device import EPISODE_MARKS
-from infinirl.utils import atomic_open
 
 __all__ = ["REWARD_SOURCES", "HumanOutcome", "SuccessLabelWriter", "human_reward", "success_labels"]
 
@@ -63,21 +63,44 @@ def success_labels(num_observations: int, mark: str) -> np.ndarray:
 
 class SuccessLabelWriter:
     """Writes labelled observations under ``folder`` as ``<prefix>-<n>.npz`` (n counts up from the
-    files already there, so a restarted worker adds to them)."""
+    highest index already there, so a restarted worker adds to them, even after some were deleted;
+    a file is never replaced: a name already taken is skipped)."""
 
     def __init__(self, folder: str, prefix: str = "labels") -> None:
         self.folder, self.prefix = folder, prefix
         os.makedirs(folder, exist_ok=True)
-        taken = [name for name in os.listdir(folder) if name.startswith(f"{prefix}-") and name.endswith(".npz")]
-        self.count = len(taken)
+        self.count = self._next_index()
+
+    def _next_index(self) -> int:
+        """One past the highest ``<prefix>-<n>.npz`` index in the folder (0 when none)."""
+        highest = -1
+        head, tail = f"{self.prefix}-", ".npz"
+        for name in os.listdir(self.folder):
+            index = name[len(head):-len(tail)] if name.startswith(head) and name.endswith(tail) else ""
+            if index.isdigit():
+                highest = max(highest, int(index))
+        return highest + 1
 
     def write(self, observations: Mapping[str, Sequence[np.ndarray]], mark: str) -> str:
         rows = {key: np.stack([np.asarray(v) for v in values]) for key, values in observations.items()}
         num = len(next(iter(rows.values())))
-        path = os.path.join(self.folder, f"{self.prefix}-{self.count:06d}.npz")
         buffer = io.BytesIO()
         np.savez(buffer, label=success_labels(num, mark), **rows)
-        with atomic_open(path, "wb") as handle:
-            handle.write(buffer.getvalue())
+        handle = tempfile.NamedTemporaryFile(dir=self.folder, prefix=f".{self.prefix}-", suffix=".tmp", delete=False)
+        try:
+            with handle:
+                handle.write(buffer.getvalue())
+            while True:
+                path = os.path.join(self.folder, f"{self.prefix}-{self.count:06d}.npz")
+                try:
+                    # A hard link appears whole and fails rather than replacing a file already
+                    # there (another writer with this prefix, or a file written since start-up).
+                    os.link(handle.name, path)
+                except FileExistsError:
+                    self.count += 1
+                    continue
+                break
+        finally:
+            os.unlink(handle.name)
         self.count += 1
         return path

@@ -76,7 +76,7 @@ class KeyboardDevice(InterventionDevice):
     def poll(self, *, observation=None, policy_action=None) -> HumanInput:
         delta = np.zeros(self.action_dim, np.float32)
         marks: list[str] = []
-        for key in self.reader.read_available().decode("latin-1"):
+        for key in self.reader.read_or_lost().decode("latin-1"):
             control = self._controls.get(key)
             if control == "toggle":
                 self.active = not self.active
@@ -86,6 +86,11 @@ class KeyboardDevice(InterventionDevice):
             elif key in self._keys and self.active:
                 axis, amount = self._keys[key]
                 delta[axis] += amount
+        if self.reader.eof:
+            # The terminal went away: nobody can hand back any more, so control returns to the policy
+            # for good (keys read before the loss still give their marks).
+            self.active = False
+            self.latched = self.rest.copy()
         if not self.active:
             return HumanInput(active=False, marks=tuple(marks))
         action = np.clip(self.rest + delta, -1.0, 1.0)

@@ -11,16 +11,25 @@ whenever a newer frame exists), the status (who acts, the policy's proposal, the
 The API (every route takes ``?token=`` when the device has a token; a missing or wrong one is a 403):
 
 * ``GET /``: the page; ``GET /api/state``: the status as JSON;
-* ``POST /api/takeover`` (optional body ``{"action": [...]}``), ``POST /api/handback``;
-* ``POST /api/action`` ``{"action": [...]}``: ``action_dim`` finite numbers in ``[-1, 1]``;
+* ``POST /api/takeover`` (optional ``{"action": [...]}``; without one the human starts from a zero
+  action): its answer carries ``session``, the id of this take-over;
+* ``POST /api/action`` ``{"session": ..., "action": [...]}``: ``action_dim`` finite numbers in ``[-1, 1]``;
+* ``POST /api/handback`` ``{"session": ...}``: the human's action returns to zero;
 * ``POST /api/mark`` ``{"mark": "success" | "failure"}``: delivered once, by the next :meth:`poll`;
 * ``GET /api/frame/{camera}``: the camera's latest frame as JPEG.
+
+Only the page holding the latest take-over steers: ``/api/action`` and ``/api/handback`` with any
+other session (a page that another page took over from, or one whose control lapsed) are a 409, so
+a stale tab never drives the robot or hands back someone else's control. Every POST must be
+``Content-Type: application/json`` (415 otherwise) and one whose ``Origin`` is not this server's is a
+403: a browser then cannot be made to send a take-over from another site, even without a token
+(a cross-site JSON POST needs a CORS preflight, which this server never grants).
 
 Bad input is a 400 whose JSON ``error`` says what to send instead. While the human holds control the
 page re-sends its action every ``ACTION_RESEND_S``; if the holder falls silent for
 ``heartbeat_timeout_s`` (a closed tab, a dropped phone connection) control goes back to the policy
 (logged, counted in ``stats.heartbeat_releases``), because a human who cannot see the robot any more
-must not keep steering it with a stale action.
+must not keep steering it with a stale action. Only the holding session's actions count as heard.
 """
 
 from __future__ import annotations
@@ -31,6 +40,7 @@ import io
 import ipaddress
 import json
 import logging
+import secrets
 import socket
 import threading
 import time
@@ -39,14 +49,14 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from importlib import resources
 from typing import Any
-from urllib.parse import quote
+from urllib.parse import quote, urlsplit
 
 import numpy as np
 
 from infinirl.realworld.intervention.device import EPISODE_MARKS, INTERVENTION_DEVICES, HumanInput, InterventionDevice
 
-__all__ = ["ACTION_RESEND_S", "WebControlState", "WebDeviceStats", "WebInterventionDevice", "encode_jpeg", "jsonable",
-           "parse_action", "parse_mark"]
+__all__ = ["ACTION_RESEND_S", "StaleSession", "WebControlState", "WebDeviceStats", "WebInterventionDevice",
+           "encode_jpeg", "jsonable", "parse_action", "parse_mark"]
 
 logger = logging.getLogger(__name__)
 
@@ -67,7 +77,10 @@ class WebDeviceStats:
     marks: int = 0
     actions: int = 0
     rejected_requests: int = 0
-    """Requests answered 400 (bad input) or 403 (missing or wrong token)."""
+    """Requests answered 400 (bad input), 403 (missing or wrong token, foreign origin) or 415."""
+    stale_requests: int = 0
+    """Actions or hand-backs answered 409: sent by a page that no longer holds control. Not an error
+    of the page: one already in flight when another page takes over or the heartbeat lapses lands here."""
 
 
 def parse_action(value: object, action_dim: int) -> np.ndarray:
@@ -123,6 +136,10 @@ def _check_frame(camera: str, frame: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(frame).copy()
 
 
+class StaleSession(Exception):
+    """An action or hand-back from a page that does not hold the present take-over."""
+
+
 class WebControlState:
     """What the page set and what the control loop showed, behind one lock (the server thread and
     the control loop share it). ``clock`` is injectable so the heartbeat is testable without sleeping."""
@@ -136,6 +153,7 @@ class WebControlState:
         self.stats = WebDeviceStats()
         self._active = False
         self._action = np.zeros(action_dim)
+        self._session: str | None = None  # the take-over in control; None while the policy acts
         self._marks: list[str] = []
         self._last_heard = clock()
         self._released_by: str | None = None  # why control last went back to the policy
@@ -146,25 +164,44 @@ class WebControlState:
         self._info: dict[str, Any] = {}
 
     # -- the page's side -------------------------------------------------------------------------
-    def take_over(self, action: np.ndarray | None) -> None:
+    def take_over(self, action: np.ndarray | None) -> str:
+        """A new session holds control (taking it from any page that held it); returns its id.
+        Without ``action`` the human starts from zero, never from an earlier session's action."""
         with self.lock:
-            if action is not None:
-                self._action = action
+            self._expire()
+            self._action = np.zeros(self.action_dim) if action is None else action
             if not self._active:
                 self.stats.takeovers += 1
+            self._session = secrets.token_urlsafe(12)
             self._active, self._released_by, self._last_heard = True, None, self.clock()
+            return self._session
 
-    def hand_back(self) -> None:
+    def hand_back(self, session: str) -> None:
         with self.lock:
-            if self._active:
-                self.stats.handbacks += 1
-            self._active, self._released_by = False, "hand-back"
+            self._check_session(session)
+            self.stats.handbacks += 1
+            self._release("hand-back")
 
-    def set_action(self, action: np.ndarray) -> None:
+    def set_action(self, action: np.ndarray, session: str) -> None:
         with self.lock:
+            self._check_session(session)
             self._action = action
             self._last_heard = self.clock()
             self.stats.actions += 1
+
+    def _check_session(self, session: str) -> None:
+        """Refuse a page other than the holder (caller holds the lock)."""
+        self._expire()
+        if self._session is None or not hmac.compare_digest(str(session).encode(), self._session.encode()):
+            self.stats.stale_requests += 1
+            raise StaleSession("this page does not hold control (another page took over, or control went back "
+                               "to the policy); take over again to steer")
+
+    def _release(self, why: str) -> None:
+        """Control goes back to the policy; the next take-over starts from a zero action (caller
+        holds the lock)."""
+        self._active, self._released_by, self._session = False, why, None
+        self._action = np.zeros(self.action_dim)
 
     def add_mark(self, mark: str) -> None:
         with self.lock:
@@ -222,7 +259,7 @@ class WebControlState:
         """Hand control back if the holding page fell silent (caller holds the lock)."""
         timeout = self.heartbeat_timeout_s
         if self._active and timeout is not None and self.clock() - self._last_heard > timeout:
-            self._active, self._released_by = False, "heartbeat"
+            self._release("heartbeat")
             self.stats.heartbeat_releases += 1
             logger.warning("intervention page silent for more than %.1f s while holding control: "
                            "control goes back to the policy", timeout)
@@ -230,6 +267,18 @@ class WebControlState:
 
 class _BadRequest(Exception):
     """A request the API refuses with 400 and this message."""
+
+
+def _same_origin(origin: str | None, host: str | None) -> bool:
+    """Whether a request's ``Origin`` header (absent: not a cross-site browser request) names this
+    server as the request reached it (``Host``). ``Origin: null`` (a sandboxed frame, a local file)
+    is foreign."""
+    if origin is None:
+        return True
+    if not host:
+        return False
+    parts = urlsplit(origin)
+    return parts.scheme in ("http", "https") and parts.netloc.lower() == host.lower()
 
 
 @INTERVENTION_DEVICES.register("web")
@@ -406,11 +455,25 @@ class WebInterventionDevice(InterventionDevice):
                 self.state.count_rejected()
                 return web.json_response({"error": "missing or wrong token: open the address the run printed, "
                                                    "with its ?token=..."}, status=403)
+            if request.method == "POST":
+                # Without a token these two checks are what keeps another site's page, open in a
+                # browser on this network, from posting a take-over: a form can only send
+                # form/text bodies, and a JSON fetch from another origin carries that origin.
+                if not _same_origin(request.headers.get("Origin"), request.headers.get("Host")):
+                    self.state.count_rejected()
+                    return web.json_response({"error": "a request from another site's page is refused: open the "
+                                                       "address the run printed"}, status=403)
+                if request.content_type != "application/json":
+                    self.state.count_rejected()
+                    return web.json_response({"error": "POST a JSON body with Content-Type: application/json, "
+                                                       f"got {request.content_type!r}"}, status=415)
             try:
                 return await handler(request)
             except _BadRequest as error:
                 self.state.count_rejected()
                 return web.json_response({"error": str(error)}, status=400)
+            except StaleSession as error:
+                return web.json_response({"error": str(error)}, status=409)
 
         return guard
 
@@ -434,6 +497,12 @@ class WebInterventionDevice(InterventionDevice):
         except ValueError as error:
             raise _BadRequest(str(error)) from None
 
+    def _session_from(self, body: dict[str, Any]) -> str:
+        session = body.get("session")
+        if not isinstance(session, str) or not session:
+            raise _BadRequest("the body needs 'session': the id /api/takeover answered")
+        return session
+
     def _state_json(self) -> dict[str, Any]:
         return {**self.state.snapshot(), "axis_labels": list(self.axis_labels), "pad_axes": list(self.pad_axes)}
 
@@ -451,19 +520,20 @@ class WebInterventionDevice(InterventionDevice):
         from aiohttp import web
 
         body = await self._json_body(request, required=False)
-        self.state.take_over(self._action_from(body) if "action" in body else None)
-        return web.json_response(self._state_json())
+        session = self.state.take_over(self._action_from(body) if "action" in body else None)
+        return web.json_response({**self._state_json(), "session": session})
 
     async def _hand_back(self, request: Any) -> Any:
         from aiohttp import web
 
-        self.state.hand_back()
+        self.state.hand_back(self._session_from(await self._json_body(request, required=True)))
         return web.json_response(self._state_json())
 
     async def _set_action(self, request: Any) -> Any:
         from aiohttp import web
 
-        self.state.set_action(self._action_from(await self._json_body(request, required=True)))
+        body = await self._json_body(request, required=True)
+        self.state.set_action(self._action_from(body), self._session_from(body))
         return web.json_response({"ok": True})
 
     async def _mark(self, request: Any) -> Any:

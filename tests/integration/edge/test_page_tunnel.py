@@ -89,8 +89,10 @@ def test_the_page_at_the_edge_is_used_from_the_cloud(page_through_link):
     state = page.json("GET", "/api/state")
     assert state["actor"] == "policy" and state["info"] == {"episode": 3} and state["cameras"] == ["corner"]
 
-    assert page.json("POST", "/api/takeover")["actor"] == "human"
-    assert page.json("POST", "/api/action", {"action": [0.5, -0.25, 1.0, -1.0]}) == {"ok": True}
+    taken = page.json("POST", "/api/takeover")
+    assert taken["actor"] == "human"
+    session = taken["session"]
+    assert page.json("POST", "/api/action", {"session": session, "action": [0.5, -0.25, 1.0, -1.0]}) == {"ok": True}
     assert page.json("POST", "/api/mark", {"mark": "success"})["marks_pending"] == ["success"]
     human = device.poll(policy_action=np.zeros(4))
     assert human.active and human.marks == ("success",)
@@ -102,9 +104,9 @@ def test_the_page_at_the_edge_is_used_from_the_cloud(page_through_link):
 
     assert Image.open(io.BytesIO(jpeg)).size == (64, 48)
 
-    assert page.json("POST", "/api/handback")["actor"] == "policy"
+    assert page.json("POST", "/api/handback", {"session": session})["actor"] == "policy"
     assert not device.poll().active
-    status, _, _ = page.request("POST", "/api/action", {"action": [2.0, 0, 0, 0]})
+    status, _, _ = page.request("POST", "/api/action", {"session": session, "action": [2.0, 0, 0, 0]})
     assert status == 400  # the device's own checks answer through the tunnel too
 
     # episodes share the link with the page meanwhile

@@ -108,7 +108,9 @@ def free_port() -> int:
 def call_page(base: str, path: str, body: dict | None = None):
     """GET (no body) or POST one page API call with the token; the parsed JSON answer."""
     data = None if body is None else json.dumps(body).encode()
-    with urllib.request.urlopen(urllib.request.Request(f"{base}{path}?token={TOKEN}", data=data), timeout=10) as r:
+    request = urllib.request.Request(f"{base}{path}?token={TOKEN}", data=data,
+                                     headers={} if data is None else {"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=10) as r:
         return json.loads(r.read()) if path.startswith("/api") else r.read().decode()
 
 
@@ -138,14 +140,14 @@ def person_at_the_trainer(base: str, seen: dict) -> None:
     wait_for_the_robot(base, seen, deadline)
     seen["page"] = call_page(base, "/")
     action = [0.0] * seen["first_state"]["action_dim"]
-    call_page(base, "/api/takeover", {"action": action})
+    session = call_page(base, "/api/takeover", {"action": action})["session"]
     for _ in range(10):  # the page's joystick: an action every 100 ms keeps control with the human
-        call_page(base, "/api/action", {"action": action})
+        call_page(base, "/api/action", {"session": session, "action": action})
         time.sleep(0.1)
     call_page(base, "/api/mark", {"mark": "success"})
     wait_for_the_mark(base, deadline)
     seen["mark_taken"] = True
-    seen["last_state"] = call_page(base, "/api/handback", {})
+    seen["last_state"] = call_page(base, "/api/handback", {"session": session})
 
 
 def person_with_a_browser(base: str, seen: dict) -> None:

@@ -3,6 +3,7 @@ intervened stretches as demonstrations, the human reward and success labels, HG-
 and its behaviour-cloning loss (float64 references, masks)."""
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -100,6 +101,27 @@ def test_label_writer_saves_observations_with_labels(tmp_path):
         assert saved["state"][:, 0].tolist() == [0, 1, 2] and saved["pixels.top"].shape == (3, 2, 2, 3)
     writer.write(observations, "failure")
     assert SuccessLabelWriter(str(tmp_path), prefix="rank0").count == 2  # a restarted writer adds to them
+
+
+def test_label_writer_never_overwrites_after_a_file_was_deleted(tmp_path):
+    observations = {"state": [np.full(2, i, np.float32) for i in range(2)]}
+    writer = SuccessLabelWriter(str(tmp_path), prefix="rank0")
+    first, second = writer.write(observations, "success"), writer.write(observations, "failure")
+    os.unlink(first)  # a person removed a wrong label
+    (tmp_path / "rank0-notanumber.npz").write_bytes(b"")
+    restarted = SuccessLabelWriter(str(tmp_path), prefix="rank0")
+    assert restarted.count == 2  # after the highest index, not the number of files
+    third = restarted.write(observations, "success")
+    with np.load(second) as saved:
+        assert saved["label"].tolist() == [0, 0]  # still the failure
+    # Another writer took the next name meanwhile: skipped, not replaced.
+    taken = tmp_path / "rank0-000003.npz"
+    taken.write_bytes(b"other")
+    fourth = restarted.write(observations, "success")
+    assert taken.read_bytes() == b"other" and os.path.basename(fourth) == "rank0-000004.npz"
+    assert os.path.basename(third) == "rank0-000002.npz"
+    assert sorted(os.listdir(tmp_path)) == ["rank0-000001.npz", "rank0-000002.npz", "rank0-000003.npz",
+                                            "rank0-000004.npz", "rank0-notanumber.npz"]  # no temporaries left
 
 
 def test_recorder_keeps_the_intervened_flag_and_the_human_mark():

@@ -1,6 +1,7 @@
 """Intervention devices down to their wire formats: keys typed into a real pseudo-terminal, joystick
 records (``struct js_event``) written into a pipe, and the simulated human's take-over rule."""
 
+import errno
 import os
 import pty
 import termios
@@ -9,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from infinirl.realworld.intervention import INTERVENTION_DEVICES, HumanInput
+from infinirl.realworld.intervention import INTERVENTION_DEVICES, HumanInput, fd_reader
 from infinirl.realworld.intervention.gamepad import JS_EVENT_AXIS, JS_EVENT_BUTTON, JS_EVENT_INIT, js_event
 from infinirl.realworld.intervention.simulated_human import action_distance
 
@@ -51,6 +52,23 @@ def test_keyboard_takes_over_steers_marks_and_hands_back(terminal):
     assert device.poll().marks == ("failure",)
     device.close()
     assert termios.tcgetattr(follower) == before  # the terminal's settings are restored
+
+
+def test_keyboard_releases_control_when_the_terminal_goes_away():
+    leader, follower = pty.openpty()
+    try:
+        device = INTERVENTION_DEVICES.get("keyboard")(action_dim=2, fd=follower, latched_axes=[1])
+        os.write(leader, b" l")
+        assert device.poll().active
+        os.close(leader)  # the terminal window closes: the follower reads EIO from now on
+        leader = None
+        assert device.poll() == HumanInput(active=False) and device.reader.eof
+        assert device.poll() == HumanInput(active=False)  # for good, without reading again
+        device.close()
+    finally:
+        if leader is not None:
+            os.close(leader)
+        os.close(follower)
 
 
 def test_keyboard_refuses_a_key_bound_twice(terminal):
@@ -110,6 +128,39 @@ def test_gamepad_toggle_mode(joystick):
     assert device.poll().active and device.poll().active  # stays on after the release
     os.write(write_end, press + release)
     assert not device.poll().active
+
+
+def test_gamepad_releases_control_when_the_pipe_closes():
+    read_end, write_end = os.pipe()
+    device = INTERVENTION_DEVICES.get("gamepad")(action_dim=1, fd=read_end, takeover_button=5)
+    os.write(write_end, js_event(time_ms=1, value=1, type=JS_EVENT_BUTTON, number=5)
+             + js_event(time_ms=2, value=30000, type=JS_EVENT_AXIS, number=0))
+    assert device.poll().active
+    os.close(write_end)  # the writer goes away: EOF
+    given = device.poll()
+    assert given == HumanInput(active=False) and device.reader.eof
+    assert not device.buttons and not device.axis_values and not device.poll().active
+    device.close()
+    os.close(read_end)
+
+
+@pytest.mark.parametrize("errno_", [errno.ENODEV, errno.EBADF])
+def test_gamepad_unplugged_releases_control_instead_of_raising(joystick, monkeypatch, errno_):
+    """An unplugged joystick reads ENODEV; any other read error also counts as the pad being gone."""
+    read_end, write_end = joystick
+    device = INTERVENTION_DEVICES.get("gamepad")(action_dim=1, fd=read_end, takeover_button=5,
+                                                 takeover_toggle=True)
+    os.write(write_end, js_event(time_ms=1, value=1, type=JS_EVENT_BUTTON, number=5))
+    assert device.poll().active
+
+    def unplugged(fd, size):
+        raise OSError(errno_, os.strerror(errno_))
+
+    monkeypatch.setattr(fd_reader.os, "read", unplugged)
+    assert device.poll() == HumanInput(active=False) and device.reader.eof and not device.toggled
+    assert device.poll() == HumanInput(active=False)
+    monkeypatch.undo()
+    device.close()
 
 
 def test_gamepad_names_a_missing_device(tmp_path):

@@ -13,17 +13,25 @@ import pytest
 from PIL import Image
 
 from infinirl.realworld.intervention import INTERVENTION_DEVICES
-from infinirl.realworld.intervention.web import WebControlState, WebInterventionDevice, parse_action, parse_mark
+from infinirl.realworld.intervention.web import (
+    StaleSession,
+    WebControlState,
+    WebInterventionDevice,
+    parse_action,
+    parse_mark,
+)
 
 TOKEN = "t0ken/with?odd&chars"
 
 
-def call(device, path, body=None, *, token=TOKEN, method=None, raw=None):
-    """(status, parsed JSON or bytes) of one request to the device's API."""
+def call(device, path, body=None, *, token=TOKEN, method=None, raw=None, headers=None):
+    """(status, parsed JSON or bytes) of one request to the device's API (a POST as JSON, as the page sends it)."""
     query = "" if token is None else ("&" if "?" in path else "?") + "token=" + urllib.request.quote(token, safe="")
     data = raw if raw is not None else (None if body is None else json.dumps(body).encode())
+    method = method or ("GET" if data is None else "POST")
+    headers = {**({"Content-Type": "application/json"} if method == "POST" else {}), **(headers or {})}
     request = urllib.request.Request(f"http://127.0.0.1:{device.port}{path}{query}", data=data,
-                                     method=method or ("GET" if data is None else "POST"))
+                                     method=method, headers=headers)
     try:
         with urllib.request.urlopen(request, timeout=10) as response:
             status, content, kind = response.status, response.read(), response.headers.get_content_type()
@@ -59,10 +67,11 @@ def test_take_over_act_and_hand_back_set_what_poll_returns(device):
     assert device.poll().active is False
     status, state = call(device, "/api/takeover", {})
     assert status == 200 and state["active"] is True and state["actor"] == "human"
+    session = state["session"]
     human = device.poll(policy_action=np.array([0.5, 0.5, 0.5]))
     assert human.active and np.array_equal(human.action, [0.0, 0.0, 0.0])  # a centred joystick
 
-    assert call(device, "/api/action", {"action": [0.25, -1, 1.0]}) == (200, {"ok": True})
+    assert call(device, "/api/action", {"session": session, "action": [0.25, -1, 1.0]}) == (200, {"ok": True})
     human = device.poll()
     np.testing.assert_array_equal(human.action, [0.25, -1.0, 1.0])
     human.action[0] = 9.0  # the caller's copy: the device's action stays as the page set it
@@ -71,15 +80,56 @@ def test_take_over_act_and_hand_back_set_what_poll_returns(device):
     status, state = call(device, "/api/state")
     assert state["policy_action"] == [0.5, 0.5, 0.5] and state["polls"] == 4
     assert state["axis_labels"] == ["x", "y", "grip"] and state["pad_axes"] == [0, 1]
+    assert "session" not in state  # only the page that took over learns its id
 
-    status, state = call(device, "/api/handback", {})
+    status, state = call(device, "/api/handback", {"session": session})
     assert status == 200 and state["active"] is False and state["released_by"] == "hand-back"
     assert device.poll().active is False and device.poll().action is None
+    assert state["action"] == [0.0, 0.0, 0.0]  # the last session's action is gone
 
     # Taking over with the page's present action starts from it (a slider the human already moved).
     call(device, "/api/takeover", {"action": [0, 0, -0.5]})
     np.testing.assert_array_equal(device.poll().action, [0.0, 0.0, -0.5])
     assert (device.stats.takeovers, device.stats.handbacks) == (2, 1)
+
+
+def test_only_the_page_holding_the_latest_take_over_steers_or_hands_back(device):
+    first = call(device, "/api/takeover", {"action": [0.5, 0.5, 0.5]})[1]["session"]
+    second = call(device, "/api/takeover", {})[1]["session"]  # another page takes over
+    assert first != second
+    np.testing.assert_array_equal(device.poll().action, [0, 0, 0])  # not the first page's action
+    for path, body in (("/api/action", {"session": first, "action": [1, 1, 1]}), ("/api/handback", {"session": first}),
+                       ("/api/action", {"session": "made-up", "action": [1, 1, 1]})):
+        status, answer = call(device, path, body)
+        assert status == 409 and "take over again" in answer["error"]
+    human = device.poll()
+    assert human.active and np.array_equal(human.action, [0, 0, 0])
+    status, answer = call(device, "/api/action", {"action": [1, 1, 1]})
+    assert status == 400 and "'session'" in answer["error"]
+    assert call(device, "/api/action", {"session": second, "action": [0, 1, 0]})[0] == 200
+    np.testing.assert_array_equal(device.poll().action, [0, 1, 0])
+    assert call(device, "/api/handback", {"session": second})[0] == 200
+    assert call(device, "/api/handback", {"session": second})[0] == 409  # that session has ended
+    assert call(device, "/api/action", {"session": second, "action": [1, 1, 1]})[0] == 409
+    assert device.poll().active is False
+    assert (device.stats.stale_requests, device.stats.rejected_requests, device.stats.handbacks) == (5, 1, 1)
+
+
+def test_posts_must_be_json_from_this_server_s_own_pages():
+    """Without a token, another site's page open in a browser here must not be able to take over."""
+    with WebInterventionDevice(action_dim=2, allow_no_token=True) as dev:
+        host = f"127.0.0.1:{dev.port}"
+        for headers in ({"Content-Type": "text/plain"}, {"Content-Type": "application/x-www-form-urlencoded"}):
+            status, answer = call(dev, "/api/takeover", {}, token=None, headers=headers)
+            assert status == 415 and "application/json" in answer["error"]
+        for origin in ("http://evil.example", "null", f"http://{host}.evil.example", "file://"):
+            status, answer = call(dev, "/api/takeover", {}, token=None, headers={"Origin": origin})
+            assert status == 403 and "another site" in answer["error"]
+        assert dev.poll().active is False and dev.stats.rejected_requests == 6
+        assert call(dev, "/api/state", token=None, headers={"Origin": "http://evil.example"})[0] == 200  # a read
+        status, state = call(dev, "/api/takeover", {}, token=None, headers={"Origin": f"http://{host}"})
+        assert status == 200 and dev.poll().active
+        assert call(dev, "/api/handback", {"session": state["session"]}, token=None)[0] == 200  # no Origin: not a page
 
 
 def test_marks_are_delivered_once_in_order(device):
@@ -172,15 +222,21 @@ def test_show_and_poll_refuse_wrong_shapes(device):
 def test_a_silent_holder_loses_control_to_the_policy():
     now = [0.0]
     state = WebControlState(action_dim=2, heartbeat_timeout_s=1.0, clock=lambda: now[0])
-    state.take_over(np.array([0.5, 0.5]))
+    stale = state.take_over(np.array([0.5, 0.5]))
+    session = state.take_over(np.array([0.5, 0.5]))
     now[0] = 0.9
     assert state.poll(None).active
-    state.set_action(np.array([0.1, 0.1]))  # the page's resent action is its heartbeat
+    state.set_action(np.array([0.1, 0.1]), session)  # the page's resent action is its heartbeat
     now[0] = 1.8
     assert state.poll(None).active
+    with pytest.raises(StaleSession):
+        state.set_action(np.array([0.1, 0.1]), stale)  # a stale page's action is no heartbeat
     now[0] = 2.0
     assert state.poll(None).active is False
     assert state.snapshot()["released_by"] == "heartbeat" and state.stats.heartbeat_releases == 1
+    assert state.snapshot()["action"] == [0.0, 0.0]
+    with pytest.raises(StaleSession):
+        state.set_action(np.array([0.1, 0.1]), session)  # a lapsed session steers no more
     state.take_over(None)  # a new take-over restarts the clock
     assert state.poll(None).active and state.stats.takeovers == 2
 

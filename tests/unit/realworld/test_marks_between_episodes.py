@@ -3,6 +3,8 @@ the next one's first step, goes to the episode that ended: the asynchronous cont
 episode back until the next one's first poll. Without that it would have no step to reward and
 would only be counted (on a real arm the reset takes seconds: the moment people click)."""
 
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -10,7 +12,8 @@ import pytest
 pytest.importorskip("metaworld")
 
 from infinirl.config import to_dataclass  # noqa: E402
-from infinirl.realworld.control_loop import RobotControlLoop  # noqa: E402
+from infinirl.realworld.control_loop import _OUTBOX_EPISODES, RobotControlLoop  # noqa: E402
+from infinirl.realworld.driver import RobotError  # noqa: E402
 from infinirl.realworld.intervention.device import HumanInput, InterventionDevice  # noqa: E402
 from infinirl.realworld.intervention.human_reward import MARK_REWARD  # noqa: E402
 from infinirl.realworld.intervention.spec import InterventionSpec  # noqa: E402
@@ -63,3 +66,48 @@ def test_a_mark_given_while_the_robot_resets_rewards_the_episode_that_ended(tmp_
     assert stats["counts"]["marks_success"] == marked
     assert stats["counts"]["successes"] >= len(sent) - 1
     assert stats["counts"]["episodes"] == len(sent)  # the last one, held when the loop stopped, is sent too
+
+
+def test_a_failed_sender_stops_the_control_loop(tmp_path):
+    """Episodes that can no longer be delivered must not pile up while the robot keeps moving."""
+    loop = a_loop(tmp_path)
+
+    def submit(episode):
+        raise ConnectionError("the learner's channel is gone")
+
+    try:
+        loop.start(submit)
+        thread = loop._thread
+        thread.join(30)
+        assert not thread.is_alive()  # the control loop ended by itself
+        assert loop._outbox.qsize() <= 1  # at most the episode the sender never took
+        with pytest.raises(RobotError, match="the learner's channel is gone"):
+            loop.stats()
+    finally:
+        with pytest.raises(RobotError):
+            loop.close()
+
+
+def test_a_slow_sender_pauses_the_robot_at_a_bounded_outbox(tmp_path):
+    loop = a_loop(tmp_path)
+    proceed, sent = threading.Event(), []
+
+    def submit(episode):
+        proceed.wait(30)
+        sent.append(episode)
+
+    try:
+        loop.start(submit)
+        deadline = time.monotonic() + 60
+        while loop.counts["outbox_full_waits"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert loop.counts["outbox_full_waits"] == 1 and loop._outbox.qsize() == _OUTBOX_EPISODES
+        episodes = loop.counts["episodes"]
+        time.sleep(0.5)
+        assert loop.counts["episodes"] == episodes  # paused: no episode finished meanwhile
+        proceed.set()
+        stats = loop.stop()
+        assert stats["counts"]["episodes_sent"] == len(sent) == stats["counts"]["episodes"]
+    finally:
+        proceed.set()
+        loop.close()
