@@ -466,10 +466,13 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                     step = self.policy.act(prepare_obs(array_obs(obs), self.compute), deterministic=deterministic)
                     result = env.step(env_actions(step.actions, self.policy.chunk), autoreset=False)
                     done, t = bool(result.done[0]), t + 1
+                    # The episode's last frame whatever the frame skip: it shows how the episode
+                    # ended (the success). Stepped with autoreset=False, the env still holds that
+                    # final state to render.
+                    if done or t % frame_skip == 0:
+                        frames.append(env.render()[0])
                     if done:
                         successes.append(bool(result.info["episode_success"][0]))
-                    elif t % frame_skip == 0:
-                        frames.append(env.render()[0])
                     obs = result.obs
         finally:
             env.close()

@@ -70,17 +70,41 @@ class _SocketLink:
 
 
 class _ChannelLink:
+    """Each end is the only producer of its outbox. Closing the link closes the outbox, so the other
+    end's next ``recv`` drains what was sent and then fails with :class:`EnvLinkClosed`, as over a
+    socket: a side that only flushed would leave its peer waiting forever for a message that never
+    comes (a failed env rank, a failed rollout)."""
+
     def __init__(self, outbox, inbox):
         self._outbox, self._inbox = outbox, inbox
+        self._closed = False
 
     def send(self, obj: Any) -> None:
-        self._outbox.put(obj)
+        from infinirl.runtime.errors import ChannelClosed, ChannelPeerDied
+
+        try:
+            self._outbox.put(obj)
+        except (ChannelClosed, ChannelPeerDied) as exc:
+            raise EnvLinkClosed(f"the env link's other end is gone ({exc!r})") from None
 
     def recv(self) -> Any:
-        return self._inbox.get()
+        from infinirl.runtime.errors import ChannelClosed, ChannelPeerDied
+
+        try:
+            return self._inbox.get()
+        except (ChannelClosed, ChannelPeerDied) as exc:
+            raise EnvLinkClosed(f"the env link's other end closed it ({exc!r})") from None
 
     def close(self) -> None:
-        self._outbox.flush()
+        if self._closed:
+            return
+        self._closed = True
+        from infinirl.runtime.errors import ChannelError
+
+        try:
+            self._outbox.close()  # flushes the puts in flight first
+        except ChannelError:  # the channel's actor or the peer is gone already: nobody is left to tell
+            pass
 
 
 class _SocketServer:

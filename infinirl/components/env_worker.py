@@ -49,6 +49,8 @@ class EnvSpec:
     first stages). ``num_workers`` is the number of simulator subprocesses *per stage* (0: the
     sub-envs run in the owning process). ``stage_processes``: an :class:`EnvWorker` runs each stage
     in a process of its own that streams straight to the rollout (see :mod:`.env_stages`).
+    ``step_timeout_s`` and ``max_restarts`` go to every :class:`~infinirl.envs.vector.VectorEnv`
+    built (a hung simulator subprocess is replaced; too many crashes stop the run).
     """
 
     name: str
@@ -60,6 +62,8 @@ class EnvSpec:
     seed: int = 0
     kwargs: dict = field(default_factory=dict)
     stage_processes: bool = False
+    step_timeout_s: float | None = None
+    max_restarts: int = 100
 
     def stage_sizes(self) -> list[int]:
         base, extra = divmod(self.num_envs, self.stages)
@@ -78,6 +82,8 @@ class EnvSpec:
             num_workers=self.num_workers if num_workers is None else num_workers,
             max_episode_steps=self.max_episode_steps if max_episode_steps is None else max_episode_steps,
             chunk_size=self.chunk_size if self.chunk_size > 1 else None,
+            step_timeout_s=self.step_timeout_s,
+            max_restarts=self.max_restarts,
             **{**self.kwargs, **overrides},
         )
 
@@ -338,6 +344,14 @@ class EnvWorker(Worker):
         """The rollout rank this rank serves and which of its stages."""
         return self.serves
 
+    def _drop_link(self) -> None:
+        """:meth:`close_link` on the way out of a failure: a second error while closing must not
+        hide the one being raised."""
+        try:
+            self.close_link()
+        except Exception:  # noqa: BLE001 - the failure being raised is the one to report
+            self.link = self._server = None
+
     def close_link(self) -> None:
         """Close the link to the rollout (and a listener it never connected to) and keep the envs."""
         if self._server is not None:
@@ -384,7 +398,15 @@ class EnvWorker(Worker):
         if self.link is None:
             raise RuntimeError("serve() before the link to the rollout was opened (open_link/accept_link)")
         start, sent = time.perf_counter(), getattr(self.link, "bytes_sent", None)
-        stats = serve_stages(self.env, self.link, seeds, num_steps)
+        try:
+            stats = serve_stages(self.env, self.link, seeds, num_steps)
+        except BaseException:
+            # The rollout is blocked reading this link: closing it makes the rollout fail at once
+            # with EnvLinkClosed (a symptom the runner sets aside for this error, the root cause)
+            # instead of waiting forever for a step that will never come (stage processes do the
+            # same in env_stages._stage_main).
+            self._drop_link()
+            raise
         # the fraction of the collection this rank simulated (1 - its bubble): the scaling signal
         stats["env/busy_ratio"] = stats["env/simulate_s"] / max(time.perf_counter() - start, 1e-9)
         if sent is not None:  # a socket link counts what it sends (observations to the rollout)

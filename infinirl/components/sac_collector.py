@@ -57,6 +57,10 @@ class CollectorEnvSpec:
     max_episode_steps: int | None = None
     kwargs: dict = field(default_factory=dict)
     seed: int = 0
+    step_timeout_s: float | None = None
+    """A simulator subprocess silent this long in one command is replaced (see :class:`VectorEnv`)."""
+    max_restarts: int = 100
+    """Sub-env crashes one vectorised env survives (see :class:`VectorEnv`)."""
 
     def build(self, num_envs: int = 1, num_workers: int | None = None, salt: int = 0, **overrides: Any):
         from infinirl.envs import make_env
@@ -64,7 +68,8 @@ class CollectorEnvSpec:
         seed = int(np.random.SeedSequence([self.seed, salt, 0xE5]).generate_state(1)[0] % _SEED_LIMIT)
         return make_env(self.name, num_envs, seed=seed,
                         num_workers=self.num_workers if num_workers is None else num_workers,
-                        max_episode_steps=self.max_episode_steps, **{**self.kwargs, **overrides})
+                        max_episode_steps=self.max_episode_steps, step_timeout_s=self.step_timeout_s,
+                        max_restarts=self.max_restarts, **{**self.kwargs, **overrides})
 
 
 class SACCollectorWorker(Worker, WeightSink):
@@ -293,10 +298,13 @@ class SACCollectorWorker(Worker, WeightSink):
                     result = env.step(self._deterministic(obs[self.obs_key]).reshape(1, *self.action_shape),
                                       autoreset=False)
                     total, t = total + float(result.reward[0]), t + 1
-                    if result.done[0] or (max_steps and t >= max_steps):
-                        break
-                    if t % frame_skip == 0:
+                    last = bool(result.done[0]) or bool(max_steps and t >= max_steps)
+                    # The episode's last frame whatever the frame skip: it shows how the episode
+                    # ended. Stepped with autoreset=False, the env still holds that final state.
+                    if last or t % frame_skip == 0:
                         frames.append(env.render()[0])
+                    if last:
+                        break
                     obs = result.obs
                 returns.append(total)
         finally:

@@ -32,8 +32,9 @@ What this adapter fixes on top of the raw MetaWorld class:
   the success threshold: PPO can raise it by getting closer without solving more).
 
 Observations: ``state`` (39 floats: hand xyz, gripper opening, object poses, the previous frame of
-those, goal xyz), ``proprio`` (hand xyz + gripper opening), ``rgb`` (uint8 HxWx3, when
-``obs_mode`` asks), ``instruction`` (the task in words, e.g. ``"pick place"``).
+those, goal xyz; when ``obs_mode`` asks, as it is privileged next to a camera), ``proprio`` (hand
+xyz + gripper opening, always), ``rgb`` (uint8 HxWx3, when ``obs_mode`` asks), ``instruction``
+(the task in words, e.g. ``"pick place"``).
 """
 
 from __future__ import annotations
@@ -185,7 +186,12 @@ class MetaWorldSubEnv:
 
     def _observe(self, state: np.ndarray, fresh_frame: bool = True) -> Obs:
         state = state.astype(np.float32)
-        obs: Obs = {"state": state, "proprio": state[:_PROPRIO_DIMS].copy()}
+        obs: Obs = {}
+        # The 39-float state holds the objects' and the goal's poses: privileged next to a camera
+        # frame, so it is observed only when obs_mode asks for it (as for the gymnasium adapter).
+        if "state" in self._obs_mode:
+            obs["state"] = state
+        obs["proprio"] = state[:_PROPRIO_DIMS].copy()
         if "rgb" in self._obs_mode:
             if fresh_frame or self._last_frame is None:
                 self._last_frame = self.render()
@@ -194,10 +200,10 @@ class MetaWorldSubEnv:
         return obs
 
     def _observation_spec(self, image_hw: tuple[int, int]) -> dict[str, ArraySpec]:
-        spec = {
-            "state": ArraySpec(self._sim.sawyer_observation_space.shape, "float32"),
-            "proprio": ArraySpec((_PROPRIO_DIMS,), "float32"),
-        }
+        spec: dict[str, ArraySpec] = {}
+        if "state" in self._obs_mode:
+            spec["state"] = ArraySpec(self._sim.sawyer_observation_space.shape, "float32")
+        spec["proprio"] = ArraySpec((_PROPRIO_DIMS,), "float32")
         if "rgb" in self._obs_mode:
             spec["rgb"] = ArraySpec((*image_hw, 3), "uint8")
         spec["instruction"] = ArraySpec((), "str")

@@ -350,7 +350,8 @@ def _layout(cfg: EmbodiedConfig, plan) -> tuple[bool, EnvSpec]:
     spec = EnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs // rollout_ranks, stages=stages,
                    num_workers=cfg.env.num_workers, max_episode_steps=cfg.env.max_episode_steps,
                    chunk_size=cfg.policy.chunk, seed=cfg.seed, kwargs=kwargs,
-                   stage_processes=cfg.env.stage_processes)
+                   stage_processes=cfg.env.stage_processes, step_timeout_s=cfg.env.step_timeout_s,
+                   max_restarts=cfg.env.max_restarts)
     return host_env, spec
 
 
@@ -358,6 +359,32 @@ def eval_env_kwargs(training_task_block: int, kwargs: dict) -> dict:
     """The evaluation's env options: the training envs' task blocks undone (env ``i`` runs task
     ``i mod T`` again, so every task gets its share of the held-out episodes)."""
     return {**kwargs, "task_block": 1} if training_task_block > 1 else dict(kwargs)
+
+
+ENV_WATCH_S = 5.0
+"""How often the driver looks at the env ranks while it waits for the rollout ranks' trajectories."""
+
+
+def _wait_collecting(collecting, serving, watch_s: float = ENV_WATCH_S) -> list:
+    """The rollout ranks' results; meanwhile an env rank's own failure (not a closed link) is raised
+    at once. A failing env rank closes its link, so its rollout rank fails too; this watch keeps the
+    driver from waiting on a rollout rank that never learns of it (a link left open by an env
+    process that could not close it)."""
+    while serving is not None:
+        try:
+            return collecting.wait(timeout=watch_s)
+        except TimeoutError:
+            pass
+        try:
+            serving.wait(timeout=0)
+            serving = None  # every env rank has served its iteration: nothing left to watch
+        except TimeoutError:
+            pass
+        except BaseException as env_error:
+            if not _is_link_closed(env_error):
+                raise
+            serving = None  # the rollout closed the link: its own error is on the way
+    return collecting.wait()
 
 
 def _raise_env_root_cause(serving, rollout_error: BaseException, timeout_s: float = 60.0) -> None:
@@ -407,6 +434,9 @@ class EmbodiedFlow:
                                                            self._finish_collect)
         self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None)
         self._link_generation = 0
+        # The channels of the channel transport's links: the driver creates them, and Ray kills an
+        # actor (a channel) whose every handle is gone, so they are held here while the links live.
+        self._link_channels: list = []
         scaling = cfg.scaling
         self.scale_requests: queue.SimpleQueue = queue.SimpleQueue()
         self.commands = ScaleCommands(scaling.command_file or os.path.join(cfg.output_dir, "scale.json"),
@@ -440,7 +470,7 @@ class EmbodiedFlow:
         transport, plan = self.cfg.rollout.transport, self.plan
         self._link_generation += 1
         shares = self.env.call("served").wait()
-        per_rank = []
+        per_rank, channels = [], []
         for e, (env_rank, (r, _)) in enumerate(zip(plan.ranks("env"), shares)):
             family = "AF_UNIX" if env_rank.node_id == plan.ranks("rollout")[r].node_id else "AF_INET"
             names = None
@@ -449,8 +479,7 @@ class EmbodiedFlow:
 
                 prefix = f"embodied-{os.getpid()}-{self._link_generation}-{e}"
                 names = (f"{prefix}-to-rollout", f"{prefix}-to-env")
-                for name in names:
-                    Channel.create(name, pipeline_depth=2, exist_ok=True)
+                channels += [Channel.create(name, pipeline_depth=2, exist_ok=True) for name in names]
             per_rank.append((transport, names, family))
         addresses = self.env.call_each("open_link", per_rank).wait()
         accepted = self.env.accept_link()
@@ -462,6 +491,7 @@ class EmbodiedFlow:
                 parts[r].append((address, list(stages)))
             self.rollout.call_each("connect_links", [(p,) for p in parts]).wait()
         accepted.wait()
+        self._link_channels = channels  # an earlier layout's channels go once both ends closed them
 
     # ------------------------------------------------------------------ online scaling
     def request_scale(self, component: str, ranks: int) -> None:
@@ -572,7 +602,7 @@ class EmbodiedFlow:
     def _finish_collect(self, pending: tuple) -> tuple[dict, dict]:
         serving, collecting = pending
         try:
-            parts = collecting.wait()
+            parts = _wait_collecting(collecting, serving)
         except BaseException as rollout_error:
             _raise_env_root_cause(serving, rollout_error)
             raise

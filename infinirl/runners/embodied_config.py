@@ -259,7 +259,8 @@ class EmbodiedConfig(RunConfig):
     RUNNER: ClassVar[str] = "embodied"
     DEFAULT_PLACEMENT: ClassVar[dict[str, str]] = {"env": "0", "rollout": "0", "actor": "0"}
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = (
-        "env.num_workers", "env.stage_processes", "rollout.pipeline_stages", "rollout.transport",
+        "env.num_workers", "env.stage_processes", "env.step_timeout_s", "env.max_restarts",
+        "rollout.pipeline_stages", "rollout.transport",
         "rollout.num_threads", "rollout.compile", "rollout.device", "actor.num_threads", "actor.compile",
         "actor.device", "scaling")
 

@@ -55,9 +55,7 @@ def run(cfg: SACConfig) -> dict:
                                autotune_alpha=alg.autotune_alpha, target_entropy=alg.target_entropy,
                                policy_delay=alg.policy_delay, target_update_every=alg.target_update_every,
                                buffer_capacity=cfg.buffer.capacity, seed=cfg.seed)
-        env = CollectorEnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs, num_workers=cfg.env.num_workers,
-                               max_episode_steps=cfg.env.max_episode_steps, kwargs=dict(cfg.env.kwargs),
-                               seed=cfg.seed)
+        env = collector_env_spec(cfg)
         launches = {
             "learner": (SACLearnerWorker, (net, update, obs_dim, action_space, cfg.learner.num_threads,
                                            cfg.learner.device), spin_wait_env(cfg.learner.num_threads)),
@@ -66,6 +64,13 @@ def run(cfg: SACConfig) -> dict:
         }
         return run_components(cfg, loop, lambda plan: launches,
                               lambda groups, plan: SACFlow(cfg, groups["collector"], groups["learner"]))
+
+
+def collector_env_spec(cfg: SACConfig) -> CollectorEnvSpec:
+    """How the collector builds its envs, from the run's ``env`` section."""
+    return CollectorEnvSpec(name=cfg.env.name, num_envs=cfg.env.num_envs, num_workers=cfg.env.num_workers,
+                            max_episode_steps=cfg.env.max_episode_steps, kwargs=dict(cfg.env.kwargs), seed=cfg.seed,
+                            step_timeout_s=cfg.env.step_timeout_s, max_restarts=cfg.env.max_restarts)
 
 
 def check_net_builds(net: SACNetSpec, obs_dim: int, action_space, cameras: dict | None = None) -> None:

@@ -128,8 +128,8 @@ class SACConfig(RunConfig):
     RUNNER: ClassVar[str] = "sac"
     DEFAULT_PLACEMENT: ClassVar[dict[str, str]] = {"collector": "0", "learner": "0"}
     RENAMED_KEYS: ClassVar[dict[str, str]] = {"eval.target_return": "eval.target"}
-    RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("env.num_workers", "collector.num_threads",
-                                                    "learner.num_threads", "learner.device")
+    RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("env.num_workers", "env.step_timeout_s", "env.max_restarts",
+                                                    "collector.num_threads", "learner.num_threads", "learner.device")
 
     output_dir: str = "runs/sac"
     keep_checkpoints: int = bounded(2, ge=0)

@@ -32,6 +32,14 @@ class SimEnvConfig:
     """Extra time limit (None: the simulator's own)."""
     kwargs: dict[str, Any] = field(default_factory=dict)
     """Simulator options passed to the env family (checked against the family before any worker starts)."""
+    step_timeout_s: float | None = bounded(300.0, gt=0)
+    """A simulator subprocess (num_workers >= 1) silent this long in one reset, step or render is
+    killed and replaced, its episodes reported truncated (a hung simulator would otherwise stop the
+    run forever); generous, since a step may render or reset a large scene. None: wait forever.
+    Sub-envs in the owning process (num_workers=0) are not timed."""
+    max_restarts: int = bounded(100, ge=0)
+    """Sub-env crashes (a step that raised, a worker process lost or timed out) one vectorised env
+    survives in total; one more stops the run with the last crash's traceback."""
 
     def validate(self) -> None:
         from infinirl.envs.registry import ENVS

@@ -5,6 +5,7 @@ weights after 4 iterations equal those after 2 + resume + 2, bit for bit); embod
 import json
 import os
 import shutil
+import time
 
 import pytest
 
@@ -13,6 +14,7 @@ pytest.importorskip("gymnasium")
 from infinirl.config import ConfigError, to_dataclass  # noqa: E402
 from infinirl.runners.embodied import run  # noqa: E402
 from infinirl.runners.embodied_config import EmbodiedConfig, find_cxx_compiler  # noqa: E402
+from infinirl.runtime.errors import WorkerError  # noqa: E402
 from tests.integration.pins import check_pinned  # noqa: E402
 from tests.integration.resume import killed_after_checkpoint  # noqa: E402
 
@@ -192,6 +194,53 @@ def test_stage_processes_need_the_env_on_its_own_resources(ray_cluster, tmp_path
     with pytest.raises(ConfigError, match="rollout.transport=channel is not supported with it"):
         make_cfg(tmp_path, 1, PLACEMENTS["pipelined"][0], 2, env=env,
                  rollout={"pipeline_stages": 2, "transport": "channel"})
+
+
+@pytest.mark.timeout(300)  # without the env's error reaching the rollout, the run waited forever
+@pytest.mark.parametrize("transport", ["socket", "channel"])
+def test_an_env_failing_mid_collection_stops_the_run_with_its_root_cause(ray_cluster, tmp_path, transport):
+    """The env on its own slot, in its own process (no stage processes): its envs reset, then the
+    first step raises (gravity is not a number) and max_restarts=0 makes that crash final. The env
+    rank closes its link, the rollout stops waiting, and the run fails with the env's error."""
+    placement, stages = PLACEMENTS["pipelined"]
+    env = {"name": "gym:Pendulum-v1", "num_envs": 4, "kwargs": {"g": "not a number"}, "max_restarts": 0}
+    cfg = make_cfg(tmp_path / "run", 2, placement, stages, env=env,
+                   rollout={"pipeline_stages": stages, "transport": transport},
+                   eval={"every": 100, "at_start": False, "episodes": 2, "num_envs": 2, "video_episodes": 0})
+    start = time.monotonic()
+    with pytest.raises(WorkerError) as raised:
+        run(cfg)
+    assert time.monotonic() - start < 180
+    error = raised.value
+    assert error.component == "env", error
+    assert "EnvCrashError" in error.traceback_text and "unsupported operand" in error.traceback_text
+
+
+def test_closing_a_channel_link_ends_the_other_ends_wait(ray_cluster):
+    """Over the channel transport as over a socket: what was sent still arrives, then the other
+    end's recv fails with EnvLinkClosed instead of waiting forever (a channel link used to only
+    flush on close)."""
+    import uuid
+
+    from infinirl.components.env_link import EnvLinkClosed, accept, connect, open_server
+    from infinirl.runtime import Channel
+
+    names = (f"link-{uuid.uuid4().hex}-to-rollout", f"link-{uuid.uuid4().hex}-to-env")
+    channels = [Channel.create(name, pipeline_depth=2) for name in names]  # held: Ray kills unreferenced actors
+    server, address = open_server("channel", names)
+    env_side = accept(server)
+    rollout_side = connect(address)
+    env_side.send({"obs": 1})
+    env_side.close()
+    env_side.close()  # closing twice is harmless
+    assert rollout_side.recv() == {"obs": 1}
+    with pytest.raises(EnvLinkClosed):
+        rollout_side.recv()
+    rollout_side.close()
+    with pytest.raises(EnvLinkClosed):
+        env_side.recv()
+    for channel in channels:
+        channel.destroy()
 
 
 def test_bad_names_fail_before_workers_start():

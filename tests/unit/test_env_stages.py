@@ -209,3 +209,104 @@ def test_a_root_cause_reported_after_a_closed_link_still_wins():
         assert "env stage 0 of rank" in str(error) and "expected actions of shape (2, 1)" in str(error)
     finally:
         stages.close()
+
+
+BROKEN = EnvSpec(name="gym:Pendulum-v1", num_envs=ENVS, stages=STAGES, num_workers=0, max_episode_steps=4, seed=3,
+                 kwargs={"g": "not a number"}, max_restarts=0)
+"""Resets fine, raises on its first step (gravity must be a number); with max_restarts=0 the first
+crash stops the env rank (EnvCrashError) instead of being rebuilt."""
+
+
+def test_an_env_rank_without_stage_processes_that_fails_closes_its_link():
+    """The env rank's own failure (an EnvCrashError here) closes its link, so the rollout waiting
+    for the step fails at once with EnvLinkClosed instead of waiting forever, and the runner shows
+    the env rank's error as the root cause."""
+    from multiprocessing.connection import wait
+
+    from infinirl.components.env_link import accept, open_server
+    from infinirl.components.env_worker import EnvWorker
+    from infinirl.envs.base import EnvCrashError
+    from infinirl.runtime.worker import RankContext
+
+    worker = EnvWorker.__new__(EnvWorker)
+    worker.ctx = RankContext("env", 0, 1)
+    worker.__init__(BROKEN)
+    server, address = open_server("socket")
+    worker._server = server
+    connecting = threading.Thread(target=lambda: setattr(worker, "link", accept(server)), daemon=True)
+    connecting.start()
+    rollout = connect(address)
+    connecting.join(10)
+    outcome = {}
+
+    def serve():
+        try:
+            outcome["stats"] = worker.serve(SEEDS, ROUNDS)
+        except BaseException as exc:  # noqa: BLE001 - handed to the test thread
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        for _ in range(STAGES):
+            rollout.recv()  # the reset
+        rollout.send((0, np.zeros((ENVS // STAGES, 1), np.float32)))
+        assert wait([rollout], timeout=30), "the rollout would wait forever for the failed step"
+        with pytest.raises(EnvLinkClosed):
+            rollout.recv()
+        thread.join(30)
+        assert not thread.is_alive()
+        error = outcome["error"]
+        assert isinstance(error, EnvCrashError) and "unsupported operand" in str(error)
+        assert worker.link is None
+        with pytest.raises(EnvCrashError):  # what the runner raises for the rollout's closed link
+            _raise_env_root_cause(FakeServing(error), EnvLinkClosed("the env link's other end closed it"))
+    finally:
+        rollout.close()
+        worker.close()
+
+
+class FakeCollecting:
+    """The rollout ranks' handle: still collecting for ``pending`` waits, then ``result``."""
+
+    def __init__(self, pending, result=None):
+        self.pending, self.result, self.waits = pending, result, []
+
+    def wait(self, timeout=None):
+        self.waits.append(timeout)
+        if self.pending is None or (self.pending and timeout is not None):
+            if self.pending:
+                self.pending -= 1
+            raise TimeoutError("still collecting")
+        return self.result
+
+
+class PendingServing(FakeServing):
+    def __init__(self, error=None, pending=1):
+        super().__init__(error)
+        self.pending = pending
+
+    def wait(self, timeout=None):
+        if self.pending:
+            self.pending -= 1
+            raise TimeoutError("still serving")
+        return super().wait(timeout)
+
+
+def test_the_runner_raises_an_env_ranks_own_failure_while_the_rollout_still_waits():
+    """Whatever keeps the rollout waiting (a link its failed env rank left open), the driver sees
+    the env rank's own error within a watch period, not never."""
+    from infinirl.runners.embodied import _wait_collecting
+
+    env = worker_error("env", "infinirl.envs.base.EnvCrashError: 1 sub-env restarts exceed max_restarts=0")
+    with pytest.raises(WorkerError) as raised:
+        _wait_collecting(FakeCollecting(pending=None), PendingServing(env), watch_s=0.01)
+    assert raised.value is env
+    # a closed link on the env side is the rollout's failure: its own error is the one to wait for
+    closed = worker_error("env", "infinirl.components.env_link.EnvLinkClosed: the env link's other end closed it")
+    collecting = FakeCollecting(pending=2, result=["rollout"])
+    assert _wait_collecting(collecting, PendingServing(closed), watch_s=0.01) == ["rollout"]
+    assert collecting.waits[-1] is None  # no env left to watch: waits for the rollout alone
+    # env ranks done, or collocated (no serving handle): only the rollout is waited for
+    assert _wait_collecting(FakeCollecting(pending=1, result=["r"]), FakeServing(), watch_s=0.01) == ["r"]
+    assert _wait_collecting(FakeCollecting(pending=0, result=["r"]), None) == ["r"]

@@ -83,3 +83,64 @@ def test_serve_sends_what_stepping_stage_by_stage_gives(num_workers):
         assert not np.array_equal(message["obs"]["state"], message["final_obs"]["state"])
     for message in last:  # on the last round nothing was reset: the obs is the final one
         np.testing.assert_array_equal(message["obs"]["state"], message["final_obs"]["state"])
+
+
+class _Plan:
+    """The placement facts the embodied runner's env layout reads: env and rollout on disjoint slots."""
+
+    def relation(self, a, b):
+        return "disjoint"
+
+    def world_size(self, component):
+        return 1
+
+
+@pytest.mark.parametrize("runner", ["embodied", "sac"])
+def test_env_step_timeout_and_max_restarts_reach_every_vector_env(runner):
+    """env.step_timeout_s (a hung simulator worker is replaced) and env.max_restarts go from the
+    config to the VectorEnv the runner's workers build; by default a generous timeout is set."""
+    from infinirl.config import to_dataclass
+    from infinirl.envs.vector import VectorEnv
+
+    env = {"name": "gym:Pendulum-v1", "num_envs": 2, "num_workers": 1}
+    if runner == "embodied":
+        from infinirl.runners.embodied import _layout
+        from infinirl.runners.embodied_config import EmbodiedConfig
+
+        def vector_envs(section):
+            cfg = to_dataclass(EmbodiedConfig, {"env": section, "rollout_steps": 32,
+                                                "placement": {"env": "0", "rollout": "1"}})
+            _, spec = _layout(cfg, _Plan())
+            staged = StagedEnv(spec)
+            return staged.envs, staged.close
+    else:
+        from infinirl.runners.sac import collector_env_spec
+        from infinirl.runners.sac_config import SACConfig
+
+        def vector_envs(section):
+            built = collector_env_spec(to_dataclass(SACConfig, {"env": section})).build(1)
+            return [built], built.close
+
+    envs, close = vector_envs({**env, "step_timeout_s": 7.5, "max_restarts": 3})
+    try:
+        assert envs and all(isinstance(e, VectorEnv) for e in envs)
+        assert {(e._step_timeout_s, e._max_restarts) for e in envs} == {(7.5, 3)}
+    finally:
+        close()
+    envs, close = vector_envs({**env, "num_workers": 0, "step_timeout_s": None})
+    try:
+        assert {(e._step_timeout_s, e._max_restarts) for e in envs} == {(None, 100)}
+    finally:
+        close()
+
+
+def test_the_env_step_timeout_defaults_to_a_generous_bound_and_may_change_on_resume():
+    """Neither key feeds a checkpoint's state, so a run resumes with new values (and from a
+    checkpoint written before the keys existed)."""
+    from infinirl.runners.embodied_config import EmbodiedConfig
+    from infinirl.runners.sac_config import SACConfig
+    from infinirl.runners.sim_config import SimEnvConfig
+
+    assert SimEnvConfig().step_timeout_s == 300.0 and SimEnvConfig().max_restarts == 100
+    for cfg in (EmbodiedConfig(), SACConfig()):
+        assert cfg.resume_may_change("env.step_timeout_s") and cfg.resume_may_change("env.max_restarts")

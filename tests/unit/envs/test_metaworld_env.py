@@ -128,6 +128,23 @@ def test_camera_frames_are_upright():
         np.testing.assert_array_equal(env.render()[0], frame)
 
 
+def test_rgb_alone_observes_no_privileged_state():
+    """obs_mode="rgb": the camera frame, the robot's own proprio and the instruction, not the
+    39-float state with the objects' and goal's poses, in the spec and in every observation."""
+    with make_env("metaworld:reach-v3", 1, num_workers=0, obs_mode="rgb", image_size=32) as pixels, \
+            make_env("metaworld:reach-v3", 1, num_workers=0, obs_mode="state+rgb", image_size=32) as both:
+        assert list(pixels.observation_spec) == ["proprio", "rgb", "instruction"]
+        assert list(both.observation_spec) == ["state", "proprio", "rgb", "instruction"]
+        obs, full = pixels.reset(seeds=3), both.reset(seeds=3)
+        assert set(obs) == {"proprio", "rgb", "instruction"}
+        np.testing.assert_array_equal(obs["proprio"], full["proprio"])
+        np.testing.assert_array_equal(obs["rgb"], full["rgb"])
+        action = np.full((1, 4), 0.5, np.float32)
+        result = pixels.step(action)
+        assert set(result.obs) == {"proprio", "rgb", "instruction"}
+        np.testing.assert_array_equal(result.obs["proprio"], both.step(action).obs["proprio"])
+
+
 def test_fast_render_changes_visual_settings_only():
     """fast_render: no shadows, reflections or multisampling (the costly software-GL passes); the
     physics, hence every state observation, is the same as with the model's own visuals."""
