@@ -53,9 +53,18 @@ TOY = "infinirl.tasks.toy_rewards:response_length"
     TaskConfig(source="fictional_kb", name="fictional_kb", config={}, eval_size=4, verifier=TOY),
     TaskConfig(source="code", name="functions", config={}, eval_size=2),
 ], ids=["gym", "gym-user-function", "gsm8k-preset", "kb", "kb-user-function", "code"])
-def test_problems_name_the_verifier_their_source_scores_with(task):
+def test_problems_name_the_verifier_their_source_scores_with(task, tmp_path, monkeypatch):
     # The reward worker scores each problem by the verifier it names: the source's choice, and
     # task.verifier where the user set one.
+    if task.name == "gsm8k":  # a preset reads INFINIRL_DATA_DIR: give it GSM8K-shaped files of its own
+        from infinirl.tasks.datasets import DATA_DIR_ENV
+
+        for split in ("train", "test"):
+            rows = [{"question": f"{split} question {i}?", "answer": f"Work.\n#### {i}"} for i in range(12)]
+            path = tmp_path / "gsm8k" / f"{split}.jsonl"
+            path.parent.mkdir(exist_ok=True)
+            path.write_text("".join(json.dumps(row) + "\n" for row in rows))
+        monkeypatch.setenv(DATA_DIR_ENV, str(tmp_path))
     stream, held_out = training_problems(task, seed=0)
     expected = verifier_for(task, "test")
     assert expected != "reasoning_gym" or task.source == "reasoning_gym"
