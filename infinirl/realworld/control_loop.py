@@ -14,6 +14,9 @@
 Every step records the policy version that chose its action (:mod:`~infinirl.realworld.episodes`);
 until the first trained weights arrive, actions are uniform in ``[-1, 1]`` (warm-up, version -1).
 A safety stop during an episode ends it (kept, not terminated) and the next reset re-arms the robot.
+Between episodes (before the first, while a synchronous runner trains, while a full outbox waits for
+the transport) the loop holds the robot and keeps the safety layer's heartbeat: a deliberate pause,
+which must not stop the robot as a stalled pipeline would.
 
 **Interventions** (an :class:`~infinirl.realworld.intervention.spec.InterventionSpec`): before each
 training step the loop polls the device with the observation and the policy's proposal; while the
@@ -51,7 +54,7 @@ from infinirl.realworld.intervention.human_reward import SuccessLabelWriter, hum
 from infinirl.realworld.intervention.metrics import intervention_stats
 from infinirl.realworld.intervention.spec import InterventionSpec
 from infinirl.realworld.robot_env import RobotEnv, RobotEnvSpec
-from infinirl.realworld.safety import SafeRobot, SafetyConfig, UnknownPoseError
+from infinirl.realworld.safety import SafeRobot, SafetyConfig, ServoFaultError, UnknownPoseError
 
 __all__ = ["VERSION_TENSOR", "EmbodimentActionMask", "PolicyLayout", "RobotControlLoop", "RobotSetup", "connect_robot",
            "embodiment_action_mask", "policy_layouts", "resolve_robot", "unit_box"]
@@ -68,6 +71,9 @@ pauses the control loop between episodes rather than growing memory without limi
 episode is tens of MB)."""
 _OUTBOX_WAIT_S = 0.2
 _CONNECT_TRIES = 3
+_IDLE_BEATS_PER_DEADLINE = 4
+"""While the loop idles between episodes, the robot's heartbeat is given this many times per
+``heartbeat_deadline_s`` (a beat late by a scheduling hiccup must not stop the robot)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -207,6 +213,9 @@ class RobotControlLoop:
         self._error: BaseException | None = None
         self._sender_error: BaseException | None = None
         self._eval_request: tuple[Callable[[], Any], queue.Queue] | None = None
+        self._idle = threading.Event()
+        self._closing = threading.Event()
+        self._idle_keeper: threading.Thread | None = None
         self.intervention = intervention
         self.intervention_device = None
         self.labels = None
@@ -218,6 +227,37 @@ class RobotControlLoop:
                 print(f"intervention page of robot rank {self.rank}: {url}", flush=True)
             if intervention.labels_dir is not None:
                 self.labels = SuccessLabelWriter(intervention.labels_dir, prefix=f"rank{self.rank}")
+        self._start_idle_keeper(setup.safety)
+        self._pause()  # until the first episode: the learner may take a while to start
+
+    # ---------------------------------------------------------------- idling between episodes
+    def _start_idle_keeper(self, safety: SafetyConfig) -> None:
+        """Between episodes the loop idles on purpose (the learner updates in synchronous mode, a
+        full outbox waits for the transport, the runner has not asked for the next episode yet). The
+        safety layer's heartbeat only sees steps and resets, so without beats from here it would
+        take the idle for a dead pipeline and stop the robot (torque off: an arm goes limp)."""
+        if not safety.heartbeat_deadline_s:
+            return
+        interval = safety.heartbeat_deadline_s / _IDLE_BEATS_PER_DEADLINE
+
+        def keep() -> None:
+            while not self._closing.wait(interval):
+                if self._idle.is_set():
+                    self.robot.heartbeat()
+
+        self._idle_keeper = threading.Thread(target=keep, name="robot-idle", daemon=True)
+        self._idle_keeper.start()
+
+    def _pause(self) -> None:
+        """Hold the robot where it is and keep its heartbeat until the next episode's reset."""
+        if self._idle.is_set():
+            return
+        try:
+            self.robot.hold()
+        except RobotError as exc:  # a robot already stopped by the safety layer stays so; reset re-arms it
+            logger.warning("%s: holding the robot between episodes failed (%s)", self.kind, exc)
+        self.robot.heartbeat()
+        self._idle.set()
 
     # ---------------------------------------------------------------- what it is
     def describe(self) -> dict:
@@ -285,6 +325,7 @@ class RobotControlLoop:
         whose marks were given before any step of this one (while the robot reset, the person
         still looking at the episode that ended): they go to ``previous``, which then goes to
         ``release`` (also when the loop stops before that poll)."""
+        self._idle.clear()  # the reset re-arms the deadlines; from here the steps give the heartbeat
         obs = self._padded(self.env.reset())
         recorder = EpisodeRecorder(obs)
         human = self.intervention_device if training and policy is None else None
@@ -305,7 +346,7 @@ class RobotControlLoop:
                 break  # the human's mark ended the episode
             try:
                 step = self.env.step(action[:self.action_dim])
-            except (RobotStoppedError, UnknownPoseError) as exc:
+            except (RobotStoppedError, UnknownPoseError, ServoFaultError) as exc:
                 # The safety layer stopped or held the robot: keep what was collected; the next
                 # episode's reset re-reads the pose.
                 logger.warning("%s: episode ended by the safety layer (%s)", self.kind, exc)
@@ -321,6 +362,7 @@ class RobotControlLoop:
             release(previous)
         if human is not None and recorder.mark is None and len(recorder):
             self._apply_marks(recorder, human.poll(observation=obs).marks)  # marks given for the last step
+        self._pause()
         return recorder
 
     def _choose(self, obs: dict, policy, deterministic: bool, human):
@@ -426,6 +468,7 @@ class RobotControlLoop:
             if held is not None:
                 release(held)
         except BaseException as exc:  # reported by the next stats() / stop() call
+            self._idle.clear()  # a failed loop is no deliberate pause: the heartbeat lapses, the robot stops
             if exc is not self._sender_error:
                 logger.exception("%s control loop failed", self.kind)
             self._error = self._error or exc
@@ -445,6 +488,7 @@ class RobotControlLoop:
                 self._outbox.put(item, timeout=_OUTBOX_WAIT_S)
                 return
             except queue.Full:
+                self._pause()
                 if not warned:
                     logger.warning("%s: %d episodes wait for the transport; the robot pauses until one is sent",
                                    self.kind, _OUTBOX_EPISODES)
@@ -584,4 +628,7 @@ class RobotControlLoop:
                 if self.intervention_device is not None:
                     self.intervention_device.close()
             finally:
+                self._closing.set()
+                if self._idle_keeper is not None:
+                    self._idle_keeper.join(_JOIN_TIMEOUT_S)
                 self.robot.close()

@@ -7,7 +7,15 @@ packet ``0xFF 0xFF id length error params... checksum`` (``error`` is a bit fiel
 well). The bus is half duplex: one request, then its replies, then the next request. Multi-byte
 registers of the STS series are little-endian. A servo ignores a packet whose checksum is wrong,
 so a corrupted request shows up as a missing answer: every read here has a deadline, and a servo that
-does not answer fails with :class:`FeetechTimeoutError` naming it, never a hang.
+does not answer fails with :class:`FeetechTimeoutError` naming it, never a hang. A sync read is asked
+again on such a transport error (timeout, checksum, short answer) up to ``SYNC_READ_ATTEMPTS`` times:
+one garbled answer on a noisy bus must not end a control loop reading it many times a second. A
+status error bit (overload, overheat, ...) is no transport error: the servo's data is good, and
+:meth:`FeetechBus.sync_read_status` returns it beside the bits set.
+
+A :class:`FeetechBus` may be shared by threads (a control loop and a safety monitor): each request
+and its answers are one transaction under the bus's lock, so two requests never interleave on the
+half-duplex wire.
 
 Instructions used: ``PING``, ``READ``, ``WRITE`` (answered by the addressed servo), ``SYNC_WRITE``
 (one packet to the broadcast id writes the same registers of many servos; not answered) and
@@ -16,9 +24,12 @@ Instructions used: ``PING``, ``READ``, ``WRITE`` (answered by the addressed serv
 
 from __future__ import annotations
 
+import fcntl
+import logging
 import os
 import select
 import termios
+import threading
 import time
 import tty
 from collections.abc import Mapping, Sequence
@@ -36,18 +47,26 @@ __all__ = [
     "FeetechError",
     "FeetechStatusError",
     "FeetechTimeoutError",
+    "FeetechTransportError",
+    "PortBusyError",
+    "SYNC_READ_ATTEMPTS",
     "SerialPort",
     "checksum",
     "decode_sign_magnitude",
     "encode_packet",
+    "encode_sign_magnitude",
     "read_packet",
+    "status_bits",
     "u16",
 ]
+
+logger = logging.getLogger(__name__)
 
 BROADCAST_ID = 0xFE
 HEADER = b"\xff\xff"
 STS3215_MODEL_NUMBER = 777
 TICKS_PER_TURN = 4096
+SYNC_READ_ATTEMPTS = 3
 
 
 class Instruction:
@@ -81,12 +100,20 @@ class FeetechError(RobotError):
     """The servo bus failed a transaction."""
 
 
-class FeetechTimeoutError(FeetechError):
+class FeetechTransportError(FeetechError):
+    """The bytes of an answer did not arrive intact (a transient fault worth asking again)."""
+
+
+class PortBusyError(FeetechError):
+    """Another process (or another bus in this one) holds the serial port."""
+
+
+class FeetechTimeoutError(FeetechTransportError):
     """A servo did not answer within the deadline (wrong id, no power, unplugged, or it dropped a
     corrupted request)."""
 
 
-class FeetechChecksumError(FeetechError):
+class FeetechChecksumError(FeetechTransportError):
     """A reply arrived with a wrong checksum (noise on the bus, wrong baud rate)."""
 
 
@@ -115,14 +142,33 @@ def u16(value: int) -> bytes:
 
 
 def decode_sign_magnitude(raw: bytes, sign_bit: int = 15) -> int:
-    """A little-endian register whose bit ``sign_bit`` is the sign (STS speeds)."""
+    """A little-endian register whose bit ``sign_bit`` is the sign (STS speeds, and present
+    positions, which read below 0 when a joint is pushed past the encoder's zero)."""
     value = int.from_bytes(raw, "little")
     magnitude = value & ((1 << sign_bit) - 1)
     return -magnitude if value >> sign_bit & 1 else magnitude
 
 
+def encode_sign_magnitude(value: int, size: int = 2, sign_bit: int = 15) -> bytes:
+    """The inverse of :func:`decode_sign_magnitude`."""
+    magnitude = abs(int(value))
+    if magnitude >> sign_bit:
+        raise ValueError(f"{value} does not fit a sign-magnitude register with the sign at bit {sign_bit}")
+    return (magnitude | (1 << sign_bit if value < 0 else 0)).to_bytes(size, "little")
+
+
+def status_bits(error: int) -> tuple[str, ...]:
+    """The names of the error bits set in a status packet's error byte."""
+    return tuple(name for bit, name in _STATUS_BITS.items() if error >> bit & 1) or ((f"{error:#04x}",) if error
+                                                                                       else ())
+
+
 class SerialPort:
-    """A raw tty (8N1, no flow control, no echo, no line processing) with deadline-bounded reads."""
+    """A raw tty (8N1, no flow control, no echo, no line processing) with deadline-bounded reads.
+
+    The port is held exclusively (``flock``, as pyserial's ``exclusive=True``): a second process
+    writing to the same bus would interleave its packets with ours and both would read each other's
+    answers. A port already held fails at once with :class:`PortBusyError`."""
 
     def __init__(self, path: str, baudrate: int) -> None:
         speed = getattr(termios, f"B{baudrate}", None)
@@ -134,6 +180,12 @@ class SerialPort:
         except OSError as error:
             raise FeetechError(f"cannot open servo bus port {path}: {error.strerror}; check the path and "
                                "that this user may open it (group dialout)") from error
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            os.close(self._fd)
+            raise PortBusyError(f"servo bus port {path} is in use by another program (or another run of this "
+                                "one); close it first") from error
         try:
             tty.setraw(self._fd)
             attributes = termios.tcgetattr(self._fd)
@@ -207,13 +259,15 @@ class FeetechBus:
     def __init__(self, port: str, *, baudrate: int = 1_000_000, timeout_s: float = 0.1) -> None:
         self.timeout_s = float(timeout_s)
         self._port = SerialPort(port, baudrate)
+        self._lock = threading.RLock()  # one request and its answers at a time (see the module docstring)
 
     @property
     def path(self) -> str:
         return self._port.path
 
     def close(self) -> None:
-        self._port.close()
+        with self._lock:
+            self._port.close()
 
     def ping(self, servo_id: int) -> None:
         """Returns if servo ``servo_id`` answers; :class:`FeetechTimeoutError` otherwise."""
@@ -235,49 +289,80 @@ class FeetechBus:
         for servo_id, data in values.items():
             _check_size(register, data)
             params += bytes([servo_id]) + data
-        self._port.write(encode_packet(BROADCAST_ID, Instruction.SYNC_WRITE, bytes(params)))
+        with self._lock:
+            self._port.write(encode_packet(BROADCAST_ID, Instruction.SYNC_WRITE, bytes(params)))
 
     def sync_read(self, register: tuple[int, int], servo_ids: Sequence[int]) -> dict[int, bytes]:
-        """One register of several servos: one request, one answer per servo in the listed order."""
+        """One register of several servos: one request, one answer per servo in the listed order.
+        Status error bits are logged, not raised (:meth:`sync_read_status` returns them)."""
+        values, errors = self.sync_read_status(register, servo_ids)
+        for servo_id, bits in errors.items():
+            logger.warning("servo %d on %s reports: %s", servo_id, self.path, ", ".join(bits))
+        return values
+
+    def sync_read_status(self, register: tuple[int, int], servo_ids: Sequence[int], *,
+                         attempts: int = SYNC_READ_ATTEMPTS) -> tuple[dict[int, bytes], dict[int, tuple[str, ...]]]:
+        """``(values, errors)``: each servo's register, and the status error bits of each servo that
+        set some (its value is still good). A transport error is asked again, up to ``attempts``
+        requests in all, then raised."""
+        for attempt in range(1, attempts + 1):
+            try:
+                with self._lock:
+                    return self._sync_read_once(register, servo_ids)
+            except FeetechTransportError as error:
+                if attempt == attempts:
+                    raise
+                logger.warning("sync read on %s failed (%s); asking again (%d/%d)", self.path, error, attempt + 1,
+                               attempts)
+        raise AssertionError("unreachable")
+
+    def _sync_read_once(self, register: tuple[int, int],
+                        servo_ids: Sequence[int]) -> tuple[dict[int, bytes], dict[int, tuple[str, ...]]]:
         address, size = register
         self._port.discard_input()
         self._port.write(encode_packet(BROADCAST_ID, Instruction.SYNC_READ, bytes([address, size, *servo_ids])))
         values: dict[int, bytes] = {}
+        errors: dict[int, tuple[str, ...]] = {}
         waiting = list(servo_ids)
         while waiting:  # a servo that does not answer is skipped by the next one's answer
             try:
-                answered_id, params = self._status(time.monotonic() + self.timeout_s, f"servo {waiting[0]}", size)
+                answered_id, error, params = self._status(time.monotonic() + self.timeout_s, f"servo {waiting[0]}",
+                                                          size, raise_errors=False)
             except FeetechTimeoutError:
                 break
             if answered_id not in waiting:
                 raise FeetechError(f"servo {answered_id} on {self.path} answered a sync read of {list(servo_ids)}")
             values[answered_id] = params
+            if error:
+                errors[answered_id] = status_bits(error)
             waiting = waiting[waiting.index(answered_id) + 1:]
         missing = [servo_id for servo_id in servo_ids if servo_id not in values]
         if missing:
             raise FeetechTimeoutError(f"no answer from servos {missing} on {self.path} to a sync read; check their "
                                       "ids, power and wiring")
-        return values
+        return values, errors
 
     def _transact(self, servo_id: int, instruction: int, params: bytes, expect: int = 0) -> bytes:
-        self._port.discard_input()
-        self._port.write(encode_packet(servo_id, instruction, params))
-        return self._answer(servo_id, time.monotonic() + self.timeout_s, expect)
+        with self._lock:
+            self._port.discard_input()
+            self._port.write(encode_packet(servo_id, instruction, params))
+            return self._answer(servo_id, time.monotonic() + self.timeout_s, expect)
 
     def _answer(self, servo_id: int, deadline: float, expect: int) -> bytes:
-        answered_id, params = self._status(deadline, f"servo {servo_id}", expect)
+        answered_id, _, params = self._status(deadline, f"servo {servo_id}", expect)
         if answered_id != servo_id:
             raise FeetechError(f"expected an answer from servo {servo_id} on {self.path}, got one from {answered_id}")
         return params
 
-    def _status(self, deadline: float, what: str, expect: int) -> tuple[int, bytes]:
+    def _status(self, deadline: float, what: str, expect: int, *,
+                raise_errors: bool = True) -> tuple[int, int, bytes]:
         answered_id, error, params = read_packet(self._port, deadline, what)
-        if error:
-            bits = [name for bit, name in _STATUS_BITS.items() if error >> bit & 1] or [f"{error:#04x}"]
-            raise FeetechStatusError(f"servo {answered_id} on {self.path} reports: {', '.join(bits)}")
+        if error and raise_errors:
+            raise FeetechStatusError(f"servo {answered_id} on {self.path} reports: {', '.join(status_bits(error))}")
         if len(params) != expect:
-            raise FeetechError(f"servo {answered_id} on {self.path} answered {len(params)} bytes, expected {expect}")
-        return answered_id, params
+            raise FeetechTransportError(f"servo {answered_id} on {self.path} answered {len(params)} bytes, expected "
+                                        f"{expect}")
+        return answered_id, error, params
 
 
 def _check_size(register: tuple[int, int], data: bytes) -> tuple[int, int]:

@@ -6,8 +6,11 @@ table (model number, position limits, torque enable, goal position and speed, pr
 speed), and a servo whose torque is on moves its present position toward its goal at its speed
 (``max_speed`` ticks/s, or the lower goal speed if one is set) in wall-clock time. A request with a
 wrong checksum is ignored, as a servo ignores it; a request to an id not on the bus gets no answer.
-Faults for tests: :meth:`corrupt_replies` sends answers with a broken checksum, :meth:`unplug` takes a
-servo off the bus. Every request is kept, byte for byte, in :attr:`requests`.
+Present position is sign-magnitude (bit 15 the sign), as STS firmware reports a joint pushed below
+the encoder's zero (:meth:`push`). Faults for tests: :meth:`corrupt_replies` sends answers with a
+broken checksum, :meth:`drop_replies` loses answers on the wire, :meth:`set_status_error` sets status
+error bits (e.g. overload) in a servo's answers, :meth:`unplug` takes a servo off the bus. Every
+request is kept, byte for byte, in :attr:`requests`.
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ from infinirl.realworld.feetech import (
     Instruction,
     Register,
     checksum,
+    decode_sign_magnitude,
+    encode_sign_magnitude,
     u16,
 )
 
@@ -43,9 +48,10 @@ class EmulatedServo:
         self._write(Register.MODEL_NUMBER, u16(STS3215_MODEL_NUMBER))
         self._write(Register.ID, bytes([servo_id]))
         self._write(Register.MAX_POSITION_LIMIT, u16(4095))
-        self._write(Register.GOAL_POSITION, u16(position))
-        self._write(Register.PRESENT_POSITION, u16(position))
+        self._write(Register.GOAL_POSITION, u16(min(max(position, 0), 4095)))
+        self._write(Register.PRESENT_POSITION, encode_sign_magnitude(position))
         self._position = float(position)
+        self.status_error = 0  # the error byte of this servo's answers
 
     def _write(self, register: tuple[int, int], data: bytes) -> None:
         self.table[register[0]:register[0] + len(data)] = data
@@ -73,13 +79,17 @@ class EmulatedServo:
             step = min(abs(goal - self._position), speed * seconds)
             self._position += direction * step
             velocity = direction * step / seconds
-        self._write(Register.PRESENT_POSITION, u16(round(self._position)))
-        magnitude = min(round(abs(velocity)), 0x7FFF)
-        self._write(Register.PRESENT_SPEED, u16(magnitude | (0x8000 if velocity < 0 else 0)))
+        self._write(Register.PRESENT_POSITION, encode_sign_magnitude(round(self._position)))
+        self._write(Register.PRESENT_SPEED, encode_sign_magnitude(max(min(round(velocity), 0x7FFF), -0x7FFF)))
         self._write(Register.MOVING, bytes([int(moving)]))
 
     def write(self, address: int, data: bytes) -> None:
         self.table[address:address + len(data)] = data
+
+    def push(self, position: int) -> None:
+        """Move the joint to ``position`` ticks from outside (a hand, a collision)."""
+        self._position = float(position)
+        self._write(Register.PRESENT_POSITION, encode_sign_magnitude(position))
 
 
 class FeetechBusEmulator:
@@ -94,6 +104,7 @@ class FeetechBusEmulator:
         self.ignored_requests = 0  # requests dropped for a wrong checksum
         self._unplugged: set[int] = set()
         self._corrupt = 0
+        self._drop = 0
         self._lock = threading.Lock()
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo, no line discipline: bytes pass through unchanged
@@ -120,6 +131,23 @@ class FeetechBusEmulator:
         with self._lock:
             self._corrupt = count
 
+    def drop_replies(self, count: int) -> None:
+        """The next ``count`` answers are lost on the wire (the driver times out waiting)."""
+        with self._lock:
+            self._drop = count
+
+    def set_status_error(self, servo_id: int, error: int) -> None:
+        """Servo ``servo_id`` answers with status error byte ``error`` (bit 5: overload) until set to 0;
+        its data is sent as usual, as a real servo's."""
+        with self._lock:
+            self.servos[servo_id].status_error = error
+
+    def push(self, servo_id: int, position: int) -> None:
+        """Servo ``servo_id``'s joint is moved to ``position`` ticks from outside (may be below 0)."""
+        with self._lock:
+            self._advance()
+            self.servos[servo_id].push(position)
+
     def unplug(self, servo_id: int) -> None:
         """Servo ``servo_id`` stops answering (its packets are still on the wire, unheard)."""
         with self._lock:
@@ -128,7 +156,8 @@ class FeetechBusEmulator:
     def position(self, servo_id: int) -> int:
         with self._lock:
             self._advance()
-            return self.servos[servo_id].value(Register.PRESENT_POSITION)
+            address, size = Register.PRESENT_POSITION
+            return decode_sign_magnitude(bytes(self.servos[servo_id].table[address:address + size]))
 
     def register(self, servo_id: int, register: tuple[int, int]) -> int:
         with self._lock:
@@ -152,7 +181,8 @@ class FeetechBusEmulator:
                     self._advance()
                     replies = self._handle(packet)
                 for reply in replies:
-                    os.write(self._master, reply)
+                    if reply:
+                        os.write(self._master, reply)
 
     def _advance(self) -> None:
         now = time.monotonic()
@@ -198,7 +228,10 @@ class FeetechBusEmulator:
             self.servos[servo_id].write(address, bytes(data))
 
     def _reply(self, servo_id: int, params: bytes) -> bytes:
-        body = bytes([servo_id, len(params) + 2, 0]) + params
+        if self._drop:
+            self._drop -= 1
+            return b""
+        body = bytes([servo_id, len(params) + 2, self.servos[servo_id].status_error]) + params
         check = checksum(body)
         if self._corrupt:
             self._corrupt -= 1

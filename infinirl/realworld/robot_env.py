@@ -352,8 +352,10 @@ class RobotEnv:
                            action.tolist(), np.flatnonzero(bad).tolist())
             action = np.where(bad, self.hold_action(), action)
         command = action_to_command(action, self._reference, self.robot_spec, self.spec.action_mode, self.max_step)
-        self.robot.act(command)
-        self._reference = command
+        sent = self.robot.act(command)
+        # The safety layer may clip the command; the next delta must start from what the robot was
+        # told, or a clipped target drifts away from the real one step after step.
+        self._reference = command if sent is None else np.asarray(sent, np.float64)
         self.last_action = np.clip(action, -1.0, 1.0)
         self._heartbeat()
         late = self._wait_for_period()

@@ -24,6 +24,14 @@ event, sends nothing and raises it to the caller; the next command re-reads the 
   refused until ``reset()``. A stall this long is a failure, not a pause.
 
 Both deadlines restart when ``connect`` or ``reset`` returns (a reset may take as long as it needs).
+A control loop that idles between episodes on purpose keeps giving the heartbeat (the robot held).
+
+A driver may report hardware faults in ``observation.info["servo_errors"]`` (servo -> the status
+bits it set, e.g. overload): :meth:`SafeRobot.observe` then holds the robot, records a
+``servo_error`` event and raises :class:`ServoFaultError` (the episode ends; the next reset re-arms).
+
+:meth:`SafeRobot.act` returns the command it sent (the filtered one): whoever tracks the robot's
+target must track that, not what it asked for.
 """
 
 from __future__ import annotations
@@ -38,7 +46,8 @@ import numpy as np
 
 from infinirl.realworld.driver import RobotDriver, RobotError, RobotObservation, RobotSpec, RobotStoppedError
 
-__all__ = ["ClipRecord", "SafeRobot", "SafetyConfig", "SafetyEvent", "SafetyFilter", "UnknownPoseError"]
+__all__ = ["ClipRecord", "SafeRobot", "SafetyConfig", "SafetyEvent", "SafetyFilter", "ServoFaultError",
+           "UnknownPoseError"]
 
 logger = logging.getLogger(__name__)
 
@@ -46,6 +55,10 @@ logger = logging.getLogger(__name__)
 class UnknownPoseError(RobotError):
     """The pose motion would be limited from (the last target, or the robot's reported pose) is not
     finite: no command is safe to send until the robot reports a finite one."""
+
+
+class ServoFaultError(RobotError):
+    """A servo reported a hardware fault (overload, overheat, ...): the robot was held."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,7 +92,8 @@ class ClipRecord:
 
 @dataclass(frozen=True, kw_only=True)
 class SafetyEvent:
-    """``watchdog_hold``, ``heartbeat_stop`` or ``unknown_pose``, at ``time`` (``time.monotonic()``)."""
+    """``watchdog_hold``, ``heartbeat_stop``, ``unknown_pose`` or ``servo_error``, at ``time``
+    (``time.monotonic()``)."""
 
     kind: str
     time: float
@@ -174,9 +188,19 @@ class SafeRobot(RobotDriver):
             self._monitor.start()
 
     def observe(self) -> RobotObservation:
-        return self.driver.observe()
+        # Under the lock: the monitor thread's hold/stop talk to the same driver (one serial bus).
+        with self._lock:
+            observation = self.driver.observe()
+            faults = observation.info.get("servo_errors")
+            if faults:
+                detail = "; ".join(f"servo {servo}: {', '.join(bits)}" for servo, bits in faults.items())
+                self._event("servo_error", detail)
+                self.hold()
+                raise ServoFaultError(f"{self.spec.kind} reports a fault ({detail}); held")
+            return observation
 
-    def act(self, command: np.ndarray) -> None:
+    def act(self, command: np.ndarray) -> np.ndarray:
+        """Send ``command`` through the filter; returns what was sent."""
         with self._lock:
             if self._stopped:
                 raise RobotStoppedError(f"{self.spec.kind} was stopped by the safety layer; reset() re-arms it")
@@ -201,6 +225,7 @@ class SafeRobot(RobotDriver):
             self._reference = safe
             self._last_command = time.monotonic()
             self._holding = False
+            return safe.copy()
 
     def heartbeat(self) -> None:
         """The pipeline is alive; call it at least every ``heartbeat_deadline_s``."""

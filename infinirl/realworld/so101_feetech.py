@@ -6,7 +6,10 @@ half-duplex serial bus (the arm's USB adapter, e.g. ``/dev/ttyACM0`` at 1 Mbaud)
 servo; ``reset`` drives to the home pose and waits until the servos report it (or fails after
 ``reset_timeout_s`` naming the joints that did not get there).
 
-A servo position is 0..4095 ticks per turn. :class:`ServoCalibration` maps it to the joint angle
+A servo position is 0..4095 ticks per turn; the STS firmware reports a present position below its
+zero (a joint pushed past it, an offset calibration) in sign-magnitude (bit 15 the sign), so it is
+decoded as such, never as a plain 16-bit number (which would read -5 as 32773).
+:class:`ServoCalibration` maps it to the joint angle
 (``angle = drive_sign * (ticks - homing_offset) * 2 pi / 4096``) and bounds it (``range_min`` ..
 ``range_max`` ticks); the gripper maps ``range_min`` (closed) .. ``range_max`` (open) to 0 .. 1. The
 defaults assume an arm calibrated so that ticks 2048 is each joint's zero, as the LeRobot model's;
@@ -39,6 +42,7 @@ from infinirl.realworld.feetech import (
     TICKS_PER_TURN,
     FeetechBus,
     FeetechError,
+    FeetechStatusError,
     Register,
     decode_sign_magnitude,
     u16,
@@ -148,6 +152,12 @@ class SO101FeetechArm(RobotDriver):
         self._spec = so101_spec(kind="so101_feetech", control_hz=control_hz, joint_low=ranges[:, 0],
                                 joint_high=ranges[:, 1])
         self._ids = tuple(servo.id for servo in self.calibration)
+        # The spec's top joint speed as each servo's speed cap: the safety layer limits how far a
+        # target moves per period, this limits how fast the servo gets there (GOAL_SPEED 0 would be
+        # the servo's full speed). The gripper gets the joints' largest.
+        top = [*self._spec.max_joint_velocity, float(np.max(self._spec.max_joint_velocity))]
+        self._top_speed = {servo_id: u16(min(round(speed / _RADIANS_PER_TICK), 0x7FFF))
+                           for servo_id, speed in zip(self._ids, top, strict=True)}
         self.home = self._spec.check_command(np.append(np.zeros(5), 1.0) if home is None else home)
         self.reset_speed = int(reset_speed)
         self.reset_tolerance = int(reset_tolerance)
@@ -185,9 +195,11 @@ class SO101FeetechArm(RobotDriver):
         self._arm_at_present_pose()
 
     def observe(self) -> RobotObservation:
+        """The present pose; a servo reporting status error bits (overload, overheat, ...) is named
+        in ``info["servo_errors"]`` (id -> bits), its reading kept: the safety layer decides."""
         bus = self._require_bus()
-        raw = bus.sync_read((Register.PRESENT_POSITION[0], 4), self._ids)  # position then speed
-        ticks = {servo_id: int.from_bytes(data[:2], "little") for servo_id, data in raw.items()}
+        raw, errors = bus.sync_read_status((Register.PRESENT_POSITION[0], 4), self._ids)  # position then speed
+        ticks = {servo_id: decode_sign_magnitude(data[:2]) for servo_id, data in raw.items()}
         speeds = {servo_id: decode_sign_magnitude(data[2:]) for servo_id, data in raw.items()}
         joints = self.calibration[:5]
         now = time.monotonic()
@@ -197,6 +209,7 @@ class SO101FeetechArm(RobotDriver):
             gripper=self.calibration[5].to_opening(ticks[self.calibration[5].id]),
             timestamp=now,
             tick=int((now - self._connected_at) * self._spec.control_hz),
+            info={"servo_errors": errors} if errors else {},
         )
 
     def act(self, command: np.ndarray) -> None:
@@ -224,8 +237,8 @@ class SO101FeetechArm(RobotDriver):
         deadline = time.monotonic() + self.reset_timeout_s
         try:
             while True:
-                present = bus.sync_read(Register.PRESENT_POSITION, self._ids)
-                away = [servo_id for servo_id in self._ids if abs(int.from_bytes(present[servo_id], "little")
+                present = self._present_ticks(bus)
+                away = [servo_id for servo_id in self._ids if abs(present[servo_id]
                                                                  - int.from_bytes(goals[servo_id], "little"))
                         > self.reset_tolerance]
                 if not away:
@@ -235,14 +248,13 @@ class SO101FeetechArm(RobotDriver):
                                      f"{self.reset_timeout_s} s (blocked, or reset_speed too low)")
                 time.sleep(self._spec.control_period_s)
         finally:
-            bus.sync_write(Register.GOAL_SPEED, {servo_id: u16(0) for servo_id in self._ids})  # 0: full speed
+            bus.sync_write(Register.GOAL_SPEED, self._top_speed)
         return self.observe()
 
     def hold(self) -> None:
         """Goal := present position, so the arm stays where it is."""
         bus = self._require_bus()
-        present = bus.sync_read(Register.PRESENT_POSITION, self._ids)
-        bus.sync_write(Register.GOAL_POSITION, present)
+        bus.sync_write(Register.GOAL_POSITION, self._hold_goals(bus))
 
     def stop(self) -> None:
         """Torque off on every servo (the arm goes limp: it cannot move itself)."""
@@ -262,10 +274,20 @@ class SO101FeetechArm(RobotDriver):
 
     def _arm_at_present_pose(self) -> None:
         bus = self._require_bus()
-        present = bus.sync_read(Register.PRESENT_POSITION, self._ids)
-        bus.sync_write(Register.GOAL_POSITION, present)
+        bus.sync_write(Register.GOAL_POSITION, self._hold_goals(bus))
+        bus.sync_write(Register.GOAL_SPEED, self._top_speed)
         bus.sync_write(Register.TORQUE_ENABLE, {servo_id: b"\x01" for servo_id in self._ids})
         self._stopped = False
+
+    def _present_ticks(self, bus: FeetechBus) -> dict[int, int]:
+        raw = bus.sync_read(Register.PRESENT_POSITION, self._ids)
+        return {servo_id: decode_sign_magnitude(data) for servo_id, data in raw.items()}
+
+    def _hold_goals(self, bus: FeetechBus) -> dict[int, bytes]:
+        """Goal registers that keep each servo where it is: its present position, brought into the
+        goal register's 0..4095 (a joint read below its zero holds at 0, the nearest goal there is)."""
+        return {servo_id: u16(min(max(ticks, 0), TICKS_PER_TURN - 1))
+                for servo_id, ticks in self._present_ticks(bus).items()}
 
     def _require_bus(self) -> FeetechBus:
         if self._bus is None:
@@ -282,6 +304,8 @@ def _answers(bus: FeetechBus, servo_id: int, attempts: int = CONNECT_PING_ATTEMP
     for _ in range(attempts):
         try:
             bus.ping(servo_id)
+        except FeetechStatusError:
+            return True  # it answered: a fault it reports is the safety layer's to act on, not a missing servo
         except FeetechError:
             continue
         return True

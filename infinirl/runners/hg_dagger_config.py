@@ -16,6 +16,7 @@ from infinirl.runners.realworld_sac_config import (
     InterventionConfig,
     RobotConfig,
     TaskConfig,
+    check_command_deadline,
     check_demo_options,
     known_names,
 )
@@ -105,6 +106,7 @@ class HGDAggerConfig(RunConfig):
             raise ConfigError("robot.fleet: the HG-DAgger runner drives robots of one kind; leave robot.fleet empty")
         known_names(ROBOT_DRIVERS, [self.robot.kind], "robot.kind")
         ROBOT_DRIVERS.get(self.robot.kind).check_options(self.robot.kind, self.robot.options, "robot.options")
+        check_command_deadline(self.robot.command_deadline_s, self.robot.kind, self.robot.options, "robot.options")
         known_names(OBSERVATIONS, self.task.observations, "task.observations")
         known_names(REWARDS, list(self.task.rewards), "task.rewards")
         if self.interventions.device is None:

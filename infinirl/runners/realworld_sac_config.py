@@ -330,9 +330,13 @@ class RealWorldSACConfig(RunConfig):
         known_names(ROBOT_DRIVERS, [self.robot.kind], "robot.kind")
         if not self.robot.fleet:
             ROBOT_DRIVERS.get(self.robot.kind).check_options(self.robot.kind, self.robot.options, "robot.options")
+            check_command_deadline(self.robot.command_deadline_s, self.robot.kind, self.robot.options,
+                                   "robot.options")
         for index, entry in enumerate(self.robot.fleet):
             known_names(ROBOT_DRIVERS, [entry.kind], f"robot.fleet[{index}].kind")
             ROBOT_DRIVERS.get(entry.kind).check_options(entry.kind, entry.options, f"robot.fleet[{index}].options")
+            check_command_deadline(self.robot.command_deadline_s, entry.kind, entry.options,
+                                   f"robot.fleet[{index}].options")
             task = self.task_of(index)
             known_names(OBSERVATIONS, task.observations, f"robot.fleet[{index}].task.observations")
             known_names(REWARDS, list(task.rewards), f"robot.fleet[{index}].task.rewards")
@@ -418,6 +422,24 @@ def check_demo_options(policy: str, options: dict, key: str) -> None:
         unknown = [name for name in options if name not in signature.parameters]
         where = f"{key}.{unknown[0]}: not an option of" if unknown else f"{key}: {exc} for"
         raise ConfigError(f"{where} demo policy {policy!r}; its options: {', '.join(named) or 'none'}") from None
+
+
+def check_command_deadline(deadline_s: float | None, kind: str, options: dict, where: str) -> None:
+    """``robot.command_deadline_s`` must exceed the robot's control period: the control loop sends one
+    command per period, so a shorter deadline makes the watchdog hold the robot between any two steps."""
+    import inspect
+
+    from infinirl.realworld.driver import ROBOT_DRIVERS
+
+    if deadline_s is None:
+        return
+    control_hz = options.get("control_hz")
+    if control_hz is None:  # the driver's own default
+        parameter = inspect.signature(ROBOT_DRIVERS.get(kind).driver_class().__init__).parameters.get("control_hz")
+        control_hz = None if parameter is None or parameter.default is inspect.Parameter.empty else parameter.default
+    if control_hz and deadline_s <= 1.0 / float(control_hz):
+        raise ConfigError(f"robot.command_deadline_s={deadline_s} must be longer than the control period "
+                          f"1/{where}.control_hz = {1.0 / float(control_hz):g} s")
 
 
 def known_names(registry, names, key: str) -> None:

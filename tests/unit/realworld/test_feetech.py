@@ -7,10 +7,12 @@ import pytest
 
 from infinirl.realworld.driver import RobotError, RobotStoppedError, discover, make_robot
 from infinirl.realworld.feetech import (
+    SYNC_READ_ATTEMPTS,
     FeetechBus,
     FeetechChecksumError,
     FeetechTimeoutError,
     Instruction,
+    PortBusyError,
     Register,
     SerialPort,
     decode_sign_magnitude,
@@ -19,7 +21,8 @@ from infinirl.realworld.feetech import (
     u16,
 )
 from infinirl.realworld.feetech_emulator import FeetechBusEmulator
-from infinirl.realworld.so101_feetech import CONNECT_PING_ATTEMPTS
+from infinirl.realworld.safety import SafeRobot, SafetyConfig, ServoFaultError
+from infinirl.realworld.so101_feetech import CONNECT_PING_ATTEMPTS, attached_so101_arms
 
 # Packets worked out by hand from the protocol: checksum = ~(id + length + instruction + params) & 0xFF.
 PING_1 = bytes.fromhex("ff ff 01 02 01 fb")  # ~(1 + 2 + 1) = ~0x04
@@ -164,3 +167,145 @@ def test_discovery_finds_the_arm_on_a_configured_port(emulator, tmp_path):
     found = discover({"so101_feetech": {"ports": [emulator.path, str(tmp_path / "nothing*")]}})
     assert [(robot.kind, robot.name) for robot in found] == [("so101_feetech", emulator.path)]
     assert discover() == []  # no port is scanned unless configured
+
+
+def so101_loop(emulator, tmp_path, heartbeat_s):
+    from infinirl.config import to_dataclass
+    from infinirl.realworld.control_loop import RobotControlLoop
+    from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of
+    from infinirl.runners.realworld_sac_config import RealWorldSACConfig
+
+    cfg = to_dataclass(RealWorldSACConfig, {
+        "output_dir": str(tmp_path / "run"),
+        "robot": {"kind": "so101_feetech", "options": {"port": emulator.path, "control_hz": 50.0, "reset_speed": 4000},
+                  "heartbeat_deadline_s": heartbeat_s, "command_deadline_s": None},
+        "task": {"max_episode_steps": 3, "observations": ["proprio"], "rewards": {}},
+        "network": {"actor_hidden": [16], "critic_hidden": [16]}})
+    return RobotControlLoop(robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg), seed=0)
+
+
+def test_the_arm_stays_held_while_the_loop_idles_between_episodes(emulator, tmp_path):
+    """Synchronous collection idles between episodes while the learner updates (and before the
+    first); the idle is deliberate, so the heartbeat goes on and the arm keeps its torque."""
+    loop = so101_loop(emulator, tmp_path, heartbeat_s=0.5)
+    try:
+        time.sleep(1.2)  # before the first episode
+        assert loop.collect(1)
+        time.sleep(1.2)  # the learner updating
+        assert torque(emulator) == [1] * 6
+        assert loop.robot.event_counts["heartbeat_stop"] == 0
+        held = [emulator.position(i) for i in range(1, 7)]
+        assert held == [emulator.register(i, Register.GOAL_POSITION) for i in range(1, 7)]  # holding in place
+        assert loop.collect(1)
+        assert loop.robot.event_counts["heartbeat_stop"] == 0
+    finally:
+        loop.close()
+
+
+OVERLOAD = 1 << 5
+
+
+def test_a_garbled_or_lost_sync_read_answer_is_asked_again(emulator, bus):
+    ids = list(range(1, 7))
+    emulator.corrupt_replies(1)  # one bad checksum
+    assert sorted(bus.sync_read(Register.PRESENT_POSITION, ids)) == ids
+    emulator.drop_replies(1)  # one answer lost: a timeout
+    assert sorted(bus.sync_read(Register.PRESENT_POSITION, ids)) == ids
+    requests = len(emulator.requests)
+    emulator.corrupt_replies(6 * SYNC_READ_ATTEMPTS)  # a fault that persists is raised, after the attempts
+    with pytest.raises(FeetechChecksumError):
+        bus.sync_read(Register.PRESENT_POSITION, ids)
+    assert len(emulator.requests) - requests == SYNC_READ_ATTEMPTS
+
+
+def test_an_overload_bit_keeps_every_servos_data_and_names_the_servo(emulator, bus):
+    emulator.set_status_error(3, OVERLOAD)
+    values, errors = bus.sync_read_status(Register.PRESENT_POSITION, range(1, 7))
+    assert sorted(values) == list(range(1, 7)) and values[3] == u16(2048)
+    assert errors == {3: ("overload",)}
+
+
+def test_an_overloaded_servo_holds_the_arm_and_ends_the_episode_not_the_loop(emulator, tmp_path):
+    arm = SafeRobot(make_robot("so101_feetech", port=emulator.path, reset_speed=4000),
+                    SafetyConfig(command_deadline_s=None, heartbeat_deadline_s=None))
+    arm.connect()
+    try:
+        emulator.set_status_error(2, OVERLOAD)
+        assert arm.driver.observe().info["servo_errors"] == {2: ("overload",)}
+        with pytest.raises(ServoFaultError, match="servo 2: overload"):
+            arm.observe()
+        assert arm.event_counts["servo_error"] == 1 and torque(emulator) == [1] * 6  # held, not let go
+    finally:
+        arm.close()
+    emulator.set_status_error(2, 0)
+    loop = so101_loop(emulator, tmp_path, heartbeat_s=2.0)
+    try:
+        emulator.set_status_error(2, OVERLOAD)
+        assert loop.collect(1) == []  # the first step's observation reports the overload
+        assert loop.counts["safety_aborts"] == 1 and loop.robot.event_counts["servo_error"] == 1
+        emulator.set_status_error(2, 0)
+        assert loop.collect(1)
+    finally:
+        loop.close()
+
+
+def test_two_threads_share_the_bus_without_mixing_answers(emulator, bus):
+    import threading
+
+    errors = []
+
+    def read(register):
+        try:
+            for _ in range(50):
+                assert len(bus.sync_read(register, range(1, 7))) == 6
+                bus.ping(4)
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=read, args=(r,)) for r in (Register.PRESENT_POSITION, Register.MODEL_NUMBER)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert errors == []
+
+
+def test_a_position_below_zero_is_read_as_sign_magnitude(emulator):
+    arm = make_robot("so101_feetech", port=emulator.path)
+    arm.connect()
+    try:
+        arm.stop()  # torque off: the joint stays where a hand puts it
+        emulator.push(1, -5)
+        assert emulator.register(1, Register.PRESENT_POSITION) == 0x8005  # on the wire: bit 15 is the sign
+        observation = arm.observe()
+        assert observation.joint_positions[0] == pytest.approx(arm.calibration[0].to_angle(-5))
+        arm.hold()
+        assert wait_until(lambda: emulator.register(1, Register.GOAL_POSITION) == 0)  # the nearest goal, not 32773
+    finally:
+        arm.close()
+
+
+def test_a_port_is_opened_by_one_bus_only_and_discovery_says_it_is_in_use(emulator, bus, caplog):
+    with pytest.raises(PortBusyError, match="in use"):
+        FeetechBus(emulator.path)
+    requests = len(emulator.requests)
+    assert attached_so101_arms(ports=[emulator.path]) == []
+    assert "in use" in caplog.text and len(emulator.requests) == requests  # not probed
+    bus.close()
+    assert [arm.name for arm in attached_so101_arms(ports=[emulator.path])] == [emulator.path]
+
+
+def test_the_servos_speed_is_capped_at_the_specs_top_speed_outside_the_reset(emulator):
+    arm = make_robot("so101_feetech", port=emulator.path, reset_speed=4000)
+    top = round(float(arm.spec.max_joint_velocity.max()) * 4096 / (2 * np.pi))
+
+    def speeds():
+        return [emulator.register(i, Register.GOAL_SPEED) for i in range(1, 7)]
+
+    arm.connect()
+    try:
+        assert wait_until(lambda: speeds() == [top] * 6)
+        arm.reset()
+        assert wait_until(lambda: speeds() == [top] * 6)  # not 0, the servo's unlimited speed
+    finally:
+        arm.close()

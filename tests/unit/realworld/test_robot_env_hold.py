@@ -50,3 +50,15 @@ def test_the_hold_action_commands_the_observed_target(mode, control_mode):
         np.testing.assert_allclose(driver.commands[-1], observed, atol=1e-9)
     with pytest.raises(RuntimeError, match="reset"):
         RobotEnv(env.robot, env.spec).hold_action()
+
+
+def test_the_target_is_the_command_the_safety_layer_sent():
+    """A command the safety layer clips (here: too fast for one period) is not what the robot was
+    told; the env's target, and so the next delta and the hold action, follow what was sent."""
+    env, driver = an_env("absolute")
+    env.reset()
+    env.step(np.array([1.0, -1.0, 1.0]))
+    sent = driver.commands[-1]
+    assert env.robot.clip_counts["velocity"] > 0
+    env.step(env.hold_action())
+    np.testing.assert_allclose(driver.commands[-1], sent)  # held where it was sent, not pulled on

@@ -110,3 +110,29 @@ def test_stalled_heartbeat_turns_the_real_arms_torque_off():
             assert wait_until(lambda: torque() == [0] * 6)
         finally:
             robot.close()
+
+
+def test_act_returns_the_command_it_sent():
+    robot = SafeRobot(SimSO101(control_hz=20.0), SafetyConfig(command_deadline_s=None, heartbeat_deadline_s=None))
+    robot.connect()
+    try:
+        reference = robot.observe().current_target(robot.spec)
+        sent = robot.act(np.append(np.full(5, SO101_JOINT_HIGH.max() * 10), 1.0))
+        assert robot.clip_counts["velocity"] > 0
+        assert np.all(np.abs(sent - reference)[:5] <= robot.filter._max_step + 1e-9)
+    finally:
+        robot.close()
+
+
+def test_a_command_deadline_within_one_control_period_is_refused():
+    from infinirl.config import ConfigError, to_dataclass
+    from infinirl.runners.realworld_sac_config import RealWorldSACConfig
+
+    def config(deadline_s):
+        return to_dataclass(RealWorldSACConfig, {"robot": {"kind": "sim_so101", "options": {"control_hz": 20.0},
+                                                           "command_deadline_s": deadline_s}})
+
+    with pytest.raises(ConfigError, match=r"robot.command_deadline_s=0.05 .*robot.options.control_hz") as error:
+        config(0.05)
+    assert "\n" not in str(error.value)
+    config(0.06)
