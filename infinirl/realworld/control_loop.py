@@ -50,7 +50,7 @@ import torch
 from infinirl.models.sac_encoders import PIXELS_PREFIX
 from infinirl.realworld.driver import RobotError, RobotStoppedError, make_robot
 from infinirl.realworld.episodes import RANDOM_VERSION, EpisodeRecorder
-from infinirl.realworld.intervention.human_reward import SuccessLabelWriter, human_reward
+from infinirl.realworld.intervention.human_reward import BackgroundLabelWriter, human_reward
 from infinirl.realworld.intervention.metrics import intervention_stats
 from infinirl.realworld.intervention.spec import InterventionSpec
 from infinirl.realworld.robot_env import RobotEnv, RobotEnvSpec
@@ -226,7 +226,8 @@ class RobotControlLoop:
             if url is not None:  # a device people open in a browser: say where (reaches the driver's console)
                 print(f"intervention page of robot rank {self.rank}: {url}", flush=True)
             if intervention.labels_dir is not None:
-                self.labels = SuccessLabelWriter(intervention.labels_dir, prefix=f"rank{self.rank}")
+                # written off the control thread: compressing a camera episode would make steps late
+                self.labels = BackgroundLabelWriter(intervention.labels_dir, prefix=f"rank{self.rank}")
         self._start_idle_keeper(setup.safety)
         self._pause()  # until the first episode: the learner may take a while to start
 
@@ -405,7 +406,7 @@ class RobotControlLoop:
             observations = dict(recorder.obs)
             if "state" in observations:  # a fleet pads the policy's state and appends the robot's one-hot
                 observations["state"] = [np.asarray(row)[:self.obs_dim] for row in observations["state"]]
-            self.labels.write(observations, recorder.mark)
+            self.labels.submit(observations, recorder.mark)
         if self.intervention.reward != "human":
             return False
         outcome = human_reward(marks)
@@ -627,6 +628,8 @@ class RobotControlLoop:
             try:
                 if self.intervention_device is not None:
                     self.intervention_device.close()
+                if self.labels is not None:
+                    self.labels.close()  # the episodes marked last are written before the robot is let go
             finally:
                 self._closing.set()
                 if self._idle_keeper is not None:

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import io
 import os
+import queue
 import tempfile
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -24,7 +26,8 @@ import numpy as np
 
 from infinirl.realworld.intervention.device import EPISODE_MARKS
 
-__all__ = ["REWARD_SOURCES", "HumanOutcome", "SuccessLabelWriter", "human_reward", "success_labels"]
+__all__ = ["REWARD_SOURCES", "BackgroundLabelWriter", "HumanOutcome", "SuccessLabelWriter", "human_reward",
+           "success_labels"]
 
 REWARD_SOURCES = ("env", "human")
 MARK_REWARD = {"success": 1.0, "failure": 0.0}
@@ -104,3 +107,61 @@ class SuccessLabelWriter:
             os.unlink(handle.name)
         self.count += 1
         return path
+
+
+class BackgroundLabelWriter:
+    """A :class:`SuccessLabelWriter` on a thread of its own, for the robot's control thread.
+
+    Why: a mark given with ``reward=env`` does not end the episode, and stacking and compressing a
+    camera episode's frames takes a sizeable fraction of a second: on the control thread that makes
+    steps late and can trip the safety watchdog. :meth:`submit` only snapshots the rows (lists of the
+    recorded arrays, which are not changed after recording) and queues them; at most ``max_pending``
+    wait, after which it blocks up to ``submit_timeout_s`` (a disk that slow must not grow memory
+    without bound). A write that failed is raised by the next :meth:`submit` or by :meth:`close`,
+    which writes what is queued first."""
+
+    def __init__(self, folder: str, prefix: str = "labels", max_pending: int = 4, submit_timeout_s: float = 60.0):
+        self.writer = SuccessLabelWriter(folder, prefix)
+        self.submit_timeout_s = submit_timeout_s
+        self.written: list[str] = []
+        self._queue: queue.Queue = queue.Queue(maxsize=max_pending)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name=f"labels-{prefix}", daemon=True)
+        self._thread.start()
+
+    def submit(self, observations: Mapping[str, Sequence[np.ndarray]], mark: str) -> None:
+        self._raise_failure()
+        snapshot = {key: list(values) for key, values in observations.items()}
+        try:
+            self._queue.put((snapshot, mark), timeout=self.submit_timeout_s)
+        except queue.Full:
+            raise RuntimeError(f"success labels: {self._queue.maxsize} episodes still wait to be written to "
+                               f"{self.writer.folder} after {self.submit_timeout_s:.0f} s: is the disk full or "
+                               "very slow?") from None
+
+    def close(self, timeout_s: float = 60.0) -> None:
+        """Write what is queued, stop the thread, raise a failed write."""
+        if self._thread.is_alive():
+            try:
+                self._queue.put(None, timeout=timeout_s)
+            except queue.Full:
+                pass
+            self._thread.join(timeout_s)
+        self._raise_failure()
+
+    def _raise_failure(self) -> None:
+        if self._error is not None:
+            raise RuntimeError(f"success labels: writing to {self.writer.folder} failed: {self._error!r}") \
+                from self._error
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._error is not None:
+                continue  # reported already by the next submit or close; nothing more is written
+            try:
+                self.written.append(self.writer.write(*item))
+            except BaseException as exc:  # noqa: BLE001 - kept for the control thread to raise
+                self._error = exc

@@ -124,6 +124,40 @@ def test_label_writer_never_overwrites_after_a_file_was_deleted(tmp_path):
                                             "rank0-000004.npz", "rank0-notanumber.npz"]  # no temporaries left
 
 
+def test_background_label_writer_writes_off_the_callers_thread_and_raises_a_failed_write(tmp_path, monkeypatch):
+    import threading
+
+    from infinirl.realworld.intervention import human_reward as module
+
+    threads = []
+    write = module.SuccessLabelWriter.write
+
+    def recording_write(self, observations, mark):
+        threads.append(threading.current_thread().name)
+        return write(self, observations, mark)
+
+    monkeypatch.setattr(module.SuccessLabelWriter, "write", recording_write)
+    writer = module.BackgroundLabelWriter(str(tmp_path), prefix="rank0")
+    observations = {"state": [np.full(2, i, np.float32) for i in range(3)]}
+    writer.submit(observations, "success")
+    observations["state"].append(np.full(2, 9, np.float32))  # the episode goes on after its mark
+    writer.submit({"state": observations["state"][:2]}, "failure")
+    writer.close()
+    assert threads == ["labels-rank0", "labels-rank0"] and threading.current_thread().name not in threads
+    with np.load(writer.written[0]) as saved:  # the rows at the mark, not the ones recorded later
+        assert saved["label"].tolist() == [0, 0, 1] and saved["state"][:, 0].tolist() == [0, 1, 2]
+    assert len(writer.written) == 2
+
+    def failing_write(self, observations, mark):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(module.SuccessLabelWriter, "write", failing_write)
+    failing = module.BackgroundLabelWriter(str(tmp_path), prefix="rank1")
+    failing.submit(observations, "success")
+    with pytest.raises(RuntimeError, match="writing to .* failed: .*No space left"):
+        failing.close()
+
+
 def test_recorder_keeps_the_intervened_flag_and_the_human_mark():
     recorder = EpisodeRecorder({"state": np.zeros(2, np.float32)})
     recorder.add(np.ones(3), {"state": np.ones(2, np.float32)}, 0.0, False, 4, intervened=True)
