@@ -166,7 +166,7 @@ class WebControlState:
     # -- the page's side -------------------------------------------------------------------------
     def take_over(self, action: np.ndarray | None) -> str:
         """A new session holds control (taking it from any page that held it); returns its id.
-        Without ``action`` the human starts from zero, never from an earlier session's action."""
+        Without ``action`` the human starts from zero, never from an earlier take-over's action."""
         with self.lock:
             self._expire()
             self._action = np.zeros(self.action_dim) if action is None else action

@@ -85,7 +85,7 @@ def test_take_over_act_and_hand_back_set_what_poll_returns(device):
     status, state = call(device, "/api/handback", {"session": session})
     assert status == 200 and state["active"] is False and state["released_by"] == "hand-back"
     assert device.poll().active is False and device.poll().action is None
-    assert state["action"] == [0.0, 0.0, 0.0]  # the last session's action is gone
+    assert state["action"] == [0.0, 0.0, 0.0]  # the last take-over's action is gone
 
     # Taking over with the page's present action starts from it (a slider the human already moved).
     call(device, "/api/takeover", {"action": [0, 0, -0.5]})
