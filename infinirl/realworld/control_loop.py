@@ -19,14 +19,17 @@ the transport) the loop holds the robot and keeps the safety layer's heartbeat: 
 which must not stop the robot as a stalled pipeline would.
 
 **Interventions** (an :class:`~infinirl.realworld.intervention.spec.InterventionSpec`): before each
-training step the loop polls the device with the observation and the policy's proposal; while the
-human holds control the human's action is executed and recorded (``intervened`` = 1). A mark
-(success / failure) labels the observations up to it for a success classifier (``labels_dir``) and,
-with the reward source ``human``, becomes the reward of the step that led to the marked state and
-ends the episode (the env's own success then ends nothing). One more poll after an episode's last
-step collects the marks given for it; in the asynchronous loop an episode is held back until the
-next one's first poll, so a mark given while the robot resets (the person still judging the episode
-that ended) goes to that episode too. Evaluation and demonstration episodes run without the device.
+step the loop polls the device with the observation and the policy's proposal; in a training episode,
+while the human holds control, the human's action is executed and recorded (``intervened`` = 1). A
+mark (success / failure) labels the observations up to it for a success classifier (``labels_dir``)
+and, with the reward source ``human``, becomes the reward of the step that led to the marked state
+and ends the episode (the env's own success then ends nothing). One more poll after a training
+episode's last step collects the marks given for it; in the asynchronous loop a training episode is
+held back until the next episode's first poll, whatever that episode's kind, so a mark given while
+the robot resets (the person still judging the episode that ended) goes to that episode too.
+Evaluation and demonstration episodes are not the human's (:meth:`RobotControlLoop._steps` is the one
+place that decides): the device is told (``hold_off``) and refuses take-overs; a human action it
+reports anyway is not executed and marks given during them are not used, both counted and logged.
 
 The Ray robot worker (:class:`~infinirl.realworld.robot_worker.RobotActorWorker`) and the edge
 node (:mod:`infinirl.edge.robot_node`) both run this class; only the transport differs.
@@ -50,6 +53,7 @@ import torch
 from infinirl.models.sac_encoders import PIXELS_PREFIX
 from infinirl.realworld.driver import RobotError, RobotStoppedError, make_robot
 from infinirl.realworld.episodes import RANDOM_VERSION, EpisodeRecorder
+from infinirl.realworld.intervention.device import hold_off_message
 from infinirl.realworld.intervention.human_reward import BackgroundLabelWriter, human_reward
 from infinirl.realworld.intervention.metrics import intervention_stats
 from infinirl.realworld.intervention.spec import InterventionSpec
@@ -213,6 +217,9 @@ class RobotControlLoop:
         self._error: BaseException | None = None
         self._sender_error: BaseException | None = None
         self._eval_request: tuple[Callable[[], Any], queue.Queue] | None = None
+        self._held: EpisodeRecorder | None = None
+        """The asynchronous loop with a human: the last training episode, held back until the next
+        episode's first poll (of any kind) brings the marks given while the robot reset."""
         self._idle = threading.Event()
         self._closing = threading.Event()
         self._idle_keeper: threading.Thread | None = None
@@ -318,31 +325,34 @@ class RobotControlLoop:
             self._count(recorder, episode)
         return episode
 
-    def _steps(self, policy=None, deterministic: bool = False, between_steps=None, training: bool = True,
-               previous: EpisodeRecorder | None = None,
-               release: Callable[[EpisodeRecorder], None] | None = None) -> EpisodeRecorder:
-        """Run one episode and return its recorder, not finished. ``previous`` (the asynchronous
-        loop with a human): the last training episode, held back until this episode's first poll,
-        whose marks were given before any step of this one (while the robot reset, the person
-        still looking at the episode that ended): they go to ``previous``, which then goes to
-        ``release`` (also when the loop stops before that poll)."""
+    def _steps(self, policy=None, deterministic: bool = False, between_steps=None,
+               training: bool = True) -> EpisodeRecorder:
+        """Run one episode and return its recorder, not finished. With a held training episode
+        (:attr:`_held`), this episode's first poll brings the marks given before any step of it
+        (while the robot reset, the person still looking at the episode that ended): they go to the
+        held one, which then goes to the sender (also when the loop stops before that poll).
+
+        The human's part is decided here, for every device: only training episodes are theirs. For
+        an evaluation (the deterministic policy alone, also when filmed) or a scripted demonstration
+        the device is held off (it refuses take-overs and tells its human), and whatever it reports
+        is kept out of the episode: no human action is executed, no mark rewards, ends or labels it."""
+        human = self.intervention_device
+        kind = "training" if training else "evaluation" if policy is None else "demonstration"
+        held_off = None if training else kind
+        if human is not None and human.held_off != held_off:
+            human.hold_off(held_off)  # before the reset, so a page says so while the robot resets
         self._idle.clear()  # the reset re-arms the deadlines; from here the steps give the heartbeat
         obs = self._padded(self.env.reset())
         recorder = EpisodeRecorder(obs)
-        human = self.intervention_device if training and policy is None else None
-        if human is not None:
+        if human is not None and training:
             human.reset()
+        logged: set[str] = set()  # what this episode already logged as kept out
         while not self._stop.is_set():
             self._raise_if_sender_failed()  # nothing this episode collects could be delivered any more
             if between_steps is not None:
                 between_steps()
-            action, version, given = self._choose(obs, policy, deterministic, human)
-            if previous is not None:
-                if given is not None and given.marks:
-                    self._apply_marks(previous, given.marks)
-                    given = dataclasses.replace(given, marks=())
-                release(previous)
-                previous = None
+            action, version, given = self._choose(obs, policy, deterministic, human, kind)
+            action, given = self._human_part(action, given, kind, logged)
             if given is not None and self._apply_marks(recorder, given.marks):
                 break  # the human's mark ended the episode
             try:
@@ -359,30 +369,63 @@ class RobotControlLoop:
                 self.counts["non_finite_actions"] += 1
             if self._record(recorder, action, obs, step, version, given):
                 break
-        if previous is not None:  # stopped before this episode's first poll
-            release(previous)
-        if human is not None and recorder.mark is None and len(recorder):
+        self._release_held()  # stopped before this episode's first poll
+        if human is not None and training and recorder.mark is None and len(recorder):
             self._apply_marks(recorder, human.poll(observation=obs).marks)  # marks given for the last step
         self._pause()
         return recorder
 
-    def _choose(self, obs: dict, policy, deterministic: bool, human):
-        """``(action, version, the human's input or None)`` for the next step."""
+    def _choose(self, obs: dict, policy, deterministic: bool, human, kind: str):
+        """``(action, version, the human's input or None)`` for the next step: the policy's (or the
+        scripted ``policy``'s) action; the caller puts in the human's where it is theirs to give."""
         if policy is not None:
             action = np.zeros(self.layout.action_dim, np.float32)
             action[:self.action_dim] = policy(self.env.last_observation)
-            return action, RANDOM_VERSION, None
-        action, version = self.act(obs, deterministic)
+            version = RANDOM_VERSION
+        else:
+            action, version = self.act(obs, deterministic)
         if human is None:
             return action, version, None
         frames = {key.removeprefix("pixels."): value for key, value in obs.items() if key.startswith("pixels.")}
         if frames:
-            human.show(frames, {"steps": self.env.steps, "policy_version": version})
-        given = human.poll(observation=obs, policy_action=action[:self.action_dim])
+            human.show(frames, {"episode": kind, "steps": self.env.steps, "policy_version": version})
+        return action, version, human.poll(observation=obs, policy_action=action[:self.action_dim])
+
+    def _human_part(self, action: np.ndarray, given, kind: str, logged: set[str]):
+        """``(the action to execute, the human input this episode takes or None)`` after a poll: its
+        marks go to the held training episode first (given before this episode's first step); only a
+        training episode takes the rest, with the human's action where they hold control."""
+        if self._held is not None and given is not None and given.marks:
+            self._apply_marks(self._held, given.marks)
+            given = dataclasses.replace(given, marks=())
+        self._release_held()
+        if given is None:
+            return action, None
+        if kind != "training":
+            self._keep_out(given, kind, logged)
+            return action, None
         if given.active:
             action = np.zeros(self.layout.action_dim, np.float32)
             action[:self.action_dim] = given.action
-        return action, version, given
+        return action, given
+
+    def _keep_out(self, given, kind: str, logged: set[str]) -> None:
+        """Count and log (once per episode each) what a human gave during an episode of ``kind``,
+        which is not theirs: a take-over the device did not refuse itself is not executed, and
+        marks are not used (they would judge the policy alone, or a script)."""
+        if given.active:
+            self.counts["refused_human_steps"] += 1
+            if "active" not in logged:
+                logged.add("active")
+                logger.warning("%s: %s reports a take-over; not executed: %s", self.kind,
+                               type(self.intervention_device).__name__, hold_off_message(kind))
+        if given.marks:
+            self.counts["marks_ignored"] += len(given.marks)
+            if "marks" not in logged:
+                logged.add("marks")
+                logger.warning("%s: mark(s) %s given during a %s episode are not used (marks judge a training "
+                               "episode: the running one, or while the robot resets, the one that ended)",
+                               self.kind, list(given.marks), kind)
 
     def _record(self, recorder: EpisodeRecorder, action, obs: dict, step, version: int, given) -> bool:
         """Record one step; returns whether the episode is over."""
@@ -444,30 +487,20 @@ class RobotControlLoop:
         self._thread.start()
 
     def _control_loop(self, between_steps) -> None:
-        held: EpisodeRecorder | None = None  # with a human: the last episode, until the next one's first poll
-
-        def release(recorder: EpisodeRecorder) -> None:
-            episode = self._finish(recorder, training=True)
-            if episode is not None:
-                self._hand_to_sender(episode)
-
         try:
             while not self._stop.is_set():
                 request, self._eval_request = self._eval_request, None
                 if request is not None:
-                    if held is not None:
-                        release(held)
-                        held = None
+                    # A held episode stays held: the evaluation's first poll brings the marks given
+                    # for it while the robot reset for the evaluation.
                     request[1].put(request[0]())
                     continue
-                recorder = self._steps(between_steps=between_steps, previous=held, release=release)
-                held = None
+                recorder = self._steps(between_steps=between_steps)
                 if self.intervention_device is not None:
-                    held = recorder
+                    self._held = recorder
                 else:
-                    release(recorder)
-            if held is not None:
-                release(held)
+                    self._release(recorder)
+            self._release_held()
         except BaseException as exc:  # reported by the next stats() / stop() call
             self._idle.clear()  # a failed loop is no deliberate pause: the heartbeat lapses, the robot stops
             if exc is not self._sender_error:
@@ -478,6 +511,17 @@ class RobotControlLoop:
                 self._hand_to_sender(None)
             except BaseException:  # the sender already ended: nobody waits for the end marker
                 pass
+
+    def _release(self, recorder: EpisodeRecorder) -> None:
+        """A finished training episode of the asynchronous loop, counted, to the sender."""
+        episode = self._finish(recorder, training=True)
+        if episode is not None:
+            self._hand_to_sender(episode)
+
+    def _release_held(self) -> None:
+        if self._held is not None:
+            held, self._held = self._held, None
+            self._release(held)
 
     def _hand_to_sender(self, item: dict | None) -> None:
         """Queue ``item`` for the sender; while the outbox is full, wait for it (the transport is

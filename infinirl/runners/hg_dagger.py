@@ -18,7 +18,8 @@ dataset and behaviour cloning).
   ``dagger/dataset_rows``, ``train/bc_loss`` and ``dagger/novice_error`` (the policy's squared error
   on the iteration's human labels before training on them).
 * **evaluation**: ``eval.episodes`` deterministic episodes per robot with no human
-  (``eval/success_rate``: the policy alone); after the last iteration robot rank 0 films
+  (``eval/success_rate``: the policy alone; the robots' control loops hold the device off, so a
+  take-over is refused until the next iteration's episodes); after the last iteration robot rank 0 films
   ``eval.video_episodes`` more into ``<output_dir>/eval.mp4`` (a robot without a camera: none).
 """
 

@@ -401,7 +401,8 @@ class RealWorldSACFlow:
     # ------------------------------------------------------------------ evaluation
     def evaluate(self) -> dict:
         """``eval.episodes`` deterministic episodes on every robot at once; means over all of them
-        (and per robot kind when the run has several)."""
+        (and per robot kind when the run has several). The policy acts alone: each robot's control
+        loop holds its intervention device off for them (a take-over is refused)."""
         results = self.robots.evaluate(self.cfg.eval.episodes).wait()
         kinds = self.robots.describe().wait()
         merged = {key: float(np.mean([r[key] for r in results if key in r])) for key in results[0]}

@@ -5,6 +5,14 @@ question per control step, :meth:`InterventionDevice.poll`: does the human hold 
 so which action do they command? It also delivers the episode marks the human gave since the last
 poll (``"success"`` / ``"failure"``), which become the episode's human reward.
 
+Only training episodes are the human's: evaluation episodes measure the policy alone and scripted
+demonstrations record their script, so for those the control loop calls :meth:`InterventionDevice.hold_off`
+with the episode's kind, and ``hold_off(None)`` when the next training episode starts. The loop goes
+on polling meanwhile (a device sees the time pass, and a mark given while the robot resets still
+reaches the training episode that ended) but never executes a human's action then; a device refuses a
+take-over while held off and says so to its human (:func:`hold_off_message`), rather than accept one
+that would steer nothing.
+
 Actions are in the policy's action space (the :class:`~infinirl.realworld.robot_env.RobotEnv`'s
 normalised ``[-1, 1]^action_dim``), so an intervened step is stored exactly like a policy step,
 with the human's action in place of the policy's and a flag saying who acted.
@@ -25,9 +33,22 @@ import numpy as np
 
 from infinirl.registry import Registry
 
-__all__ = ["EPISODE_MARKS", "INTERVENTION_DEVICES", "HumanInput", "InterventionDevice"]
+__all__ = ["EPISODE_MARKS", "HOLD_OFF_KINDS", "INTERVENTION_DEVICES", "HumanInput", "InterventionDevice",
+           "hold_off_message"]
 
 EPISODE_MARKS = ("success", "failure")
+
+HOLD_OFF_KINDS = {
+    "evaluation": "an evaluation episode is running: the policy is measured alone",
+    "demonstration": "a scripted demonstration is running",
+}
+"""The episode kinds the human stays out of, and what a device tells its human about each."""
+
+
+def hold_off_message(kind: str) -> str:
+    """Why a take-over is refused while episodes of ``kind`` run, and when control opens again."""
+    running = HOLD_OFF_KINDS.get(kind) or f"a {kind} episode is running"
+    return f"{running}; take-over is refused until the next training episode starts"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -54,6 +75,10 @@ class HumanInput:
 class InterventionDevice(abc.ABC):
     """One source of human input for one robot."""
 
+    held_off: str | None = None
+    """The kind of the episodes running while the human must stay out (a key of
+    :data:`HOLD_OFF_KINDS`), or None during training; set by :meth:`hold_off`."""
+
     def __init__(self, *, action_dim: int) -> None:
         if action_dim < 1:
             raise ValueError(f"action_dim must be >= 1, got {action_dim}")
@@ -79,7 +104,14 @@ class InterventionDevice(abc.ABC):
         ignore it."""
 
     def reset(self) -> None:  # noqa: B027
-        """A new episode starts (a device with per-episode state clears it)."""
+        """A new training episode starts (a device with per-episode state clears it)."""
+
+    def hold_off(self, kind: str | None) -> None:
+        """From now on the control loop runs episodes of ``kind`` (``"evaluation"``,
+        ``"demonstration"``), in which it executes no human action, until ``hold_off(None)`` (before
+        the next training episode's reset). A device that holds a take-over gives it back and refuses
+        new ones meanwhile, telling its human :func:`hold_off_message`. Overrides call this one."""
+        self.held_off = kind
 
     def close(self) -> None:  # noqa: B027
         """Release what the device holds (threads, sockets, file handles)."""

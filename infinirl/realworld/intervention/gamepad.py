@@ -12,16 +12,27 @@ step (non-blocking; a partial record waits for its remaining bytes) and keeps th
 * ``takeover_button``: the human holds control while it is down (a dead-man switch), or with
   ``takeover_toggle`` each press toggles control;
 * ``success_button`` / ``failure_button``: a press marks the episode.
+
+While the control loop runs an evaluation or a demonstration (:meth:`~InterventionDevice.hold_off`)
+the take-over button is refused (logged once): a toggled take-over goes back to the policy and
+toggles nothing meanwhile; a held dead-man button steers nothing until a training episode starts
+(then, still held, it takes control).
 """
 
 from __future__ import annotations
 
+import logging
 import struct
 from collections.abc import Sequence
 
 import numpy as np
 
-from infinirl.realworld.intervention.device import INTERVENTION_DEVICES, HumanInput, InterventionDevice
+from infinirl.realworld.intervention.device import (
+    INTERVENTION_DEVICES,
+    HumanInput,
+    InterventionDevice,
+    hold_off_message,
+)
 from infinirl.realworld.intervention.fd_reader import NonBlockingReader
 from infinirl.realworld.intervention.keyboard import fill
 
@@ -32,6 +43,8 @@ JS_EVENT_BUTTON = 0x01
 JS_EVENT_AXIS = 0x02
 JS_EVENT_INIT = 0x80
 AXIS_MAX = 32767.0
+
+logger = logging.getLogger(__name__)
 
 
 def js_event(*, time_ms: int, value: int, type: int, number: int) -> bytes:  # noqa: A002 - the kernel's field name
@@ -63,6 +76,7 @@ class GamepadDevice(InterventionDevice):
         self.axis_values: dict[int, float] = {}
         self.buttons: dict[int, bool] = {}
         self.toggled = False
+        self._refusal_logged = False
         self._pending = b""
         if fd is not None:
             path = None
@@ -76,6 +90,7 @@ class GamepadDevice(InterventionDevice):
 
     def poll(self, *, observation=None, policy_action=None) -> HumanInput:
         marks: list[str] = []
+        refused = False  # a take-over press while held off
         for _time, value, kind, number in self._events():
             initial = bool(kind & JS_EVENT_INIT)
             kind &= ~JS_EVENT_INIT
@@ -87,7 +102,9 @@ class GamepadDevice(InterventionDevice):
                 self.buttons[number] = pressed
                 if initial or not pressed or was:
                     continue  # only a fresh press counts (the initial state on open is no press)
-                if number == self.takeover_button and self.takeover_toggle:
+                if number == self.takeover_button and self.held_off is not None:
+                    refused = True
+                elif number == self.takeover_button and self.takeover_toggle:
                     self.toggled = not self.toggled
                 elif number in self.mark_buttons:
                     marks.append(self.mark_buttons[number])
@@ -99,9 +116,21 @@ class GamepadDevice(InterventionDevice):
             self.toggled = False
             self._pending = b""
         active = self.toggled if self.takeover_toggle else self.buttons.get(self.takeover_button, False)
+        if self.held_off is not None:
+            if (refused or active) and not self._refusal_logged:
+                self._refusal_logged = True
+                logger.warning("gamepad: take-over refused: %s", hold_off_message(self.held_off))
+            active = False
         if not active:
             return HumanInput(active=False, marks=tuple(marks))
         return HumanInput(active=True, action=self.action(), marks=tuple(marks))
+
+    def hold_off(self, kind: str | None) -> None:
+        super().hold_off(kind)
+        self._refusal_logged = False
+        if kind is not None and self.toggled:
+            self.toggled = False  # a later press takes over anew, once training episodes run again
+            logger.warning("gamepad: control goes back to the policy: %s", hold_off_message(kind))
 
     def action(self) -> np.ndarray:
         """The action the pad's present state commands."""

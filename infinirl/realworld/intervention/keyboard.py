@@ -10,19 +10,30 @@ machine, or an adopted descriptor ``fd``) in raw, non-blocking mode, once per co
   entries in ``latched_axes`` keep their value until changed (a gripper);
 * ``success_key`` (``s``) / ``failure_key`` (``f``): mark the episode.
 
-Keys pressed while the human does not hold control move nothing. Other bytes are ignored.
+Keys pressed while the human does not hold control move nothing. Other bytes are ignored. While the
+control loop runs an evaluation or a demonstration (:meth:`~InterventionDevice.hold_off`) the toggle
+key is refused, and a take-over held when one starts goes back to the policy, both with a warning
+in the log (a terminal in raw mode shows nothing else).
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from infinirl.realworld.intervention.device import INTERVENTION_DEVICES, HumanInput, InterventionDevice
+from infinirl.realworld.intervention.device import (
+    INTERVENTION_DEVICES,
+    HumanInput,
+    InterventionDevice,
+    hold_off_message,
+)
 from infinirl.realworld.intervention.fd_reader import NonBlockingReader
 
 __all__ = ["DEFAULT_AXIS_KEYS", "KeyboardDevice"]
+
+logger = logging.getLogger(__name__)
 
 DEFAULT_AXIS_KEYS = ("ad", "xw", "ze", "jl", "ki", "uo", "nm", "gh")
 """Entry 0: a/d, 1: x/w, 2: z/e, 3: j/l, ... (minus key first)."""
@@ -78,7 +89,9 @@ class KeyboardDevice(InterventionDevice):
         marks: list[str] = []
         for key in self.reader.read_or_lost().decode("latin-1"):
             control = self._controls.get(key)
-            if control == "toggle":
+            if control == "toggle" and self.held_off is not None and not self.active:
+                logger.warning("keyboard: take-over refused: %s", hold_off_message(self.held_off))
+            elif control == "toggle":
                 self.active = not self.active
                 delta[:] = 0.0  # presses before a take-over steer nothing
             elif control is not None:
@@ -98,6 +111,12 @@ class KeyboardDevice(InterventionDevice):
             self.latched[axis] = np.clip(self.latched[axis] + delta[axis], -1.0, 1.0)
             action[axis] = self.latched[axis]
         return HumanInput(active=True, action=action.astype(np.float32), marks=tuple(marks))
+
+    def hold_off(self, kind: str | None) -> None:
+        super().hold_off(kind)
+        if kind is not None and self.active:
+            self.active = False  # a later toggle takes over anew, once training episodes run again
+            logger.warning("keyboard: control goes back to the policy: %s", hold_off_message(kind))
 
     def close(self) -> None:
         self.reader.close()

@@ -10,7 +10,10 @@ computes the expert's action for the present state and compares it with what the
 * **correct**: it then acts with the expert for ``correct_steps`` steps and hands back;
 * **marks**: with ``mark_success``, it marks ``success`` once per episode as soon as the env's own
   success signal is on; with ``give_up_steps``, it marks ``failure`` when an episode has run that
-  many steps without success.
+  many steps without success;
+* **evaluation and demonstrations**: while the control loop holds it off
+  (:meth:`~InterventionDevice.hold_off`) it neither takes over nor marks, as a person who knows those
+  episodes are not theirs (its per-episode state and seeded draws stay as they were).
 
 The expert is a scripted demo policy of :data:`~infinirl.realworld.demos.DEMO_POLICIES` (``expert``,
 ``expert_options``, ``noise_std``: seeded action noise), built on the env when the robot worker
@@ -108,6 +111,8 @@ class SimulatedHuman(InterventionDevice):
         return ()
 
     def poll(self, *, observation=None, policy_action=None) -> HumanInput:
+        if self.held_off is not None:
+            return HumanInput(active=False)
         marks = self._marks()
         self.steps += 1
         expert = self.expert_action(observation)

@@ -12,7 +12,10 @@ The API (every route takes ``?token=`` when the device has a token; a missing or
 
 * ``GET /``: the page; ``GET /api/state``: the status as JSON;
 * ``POST /api/takeover`` (optional ``{"action": [...]}``; without one the human starts from a zero
-  action): its answer carries ``session``, the id of this take-over;
+  action): its answer carries ``session``, the id of this take-over. While the control loop runs an
+  evaluation or a demonstration (:meth:`WebInterventionDevice.hold_off`) it is a 409 whose ``error``
+  says which and that control opens again when the next training episode starts (``held_off`` names
+  the kind); a take-over held when one starts goes back to the policy (``released_by``: the kind);
 * ``POST /api/action`` ``{"session": ..., "action": [...]}``: ``action_dim`` finite numbers in ``[-1, 1]``;
 * ``POST /api/handback`` ``{"session": ...}``: the human's action returns to zero;
 * ``POST /api/mark`` ``{"mark": "success" | "failure"}``: delivered once, by the next :meth:`poll`;
@@ -30,6 +33,8 @@ page re-sends its action every ``ACTION_RESEND_S``; if the holder falls silent f
 ``heartbeat_timeout_s`` (a closed tab, a dropped phone connection) control goes back to the policy
 (logged, counted in ``stats.heartbeat_releases``), because a human who cannot see the robot any more
 must not keep steering it with a stale action. Only the holding session's actions count as heard.
+The status carries ``held_off`` (the kind of the episodes the human stays out of, or null) and
+``held_off_message``; the page shows it and disables its take-over button meanwhile.
 """
 
 from __future__ import annotations
@@ -53,9 +58,15 @@ from urllib.parse import quote, urlsplit
 
 import numpy as np
 
-from infinirl.realworld.intervention.device import EPISODE_MARKS, INTERVENTION_DEVICES, HumanInput, InterventionDevice
+from infinirl.realworld.intervention.device import (
+    EPISODE_MARKS,
+    INTERVENTION_DEVICES,
+    HumanInput,
+    InterventionDevice,
+    hold_off_message,
+)
 
-__all__ = ["ACTION_RESEND_S", "StaleSession", "WebControlState", "WebDeviceStats", "WebInterventionDevice",
+__all__ = ["ACTION_RESEND_S", "HeldOff", "StaleSession", "WebControlState", "WebDeviceStats", "WebInterventionDevice",
            "encode_jpeg", "jsonable", "parse_action", "parse_mark"]
 
 logger = logging.getLogger(__name__)
@@ -81,6 +92,8 @@ class WebDeviceStats:
     stale_requests: int = 0
     """Actions or hand-backs answered 409: sent by a page that no longer holds control. Not an error
     of the page: one already in flight when another page takes over or the heartbeat lapses lands here."""
+    refused_takeovers: int = 0
+    """Take-overs answered 409 because an evaluation or a demonstration was running."""
 
 
 def parse_action(value: object, action_dim: int) -> np.ndarray:
@@ -140,6 +153,14 @@ class StaleSession(Exception):
     """An action or hand-back from a page that does not hold the present take-over."""
 
 
+class HeldOff(Exception):
+    """A take-over while the control loop runs episodes the human stays out of; ``kind`` says which."""
+
+    def __init__(self, kind: str) -> None:
+        super().__init__(hold_off_message(kind))
+        self.kind = kind
+
+
 class WebControlState:
     """What the page set and what the control loop showed, behind one lock (the server thread and
     the control loop share it). ``clock`` is injectable so the heartbeat is testable without sleeping."""
@@ -157,6 +178,7 @@ class WebControlState:
         self._marks: list[str] = []
         self._last_heard = clock()
         self._released_by: str | None = None  # why control last went back to the policy
+        self._held_off: str | None = None  # the kind of the episodes running without the human
         self._policy_action: np.ndarray | None = None
         self._polls = 0
         self._frames: dict[str, np.ndarray] = {}
@@ -166,9 +188,13 @@ class WebControlState:
     # -- the page's side -------------------------------------------------------------------------
     def take_over(self, action: np.ndarray | None) -> str:
         """A new session holds control (taking it from any page that held it); returns its id.
-        Without ``action`` the human starts from zero, never from an earlier take-over's action."""
+        Without ``action`` the human starts from zero, never from an earlier take-over's action.
+        Refused (:class:`HeldOff`) while held off."""
         with self.lock:
             self._expire()
+            if self._held_off is not None:
+                self.stats.refused_takeovers += 1
+                raise HeldOff(self._held_off)
             self._action = np.zeros(self.action_dim) if action is None else action
             if not self._active:
                 self.stats.takeovers += 1
@@ -194,6 +220,8 @@ class WebControlState:
         self._expire()
         if self._session is None or not hmac.compare_digest(str(session).encode(), self._session.encode()):
             self.stats.stale_requests += 1
+            if self._held_off is not None:
+                raise StaleSession(f"control went back to the policy: {hold_off_message(self._held_off)}")
             raise StaleSession("this page does not hold control (another page took over, or control went back "
                                "to the policy); take over again to steer")
 
@@ -202,6 +230,16 @@ class WebControlState:
         holds the lock)."""
         self._active, self._released_by, self._session = False, why, None
         self._action = np.zeros(self.action_dim)
+
+    def hold_off(self, kind: str | None) -> None:
+        """Episodes of ``kind`` run without the human (None: training again): a take-over in hand
+        goes back to the policy now, and new ones are refused until then."""
+        with self.lock:
+            self._expire()
+            self._held_off = kind
+            if kind is not None and self._active:
+                self._release(kind)
+                logger.warning("intervention page: control goes back to the policy: %s", hold_off_message(kind))
 
     def add_mark(self, mark: str) -> None:
         with self.lock:
@@ -220,6 +258,8 @@ class WebControlState:
                 "active": self._active,
                 "actor": "human" if self._active else "policy",
                 "released_by": self._released_by,
+                "held_off": self._held_off,
+                "held_off_message": None if self._held_off is None else hold_off_message(self._held_off),
                 "action": self._action.tolist(),
                 "action_dim": self.action_dim,
                 "policy_action": None if self._policy_action is None else jsonable(self._policy_action),
@@ -368,6 +408,10 @@ class WebInterventionDevice(InterventionDevice):
         checked = {str(camera): _check_frame(str(camera), frame) for camera, frame in frames.items()}
         self.state.show(checked, jsonable(dict(info or {})))
 
+    def hold_off(self, kind: str | None) -> None:
+        super().hold_off(kind)
+        self.state.hold_off(kind)
+
     @property
     def stats(self) -> WebDeviceStats:
         return self.state.stats
@@ -474,6 +518,8 @@ class WebInterventionDevice(InterventionDevice):
                 return web.json_response({"error": str(error)}, status=400)
             except StaleSession as error:
                 return web.json_response({"error": str(error)}, status=409)
+            except HeldOff as error:
+                return web.json_response({"error": str(error), "held_off": error.kind}, status=409)
 
         return guard
 

@@ -222,3 +222,53 @@ def drive_the_page(page, url, loop):
     # The view kept following the camera, and the page saw no error.
     page.wait_for_function(f"() => document.getElementById('camera-{CAMERA}').dataset.version > {first_version}")
     wait_for_text(page, "#error", "")  # a request that timed out on a busy host is shown until the next answer
+
+
+def test_the_page_shows_an_evaluation_and_refuses_a_take_over_until_training_resumes(sawyer_env):
+    """The control loop holds the device off for an evaluation: the page says so, gives back the
+    control it held and disables its take-over button; a take-over sent anyway (a button the page had
+    not disabled yet) is refused with the reason. Training again: the page steers as before."""
+    from playwright.sync_api import sync_playwright
+
+    from infinirl.realworld.intervention.web import WebInterventionDevice
+
+    with WebInterventionDevice(action_dim=4, token=TOKEN) as device:
+        loop = ControlLoop(sawyer_env, device)
+        loop.thread.start()
+        try:
+            with sync_playwright() as playwright:
+                browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
+                try:
+                    page = browser.new_page()
+                    page.set_default_timeout(WAIT_S * 1000)
+                    page.goto(device.url)
+                    wait_for_text(page, "#actor", "policy acts")
+                    page.click("#takeover")
+                    wait_for_text(page, "#actor", "HUMAN acts (this page)")
+
+                    device.hold_off("evaluation")  # as the control loop does before an evaluation's reset
+                    wait_for_text(page, "#actor", "evaluation: policy acts alone")
+                    page.wait_for_function("() => document.getElementById('takeover').disabled")
+                    held = page.text_content("#held-off")
+                    assert "evaluation episode is running" in held and "next training episode" in held
+                    assert "control went back to the policy: an evaluation" in page.text_content("#notice")
+                    wait_for(lambda: loop.last() is not None and not loop.last().active, "the policy acting")
+
+                    page.evaluate("() => { document.getElementById('takeover').disabled = false; }")
+                    page.click("#takeover")
+                    wait_for_text(page, "#notice", held)  # the 409's reason
+                    assert device.stats.refused_takeovers == 1 and not loop.last().active
+
+                    device.hold_off(None)  # the next training episode starts
+                    wait_for_text(page, "#actor", "policy acts")
+                    wait_for_text(page, "#held-off", "")
+                    page.click("#takeover")
+                    wait_for_text(page, "#actor", "HUMAN acts (this page)")
+                    wait_for(lambda: loop.last() is not None and loop.last().active, "the human acting")
+                    wait_for_text(page, "#error", "")
+                finally:
+                    browser.close()
+        finally:
+            loop.stop.set()
+            loop.thread.join(10)
+    assert loop.error is None, f"the control loop failed: {loop.error!r}"

@@ -71,6 +71,23 @@ def test_keyboard_releases_control_when_the_terminal_goes_away():
         os.close(follower)
 
 
+def test_keyboard_held_off_gives_control_back_and_refuses_the_toggle(terminal, caplog):
+    leader, follower = terminal
+    device = INTERVENTION_DEVICES.get("keyboard")(action_dim=2, fd=follower)
+    os.write(leader, b" d")
+    assert device.poll().active
+    device.hold_off("evaluation")
+    assert not device.active and "evaluation episode is running" in caplog.text  # given back, and said so
+    os.write(leader, b" ds")  # a take-over during the evaluation: refused; the mark still arrives
+    assert device.poll() == HumanInput(active=False, marks=("success",))
+    assert "take-over refused" in caplog.text and "until the next training episode" in caplog.text
+    device.hold_off(None)
+    assert not device.poll().active  # the refused toggle does not take over later
+    os.write(leader, b" ")
+    assert device.poll().active
+    device.close()
+
+
 def test_keyboard_refuses_a_key_bound_twice(terminal):
     with pytest.raises(ValueError, match="bound twice"):
         INTERVENTION_DEVICES.get("keyboard")(action_dim=2, fd=terminal[1], axis_keys=["as", "jl"])
@@ -128,6 +145,30 @@ def test_gamepad_toggle_mode(joystick):
     assert device.poll().active and device.poll().active  # stays on after the release
     os.write(write_end, press + release)
     assert not device.poll().active
+
+
+def test_gamepad_held_off_refuses_the_take_over_button(joystick, caplog):
+    read_end, write_end = joystick
+    toggle = INTERVENTION_DEVICES.get("gamepad")(action_dim=1, fd=read_end, takeover_button=2, takeover_toggle=True)
+    press = js_event(time_ms=1, value=1, type=JS_EVENT_BUTTON, number=2)
+    release = js_event(time_ms=2, value=0, type=JS_EVENT_BUTTON, number=2)
+    os.write(write_end, press + release)
+    assert toggle.poll().active
+    toggle.hold_off("evaluation")  # a toggled take-over goes back to the policy
+    assert not toggle.poll().active
+    os.write(write_end, press + release)  # refused: it toggles nothing, now or later
+    assert not toggle.poll().active and "take-over refused" in caplog.text
+    toggle.hold_off(None)
+    assert not toggle.poll().active
+    os.write(write_end, press + release)
+    assert toggle.poll().active
+
+    dead_man = INTERVENTION_DEVICES.get("gamepad")(action_dim=1, fd=read_end, takeover_button=5)
+    dead_man.hold_off("demonstration")
+    os.write(write_end, js_event(time_ms=3, value=1, type=JS_EVENT_BUTTON, number=5))
+    assert not dead_man.poll().active and not dead_man.poll().active  # held down, steering nothing
+    dead_man.hold_off(None)
+    assert dead_man.poll().active  # still held when training goes on: control, as the button says
 
 
 def test_gamepad_releases_control_when_the_pipe_closes():
@@ -206,6 +247,19 @@ def test_simulated_human_marks_from_the_env_success_signal_once_per_episode():
     human.reset()
     env.last_observation.info["success"] = False
     assert [human.poll().marks for _ in range(4)] == [(), (), (), ("failure",)]  # gives up after 3 steps
+
+
+def test_simulated_human_held_off_neither_takes_over_nor_marks():
+    env = SimpleNamespace(last_observation=SimpleNamespace(info={"success": True}))
+    human = INTERVENTION_DEVICES.get("simulated_human")(action_dim=2, expert=expert_towards_zero, reaction_steps=0,
+                                                        reaction_jitter=3)
+    human.bind(env)
+    obs, bad = {"state": np.array([0.5], np.float32)}, np.array([0.5, 0.0])
+    human.hold_off("evaluation")
+    assert [human.poll(observation=obs, policy_action=bad) for _ in range(5)] == [HumanInput(active=False)] * 5
+    assert (human.takeovers, human.steps, human.drifting) == (0, 0, 0)  # its state and draws as they were
+    human.hold_off(None)
+    assert human.poll(observation=obs, policy_action=bad).marks == ("success",)
 
 
 def test_simulated_human_with_a_named_expert_needs_the_env():

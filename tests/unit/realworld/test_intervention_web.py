@@ -115,6 +115,32 @@ def test_only_the_page_holding_the_latest_take_over_steers_or_hands_back(device)
     assert (device.stats.stale_requests, device.stats.rejected_requests, device.stats.handbacks) == (5, 1, 1)
 
 
+def test_during_an_evaluation_a_take_over_is_refused_with_the_reason_and_when_control_opens(device):
+    """Evaluation episodes measure the policy alone: the control loop holds the device off, and the
+    page says so instead of accepting a take-over that would steer nothing (or corrupt the metric)."""
+    session = call(device, "/api/takeover", {"action": [0.5, 0, 0]})[1]["session"]
+    device.hold_off("evaluation")  # the control loop starts an evaluation episode
+    assert device.held_off == "evaluation" and device.poll().active is False  # the held take-over is given back
+    status, state = call(device, "/api/state")
+    assert state["held_off"] == "evaluation" and state["released_by"] == "evaluation" and not state["active"]
+    assert "evaluation episode is running" in state["held_off_message"]
+
+    status, answer = call(device, "/api/takeover", {})
+    assert status == 409 and answer["held_off"] == "evaluation"
+    assert "evaluation episode is running" in answer["error"] and "until the next training episode" in answer["error"]
+    status, answer = call(device, "/api/action", {"session": session, "action": [1, 1, 1]})
+    assert status == 409 and "evaluation episode is running" in answer["error"]  # the released page learns why
+    assert device.poll().active is False and device.stats.refused_takeovers == 1
+    assert call(device, "/api/mark", {"mark": "success"})[0] == 200  # still taken: it may judge the episode that ended
+    assert device.poll().marks == ("success",)
+
+    device.hold_off(None)  # the next training episode starts
+    status, state = call(device, "/api/takeover", {})
+    assert status == 200 and state["held_off"] is None and state["held_off_message"] is None
+    assert device.poll().active
+    assert (device.stats.takeovers, device.stats.refused_takeovers) == (2, 1)
+
+
 def test_posts_must_be_json_from_this_server_s_own_pages():
     """Without a token, another site's page open in a browser here must not be able to take over."""
     with WebInterventionDevice(action_dim=2, allow_no_token=True) as dev:

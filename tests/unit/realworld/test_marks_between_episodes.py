@@ -43,14 +43,34 @@ class MarksDuringTheReset(InterventionDevice):
         return HumanInput(active=False, marks=marks)
 
 
-def a_loop(tmp_path) -> RobotControlLoop:
+class MarksEachEpisodeAsTheRobotResets(InterventionDevice):
+    """A person who marks every episode they watched a success while the robot resets for the next
+    one, whatever kind that is: the mark waits in the device for the next episode's first poll."""
+
+    def __init__(self, *, action_dim: int) -> None:
+        super().__init__(action_dim=action_dim)
+        self.env, self.previous_steps, self.given = None, None, 0
+
+    def bind(self, env) -> None:
+        self.env = env
+
+    def poll(self, *, observation=None, policy_action=None) -> HumanInput:
+        steps, previous, self.previous_steps = self.env.steps, self.previous_steps, self.env.steps
+        if steps == 0 and previous not in (None, 0):  # a new episode: the last one was watched to its end
+            self.given += 1
+            return HumanInput(active=False, marks=("success",))
+        return HumanInput(active=False)
+
+
+def a_loop(tmp_path, device=MarksDuringTheReset) -> RobotControlLoop:
     cfg = to_dataclass(RealWorldSACConfig, {
         "output_dir": str(tmp_path / "run"),
         "robot": {"kind": "sim_sawyer", "options": {"task": "reach-v3", "control_hz": 100.0}},
         "task": {"max_episode_steps": STEPS}, "network": {"actor_hidden": [16], "critic_hidden": [16]}})
     loop = RobotControlLoop(robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg), seed=0)
     loop.intervention = InterventionSpec(device="simulated_human", reward="human")
-    loop.intervention_device = MarksDuringTheReset(action_dim=loop.action_dim)
+    loop.intervention_device = device(action_dim=loop.action_dim)
+    loop.intervention_device.bind(loop.env)
     return loop
 
 
@@ -66,6 +86,41 @@ def test_a_mark_given_while_the_robot_resets_rewards_the_episode_that_ended(tmp_
     assert stats["counts"]["marks_success"] == marked
     assert stats["counts"]["successes"] >= len(sent) - 1
     assert stats["counts"]["episodes"] == len(sent)  # the last one, held when the loop stopped, is sent too
+
+
+def test_a_mark_given_while_the_robot_resets_for_an_evaluation_goes_to_the_training_episode_that_ended(tmp_path):
+    """An evaluation requested between two training episodes starts with a reset too: the mark given
+    then judges the training episode that ended, not the evaluation episode nor the next training one."""
+    loop = a_loop(tmp_path, MarksEachEpisodeAsTheRobotResets)
+    sent, lock = [], threading.Lock()
+
+    def submit(episode):
+        with lock:
+            sent.append(episode)
+
+    def wait_for(count):
+        deadline = time.monotonic() + 60
+        while len(sent) < count and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert len(sent) >= count
+
+    try:
+        loop.start(submit)
+        wait_for(2)
+        evaluation = loop.evaluate(1)
+        with lock:
+            before_the_evaluation = len(sent)
+        wait_for(before_the_evaluation + 3)  # training goes on after the evaluation
+        stats = loop.stop()
+    finally:
+        loop.close()
+    assert evaluation["eval/episodes"] == 1 and evaluation["eval/length_mean"] == STEPS  # no mark ended it
+    # Every training episode but the one held when the loop stopped was marked, the one that ended just
+    # before the evaluation (sent while it ran, or just after) included.
+    for index, episode in enumerate(sent[:-1]):
+        assert episode["reward"][-1] == MARK_REWARD["success"], f"training episode {index} lost its mark"
+        assert len(episode["action"]) == STEPS and episode["terminated"][-1]
+    assert stats["counts"]["marks_success"] == loop.intervention_device.given
 
 
 def test_a_failed_sender_stops_the_control_loop(tmp_path):
