@@ -22,6 +22,18 @@ simulated embodiment):
 ``hold`` freezes the target at the present pose; ``stop`` does the same and refuses commands
 (:class:`~infinirl.realworld.driver.RobotStoppedError`) until ``reset``: a simulated arm keeps its
 pose when stopped, as an arm with brakes does.
+
+**Lockstep** (``lockstep=True``, for reproducible tests): in real time, what a step observes depends
+on where the control thread's ticks fall between the caller's command and its observation (two
+clocks that drift against each other and against the scheduler), so two runs from one seed diverge
+after a few steps. With lockstep the control thread ticks once per command instead of once per
+period: ``act`` returns after the plant has advanced exactly one control period toward it, and
+frames are rendered on the control thread at that tick (no camera thread, so they show the present
+state). The simulated world then advances one period per command whatever the wall clock does: the
+caller still paces its steps (a :class:`~infinirl.realworld.robot_env.RobotEnv` sleeps out each
+period), but a late step no longer changes what happens. A real robot's driver cannot do this; the
+simulated one does it so that a run's learning metrics are a function of its seeds. Nothing moves
+between commands (a hold ticks nothing), and ``latency_s`` must be 0.
 """
 
 from __future__ import annotations
@@ -37,7 +49,7 @@ import numpy as np
 
 from infinirl.realworld.driver import RobotDriver, RobotError, RobotObservation, RobotSpec, RobotStoppedError
 
-__all__ = ["RobotMode", "SimPlant", "SimStats", "SimulatedRobot"]
+__all__ = ["RobotMode", "SimPlant", "SimStats", "SimulatedRobot", "check_lockstep"]
 
 RobotMode = str
 """``"idle"`` (not connected), ``"running"``, ``"holding"``, ``"stopped"``, ``"resetting"``, ``"closed"``."""
@@ -85,17 +97,21 @@ class SimulatedRobot(RobotDriver):
     """A :class:`SimPlant` behind the real-robot driver interface (see the module docstring).
 
     ``plant_factory`` builds the plant (its ``spec`` is read at once, so the driver's spec is known
-    before ``connect``). Episode ``k`` (counting from 0) is drawn with seed ``seed + k``.
+    before ``connect``). Episode ``k`` (counting from 0) is drawn with seed ``seed + k``. ``lockstep``:
+    one tick per command instead of one per period (the module docstring's **Lockstep**).
     """
 
     def __init__(self, plant_factory: Callable[[], SimPlant], *, latency_s: float = 0.0, reset_s: float = 0.0,
-                 seed: int = 0) -> None:
+                 seed: int = 0, lockstep: bool = False) -> None:
         if latency_s < 0 or reset_s < 0:
             raise ValueError(f"latency_s and reset_s must be >= 0, got {latency_s} and {reset_s}")
+        check_lockstep(lockstep, latency_s)
         self._plant = plant_factory()
         self._spec = self._plant.spec
         self.latency_s = float(latency_s)
         self.reset_s = float(reset_s)
+        self.lockstep = bool(lockstep)
+        self._tick_requests = self._ticks_done = 0  # lockstep: ticks asked for by act, and ticks run
         self._next_seed = int(seed)
         self.stats = SimStats()
         self._lock = threading.Condition()
@@ -112,7 +128,9 @@ class SimulatedRobot(RobotDriver):
         self._camera_thread: threading.Thread | None = None
         self._captured: object = None  # the scene copy the camera thread renders next
         self._frames: dict[str, np.ndarray] = {}
-        self._capture = getattr(self._plant, "capture", None) if self._spec.cameras else None
+        # Lockstep renders each tick's frames on the control thread: a camera thread's frames lag the
+        # state by however many renders the scheduler allows.
+        self._capture = getattr(self._plant, "capture", None) if self._spec.cameras and not lockstep else None
 
     @property
     def spec(self) -> RobotSpec:
@@ -160,6 +178,22 @@ class SimulatedRobot(RobotDriver):
                 raise RobotError(f"{self._spec.kind} is not connected: call connect() first")
             self._pending.append((time.monotonic() + self.latency_s, command))
             self.stats.commands_sent += 1
+            if self.lockstep:
+                self._tick_requests += 1
+                self._lock.notify_all()
+                self._await_tick(self._tick_requests)
+
+    def _await_tick(self, request: int) -> None:
+        """Lockstep: wait (holding the condition's lock) until the control thread has run tick ``request``."""
+        deadline = time.monotonic() + _JOIN_TIMEOUT_S
+        while self._ticks_done < request and not self._closing and self._error is None:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise RobotError(f"{self._spec.kind} did not step its simulation within {_JOIN_TIMEOUT_S} s")
+            self._lock.wait(left)
+        self._raise_if_failed()
+        if self._ticks_done < request:
+            raise RobotError(f"{self._spec.kind} was closed while stepping")
 
     def reset(self) -> RobotObservation:
         with self._lock:
@@ -239,6 +273,9 @@ class SimulatedRobot(RobotDriver):
             self._plant.close()
 
     def _loop(self) -> None:
+        if self.lockstep:
+            self._lockstep_loop()
+            return
         period = self._spec.control_period_s
         next_tick = time.monotonic()
         while True:
@@ -258,6 +295,23 @@ class SimulatedRobot(RobotDriver):
             if next_tick < now:  # overran: start the next period now, never catch up
                 self.stats.late_ticks += 1
                 next_tick = now
+
+    def _lockstep_loop(self) -> None:
+        """One tick per command :meth:`act` asked for; resets as in real time."""
+        while True:
+            with self._lock:
+                while not self._closing and not self._reset_requested and self._ticks_done >= self._tick_requests:
+                    self._lock.wait()
+                if self._closing:
+                    return
+                resetting = self._reset_requested
+            if resetting:
+                self._do_reset()
+                continue
+            self._tick()
+            with self._lock:
+                self._ticks_done += 1
+                self._lock.notify_all()
 
     def _tick(self) -> None:
         with self._lock:
@@ -304,6 +358,7 @@ class SimulatedRobot(RobotDriver):
             self._raise_if_failed()
         self._publish()
         with self._lock:
+            self._ticks_done = self._tick_requests  # lockstep: a new episode starts with no tick owed
             self._target = self._snapshot.current_target(self._spec)
             self._mode = "stopped" if self._stop_after_reset else "running"
             self._stop_after_reset = False
@@ -345,3 +400,10 @@ class SimulatedRobot(RobotDriver):
             with self._lock:
                 self._error = error
                 self._lock.notify_all()
+
+
+def check_lockstep(lockstep: bool, latency_s: float) -> None:
+    """``lockstep`` with a command latency is refused (the drivers' ``check_options`` call it too)."""
+    if lockstep and latency_s:
+        raise ValueError(f"lockstep=True applies each command at the next tick, which it runs at once; "
+                         f"latency_s={latency_s} has no meaning there: set latency_s=0 or lockstep=false")

@@ -20,7 +20,7 @@ import numpy as np
 
 from infinirl.envs.gymnasium_env import use_headless_gl
 from infinirl.realworld.driver import AttachedRobot, CameraSpec, RobotObservation, RobotSpec
-from infinirl.realworld.sim_robot import SimulatedRobot
+from infinirl.realworld.sim_robot import SimulatedRobot, check_lockstep
 
 __all__ = ["METAWORLD_ACTION_SCALE", "METAWORLD_STEP_S", "SAWYER_SPEC_LIMITS", "SawyerPlant", "SimSawyer",
            "attached_sim_sawyers", "camera_shape"]
@@ -107,18 +107,22 @@ class SawyerPlant:
 class SimSawyer(SimulatedRobot):
     """MetaWorld's Sawyer on task ``task`` at ``control_hz`` in real time; ``image_size=None`` for no
     camera, ``[height, width]`` for a non-square one. ``info["success"]``: the task succeeded at some
-    step since the last reset."""
+    step since the last reset. ``lockstep``: one control period per command instead of per period of
+    wall-clock time, for reproducible tests (:mod:`~infinirl.realworld.sim_robot`)."""
 
     def __init__(self, *, task: str = "reach-v3", control_hz: float = 20.0, image_size: int | Sequence[int] | None = 64,
-                 camera: str = "corner", latency_s: float = 0.0, reset_s: float = 0.0, seed: int = 0) -> None:
+                 camera: str = "corner", latency_s: float = 0.0, reset_s: float = 0.0, seed: int = 0,
+                 lockstep: bool = False) -> None:
         super().__init__(partial(SawyerPlant, task=task, control_hz=control_hz, image_size=image_size, camera=camera),
-                         latency_s=latency_s, reset_s=reset_s, seed=seed)
+                         latency_s=latency_s, reset_s=reset_s, seed=seed, lockstep=lockstep)
 
     @classmethod
-    def check_options(cls, *, image_size: int | Sequence[int] | None = 64, **_: Any) -> None:
+    def check_options(cls, *, image_size: int | Sequence[int] | None = 64, lockstep: bool = False,
+                      latency_s: float = 0.0, **_: Any) -> None:
         """The option values a config gives, checked before any worker builds the arm."""
         if image_size:
             camera_shape(image_size)
+        check_lockstep(lockstep, latency_s)
 
 
 def attached_sim_sawyers(*, instances: int = 0, seed: int = 0, **options: Any) -> list[AttachedRobot]:

@@ -20,7 +20,7 @@ import numpy as np
 
 from infinirl.envs.gymnasium_env import use_headless_gl
 from infinirl.realworld.driver import AttachedRobot, CameraSpec, RobotObservation, RobotSpec
-from infinirl.realworld.sim_robot import SimulatedRobot
+from infinirl.realworld.sim_robot import SimulatedRobot, check_lockstep
 from infinirl.realworld.so101 import SO101_JOINT_NAMES, so101_spec
 
 __all__ = ["LIFT_SUCCESS_HEIGHT", "REACH_SUCCESS_DISTANCE", "SUCCESS_CRITERIA", "SO101Plant", "SimSO101",
@@ -137,20 +137,23 @@ def _success_distance() -> float:
 
 class SimSO101(SimulatedRobot):
     """The simulated SO-101 arm at ``control_hz`` in real time; ``image_size=None`` for no camera;
-    ``success``: ``pick`` (the package's criterion) or ``reach`` (see the module docstring)."""
+    ``success``: ``pick`` (the package's criterion) or ``reach`` (see the module docstring);
+    ``lockstep``: one control period per command, for reproducible tests (:mod:`~infinirl.realworld.sim_robot`)."""
 
     def __init__(self, *, control_hz: float = 20.0, image_size: int | None = 64, latency_s: float = 0.0,
                  reset_s: float = 0.0, seed: int = 0, random_block_position: bool = True,
-                 success: str = "pick") -> None:
+                 success: str = "pick", lockstep: bool = False) -> None:
         _check_success(success)  # here too: the plant is built on the control thread, later
         super().__init__(partial(SO101Plant, control_hz=control_hz, image_size=image_size,
                                  random_block_position=random_block_position, success=success),
-                         latency_s=latency_s, reset_s=reset_s, seed=seed)
+                         latency_s=latency_s, reset_s=reset_s, seed=seed, lockstep=lockstep)
 
     @classmethod
-    def check_options(cls, *, success: str = "pick", **_: Any) -> None:
+    def check_options(cls, *, success: str = "pick", lockstep: bool = False, latency_s: float = 0.0,
+                      **_: Any) -> None:
         """The option values a config gives, checked before any worker builds the arm."""
         _check_success(success)
+        check_lockstep(lockstep, latency_s)
 
 
 def attached_sim_so101s(*, instances: int = 0, seed: int = 0, **options: Any) -> list[AttachedRobot]:

@@ -7,6 +7,18 @@ compares the metrics of its straight run with ``pinned_metrics.json``. A deliber
 learning behaviour re-pins them: ``INFINIRL_REPIN=1 pytest tests/integration -k "resumes_exactly or
 asynchronous"`` rewrites the file (the asynchronous modes are pinned by their own tests), and the
 diff of that file shows in review what changed.
+
+Pinned: ``sac``, ``embodied``, ``embodied_async``, ``reasoning``, ``reasoning_async``,
+``reasoning_agent``, ``sft``, and the robot runners ``realworld_sac`` and ``hg_dagger``
+(``INFINIRL_REPIN=1 pytest tests/integration/realworld -k "pinned or aggregates"``). A simulated
+robot in real time is not reproducible: what a step observes depends on where its control thread's
+ticks fall between the command and the observation. The robot runners' pinned runs therefore drive
+the simulated Sawyer with ``robot.options.lockstep=true`` (one control period per command,
+:mod:`infinirl.realworld.sim_robot`), and pin what that makes a function of the seeds (rewards,
+losses, success, interventions, dataset size), never timing (late steps, rates, seconds).
+``realworld_sac`` is pinned in ``pipeline.mode=sync`` with one turn per iteration: its asynchronous
+mode, where the policy version a step acts with depends on the learner's pace, is not. ``hg_dagger``'s
+pinned run composes the ``hg_dagger_sawyer_reach`` config, so a change to that file re-pins too.
 """
 
 from __future__ import annotations

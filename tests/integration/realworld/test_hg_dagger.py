@@ -1,6 +1,8 @@
 """HG-DAgger end to end through the command line as a user runs it (own process, own Ray): a
-simulated human takes over the simulated Sawyer (MetaWorld reach, real time) when the policy drifts;
-its steps are stored with their flag and aggregated, and the policy is cloned on them each iteration."""
+simulated human takes over the simulated Sawyer (MetaWorld reach) when the policy drifts; its steps
+are stored with their flag and aggregated, and the policy is cloned on them each iteration. The
+short run drives the arm in lockstep (one control period per command), so its metrics are a function
+of its seeds and are pinned (tests/integration/pins.py); the slow runs drive it in real time."""
 
 import importlib.util
 import json
@@ -8,6 +10,8 @@ import subprocess
 import sys
 
 import pytest
+
+from tests.integration.pins import check_pinned
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("metaworld") is None, reason="needs metaworld")
 
@@ -23,7 +27,7 @@ def train(output_dir, *overrides, timeout=600):
 def test_hg_dagger_cli_aggregates_the_simulated_humans_labels(tmp_path):
     rows = train(tmp_path / "run", "iterations=2", "dagger.episodes_per_iteration=2", "eval.episodes=1",
                  "eval.at_start=false", "task.max_episode_steps=25", "bc.updates_per_iteration=50",
-                 "robot.options.control_hz=40.0", timeout=300)
+                 "robot.options.control_hz=40.0", "+robot.options.lockstep=true", timeout=300)
     assert [r["step"] for r in rows] == [1, 2]
     for row in rows:
         for key in ("intervention/rate", "intervention/episode_rate", "intervention/takeovers_per_episode",
@@ -36,6 +40,9 @@ def test_hg_dagger_cli_aggregates_the_simulated_humans_labels(tmp_path):
     assert rows[1]["pipeline/version"] == 3  # the initial clone, then one version per iteration
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["dataset_rows"] == rows[1]["dagger/dataset_rows"]
+    check_pinned("hg_dagger", tmp_path / "run", [
+        "intervention/rate", "intervention/takeovers_per_episode", "dagger/dataset_rows", "dagger/novice_error",
+        "train/bc_loss", "rollout/success_rate", "rollout/episode_length_mean", "eval/success_rate"])
 
 
 @pytest.mark.slow

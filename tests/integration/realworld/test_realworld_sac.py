@@ -1,7 +1,8 @@
 """The real-world SAC runner end to end on a simulated Sawyer running in real time: the robot worker
 acts at its own rate while the learner updates from the persistent replay store, every step stamped
 with the policy version that chose it; a run resumed from an earlier checkpoint reopens the store
-with every episode in it and continues; the synchronous mode runs the same components in turns."""
+with every episode in it and continues; the synchronous mode runs the same components in turns, and
+with the simulated arm in lockstep its first iterations are pinned."""
 
 import importlib.util
 import json
@@ -19,6 +20,7 @@ from infinirl.config import ConfigError, to_dataclass  # noqa: E402
 from infinirl.realworld.replay import ReplayStore  # noqa: E402
 from infinirl.runners.realworld_sac import run  # noqa: E402
 from infinirl.runners.realworld_sac_config import RealWorldSACConfig  # noqa: E402
+from tests.integration.pins import check_pinned  # noqa: E402
 from tests.integration.resume import killed_after_checkpoint  # noqa: E402
 
 
@@ -87,6 +89,25 @@ def test_sync_mode_collects_then_updates_with_no_staleness(ray_cluster, tmp_path
     assert summary["updates"] == pytest.approx(0.5 * (row["replay/transitions"] - 40), abs=20)
     versions, _ = versions_in(tmp_path / "sync" / "replay")
     assert versions.max() >= 1
+
+
+def test_sync_lockstep_run_is_pinned(ray_cluster, tmp_path):
+    """A window shorter than any turn: one turn (an episode, then its updates) per iteration. With the
+    simulated arm in lockstep (one control period per command) the run is a function of its seeds, so
+    its learning metrics are pinned (tests/integration/pins.py); in real time they are not."""
+    options = {"task": "reach-v3", "control_hz": 50.0, "image_size": None, "lockstep": True}
+    run(make_cfg(tmp_path / "straight", 4, save_every=0, robot={"kind": "sim_sawyer", "options": options},
+                 pipeline={"mode": "sync", "iteration_s": 0.001, "durable": False},
+                 algorithm={"batch_size": 16, "learning_starts": 20, "utd_ratio": 0.5},
+                 eval={"every": 2, "episodes": 1, "video_episodes": 0}))
+    rows = rows_of(tmp_path / "straight" / "metrics.jsonl")
+    assert [(r["step"], r["rollout/episodes"]) for r in rows] == [(1, 1.0), (2, 1.0), (3, 1.0), (4, 1.0)]
+    # The one way wall-clock time still reaches a lockstep run: a step stalled past
+    # robot.command_deadline_s makes the watchdog hold the arm and re-base the next command.
+    assert all(r["robot/safety_events"] == 0 for r in rows), "a step stalled past the watchdog's deadline"
+    check_pinned("realworld_sac", tmp_path / "straight", [
+        "rollout/episode_return_mean", "rollout/episode_length_mean", "replay/transitions", "train/critic_loss",
+        "train/actor_loss", "train/alpha", "train/q_mean", "eval/return_mean", "eval/success_rate"])
 
 
 def test_network_sections_build_the_actors_the_robots_act_with(tmp_path):

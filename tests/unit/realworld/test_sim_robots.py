@@ -116,3 +116,52 @@ def test_so101_reach_success_is_the_gripper_at_the_cube_and_pick_needs_a_lift():
             plant.close()
     with pytest.raises(ValueError, match="success='grasp'; choose one of pick, reach"):
         make_robot("sim_so101", image_size=None, success="grasp")
+
+
+def test_lockstep_advances_one_control_period_per_command_whatever_the_wall_clock():
+    """``lockstep=True``: ``act`` returns after exactly one tick toward the command and nothing moves
+    between commands, so two arms given the same commands at different, irregular paces (late steps)
+    report the same states: what makes the robot runners' learning metrics reproducible."""
+    def drive(pauses):
+        robot = make_robot("sim_sawyer", task="reach-v3", control_hz=50.0, image_size=None, seed=3, lockstep=True)
+        states = []
+        with robot:
+            start = robot.observe()
+            target = start.current_target(robot.spec)
+            for pause in pauses:
+                target[:3] += [0.004, -0.003, 0.002]
+                before = robot.observe().tick
+                robot.act(target)
+                assert robot.observe().tick == before + 1  # exactly one period of simulated time
+                time.sleep(pause)  # several periods of wall-clock time: no tick
+                assert robot.observe().tick == before + 1
+                states.append(robot.observe().info["state"])
+            assert robot.stats.late_ticks == 0 and robot.stats.commands_applied == len(pauses)
+        return np.array(states)
+
+    steady = drive([0.0] * 6)
+    irregular = drive([0.05, 0.0, 0.1, 0.0, 0.07, 0.0])
+    np.testing.assert_array_equal(steady, irregular)
+    assert np.linalg.norm(steady[-1][:3] - steady[0][:3]) > 0.01  # the hand did move
+
+
+def test_lockstep_renders_each_ticks_frames_and_refuses_a_latency():
+    """A plant with a camera thread (the SO-101) renders on the control thread in lockstep, so each
+    observation's frame shows the state after its tick; a command latency has no meaning there."""
+    from infinirl.config import ConfigError
+    from infinirl.realworld.driver import ROBOT_DRIVERS
+
+    robot = make_robot("sim_so101", control_hz=20.0, image_size=32, lockstep=True)
+    with robot:
+        frames_before = robot.stats.frames
+        target = robot.observe().current_target(robot.spec)
+        target[0] += 0.3
+        for _ in range(3):
+            robot.act(target)
+        assert robot.stats.frames == frames_before + 3  # one frame per tick, rendered at the tick
+        assert robot.observe().frames["front"].shape == (32, 32, 3)
+    for kind in ("sim_so101", "sim_sawyer"):
+        with pytest.raises(ValueError, match="lockstep=True .* latency_s=0.1 has no meaning"):
+            make_robot(kind, image_size=None, latency_s=0.1, lockstep=True)
+        with pytest.raises(ConfigError, match="robot.options: lockstep=True .* set latency_s=0 or lockstep=false"):
+            ROBOT_DRIVERS.get(kind).check_options(kind, {"lockstep": True, "latency_s": 0.1}, "robot.options")
