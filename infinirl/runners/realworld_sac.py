@@ -33,7 +33,8 @@ learner samples the stored ones, the weights the robots receive carry the encode
 Checkpoints hold the learner (agent, sampler state, version) and the run's cumulative counters
 (:class:`RunCounts`: steps, late steps, safety clips and events, the edge link's); the replay store is
 on disk already and is reopened on resume with everything appended after the checkpoint, so a killed
-run resumes with its experience intact.
+run resumes with its experience intact. A start without a checkpoint on a store an earlier run left
+folds its episodes into the learner's state statistics before training samples them.
 """
 
 from __future__ import annotations
@@ -308,6 +309,7 @@ class RealWorldSACFlow:
         self.running = False
         self.owed_updates = 0.0  # sync mode: fractional updates carried to the next turn
         self.counts = RunCounts()
+        self.resumed = False
         self.spec = LoopSpec(
             name="realworld_sac", headline="eval/success_rate",
             title=f"SAC ({cfg.pipeline.mode}) {'+'.join(e.kind for e in cfg.robot.fleet) or cfg.robot.kind}",
@@ -327,6 +329,8 @@ class RealWorldSACFlow:
 
     # ------------------------------------------------------------------ start
     def start(self, iteration: int) -> None:
+        if not self.resumed:
+            self._fold_earlier_episodes()
         demos = self.cfg.demos
         if demos.episodes:
             have = self.learner.demo_episodes().wait()[0]
@@ -342,6 +346,22 @@ class RealWorldSACFlow:
             self.learner.start(self.channel).wait()
             self.robots.start(self.channel).wait()
             self.running = True
+
+    def _fold_earlier_episodes(self) -> None:
+        """A start without a checkpoint on stores an earlier run left (one stopped before its first
+        checkpoint, ``resume=false``, a shared ``replay.path``): training samples their episodes from
+        its first update on, so the learner folds them into its state statistics first, as a resumed
+        one has them from its checkpoint. Said in one line: the run does not start from nothing."""
+        folded = self.learner.observe_stored().wait()[0]
+        status = self.learner.status().wait()[0]
+        demos = self.learner.demo_episodes().wait()[0]
+        if not status["store_episodes"] and not demos:
+            return
+        replay = self.cfg.replay.path or os.path.join(self.cfg.output_dir, "replay")
+        normaliser = f"; their states are folded into the state normaliser ({folded} episodes)" if folded else ""
+        print(f"no checkpoint to resume, but {replay} holds {status['store_episodes']} episodes "
+              f"({status['store_transitions']} transitions) and the demonstrations store {demos}, from an earlier "
+              f"run: training samples them too{normaliser}", flush=True)
 
     def _sync(self, version: int, wait: bool = False) -> None:
         """Send the learner's published weights to the robots when they are newer than theirs."""
@@ -445,6 +465,7 @@ class RealWorldSACFlow:
             # process, so all it counted is new (its keys count from the checkpoint's totals).
             counted.update({k: v for k, v in self.link_metrics(robots).items() if k.startswith("edge/")})
         self.counts.restore(RunCounts.saved(state), counted)
+        self.resumed = True
         status = self.learner.status().wait()[0]
         print(f"restored the learner at version {status['version']} ({status['updates']} updates); the replay "
               f"store holds {status['store_episodes']} episodes ({status['store_transitions']} transitions)",

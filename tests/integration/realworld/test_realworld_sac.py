@@ -173,8 +173,13 @@ def test_counters_continue_from_the_checkpoint_whatever_the_components_counted_b
 ROBOT_COUNTERS = ("env/steps", "robot/late_steps", "robot/safety_aborts", "robot/safety_clips", "robot/safety_events")
 
 
-def test_resumed_counters_continue_from_the_checkpoint(ray_cluster, tmp_path):
-    """Resumed: the robots' counters go on from the checkpoint's (new robot workers count from 0)."""
+def test_resumed_counters_continue_and_a_start_without_checkpoint_folds_the_stored_states(ray_cluster, tmp_path,
+                                                                                          capsys):
+    """Resumed: the robots' counters go on from the checkpoint's (new robot workers count from 0).
+    Started over without a checkpoint on the store the earlier runs left: training samples those
+    episodes, so the learner's state statistics take them all in first."""
+    import torch
+
     from infinirl.runners.checkpoints import Checkpoints
 
     out = tmp_path / "run"
@@ -195,6 +200,22 @@ def test_resumed_counters_continue_from_the_checkpoint(ray_cluster, tmp_path):
         assert again[2][key] >= first[1][key], key
     assert again[2]["robot/safety_clips"] > first[1]["robot/safety_clips"]
     assert again[2]["env/steps"] > first[1]["env/steps"]
+
+    capsys.readouterr()
+    network = {"actor_hidden": [32, 32], "critic_hidden": [32, 32], "normalize_state": True}
+    run(make_cfg(out, 1, task=task, pipeline=pipeline, network=network, resume=False))
+    stored_before = capsys.readouterr().out
+    assert f"no checkpoint to resume, but {out / 'replay'} holds" in stored_before
+    checkpoint = torch.load(out / "checkpoints" / "iter_000001" / "learner" / "learner.pt", weights_only=False)
+    store = ReplayStore(str(out / "replay"), writable=False)
+    try:
+        stored = checkpoint["store"]["episodes"]
+        rows = sum(len(store.episode(i)["state"]) for i in range(stored))
+        assert stored > again[2]["replay/episodes"]  # the earlier runs' and this one's
+    finally:
+        store.close()
+    count = checkpoint["agent"]["actor"]["encoder.normalizer.stats.0.count"]
+    assert float(count) == pytest.approx(rows, abs=1e-3)  # every stored state, the earlier runs' included
 
 
 @pytest.mark.slow  # a whole run killed and run again (~90 s); the store's own kill -9 tests are in the unit tier
