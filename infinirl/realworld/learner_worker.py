@@ -35,7 +35,8 @@ exceeds it is dropped (``staleness_action="drop"``, counted) or kept and only co
 **Checkpoints** hold the agent (weights, optimisers, generator, update count), the store's sampler
 state and the version; the store itself is already on disk and is reopened on resume, with every
 episode appended after the checkpoint still in it (and folded into the state statistics and the
-counts on loading, as its ingest did).
+counts on loading, as its ingest did). A learner that starts without a checkpoint on stores an
+earlier run left folds every stored episode into the state statistics instead (:meth:`observe_stored`).
 """
 
 from __future__ import annotations
@@ -142,6 +143,10 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         self._metric_counts: dict[str, int] = defaultdict(int)
         self._updates_reported = 0
         self._reported_at = time.perf_counter()
+        # Whether the state statistics hold what the stores held when they were opened (a checkpoint's
+        # do, and so does :meth:`observe_stored`); from the first episode stored, folding them all would
+        # count that one twice.
+        self._stored_observed = False
 
     # ---------------------------------------------------------------- data in
     def _ingest(self, episodes: list[dict]) -> list[str]:
@@ -161,6 +166,7 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         return handled
 
     def _store_one(self, episode: dict, source: str | None) -> None:
+        self._stored_observed = True
         lag = staleness_of(episode["version"], self.version)
         self._counts["policy_steps"] += lag.policy_steps
         self._counts["lag_sum"] += lag.lag_sum
@@ -201,6 +207,7 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         if self.demos is None:
             raise RuntimeError("this learner has no demonstrations store (demos are off in the config)")
         with self._lock:
+            self._stored_observed = True
             for episode in episodes:
                 self.demos.append(episode)
                 self.agent.observe_states(episode["state"])
@@ -373,6 +380,7 @@ class RealWorldLearnerWorker(Worker, WeightSource):
             self.version = int(state["version"])
             self._counts.update(state["counts"])
             self._observe_stored_since(int(state["store"]["episodes"]))
+            self._stored_observed = True
             self._snapshot = self._snap()
             self._updates_reported = self.agent.updates
 
@@ -384,13 +392,39 @@ class RealWorldLearnerWorker(Worker, WeightSource):
         The demonstrations store needs no such pass: scripted demonstrations are recorded at the
         start, after a resume's checkpoint is loaded, and an intervened stretch appended to it after
         the checkpoint is part of an episode folded here (its states counted once, as before)."""
-        for number in sorted(self.store.segments):  # in commit order, as they were folded in
-            ids = self.store.segments[number].episode_ids
-            for episode_id in ids[ids >= first].tolist():
-                episode = self.store.episode(episode_id)
-                self.agent.observe_states(episode["state"])
-                self._counts["episodes"] += 1
-                self._counts["steps"] += len(episode["action"])
+        for episode in _stored_episodes(self.store, first):
+            self.agent.observe_states(episode["state"])
+            self._counts["episodes"] += 1
+            self._counts["steps"] += len(episode["action"])
+
+    def observe_stored(self) -> int:
+        """Fold every episode the stores hold into the state statistics (demonstrations first, as a run
+        records them before it trains); returns how many were folded. For a learner that starts
+        without a checkpoint on stores an earlier run left (one stopped before its first checkpoint,
+        ``resume=false`` in its folder, a shared replay path): it samples those episodes from its first
+        update on, so the statistics its networks read must have seen them. Without ``normalize_state``
+        there are no statistics, and nothing is read. The counts stay this learner's own ingest.
+
+        An intervened stretch in the demonstrations store (every step ``intervened``) is skipped: its
+        states are those of the replay store's episode it was cut from, folded once there, as the
+        ingest that stored both did."""
+        with self._lock:
+            if self._stored_observed:
+                raise RuntimeError("observe_stored: the stored episodes are in the state statistics already (a "
+                                   "checkpoint was loaded, or episodes were stored); folding them again would "
+                                   "count them twice")
+            self._stored_observed = True
+            if self.agent.state_normalizer is None:
+                return 0
+            folded = 0
+            for store in (self.demos, self.store):
+                for episode in _stored_episodes(store, 0) if store is not None else ():
+                    if store is self.demos and _intervened_stretch(episode):
+                        continue
+                    self.agent.observe_states(episode["state"])
+                    folded += 1
+            self._snapshot = self._snap()  # the weights the robots get carry the statistics
+            return folded
 
     def close(self) -> None:
         self.stop()
@@ -398,3 +432,18 @@ class RealWorldLearnerWorker(Worker, WeightSource):
             self.store.close()
             if self.demos is not None:
                 self.demos.close()
+
+
+def _intervened_stretch(episode: dict) -> bool:
+    """Whether a demonstrations-store episode is an intervened stretch (scripted demonstrations are
+    recorded with no human: none of their steps is intervened)."""
+    flags = episode.get("intervened")
+    return flags is not None and len(flags) > 0 and bool(np.all(flags != 0))
+
+
+def _stored_episodes(store: ReplayStore, first: int):
+    """The live episodes of ``store`` from id ``first`` on, in commit order (as they were folded in)."""
+    for number in sorted(store.segments):
+        ids = store.segments[number].episode_ids
+        for episode_id in ids[ids >= first].tolist():
+            yield store.episode(episode_id)

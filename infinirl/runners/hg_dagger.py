@@ -15,8 +15,10 @@ dataset and behaviour cloning).
   ``bc.updates_per_iteration`` mini-batches on the whole aggregate and the new version goes to the
   robots. Metrics: ``rollout/success_rate`` (with the human's help), ``intervention/rate``
   (intervened steps / steps), ``intervention/episode_rate``, ``intervention/takeovers_per_episode``,
-  ``dagger/dataset_rows``, ``train/bc_loss`` and ``dagger/novice_error`` (the policy's squared error
-  on the iteration's human labels before training on them).
+  ``dagger/dataset_rows``, ``train/bc_loss``, ``dagger/novice_error`` (the policy's squared error
+  on the iteration's human labels before training on them), and the robots' counters over the run
+  (``env/steps``, ``robot/late_steps``, ``robot/safety_aborts``, ``robot/safety_clips``,
+  ``robot/safety_events``; a resumed run goes on from its checkpoint's).
 * **evaluation**: ``eval.episodes`` deterministic episodes per robot with no human
   (``eval/success_rate``: the policy alone; the robots' control loops hold the device off, so a
   take-over is refused until the next iteration's episodes); after the last iteration robot rank 0 films
@@ -84,10 +86,10 @@ class HGDAggerFlow:
     """The iteration logic (the loop drives it: see :mod:`infinirl.runners.loop`)."""
 
     def __init__(self, cfg: HGDAggerConfig, robots, learner):
-        from infinirl.runners.realworld_sac import RobotSteps
+        from infinirl.runners.realworld_sac import RunCounts
 
         self.cfg, self.robots, self.learner = cfg, robots, learner
-        self.steps = RobotSteps()
+        self.counts = RunCounts()
         self.spec = LoopSpec(
             name="hg_dagger", headline="eval/success_rate", target=cfg.eval.target,
             title=f"HG-DAgger {cfg.robot.kind} with {cfg.interventions.device}",
@@ -126,6 +128,7 @@ class HGDAggerFlow:
     # ------------------------------------------------------------------ one iteration
     def step(self, iteration: int) -> dict:
         from infinirl.realworld.intervention.metrics import InterventionStats, intervention_metrics
+        from infinirl.runners.realworld_sac import robot_counts
 
         cfg = self.cfg
         started = time.perf_counter()
@@ -143,8 +146,7 @@ class HGDAggerFlow:
                    "dagger/added_rows": float(added["added"]), "dagger/dataset_rows": float(added["size"]),
                    "train/bc_loss": trained["loss"],
                    "train/updates": float(trained["updates"]), "pipeline/version": float(trained["version"]),
-                   "env/steps": self.steps.update(robots),
-                   "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots)),
+                   **self.counts.update(robot_counts(robots)),
                    "time/iteration_s": time.perf_counter() - started}
         if novice_error == novice_error:  # NaN: the human labelled no step this iteration
             metrics["dagger/novice_error"] = novice_error
@@ -162,11 +164,13 @@ class HGDAggerFlow:
     # ------------------------------------------------------------------ checkpoints
     def save(self, folder: str) -> dict:
         self.learner.save_checkpoint(os.path.join(folder, "learner")).wait()
-        return {"env_steps": self.steps.total}
+        return {"counts": dict(self.counts.totals)}
 
     def load(self, folder: str, state: dict) -> None:
+        from infinirl.runners.realworld_sac import RunCounts, robot_counts
+
         self.learner.load_checkpoint(os.path.join(folder, "learner")).wait()
-        self.steps.restore(state.get("env_steps", 0), self.robots)  # absent from checkpoints of earlier versions
+        self.counts.restore(RunCounts.saved(state), robot_counts(self.robots.stats().wait(timeout=60)))
 
     def finish(self, output_dir: str) -> dict:
         from infinirl.runners.realworld_sac import record_eval_video

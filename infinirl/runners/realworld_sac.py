@@ -30,9 +30,11 @@ Networks: the SAC runner's (``network.actor``: gaussian or flow); ``network.enco
 encoder over the ``task.cameras`` frames in front (the robots act from their current frames, the
 learner samples the stored ones, the weights the robots receive carry the encoder).
 
-Checkpoints hold the learner (agent, sampler state, version); the replay store is on disk already
-and is reopened on resume with everything appended after the checkpoint, so a killed run resumes
-with its experience intact.
+Checkpoints hold the learner (agent, sampler state, version) and the run's cumulative counters
+(:class:`RunCounts`: steps, late steps, safety clips and events, the edge link's); the replay store is
+on disk already and is reopened on resume with everything appended after the checkpoint, so a killed
+run resumes with its experience intact. A start without a checkpoint on a store an earlier run left
+folds its episodes into the learner's state statistics before training samples them.
 """
 
 from __future__ import annotations
@@ -52,8 +54,8 @@ from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.realworld_sac_config import RealWorldNetworkConfig, RealWorldSACConfig
 from infinirl.runners.run_support import launch_all, run_staged, run_start_time
 
-__all__ = ["RealWorldSACFlow", "RobotSteps", "env_spec_of", "net_spec_of", "record_eval_video", "robot_setup_of",
-           "run"]
+__all__ = ["RealWorldSACFlow", "RunCounts", "env_spec_of", "net_spec_of", "record_eval_video", "robot_counts",
+           "robot_setup_of", "run"]
 
 
 @register_runner("realworld_sac", RealWorldSACConfig,
@@ -232,29 +234,50 @@ def record_eval_video(robots, episodes: int, output_dir: str) -> str | None:
     return result["path"]
 
 
-class RobotSteps:
-    """``env/steps``: the robots' training steps over the whole run. A robot counts from when its
-    control loop was built, so a resumed run starts from what its checkpoint counted, less what the
-    robots had already counted when it resumed (an edge node may outlive the trainer it served)."""
+def robot_counts(robots: list[dict]) -> dict[str, float]:
+    """The robots' cumulative counters as metrics, from their ``stats()``: ``env/steps`` (training
+    steps), ``robot/late_steps`` (steps that overran their control period), ``robot/safety_aborts``
+    (episodes the safety layer ended), ``robot/safety_clips`` (command entries it clipped) and
+    ``robot/safety_events`` (watchdog holds, heartbeat stops, unknown poses, servo faults). Each robot
+    counts from when its control loop was built; :class:`RunCounts` makes them the run's."""
+    return {"env/steps": float(sum(r["counts"].get("steps", 0) for r in robots)),
+            "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots)),
+            "robot/safety_aborts": float(sum(r["counts"].get("safety_aborts", 0) for r in robots)),
+            "robot/safety_clips": float(sum(sum(r["safety_clips"].values()) for r in robots)),
+            "robot/safety_events": float(sum(sum(r["safety_events"].values()) for r in robots))}
+
+
+class RunCounts:
+    """Cumulative counters logged every iteration (:func:`robot_counts`, the edge link's), counted
+    over the whole run. The components count from when they started, so a resumed run starts from what
+    its checkpoint counted, less what they had already counted when it resumed (an edge node may
+    outlive the trainer it served; new workers have counted nothing)."""
 
     def __init__(self) -> None:
-        self.total = 0
+        self.totals: dict[str, float] = {}
         """As of the last :meth:`update`: what a checkpoint saves."""
-        self.offset = 0
+        self.offsets: dict[str, float] = {}
+
+    def update(self, counted: dict[str, float]) -> dict[str, float]:
+        """The run's counts of the keys of ``counted`` (what the components counted so far)."""
+        self.totals.update({key: self.offsets.get(key, 0.0) + float(value) for key, value in counted.items()})
+        return {key: self.totals[key] for key in counted}
+
+    def restore(self, totals: dict[str, float], counted: dict[str, float]) -> None:
+        """Continue from a checkpoint's ``totals``; ``counted``: what the components had counted when
+        the run resumed (a key absent there: nothing yet)."""
+        self.totals = {key: float(value) for key, value in totals.items()}
+        self.offsets = {key: value - float(counted.get(key, 0.0)) for key, value in self.totals.items()}
 
     @staticmethod
-    def counted(robots: list[dict]) -> int:
-        return int(sum(r["counts"].get("steps", 0) for r in robots))
+    def saved(state: dict) -> dict[str, float]:
+        """The totals a checkpoint's flow state holds; checkpoints of earlier versions saved only the
+        steps (``env_steps``), or nothing."""
+        return {"env/steps": float(state.get("env_steps", 0)), **state.get("counts", {})}
 
-    def update(self, robots: list[dict]) -> float:
-        """The run's steps, from the robots' ``stats()``."""
-        self.total = self.offset + self.counted(robots)
-        return float(self.total)
 
-    def restore(self, total: int, robots) -> None:
-        """Continue from a checkpoint's ``total``; ``robots``: the group, asked once what it counted so far."""
-        self.total = int(total)
-        self.offset = self.total - self.counted(robots.stats().wait(timeout=60))
+_LINK_GAUGES = ("link/connected",)
+"""The edge link's metrics that are states, not counters (the others go on across a resume)."""
 
 
 def _per_kind(robots: list[dict]) -> dict:
@@ -285,7 +308,8 @@ class RealWorldSACFlow:
         self.pending_sync = None
         self.running = False
         self.owed_updates = 0.0  # sync mode: fractional updates carried to the next turn
-        self.steps = RobotSteps()
+        self.counts = RunCounts()
+        self.resumed = False
         self.spec = LoopSpec(
             name="realworld_sac", headline="eval/success_rate",
             title=f"SAC ({cfg.pipeline.mode}) {'+'.join(e.kind for e in cfg.robot.fleet) or cfg.robot.kind}",
@@ -305,6 +329,8 @@ class RealWorldSACFlow:
 
     # ------------------------------------------------------------------ start
     def start(self, iteration: int) -> None:
+        if not self.resumed:
+            self._fold_earlier_episodes()
         demos = self.cfg.demos
         if demos.episodes:
             have = self.learner.demo_episodes().wait()[0]
@@ -320,6 +346,22 @@ class RealWorldSACFlow:
             self.learner.start(self.channel).wait()
             self.robots.start(self.channel).wait()
             self.running = True
+
+    def _fold_earlier_episodes(self) -> None:
+        """A start without a checkpoint on stores an earlier run left (one stopped before its first
+        checkpoint, ``resume=false``, a shared ``replay.path``): training samples their episodes from
+        its first update on, so the learner folds them into its state statistics first, as a resumed
+        one has them from its checkpoint. Said in one line: the run does not start from nothing."""
+        folded = self.learner.observe_stored().wait()[0]
+        status = self.learner.status().wait()[0]
+        demos = self.learner.demo_episodes().wait()[0]
+        if not status["store_episodes"] and not demos:
+            return
+        replay = self.cfg.replay.path or os.path.join(self.cfg.output_dir, "replay")
+        normaliser = f"; their states are folded into the state normaliser ({folded} episodes)" if folded else ""
+        print(f"no checkpoint to resume, but {replay} holds {status['store_episodes']} episodes "
+              f"({status['store_transitions']} transitions) and the demonstrations store {demos}, from an earlier "
+              f"run: training samples them too{normaliser}", flush=True)
 
     def _sync(self, version: int, wait: bool = False) -> None:
         """Send the learner's published weights to the robots when they are newer than theirs."""
@@ -346,7 +388,9 @@ class RealWorldSACFlow:
             status = self._sync_turns(deadline)
         robots = self.robots.stats().wait(timeout=60)
         link = self.link_metrics(robots) if self.link_metrics is not None else {}
-        return {**self._metrics(status, robots, time.perf_counter() - started), **_per_kind(robots), **link}
+        counted = {**robot_counts(robots), **{key: value for key, value in link.items() if key not in _LINK_GAUGES}}
+        return {**self._metrics(status, robots, time.perf_counter() - started), **_per_kind(robots), **link,
+                **self.counts.update(counted)}
 
     def _sync_turns(self, deadline: float) -> dict:
         """Collect one episode per robot, then update on it, until the window ends."""
@@ -377,11 +421,6 @@ class RealWorldSACFlow:
             "replay/transitions": float(status["store_transitions"]),
             "replay/episodes": float(status["store_episodes"]),
             "replay/demo_transitions": float(status["demo_transitions"]),
-            "env/steps": self.steps.update(robots),
-            "robot/late_steps": float(sum(r["counts"].get("late_steps", 0) for r in robots)),
-            "robot/safety_aborts": float(sum(r["counts"].get("safety_aborts", 0) for r in robots)),
-            "robot/safety_clips": float(sum(sum(r["safety_clips"].values()) for r in robots)),
-            "robot/safety_events": float(sum(sum(r["safety_events"].values()) for r in robots)),
             "time/iteration_s": seconds,
         }
         if episodes:
@@ -416,11 +455,18 @@ class RealWorldSACFlow:
     # ------------------------------------------------------------------ checkpoints
     def save(self, folder: str) -> dict:
         self.learner.save_checkpoint(os.path.join(folder, "learner")).wait()
-        return {"mode": self.cfg.pipeline.mode, "env_steps": self.steps.total}
+        return {"mode": self.cfg.pipeline.mode, "counts": dict(self.counts.totals)}
 
     def load(self, folder: str, state: dict) -> None:
         self.learner.load_checkpoint(os.path.join(folder, "learner")).wait()
-        self.steps.restore(state.get("env_steps", 0), self.robots)  # absent from checkpoints of earlier versions
+        robots = self.robots.stats().wait(timeout=60)
+        counted = robot_counts(robots)
+        if self.link_metrics is not None:
+            # The edge node may outlive the trainer, and counted on; the link's hub started with this
+            # process, so all it counted is new (its keys count from the checkpoint's totals).
+            counted.update({k: v for k, v in self.link_metrics(robots).items() if k.startswith("edge/")})
+        self.counts.restore(RunCounts.saved(state), counted)
+        self.resumed = True
         status = self.learner.status().wait()[0]
         print(f"restored the learner at version {status['version']} ({status['updates']} updates); the replay "
               f"store holds {status['store_episodes']} episodes ({status['store_transitions']} transitions)",

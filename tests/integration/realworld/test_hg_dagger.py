@@ -68,8 +68,11 @@ def test_hg_dagger_resumes_with_its_dataset(tmp_path):
     assert [r["step"] for r in again] == [1, 2]
     assert again[1]["dagger/dataset_rows"] == first[0]["dagger/dataset_rows"] + again[1]["dagger/added_rows"]
     assert again[1]["pipeline/version"] == first[0]["pipeline/version"] + 1
-    # New robot workers count from 0: the resumed run's steps go on from the checkpoint's by its one episode.
+    # New robot workers count from 0: the resumed run's steps go on from the checkpoint's by its one episode,
+    # and so do the other robot counters.
     assert again[1]["env/steps"] == first[0]["env/steps"] + again[1]["rollout/episode_length_mean"]
+    for key in ("robot/late_steps", "robot/safety_aborts", "robot/safety_clips", "robot/safety_events"):
+        assert again[1][key] >= first[0][key], key
 
 
 def config(**raw):
@@ -114,7 +117,8 @@ class Done:
 
 
 class FakeRobot:
-    """One robot rank of a group: it has counted ``steps`` training steps since it was built."""
+    """One robot rank of a group: it has counted ``steps`` training steps since it was built, one in
+    five of them late and clipped once by the safety layer."""
 
     def __init__(self, steps=0):
         self.steps, self.filmed = steps, []
@@ -124,7 +128,8 @@ class FakeRobot:
         return Done([[]])
 
     def stats(self):
-        return Done([{"counts": {"steps": self.steps}, "episodes": []}])
+        return Done([{"counts": {"steps": self.steps, "late_steps": self.steps // 5}, "episodes": [],
+                      "safety_clips": {"velocity": self.steps // 5}, "safety_events": {}}])
 
     def call(self, method, episodes, path, ranks):
         assert method == "record_video" and ranks == [0]
@@ -154,19 +159,22 @@ class FakeLearner:
     load_checkpoint = save_checkpoint
 
 
-def test_env_steps_continue_across_a_resume_and_the_end_films_the_eval_video(tmp_path):
-    """The robots count their steps from when they were started, so a resumed run adds its
-    checkpoint's count; after the last iteration robot rank 0 films ``eval.video_episodes``."""
+def test_robot_counters_continue_across_a_resume_and_the_end_films_the_eval_video(tmp_path):
+    """The robots count their steps (late ones, safety clips) from when they were started, so a resumed
+    run adds its checkpoint's counts; after the last iteration robot rank 0 films ``eval.video_episodes``."""
     from infinirl.runners.hg_dagger import HGDAggerFlow
 
     cfg = config(dagger={"episodes_per_iteration": 2})
     first = HGDAggerFlow(cfg, FakeRobot(), FakeLearner())
-    assert first.step(0)["env/steps"] == 20
+    row = first.step(0)
+    assert (row["env/steps"], row["robot/late_steps"], row["robot/safety_clips"]) == (20, 4, 4)
     state = first.save(str(tmp_path))
     resumed = HGDAggerFlow(cfg, FakeRobot(), FakeLearner())  # new robot workers count from 0
     resumed.load(str(tmp_path), state)
-    assert resumed.step(1)["env/steps"] == 40
-    assert resumed.save(str(tmp_path)) == {"env_steps": 40}
+    row = resumed.step(1)
+    assert (row["env/steps"], row["robot/late_steps"], row["robot/safety_clips"]) == (40, 8, 8)
+    assert resumed.save(str(tmp_path)) == {"counts": {"env/steps": 40, "robot/late_steps": 8, "robot/safety_aborts": 0,
+                                                      "robot/safety_clips": 8, "robot/safety_events": 0}}
     summary = resumed.finish(str(tmp_path))
     assert summary["video"] == str(tmp_path / "eval.mp4") and resumed.robots.filmed == [(1, summary["video"])]
     quiet = HGDAggerFlow(config(eval={"video_episodes": 0}), FakeRobot(), FakeLearner())

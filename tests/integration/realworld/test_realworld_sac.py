@@ -160,25 +160,83 @@ def test_config_errors_name_the_key_before_any_worker_starts(tmp_path):
             make_cfg(tmp_path / "bad", 1, **extra).validate()
 
 
-def test_env_steps_continue_from_the_checkpoint_whatever_the_robots_counted_before():
-    """A resumed run's ``env/steps`` go on from its checkpoint's: new robot workers count from 0, and a
-    robot that outlived the trainer (an edge node) had counted steps of the run that was stopped."""
-    from infinirl.runners.realworld_sac import RobotSteps
+def test_counters_continue_from_the_checkpoint_whatever_the_components_counted_before():
+    """A resumed run's cumulative counters (``env/steps``, ``robot/late_steps``, the safety layer's and
+    the edge link's) go on from its checkpoint's: new robot workers count from 0, and a robot that
+    outlived the trainer (an edge node) had counted for the run that was stopped."""
+    from infinirl.runners.realworld_sac import RunCounts, robot_counts
 
-    class Robots:
-        def __init__(self, steps):
-            self.steps = steps
+    def robot(steps, late, clips, events):
+        return {"counts": {"steps": steps, "late_steps": late}, "safety_clips": {"velocity": clips},
+                "safety_events": {"watchdog_hold": events}}
 
-        def stats(self):
-            return type("Done", (), {"wait": lambda _, timeout=None: [{"counts": {"steps": self.steps}}]})()
+    saved = {"env/steps": 100.0, "robot/late_steps": 7.0, "robot/safety_clips": 30.0, "robot/safety_events": 2.0,
+             "robot/safety_aborts": 1.0, "link/connects": 3.0}
+    for before in (robot(0, 0, 0, 0), robot(35, 4, 9, 1)):
+        counts = RunCounts()
+        counts.restore(RunCounts.saved({"counts": saved}), robot_counts([before]))
+        assert counts.totals == saved
+        later = robot(before["counts"]["steps"] + 12, before["counts"]["late_steps"] + 1,
+                      before["safety_clips"]["velocity"] + 5, before["safety_events"]["watchdog_hold"])
+        # the link's hub starts with the resumed trainer: all it counts is new
+        assert counts.update({**robot_counts([later]), "link/connects": 1.0}) == {
+            "env/steps": 112.0, "robot/late_steps": 8.0, "robot/safety_aborts": 1.0, "robot/safety_clips": 35.0,
+            "robot/safety_events": 2.0, "link/connects": 4.0}
+    earlier = RunCounts()  # a checkpoint of an earlier version saved the steps alone
+    earlier.restore(RunCounts.saved({"env_steps": 40}), {})
+    assert earlier.update(robot_counts([robot(3, 2, 0, 0)])) == {
+        "env/steps": 43.0, "robot/late_steps": 2.0, "robot/safety_aborts": 0.0, "robot/safety_clips": 0.0,
+        "robot/safety_events": 0.0}
+    fresh = RunCounts()
+    assert fresh.update(robot_counts([robot(7, 0, 1, 0), robot(0, 0, 0, 0)]))["env/steps"] == 7.0
 
-    for counted_before in (0, 35):
-        steps = RobotSteps()
-        steps.restore(100, Robots(counted_before))
-        assert steps.total == 100
-        assert steps.update([{"counts": {"steps": counted_before + 12}}]) == 112.0 and steps.total == 112
-    fresh = RobotSteps()
-    assert fresh.update([{"counts": {"steps": 7}}, {"counts": {}}]) == 7.0
+
+ROBOT_COUNTERS = ("env/steps", "robot/late_steps", "robot/safety_aborts", "robot/safety_clips", "robot/safety_events")
+
+
+def test_resumed_counters_continue_and_a_start_without_checkpoint_folds_the_stored_states(ray_cluster, tmp_path,
+                                                                                          capsys):
+    """Resumed: the robots' counters go on from the checkpoint's (new robot workers count from 0).
+    Started over without a checkpoint on the store the earlier runs left: training samples those
+    episodes, so the learner's state statistics take them all in first."""
+    import torch
+
+    from infinirl.runners.checkpoints import Checkpoints
+
+    out = tmp_path / "run"
+    # Absolute targets: the safety layer clips each step's jump to its velocity bound, so every window
+    # counts clips (late steps depend on the machine's load and may stay at 0).
+    task = {"max_episode_steps": 20, "action_mode": "absolute"}
+    pipeline = {"iteration_s": 2.0, "publish_every": 5, "durable": False}
+    run(make_cfg(out, 2, task=task, pipeline=pipeline))
+    first = rows_of(out / "metrics.jsonl")
+    assert first[1]["robot/safety_clips"] > 0
+    _, state = Checkpoints(str(out)).latest()
+    assert state["flow"]["counts"] == {key: first[1][key] for key in ROBOT_COUNTERS}  # in the checkpoint
+
+    run(make_cfg(out, 3, task=task, pipeline=pipeline))
+    again = rows_of(out / "metrics.jsonl")
+    assert [r["step"] for r in again] == [1, 2, 3]
+    for key in ROBOT_COUNTERS:  # one more window on top of the two the checkpoint counted
+        assert again[2][key] >= first[1][key], key
+    assert again[2]["robot/safety_clips"] > first[1]["robot/safety_clips"]
+    assert again[2]["env/steps"] > first[1]["env/steps"]
+
+    capsys.readouterr()
+    network = {"actor_hidden": [32, 32], "critic_hidden": [32, 32], "normalize_state": True}
+    run(make_cfg(out, 1, task=task, pipeline=pipeline, network=network, resume=False))
+    stored_before = capsys.readouterr().out
+    assert f"no checkpoint to resume, but {out / 'replay'} holds" in stored_before
+    checkpoint = torch.load(out / "checkpoints" / "iter_000001" / "learner" / "learner.pt", weights_only=False)
+    store = ReplayStore(str(out / "replay"), writable=False)
+    try:
+        stored = checkpoint["store"]["episodes"]
+        rows = sum(len(store.episode(i)["state"]) for i in range(stored))
+        assert stored > again[2]["replay/episodes"]  # the earlier runs' and this one's
+    finally:
+        store.close()
+    count = checkpoint["agent"]["actor"]["encoder.normalizer.stats.0.count"]
+    assert float(count) == pytest.approx(rows, abs=1e-3)  # every stored state, the earlier runs' included
 
 
 @pytest.mark.slow  # a whole run killed and run again (~90 s); the store's own kill -9 tests are in the unit tier

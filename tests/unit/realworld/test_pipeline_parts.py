@@ -260,3 +260,58 @@ def test_a_resumed_learner_folds_the_episodes_stored_after_its_checkpoint_into_i
         assert resumed.status()["counts"][key] == whole.status()["counts"][key] == (5 if key == "episodes" else 25)
     whole.close()
     resumed.close()
+
+
+def test_a_learner_started_without_checkpoint_on_earlier_stores_folds_all_their_states(tmp_path):
+    """A learner that starts over on the stores an earlier run left (no checkpoint to resume) samples
+    their episodes from its first update on: :meth:`observe_stored` folds every stored state, the
+    demonstrations' included (a human's intervened stretch once, with its episode), so its statistics
+    are those of the learner that stored them; it refuses to fold twice, after a checkpoint or once
+    episodes were stored."""
+    from infinirl.components.sac_learner import SACNetSpec, SACUpdateSpec
+    from infinirl.realworld.learner_worker import LearnerLoopSpec, RealWorldLearnerWorker
+    from infinirl.realworld.robot_worker import VERSION_TENSOR
+
+    rng = np.random.default_rng(1)
+    episodes = [{"state": (rng.normal(size=(steps + 1, 3)) * (1 + i) + i).astype(np.float32),
+                 "action": rng.uniform(-1, 1, (steps, 2)).astype(np.float32), "reward": np.ones(steps, np.float32),
+                 "terminated": np.zeros(steps, np.float32), "version": np.full(steps, -1, np.int64),
+                 "intervened": np.zeros(steps, np.float32)}
+                for i, steps in enumerate([4, 6, 3, 5])]
+    episodes[2]["intervened"][1:3] = 1.0  # a take-over: its stretch also goes into the demonstrations store
+
+    def learner(normalize=True):
+        loop = LearnerLoopSpec(replay_dir=str(tmp_path / "replay"), demo_dir=str(tmp_path / "demos"),
+                               learning_starts=10**6, durable=False, interventions=True,
+                               interventions_as_demos=True)
+        net = SACNetSpec(actor_hidden=(8,), critic_hidden=(8,), normalize_state=normalize)
+        return RealWorldLearnerWorker(net, SACUpdateSpec(batch_size=4), loop, 3, 2)
+
+    earlier = learner()
+    earlier.add_demonstrations(episodes[:1])
+    earlier.add_and_update(episodes[1:], num_updates=0)
+    assert earlier.demos.num_episodes == 2
+    want = earlier.agent.state_normalizer.state_dict()
+    earlier.close()
+
+    again = learner()
+    assert float(again.agent.state_normalizer.stats[0].count) < 1  # nothing folded until asked (an epsilon prior)
+    assert again.observe_stored() == 4  # the scripted demonstration and the three episodes, not the stretch
+    got = again.agent.state_normalizer.state_dict()
+    for name in want:
+        assert torch.equal(want[name], got[name]), name
+    published = dict(again.weights_for_sync())  # the robots' copy carries the statistics too
+    assert all(torch.equal(published[f"encoder.normalizer.{name}"], got[name]) for name in got)
+    assert VERSION_TENSOR in published
+    with pytest.raises(RuntimeError, match="count them twice"):
+        again.observe_stored()
+    again.close()
+
+    stored_first = learner()
+    stored_first.add_and_update(episodes[:1], num_updates=0)
+    with pytest.raises(RuntimeError, match="count them twice"):
+        stored_first.observe_stored()
+    stored_first.close()
+    plain = learner(normalize=False)  # no statistics: nothing to read
+    assert plain.observe_stored() == 0
+    plain.close()
