@@ -17,6 +17,9 @@ runs on its node, which the replies to its registration and puts tell it.
 - A producer or consumer that dies cannot leave the other side waiting forever: once every
   producer of the channel has died, a getter that finds no item gets ``ChannelPeerDied``; once
   every consumer has died, so does a putter waiting for space (see ``channel_actor``).
+- A prefetching consumer (``prefetch`` > 1) holds the items it took ahead under a lease of the
+  channel actor: if its process dies before handing them out, they go back to the front of their
+  queue for the others, and the channel logs it (see ``channel_actor``).
 - Waits have no default timeout (a consumer may wait for a long rollout); ``timeout=`` bounds one
   call, and a synchronous wait inside a worker method ends with ``CallCancelled`` when that
   method's call is cancelled (``GroupHandle.cancel()``).
@@ -71,7 +74,9 @@ class Channel:
         self.transport = transport
         self.pipeline_depth = pipeline_depth
         self.prefetch = prefetch
-        self._prefetched: dict[Any, deque] = {}
+        self._prefetched: dict[Any, deque] = {}  # by key; a key is dropped once its buffer is empty
+        self._leases: dict[Any, str] = {}  # key -> the get whose items its buffer holds (leased to this process)
+        self._handed_out: list[str] = []  # leases whose items were all handed out: said with the next get_many
         self._consumers_here_only = False
         self._consumers_on_this_node = False
         self._consumers_known = False  # a reply of the channel said who the consumers are
@@ -102,7 +107,9 @@ class Channel:
 
         ``prefetch`` > 1 lets ``get`` take up to that many waiting items in one round trip and hand
         them out one by one (a consumer then holds at most ``prefetch - 1`` items others cannot
-        take). Both options trade a little strictness for throughput on streaming stages.
+        take). If its process dies, the items it held go back to the queue, and so may the ones it
+        handed out since its last round trip (delivered again, to another consumer). Both options
+        trade a little strictness for throughput on streaming stages.
         """
         if prefetch < 1:
             raise ChannelError(f"channel '{name}': prefetch must be >= 1, got {prefetch}")
@@ -181,14 +188,38 @@ class Channel:
         """The oldest item of ``key``; waits for one (``timeout``: at most that many seconds)."""
         self._register("consumer")
         if self.prefetch > 1:
-            buffered = self._prefetched.setdefault(key, deque())
-            if not buffered:
-                taken = self._get(self._actor.get_many, key, os.getpid(), _peer_id(), self.prefetch, timeout)
-                buffered.extend(_prefetch_entries(taken))
-            envelope, _, value = buffered.popleft()
-            return unpack(envelope) if value is _UNREAD else value
+            return self._get_prefetched(key, timeout)
         envelope, _ = self._get(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope)
+
+    def _get_prefetched(self, key, timeout: float | None) -> Any:
+        """``get`` with ``prefetch`` > 1: from this client's buffer of ``key``, refilled by one
+        ``get_many``. That call also tells the channel which of this client's leases are handed out
+        in full: the acknowledgement costs no message of its own."""
+        buffered = self._prefetched.get(key)
+        if not buffered:
+            request = uuid.uuid4().hex
+            taken = self._get(self._actor.get_many, key, os.getpid(), _peer_id(), self.prefetch, timeout,
+                              request=request, handed_out=self._handed_out)
+            self._handed_out = []  # only once the call succeeded: settling a lease twice is harmless
+            if len(taken) > 1:  # the channel leased the items beyond the first to this process
+                self._leases[key] = request
+            try:
+                buffered = self._prefetched[key] = deque(_prefetch_entries(taken))
+            except BaseException:  # nothing buffered: the lease has nothing left to hand out
+                self._settle(key)
+                raise
+        envelope, _, value = buffered.popleft()
+        if not buffered:
+            self._settle(key)
+        return unpack(envelope) if value is _UNREAD else value
+
+    def _settle(self, key) -> None:
+        """The buffer of ``key`` is empty: its lease is to be settled with the next get_many."""
+        self._prefetched.pop(key, None)
+        lease = self._leases.pop(key, None)
+        if lease is not None:
+            self._handed_out.append(lease)
 
     def get_with_weight(self, key=DEFAULT_KEY, timeout: float | None = None) -> tuple[Any, float]:
         self._register("consumer")
@@ -211,13 +242,17 @@ class Channel:
     def give_back_prefetched(self) -> int:
         """Return the items ``get`` prefetched but did not hand out yet to the front of their
         queues, for other consumers; a consumer that stops getting before the channel ends calls
-        this so that nothing stays stranded in it. Returns how many items went back."""
+        this so that nothing stays stranded in it (it also tells the channel that the items it
+        handed out are handed out, so that its process's exit later re-queues none of them).
+        Returns how many items went back."""
         returned = 0
-        for key, buffered in self._prefetched.items():
-            if buffered:
-                self._call(self._actor.give_back.remote(key, [(e, w) for e, w, _ in buffered]))
-                returned += len(buffered)
-                buffered.clear()
+        for key, buffered in list(self._prefetched.items()):
+            returned += self._call(self._actor.give_back.remote(key, [(e, w) for e, w, _ in buffered],
+                                                                self._leases.pop(key, None)))
+            del self._prefetched[key]
+        if self._handed_out:
+            self._call(self._actor.settle_leases.remote(self._handed_out))
+            self._handed_out = []
         return returned
 
     def close(self) -> None:
@@ -381,17 +416,21 @@ class Channel:
         except ray.exceptions.RayActorError:
             raise self._gone() from None
 
-    def _get(self, method, *args, key=None):
+    def _get(self, method, *args, key=None, request: str | None = None, **extra):
         """Call the actor's get ``method`` (``key``: its first argument unless given). If this
         call is cancelled, the get is abandoned: it ends without taking anything, or, if it had
         taken items already, they go back to the front of their queue."""
         key = args[0] if key is None else key
-        request = uuid.uuid4().hex
-        ref = method.remote(*args, request=request, node=_node_id())
+        request = request or uuid.uuid4().hex
+        ref = method.remote(*args, request=request, node=_node_id(), **extra)
         taken = self._call(ref, on_cancel=lambda: self._actor.abandon.remote(request))
         if cancellation.is_cancelled():
             if taken is not None:
-                self._actor.give_back.remote(key, _as_list(taken))
+                taken = _as_list(taken)
+                # A get_many (the get that says what it handed out) that took more than one item leased
+                # them to this process: giving them back ends the lease.
+                lease = request if "handed_out" in extra and len(taken) > 1 else None
+                self._actor.give_back.remote(key, taken, lease)
             raise cancellation.cancelled_error()
         return taken
 

@@ -20,11 +20,21 @@ puts an item in shared memory only while all of them are on its node; a consumer
 later on another node gets the items put after its registration is known. Pinned items that no
 consumer on their node is left to take (every one of them died) are dropped, and a getter from
 another node that finds nothing else is told so (``ChannelPeerDied``) instead of waiting forever.
+
+A prefetching get (``get_many``) hands its caller one item and the rest to hold and hand out
+later. Those held items stay *leased* to the calling process until the client says it has handed
+them all out, which it says with its next ``get_many`` (no message of its own, none per item) or
+with ``give_back``/``settle_leases`` when it stops. When the process dies, or a rank's process is
+replaced by a restart, its leases go back to the front of their queues, in order, and the channel
+logs how many: without a message per item the channel cannot know which items of a lease the
+process had handed out already, so those it had are delivered a second time, to another process.
+A living process never loses its lease: there is no lease timeout, a slow consumer is not a dead one.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import time
 from collections import deque
@@ -39,6 +49,8 @@ from infinirl.runtime.errors import ChannelClosed, ChannelError, ChannelPeerDied
 from infinirl.runtime.transport import Envelope, pinned_node, pinned_pid
 
 __all__ = ["ChannelActor"]
+
+logger = logging.getLogger(__name__)
 
 # A watch call on a rank's host returns after this long and is renewed: a watch that outlives
 # its channel (destroyed, or its owner gone) ends by itself instead of holding a slot in the host.
@@ -70,6 +82,17 @@ class _Peer:
     node: str
     roles: set[str] = field(default_factory=set)
     death: str = ""  # why it is dead, once it is
+    process: tuple | None = None  # a rank's current process, (node, pid), as its host last said
+    requeued: int = 0  # items of its leases that went back to the queues when its process ended
+
+
+@dataclass
+class _Lease:
+    """Items a prefetching get took for one process beyond the one it handed out at once."""
+    peer_id: str
+    process: tuple  # (node, pid) of the process that holds them
+    key: Any
+    items: list[_Item]
 
 
 class ChannelActor:
@@ -91,8 +114,9 @@ class ChannelActor:
         self.peers: dict[str, _Peer] = {}
         self.watches: set[asyncio.Task] = set()
         self.node_id = ray.get_runtime_context().get_node_id()
-        self.stats = {"put": 0, "get": 0}
+        self.stats = {"put": 0, "get": 0, "requeued_from_dead": 0, "lost_with_dead": 0}
         self.abandoned: dict[str, float] = {}  # request id -> when it was abandoned
+        self.leases: dict[str, _Lease] = {}  # by the request id of the get that took them
 
     # ------------------------------------------------------------------ peers
     async def register(self, peer_id: str, role: str, description: str, host, node_id: str, pid: int,
@@ -122,7 +146,8 @@ class ChannelActor:
 
     async def _watch(self, peer_id: str, host, node_id: str, pid: int, start: int) -> None:
         if host is not None:
-            death = await until_host_dies(host)
+            self.peers[peer_id].process = await _host_process(host)
+            death = await until_host_dies(host, lambda: self._host_back(peer_id, host))
         elif node_id == self.node_id:
             while processes.alive(pid, start):
                 await asyncio.sleep(PID_POLL_S)
@@ -131,7 +156,51 @@ class ChannelActor:
             return  # a process without a host on another node: nothing here can watch it
         async with self.cond:
             self.peers[peer_id].death = death
+            self._release_leases(peer_id, lambda lease: True, "died")
             self.cond.notify_all()
+
+    async def _host_back(self, peer_id: str, host) -> bool:
+        """A rank's host answers again after a call to it failed: if Ray restarted it, the leases
+        of its old process go back (the new process does not hold them); if it was only
+        unreachable for a while, its process is the same and keeps them. False if the host could
+        not be asked (the watch asks again once it answers)."""
+        process = await _host_process(host)
+        if process is None:
+            return False
+        async with self.cond:
+            peer = self.peers[peer_id]
+            old, peer.process = peer.process, process
+            if old != process:
+                # Old process unknown (the first question failed): every lease not held by the new
+                # process is the old one's, as a rank runs one process at a time.
+                ended = (lambda lease: lease.process == old) if old else (lambda lease: lease.process != process)
+                self._release_leases(peer_id, ended, "was restarted by Ray (a new process took its place)")
+        return True
+
+    def _release_leases(self, peer_id: str, which, what: str) -> None:
+        """Put the items of ``peer_id``'s leases that ``which`` picks back at the front of their
+        queues, in their order, and say so: their process has ended. Items only that process
+        could read (same-process items) are dropped and counted as lost."""
+        ended = [lease_id for lease_id, lease in self.leases.items() if lease.peer_id == peer_id and which(lease)]
+        if not ended:
+            return
+        requeued = lost = 0
+        for lease_id in reversed(ended):  # the latest first: the earliest ends up at the front
+            lease = self.leases.pop(lease_id)
+            readable = [item for item in lease.items if item.pinned_pid is None]
+            self._give_back(lease.key, readable)
+            requeued += len(readable)
+            lost += len(lease.items) - len(readable)
+        peer = self.peers.get(peer_id)
+        if peer is not None:
+            peer.requeued += requeued
+        self.stats["requeued_from_dead"] += requeued
+        self.stats["lost_with_dead"] += lost
+        logger.warning(
+            "channel '%s': consumer %s %s holding %d item(s) it had taken ahead (prefetch); %d went back to the "
+            "front of their queues for the other consumers (the ones it had handed out since its last get may be "
+            "delivered again)%s", self.name, peer.description if peer else peer_id, what, requeued + lost, requeued,
+            f", {lost} lived in its own memory and are lost" if lost else "")
 
     def _all_dead(self, role: str) -> list[_Peer]:
         """The peers of ``role`` if every one of them has died, else [] (also when none is known)."""
@@ -272,10 +341,21 @@ class ChannelActor:
         self.stats["get"] -= len(items)
         self.cond.notify_all()
 
-    async def give_back(self, key, taken: list[tuple[Envelope, float]]) -> None:
-        """Items a get took for a caller that was cancelled before it received them."""
+    async def give_back(self, key, taken: list[tuple[Envelope, float]], lease: str | None = None) -> int:
+        """Items a get took for a caller that was cancelled before it received them, or that a
+        prefetching client did not hand out (``lease``: the get that took them, whose lease this
+        ends). Returns how many went back: none if the lease had already been put back because
+        its process was taken for dead (they must not be queued twice)."""
         async with self.cond:
+            if lease is not None and self.leases.pop(lease, None) is None:
+                return 0
             self._give_back(key, [_Item(envelope, weight) for envelope, weight in taken])
+        return len(taken)
+
+    async def settle_leases(self, leases: list[str]) -> None:
+        """A prefetching client handed out every item of these leases: they are its caller's now."""
+        for lease in leases:
+            self.leases.pop(lease, None)
 
     async def abandon(self, request: str) -> None:
         """The caller of get ``request`` was cancelled: that get ends without taking anything."""
@@ -297,9 +377,12 @@ class ChannelActor:
         return None if taken is None else taken[0]
 
     async def get_many(self, key, pid: int, peer_id: str, max_items: int, timeout: float | None,
-                       request: str | None = None, node: str | None = None):
+                       request: str | None = None, node: str | None = None, handed_out: list[str] = ()):
         """Wait for one item, then also take up to ``max_items - 1`` more already waiting (prefetch);
-        ``None`` if abandoned."""
+        ``None`` if abandoned. The items beyond the first are leased to the caller's process under
+        ``request`` until a later call lists it in ``handed_out`` (or gives them back)."""
+        for lease in handed_out:  # before any wait: settled even if this get then fails
+            self.leases.pop(lease, None)
         self.consumers.add((pid, node))
         async with self.cond:
             await self._wait_for(lambda: self._can_end_get(key, pid, node, peer_id, request), _deadline(timeout),
@@ -309,6 +392,8 @@ class ChannelActor:
             taken = [self._take(key, self._takeable(key, pid, node, peer_id))]
             while len(taken) < max_items and (index := self._eligible(key, pid, node)) is not None:
                 taken.append(self._take(key, index))
+            if len(taken) > 1 and request is not None:
+                self.leases[request] = _Lease(peer_id, (node, pid), key, taken[1:])
             self.cond.notify_all()
             return [(item.envelope, item.weight) for item in taken]
 
@@ -363,7 +448,9 @@ class ChannelActor:
                 "pipeline_depth": self.pipeline_depth, "prefetch": self.prefetch,
                 "weight_in_queue": sum(self.weight_by_key.values()),
                 "weight_by_key": {repr(k): w for k, w in self.weight_by_key.items() if w},
-                "peers": {p.description: {"roles": sorted(p.roles), "death": p.death} for p in self.peers.values()},
+                "leased": sum(len(lease.items) for lease in self.leases.values()),
+                "peers": {p.description: {"roles": sorted(p.roles), "death": p.death, "requeued": p.requeued}
+                          for p in self.peers.values()},
                 **self.stats}
 
     async def _wait_for(self, predicate, deadline: float | None, what: str, timeout: float | None) -> None:
@@ -378,18 +465,34 @@ def _deadline(timeout: float | None) -> float | None:
     return None if timeout is None or math.isinf(timeout) else time.monotonic() + timeout
 
 
-async def until_host_dies(host) -> str:
+async def until_host_dies(host, on_back=None) -> str:
     """Wait until a worker rank's host actor is dead for good; returns why. A rank that Ray
-    restarts is alive again once restarted, and watched on."""
+    restarts is alive again once restarted, and watched on. ``on_back`` (a coroutine function
+    returning whether it reached the host) runs each time the host answers again after a call
+    to it failed, until it reaches it: a rank that Ray restarts fails this watch's call, and
+    nothing else tells the watch that its process changed."""
     while True:
         try:
             await host.alive_for.options(max_task_retries=0).remote(WATCH_RENEW_S)
             continue
         except ray.exceptions.RayActorError:
             pass
-        try:
-            await host.__ray_ready__.remote()  # waits out a restart; fails if the actor is dead
-        except ray.exceptions.ActorDiedError:
-            return "its process exited"
-        except ray.exceptions.RayActorError:
-            await asyncio.sleep(PID_POLL_S)  # unavailable for now: ask again
+        while True:
+            try:
+                await host.__ray_ready__.remote()  # waits out a restart; fails if the actor is dead
+            except ray.exceptions.ActorDiedError:
+                return "its process exited"
+            except ray.exceptions.RayActorError:
+                await asyncio.sleep(PID_POLL_S)  # unavailable for now: ask again
+                continue
+            if on_back is None or await on_back():
+                break
+            await asyncio.sleep(PID_POLL_S)  # it failed again before it could be asked
+
+
+async def _host_process(host) -> tuple | None:
+    """The (node, pid) of the process a rank's host runs in now; None if it cannot answer."""
+    try:
+        return tuple(await host.process.options(max_task_retries=0).remote())
+    except ray.exceptions.RayActorError:
+        return None

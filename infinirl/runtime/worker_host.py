@@ -192,6 +192,11 @@ class WorkerHost:
         learns from the call's failure that the process died."""
         await asyncio.sleep(seconds)
 
+    async def process(self) -> tuple[str, int]:
+        """(node id, pid) of this rank's process: a channel compares it after the rank comes back
+        from a failed call, to tell a restart (a new process) from a pause (the same one)."""
+        return ray.get_runtime_context().get_node_id(), os.getpid()
+
     async def _infinirl_p2p_serve(self, item: int, key: tuple, addr: str, port: int, backend: str) -> int:
         """Send a p2p channel item to the consumer that pulls it (runs beside the worker's method)."""
         return await p2p.serve_async(item, key, addr, port, backend)

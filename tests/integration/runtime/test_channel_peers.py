@@ -7,8 +7,9 @@ import threading
 import time
 
 import pytest
+import ray
 
-from infinirl.runtime import Channel, ChannelPeerDied, Worker, WorkerGroup
+from infinirl.runtime import Channel, ChannelPeerDied, RestartPolicy, Worker, WorkerGroup
 from tests.conftest import ship_by_value
 
 ship_by_value(__name__)
@@ -33,6 +34,23 @@ class Peer(Worker):
 
     def register_consumer(self, ch: Channel):
         ch.register_consumer()
+        return os.getpid()
+
+    def pid(self):
+        return os.getpid()
+
+
+@ray.remote(num_cpus=0)
+class PrefetchingConsumer:
+    """A plain Ray actor (no worker host): the channel watches it through its pid."""
+
+    def __init__(self, ch: Channel):
+        self.ch = ch
+
+    def take(self, n: int) -> list:
+        return [self.ch.get(key="k", timeout=60) for _ in range(n)]
+
+    def pid(self) -> int:
         return os.getpid()
 
 
@@ -166,4 +184,51 @@ def test_a_cancelled_async_get_gives_back_what_it_took(ray_cluster):
         asyncio.run(scenario())
         assert [ch.get(timeout=10), ch.get(timeout=10)] == ["kept", "second"]  # in order, nothing lost
     finally:
+        ch.destroy()
+
+
+def test_a_killed_prefetching_consumers_items_go_to_another_consumer(ray_cluster, deliberate_deaths):
+    """A consumer that took items ahead and is killed before handing them out: another consumer
+    gets every one of them, in order, and nothing the killed one had handed out in an earlier
+    round trip (acknowledged by its next one) comes twice."""
+    ch = fresh(prefetch=4)
+    for i in range(8):
+        ch.put(i, key="k")
+    consumer = PrefetchingConsumer.remote(ch)
+    # Round trip 1 takes 0..3 (1..3 leased); round trip 2 says those are handed out, takes 4..7 and
+    # hands out 4: 5, 6, 7 are leased to the consumer, handed out to nobody.
+    assert ray.get(consumer.take.remote(5), timeout=60) == [0, 1, 2, 3, 4]
+    assert ch.qsize(key="k") == 0 and ch.info()["leased"] == 3
+    deliberate_deaths(ray.get(consumer.pid.remote(), timeout=60))
+    ray.kill(consumer)
+    _wait_until(lambda: ch.info()["requeued_from_dead"] == 3, "the channel re-queueing the dead consumer's lease")
+    other = Channel.connect(ch.name)  # prefetches too: its first get takes all three
+    assert [other.get(key="k", timeout=30) for _ in range(3)] == [5, 6, 7]
+    with pytest.raises(TimeoutError):  # nothing comes twice
+        other.get(key="k", timeout=1)
+    info = ch.info()
+    assert info["leased"] == 0 and info["lost_with_dead"] == 0, info  # the last get settled other's lease
+    ch.destroy()
+
+
+@pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration
+def test_a_restarted_ranks_old_process_gives_its_prefetched_items_back(ray_cluster, deliberate_deaths):
+    """Ray restarts a rank under the same actor (the same consumer to the channel), but its new
+    process holds nothing: the items the old process took ahead go back to the queue."""
+    ch = fresh(prefetch=4)
+    for i in range(4):
+        ch.put(i, key="k")
+    group = WorkerGroup.launch(Peer, "peer", num_ranks=1, restart=RestartPolicy(max_restarts=1, retry_calls=False))
+    try:
+        first_pid = group.pids()[0]
+        assert group.take(ch).wait(timeout=60) == [0]  # 1, 2, 3 wait in the rank's buffer
+        deliberate_deaths(first_pid)
+        os.kill(first_pid, signal.SIGKILL)
+        _wait_until(lambda: ch.info()["requeued_from_dead"] == 3, "the channel re-queueing the old process's lease",
+                    limit_s=120)
+        assert [ch.get(key="k", timeout=30) for _ in range(3)] == [1, 2, 3]
+        assert group.pid().wait(timeout=60)[0] != first_pid, "the rank runs in a new process"
+        assert all(not p["death"] for p in _peer_roles(ch).values()), "a restarted rank is alive"
+    finally:
+        group.shutdown()
         ch.destroy()
