@@ -37,6 +37,7 @@ from typing import Any, Literal
 
 from infinirl.config import ConfigError, bounded
 from infinirl.engines.base import GenerationResult, InferenceEngine, SamplingParams
+from infinirl.engines.seeds import turn_seed
 from infinirl.registry import Registry
 
 __all__ = ["AGENT_ENVS", "AgentBudget", "AgentConfig", "AgentEnv", "AgentRollout", "AgentStep", "agent_metrics"]
@@ -238,10 +239,13 @@ class AgentRollout:
 
     def _generate_turn(self, trajectories: list[_Trajectory], sampling: SamplingParams, env_stops: tuple[str, ...],
                        call: int) -> list[_Trajectory]:
-        """One model turn for each of ``trajectories``; returns those whose turn calls the env."""
+        """One model turn for each of ``trajectories``; returns those whose turn calls the env.
+
+        ``sampling.seed`` is the chunk's (or the generation's) seed: the call's own seed mixes it with
+        ``call`` (:func:`~infinirl.engines.seeds.turn_seed`), so no call of this chunk or another shares it."""
         rooms = [self.budget.max_response_tokens - len(t.ids) for t in trajectories]
         turn_sampling = replace(sampling, max_new_tokens=max(1, min(sampling.max_new_tokens, max(rooms))),
-                                seed=None if sampling.seed is None else (sampling.seed + 7919 * call) % (2**31))
+                                seed=None if sampling.seed is None else turn_seed(sampling.seed, call))
         results = self.engine.generate([t.context() for t in trajectories], turn_sampling)
         calling = []
         for trajectory, turn, room in zip(trajectories, results, rooms):

@@ -7,6 +7,7 @@ from dataclasses import replace
 import torch
 
 from infinirl.engines.base import GenerationResult, SamplingParams
+from infinirl.engines.seeds import chunk_seed
 from infinirl.runtime import WeightSink, Worker
 
 
@@ -59,13 +60,14 @@ class RolloutWorker(Worker, WeightSink):
         stage (reward) works on chunk i while this rank generates chunk i+1.
 
         Each chunk is sampled with a seed derived from its *index*, not from this rank, so a batch's
-        samples are the same however the chunks are spread over rollout ranks. ``problems[c]`` (agent
+        samples are the same however the chunks are spread over rollout ranks
+        (:func:`~infinirl.engines.seeds.chunk_seed`; an agent's turns derive theirs from it). ``problems[c]`` (agent
         rollouts only) lists the problems of chunk ``c``'s prompts, for the agent environments.
         """
         for position, (index, prompt_ids) in enumerate(chunks):
             self.apply_staged_weights()
             chunk_sampling = sampling if sampling.seed is None else replace(
-                sampling, seed=(sampling.seed + 7919 * index) % (2**31))
+                sampling, seed=chunk_seed(sampling.seed, index))
             results = self._generate(prompt_ids, chunk_sampling, None if problems is None else problems[position])
             channel.put((index, results), key=key, weight=len(results))
         channel.flush()

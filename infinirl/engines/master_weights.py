@@ -12,11 +12,12 @@ rounding. Float32 parameters take ``torch.optim.Adam``'s own path, untouched.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from itertools import chain
 
 import torch
 
-__all__ = ["LOW_PRECISION", "MasterWeightAdam", "adam_for"]
+__all__ = ["LOW_PRECISION", "MasterWeightAdam", "adam_for", "low_precision_trainable"]
 
 LOW_PRECISION = (torch.bfloat16, torch.float16)
 
@@ -77,8 +78,15 @@ class MasterWeightAdam(torch.optim.Adam):
                     state[key] = value.detach().to(device=param.device, dtype=torch.float32, copy=True)
 
 
+def low_precision_trainable(params: Iterable[torch.Tensor]) -> list[torch.dtype]:
+    """The low-precision dtypes among the trainable ``params`` (sorted by name; empty for a float32 model):
+    non-empty is where :func:`adam_for` picks :class:`MasterWeightAdam`. The driver asks it of the policy it
+    builds to refuse, before any worker starts, what the actor's optimizer could not do (``actor.compile``)."""
+    return sorted({p.dtype for p in params if p.requires_grad and p.dtype in LOW_PRECISION}, key=str)
+
+
 def adam_for(groups: list[dict], lr: float, eps: float, **options) -> torch.optim.Adam:
     """``torch.optim.Adam`` over the parameter ``groups``, or :class:`MasterWeightAdam` where a trainable
     parameter is low-precision (float32 models keep plain Adam, bit for bit)."""
-    low = any(p.requires_grad and p.dtype in LOW_PRECISION for group in groups for p in group["params"])
+    low = low_precision_trainable(chain.from_iterable(group["params"] for group in groups))
     return (MasterWeightAdam if low else torch.optim.Adam)(groups, lr=lr, eps=eps, **options)

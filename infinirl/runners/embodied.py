@@ -57,6 +57,8 @@ from infinirl.components.env_worker import (
     stage_seeds,
 )
 from infinirl.config import ConfigError
+from infinirl.engines.master_weights import low_precision_trainable
+from infinirl.engines.parallel import DATA_PARALLEL
 from infinirl.engines.policy_lora import apply_policy_lora
 from infinirl.runners import register_runner
 from infinirl.runners.async_rollout import (
@@ -136,6 +138,8 @@ def _check_env_and_policy(cfg: EmbodiedConfig):
             raise ConfigError(f"policy {cfg.policy.name}: {exc}") from None
     if cfg.actor.value_lr is not None:
         _check_value_lr(cfg, policy)
+    if cfg.actor.compile:
+        _check_compiled_step_precision(cfg, policy)
     if cfg.algorithm.critic_warmup:
         _check_critic_warmup(cfg, policy)
     if ALGORITHMS[cfg.algorithm.name].grouped:
@@ -204,6 +208,27 @@ def _check_value_lr(cfg: EmbodiedConfig, policy) -> None:
     if not any(lr_of(name) == cfg.actor.value_lr for name, _ in policy.named_parameters()):
         raise ConfigError(f"actor.value_lr: policy {cfg.policy.name} has no critic parameters (its value head is "
                           "off, or it names no critic_modules); remove actor.value_lr")
+
+
+def _check_compiled_step_precision(cfg: EmbodiedConfig, policy) -> None:
+    """``actor.compile`` on a policy that trains bf16/fp16 weights (a VLA loaded with ``policy.kwargs.dtype``
+    bfloat16, full or LoRA, whose adapters take the base layer's dtype): the actor's Adam steps them through
+    float32 masters (``engines.master_weights``), which the compiled whole step (plain Adam on the weights
+    themselves) does not keep. Asked of the policy built here, with LoRA applied, so only what the actor's
+    optimizer will hold is refused (frozen bf16 VLAs under float32 heads compile, and so does bf16 that this
+    host loads as float32); the compiled step would otherwise refuse it only in the first update, after the
+    workers started and the first rollout ran. Under FSDP2 only the loss is compiled and Adam stays eager."""
+    if DATA_PARALLEL.get(cfg.actor.strategy).whole_step is None:
+        return
+    low = low_precision_trainable(policy.parameters())
+    if not low:
+        return
+    names = "/".join(str(dtype).removeprefix("torch.") for dtype in low)
+    asked = cfg.policy.kwargs.get("dtype")
+    key, fix = (f" (policy.kwargs.dtype={asked})", " or policy.kwargs.dtype=float32") if asked is not None else ("", "")
+    raise ConfigError(f"actor.compile=true: policy {cfg.policy.name} trains {names} weights{key}, which Adam steps "
+                      "through float32 master copies that actor.compile's fused step (plain Adam) does not keep; "
+                      f"set actor.compile=false{fix}")
 
 
 def _check_critic_warmup(cfg: EmbodiedConfig, policy) -> None:

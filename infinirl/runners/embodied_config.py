@@ -210,7 +210,8 @@ class ActorConfig:
     """torch.compile the whole optimizer step (forward, PPO loss, gradient, clipping, Adam) into fused
     kernels: much faster updates of small policies on CPU, whose eager cost is per-op overhead, after
     a one-off compile of seconds to a minute in the first update. Needs a C++ compiler (g++/clang++).
-    With strategy=fsdp only the forward pass and loss are compiled (FSDP2's hooks stay eager)."""
+    With strategy=fsdp only the forward pass and loss are compiled (FSDP2's hooks stay eager). Refused
+    in the driver for a policy that trains bf16/fp16 weights (their Adam keeps float32 masters)."""
     device: Literal["auto", "cpu"] = "auto"
     """auto: train on the device the placement gives each rank (a GPU when placed on one, NCCL between
     ranks; else CPU); cpu: train on the CPU even when placed on a GPU (a 2x64 MLP's tiny ops are

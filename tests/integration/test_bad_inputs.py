@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import pytest
 
@@ -228,6 +229,43 @@ def test_bad_input_known_from_the_cluster_starts_no_worker(case, tmp_path, tiny_
     code, lines, err = _run(args, _files(tmp_path, tiny_llama_dir), capsys)
     assert code == 2, err
     assert len(lines) == 1 and fragment in lines[0], err
+    assert not os.path.exists(tmp_path / "out")
+
+
+OFT_FIXTURE = Path(__file__).parents[1] / "fixtures" / "vla_oft"
+# The shipped OpenVLA-OFT config (bf16 weights) on the tiny published-format checkpoint.
+OFT = ["train", "grpo_openvla_oft_libero", "output_dir=<tmp>/out",
+       f"policy.kwargs.checkpoint={OFT_FIXTURE / 'openvla_oft'}",
+       f"policy.kwargs.architecture={OFT_FIXTURE / 'architecture.json'}",
+       "policy.kwargs.unnorm_key=tiny_libero_no_noops", "env.kwargs={image_size: 32}"]
+
+
+@pytest.fixture
+def bf16_kept(monkeypatch):
+    """bf16 weights stay bf16 on this CPU (on one without native bf16 they would load as float32)."""
+    from infinirl.engines.cpu_dtype import cpu_bf16_is_fast
+
+    monkeypatch.setenv("INFINIRL_CPU_BF16", "1")
+    cpu_bf16_is_fast.cache_clear()
+    yield
+    monkeypatch.delenv("INFINIRL_CPU_BF16")
+    cpu_bf16_is_fast.cache_clear()
+
+
+@pytest.mark.parametrize("dtype", ["bfloat16", "float16"])
+def test_a_compiled_update_of_low_precision_weights_is_one_line(dtype, tmp_path, tiny_llama_dir, capsys, no_workers,
+                                                                 bf16_kept):
+    """The compiled step keeps no float32 master weights: refused by the driver, not by the actor's
+    first update after the workers started and the first rollout ran."""
+    pytest.importorskip("libero")
+    args = [*OFT, f"policy.kwargs.dtype={dtype}", "actor.compile=true"]
+    code, lines, err = _run(args, _files(tmp_path, tiny_llama_dir), capsys)
+    assert code == 2, err
+    assert len(lines) == 1 and lines[0].startswith("infinirl: config error: "), err
+    assert (f"actor.compile=true: policy openvla_oft trains {dtype} weights (policy.kwargs.dtype={dtype})"
+            in lines[0]), lines[0]
+    assert lines[0].endswith("set actor.compile=false or policy.kwargs.dtype=float32"), lines[0]
+    assert "Traceback" not in err
     assert not os.path.exists(tmp_path / "out")
 
 

@@ -52,3 +52,28 @@ def test_the_vla_configs_refuse_a_second_observation_normaliser(name):
     assert cfg.policy.normalize_obs is None and not cfg.normalizes_obs()
     _, plain = build_config("ppo_metaworld_reach", [])
     assert plain.normalizes_obs()
+
+
+def test_actor_compile_is_refused_only_where_the_actor_would_train_low_precision_weights(monkeypatch):
+    """The driver asks the policy it builds (LoRA applied) what the actor's optimizer will hold: bf16
+    adapters are refused like bf16 weights; float32 weights, and FSDP2 (its Adam stays eager), pass."""
+    pytest.importorskip("libero")
+    from infinirl.config import ConfigError
+    from infinirl.engines.cpu_dtype import cpu_bf16_is_fast
+    from infinirl.runners.embodied import _check_env_and_policy
+
+    monkeypatch.setenv("INFINIRL_CPU_BF16", "1")  # bf16 stays bf16 on a CPU without native bf16
+    cpu_bf16_is_fast.cache_clear()
+    tiny = [f"policy.kwargs.checkpoint={FIXTURE / 'openvla_oft'}",
+            f"policy.kwargs.architecture={FIXTURE / 'architecture.json'}",
+            "policy.kwargs.unnorm_key=tiny_libero_no_noops", "env.kwargs={image_size: 32}", "actor.compile=true"]
+    try:
+        _, cfg = build_config("grpo_openvla_oft_libero", [*tiny, "actor.lora={r: 2, train_fully: []}"])
+        with pytest.raises(ConfigError, match=r"^actor.compile=true: policy openvla_oft trains bfloat16 weights"):
+            _check_env_and_policy(cfg)
+        for passing in (["policy.kwargs.dtype=float32"], ["actor.strategy=fsdp"]):
+            _, cfg = build_config("grpo_openvla_oft_libero", [*tiny, *passing])
+            _check_env_and_policy(cfg)
+    finally:
+        monkeypatch.delenv("INFINIRL_CPU_BF16")
+        cpu_bf16_is_fast.cache_clear()
