@@ -109,8 +109,8 @@ def test_a_blocked_joint_does_not_collect_a_target_it_jumps_to_when_it_clears(em
     robot, env = so101_env(emulator)
     try:
         env.reset()
-        blocked_at = emulator.position(2)
         emulator.block(2)  # shoulder_lift held where it is (a table, a hand)
+        blocked_at = emulator.position(2)
         lead_ticks = 3.0 * robot.config.max_lead_s * TICKS_PER_RADIAN
         action = np.array([0.5, 1.0, 0.0, 0.0, 0.0, 1.0])  # delta mode: joint 0 at half speed, joint 1 full
         for _ in range(60):  # at 50 Hz, 60 full steps would be 1.8 rad of target

@@ -4,6 +4,7 @@ them and maps the gripper's 0 .. 1 onto them; limits it cannot use refuse the co
 
 import logging
 import math
+import time
 
 import numpy as np
 import pytest
@@ -14,6 +15,13 @@ from infinirl.realworld.feetech_emulator import FeetechBusEmulator
 from infinirl.realworld.safety import SafeRobot, SafetyConfig
 
 RADIANS_PER_TICK = 2 * math.pi / 4096
+
+
+def wait_until(predicate, timeout_s=5.0):
+    deadline = time.monotonic() + timeout_s
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return predicate()
 GRIPPER_LIMITS = (1900, 3300)
 SHOULDER_LIFT_LIMITS = (1500, 2600)  # narrower than the model's +-1.745 rad (2048 -+ 1137)
 
@@ -35,8 +43,10 @@ def test_limits_are_read_off_the_wire_and_bound_commands_and_the_gripper():
             assert goals[2] == u16(2600) and goals[6] == u16(GRIPPER_LIMITS[0])  # closed: the low limit
             assert arm.goal_ticks(np.array([0.0, -1.5, 0.0, 0.0, 0.0, 1.0]))[6] == u16(GRIPPER_LIMITS[1])
             arm.act(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.5]))
-            assert emulator.register(6, Register.GOAL_POSITION) == 2600  # halfway between the limits
+            # halfway between the limits (a sync write is unanswered: the emulator applies it on its own thread)
+            assert wait_until(lambda: emulator.register(6, Register.GOAL_POSITION) == 2600)
             arm.stop()
+            assert wait_until(lambda: emulator.register(6, Register.TORQUE_ENABLE) == 0)  # limp: it stays pushed
             emulator.push(6, 1900 + 350)
             assert arm.observe().gripper == pytest.approx(0.25)
         finally:
