@@ -2,19 +2,26 @@
 talks to it through ``emulator.path`` as it would to ``/dev/ttyACM0``.
 
 A thread serves the pty's other end like ``ids`` servos on one bus: each has the STS3215 control
-table (model number, position limits, torque enable, goal position and speed, present position and
-speed), and a servo whose torque is on moves its present position toward its goal at its speed
-(``max_speed`` ticks/s, or the lower goal speed if one is set) in wall-clock time. A request with a
-wrong checksum is ignored, as a servo ignores it; a request to an id not on the bus gets no answer.
-Present position is sign-magnitude (bit 15 the sign), as STS firmware reports a joint pushed below
-the encoder's zero (:meth:`push`). Faults for tests: :meth:`corrupt_replies` sends answers with a
-broken checksum, :meth:`drop_replies` loses answers on the wire, :meth:`set_status_error` sets status
-error bits (e.g. overload) in a servo's answers, :meth:`unplug` takes a servo off the bus. Every
-request is kept, byte for byte, in :attr:`requests`.
+table (model number, the EEPROM position limits, torque enable, goal position and speed, present
+position and speed), and a servo whose torque is on moves its present position toward its goal at
+its speed (``max_speed`` ticks/s, or the lower goal speed if one is set) in wall-clock time. The
+position limits (``Min_Position_Limit`` / ``Max_Position_Limit``, addresses 9 and 11) are the
+factory's 0 and 4095 unless ``limits`` gives a servo its calibrated ones; as the firmware does, a
+goal beyond them is taken as the nearest limit (both 0: no limits, the multi-turn setting). A
+request with a wrong checksum is ignored, as a servo ignores it; a request to an id not on the bus
+gets no answer. Present position is sign-magnitude (bit 15 the sign), as STS firmware reports a
+joint pushed below the encoder's zero (:meth:`push`). Faults for tests: :meth:`corrupt_replies`
+sends answers with a broken checksum, :meth:`drop_replies` loses answers on the wire,
+:meth:`set_status_error` sets status error bits (e.g. overload) in a servo's answers, :meth:`unplug`
+takes a servo off the bus, :meth:`set_max_speed` slows a joint (a load), :meth:`block` puts an
+obstacle in a joint's way (contact, a hand holding it: the servo keeps its goal and pushes,
+reporting speed 0; the overload protection a long stall trips on a real servo is
+:meth:`set_status_error`'s to inject). Every request is kept, byte for byte, in :attr:`requests`.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import select
 import threading
@@ -42,16 +49,18 @@ _CENTER = 2048
 class EmulatedServo:
     """One STS3215's control table and motion."""
 
-    def __init__(self, servo_id: int, position: int, max_speed: float) -> None:
+    def __init__(self, servo_id: int, position: int, max_speed: float, limits: tuple[int, int] = (0, 4095)) -> None:
         self.table = bytearray(256)
         self.max_speed = float(max_speed)
         self._write(Register.MODEL_NUMBER, u16(STS3215_MODEL_NUMBER))
         self._write(Register.ID, bytes([servo_id]))
-        self._write(Register.MAX_POSITION_LIMIT, u16(4095))
+        self._write(Register.MIN_POSITION_LIMIT, u16(limits[0]))
+        self._write(Register.MAX_POSITION_LIMIT, u16(limits[1]))
         self._write(Register.GOAL_POSITION, u16(min(max(position, 0), 4095)))
         self._write(Register.PRESENT_POSITION, encode_sign_magnitude(position))
         self._position = float(position)
         self.status_error = 0  # the error byte of this servo's answers
+        self.free = (-math.inf, math.inf)  # the span an obstacle leaves the joint (see block)
 
     def _write(self, register: tuple[int, int], data: bytes) -> None:
         self.table[register[0]:register[0] + len(data)] = data
@@ -68,7 +77,8 @@ class EmulatedServo:
         """``seconds`` of motion toward the goal (none with torque off)."""
         goal = self.value(Register.GOAL_POSITION)
         low, high = self.value(Register.MIN_POSITION_LIMIT), self.value(Register.MAX_POSITION_LIMIT)
-        goal = min(max(goal, low), high)
+        if low or high:  # both 0 is the firmware's "no limits"
+            goal = min(max(goal, low), high)
         speed = self.max_speed
         if self.value(Register.GOAL_SPEED):
             speed = min(speed, self.value(Register.GOAL_SPEED))
@@ -77,8 +87,9 @@ class EmulatedServo:
         if moving and seconds > 0:
             direction = 1.0 if goal > self._position else -1.0
             step = min(abs(goal - self._position), speed * seconds)
-            self._position += direction * step
-            velocity = direction * step / seconds
+            reached = min(max(self._position + direction * step, self.free[0]), self.free[1])
+            velocity = (reached - self._position) / seconds
+            self._position = reached
         self._write(Register.PRESENT_POSITION, encode_sign_magnitude(round(self._position)))
         self._write(Register.PRESENT_SPEED, encode_sign_magnitude(max(min(round(velocity), 0x7FFF), -0x7FFF)))
         self._write(Register.MOVING, bytes([int(moving)]))
@@ -91,14 +102,25 @@ class EmulatedServo:
         self._position = float(position)
         self._write(Register.PRESENT_POSITION, encode_sign_magnitude(position))
 
+    def block(self, at: float | None) -> None:
+        """An obstacle at ``at`` ticks the joint cannot move past from the side it is on (``None``:
+        the joint held where it is, both ways)."""
+        if at is None or at == self._position:
+            self.free = (self._position, self._position)
+        elif at > self._position:
+            self.free = (-math.inf, float(at))
+        else:
+            self.free = (float(at), math.inf)
+
 
 class FeetechBusEmulator:
     """``ids`` emulated servos behind a pty (see the module docstring); a context manager."""
 
     def __init__(self, ids: Iterable[int] = range(1, 7), *, positions: Mapping[int, int] | None = None,
-                 max_speed: float = 3000.0) -> None:
-        positions = dict(positions or {})
-        self.servos = {servo_id: EmulatedServo(servo_id, positions.get(servo_id, _CENTER), max_speed)
+                 max_speed: float = 3000.0, limits: Mapping[int, tuple[int, int]] | None = None) -> None:
+        positions, limits = dict(positions or {}), dict(limits or {})
+        self.servos = {servo_id: EmulatedServo(servo_id, positions.get(servo_id, _CENTER), max_speed,
+                                               limits.get(servo_id, (0, 4095)))
                        for servo_id in ids}
         self.requests: list[bytes] = []
         self.ignored_requests = 0  # requests dropped for a wrong checksum
@@ -147,6 +169,25 @@ class FeetechBusEmulator:
         with self._lock:
             self._advance()
             self.servos[servo_id].push(position)
+
+    def block(self, servo_id: int, at: int | None = None) -> None:
+        """An obstacle in servo ``servo_id``'s way at ``at`` ticks (default: the joint held where it
+        is); the servo pushes toward its goal without getting past it, until :meth:`unblock`."""
+        with self._lock:
+            self._advance()
+            self.servos[servo_id].block(at)
+
+    def unblock(self, servo_id: int) -> None:
+        """The obstacle clears: the joint moves on toward its goal."""
+        with self._lock:
+            self._advance()
+            self.servos[servo_id].free = (-math.inf, math.inf)
+
+    def set_max_speed(self, servo_id: int, ticks_per_s: float) -> None:
+        """Servo ``servo_id`` moves at most this fast (a loaded joint is slower than a free one)."""
+        with self._lock:
+            self._advance()
+            self.servos[servo_id].max_speed = float(ticks_per_s)
 
     def unplug(self, servo_id: int) -> None:
         """Servo ``servo_id`` stops answering (its packets are still on the wire, unheard)."""

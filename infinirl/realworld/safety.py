@@ -7,13 +7,29 @@
 * position limits: joint angles to the spec's joint limits (``joint_position`` robots), the
   end-effector target to the workspace box (``ee_position`` robots), the gripper to 0 .. 1;
 * velocity: each joint (or the end effector) moves at most ``velocity_scale`` times the spec's
-  top speed per control period from the last target. The position limits are applied once more
-  after it, so a command is within them even from a pose beyond them (the limit wins there).
+  top speed per control period from the last target;
+* tracking: each joint (or the end effector) target leads the *measured* pose by at most what the
+  spec's top speed covers in ``max_lead_s``. The velocity bound alone is relative to the last
+  target: a joint that is blocked (contact, load) or lags would let the target walk away from the
+  real pose step after step, and the arm would jump the whole gap when the obstacle clears. The
+  lead bound is a window around the measured pose, not a step from it, so the steady lag of a
+  joint that follows a moving target (a period or two of motion) and a loaded servo's steady
+  position error stay inside it and the arm still gets everywhere. The gripper is exempt: a
+  grasp is a closed target the fingers press toward while the object holds them open.
+
+The position limits are applied once more after these, so a command is within them even from a
+pose beyond them (the limit wins there).
 
 Each clipped entry is a :class:`ClipRecord`, logged as a warning and counted. The last target (or
-the reported pose it starts from) is not trusted either: when it is not finite the filter raises
-:class:`UnknownPoseError`, and :class:`SafeRobot` holds the driver, records an ``unknown_pose``
-event, sends nothing and raises it to the caller; the next command re-reads the pose.
+the reported pose it starts from) and the measured pose are not trusted either: when one is not
+finite the filter raises :class:`UnknownPoseError`, and :class:`SafeRobot` holds the driver, records
+an ``unknown_pose`` event, sends nothing and raises it to the caller; the next command re-reads the
+pose.
+
+The measured pose :class:`SafeRobot` bounds a command with is the latest observation made through it
+since the previous command (the control loop observes once per step, after the command's period),
+or, when there is none, one it reads itself: no command is bounded by a pose older than the command
+before it.
 
 :class:`SafeRobot` wraps a driver with the filter and a monitor thread:
 
@@ -63,17 +79,23 @@ class ServoFaultError(RobotError):
 
 @dataclass(frozen=True, kw_only=True)
 class SafetyConfig:
-    """Safety defaults: half the robot's top speed, hold after 0.5 s without a command, stop after
-    2 s without a heartbeat. A deadline of ``None`` turns that check off."""
+    """Safety defaults: half the robot's top speed, a target at most 0.1 s of top-speed motion ahead
+    of the measured pose, hold after 0.5 s without a command, stop after 2 s without a heartbeat.
+    ``None`` turns that check off.
+
+    ``max_lead_s`` is a time so that one value fits robots of any speed and rate: 0.1 s is 0.3 rad
+    on the SO-101 (3 rad/s), four control periods of half-speed motion at 20 Hz, where a joint
+    following a moving target lags by one or two and a loaded STS3215 sags by a few degrees."""
 
     velocity_scale: float = 0.5
+    max_lead_s: float | None = 0.1
     command_deadline_s: float | None = 0.5
     heartbeat_deadline_s: float | None = 2.0
 
     def __post_init__(self) -> None:
         if not 0 < self.velocity_scale <= 1:
             raise ValueError(f"SafetyConfig.velocity_scale must be in (0, 1], got {self.velocity_scale}")
-        for name in ("command_deadline_s", "heartbeat_deadline_s"):
+        for name in ("max_lead_s", "command_deadline_s", "heartbeat_deadline_s"):
             value = getattr(self, name)
             if value is not None and value <= 0:
                 raise ValueError(f"SafetyConfig.{name} must be positive or None, got {value}")
@@ -82,7 +104,7 @@ class SafetyConfig:
 @dataclass(frozen=True, kw_only=True)
 class ClipRecord:
     """One command entry the filter changed: ``kind`` is ``non_finite``, ``joint_limit``,
-    ``workspace``, ``gripper`` or ``velocity``."""
+    ``workspace``, ``gripper``, ``velocity`` or ``tracking`` (too far ahead of the measured pose)."""
 
     kind: str
     index: int
@@ -109,37 +131,55 @@ class SafetyFilter:
         size = spec.target_size
         if spec.control_mode == "joint_position":
             self._low, self._high, self._limit_kind = spec.joint_low, spec.joint_high, "joint_limit"
-            self._max_step = spec.max_joint_velocity * self.config.velocity_scale * spec.control_period_s
+            top_speed = spec.max_joint_velocity
         else:
             self._low, self._high, self._limit_kind = spec.workspace_low, spec.workspace_high, "workspace"
-            self._max_step = np.full(size, spec.max_ee_speed * self.config.velocity_scale * spec.control_period_s)
+            top_speed = np.full(size, spec.max_ee_speed)
+        self._max_step = top_speed * self.config.velocity_scale * spec.control_period_s
+        self._max_lead = None if self.config.max_lead_s is None else top_speed * self.config.max_lead_s
 
-    def __call__(self, command: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, list[ClipRecord]]:
+    def __call__(self, command: np.ndarray, reference: np.ndarray,
+                 measured: np.ndarray | None = None) -> tuple[np.ndarray, list[ClipRecord]]:
         """``command`` made safe to send after ``reference`` (the last target sent, or the present
-        pose), and a record of each entry changed. Raises :class:`UnknownPoseError` when ``reference``
-        is not finite: motion cannot be limited from an unknown pose, and a non-finite command entry
-        would be replaced by it."""
+        pose) with the robot at ``measured`` (a command that would hold it where it was observed:
+        :meth:`RobotObservation.current_target`), and a record of each entry changed. Without
+        ``measured`` the tracking bound is not applied. Raises :class:`UnknownPoseError` when
+        ``reference`` or ``measured`` is not finite: motion cannot be limited from an unknown pose,
+        and a non-finite command entry would be replaced by it."""
         requested = self.spec.check_command(command)
         reference = self.spec.check_command(reference)
         unknown = np.flatnonzero(~np.isfinite(reference))
         if unknown.size:
             raise UnknownPoseError(f"{self.spec.kind}: the pose to limit motion from is not finite at entries "
                                    f"{unknown.tolist()} ({reference.tolist()}); nothing is sent")
+        size = self.spec.target_size
+        if measured is not None:
+            measured = self.spec.check_command(measured)
+            unknown = np.flatnonzero(~np.isfinite(measured[:size]))  # the gripper's reading bounds nothing
+            if unknown.size:
+                raise UnknownPoseError(f"{self.spec.kind}: the measured pose is not finite at entries "
+                                       f"{unknown.tolist()} ({measured.tolist()}); nothing is sent")
         safe = requested.copy()
         records: list[ClipRecord] = []
         bad = ~np.isfinite(safe)
         safe[bad] = reference[bad]
         records += [ClipRecord(kind="non_finite", index=int(i), requested=float(requested[i]),
                                allowed=float(safe[i])) for i in np.flatnonzero(bad)]
-        size = self.spec.target_size
         self._clip(safe, slice(0, size), self._low, self._high, self._limit_kind, records)
         if self.spec.has_gripper:
             self._clip(safe, slice(size, size + 1), np.zeros(1), np.ones(1), "gripper", records)
         low = reference[:size] - self._max_step
         high = reference[:size] + self._max_step
         self._clip(safe, slice(0, size), low, high, "velocity", records)
+        if measured is not None and self._max_lead is not None:
+            # After the velocity bound, so it wins: when the last target is already further ahead than
+            # this (the joint was blocked, or pushed back by hand), the target comes back toward the
+            # real pose, which moves the arm less, never more.
+            low = measured[:size] - self._max_lead
+            high = measured[:size] + self._max_lead
+            self._clip(safe, slice(0, size), low, high, "tracking", records)
         # The limits again, last: from a pose beyond them (a robot pushed there, a sensor's offset) the
-        # velocity window lies outside them too, and the limits win over the velocity bound.
+        # velocity and tracking windows lie outside them too, and the limits win over both.
         self._clip(safe, slice(0, size), self._low, self._high, self._limit_kind, records)
         return safe, records
 
@@ -170,6 +210,7 @@ class SafeRobot(RobotDriver):
         self.events: deque[SafetyEvent] = deque(maxlen=history)
         self._lock = threading.RLock()
         self._reference: np.ndarray | None = None
+        self._measured: np.ndarray | None = None  # the pose observed since the last command (see the module doc)
         self._last_command = self._last_heartbeat = time.monotonic()
         self._holding = self._stopped = self._stop_confirmed = self._busy = False
         self._closing = threading.Event()
@@ -181,6 +222,9 @@ class SafeRobot(RobotDriver):
 
     def connect(self) -> None:
         self.driver.connect()
+        # A driver may learn its limits only from the robot (the SO-101 reads its servos' EEPROM
+        # position limits), so the filter is built again from the spec it has once connected.
+        self.filter = SafetyFilter(self.driver.spec, self.config)
         self._rearm(self.driver.observe())
         if self._monitor is None and (self.config.command_deadline_s or self.config.heartbeat_deadline_s):
             self._closing.clear()
@@ -191,6 +235,7 @@ class SafeRobot(RobotDriver):
         # Under the lock: the monitor thread's hold/stop talk to the same driver (one serial bus).
         with self._lock:
             observation = self.driver.observe()
+            self._measured = self._pose_of(observation)
             faults = observation.info.get("servo_errors")
             if faults:
                 detail = "; ".join(f"servo {servo}: {', '.join(bits)}" for servo, bits in faults.items())
@@ -204,15 +249,18 @@ class SafeRobot(RobotDriver):
         with self._lock:
             if self._stopped:
                 raise RobotStoppedError(f"{self.spec.kind} was stopped by the safety layer; reset() re-arms it")
-            if self._reference is None:
-                self._reference = self.driver.observe().current_target(self.spec)
+            measured = self._measured
+            if measured is None or self._reference is None:
+                measured = self._pose_of(self.driver.observe())
+                if self._reference is None:
+                    self._reference = measured
             try:
-                safe, records = self.filter(command, self._reference)
+                safe, records = self.filter(command, self._reference, measured)
             except UnknownPoseError as exc:
                 # The driver's own hold keeps the pose without a target from us; the next command
                 # re-reads the pose, so a reading that recovers resumes.
                 self._event("unknown_pose", str(exc))
-                self._reference = None
+                self._reference = self._measured = None
                 self.driver.hold()
                 self._holding = True
                 raise
@@ -223,6 +271,7 @@ class SafeRobot(RobotDriver):
                                record.index, record.requested, record.allowed)
             self.driver.act(safe)
             self._reference = safe
+            self._measured = None  # the next command needs a pose observed after this one
             self._last_command = time.monotonic()
             self._holding = False
             return safe.copy()
@@ -246,7 +295,7 @@ class SafeRobot(RobotDriver):
         with self._lock:
             self.driver.hold()
             self._holding = True
-            self._reference = None  # the next command is limited from where the robot stopped
+            self._reference = self._measured = None  # the next command is limited from where the robot stopped
 
     def stop(self) -> None:
         with self._lock:
@@ -261,9 +310,16 @@ class SafeRobot(RobotDriver):
             self._monitor = None
         self.driver.close()
 
+    def _pose_of(self, observation: RobotObservation) -> np.ndarray:
+        """The observation's pose as a command; NaN where the robot does not report it, so the
+        filter refuses to bound a command with it (:class:`UnknownPoseError`)."""
+        pose = observation.current_target(self.spec)
+        return np.full(self.spec.command_size, np.nan) if pose is None else pose
+
     def _rearm(self, observation: RobotObservation) -> None:
         with self._lock:
             self._reference = observation.current_target(self.spec)
+            self._measured = self._pose_of(observation)
             self._last_command = self._last_heartbeat = time.monotonic()
             self._holding = self._stopped = self._stop_confirmed = False
 

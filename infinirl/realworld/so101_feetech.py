@@ -14,6 +14,17 @@ decoded as such, never as a plain 16-bit number (which would read -5 as 32773).
 ``range_max`` ticks); the gripper maps ``range_min`` (closed) .. ``range_max`` (open) to 0 .. 1. The
 defaults assume an arm calibrated so that ticks 2048 is each joint's zero, as the LeRobot model's;
 a JSON file (``calibration_file``) overrides them per servo.
+
+Each servo also keeps its own position limits in EEPROM (``Min_Position_Limit`` /
+``Max_Position_Limit``, which LeRobot's calibration writes from the range each joint was moved
+through): the firmware refuses to go beyond them whatever goal it gets. ``connect`` reads them and
+narrows every servo's range to them, so the spec's joint limits (hence the safety filter's) are
+the ones the arm really has, a command is bounded before it reaches the wire instead of being cut
+short by the firmware unseen, and the gripper's 0 .. 1 spans exactly its calibrated opening (its
+default calibration range is the whole turn: the servo's limits decide). Limits that are inverted
+or empty (``min >= max``; 0 and 0 is the firmware's multi-turn setting), beyond one turn, or clear of
+the configured range refuse the connection, naming the servo. The spec before ``connect`` is the
+configured one; after it, the one the limits leave.
 """
 
 from __future__ import annotations
@@ -24,7 +35,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -50,7 +61,7 @@ from infinirl.realworld.feetech import (
 from infinirl.realworld.so101 import SO101_JOINT_HIGH, SO101_JOINT_LOW, so101_spec
 
 __all__ = ["DEFAULT_CALIBRATION", "SO101_SERVO_IDS", "SO101FeetechArm", "ServoCalibration", "attached_so101_arms",
-           "load_calibration"]
+           "load_calibration", "within_limits"]
 
 logger = logging.getLogger(__name__)
 
@@ -61,7 +72,8 @@ _CENTER = TICKS_PER_TURN // 2
 
 @dataclass(frozen=True, kw_only=True)
 class ServoCalibration:
-    """One servo: its id, the ticks at joint angle 0, the direction, and the allowed tick range."""
+    """One servo: its id, the ticks at joint angle 0, the direction, and the allowed tick range (which
+    ``connect`` narrows to the servo's own EEPROM position limits)."""
 
     id: int
     homing_offset: int = _CENTER
@@ -101,9 +113,9 @@ def _default_calibration() -> tuple[ServoCalibration, ...]:
                          range_max=_CENTER + math.floor(high / _RADIANS_PER_TICK))
         for servo_id, low, high in zip(SO101_SERVO_IDS[:5], SO101_JOINT_LOW, SO101_JOINT_HIGH, strict=True)
     )
-    # The LeRobot model's gripper joint spans -10 to 100 degrees, closed at the low end.
-    gripper = ServoCalibration(id=SO101_SERVO_IDS[5], range_min=_CENTER - round(math.radians(10) / _RADIANS_PER_TICK),
-                               range_max=_CENTER + round(math.radians(100) / _RADIANS_PER_TICK))
+    # The whole turn: the gripper's opening is its servo's EEPROM position limits, read at connect
+    # (where each gripper closes depends on how it was assembled, which only its calibration knows).
+    gripper = ServoCalibration(id=SO101_SERVO_IDS[5])
     return (*joints, gripper)
 
 
@@ -147,10 +159,11 @@ class SO101FeetechArm(RobotDriver):
         self.port = port
         self._baudrate = baudrate
         self._timeout_s = timeout_s
-        self.calibration = load_calibration(calibration_file) if calibration_file else DEFAULT_CALIBRATION
-        ranges = np.array([servo.angle_range() for servo in self.calibration[:5]])
-        self._spec = so101_spec(kind="so101_feetech", control_hz=control_hz, joint_low=ranges[:, 0],
-                                joint_high=ranges[:, 1])
+        self._control_hz = control_hz
+        self.configured_calibration = load_calibration(calibration_file) if calibration_file else DEFAULT_CALIBRATION
+        self.calibration = self.configured_calibration  # narrowed to the servos' own limits at connect
+        self.position_limits: dict[int, tuple[int, int]] = {}  # id -> EEPROM (min, max), read at connect
+        self._spec = self._spec_of(self.calibration)
         self._ids = tuple(servo.id for servo in self.calibration)
         # The spec's top joint speed as each servo's speed cap: the safety layer limits how far a
         # target moves per period, this limits how fast the servo gets there (GOAL_SPEED 0 would be
@@ -170,9 +183,15 @@ class SO101FeetechArm(RobotDriver):
     def spec(self) -> RobotSpec:
         return self._spec
 
+    def _spec_of(self, calibration: Sequence[ServoCalibration]) -> RobotSpec:
+        ranges = np.array([servo.angle_range() for servo in calibration[:5]])
+        return so101_spec(kind="so101_feetech", control_hz=self._control_hz, joint_low=ranges[:, 0],
+                          joint_high=ranges[:, 1])
+
     def connect(self) -> None:
-        """Open the port, check every servo answers and is an STS3215, then turn torque on with each
-        goal set to where the servo already is (so nothing jumps)."""
+        """Open the port, check every servo answers and is an STS3215, read its EEPROM position
+        limits and narrow its range to them (see the module docstring), then turn torque on with
+        each goal set to where the servo already is (so nothing jumps)."""
         if self._bus is not None:
             return
         bus = FeetechBus(self.port, baudrate=self._baudrate, timeout_s=self._timeout_s)
@@ -187,9 +206,18 @@ class SO101FeetechArm(RobotDriver):
             if wrong:
                 raise RobotError(f"SO-101 on {self.port}: servos {wrong} (id: model number) are not STS3215 "
                                  f"({STS3215_MODEL_NUMBER})")
+            # Both limits in one read: Min_Position_Limit (9, 2 bytes) then Max_Position_Limit (11, 2 bytes).
+            raw = bus.sync_read((Register.MIN_POSITION_LIMIT[0], 4), self._ids)
+            limits = {servo_id: (int.from_bytes(data[:2], "little"), int.from_bytes(data[2:], "little"))
+                      for servo_id, data in raw.items()}
+            calibration = within_limits(self.configured_calibration, limits, self.port)
         except BaseException:
             bus.close()
             raise
+        self.position_limits = limits
+        self.calibration = calibration
+        self._spec = self._spec_of(calibration)
+        self._warn_about_limits()
         self._bus = bus
         self._connected_at = time.monotonic()
         self._arm_at_present_pose()
@@ -272,6 +300,22 @@ class SO101FeetechArm(RobotDriver):
             self._bus.close()
             self._bus = None
 
+    def _warn_about_limits(self) -> None:
+        gripper = self.calibration[5]
+        if self.position_limits[gripper.id] == (0, TICKS_PER_TURN - 1):
+            logger.warning("SO-101 on %s: gripper servo %d has the factory position limits 0..%d, so its 0 .. 1 "
+                           "spans a whole turn; calibrate the arm (e.g. lerobot-calibrate) to store its opening",
+                           self.port, gripper.id, TICKS_PER_TURN - 1)
+        for servo, configured, angle in zip(self.calibration[:5], self.configured_calibration[:5], self.home[:5],
+                                            strict=True):
+            if (servo.range_min, servo.range_max) != (configured.range_min, configured.range_max):
+                logger.info("SO-101 on %s: servo %d's EEPROM limits narrow its range to %d..%d ticks", self.port,
+                            servo.id, servo.range_min, servo.range_max)
+            low, high = servo.angle_range()
+            if not low <= angle <= high:
+                logger.warning("SO-101 on %s: the home angle %.4g of servo %d is outside its limits %.4g..%.4g rad; "
+                               "reset drives it to the nearest", self.port, angle, servo.id, low, high)
+
     def _arm_at_present_pose(self) -> None:
         bus = self._require_bus()
         bus.sync_write(Register.GOAL_POSITION, self._hold_goals(bus))
@@ -293,6 +337,31 @@ class SO101FeetechArm(RobotDriver):
         if self._bus is None:
             raise RobotError(f"SO-101 on {self.port} is not connected: call connect() first")
         return self._bus
+
+
+def within_limits(calibration: Sequence[ServoCalibration], limits: dict[int, tuple[int, int]],
+                  port: str) -> tuple[ServoCalibration, ...]:
+    """``calibration`` with each servo's range narrowed to its EEPROM position limits ``limits``
+    (id -> (min, max) ticks); a one-line :class:`RobotError` naming every servo whose limits are
+    inverted or empty, beyond one turn, or clear of its configured range."""
+    narrowed, problems = [], []
+    for servo in calibration:
+        low, high = limits[servo.id]
+        if low >= high:
+            problems.append(f"servo {servo.id} has Min_Position_Limit {low} >= Max_Position_Limit {high} (inverted, "
+                            f"or 0 and 0: the multi-turn setting)")
+        elif high >= TICKS_PER_TURN:
+            problems.append(f"servo {servo.id} has Max_Position_Limit {high}, beyond one turn "
+                            f"(0..{TICKS_PER_TURN - 1})")
+        elif max(low, servo.range_min) >= min(high, servo.range_max):
+            problems.append(f"servo {servo.id}'s limits {low}..{high} leave nothing of its calibrated range "
+                            f"{servo.range_min}..{servo.range_max}")
+        else:
+            narrowed.append(replace(servo, range_min=max(low, servo.range_min), range_max=min(high, servo.range_max)))
+    if problems:
+        raise RobotError(f"SO-101 on {port}: {'; '.join(problems)}; recalibrate the arm (e.g. lerobot-calibrate) or "
+                         "fix calibration_file")
+    return tuple(narrowed)
 
 
 #: Pings a servo gets at connect before it counts as missing: a bus drops an answer now and then

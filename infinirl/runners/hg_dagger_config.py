@@ -78,7 +78,7 @@ class HGDAggerConfig(RunConfig):
     DEFAULT_PLACEMENT: ClassVar[dict[str, str]] = {"robot": "0", "learner": "0"}
     # interventions.as_demos never had an effect here: checkpoints written when it defaulted to true resume.
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("robot.command_deadline_s", "robot.heartbeat_deadline_s",
-                                                    "learner.num_threads", "actor.num_threads",
+                                                    "robot.max_lead_s", "learner.num_threads", "actor.num_threads",
                                                     "interventions.as_demos")
 
     output_dir: str = "runs/hg_dagger"

@@ -140,7 +140,8 @@ def robot_setup_of(cfg: RealWorldSACConfig):
     from infinirl.realworld.safety import SafetyConfig
 
     robot = cfg.robot
-    safety = SafetyConfig(velocity_scale=robot.velocity_scale, command_deadline_s=robot.command_deadline_s,
+    safety = SafetyConfig(velocity_scale=robot.velocity_scale, max_lead_s=robot.max_lead_s,
+                          command_deadline_s=robot.command_deadline_s,
                           heartbeat_deadline_s=robot.heartbeat_deadline_s)
     if robot.fleet:
         return tuple(RobotSetup(kind=e.kind, options=dict(e.options), safety=safety) for e in robot.fleet)

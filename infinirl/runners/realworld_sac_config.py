@@ -40,6 +40,10 @@ class RobotConfig:
     """Keyword options of the driver (``make_robot(kind, **options)``)."""
     velocity_scale: float = bounded(0.5, gt=0, le=1)
     """Safety: fraction of the robot's top speed a command may ask for."""
+    max_lead_s: float | None = bounded(0.1, gt=0)
+    """Safety: a joint (or end-effector) target may lead the measured pose by at most what the robot's
+    top speed covers in this time, so a blocked or lagging joint cannot collect a target it would jump
+    to when it clears (None: off; raise it for an arm whose load makes it sag further)."""
     command_deadline_s: float | None = bounded(0.5, gt=0)
     """Safety: hold the robot when no command came within this (None: off)."""
     heartbeat_deadline_s: float | None = bounded(2.0, gt=0)
@@ -297,8 +301,8 @@ class RealWorldSACConfig(RunConfig):
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("pipeline.mode", "pipeline.iteration_s", "pipeline.sync_poll_s",
                                                     "pipeline.max_updates_per_step", "robot.command_deadline_s",
                                                     "robot.heartbeat_deadline_s", "robot.velocity_scale",
-                                                    "learner.num_threads", "learner.device", "actor.num_threads",
-                                                    "pipeline.transport", "edge")
+                                                    "robot.max_lead_s", "learner.num_threads", "learner.device",
+                                                    "actor.num_threads", "pipeline.transport", "edge")
 
     output_dir: str = "runs/realworld_sac"
     iterations: int = bounded(20, ge=1)
