@@ -211,7 +211,10 @@ class RobotDriver(abc.ABC):
     @abc.abstractmethod
     def reset(self) -> RobotObservation:
         """Bring the robot (and, for a simulator, the scene) to the start of an episode; blocks until
-        done and returns the first observation. Re-arms a stopped robot."""
+        done and returns the first observation. Re-arms a stopped robot. The observation's frames show
+        the scene as the reset left it: a camera streams on through a reset, so a driver returns a frame
+        captured after the reset finished, never one buffered before or during it (the previous
+        episode's scene, which would start the new episode from a picture of the old one)."""
 
     @abc.abstractmethod
     def hold(self) -> None:

@@ -15,7 +15,11 @@ simulated embodiment):
   A plant whose frames take longer than a control period to render (software GL and a detailed mesh)
   offers ``capture()``: a copy of the scene that a camera thread renders while the control loop runs
   on, as a real camera streams beside the arm. Frames then lag the state by a render or two, as
-  a real camera's do; ``stats.frames`` counts the rendered ones;
+  a real camera's do; ``stats.frames`` counts the rendered ones. Each scene copy is stamped with the
+  episode it belongs to, so a render still in flight when a reset puts the scene back is dropped
+  when it completes (``stats.stale_frames``), and ``reset`` waits for the frame of the scene it
+  captured at its end: the first observation of an episode shows that episode's scene, at the
+  instant its state was read (nothing ticks in between);
 * ``reset`` blocks for ``reset_s`` wall-clock seconds (the scene being put back) and then draws a new
   episode from the seed sequence.
 
@@ -91,6 +95,7 @@ class SimStats:
     holds: int = 0
     stops: int = 0
     frames: int = 0
+    stale_frames: int = 0  # rendered from an episode that a reset ended while they rendered: never shown
 
 
 class SimulatedRobot(RobotDriver):
@@ -126,8 +131,12 @@ class SimulatedRobot(RobotDriver):
         self._error: BaseException | None = None
         self._thread: threading.Thread | None = None
         self._camera_thread: threading.Thread | None = None
-        self._captured: object = None  # the scene copy the camera thread renders next
+        # Episodes started so far: each scene copy and the frames rendered from it carry the episode
+        # it was captured in, so a render that outlives a reset is recognised as the old scene's.
+        self._episode = 0
+        self._captured: tuple[int, object] | None = None  # (episode, scene copy) the camera renders next
         self._frames: dict[str, np.ndarray] = {}
+        self._frames_episode = 0  # the episode self._frames show; 0: none yet
         # Lockstep renders each tick's frames on the control thread: a camera thread's frames lag the
         # state by however many renders the scheduler allows.
         self._capture = getattr(self._plant, "capture", None) if self._spec.cameras and not lockstep else None
@@ -347,13 +356,18 @@ class SimulatedRobot(RobotDriver):
             seed, self._next_seed = self._next_seed, self._next_seed + 1
         self._plant.reset(seed)
         with self._lock:
+            self._episode += 1
             self._pending.clear()
             self._snapshot = None
-            if self._capture is not None:  # the first observation of an episode shows the new scene
+            if self._capture is not None:
+                # The first observation of an episode shows the new scene: any frames that are not of
+                # this episode (including a render of the old scene still in flight, which the camera
+                # thread drops when it completes) are not waited for. The plant does not tick until
+                # this wait is over, so the frame and the state read next show one instant.
                 self._frames = {}
-                self._captured = self._capture()
+                self._captured = (self._episode, self._capture())
                 self._lock.notify_all()
-                while not self._closing and not self._frames and self._error is None:
+                while not self._closing and self._frames_episode != self._episode and self._error is None:
                     self._lock.wait()
             self._raise_if_failed()
         self._publish()
@@ -374,7 +388,7 @@ class SimulatedRobot(RobotDriver):
         with self._lock:
             if self._capture is not None:
                 if self._captured is None:  # the camera took the last copy: hand it the present scene
-                    self._captured = self._capture()
+                    self._captured = (self._episode, self._capture())
                     self._lock.notify_all()
                 frames = self._frames
             self._snapshot = replace(state, frames=frames, timestamp=time.monotonic(), tick=self.stats.ticks)
@@ -389,12 +403,17 @@ class SimulatedRobot(RobotDriver):
                         self._lock.wait()
                     if self._closing:
                         return
-                    scene = self._captured
+                    taken = self._captured
+                episode, scene = taken
                 frames = self._plant.render(scene)
                 with self._lock:
-                    self._frames = frames
-                    self._captured = None
                     self.stats.frames += 1
+                    if self._captured is taken:  # else a reset handed over its scene meanwhile: render that next
+                        self._captured = None
+                    if episode == self._episode:
+                        self._frames, self._frames_episode = frames, episode
+                    else:  # the scene was put back while this rendered: its frames would show the old episode
+                        self.stats.stale_frames += 1
                     self._lock.notify_all()
         except BaseException as error:  # reported by the next call from the user's thread
             with self._lock:

@@ -165,3 +165,81 @@ def test_lockstep_renders_each_ticks_frames_and_refuses_a_latency():
             make_robot(kind, image_size=None, latency_s=0.1, lockstep=True)
         with pytest.raises(ConfigError, match="robot.options: lockstep=True .* set latency_s=0 or lockstep=false"):
             ROBOT_DRIVERS.get(kind).check_options(kind, {"lockstep": True, "latency_s": 0.1}, "robot.options")
+
+
+def test_first_observation_after_a_reset_shows_the_new_episode_even_with_a_render_in_flight():
+    """Real time with a camera thread (the SO-101): a render of the old episode's scene that is still
+    in flight when the reset puts the scene back completes after it. Its frames must not become the
+    new episode's first observation (nor displace the new scene's capture): ``reset`` returns the
+    frame of the scene captured at the reset, beside the state of that same instant."""
+    import threading
+
+    from infinirl.realworld.sim_robot import SimulatedRobot
+    from infinirl.realworld.sim_so101 import SO101Plant
+
+    class HeldRenderPlant(SO101Plant):
+        """The SO-101 scene whose next render, once asked to, stays in flight until released; each
+        frame it renders is recorded with the cube position and arm joints of the scene it shows."""
+
+        def __init__(self, **options):
+            super().__init__(**options)
+            self.hold_next, self.holding, self.release = threading.Event(), threading.Event(), threading.Event()
+            self.reset_done, self.captured_after_reset = threading.Event(), threading.Event()
+            self.rendered: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (frame, its scene's cube, joints)
+
+        def scene_shown(self, frame):
+            return next((cube, joints) for rendered, cube, joints in self.rendered if rendered is frame)
+
+        def reset(self, seed):
+            super().reset(seed)
+            self.reset_done.set()
+
+        def capture(self):
+            if self.reset_done.is_set():
+                self.captured_after_reset.set()
+            return super().capture()
+
+        def render(self, scene=None):
+            frames = super().render(scene)
+            self.rendered.append((frames["front"], np.array(scene.sensor("block_pos").data),
+                                  np.array(scene.qpos[self._qpos])))
+            if self.hold_next.is_set():
+                self.hold_next.clear()
+                self.holding.set()
+                assert self.release.wait(10.0)
+            return frames
+
+    plants = []
+
+    def build():
+        plants.append(HeldRenderPlant(control_hz=20.0, image_size=32))
+        return plants[-1]
+
+    def assert_shows(observation):
+        cube, joints = plants[0].scene_shown(observation.frames["front"])
+        np.testing.assert_array_equal(cube, observation.info["block_position"])
+        np.testing.assert_array_equal(joints, observation.joint_positions)
+
+    robot = SimulatedRobot(build, seed=0)
+    with robot:
+        plant = plants[0]
+        first = robot.observe()
+        assert_shows(first)
+        plant.hold_next.set()
+        assert plant.holding.wait(10.0)  # a frame of episode 0 is being rendered
+        # Nothing captures while a render is in flight (one scene copy at a time), so these mark the reset's.
+        plant.reset_done.clear()
+        plant.captured_after_reset.clear()
+        answer = {}
+        resetting = threading.Thread(target=lambda: answer.setdefault("obs", robot.reset()))
+        resetting.start()
+        # The reset has put the scene back and captured it (under the lock the control thread keeps
+        # until it waits for the frame): only now does the old render complete.
+        assert plant.captured_after_reset.wait(10.0)
+        plant.release.set()
+        resetting.join(20.0)
+        obs = answer["obs"]
+        assert not np.allclose(obs.info["block_position"], first.info["block_position"])  # episode 1 moved the cube
+        # The frame is of the scene captured at the reset, and the state is of that same instant.
+        assert_shows(obs)
+        assert robot.stats.stale_frames == 1  # the old episode's frame, dropped when its render completed
