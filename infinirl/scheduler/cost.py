@@ -25,8 +25,8 @@ How a phase's components share hardware decides how their times combine:
   (``Phase.round_trips``: env -> rollout -> env, once per env step) takes the longer of the
   slowest group and one chunk's way round, ``max(max(T_g), sum(T_g) / depth + hop_s *
   round_trips)``: while one chunk's message is in flight the groups work on the others, so the
-  hop is paid once per round trip whatever the depth. Across nodes the bytes sent downstream go
-  over ``link_bytes_per_s`` on top;
+  hop is paid once per round trip whatever the depth. Across nodes the bytes sent downstream (and,
+  in a closed loop, back to the first component) go over ``link_bytes_per_s`` on top;
 * **independent work** (``Phase.concurrent``: e.g. the reference's and the critic's forward passes)
   on disjoint devices takes the longest group's time;
 * **hybrids**: a phase with some groups time-sharing inside and space-sharing between them.
@@ -238,7 +238,11 @@ def _cross_node_seconds(workload: Workload, phase: Phase, candidate: Candidate, 
         return 0.0
     seconds = 0.0
     alloc = candidate.allocations
-    for producer, consumer in zip(phase.components, phase.components[1:]):
+    names = phase.components
+    legs = list(zip(names, names[1:]))
+    if phase.round_trips and len(names) > 1:
+        legs.append((names[-1], names[0]))
+    for producer, consumer in legs:
         nodes_p, nodes_c = _nodes(alloc[producer], node_of), _nodes(alloc[consumer], node_of)
         if nodes_p != nodes_c or nodes_p[0] != nodes_p[1]:
             per_unit = workload.cost(phase.name, producer).bytes_out_per_unit

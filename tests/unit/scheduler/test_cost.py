@@ -169,6 +169,23 @@ def test_bytes_cross_nodes_only_when_producer_and_consumer_are_apart():
     assert phase_seconds(w, w.phases[0], same, node_of) == pytest.approx(3.0)
 
 
+def test_a_closed_loop_across_nodes_charges_the_way_back_too():
+    """env -> rollout -> env (round trips): the env's observations go over the link and so do the
+    rollout's actions; a stream that passes once (no round trips) sends nothing back."""
+    w = _stream_workload(trips=3)
+    costs = {**w.costs, "collect/env": WorkCost(per_unit_s=2.0, bytes_out_per_unit=50.0),
+             "collect/rollout": WorkCost(per_unit_s=1.0, bytes_out_per_unit=20.0)}
+    loop = Workload(runner="t", phases=w.phases, units=w.units, link_bytes_per_s=100.0, costs=costs)
+    node_of = lambda device: device // 2  # noqa: E731
+    apart = Candidate(allocations={"env": _on(0), "rollout": _on(2), "actor": _on(0)})
+    same = Candidate(allocations={"env": _on(0), "rollout": _on(1), "actor": _on(0)})
+    assert phase_seconds(loop, loop.phases[0], apart, node_of) == pytest.approx(3.0 + 0.5 + 0.2)
+    assert phase_seconds(loop, loop.phases[0], same, node_of) == pytest.approx(3.0)
+    once = _stream_workload()
+    stream = Workload(runner="t", phases=once.phases, units=once.units, link_bytes_per_s=100.0, costs=costs)
+    assert phase_seconds(stream, stream.phases[0], apart, node_of) == pytest.approx(3.0 + 0.5)
+
+
 def _pipeline_reference(stage_s: list[float], chunks: int) -> float:
     """Event by event, in float64: chunk j leaves stage i once stage i finished chunk j-1 and
     stage i-1 finished chunk j; every chunk takes 1/chunks of a stage's time."""
