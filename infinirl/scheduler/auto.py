@@ -9,6 +9,7 @@ config with ``placement: auto`` takes the first one (:func:`resolve_auto_placeme
 from __future__ import annotations
 
 import json
+import math
 
 from infinirl.config import ConfigError
 from infinirl.runtime.inventory import ClusterInventory, GiB
@@ -92,15 +93,27 @@ def format_plan(cfg, profile: Profile | None, entries: list[PlanEntry], top: int
     return "\n".join(lines)
 
 
+def _check_plan_flags(args) -> None:
+    """The command's numbers, before anything runs: one line naming the flag."""
+    if args.top < 1 or args.profile_iterations < 2 or args.profile_rounds < 1:
+        raise ConfigError("--top and --profile-rounds must be >= 1 and --profile-iterations >= 2 (the first "
+                          "iteration is warm-up)")
+    if args.gpus is not None and args.gpus < 1:
+        raise ConfigError(f"--gpus {args.gpus}: a simulated cluster needs at least 1 GPU")
+    if args.gpus_per_node < 1:
+        raise ConfigError(f"--gpus-per-node {args.gpus_per_node}: a simulated node needs at least 1 GPU")
+    if not (math.isfinite(args.speedup) and args.speedup > 0):
+        raise ConfigError(f"--speedup {args.speedup:g}: give how many times faster a simulated GPU is than the "
+                          "profiled device, a number > 0 (1: as fast)")
+
+
 def plan_command(cfg, args) -> int:
     """``infinirl plan``: the table on this machine's cluster, or on a simulated one (``--gpus``)."""
     import time
 
     from infinirl.scheduler.simulate import simulated_plan
 
-    if args.top < 1 or args.profile_iterations < 2 or args.profile_rounds < 1:
-        raise ConfigError("--top and --profile-rounds must be >= 1 and --profile-iterations >= 2 (the first "
-                          "iteration is warm-up)")
+    _check_plan_flags(args)
     runner_model(cfg)  # a runner without a model fails before anything runs
     profile = load_or_profile(cfg, iterations=args.profile_iterations, refresh=args.refresh,
                               rounds=args.profile_rounds)

@@ -87,3 +87,26 @@ def test_auto_for_some_components_checks_the_others_and_names_the_key():
     with pytest.raises(ConfigError, match=r"placement.env='0,2': beside components placed 'auto', give a contiguous"):
         search(gap, runner_model(gap), workload_of(gap, _embodied_profile(ClusterInventory.cpu_only(1, 4))),
                ClusterInventory.cpu_only(1, 4))
+
+
+@pytest.mark.parametrize(("flags", "named"), [(["--gpus", "8", "--gpus-per-node", "0"], "--gpus-per-node 0"),
+                                              (["--gpus", "8", "--speedup", "0"], "--speedup 0"),
+                                              (["--gpus", "8", "--speedup", "-2"], "--speedup -2"),
+                                              (["--gpus", "8", "--speedup", "nan"], "--speedup nan"),
+                                              (["--gpus", "0"], "--gpus 0")])
+def test_plan_flags_out_of_range_are_one_line_naming_the_flag(flags, named, capsys):
+    from infinirl.cli import main
+
+    assert main(["plan", "ppo_metaworld_reach", *flags]) == 2  # before any cluster starts
+    err = capsys.readouterr().err.strip()
+    assert named in err and len(err.splitlines()) == 1
+
+
+def test_simulated_cluster_parameters_are_checked_by_name():
+    from infinirl.scheduler.simulate import scaled_workload, simulated_inventory
+
+    with pytest.raises(ValueError, match="gpus_per_node=0"):
+        simulated_inventory(8, gpus_per_node=0)
+    cfg = build_config("ppo_metaworld_reach", [])[1]
+    with pytest.raises(ValueError, match="speedup=0"):
+        scaled_workload(cfg, _embodied_profile(ClusterInventory.cpu_only(1, 2)), speedup=0.0)
