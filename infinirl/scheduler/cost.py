@@ -16,8 +16,9 @@ the rollout loading them) has ``fixed_s`` and the log term only.
 How a phase's components share hardware decides how their times combine:
 
 * **time-sharing** (collocated: they hold a common device or CPU slot): they take turns, so
-  their times add up on the devices they share, plus each one's measured offload/reload
-  (``switch_s``) once per iteration;
+  their times add up on the devices they share; a runner that offloads a component at each turn
+  (``Workload.offloads``) also pays each one's measured offload/reload (``switch_s``) once per
+  iteration, one that keeps every component resident (every shipped runner model) pays none;
 * **space-sharing** (disaggregated: disjoint devices): a pipeline over groups of components; with
   ``depth`` chunks each group works on a chunk while the next group works on the previous one.
   A stream that passes once (rollout -> reward) takes the slowest group plus the fill and drain

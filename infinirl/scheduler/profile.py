@@ -3,7 +3,8 @@
 For each probe of the runner (:mod:`.workloads`: collocated, two ranks per component, streamed)
 the profiler runs the config for a few iterations with the probe's placement, and before the
 components shut down reads every rank's spans (one per executed method), its peak resident
-memory, and the time of one offload + reload. Iterations are cut out of the spans at each call of
+memory, and, for a runner that offloads collocated components (``RunnerModel.offloads``), the
+time of one offload + reload. Iterations are cut out of the spans at each call of
 the runner's first-phase method; the first iteration is warm-up and dropped. The runner model
 turns each iteration into own seconds per ``"<phase>/<component>"``, and :func:`fit` turns the
 probes into one :class:`~infinirl.scheduler.cost.WorkCost` each: seconds per unit of work from the
@@ -172,9 +173,11 @@ def _peak_rss(pid: int) -> float:
 
 
 class _Recorder:
-    """The run observer: spans, peak memory and one offload + reload of every component."""
+    """The run observer: spans, peak memory and, for a runner that offloads (``time_switch``), one
+    offload + reload of every component."""
 
-    def __init__(self):
+    def __init__(self, time_switch: bool = False):
+        self.time_switch = time_switch
         self.spans: list[tuple] = []
         self.memory: dict[str, float] = {}
         self.switch: dict[str, float] = {}
@@ -188,10 +191,11 @@ class _Recorder:
             peaks = [_peak_rss(info["pid"]) for info in group.rank_info
                      if info.get("hostname") == host and "pid" in info]
             self.memory[name] = max(peaks, default=0.0)
-            group.call("offload").wait(timeout=120)
-            group.call("reload").wait(timeout=120)
-            turns = [s for s in group.pop_spans() if s[2] in ("offload", "reload")]
-            self.switch[name] = sum(s[4] - s[3] for s in turns) / max(group.world_size, 1)
+            if self.time_switch:
+                group.call("offload").wait(timeout=120)
+                group.call("reload").wait(timeout=120)
+                turns = [s for s in group.pop_spans() if s[2] in ("offload", "reload")]
+                self.switch[name] = sum(s[4] - s[3] for s in turns) / max(group.world_size, 1)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -217,7 +221,7 @@ def measure_candidate(cfg, model: RunnerModel, candidate: Candidate, iterations:
     model.shorten(run, iterations)
     folder = tempfile.mkdtemp(prefix=f"infinirl-profile-{label}-")
     run.output_dir = os.path.join(folder, "run")
-    recorder = _Recorder()
+    recorder = _Recorder(time_switch=model.offloads)
     RUN_OBSERVERS.append(recorder)
     try:
         print(f"measuring {model.runner} ({label}): placement {run.placement}, depth {candidate.depth}", flush=True)

@@ -34,6 +34,8 @@ def test_plan_profiles_once_then_reads_the_cache_and_auto_runs_the_best(tmp_path
     assert profile["costs"]["collect/env"]["per_unit_s"] > 0
     assert profile["costs"]["update/actor"]["per_unit_s"] > 0
     assert profile["costs"]["update/actor"]["memory_fixed_bytes"] > 0  # the actor process's peak RSS
+    # the embodied runner keeps its components resident: no offload + reload is timed
+    assert all(probe["switch_s"] == {} for probe in profile["probes"])
 
     def refuse(*args, **kwargs):
         raise AssertionError("the profile is cached: nothing may run again")
