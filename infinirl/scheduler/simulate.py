@@ -16,7 +16,7 @@ from dataclasses import replace
 from infinirl.runtime.inventory import ClusterInventory, GiB
 from infinirl.scheduler.cost import Workload
 from infinirl.scheduler.profile import Profile, workload_of
-from infinirl.scheduler.search import PlanEntry, search
+from infinirl.scheduler.search import SearchResult, search
 from infinirl.scheduler.workloads import RUNNER_MODELS
 
 __all__ = ["scaled_config", "scaled_workload", "simulated_inventory", "simulated_plan"]
@@ -52,7 +52,7 @@ def scaled_workload(cfg, profile: Profile, speedup: float = 1.0, memory_scale: f
 
 def simulated_plan(cfg, profile: Profile, num_gpus: int, batch_scale: int | None = None, speedup: float = 1.0,
                    memory_scale: float = 1.0, gpus_per_node: int = 8, gpu_memory_bytes: int = 80 * GiB,
-                   limit: int | None = None) -> tuple[ClusterInventory, list[PlanEntry]]:
+                   limit: int | None = None) -> tuple[ClusterInventory, SearchResult]:
     """The ranked plan of ``cfg`` on a simulated cluster of ``num_gpus`` GPUs."""
     inventory = simulated_inventory(num_gpus, gpus_per_node, gpu_memory_bytes)
     scaled = scaled_config(cfg, batch_scale or num_gpus)

@@ -186,6 +186,19 @@ def test_a_closed_loop_across_nodes_charges_the_way_back_too():
     assert phase_seconds(stream, stream.phases[0], apart, node_of) == pytest.approx(3.0 + 0.5)
 
 
+def test_host_memory_is_summed_per_node_apart_from_device_memory():
+    costs = {"collect/env": WorkCost(per_unit_s=1, memory_fixed_bytes=1.0, host_memory_bytes=30.0),
+             "collect/rollout": WorkCost(per_unit_s=1, memory_fixed_bytes=5.0, host_memory_bytes=10.0),
+             "update/actor": WorkCost(per_unit_s=1, memory_fixed_bytes=7.0, host_memory_bytes=20.0)}
+    w = _stream_workload()
+    w = Workload(runner="t", phases=w.phases, units=w.units, costs=costs)
+    cand = Candidate(allocations={"env": _on(0, 2), "rollout": _on(2), "actor": _on(3)})
+    assert peak_device_memory(w, cand) == pytest.approx(7.0)
+    nodes = {0: range(0, 2), 1: range(2, 4)}
+    assert memory_by_range(w, cand, nodes, host=True) == {0: pytest.approx(60.0), 1: pytest.approx(30.0)}
+    assert memory_by_range(w, cand, nodes) == {0: pytest.approx(2.0), 1: pytest.approx(12.0)}
+
+
 def _pipeline_reference(stage_s: list[float], chunks: int) -> float:
     """Event by event, in float64: chunk j leaves stage i once stage i finished chunk j-1 and
     stage i-1 finished chunk j; every chunk takes 1/chunks of a stage's time."""
