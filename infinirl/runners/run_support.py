@@ -96,17 +96,18 @@ def run_staged(cfg, loop, start: Callable, cluster_config=None) -> dict:
     ``on_exit`` (run last first, after the groups' shutdown: a channel to destroy, a link to close),
     and returns the flow. The flow's ``close()``, every group's shutdown and ``on_exit`` run however
     the loop ends; a failure that came with nodes leaving the cluster is a ClusterError naming them.
-    ``placement: auto`` (or ``auto`` for some components) is resolved first: the scheduler profiles
-    the config (or reads its cached profile) and writes its choice into ``cfg``. ``cluster_config``:
-    the cluster section to start (default ``cfg.cluster``)."""
+    ``placement: auto`` (or ``auto`` for some components) is resolved once the cluster is up, on its
+    inventory, before any component starts: the scheduler profiles the config (its probe runs join
+    this cluster) or reads the profile cached for a cluster of this shape, and writes its choice
+    into ``cfg``. ``cluster_config``: the cluster section to start (default ``cfg.cluster``)."""
     from infinirl.runtime import Cluster
 
-    if cfg.auto_placement:
-        # The scheduler sits above the runners (it profiles by running them), hence the late import.
-        from infinirl.scheduler.auto import resolve_auto_placement
-
-        resolve_auto_placement(cfg)
     with Cluster(cluster_config if cluster_config is not None else cfg.cluster) as cluster:
+        if cfg.auto_placement:
+            # The scheduler sits above the runners (it profiles by running them), hence the late import.
+            from infinirl.scheduler.auto import resolve_auto_placement
+
+            resolve_auto_placement(cfg, cluster.inventory)
         plan = plan_placement(cluster.inventory, cfg)
         print(plan.describe(), flush=True)
         groups: dict = {}

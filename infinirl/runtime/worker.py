@@ -24,6 +24,7 @@ import difflib
 import inspect
 import os
 import socket
+import sys
 import threading
 import time
 import uuid
@@ -127,6 +128,20 @@ class Worker:
             "hostname": socket.gethostname(),
             "pid": os.getpid(),
         }
+
+    def _infinirl_accelerator_peak(self) -> float | None:
+        """The most accelerator memory torch's allocator reserved in this process, in bytes (the
+        scheduler's profiler reads it); 0 when the process never used CUDA through torch, None
+        when it cannot be read. The CUDA context and other libraries' memory are not counted."""
+        torch = sys.modules.get("torch")
+        if torch is None:
+            return 0.0
+        try:
+            if not torch.cuda.is_initialized():
+                return 0.0
+            return float(sum(torch.cuda.max_memory_reserved(d) for d in range(torch.cuda.device_count())))
+        except Exception:
+            return None
 
 
 class GroupHandle:

@@ -16,8 +16,9 @@ the rollout loading them) has ``fixed_s`` and the log term only.
 How a phase's components share hardware decides how their times combine:
 
 * **time-sharing** (collocated: they hold a common device or CPU slot): they take turns, so
-  their times add up on the devices they share, plus each one's measured offload/reload
-  (``switch_s``) once per iteration;
+  their times add up on the devices they share; a runner that offloads a component at each turn
+  (``Workload.offloads``) also pays each one's measured offload/reload (``switch_s``) once per
+  iteration, one that keeps every component resident (every shipped runner model) pays none;
 * **space-sharing** (disaggregated: disjoint devices): a pipeline over groups of components; with
   ``depth`` chunks each group works on a chunk while the next group works on the previous one.
   A stream that passes once (rollout -> reward) takes the slowest group plus the fill and drain
@@ -25,8 +26,8 @@ How a phase's components share hardware decides how their times combine:
   (``Phase.round_trips``: env -> rollout -> env, once per env step) takes the longer of the
   slowest group and one chunk's way round, ``max(max(T_g), sum(T_g) / depth + hop_s *
   round_trips)``: while one chunk's message is in flight the groups work on the others, so the
-  hop is paid once per round trip whatever the depth. Across nodes the bytes sent downstream go
-  over ``link_bytes_per_s`` on top;
+  hop is paid once per round trip whatever the depth. Across nodes the bytes sent downstream (and,
+  in a closed loop, back to the first component) go over ``link_bytes_per_s`` on top;
 * **independent work** (``Phase.concurrent``: e.g. the reference's and the critic's forward passes)
   on disjoint devices takes the longest group's time;
 * **hybrids**: a phase with some groups time-sharing inside and space-sharing between them.
@@ -36,9 +37,9 @@ How a phase's components share hardware decides how their times combine:
 rather than computing, so a component that time-shares its device works meanwhile: a group with
 paced members takes the longer of its paced members' time and the sum of the others'.
 
-Memory: every rank of every component stays resident (time-sharing offloads only what a
-component's ``switch_s`` was measured with), so the sum over the ranks on a device (accelerators)
-or on a node (CPU slots share the node's memory) must fit.
+Memory: every rank of every component stays resident, so the sum over the ranks on a device
+(accelerators: their accelerator memory) or on a node (CPU slots share the node's memory; on
+accelerators, the ranks' host memory) must fit.
 """
 
 from __future__ import annotations
@@ -62,7 +63,15 @@ class WorkCost:
     switch_s: float = 0.0
     """Offload + reload of the component, paid once per iteration when it time-shares a device."""
     memory_fixed_bytes: float = 0.0
+    """A rank's resident bytes on its device: accelerator memory on accelerators, the process's
+    host memory on CPU slots (which share their node's memory)."""
     memory_per_unit_bytes: float = 0.0
+    host_memory_bytes: float = 0.0
+    """A rank's resident host memory, checked against its node's memory where the devices are
+    accelerators (on CPU slots ``memory_*`` are already host memory)."""
+    memory_known: bool = True
+    """False when no rank's peak could be read (a rank on another host, an unreadable process):
+    the component's memory is then unknown, not zero, and the plan says it was not checked."""
     bytes_out_per_unit: float = 0.0
     """Bytes this component sends downstream per unit of work."""
     paced_per_unit_s: float = 0.0
@@ -86,6 +95,7 @@ class WorkCost:
                         comm_s=self.comm_s / speedup, switch_s=self.switch_s / speedup,
                         memory_fixed_bytes=self.memory_fixed_bytes * memory,
                         memory_per_unit_bytes=self.memory_per_unit_bytes * memory,
+                        host_memory_bytes=self.host_memory_bytes, memory_known=self.memory_known,
                         bytes_out_per_unit=self.bytes_out_per_unit, paced_per_unit_s=self.paced_per_unit_s)
 
 
@@ -233,12 +243,18 @@ def _nodes(allocation: Allocation, node_of: NodeOf) -> tuple[int, int]:
 
 
 def _cross_node_seconds(workload: Workload, phase: Phase, candidate: Candidate, node_of: NodeOf | None) -> float:
-    """Bytes each producer streams to a consumer on another node, over the link, per rank."""
+    """Bytes each producer streams to a consumer on another node, over the link, per rank; in a
+    closed loop (``round_trips``) the last component sends back to the first as well (the
+    rollout's actions to the env)."""
     if node_of is None:
         return 0.0
     seconds = 0.0
     alloc = candidate.allocations
-    for producer, consumer in zip(phase.components, phase.components[1:]):
+    names = phase.components
+    legs = list(zip(names, names[1:]))
+    if phase.round_trips and len(names) > 1:
+        legs.append((names[-1], names[0]))
+    for producer, consumer in legs:
         nodes_p, nodes_c = _nodes(alloc[producer], node_of), _nodes(alloc[consumer], node_of)
         if nodes_p != nodes_c or nodes_p[0] != nodes_p[1]:
             per_unit = workload.cost(phase.name, producer).bytes_out_per_unit
@@ -258,13 +274,13 @@ def switch_seconds(workload: Workload, candidate: Candidate) -> float:
     return total
 
 
-def memory_per_device(workload: Workload, candidate: Candidate) -> dict[str, float]:
+def memory_per_device(workload: Workload, candidate: Candidate, host: bool = False) -> dict[str, float]:
     """Resident bytes each component puts on each of its devices (its largest per-rank memory
-    over its phases, times its ranks per device)."""
+    over its phases, times its ranks per device); ``host``: its host memory instead."""
     out = {}
     for name, a in candidate.allocations.items():
-        per_rank = max(workload.cost(p.name, name).memory_bytes(workload.units[name], a.ranks)
-                       for p in workload.phases if name in p.components)
+        costs = [workload.cost(p.name, name) for p in workload.phases if name in p.components]
+        per_rank = max(c.host_memory_bytes if host else c.memory_bytes(workload.units[name], a.ranks) for c in costs)
         out[name] = per_rank * a.ranks / a.count
     return out
 
@@ -281,9 +297,11 @@ def peak_device_memory(workload: Workload, candidate: Candidate) -> float:
     return peak
 
 
-def memory_by_range(workload: Workload, candidate: Candidate, ranges: Mapping[int, range]) -> dict[int, float]:
-    """Resident bytes per range of devices (e.g. the CPU slots of each node, which share its memory)."""
-    per_device = memory_per_device(workload, candidate)
+def memory_by_range(workload: Workload, candidate: Candidate, ranges: Mapping[int, range],
+                    host: bool = False) -> dict[int, float]:
+    """Resident bytes per range of devices (e.g. the CPU slots of each node, which share its
+    memory); ``host``: the ranks' host memory (a node's accelerators share its host memory)."""
+    per_device = memory_per_device(workload, candidate, host)
     used = {}
     for key, block in ranges.items():
         total = 0.0
@@ -294,11 +312,23 @@ def memory_by_range(workload: Workload, candidate: Candidate, ranges: Mapping[in
     return used
 
 
-def predict(workload: Workload, candidate: Candidate, node_of: NodeOf | None = None) -> Prediction:
-    """Predicted iteration time of ``candidate`` and its fullest device's memory."""
+def predict(workload: Workload, candidate: Candidate, node_of: NodeOf | None = None,
+            cache: dict | None = None) -> Prediction:
+    """Predicted iteration time of ``candidate`` and its fullest device's memory. ``cache``: a dict
+    kept across calls with the same workload and ``node_of`` (a search), where a phase's seconds
+    are looked up by what they depend on: its components' allocations and the depth."""
     missing = [c for c in workload.components if c not in candidate.allocations]
     if missing:
         raise ValueError(f"candidate places no {', '.join(missing)}; every component needs an allocation")
-    phases = {p.name: phase_seconds(workload, p, candidate, node_of) for p in workload.phases}
+    if cache is None:
+        phases = {p.name: phase_seconds(workload, p, candidate, node_of) for p in workload.phases}
+    else:
+        phases = {}
+        alloc = candidate.allocations
+        for p in workload.phases:
+            key = (p.name, candidate.depth if p.pipelined else 1, *(alloc[c] for c in p.components))
+            if key not in cache:
+                cache[key] = phase_seconds(workload, p, candidate, node_of)
+            phases[p.name] = cache[key]
     step = sum(phases.values()) + switch_seconds(workload, candidate) + workload.overhead_s
     return Prediction(step_s=step, phases=phases, peak_memory_bytes=peak_device_memory(workload, candidate))

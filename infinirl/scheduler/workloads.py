@@ -79,6 +79,8 @@ class RunnerModel:
     units: Callable[[Any], dict[str, float]]
     model_key: Callable[[Any], str]
     depths: Callable[[Any, dict[str, int]], tuple[int, ...]]
+    no_depth: Callable[[Any, dict[str, int]], str] = lambda cfg, ranks: "no pipeline depth fits these ranks"
+    """Why ``depths`` is empty for these ranks (the search counts it among the candidates it left out)."""
     check: Callable[[Any, Candidate], str | None]
     apply: Callable[[Any, Candidate], None]
     shorten: Callable[[Any, int], None]
@@ -96,6 +98,8 @@ class RunnerModel:
     driver_on_path: Callable[[Any], bool] = lambda cfg: True
     """Whether the driver's own time per iteration (the profile's overhead) adds to the iteration:
     a driver that only polls while its components work on their own adds nothing."""
+    cluster: Callable[[Any], Any] = lambda cfg: cfg.cluster
+    """The cluster section the runner starts (what ``infinirl plan`` starts to plan on)."""
     refuses: Callable[[Any], str | None] = lambda cfg: None
     """Why this config cannot be planned (one line with the placement to write instead), or None."""
     step_name: str = "iteration"
@@ -157,12 +161,16 @@ def _embodied_depths(cfg, ranks: dict[str, int]) -> tuple[int, ...]:
     return tuple(k for k in (1, 2, 4) if envs % (ranks["env"] * k) == 0)
 
 
+def _embodied_no_depth(cfg, ranks: dict[str, int]) -> str:
+    return f"env.num_envs={cfg.env.num_envs} is not divisible by {ranks['env']} env ranks"
+
+
 def _embodied_check(cfg, candidate: Candidate) -> str | None:
     a = candidate.allocations
     if a["env"].ranks != a["rollout"].ranks:
         return "env and rollout pair rank for rank"
     if cfg.env.num_envs % (a["env"].ranks * candidate.depth):
-        return "env.num_envs is not divisible by env ranks x pipeline stages"
+        return f"env.num_envs={cfg.env.num_envs} is not divisible by env ranks x pipeline stages"
     from infinirl.runners.embodied import task_blocks_conflict
 
     conflict = task_blocks_conflict(cfg, a["rollout"].ranks, candidate.depth)
@@ -232,6 +240,7 @@ RUNNER_MODELS.add("embodied", RunnerModel(
     units=_embodied_units,
     model_key=lambda cfg: f"{cfg.policy.name}:{cfg.env.name}",
     depths=_embodied_depths,
+    no_depth=_embodied_no_depth,
     check=_embodied_check,
     apply=_embodied_apply,
     shorten=_simulated_shorten,
@@ -272,10 +281,15 @@ def _reasoning_depths(cfg, ranks: dict[str, int]) -> tuple[int, ...]:
     return tuple(k for k in (1, 2, 4) if cfg.prompts_per_step % (ranks["rollout"] * k) == 0)
 
 
+def _reasoning_no_depth(cfg, ranks: dict[str, int]) -> str:
+    return f"prompts_per_step={cfg.prompts_per_step} is not divisible by {ranks['rollout']} rollout ranks"
+
+
 def _reasoning_check(cfg, candidate: Candidate) -> str | None:
     a = candidate.allocations
     if cfg.prompts_per_step % (a["rollout"].ranks * candidate.depth):
-        return "prompts_per_step does not split evenly into chunks over the rollout's ranks"
+        return (f"prompts_per_step={cfg.prompts_per_step} does not split evenly into chunks over the rollout's "
+                "ranks")
     per_mini = cfg.prompts_per_step * cfg.rollout.group_size // cfg.algorithm.mini_batches
     for trainer in ("actor", "critic"):
         if trainer in a and per_mini < a[trainer].ranks:
@@ -326,6 +340,7 @@ RUNNER_MODELS.add("reasoning", RunnerModel(
     units=_reasoning_units,
     model_key=lambda cfg: cfg.model.path,
     depths=_reasoning_depths,
+    no_depth=_reasoning_no_depth,
     check=_reasoning_check,
     apply=_reasoning_apply,
     shorten=_reasoning_shorten,
@@ -508,6 +523,13 @@ def _realworld_refuses(cfg) -> str | None:
     return None
 
 
+def _robot_cluster(cfg):
+    """The robot runners' cluster: the config's, with the robot drivers' discovery when it asks for it."""
+    from infinirl.realworld.discovery import with_driver_discovery
+
+    return with_driver_discovery(cfg.cluster)
+
+
 #: What the robot runners' models share: robots fixed where the config puts them and paced by
 #: their clock, one learner rank placed beside them or apart.
 _ROBOT_RUNNER_MODEL = dict(
@@ -521,6 +543,7 @@ _ROBOT_RUNNER_MODEL = dict(
             Probe(name="split", devices={"robot": (0, 1), "learner": (1, 1)})),
     fixed=lambda cfg: {"robot": _realworld_robot_spec(cfg)},
     paced=_realworld_paced,
+    cluster=lambda cfg: _robot_cluster(cfg),
 )
 
 RUNNER_MODELS.add("realworld_sac", RunnerModel(

@@ -34,6 +34,9 @@ def test_plan_profiles_once_then_reads_the_cache_and_auto_runs_the_best(tmp_path
     assert profile["costs"]["collect/env"]["per_unit_s"] > 0
     assert profile["costs"]["update/actor"]["per_unit_s"] > 0
     assert profile["costs"]["update/actor"]["memory_fixed_bytes"] > 0  # the actor process's peak RSS
+    assert profile["key"]["cluster"] == {"nodes": [{"cpus": 1, "accelerators": []}]}  # the cluster planned for
+    # the embodied runner keeps its components resident: no offload + reload is timed
+    assert all(probe["switch_s"] == {} for probe in profile["probes"])
 
     def refuse(*args, **kwargs):
         raise AssertionError("the profile is cached: nothing may run again")
@@ -112,7 +115,7 @@ def test_plan_of_a_robot_run_from_its_cached_profile_lists_the_learners_places(p
                                                                "iteration/learner": 0.01 * units["learner"]}] * 2,
                                      step_s=[3.2] * 2, memory_bytes={"robot": 2.0**29, "learner": 2.0**29},
                                      switch_s={}, inventory=inventory) for probe in model.probes]
-    key = profiling.profile_key(cfg, model)
+    key = profiling.profile_key(cfg, model, ClusterInventory.cpu_only(1, 3))  # the cluster cluster.num_cpus=3 starts
     profile_cache.mkdir()
     (profile_cache / profiling.cache_path(key, str(profile_cache)).rsplit("/", 1)[1]).write_text(
         json.dumps(profiling.fit(cfg, model, results, key).to_dict()))

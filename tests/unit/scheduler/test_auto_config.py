@@ -1,5 +1,6 @@
 """`placement: auto` in a config, and the plan table."""
 
+import json
 import types
 
 import pytest
@@ -87,3 +88,49 @@ def test_auto_for_some_components_checks_the_others_and_names_the_key():
     with pytest.raises(ConfigError, match=r"placement.env='0,2': beside components placed 'auto', give a contiguous"):
         search(gap, runner_model(gap), workload_of(gap, _embodied_profile(ClusterInventory.cpu_only(1, 4))),
                ClusterInventory.cpu_only(1, 4))
+
+
+def test_no_placement_left_is_one_line_naming_the_reason_and_the_kept_key(tmp_path):
+    """placement.env=0-2 beside auto components with 16 envs: the error says the envs do not split
+    over 3 env ranks and names the key kept as written, not "devices and memory"."""
+    from infinirl.scheduler import profile as profiling
+    from infinirl.scheduler.auto import resolve_auto_placement
+
+    cfg = build_config("ppo_metaworld_reach", ["placement.env=0-2", "placement.rollout=auto", "placement.actor=auto",
+                                               "env.num_envs=16"])[1]
+    inventory = ClusterInventory.cpu_only(1, 4)
+    profile = _embodied_profile(inventory)
+    key = profiling.profile_key(cfg, runner_model(cfg), inventory)
+    profile = Profile(**{**vars(profile), "key": key})
+    with open(profiling.cache_path(key, str(tmp_path)), "w") as handle:
+        json.dump(profile.to_dict(), handle)
+    with pytest.raises(ConfigError) as error:
+        resolve_auto_placement(cfg, inventory, cache_dir=str(tmp_path))
+    message = str(error.value)
+    assert "\n" not in message
+    assert message.startswith("placement=auto: no placement of env, rollout, actor fits this cluster (4 CPU slots): "
+                              "env.num_envs=16 is not divisible by 3 env ranks (")
+    assert "with placement.env=0-2 (3 ranks) kept as written; give placement.* explicitly" in message
+
+
+@pytest.mark.parametrize(("flags", "named"), [(["--gpus", "8", "--gpus-per-node", "0"], "--gpus-per-node 0"),
+                                              (["--gpus", "8", "--speedup", "0"], "--speedup 0"),
+                                              (["--gpus", "8", "--speedup", "-2"], "--speedup -2"),
+                                              (["--gpus", "8", "--speedup", "nan"], "--speedup nan"),
+                                              (["--gpus", "0"], "--gpus 0")])
+def test_plan_flags_out_of_range_are_one_line_naming_the_flag(flags, named, capsys):
+    from infinirl.cli import main
+
+    assert main(["plan", "ppo_metaworld_reach", *flags]) == 2  # before any cluster starts
+    err = capsys.readouterr().err.strip()
+    assert named in err and len(err.splitlines()) == 1
+
+
+def test_simulated_cluster_parameters_are_checked_by_name():
+    from infinirl.scheduler.simulate import scaled_workload, simulated_inventory
+
+    with pytest.raises(ValueError, match="gpus_per_node=0"):
+        simulated_inventory(8, gpus_per_node=0)
+    cfg = build_config("ppo_metaworld_reach", [])[1]
+    with pytest.raises(ValueError, match="speedup=0"):
+        scaled_workload(cfg, _embodied_profile(ClusterInventory.cpu_only(1, 2)), speedup=0.0)

@@ -169,6 +169,36 @@ def test_bytes_cross_nodes_only_when_producer_and_consumer_are_apart():
     assert phase_seconds(w, w.phases[0], same, node_of) == pytest.approx(3.0)
 
 
+def test_a_closed_loop_across_nodes_charges_the_way_back_too():
+    """env -> rollout -> env (round trips): the env's observations go over the link and so do the
+    rollout's actions; a stream that passes once (no round trips) sends nothing back."""
+    w = _stream_workload(trips=3)
+    costs = {**w.costs, "collect/env": WorkCost(per_unit_s=2.0, bytes_out_per_unit=50.0),
+             "collect/rollout": WorkCost(per_unit_s=1.0, bytes_out_per_unit=20.0)}
+    loop = Workload(runner="t", phases=w.phases, units=w.units, link_bytes_per_s=100.0, costs=costs)
+    node_of = lambda device: device // 2  # noqa: E731
+    apart = Candidate(allocations={"env": _on(0), "rollout": _on(2), "actor": _on(0)})
+    same = Candidate(allocations={"env": _on(0), "rollout": _on(1), "actor": _on(0)})
+    assert phase_seconds(loop, loop.phases[0], apart, node_of) == pytest.approx(3.0 + 0.5 + 0.2)
+    assert phase_seconds(loop, loop.phases[0], same, node_of) == pytest.approx(3.0)
+    once = _stream_workload()
+    stream = Workload(runner="t", phases=once.phases, units=once.units, link_bytes_per_s=100.0, costs=costs)
+    assert phase_seconds(stream, stream.phases[0], apart, node_of) == pytest.approx(3.0 + 0.5)
+
+
+def test_host_memory_is_summed_per_node_apart_from_device_memory():
+    costs = {"collect/env": WorkCost(per_unit_s=1, memory_fixed_bytes=1.0, host_memory_bytes=30.0),
+             "collect/rollout": WorkCost(per_unit_s=1, memory_fixed_bytes=5.0, host_memory_bytes=10.0),
+             "update/actor": WorkCost(per_unit_s=1, memory_fixed_bytes=7.0, host_memory_bytes=20.0)}
+    w = _stream_workload()
+    w = Workload(runner="t", phases=w.phases, units=w.units, costs=costs)
+    cand = Candidate(allocations={"env": _on(0, 2), "rollout": _on(2), "actor": _on(3)})
+    assert peak_device_memory(w, cand) == pytest.approx(7.0)
+    nodes = {0: range(0, 2), 1: range(2, 4)}
+    assert memory_by_range(w, cand, nodes, host=True) == {0: pytest.approx(60.0), 1: pytest.approx(30.0)}
+    assert memory_by_range(w, cand, nodes) == {0: pytest.approx(2.0), 1: pytest.approx(12.0)}
+
+
 def _pipeline_reference(stage_s: list[float], chunks: int) -> float:
     """Event by event, in float64: chunk j leaves stage i once stage i finished chunk j-1 and
     stage i-1 finished chunk j; every chunk takes 1/chunks of a stage's time."""

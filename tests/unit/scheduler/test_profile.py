@@ -5,11 +5,12 @@ import json
 import pytest
 
 from infinirl.cli import build_config
+from infinirl.config import ConfigError
 from infinirl.runtime import ClusterInventory
 from infinirl.scheduler import profile as profiling
 from infinirl.scheduler.cost import predict
 from infinirl.scheduler.profile import ProbeResult, config_hash, fit, load_or_profile, step_windows, workload_of
-from infinirl.scheduler.workloads import RUNNER_MODELS
+from infinirl.scheduler.workloads import RUNNER_MODELS, probe_candidates
 
 
 @pytest.fixture(scope="module")
@@ -87,9 +88,10 @@ def test_config_hash_ignores_placement_and_length_not_the_work():
 
 def test_a_cached_profile_is_read_without_running(tmp_path, monkeypatch, embodied_cfg):
     model, cfg = RUNNER_MODELS.get("embodied"), embodied_cfg
+    two = ClusterInventory.cpu_only(1, 2)
     results = [_result(model, cfg, "collocated", {"collect/env": 0.1, "collect/rollout": 0.05, "update/actor": 0.02},
                        0.2)]
-    key = profiling.profile_key(cfg, model)
+    key = profiling.profile_key(cfg, model, two)
     path = profiling.cache_path(key, str(tmp_path))
     (tmp_path / path.rsplit("/", 1)[1]).write_text(json.dumps(fit(cfg, model, results, key).to_dict()))
 
@@ -97,13 +99,79 @@ def test_a_cached_profile_is_read_without_running(tmp_path, monkeypatch, embodie
         raise AssertionError("a cached profile must not be measured again")
 
     monkeypatch.setattr(profiling, "run_probe", refuse)
-    loaded = load_or_profile(cfg, cache_dir=str(tmp_path))
+    loaded = load_or_profile(cfg, two, cache_dir=str(tmp_path))
     assert loaded.key == key
     assert loaded.costs["collect/env"].per_unit_s == pytest.approx(0.1 / 40)
     changed = build_config("ppo_metaworld_reach", ["env.num_envs=8", "rollout_steps=10",
                                                    "algorithm.mini_batches=2"])[1]
     with pytest.raises(AssertionError, match="measured again"):
-        load_or_profile(changed, cache_dir=str(tmp_path))
+        load_or_profile(changed, two, cache_dir=str(tmp_path))
+    # the same work on a cluster of another shape is another profile: its probes differ
+    for other in (ClusterInventory.cpu_only(1, 4), ClusterInventory.cpu_only(2, 2),
+                  ClusterInventory.with_gpus(1, 2, cpus_per_node=2)):
+        with pytest.raises(AssertionError, match="measured again"):
+            load_or_profile(cfg, other, cache_dir=str(tmp_path))
+
+
+def test_probes_that_ran_on_another_cluster_shape_are_refused_naming_the_cluster_keys(tmp_path, monkeypatch):
+    """A profile planned for a 4-slot cluster whose probes ran on 2 slots (cluster.num_cpus says
+    another cluster) would rank placements the run cannot take: refused, not cached."""
+    cfg = build_config("sac_inverted_pendulum", ["steps_per_iteration=50"])[1]
+
+    def probe_on_two_slots(cfg, model, probe, iterations):
+        return ProbeResult(probe=probe, iterations=[{"collect/collector": 0.5, "update/learner": 0.4}], step_s=[1.0],
+                           inventory=ClusterInventory.cpu_only(1, 2).to_dict())
+
+    monkeypatch.setattr(profiling, "run_probe", probe_on_two_slots)
+    with pytest.raises(ConfigError, match=r"cluster\.\*: the probes ran on a cluster of 1 node\(s\) of 2 CPU slots .*"
+                                          r"not the 1 node\(s\) of 4 CPU slots"):
+        load_or_profile(cfg, ClusterInventory.cpu_only(1, 4), cache_dir=str(tmp_path))
+    assert not list(tmp_path.iterdir())
+
+
+def test_probes_count_accelerators_where_the_cluster_has_them(tmp_path, monkeypatch):
+    """One GPU beside 16 vCPUs: components are placed on the GPU, so only the collocated probe fits
+    (a two-rank probe would ask for a second GPU); on 16 CPU slots every probe runs."""
+    model = RUNNER_MODELS.get("embodied")
+    one_gpu = ClusterInventory.with_gpus(1, 1, cpus_per_node=16)
+    assert profiling.probe_slots(one_gpu) == 1
+    assert [p.name for p in probe_candidates(model, profiling.probe_slots(one_gpu))] == ["collocated"]
+    assert profiling.probe_slots(ClusterInventory.cpu_only(1, 16)) == 16
+    cfg = build_config("sac_inverted_pendulum", ["steps_per_iteration=50"])[1]
+    ran = []
+
+    def fake_probe(cfg, model, probe, iterations):
+        ran.append(probe.name)
+        return ProbeResult(probe=probe, iterations=[{"collect/collector": 0.5, "update/learner": 0.4}], step_s=[1.0],
+                           inventory=one_gpu.to_dict())
+
+    monkeypatch.setattr(profiling, "run_probe", fake_probe)
+    load_or_profile(cfg, one_gpu, cache_dir=str(tmp_path))
+    assert ran == ["collocated"]
+
+
+def test_memory_compared_is_the_accelerators_on_accelerators_and_the_hosts_on_cpu_slots(embodied_cfg):
+    """On GPUs a rank's device memory is its accelerator peak and its resident set is checked per
+    node; on CPU slots the resident set is both. A component no rank of which could be read is
+    unknown, not 0."""
+    model, cfg = RUNNER_MODELS.get("embodied"), embodied_cfg
+    components = tuple(cfg.components())
+    probe = next(p for p in model.probes if p.name == "collocated")
+    result = ProbeResult(probe=probe, iterations=[], step_s=[], memory_bytes={"actor": 3e9, "rollout": 2e9},
+                         accelerator_bytes={"actor": 5e9})
+    assert profiling.fit_memory("actor", [result], components, on_accelerators=True) == (5e9, 3e9, True)
+    assert profiling.fit_memory("actor", [result], components, on_accelerators=False) == (3e9, 3e9, True)
+    assert profiling.fit_memory("rollout", [result], components, on_accelerators=True) == (0.0, 2e9, False)
+    assert profiling.fit_memory("env", [result], components, on_accelerators=False) == (0.0, 0.0, False)
+    on_gpu = ClusterInventory.with_gpus(1, 2).to_dict()
+    results = [ProbeResult(probe=probe, iterations=[{"collect/env": 0.1, "collect/rollout": 0.05,
+                                                     "update/actor": 0.02}] * 2, step_s=[0.2] * 2,
+                           memory_bytes={"actor": 3e9, "rollout": 2e9, "env": 1e9},
+                           accelerator_bytes={"actor": 5e9, "env": 0.0}, inventory=on_gpu)]
+    costs = fit(cfg, model, results).costs
+    assert (costs["update/actor"].memory_fixed_bytes, costs["update/actor"].host_memory_bytes) == (5e9, 3e9)
+    assert costs["collect/env"].memory_known and costs["collect/env"].memory_fixed_bytes == 0.0
+    assert not costs["collect/rollout"].memory_known  # its ranks' accelerator peak was not read
 
 
 @pytest.mark.parametrize("collect_ahead", [False, True])
@@ -143,13 +211,13 @@ def test_rounds_interleave_the_probes_and_merge_each_probes_runs(tmp_path, monke
                            inventory={})
 
     monkeypatch.setattr(profiling, "run_probe", fake_probe)
-    profile = load_or_profile(cfg, cache_dir=str(tmp_path), num_slots=2, rounds=2)
+    profile = load_or_profile(cfg, ClusterInventory.cpu_only(1, 2), cache_dir=str(tmp_path), rounds=2)
     assert order == ["collocated", "split", "collocated", "split"]
     by_name = {r.probe.name: r for r in profile.probes}
     assert by_name["collocated"].step_s == [2.0, 4.0] and by_name["split"].step_s == [3.0, 5.0]
     assert by_name["split"].memory_bytes["learner"] == 4.0  # the larger peak of its two runs
     with pytest.raises(ValueError, match="rounds=0 must be >= 1"):
-        load_or_profile(cfg, cache_dir=str(tmp_path), refresh=True, rounds=0)
+        load_or_profile(cfg, ClusterInventory.cpu_only(1, 2), cache_dir=str(tmp_path), refresh=True, rounds=0)
 
 
 def test_the_weight_sync_is_fitted_per_iteration_and_grows_with_the_trainers_ranks():

@@ -5,9 +5,10 @@ import pytest
 from infinirl.cli import build_config
 from infinirl.runtime import ClusterInventory, place
 from infinirl.runtime.inventory import GiB
+from infinirl.scheduler.auto import format_plan
 from infinirl.scheduler.cost import WorkCost, predict
 from infinirl.scheduler.profile import Profile, workload_of
-from infinirl.scheduler.search import candidate_layouts, pool_of, search
+from infinirl.scheduler.search import MAX_LAYOUTS, candidate_layouts, pool_of, search
 from infinirl.scheduler.simulate import scaled_config, simulated_plan
 from infinirl.scheduler.workloads import RUNNER_MODELS
 
@@ -143,6 +144,9 @@ def test_simulated_clusters_plan_valid_placements_within_memory(fixture, num_gpu
     assert all(e.memory_bytes <= 80 * GiB for e in entries)
     best = entries[0].candidate.allocations
     assert max(a.first + a.count for a in best.values()) <= num_gpus
+    if num_gpus == 1024:  # every block order over 128 nodes: a coarser grid, which the table says
+        assert entries.grid == [1, 4, 16, 64, 256, 1024] and not entries.truncated
+        assert "(a finer grid gives more than 4000 layouts)" in format_plan(scaled, None, entries)
 
 
 def test_simulated_memory_limit_is_respected(reasoning):
@@ -190,3 +194,93 @@ def test_grouped_multi_task_candidates_give_every_group_one_task():
     for entry in entries:
         ranks = entry.candidate.allocations["rollout"].ranks
         assert task_blocks_conflict(cfg, ranks, entry.candidate.depth) is None
+
+
+def _best(cfg, profile, inventory):
+    entries = search(cfg, RUNNER_MODELS.get(cfg.runner), workload_of(cfg, profile), inventory)
+    assert entries, entries.why_empty()
+    return entries
+
+
+@pytest.mark.parametrize("size", [5, 8])
+@pytest.mark.parametrize("fixture", ["embodied", "reasoning", "sac", "sac_ahead"])
+def test_a_larger_pool_never_predicts_worse_than_four_of_its_devices(fixture, size, request):
+    """Every layout of the first 4 devices is a layout of a larger pool, so its best is no slower."""
+    cfg, profile = request.getfixturevalue(fixture)
+    four = _best(cfg, profile, ClusterInventory.cpu_only(1, 4))[0].prediction.step_s
+    assert _best(cfg, profile, ClusterInventory.cpu_only(1, size))[0].prediction.step_s <= four + 1e-9
+
+
+def test_eight_slots_find_what_eight_allow(embodied):
+    """Streamed env and rollout on four slots each, the actor beside the env and one rollout slot
+    (a spanning component taking part of the blocks, the blocks in stream order): the search sees
+    it and ranks nothing above what it predicts."""
+    cfg, profile = embodied
+    entries = _best(cfg, profile, ClusterInventory.cpu_only(1, 8))
+    by_key = {(tuple(sorted(e.placement.items())), e.candidate.depth): e.prediction.step_s for e in entries}
+    split = (tuple(sorted({"env": "0-3", "rollout": "4-7", "actor": "0-4"}.items())), 2)
+    assert by_key[split] == pytest.approx(1.134, abs=1e-3)
+    assert entries[0].prediction.step_s <= by_key[split]
+    assert entries[0].prediction.step_s < _best(cfg, profile, ClusterInventory.cpu_only(1, 4))[0].prediction.step_s
+
+
+@pytest.mark.parametrize("size", [5, 8, 16])
+@pytest.mark.parametrize("fixture", ["sac", "sac_ahead"])
+def test_sac_on_more_than_four_slots_has_candidates_collocated_among_them(fixture, size, request):
+    cfg, profile = request.getfixturevalue(fixture)
+    entries = _best(cfg, profile, ClusterInventory.cpu_only(1, size))
+    assert {"collector": "0", "learner": "0"} in [e.placement for e in entries]
+    assert all(a.ranks == 1 for e in entries for a in e.candidate.allocations.values())
+
+
+def test_layouts_stay_bounded_and_say_when_their_sizes_are_coarser():
+    """Up to MAX_LAYOUTS structured layouts: three components on one node of 8 or 16 devices keep
+    every grid size; on 1,024 GPUs over nodes, or with four components, the grid is coarser and
+    the result says which."""
+    three, four = ("a", "b", "c"), ("a", "b", "c", "d")
+    for components, size, every_order, fine in ((three, 8, False, True), (three, 16, False, True),
+                                                (three, 64, True, False), (three, 1024, True, False),
+                                                (four, 8, False, False)):
+        layouts = candidate_layouts(components, size, every_order=every_order)
+        listed = list(layouts)
+        exhaustive = 10 ** len(components)  # the 10 ranges of 4 devices, for each component
+        assert len(listed) == layouts.count <= exhaustive + MAX_LAYOUTS
+        assert layouts.fine == fine and not layouts.truncated
+        assert len({tuple((a.first, a.count) for a in layout.values()) for layout in listed}) == len(listed)
+        assert any(all((layout[n].first, layout[n].count) == (0, size) for n in components) for layout in listed)
+    # every layout of the first 4 devices is one of a larger pool's
+    spans = lambda layouts: {tuple((a.first, a.count) for a in layout.values()) for layout in layouts}  # noqa: E731
+    assert spans(candidate_layouts(three, 4)) <= spans(candidate_layouts(three, 8, every_order=False))
+    # every order of the blocks where a node boundary can make it count
+    ordered = [{n: (a.first, a.count) for n, a in layout.items()} for layout in candidate_layouts(three, 16)]
+    assert {"a": (0, 8), "b": (8, 8), "c": (8, 8)} in ordered and {"b": (0, 8), "c": (0, 8), "a": (8, 8)} in ordered
+    assert {"a": (0, 4), "b": (0, 2), "c": (4, 4)} in ordered  # a member taking part of its block
+
+
+def test_host_memory_is_checked_per_node_on_gpus_and_a_rejection_says_what_ruled_out(embodied):
+    """On GPUs a rank's host memory fills its node (16 GiB here: four 6 GiB ranks do not fit) while
+    its device memory fills its GPU; what was left out is counted by reason."""
+    cfg, _ = embodied
+    gib = float(GiB)
+    costs = {"collect/env": WorkCost(per_unit_s=1e-3, memory_fixed_bytes=0.3 * gib, host_memory_bytes=6 * gib),
+             "collect/rollout": WorkCost(per_unit_s=4e-4, memory_fixed_bytes=0.4 * gib, host_memory_bytes=0.1 * gib),
+             "update/actor": WorkCost(per_unit_s=5e-4, memory_fixed_bytes=0.7 * gib, host_memory_bytes=0.1 * gib),
+             "sync/actor": WorkCost(per_unit_s=0.0, fixed_s=0.01), "sync/rollout": WorkCost(per_unit_s=0.0)}
+    inventory = ClusterInventory.from_dict({"nodes": [{**ClusterInventory.with_gpus(1, 4).to_dict()["nodes"][0],
+                                                       "memory_bytes": 16 * GiB}]})
+    entries = search(cfg, RUNNER_MODELS.get("embodied"), workload_of(cfg, _profile("embodied", costs)), inventory)
+    assert entries and all(e.candidate.allocations["env"].ranks <= 2 for e in entries)
+    assert max(e.memory_bytes for e in entries) <= 1.4 * gib + 1  # the device's, not the host's
+    host = [reason for reason in entries.rejected if reason.startswith("over a node's host memory")]
+    assert host == ["over a node's host memory: the smallest needs 24.50 GiB of 16.00 GiB"]  # 4 env ranks
+
+
+def test_an_empty_search_names_the_reason_and_the_pinned_key(embodied):
+    """env pinned on 3 slots with 16 envs: no depth splits them, whatever the other components do."""
+    _, profile = embodied
+    cfg = build_config("ppo_metaworld_reach", ["placement.env=0-2", "placement.rollout=auto",
+                                               "placement.actor=auto", "env.num_envs=16"])[1]
+    entries = search(cfg, RUNNER_MODELS.get("embodied"), workload_of(cfg, profile), ClusterInventory.cpu_only(1, 8))
+    assert not entries
+    assert entries.why_empty().startswith("env.num_envs=16 is not divisible by 3 env ranks (")
+    assert entries.why_empty().endswith("with placement.env=0-2 (3 ranks) kept as written")
