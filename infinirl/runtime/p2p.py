@@ -43,6 +43,10 @@ _lock = threading.Lock()
 _ids = itertools.count()
 _comm = ThreadPoolExecutor(max_workers=1, thread_name_prefix="infinirl-p2p")
 TIMEOUT = datetime.timedelta(seconds=300)
+PULLS = ThreadPoolExecutor(max_workers=4, thread_name_prefix="infinirl-p2p-take")
+"""Where asynchronous getters unpack items: a pull blocks until its producer has sent the item, and
+on an actor's event loop it would keep that loop from serving pulls of its own (two ranks each
+pulling from the other would wait on each other until TIMEOUT)."""
 WATCH_S = 0.5
 """How often a consumer's pull checks that its producer is still serving it."""
 

@@ -1,4 +1,5 @@
-"""Point-to-point channel items: a failed pull leaves the pair usable."""
+"""Point-to-point channel items: a failed pull leaves the pair usable, async getters never block
+the event loop that serves their own rank's pulls."""
 
 import time
 
@@ -53,3 +54,21 @@ def test_a_failed_pull_leaves_the_pair_usable(ray_cluster):
     finally:
         producer.shutdown()
         consumer.shutdown()
+
+
+class AsyncPeer(Worker):
+    async def swap(self, out: Channel, inp: Channel, value: float) -> float:
+        await out.put_async(torch.full((1000, 100), value))
+        item = await inp.get_async(timeout=PULL_S)
+        return float(item[0, 0])
+
+
+def test_async_ranks_pulling_from_each_other_do_not_deadlock(ray_cluster):
+    """Each rank's pull needs the other rank's event loop to serve it: the pulls must not hold the
+    loops they wait on."""
+    a, b = p2p_channel("p2p-swap-a"), p2p_channel("p2p-swap-b")
+    peers = WorkerGroup.launch(AsyncPeer, "p2p-swap", num_ranks=2)
+    try:
+        assert peers.call_each("swap", [(a, b, 1.0), (b, a, 2.0)]).wait(timeout=PULL_S) == [2.0, 1.0]
+    finally:
+        peers.shutdown()
