@@ -143,21 +143,53 @@ class WeightSink:
         raise NotImplementedError(f"{type(self).__name__} must implement load_weights()")
 
     def _infinirl_receive_weights(self, published: list, version: int, changed_only: bool = False) -> int:
-        received = [0]
-
-        def tensors():  # one pass over every bucket: engines may require the full state at once
-            for path, body, metas in published:
-                flat = unbox(ray.get(body[0])) if path == "object_store" else unbox(body)
-                received[0] += flat.numel()
-                yield from split_bucket(flat, metas)
-
-        if changed_only:
-            self.load_weights(tensors(), version, changed_only=True)
-        else:
-            self.load_weights(tensors(), version)
-        self.weight_version = version
+        # Every bucket is fetched before the first is loaded: a bucket lost on its way (its owner
+        # died, an object was evicted) then fails the sync with the weights untouched, instead of
+        # leaving the earlier buckets loaded and the rest old.
+        refs = [body[0] for path, body, _ in published if path == "object_store"]
+        fetched = iter(ray.get(refs))
+        buckets = [(unbox(next(fetched)) if path == "object_store" else unbox(body), metas)
+                   for path, body, metas in published]
+        # one pass over every bucket: engines may require the full state at once
+        self._load((kv for flat, metas in buckets for kv in split_bucket(flat, metas)), version, changed_only)
         self._drop_staged(up_to=version)  # an older staged version must not come back later
-        return received[0]
+        return sum(flat.numel() for flat, _ in buckets)
+
+    def _load(self, named_tensors, version: int, changed_only: bool = False) -> None:
+        """``load_weights``, then the version. A load that fails after taking a tensor may have
+        copied it: the rank's weights are torn (two versions mixed, stamped with neither) until a
+        load replaces what the failed one may have touched, and ``check_weights`` says so."""
+        taken = [0]
+
+        def counted():
+            for named in named_tensors:
+                taken[0] += 1
+                yield named
+
+        try:
+            if changed_only:
+                self.load_weights(counted(), version, changed_only=True)
+            else:
+                self.load_weights(counted(), version)
+        except BaseException:
+            if taken[0]:
+                self._torn_weights = (version, changed_only)
+            raise
+        torn = self.__dict__.get("_torn_weights")
+        # A changed-only load rewrites what a failed changed-only load touched, not a failed full one
+        if torn is not None and (not changed_only or torn[1]):
+            self._torn_weights = None
+        self.weight_version = version
+
+    def check_weights(self) -> None:
+        """Raise if a weight load failed partway, leaving this rank's weights a mix of two versions.
+        Generation must not run on them: its samples would carry a version that did not make them."""
+        torn = self.__dict__.get("_torn_weights")
+        if torn is not None:
+            where = f"{getattr(self, 'component', type(self).__name__)}[rank {getattr(self, 'rank', 0)}]"
+            raise RuntimeError(f"{where}: loading weights version {torn[0]} failed partway, so this rank's weights "
+                               f"mix it with version {self.weight_version}; nothing is generated with them until a "
+                               f"later sync loads (that load's own error was raised by its sync)")
 
     async def _infinirl_stage_weights(self, published: list, version: int) -> int:
         """Runs on the rank's event loop beside its running method: fetch, then stage."""
@@ -173,13 +205,15 @@ class WeightSink:
     def apply_staged_weights(self) -> bool:
         """Load the newest staged version, if it is newer than the loaded one. Call it only where
         a weight change is allowed (between requests, or between decode steps of a partial
-        rollout). True when new weights were loaded."""
+        rollout). True when new weights were loaded. Raises (``check_weights``) if the weights are
+        torn by a failed load, so a request that calls it first never runs on them."""
         staged = self._take_staged(newer_than=self.weight_version)
         if staged is None:
+            self.check_weights()
             return False
         buckets, version = staged
-        self.load_weights((kv for flat, metas in buckets for kv in split_bucket(flat, metas)), version)
-        self.weight_version = version
+        self._load((kv for flat, metas in buckets for kv in split_bucket(flat, metas)), version)
+        self.check_weights()
         return True
 
     def _drop_staged(self, up_to: int) -> None:
@@ -208,13 +242,12 @@ class WeightSink:
 
         named = tensors()
         try:
-            self.load_weights(named, version)
+            self._load(named, version)
         finally:
             # A sink that stopped early, or failed, must still take part in every broadcast: the
             # trainer would otherwise wait in one until the group's timeout, hiding this error.
             for _ in named:
                 pass
-        self.weight_version = version
         return received[0]
 
 
