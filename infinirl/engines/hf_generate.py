@@ -111,6 +111,7 @@ class HFGenerateEngine(InferenceEngine):
         self._weight_version = 0
         self._holds_full_sync = False  # a full set of the trainer's weights loaded (changed-only syncs build on it)
         self._changed_only_names: frozenset[str] | None = None  # what the first changed-only sync sent
+        self._torn: tuple[int, bool] | None = None  # (version, changed_only) of a load that failed after copying
         self.weight_refresh = None
         """Partial rollouts: called between decode steps; True when it has just loaded new weights."""
         self._offloaded = False
@@ -131,6 +132,10 @@ class HFGenerateEngine(InferenceEngine):
     ) -> list[GenerationResult]:
         if self._offloaded:
             raise RuntimeError("HFGenerateEngine.generate: engine is offloaded; call reload()")
+        if self._torn is not None:
+            raise RuntimeError(f"HFGenerateEngine.generate: loading weights version {self._torn[0]} failed after "
+                               f"copying some of them, so the model mixes them with version {self._weight_version}; "
+                               f"load weights again before generating")
         self._validate_prompts(prompt_token_ids, sampling)
         if not prompt_token_ids:
             return []
@@ -309,9 +314,10 @@ class HFGenerateEngine(InferenceEngine):
         partial update would tag samples from a half-old model with the new version. The exception
         is ``changed_only``, the trainer's declaration that it sends only what training changes;
         it is accepted only after a full load from the trainer (the rest of the model is then
-        exactly the trainer's). Tensors are copied as they stream in, so on an error the model may
-        be partly updated, but the version stays old. ``copy_`` is bit-exact when dtypes match and
-        rounds like ``.to()`` otherwise.
+        exactly the trainer's). Tensors are copied as they stream in, so on an error after the first
+        copy the model is torn (two versions mixed) and the version stays old: ``generate`` then
+        refuses to run until a load succeeds (a full one, if the failed one was full). ``copy_`` is
+        bit-exact when dtypes match and rounds like ``.to()`` otherwise.
         """
         if not isinstance(version, int):
             raise TypeError(f"load_weights: version must be an int, got {version!r}")
@@ -322,6 +328,30 @@ class HFGenerateEngine(InferenceEngine):
         targets = self.model.state_dict(keep_vars=True)
         unique_names = {id(t): name for name, t in targets.items()}
         loaded: set[int] = set()
+        try:
+            self._copy_named(named_tensors, targets, loaded)
+            missing = [name for key, name in unique_names.items() if key not in loaded]
+            if missing and not changed_only:
+                raise ValueError(
+                    f"load_weights: {len(missing)} weights were not sent (e.g. {missing[:3]}); "
+                    f"send the full state dict. weight_version stays {self._weight_version}"
+                )
+            if changed_only:
+                self._check_changed_only_names(frozenset(unique_names[key] for key in loaded))
+        except BaseException:
+            if loaded:  # a mix of two versions, stamped with neither: generate refuses it
+                self._torn = (version, changed_only)
+                # what a full load left old is not the trainer's: a changed-only load cannot repair it
+                self._holds_full_sync = self._holds_full_sync and changed_only
+            raise
+        if self._torn is not None and (not changed_only or self._torn[1]):
+            self._torn = None  # this load rewrote every weight the failed one may have touched
+        self._holds_full_sync = True
+        self._weight_version = version
+
+    @staticmethod
+    def _copy_named(named_tensors, targets: dict, loaded: set[int]) -> None:
+        """Copy each tensor into the model's by name; ``loaded`` collects the targets copied."""
         with torch.no_grad():
             for name, tensor in named_tensors:
                 target = targets.get(name)
@@ -338,16 +368,6 @@ class HFGenerateEngine(InferenceEngine):
                     )
                 target.copy_(tensor)
                 loaded.add(id(target))
-        missing = [name for key, name in unique_names.items() if key not in loaded]
-        if missing and not changed_only:
-            raise ValueError(
-                f"load_weights: {len(missing)} weights were not sent (e.g. {missing[:3]}); "
-                f"send the full state dict. weight_version stays {self._weight_version}"
-            )
-        if changed_only:
-            self._check_changed_only_names(frozenset(unique_names[key] for key in loaded))
-        self._holds_full_sync = True
-        self._weight_version = version
 
     def _check_changed_only_names(self, sent: frozenset[str]) -> None:
         """What training changes does not change between syncs: a changed-only sync that sends

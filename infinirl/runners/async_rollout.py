@@ -162,10 +162,7 @@ class WeightPusher:
         changed_only, self._sent_full = self.changed_only and self._sent_full, True
         if not self.asynchronous:
             return sync_weights(self.trainer, self.rollout, version=version, changed_only=changed_only).seconds
-        for pending in self._loading:  # an earlier load that failed raises its root cause here
-            if pending.done():
-                pending.wait()
-        self._loading = [p for p in self._loading if not p.done()]
+        self._loading = unfinished_loads(self._loading)  # an earlier load that failed raises its root cause here
         start = time.perf_counter()
         pending = start_weight_sync(self.trainer, self.rollout, version=version, interrupt=self.interrupt,
                                     changed_only=changed_only)
@@ -182,6 +179,19 @@ class WeightPusher:
         for pending in self._loading:
             pending.wait()
         self._loading = []
+
+
+def unfinished_loads(loading: list) -> list:
+    """The syncs of ``loading`` the rollout ranks have not finished loading; one that finished with
+    a failure raises it. Each is asked once whether it is done: one that finishes meanwhile is
+    checked at the next call, never dropped unchecked."""
+    unfinished = []
+    for pending in loading:
+        if pending.done():
+            pending.wait()
+        else:
+            unfinished.append(pending)
+    return unfinished
 
 
 def save_ahead_batches(folder: str, batches: dict[int, Any]) -> None:

@@ -40,7 +40,7 @@ from typing import Any
 
 import ray
 
-from infinirl.runtime import cancellation, processes
+from infinirl.runtime import cancellation, p2p, processes
 from infinirl.runtime.channel_actor import ChannelActor
 from infinirl.runtime.errors import CallCancelled, ChannelClosed, ChannelError
 from infinirl.runtime.payload import tensor_bytes, unbox
@@ -296,7 +296,8 @@ class Channel:
     async def get_async(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
         self._register("consumer")
         envelope, _ = await self._aget(self._actor.get, key, os.getpid(), _peer_id(), timeout)
-        return unpack(envelope)
+        # Off the event loop: a p2p pull waits for its producer, which may wait on this loop to serve one
+        return await asyncio.get_running_loop().run_in_executor(p2p.PULLS, unpack, envelope)
 
     async def get_batch_async(self, target_weight: float, key=DEFAULT_KEY, timeout=None) -> list:
         target = self._check_target(target_weight)

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import ray
 import torch
 
+from infinirl.runtime.p2p import nccl_options
 from infinirl.runtime.payload import DTYPE_BY_NAME, box, unbox
 from infinirl.runtime.rendezvous import pick_master
 
@@ -142,21 +143,53 @@ class WeightSink:
         raise NotImplementedError(f"{type(self).__name__} must implement load_weights()")
 
     def _infinirl_receive_weights(self, published: list, version: int, changed_only: bool = False) -> int:
-        received = [0]
-
-        def tensors():  # one pass over every bucket: engines may require the full state at once
-            for path, body, metas in published:
-                flat = unbox(ray.get(body[0])) if path == "object_store" else unbox(body)
-                received[0] += flat.numel()
-                yield from split_bucket(flat, metas)
-
-        if changed_only:
-            self.load_weights(tensors(), version, changed_only=True)
-        else:
-            self.load_weights(tensors(), version)
-        self.weight_version = version
+        # Every bucket is fetched before the first is loaded: a bucket lost on its way (its owner
+        # died, an object was evicted) then fails the sync with the weights untouched, instead of
+        # leaving the earlier buckets loaded and the rest old.
+        refs = [body[0] for path, body, _ in published if path == "object_store"]
+        fetched = iter(ray.get(refs))
+        buckets = [(unbox(next(fetched)) if path == "object_store" else unbox(body), metas)
+                   for path, body, metas in published]
+        # one pass over every bucket: engines may require the full state at once
+        self._load((kv for flat, metas in buckets for kv in split_bucket(flat, metas)), version, changed_only)
         self._drop_staged(up_to=version)  # an older staged version must not come back later
-        return received[0]
+        return sum(flat.numel() for flat, _ in buckets)
+
+    def _load(self, named_tensors, version: int, changed_only: bool = False) -> None:
+        """``load_weights``, then the version. A load that fails after taking a tensor may have
+        copied it: the rank's weights are torn (two versions mixed, stamped with neither) until a
+        load replaces what the failed one may have touched, and ``check_weights`` says so."""
+        taken = [0]
+
+        def counted():
+            for named in named_tensors:
+                taken[0] += 1
+                yield named
+
+        try:
+            if changed_only:
+                self.load_weights(counted(), version, changed_only=True)
+            else:
+                self.load_weights(counted(), version)
+        except BaseException:
+            if taken[0]:
+                self._torn_weights = (version, changed_only)
+            raise
+        torn = self.__dict__.get("_torn_weights")
+        # A changed-only load rewrites what a failed changed-only load touched, not a failed full one
+        if torn is not None and (not changed_only or torn[1]):
+            self._torn_weights = None
+        self.weight_version = version
+
+    def check_weights(self) -> None:
+        """Raise if a weight load failed partway, leaving this rank's weights a mix of two versions.
+        Generation must not run on them: its samples would carry a version that did not make them."""
+        torn = self.__dict__.get("_torn_weights")
+        if torn is not None:
+            where = f"{getattr(self, 'component', type(self).__name__)}[rank {getattr(self, 'rank', 0)}]"
+            raise RuntimeError(f"{where}: loading weights version {torn[0]} failed partway, so this rank's weights "
+                               f"mix it with version {self.weight_version}; nothing is generated with them until a "
+                               f"later sync loads (that load's own error was raised by its sync)")
 
     async def _infinirl_stage_weights(self, published: list, version: int) -> int:
         """Runs on the rank's event loop beside its running method: fetch, then stage."""
@@ -172,13 +205,15 @@ class WeightSink:
     def apply_staged_weights(self) -> bool:
         """Load the newest staged version, if it is newer than the loaded one. Call it only where
         a weight change is allowed (between requests, or between decode steps of a partial
-        rollout). True when new weights were loaded."""
+        rollout). True when new weights were loaded. Raises (``check_weights``) if the weights are
+        torn by a failed load, so a request that calls it first never runs on them."""
         staged = self._take_staged(newer_than=self.weight_version)
         if staged is None:
+            self.check_weights()
             return False
         buckets, version = staged
-        self.load_weights((kv for flat, metas in buckets for kv in split_bucket(flat, metas)), version)
-        self.weight_version = version
+        self._load((kv for flat, metas in buckets for kv in split_bucket(flat, metas)), version)
+        self.check_weights()
         return True
 
     def _drop_staged(self, up_to: int) -> None:
@@ -207,13 +242,12 @@ class WeightSink:
 
         named = tensors()
         try:
-            self.load_weights(named, version)
+            self._load(named, version)
         finally:
             # A sink that stopped early, or failed, must still take part in every broadcast: the
             # trainer would otherwise wait in one until the group's timeout, hiding this error.
             for _ in named:
                 pass
-        self.weight_version = version
         return received[0]
 
 
@@ -225,7 +259,8 @@ def _join_sync_group(self, addr: str, port: int, rank: int, world: int, backend:
     if backend == "nccl":
         from torch.distributed import ProcessGroupNCCL  # only exists in CUDA builds
 
-        self._sync_group = ProcessGroupNCCL(store, rank, world)
+        # NCCL's collectives have their own timeout (10 min by default), unrelated to the store's
+        self._sync_group = ProcessGroupNCCL(store, rank, world, nccl_options(timeout))
     else:
         self._sync_group = dist.ProcessGroupGloo(store, rank, world, timeout)
     self._sync_backend = backend
@@ -257,8 +292,9 @@ class WeightSyncGroup:
             sink.call("_infinirl_join_sync_group", addr, port, 1 + r, world, backend, timeout_s, ranks=[r])
             for r in range(sink.world_size)
         ]
-        for handle in handles:
-            handle.wait()
+        # All together: a rank that fails at once (a backend it lacks) is raised as it happens, not
+        # hidden behind the others' store timing out for want of it.
+        _wait_first_failure(handles)
         self.source, self.sink, self.backend = source, sink, backend
 
 
@@ -295,28 +331,64 @@ class PendingSync:
     method: str
     buckets: int
     started: float
-    handles: list  # the receivers' handle (its result: bytes received), and the sender's, if any
+    handles: list  # the sender's handle, if any, and one per receiving rank (its result: bytes received)
     bytes_from: int = 0  # which handle's first result is the byte count
 
     def done(self) -> bool:
         return all(handle.done() for handle in self.handles)
 
     def wait(self, timeout: float | None = None) -> SyncStats:
-        # The first failure of any side is raised as it happens: a receiver that died would otherwise
-        # be reported only after the sender's wait in a collective ran into its timeout.
-        deadline = None if timeout is None else time.monotonic() + timeout
-        pending = list(self.handles)
-        while len(pending) > 1:
-            for handle in [h for h in pending if h.done()]:
-                handle.wait(0)  # raises its failure
-                pending.remove(handle)
-            if deadline is not None and time.monotonic() > deadline:
-                break  # the wait below names what is still running
-            time.sleep(0.01)
-        remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-        results = [handle.wait(remaining) for handle in self.handles]
+        sender = self.handles[0] if self.method == "collective" else None
+        results = _wait_first_failure(self.handles, timeout, sender)
         return SyncStats(self.version, self.method, results[self.bytes_from][0], self.buckets,
                          time.perf_counter() - self.started)
+
+
+def _wait_first_failure(handles: list, timeout: float | None = None, sender=None) -> list:
+    """Every handle's results, in order. The first failure of any side is raised as it happens: a
+    receiver that died would otherwise be reported only once the others are done, which in a
+    collective means after the sender's wait ran into its timeout. (A handle over several ranks is
+    done only when all are: give each rank its own handle.) ``sender``: the handle of a collective's
+    sender, whose failure may only be the symptom of a receiver's (see ``_raise_root_cause``)."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    pending = list(handles)
+    while len(pending) > 1:
+        for handle in [h for h in pending if h.done()]:
+            if handle is sender:
+                _raise_root_cause(sender, [h for h in handles if h is not sender])
+            handle.wait(0)  # raises its failure
+            pending.remove(handle)
+        if deadline is not None and time.monotonic() > deadline:
+            break  # the wait below names what is still running
+        time.sleep(0.01)
+    remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+    return [handle.wait(remaining) for handle in handles]
+
+
+ROOT_CAUSE_WAIT_S = 5.0
+"""How long a collective's failed sender waits for a receiver's failure to be known."""
+
+
+def _raise_root_cause(sender, receivers: list) -> None:
+    """The sender of a collective is done; if it failed, a receiver's death may be why, and the
+    sender's error then only says that a connection closed. A receiver's failure seen within
+    ``ROOT_CAUSE_WAIT_S`` is raised instead (the sender's is its context), else the sender's."""
+    try:
+        sender.wait(0)
+        return
+    except Exception:
+        give_up = time.monotonic() + ROOT_CAUSE_WAIT_S
+        while time.monotonic() < give_up:
+            for receiver in [r for r in receivers if r.done()]:
+                receiver.wait(0)  # raises its failure
+                receivers.remove(receiver)
+            time.sleep(0.05)
+        raise
+
+
+def _per_rank(sink, method: str, *args) -> list:
+    """``method`` on every rank of ``sink``, one handle per rank (see ``_wait_first_failure``)."""
+    return [sink.call(method, *args, ranks=[rank]) for rank in range(sink.world_size)]
 
 
 def start_weight_sync(
@@ -355,16 +427,16 @@ def start_weight_sync(
             raise ValueError("sync_weights(method='collective') needs group=WeightSyncGroup(trainer, rollout)")
         metas = source.call("_infinirl_broadcast_weights", bucket_bytes).wait()[0]
         send = source.call("_infinirl_send_buckets", ranks=[0])
-        received = sink.call("_infinirl_receive_broadcast", metas, version)
-        return PendingSync(version, method, len(metas), start, [send, received], bytes_from=0)
+        received = _per_rank(sink, "_infinirl_receive_broadcast", metas, version)
+        return PendingSync(version, method, len(metas), start, [send, *received], bytes_from=0)
     if method not in ("object_store", "cuda_ipc"):
         raise ValueError(f"unknown weight-sync method {method!r}; use auto, object_store, cuda_ipc or collective")
     published = source.call("_infinirl_publish_weights", bucket_bytes, method == "cuda_ipc", changed_only).wait()[0]
     if interrupt:
-        received = sink.call("_infinirl_stage_weights", published, version)
+        received = _per_rank(sink, "_infinirl_stage_weights", published, version)
     else:
-        received = sink.call("_infinirl_receive_weights", published, version, changed_only)
-    return PendingSync(version, method, len(published), start, [received])
+        received = _per_rank(sink, "_infinirl_receive_weights", published, version, changed_only)
+    return PendingSync(version, method, len(published), start, received)
 
 
 _STAGING_LOCKS_GUARD = threading.Lock()

@@ -75,12 +75,25 @@ class Rollout(Worker, WeightSink):
     def fail_next_load(self):
         self.failing = True
 
+    def tear_next_load(self):
+        self.tearing = True
+
+    def request(self) -> int:
+        """What a rollout rank's generation does first (``RolloutWorker.generate``); the version it runs."""
+        self.apply_staged_weights()
+        return self.weight_version
+
     def load_weights(self, named_tensors, version, changed_only=False):
         if getattr(self, "failing", False):
             self.failing = False
             next(iter(named_tensors))
             raise ValueError("bad shape")
         own, sent = self.model.state_dict(), set()
+        if getattr(self, "tearing", False):  # copies one tensor, then fails
+            self.tearing = False
+            name, tensor = next(iter(named_tensors))
+            own[name].copy_(tensor)
+            raise OSError("disk full")
         for name, tensor in named_tensors:
             own[name].copy_(tensor)
             sent.add(name)
@@ -240,3 +253,88 @@ def test_staged_weights_arrive_beside_a_running_request_and_load_between_its_ste
 def test_interrupt_needs_a_path_that_can_stage():
     with pytest.raises(ValueError, match="interrupt=True"):
         start_weight_sync(None, None, version=1, method="collective", interrupt=True)
+
+
+def test_a_load_that_fails_partway_stops_the_ranks_requests_until_a_sync_repairs_it(ray_cluster):
+    """A rank whose load failed after copying a tensor holds two versions mixed under the old
+    stamp: the requests queued behind the sync raise, naming the failed version, instead of
+    generating on them; a later full sync makes the rank whole again."""
+    trainer = WorkerGroup.launch(Trainer, "actor", num_ranks=1)
+    rollout = WorkerGroup.launch(Rollout, "rollout", num_ranks=2)
+    try:
+        sync_weights(trainer, rollout, version=1)
+        rollout.tear_next_load(ranks=[1]).wait()
+        trainer.train_a_bit().wait()
+        pending = start_weight_sync(trainer, rollout, version=2, bucket_bytes=16 * 1024)
+        behind = [rollout.request(ranks=[rank]) for rank in (0, 1)]
+        with pytest.raises(WorkerError, match="disk full"):
+            pending.wait(timeout=60)
+        assert behind[0].wait(timeout=60) == [2]
+        with pytest.raises(WorkerError, match="loading weights version 2 failed partway"):
+            behind[1].wait(timeout=60)
+        sync_weights(trainer, rollout, version=3)
+        assert rollout.request().wait(timeout=60) == [3, 3]
+    finally:
+        trainer.shutdown()
+        rollout.shutdown()
+
+
+class RolloutWithoutBackend(Rollout):
+    def _infinirl_join_sync_group(self, *args):
+        if self.rank == 1:  # as a build without the group's backend fails, before it reaches the store
+            raise ImportError("this torch build has no such process group backend")
+        return super()._infinirl_join_sync_group(*args)
+
+
+def test_a_receiver_failing_to_join_the_sync_group_is_reported_at_once(ray_cluster):
+    """Not as the trainer's store timing out for want of it, after ``timeout_s``."""
+    import time
+
+    trainer = WorkerGroup.launch(Trainer, "actor", num_ranks=1)
+    rollout = WorkerGroup.launch(RolloutWithoutBackend, "rollout", num_ranks=2)
+    try:
+        start = time.monotonic()
+        with pytest.raises(WorkerError, match=r"(?s)rollout\[rank 1\].*ImportError: this torch build"):
+            WeightSyncGroup(trainer, rollout, timeout_s=30)
+        assert time.monotonic() - start < 15
+    finally:
+        trainer.shutdown()
+        rollout.shutdown()
+
+
+class BigTrainer(Trainer):
+    def weights_for_sync(self, changed_only: bool = False):
+        # One bucket larger than a socket's buffers: the broadcast waits for every receiver to read it
+        return [("big", torch.ones(8 << 20))]
+
+
+class DyingRollout(Rollout):
+    def load_weights(self, named_tensors, version, changed_only=False):
+        import os
+
+        if self.rank == 0:
+            os._exit(3)
+        for _ in named_tensors:
+            pass
+
+
+def test_a_receiver_that_dies_in_a_collective_sync_is_reported_at_once(ray_cluster, deliberate_deaths):
+    """While another receiver is still busy (so the trainer's broadcast still waits), the dead
+    one's failure is raised as it happens: not once the others finished, and not the trainer's
+    broadcast error it causes (a closed connection) in its place."""
+    import time
+
+    trainer = WorkerGroup.launch(BigTrainer, "actor", num_ranks=1)
+    rollout = WorkerGroup.launch(DyingRollout, "rollout", num_ranks=2)
+    try:
+        deliberate_deaths(rollout.pids()[0])
+        group = WeightSyncGroup(trainer, rollout, timeout_s=60)
+        busy = rollout.generate(30.0, ranks=[1])
+        start = time.monotonic()
+        pending = start_weight_sync(trainer, rollout, version=1, method="collective", group=group)
+        with pytest.raises(WorkerError, match=r"rollout\[rank 0\]._infinirl_receive_broadcast\(\) died"):
+            pending.wait(timeout=60)
+        assert time.monotonic() - start < 15 and not busy.done()
+    finally:
+        trainer.shutdown()
+        rollout.shutdown()

@@ -360,6 +360,47 @@ def test_changed_only_loads_follow_a_full_load_and_keep_the_rest(tiny):
     assert engine.weight_version == 3
 
 
+def test_a_load_that_fails_partway_stops_generation_until_a_load_repairs_it(tiny):
+    """Tensors copied before a load failed leave two versions mixed under the old version's stamp:
+    generate refuses to run on them, naming the failed version, until a load rewrites what the
+    failed one may have touched (a full one after a failed full load)."""
+    model, tokenizer = tiny
+    engine = HFGenerateEngine(tiny_causal_lm(tokenizer="byte", seed=1)[0], tokenizer)
+    engine.load_weights(model.named_parameters(), version=1)
+    greedy = SamplingParams(max_new_tokens=3, greedy=True)
+    engine.generate(PROMPTS, greedy)
+
+    def breaks_after_the_first(named):
+        named = iter(named)
+        yield next(named)
+        raise ConnectionError("bucket 2 lost on its way")
+
+    newer = tiny_causal_lm(tokenizer="byte", seed=2)[0]
+    with pytest.raises(ConnectionError):
+        engine.load_weights(breaks_after_the_first(newer.named_parameters()), version=2)
+    assert engine.weight_version == 1
+    with pytest.raises(RuntimeError, match="loading weights version 2 failed after copying some"):
+        engine.generate(PROMPTS, greedy)
+    norm = ("model.norm.weight", dict(newer.named_parameters())["model.norm.weight"])
+    with pytest.raises(ValueError, match="has not loaded a full set"):  # the rest may not be the trainer's
+        engine.load_weights([norm], version=2, changed_only=True)
+    with pytest.raises(KeyError, match="unknown weight name"):  # nothing copied: still torn by version 2
+        engine.load_weights([("nope", norm[1])], version=3)
+    with pytest.raises(RuntimeError, match="version 2 failed"):
+        engine.generate(PROMPTS, greedy)
+    engine.load_weights(newer.named_parameters(), version=3)
+    assert all(r.weight_version == 3 for r in engine.generate(PROMPTS, greedy))
+
+    # A changed-only load that fails partway is repaired by the next changed-only one.
+    engine.load_weights([norm], version=4, changed_only=True)
+    with pytest.raises(ConnectionError):
+        engine.load_weights(breaks_after_the_first([norm, norm]), version=5, changed_only=True)
+    with pytest.raises(RuntimeError, match="version 5 failed"):
+        engine.generate(PROMPTS, greedy)
+    engine.load_weights([norm], version=6, changed_only=True)
+    assert all(r.weight_version == 6 for r in engine.generate(PROMPTS, greedy))
+
+
 def test_offload_reload_round_trip(engine):
     greedy = SamplingParams(max_new_tokens=6, greedy=True)
     before = engine.generate(PROMPTS, greedy)

@@ -3,7 +3,13 @@
 import pytest
 
 from infinirl.engines.base import GenerationResult
-from infinirl.runners.async_rollout import RolloutAhead, partial_rollout_metrics, producing_version, staleness_metrics
+from infinirl.runners.async_rollout import (
+    RolloutAhead,
+    partial_rollout_metrics,
+    producing_version,
+    staleness_metrics,
+    unfinished_loads,
+)
 
 
 class FakeRollout:
@@ -92,3 +98,25 @@ def test_partial_rollout_metrics_weigh_each_token_by_its_own_version():
     results = [result(3, 2), result(3, 4, [3, 3, 4, 4])]  # at iteration 4: gaps 1,1 and 1,1,0,0
     assert partial_rollout_metrics(4, results) == {"async/token_staleness_mean": 4 / 6,
                                                    "async/interrupted_fraction": 0.5}
+
+
+class LoadFinishingNow:
+    """A sync whose load fails just after it was first asked whether it is done."""
+
+    def __init__(self):
+        self.asked = 0
+
+    def done(self) -> bool:
+        self.asked += 1
+        return self.asked > 1
+
+    def wait(self):
+        raise ValueError("load of version 3 failed")
+
+
+def test_a_load_failing_between_two_checks_is_raised_at_the_next_one():
+    loading = [LoadFinishingNow()]
+    loading = unfinished_loads(loading)  # not done when asked: kept, not dropped unchecked
+    assert len(loading) == 1
+    with pytest.raises(ValueError, match="version 3 failed"):
+        unfinished_loads(loading)
