@@ -307,6 +307,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
     @torch.no_grad()
     def collect(self, iteration: int, seeds: list[int], num_steps: int) -> dict:
         """``num_steps`` decisions for every env of this rank; the trajectory as numpy arrays."""
+        self.check_weights()  # never act on weights a failed load left half-replaced
         torch.manual_seed(int(np.random.default_rng([self.seed, iteration, self.rank, 0xAC7]).integers(2**62)))
         if self.env is not None:
             endpoint = _LocalEndpoint(self.env, seeds)
@@ -440,6 +441,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
     def evaluate(self, seeds: list[int], num_envs: int, deterministic: bool = True,
                  env_kwargs: dict | None = None, max_episode_steps: int | None = None) -> dict:
         """One episode per seed (held-out seeds) with the (deterministic) policy; episode stats."""
+        self.check_weights()  # never act on weights a failed load left half-replaced
         if self._eval_env is None or self._eval_env.num_envs != num_envs:
             if self._eval_env is not None:
                 self._eval_env.close()
@@ -453,6 +455,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
                      env_kwargs: dict | None = None, deterministic: bool = True,
                      max_episode_steps: int | None = None) -> dict:
         """Render one episode per seed into an mp4 (MuJoCo frames on CPU via osmesa/egl)."""
+        self.check_weights()  # never act on weights a failed load left half-replaced
         from infinirl.envs.video import write_mp4
 
         env = self.env_spec.build(1, stage=98, num_workers=0, max_episode_steps=max_episode_steps, **(env_kwargs or {}))

@@ -126,6 +126,7 @@ class SACCollectorWorker(Worker, WeightSink):
         actions (warm-up), the rest sampled from the actor. Returns the transitions (time-major:
         step ``t`` of env ``i`` is row ``t * num_envs + i``) and episode statistics: of the episodes
         that ended (``episodes``) and of those still running (``open_episodes``, see :meth:`open_episodes`)."""
+        self.check_weights()  # never act on weights a failed load left half-replaced
         self._ensure_started()
         n, t0 = len(self.envs), time.perf_counter()
         rows: dict[str, list] = {k: [] for k in ("obs", "action", "reward", "next_obs", "terminated", "env_step",
@@ -249,6 +250,7 @@ class SACCollectorWorker(Worker, WeightSink):
         """One episode per (held-out) seed with the deterministic policy ``tanh(mean)``, run in
         rounds of ``num_envs`` envs in this process; return / length / success statistics, and
         success per task where the envs run several (``eval/success/<task>``)."""
+        self.check_weights()  # never act on weights a failed load left half-replaced
         if self._eval_env is None or self._eval_env.num_envs != num_envs:
             if self._eval_env is not None:
                 self._eval_env.close()
@@ -285,6 +287,7 @@ class SACCollectorWorker(Worker, WeightSink):
                      max_steps: int | None = None, env_kwargs: dict | None = None) -> dict:
         """Render one deterministic episode per seed into an mp4 (MuJoCo renders off-screen on CPU
         through osmesa or egl); returns the path, frame count and each episode's return."""
+        self.check_weights()  # never act on weights a failed load left half-replaced
         from infinirl.envs.video import write_mp4
 
         env = self.spec.build(1, num_workers=0, salt=98, **(env_kwargs or {}))
