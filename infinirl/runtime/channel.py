@@ -303,7 +303,8 @@ class Channel:
         target = self._check_target(target_weight)
         self._register("consumer")
         taken = await self._aget(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
-        return self._unpack_batch(key, taken)
+        # Off the event loop for the same reason as get_async (and ray.get must not block a running loop)
+        return await asyncio.get_running_loop().run_in_executor(p2p.PULLS, self._unpack_batch, key, taken)
 
     def _unpack_batch(self, key, taken: list[tuple[Envelope, float]]) -> list:
         """The items a batch get took, unpacked (object-store payloads fetched in one round trip).

@@ -62,6 +62,11 @@ class AsyncPeer(Worker):
         item = await inp.get_async(timeout=PULL_S)
         return float(item[0, 0])
 
+    async def swap_batch(self, out: Channel, inp: Channel, value: float) -> float:
+        await out.put_async(torch.full((1000, 100), value))
+        (item,) = await inp.get_batch_async(1, timeout=PULL_S)
+        return float(item[0, 0])
+
 
 def test_async_ranks_pulling_from_each_other_do_not_deadlock(ray_cluster):
     """Each rank's pull needs the other rank's event loop to serve it: the pulls must not hold the
@@ -69,6 +74,7 @@ def test_async_ranks_pulling_from_each_other_do_not_deadlock(ray_cluster):
     a, b = p2p_channel("p2p-swap-a"), p2p_channel("p2p-swap-b")
     peers = WorkerGroup.launch(AsyncPeer, "p2p-swap", num_ranks=2)
     try:
+        assert peers.call_each("swap_batch", [(a, b, 3.0), (b, a, 4.0)]).wait(timeout=PULL_S) == [4.0, 3.0]
         assert peers.call_each("swap", [(a, b, 1.0), (b, a, 2.0)]).wait(timeout=PULL_S) == [2.0, 1.0]
     finally:
         peers.shutdown()
