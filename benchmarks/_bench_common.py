@@ -1,5 +1,5 @@
-"""Shared helpers for the channel benchmarks (benchmarks/runtime_channel.py and
-benchmarks/rlinf_channel_child.py).
+"""Shared helpers for the benchmarks: the channel benchmarks' methodology (benchmarks/runtime_channel.py
+and benchmarks/rlinf_channel_child.py), and how every benchmark ends (:func:`conclude`).
 
 Stdlib only at import time (torch is imported lazily), because this module is also imported by the
 RLinf child script, which runs under a different virtualenv. Ray actors never import it: they only
@@ -27,7 +27,9 @@ import math
 import os
 import platform
 import statistics
-from collections.abc import Iterable, Mapping, Sequence
+import sys
+import traceback
+from collections.abc import Callable, Iterable, Mapping, Sequence
 
 KIB = 1024
 MIB = 1024 * 1024
@@ -177,7 +179,9 @@ def format_table(results: Mapping[str, Mapping]) -> str:
     lines = [header, "-" * len(header)]
     for impl, res in results.items():
         if not res or "sizes" not in res:
-            lines.append(f"{impl:<10}  skipped: {(res or {}).get('skipped', 'no result')}")
+            res = res or {}
+            why = f"failed: {res['failed']}" if res.get("failed") else f"skipped: {res.get('skipped', 'no result')}"
+            lines.append(f"{impl:<10}  {why}")
             continue
         for label, st in res["sizes"].items():
             lines.append(
@@ -222,3 +226,45 @@ def record_result(path: str | None, title: str, final: Mapping) -> None:
     command = shlex.join(["python", *sys.argv])
     append_entry(path, format_entry(title=title, command=command, result=dict(final),
                                     host={**host_probe(), **dict(final.get("host") or {})}))
+
+
+# --------------------------------------------------------------------------------------------
+# How a benchmark ends: one final JSON line, always, and an exit status that says whether it holds
+# --------------------------------------------------------------------------------------------
+def side_failed(reason: str) -> dict:
+    """A side's (row's, impl's) entry in ``results`` when it could not be measured."""
+    return {"failed": reason}
+
+
+def failures_of(results: Mapping[str, object], prefix: str = "") -> list[str]:
+    """``"<name>: <reason>"`` for every entry of ``results`` that holds ``failed`` (skipped sides,
+    e.g. an optional baseline that is not installed, are not failures)."""
+    return [f"{prefix}{name}: {entry['failed']}" for name, entry in results.items()
+            if isinstance(entry, Mapping) and entry.get("failed")]
+
+
+def conclude(final: Mapping, failures: Iterable[str] = (), record: tuple[str | None, str] | None = None) -> int:
+    """Print ``final`` as the last stdout line, with ``"failures"`` (a required side that failed, a
+    same-work check that did not hold), and return the exit status: 1 with any failure, else 0.
+    ``record``: (``--record``'s path or None, the entry's title); a failed run is not recorded."""
+    failures = list(failures)
+    final = {**final, "failures": failures}
+    for failure in failures:
+        print(f"{final.get('benchmark', 'benchmark')}: FAILED: {failure}", file=sys.stderr, flush=True)
+    if record is not None and record[0]:
+        if failures:
+            print(f"not recorded in {record[0]}: the run failed", file=sys.stderr, flush=True)
+        else:
+            record_result(record[0], record[1], final)
+    print(json.dumps(final), flush=True)
+    return 1 if failures else 0
+
+
+def concluded(benchmark: str, main: Callable[[], int | None]) -> int:
+    """``main()``'s exit status; an exception it did not turn into a failed side still ends the run
+    with a final JSON line naming it, and exit 1 (argument errors, ``SystemExit``, pass through)."""
+    try:
+        return main() or 0
+    except Exception as error:  # noqa: BLE001 - any crash: the traceback to stderr, the failure to the JSON line
+        traceback.print_exc()
+        return conclude({"benchmark": benchmark, "ratios": {}}, [f"{type(error).__name__}: {error}"])

@@ -83,7 +83,11 @@ def _signal_session(session: int, sig: int) -> None:
 
 
 class RowFailed(RuntimeError):
-    """A row's process ended (or broke the protocol) before its turns were over."""
+    """A row's process ended (or broke the protocol) before its turns were over; ``row`` names it."""
+
+    def __init__(self, message: str, row: str | None = None):
+        super().__init__(message)
+        self.row = row
 
 
 class Turn:
@@ -116,26 +120,33 @@ class Turn:
             os.write(self._write, b"d")
 
 
+#: The embodied flow's method that runs one iteration (the run loop calls it once per iteration).
+EMBODIED_STEP = "step"
+
+
 def gate_embodied_runner() -> None:
-    """In a row's process started by a :class:`Conductor`: each ``EmbodiedFlow.iteration`` in a turn
-    of its own, and what follows the last iteration in one more. The runner's own timing
-    (``time/iteration_s``) is inside the turn, so waiting for a turn is never measured."""
+    """In a row's process started by a :class:`Conductor`: each ``EmbodiedFlow.step`` (one
+    iteration) in a turn of its own, and what follows the last iteration in one more. The runner's
+    own timing (``time/iteration_s``) is inside the turn, so waiting for a turn is never measured."""
     turn = Turn.from_env()
     if turn is None:
         return
     from infinirl.runners.embodied import EmbodiedFlow
 
-    original = EmbodiedFlow.iteration
+    original = getattr(EmbodiedFlow, EMBODIED_STEP, None)
+    if not callable(original):
+        raise RuntimeError(f"infinirl.runners.embodied.EmbodiedFlow has no method {EMBODIED_STEP!r} to run in turns; "
+                        "point _bench_turns.EMBODIED_STEP at the method the run loop calls once per iteration")
 
     @functools.wraps(original)
-    def iteration(self, index: int) -> dict:
+    def step(self, index: int) -> dict:
         with turn:
             metrics = original(self, index)
         if index + 1 == self.cfg.iterations:
-            turn.take()
+            turn.take()  # the last turn: the final evaluation, checkpoint and shutdown
         return metrics
 
-    EmbodiedFlow.iteration = iteration
+    setattr(EmbodiedFlow, EMBODIED_STEP, step)
 
 
 class _Row:
@@ -163,7 +174,7 @@ class _Row:
                 self.process.wait()  # it closed its pipe: it is exiting
             what = "exited" if not got else f"sent {got!r}"
             raise RowFailed(f"row {self.name} {what} while {doing} (exit code {self.process.returncode}):\n"
-                            f"{self.stderr_tail()}")
+                            f"{self.stderr_tail()}", row=self.name)
 
     def await_ready(self) -> None:
         if not self.ready:
@@ -262,7 +273,8 @@ class Conductor:
             for row in self.rows:
                 code = row.process.wait()
                 if code:
-                    raise RowFailed(f"row {row.name} failed after its turns (exit code {code}):\n{row.stderr_tail()}")
+                    raise RowFailed(f"row {row.name} failed after its turns (exit code {code}):\n{row.stderr_tail()}",
+                                    row=row.name)
                 outputs[row.name] = row.output()
             return outputs
         except BaseException:

@@ -10,12 +10,18 @@ see the same latencies. By default the model is a tiny random Llama whose turns 
 characters (generation is cheap, as on a GPU, so the tools dominate, as in production agents);
 ``--model smollm2`` runs the embedded SmolLM2-135M-Instruct on the calculator task instead.
 
-    python benchmarks/agent_rollout.py                  # about a minute
+Each row first runs an untimed warm-up rollout (``--warmup-trajectories``: the engine's first calls
+and allocations), then the rows run ``--repeats`` times, back to back, the order alternating every
+repeat (so neither row always runs first on a machine whose speed drifts); each repeat gives its
+own ratio, and the reported ratio is their median.
+
+    python benchmarks/agent_rollout.py                  # a few minutes
     python benchmarks/agent_rollout.py --trajectories 128 --tool-ms 200 --tool-sigma 1.0
 
 The last stdout line is ONE JSON object: {"benchmark": "agent_rollout", "ratios":
-{"agent_async_vs_lockstep": async trajectories/s / lockstep trajectories/s}, "targets": {...},
-"results": {...}}.
+{"agent_async_vs_lockstep": median over repeats of async trajectories/s / lockstep trajectories/s},
+"per_repeat": {ratio key: [...]}, "targets": {...}, "results": {row: {... "runs": [...]}},
+"failures": [...]}.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ import json
 import math
 import os
 import random
+import statistics
 import sys
 import time
 
@@ -32,12 +39,13 @@ REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO_ROOT not in sys.path:
     sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
 
-from _bench_common import add_record_argument, device_description, record_result  # noqa: E402
+from _bench_common import add_record_argument, conclude, concluded, device_description  # noqa: E402
 
 from infinirl.agents.loop import AgentBudget, AgentEnv, AgentRollout, AgentStep  # noqa: E402
 from infinirl.engines.base import SamplingParams  # noqa: E402
 
 TARGETS = {"agent_async_vs_lockstep": 2.0}
+ROWS = ("lockstep", "async")
 TINY_STOPS = tuple("abcdefghijklmnopqrstuvwxyz")
 
 
@@ -114,6 +122,25 @@ def run_row(schedule: str, args, engine, tokenizer, prompts, inner) -> dict:
             "tool_s_sum": round(sum(s["env_s"] for s in stats), 3)}
 
 
+def row_order(rows: list[str], repeat: int) -> list[str]:
+    """The rows of one repeat in run order: as given in even repeats, reversed in odd ones."""
+    return list(rows) if repeat % 2 == 0 else list(rows)[::-1]
+
+
+def summarise_runs(runs: dict[str, list[dict]]) -> tuple[dict, dict, dict]:
+    """Per row its median rate over the repeats and every run; per repeat the async/lockstep ratio of
+    its two back-to-back runs; and the ratio reported, their median."""
+    results = {row: {"trajectories_per_s": round(statistics.median(r["trajectories_per_s"] for r in done), 3),
+                     "runs": done} for row, done in runs.items()}
+    per_repeat, ratios = {}, {}
+    if {"async", "lockstep"} <= set(runs):
+        key = "agent_async_vs_lockstep"
+        per_repeat[key] = [round(a["trajectories_per_s"] / b["trajectories_per_s"], 3)
+                           for a, b in zip(runs["async"], runs["lockstep"])]
+        ratios[key] = round(statistics.median(per_repeat[key]), 3)
+    return results, per_repeat, ratios
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", choices=("tiny", "smollm2"), default="tiny")
@@ -124,25 +151,33 @@ def main() -> int:
     parser.add_argument("--turn-tokens", type=int, default=16, help="max new tokens per turn")
     parser.add_argument("--max-response-tokens", type=int, default=160)
     parser.add_argument("--threads", type=int, default=max(1, (os.cpu_count() or 2) // 2))
-    parser.add_argument("--rows", default="lockstep,async")
+    parser.add_argument("--rows", default=",".join(ROWS))
+    parser.add_argument("--repeats", type=int, default=2, help="timed runs of each row, the order alternating")
+    parser.add_argument("--warmup-trajectories", type=int, default=8,
+                        help="trajectories of each row's untimed warm-up rollout (0: none)")
     add_record_argument(parser)
     args = parser.parse_args()
+    rows = [row.strip() for row in args.rows.split(",") if row.strip()]
+    if not rows or set(rows) - set(ROWS):
+        parser.error(f"--rows {args.rows!r}: choose from {', '.join(ROWS)}")
+    if args.repeats < 1 or args.warmup_trajectories < 0:
+        parser.error("--repeats must be >= 1 and --warmup-trajectories >= 0")
 
     engine, tokenizer, prompts, inner = build_setup(args)
-    results = {}
-    for row in args.rows.split(","):
-        results[row] = run_row(row, args, engine, tokenizer, prompts, inner)
-        print(f"[{row}] {json.dumps(results[row])}", flush=True)
-    ratios = {}
-    if {"async", "lockstep"} <= set(results):
-        ratios["agent_async_vs_lockstep"] = round(
-            results["async"]["trajectories_per_s"] / results["lockstep"]["trajectories_per_s"], 3)
-    final = {"benchmark": "agent_rollout", "ratios": ratios, "targets": TARGETS, "device": device_description(),
-             "config": {k: v for k, v in vars(args).items() if k != "record"}, "results": results}
-    record_result(args.record, "Agent rollouts: many trajectories in flight vs lock-step", final)
-    print(json.dumps(final), flush=True)
-    return 0
+    if args.warmup_trajectories:
+        for row in rows:  # untimed: the engine's first calls and allocations
+            run_row(row, args, engine, tokenizer, prompts[:args.warmup_trajectories], inner)
+    runs: dict[str, list[dict]] = {row: [] for row in rows}
+    for repeat in range(args.repeats):
+        for row in row_order(rows, repeat):
+            runs[row].append(run_row(row, args, engine, tokenizer, prompts, inner))
+            print(f"[{row} {repeat}] {json.dumps(runs[row][-1])}", file=sys.stderr, flush=True)
+    results, per_repeat, ratios = summarise_runs(runs)
+    final = {"benchmark": "agent_rollout", "ratios": ratios, "per_repeat": per_repeat, "targets": TARGETS,
+             "device": device_description(), "config": {k: v for k, v in vars(args).items() if k != "record"},
+             "results": results}
+    return conclude(final, record=(args.record, "Agent rollouts: many trajectories in flight vs lock-step"))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(concluded("agent_rollout", main))

@@ -11,9 +11,12 @@ Two jobs (``--jobs``):
 
 Each row runs in its own subprocess for ``--iterations`` iterations (default: the shipped
 config's), same seed, data and number of samples; only ``algorithm.asynchronous.max_staleness`` and
-the settings above differ. Reported per row: training time (the summed iteration times; evaluation
-excluded) and so throughput, median seconds per iteration, the held-out metric at every evaluation,
-and the training time until it first reaches the synchronous run's final value.
+the settings above differ. Reported per row: training time and so throughput, median seconds per
+iteration, the held-out metric at every evaluation, and the training time until it first reaches the
+synchronous run's final value. Training time = the summed iteration times plus, in asynchronous rows,
+the wait for the batches in flight before each evaluation (``time/eval_drain_s``): an evaluation's
+requests queue behind them on the rollout side, and their generation belongs to training; the
+evaluation itself is excluded.
 
     python benchmarks/async_vs_sync.py                                   # both jobs, full length
     python benchmarks/async_vs_sync.py --jobs grpo --iterations 6 --rows sync,eta1   # a quick look
@@ -22,16 +25,20 @@ and the training time until it first reaches the synchronous run's final value.
         --set actor.total_steps=40 --set actor.min_lr_ratio=0.1                   # both rows changed alike
 
 With ``--seeds``, every row runs once per seed (``seed=`` also draws the held-out set, so each
-seed's rows are compared on the same questions); training times are summed over the seeds, the
-held-out gap is the mean of the per-seed gaps, and each seed's results are listed.
+seed's rows are compared on the same questions); each seed gives its own throughput ratio (its rows
+ran back to back, so a slow spell of the machine weighs on one seed's ratio, not on all), the
+reported ratio is their mean and ``ratio_spread`` lists them with their range and standard
+deviation; the held-out gap is the mean of the per-seed gaps, and each seed's results are listed.
 
 Last stdout line: {"benchmark": "async_vs_sync", "ratios": {"grpo_async_vs_sync": sync training
-time / eta=1 training time (same samples: the throughput ratio), "grpo_async2_vs_sync": eta=2's,
-"grpo_async_partial_vs_sync" / "grpo_async2_partial_vs_sync": with partial rollouts, "ppo_async_vs_sync",
-"ppo_async2_vs_sync"},
+time / eta=1 training time (same samples: the throughput ratio; the mean of the per-seed ratios),
+"grpo_async2_vs_sync": eta=2's, "grpo_async_partial_vs_sync" / "grpo_async2_partial_vs_sync": with
+partial rollouts, "ppo_async_vs_sync", "ppo_async2_vs_sync"; null where a row failed},
+"ratio_spread": {ratio key: {"per_seed", "mean", "min", "max", "sd" (null with one seed)}},
 "metric_gap_points": {job: {row: sync final - row final, in points (mean over seeds)}},
 "metric_gap_se_points": {job: {row: its standard error over seeds (null with one seed)}}, "targets": ...,
-"results": {job: {row: ...}} (with several seeds: {job: {row: {"seed=N": ...}}})}.
+"results": {job: {row: ...}} (with several seeds: {job: {row: {"seed=N": ...}}}), "failures": [...]}.
+A row that fails is listed in "failures" (its entry holds "failed") and the script exits 1.
 """
 
 from __future__ import annotations
@@ -47,7 +54,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 
-from _bench_common import add_record_argument, record_result
+from _bench_common import add_record_argument, conclude, concluded
 
 
 @dataclass(frozen=True)
@@ -104,13 +111,18 @@ def overrides(job: Job, row: str, iterations: int | None, out: str, async_thread
     return args
 
 
+#: Asynchronous runners: the wait for the batches in flight before an evaluation (training time).
+DRAIN_KEY = "time/eval_drain_s"
+
+
 def summarise(job: Job, out: str) -> dict:
     rows = [json.loads(line) for line in open(os.path.join(out, "metrics.jsonl"))]
     steps = [r for r in rows if job.time_key in r]
-    train_s, clock, curve = 0.0, {}, []
-    for r in rows:  # training time (summed iteration times) at each evaluation
+    train_s, drain_s, clock, curve = 0.0, 0.0, {}, []
+    for r in rows:  # training time (iteration times and the waits before evaluations) at each evaluation
+        drain_s += r.get(DRAIN_KEY, 0.0)
+        train_s += r.get(job.time_key, 0.0) + r.get(DRAIN_KEY, 0.0)
         if job.time_key in r:
-            train_s += r[job.time_key]
             clock[r["step"]] = train_s
     for r in rows:
         if job.metric in r:
@@ -119,6 +131,7 @@ def summarise(job: Job, out: str) -> dict:
     return {
         "iterations": len(steps),
         "train_s": round(train_s, 1),
+        "eval_drain_s": round(drain_s, 1),
         "median_iteration_s": round(statistics.median(r[job.time_key] for r in steps[1:] or steps), 2),
         "staleness_mean": statistics.mean(r.get("async/staleness_mean", 0.0) for r in steps),
         **({"interrupted_fraction_mean": statistics.mean(partial),
@@ -129,10 +142,18 @@ def summarise(job: Job, out: str) -> dict:
     }
 
 
-def seed_total(runs: dict, key: str) -> float | None:
-    """``key`` summed over a row's seeds; None if any seed's run has none (failed or skipped)."""
-    values = [res.get(key) for res in runs.values()]
-    return sum(values) if values and all(v for v in values) else None
+def seed_ratios(sync_runs: dict, runs: dict) -> dict | None:
+    """Per seed, the synchronous training time over the row's (a seed's rows ran back to back), and
+    their mean, range and standard deviation (None with one seed); None if a seed lacks either time
+    (failed or skipped)."""
+    seeds = list(runs)
+    times = [(sync_runs.get(s, {}).get("train_s"), runs[s].get("train_s")) for s in seeds]
+    if not seeds or not all(sync and row for sync, row in times):
+        return None
+    ratios = [sync / row for sync, row in times]
+    return {"per_seed": {"default" if s is None else str(s): round(r, 3) for s, r in zip(seeds, ratios)},
+            "mean": round(statistics.mean(ratios), 3), "min": round(min(ratios), 3), "max": round(max(ratios), 3),
+            "sd": round(statistics.stdev(ratios), 3) if len(ratios) > 1 else None}
 
 
 def paired_gap(pairs: list[tuple[float, float]]) -> dict:
@@ -146,6 +167,33 @@ def paired_gap(pairs: list[tuple[float, float]]) -> dict:
 def time_to(curve: list[dict], value: float) -> float | None:
     """Training seconds until the held-out metric first reaches ``value``."""
     return next((point["train_s"] for point in curve if point["metric"] >= value - 1e-9), None)
+
+
+def run_rows(name: str, wanted: list[str], seeds: list, args, async_threads: tuple[int, int],
+             failures: list[str]) -> dict:
+    """Every row of job ``name`` once per seed, one after the other: {row: {seed: result}}; a row
+    that fails holds ``failed`` and is added to ``failures``."""
+    job, per_seed = JOBS[name], {}
+    for seed in seeds:
+        for row in wanted:
+            if ROWS[row].partial_rollout and not job.threads:
+                skipped = "partial rollouts interrupt language-model generation only"
+                per_seed.setdefault(row, {})[seed] = {"skipped": skipped}
+                continue
+            out = tempfile.mkdtemp(prefix=f"bench-async-{name}-{row}-")
+            command = [sys.executable, "-m", "infinirl.cli", "train", job.config,
+                       *overrides(job, row, args.iterations, out, async_threads, seed), *args.extra]
+            start = time.perf_counter()
+            proc = subprocess.run(command, capture_output=True, text=True)
+            failed = {"failed": f"exit {proc.returncode}: {proc.stderr[-1500:]}"}
+            res = failed if proc.returncode else summarise(job, out)
+            res["wall_s"] = round(time.perf_counter() - start, 1)
+            res["command"] = "infinirl " + " ".join(command[3:])
+            per_seed.setdefault(row, {})[seed] = res
+            if proc.returncode:
+                failures.append(f"{name} {row} seed={seed}: exit {proc.returncode} (stderr in its result)")
+            print(f"[{name} {row} seed={seed}] {json.dumps(res)[:600]}", file=sys.stderr, flush=True)
+    return per_seed
 
 
 def main() -> int:
@@ -171,34 +219,19 @@ def main() -> int:
     async_threads = tuple(int(x) for x in args.async_threads.split(","))
     seeds = [int(x) for x in args.seeds.split(",") if x.strip()] or [None]
     results: dict = {}
-    ratios, gaps, gap_se, to_final = {}, {}, {}, {}
+    ratios, spreads, gaps, gap_se, to_final, failures = {}, {}, {}, {}, {}, []
     for name in jobs:
-        job, results[name] = JOBS[name], {}
-        per_seed: dict = {}
-        for seed in seeds:
-            for row in wanted:
-                if ROWS[row].partial_rollout and not job.threads:
-                    skipped = "partial rollouts interrupt language-model generation only"
-                    per_seed.setdefault(row, {})[seed] = {"skipped": skipped}
-                    continue
-                out = tempfile.mkdtemp(prefix=f"bench-async-{name}-{row}-")
-                command = [sys.executable, "-m", "infinirl.cli", "train", job.config,
-                           *overrides(job, row, args.iterations, out, async_threads, seed), *args.extra]
-                start = time.perf_counter()
-                proc = subprocess.run(command, capture_output=True, text=True)
-                failed = {"failed": f"exit {proc.returncode}: {proc.stderr[-1500:]}"}
-                res = failed if proc.returncode else summarise(job, out)
-                res["wall_s"] = round(time.perf_counter() - start, 1)
-                res["command"] = "infinirl " + " ".join(command[3:])
-                per_seed.setdefault(row, {})[seed] = res
-                print(f"[{name} {row} seed={seed}] {json.dumps(res)[:600]}", file=sys.stderr, flush=True)
+        per_seed = run_rows(name, wanted, seeds, args, async_threads, failures)
         results[name] = {row: runs[None] if seeds == [None] else {f"seed={s}": r for s, r in runs.items()}
                          for row, runs in per_seed.items()}
         sync_runs = per_seed.get("sync", {})
         for row, runs in per_seed.items():
-            sync_s, row_s = seed_total(sync_runs, "train_s"), seed_total(runs, "train_s")
-            if row != "sync" and sync_s and row_s:
-                ratios[ROWS[row].ratio_key(name)] = round(sync_s / row_s, 3)  # same samples: the throughput ratio
+            if row != "sync" and sync_runs and not all("skipped" in r for r in runs.values()):
+                # same samples: the throughput ratio, per seed; null where a row failed
+                spread = seed_ratios(sync_runs, runs)
+                ratios[ROWS[row].ratio_key(name)] = spread["mean"] if spread else None
+                if spread:
+                    spreads[ROWS[row].ratio_key(name)] = spread
             paired = [(sync_runs[s]["final_metric"], runs[s]["final_metric"]) for s in seeds
                       if sync_runs.get(s, {}).get("final_metric") is not None
                       and runs.get(s, {}).get("final_metric") is not None]
@@ -208,16 +241,14 @@ def main() -> int:
                 gap_se.setdefault(name, {})[row] = summary["se"]
                 if seeds == [None]:
                     to_final.setdefault(name, {})[row] = time_to(runs[None]["eval"], sync_runs[None]["final_metric"])
-    final = {"benchmark": "async_vs_sync", "ratios": ratios,
+    final = {"benchmark": "async_vs_sync", "ratios": ratios, "ratio_spread": spreads,
              "targets": {f"{name}_async_vs_sync": JOBS[name].target for name in jobs},
              "metric_gap_points": gaps, "metric_gap_se_points": gap_se, "train_s_to_sync_final_metric": to_final,
              "device": f"{platform.processor() or platform.machine()} ({os.cpu_count()} cpus)",
              "iterations": args.iterations, "seeds": [s for s in seeds if s is not None],
              "async_threads": list(async_threads), "results": results}
-    print(json.dumps(final))
-    record_result(args.record, "Asynchronous vs synchronous training", final)
-    return 0
+    return conclude(final, failures, record=(args.record, "Asynchronous vs synchronous training"))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(concluded("async_vs_sync", main))

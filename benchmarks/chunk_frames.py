@@ -26,7 +26,6 @@ steps/s over full env steps/s}, "device": ..., "results": {row: {...}}, "config"
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -35,7 +34,7 @@ REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO_ROOT not in sys.path:
     sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
 
-from _bench_common import add_record_argument, device_description, record_result  # noqa: E402
+from _bench_common import add_record_argument, conclude, concluded, device_description  # noqa: E402
 
 ROWS = ("skip", "full")
 DEMO = "ppo_vla_metaworld"
@@ -82,7 +81,7 @@ def _run_round(env, chunks) -> tuple[float, int]:
     return time.perf_counter() - start, steps
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", default=DEMO, help="the demo config whose env is stepped")
     parser.add_argument("--num-envs", type=int, help="default: the config's")
@@ -139,9 +138,8 @@ def main() -> None:
         "results": results,
         "config": {k: v for k, v in vars(args).items() if k != "record"},
     }
-    record_result(args.record, "Inner frames of action chunks: skipped vs rendered", final)
-    print(json.dumps(final))
+    return conclude(final, record=(args.record, "Inner frames of action chunks: skipped vs rendered"))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(concluded("chunk_frames", main))

@@ -48,7 +48,7 @@ REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO_ROOT not in sys.path:
     sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
 
-from _bench_common import add_record_argument, device_description, record_result  # noqa: E402
+from _bench_common import add_record_argument, conclude, concluded, device_description  # noqa: E402
 
 TARGETS = {"edge_episode_speedup": 3.0}
 
@@ -269,10 +269,8 @@ def main() -> int:
                           "jpeg_quality": args.jpeg_quality, "publish_every_s": args.publish_every,
                           "seed": args.seed},
              "device": device_description(), "elapsed_s": round(time.perf_counter() - started, 1)}
-    print(json.dumps(final))
-    record_result(args.record, "Cloud-edge link: naive remote control vs the edge link", final)
-    return 0
+    return conclude(final, record=(args.record, "Cloud-edge link: naive remote control vs the edge link"))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(concluded("edge_link", main))

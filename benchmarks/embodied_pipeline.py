@@ -58,6 +58,8 @@ measured before the rows start (`benchmarks/_host_probe.py`, ~10 s; `--no-probe`
 CPU, a MetaWorld step of one pipelined stage's envs and of all of them, the link's round trip, and
 how two busy processes scale.
 Read ratios from different machines side by side with it (docs/results.md).
+A row that fails leaves its ratios null, its entry holding "failed" (the conductor stops the other
+rows of that observation mode: theirs say so), is listed in "failures", and the script exits 1.
 """
 
 from __future__ import annotations
@@ -93,8 +95,8 @@ if REPO_ROOT not in sys.path:  # row (c) runs in this process (``--only single_p
 if BENCH_DIR not in sys.path:
     sys.path.insert(0, BENCH_DIR)
 
-from _bench_common import add_record_argument, record_result  # noqa: E402
-from _bench_turns import Conductor, Turn  # noqa: E402
+from _bench_common import add_record_argument, conclude, concluded, failures_of, side_failed  # noqa: E402
+from _bench_turns import Conductor, RowFailed, Turn  # noqa: E402
 
 #: per observation mode: config overrides of `ppo_metaworld_reach` shared by every implementation
 OBS_MODES = {
@@ -365,7 +367,7 @@ def probe_host() -> dict:
     proc = subprocess.run([sys.executable, os.path.join(BENCH_DIR, "_host_probe.py"), "--envs", str(NUM_ENVS)],
                           capture_output=True, text=True, env=_child_env())
     if proc.returncode:
-        raise SystemExit(f"measuring the host failed (use --no-probe to skip it):\n{proc.stderr[-4000:]}")
+        raise RuntimeError(f"measuring the host failed (use --no-probe to skip it):\n{proc.stderr[-4000:]}")
     host = json.loads(proc.stdout.strip().splitlines()[-1])
     steps = ", ".join(f"{ms} ms ({key.replace('_', ' ')})" for key, ms in host["sim_step_ms"].items())
     print(f"host  {host['cpu']}: MetaWorld step {steps}; link round trip {host['link_round_trip_us']} us; "
@@ -464,8 +466,18 @@ def _parse_args() -> argparse.Namespace:
 def _measure_obs(obs: str, args: argparse.Namespace, results: dict, ratios: dict, paired: dict) -> None:
     """Run every row of one observation mode in turns; add its results, speed ratios and paired ratios."""
     measured = args.iterations if obs == "state" else max(2, args.iterations - 2)
-    rows = run_in_turns(obs, args.impl_names, measured, args.rounds, args.warmup, not args.eager)
     prefix = "" if obs == "state" else f"{obs}/"
+    pairs = [("pipelined_vs_sequential", "pipelined", "sequential"),
+             ("pipelined_vs_single_process", "pipelined", "single_process"),
+             ("collocated_vs_single_process", "collocated", "single_process")]
+    try:
+        rows = run_in_turns(obs, args.impl_names, measured, args.rounds, args.warmup, not args.eager)
+    except RowFailed as error:  # the conductor stopped every row: the failing one named, the others stopped
+        for impl in args.impl_names:
+            results[f"{obs}/{impl}"] = side_failed(str(error) if impl == error.row
+                                                   else f"stopped: the {error.row} row failed")
+        ratios.update({prefix + key: None for key, a, b in pairs if {a, b} <= set(args.impl_names)})
+        return
     for impl, impl_rows in rows.items():
         per_round = [summarise(impl_rows[k * measured:(k + 1) * measured], impl) for k in range(args.rounds)]
         for k, result in enumerate(per_round):
@@ -475,9 +487,6 @@ def _measure_obs(obs: str, args: argparse.Namespace, results: dict, ratios: dict
         results[f"{obs}/{impl}"] = {**summarise(impl_rows, impl),
                                     "rounds_env_steps_per_s": [r["env_steps_per_s"] for r in per_round]}
     speed = lambda impl: results.get(f"{obs}/{impl}", {}).get("env_steps_per_s")  # noqa: E731
-    pairs = [("pipelined_vs_sequential", "pipelined", "sequential"),
-             ("pipelined_vs_single_process", "pipelined", "single_process"),
-             ("collocated_vs_single_process", "collocated", "single_process")]
     for key, a, b in pairs:
         if a in rows and b in rows:
             ratios[prefix + key] = round(speed(a) / speed(b), 3)
@@ -496,14 +505,14 @@ def _print_ratios(ratios: dict, paired: dict) -> None:
               file=sys.stderr)
 
 
-def main() -> None:
+def main() -> int:
     args = _parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl" if os.environ.get("INFINIRL_BENCH_EGL") else "osmesa")
     global NUM_ENVS, STEPS
     NUM_ENVS, STEPS = args.num_envs, args.steps
     if args.only:
         print(json.dumps(run_one(args.only, args.modes[0], args.iterations, args.warmup, not args.eager)))
-        return
+        return 0
     started = time.time()
     print(f"each PPO iteration: {NUM_ENVS} envs x {STEPS} steps of {DEMO}", file=sys.stderr)
     host = None if args.no_probe else probe_host()
@@ -516,9 +525,8 @@ def main() -> None:
              "actor_compile": not args.eager, "rollout_compile": not args.eager,
              "device": host["cpu"] if host else f"{os.cpu_count()} CPUs", "host": host,
              "elapsed_s": round(time.time() - started, 1)}
-    print(json.dumps(final))
-    record_result(args.record, "Embodied pipeline benchmark", final)
+    return conclude(final, failures_of(results), record=(args.record, "Embodied pipeline benchmark"))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(concluded("embodied_pipeline", main))

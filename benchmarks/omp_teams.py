@@ -35,8 +35,9 @@ Usage:
     python benchmarks/omp_teams.py --updates 5
 
 The last stdout line is one JSON object: {"benchmark": "omp_teams", "ratios":
-{"one_team_vs_two_teams": ..., "alone_vs_beside_ray": ...}, "results": {...}} (> 1: one team,
-alone, is faster).
+{"one_team_vs_two_teams": ..., "alone_vs_beside_ray": ...}, "results": {...}, "failures": [...]} (> 1:
+one team, alone, is faster). A variant's process that fails ends the run: its entry holds "failed",
+the ratios are null, and the script exits 1.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ RATIOS = {"one_team_vs_two_teams": "two_teams", "alone_vs_beside_ray": "beside_r
 if REPO_ROOT not in sys.path:
     sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
 
-from _bench_common import add_record_argument, record_result  # noqa: E402
+from _bench_common import add_record_argument, conclude, concluded, failures_of, side_failed  # noqa: E402
 
 
 def _child(variant: str, updates: int) -> dict:
@@ -150,8 +151,8 @@ def _beside_idle_ray(command: list[str], env: dict) -> subprocess.CompletedProce
         else:
             code = ray_proc.wait()
             log.seek(0)
-            raise SystemExit(f"the idle Ray instance for beside_ray did not start (exit code {code}):\n"
-                             f"{log.read()[-4000:]}")
+            raise RuntimeError(f"the idle Ray instance for beside_ray did not start (exit code {code}):\n"
+                               f"{log.read()[-4000:]}")
         return subprocess.run(command, capture_output=True, text=True, env=env)
     finally:
         log.close()
@@ -172,7 +173,7 @@ def _child_env() -> dict:
     return env
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--updates", type=int, default=3, help="measured updates per variant (after one warm-up)")
     parser.add_argument("--repeats", type=int, default=2, help="processes per variant, run alternately")
@@ -182,12 +183,12 @@ def main() -> None:
     args = parser.parse_args()
     if args.idle_ray:
         _idle_ray()
-        return
+        return 0
     if args.updates < 1 or args.repeats < 1:
         parser.error(f"--updates and --repeats must be >= 1, got {args.updates} and {args.repeats}")
     if args.child:
         print(json.dumps(_child(args.child, args.updates)))
-        return
+        return 0
     runs = {variant: [] for variant in VARIANTS}
     for repeat in range(args.repeats):  # the order reversed every repeat, so a drifting machine lands on all
         for variant in VARIANTS if repeat % 2 == 0 else VARIANTS[::-1]:
@@ -195,8 +196,11 @@ def main() -> None:
             env = _child_env()
             proc = (_beside_idle_ray(command, env) if variant == "beside_ray"
                     else subprocess.run(command, capture_output=True, text=True, env=env))
-            if proc.returncode:
-                raise SystemExit(f"{variant} failed:\n{proc.stderr[-4000:]}")
+            if proc.returncode:  # the other variants would be compared with nothing: stop here
+                failed = {variant: side_failed(f"exit {proc.returncode}:\n{proc.stderr[-4000:]}")}
+                return conclude({"benchmark": "omp_teams", "ratios": {key: None for key in RATIOS},
+                                 "results": {**{v: {"runs": rs} for v, rs in runs.items()}, **failed}},
+                                failures_of(failed))
             run = json.loads(proc.stdout.strip().splitlines()[-1])
             runs[variant].append(run)
             print(f"{variant:10s} update {run['update_s']:.2f}s  {run['sleeps_per_update']} sleeps, "
@@ -213,9 +217,8 @@ def main() -> None:
                          "runs": rs} for variant, rs in runs.items()}
     final = {"benchmark": "omp_teams", "ratios": ratios, "per_repeat": per_repeat, "results": results,
              "device": f"{os.uname().machine}, {len(os.sched_getaffinity(0))} CPUs"}
-    print(json.dumps(final))
-    record_result(args.record, "omp_teams", final)
+    return conclude(final, record=(args.record, "omp_teams"))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(concluded("omp_teams", main))

@@ -23,7 +23,8 @@ passive's seconds over spin's (> 1: spinning is faster).
     python benchmarks/omp_wait.py --repeats 3 --record docs/results.md
 
 Last stdout line: {"benchmark": "omp_wait", "ratios": {"vla_act_spin_vs_passive": ...},
-"device": ..., "results": {...}, "config": {...}}.
+"device": ..., "results": {...}, "config": {...}, "failures": [...]}. A row's process that fails ends
+the run: its entry holds "failed", the ratio is null, and the script exits 1.
 """
 
 from __future__ import annotations
@@ -39,7 +40,14 @@ REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO_ROOT not in sys.path:
     sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
 
-from _bench_common import add_record_argument, device_description, record_result  # noqa: E402
+from _bench_common import (  # noqa: E402
+    add_record_argument,
+    conclude,
+    concluded,
+    device_description,
+    failures_of,
+    side_failed,
+)
 from vla_dtype import DEMO, demo_setup  # noqa: E402
 
 ROWS = ("passive", "spin")
@@ -96,7 +104,7 @@ def row_env(row: str, threads: int) -> dict:
     return env
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", default=DEMO, help="the demo config whose env and policy act")
     parser.add_argument("--checkpoint", help="the VLA folder (default: the config's policy.kwargs.checkpoint)")
@@ -114,7 +122,7 @@ def main() -> None:
     args.threads = args.threads or setup["threads"] or os.cpu_count() or 1
     if args.child:
         child(args)
-        return
+        return 0
     if not args.checkpoint or not os.path.isdir(args.checkpoint):
         raise SystemExit(f"--checkpoint {args.checkpoint!r} is not a VLA folder: run `infinirl train "
                          "sft_vla_metaworld` first (it writes runs/sft_vla_metaworld/policy) or pass --checkpoint DIR")
@@ -124,11 +132,17 @@ def main() -> None:
                args.checkpoint, "--num-envs", str(args.num_envs), "--threads", str(args.threads),
                "--calls", str(args.calls), "--warmup", str(args.warmup)]
     seconds: dict[str, list[float]] = {row: [] for row in ROWS}
+    config = {"config": args.config, "checkpoint": args.checkpoint, "num_envs": args.num_envs,
+              "threads": args.threads, "calls": args.calls, "repeats": args.repeats}
     for repeat in range(args.repeats):
         for row in (ROWS if repeat % 2 == 0 else ROWS[::-1]):
             done = subprocess.run(command, env=row_env(row, args.threads), capture_output=True, text=True)
-            if done.returncode != 0:
-                raise SystemExit(f"row {row} failed:\n{done.stderr[-3000:]}")
+            if done.returncode != 0:  # the other row would be compared with nothing: stop here
+                results = {**{r: {"per_repeat_s": seconds[r]} for r in ROWS},
+                           row: side_failed(f"exit {done.returncode}:\n{done.stderr[-3000:]}")}
+                return conclude({"benchmark": "omp_wait", "ratios": {"vla_act_spin_vs_passive": None},
+                                 "device": device_description(), "results": results, "config": config},
+                                failures_of(results))
             measured = json.loads(done.stdout.strip().splitlines()[-1])
             seconds[row].append(measured["median_s"])
             print(f"repeat {repeat} {row:>7}: {measured['median_s']:.4f} s a call of {args.num_envs} envs", flush=True)
@@ -137,12 +151,9 @@ def main() -> None:
                      "decisions_per_s": round(args.num_envs / statistics.median(seconds[row]), 2),
                      "per_repeat_s": [round(s, 4) for s in seconds[row]]} for row in ROWS}
     final = {"benchmark": "omp_wait", "ratios": {"vla_act_spin_vs_passive": round(ratio, 3)},
-             "device": device_description(), "results": results,
-             "config": {"config": args.config, "checkpoint": args.checkpoint, "num_envs": args.num_envs,
-                        "threads": args.threads, "calls": args.calls, "repeats": args.repeats}}
-    record_result(args.record, "VLA acting with OpenMP threads spinning vs waiting passively", final)
-    print(json.dumps(final))
+             "device": device_description(), "results": results, "config": config}
+    return conclude(final, record=(args.record, "VLA acting with OpenMP threads spinning vs waiting passively"))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(concluded("omp_wait", main))

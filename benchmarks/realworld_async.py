@@ -38,7 +38,7 @@ REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO_ROOT not in sys.path:
     sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
 
-from _bench_common import add_record_argument, device_description, record_result  # noqa: E402
+from _bench_common import add_record_argument, conclude, concluded, device_description  # noqa: E402
 
 TARGETS = {"async_vs_sync_updates": 5.0}
 
@@ -101,10 +101,8 @@ def main() -> int:
              "settings": {"config": args.config, "seconds_per_mode": args.seconds, "iteration_s": args.iteration_s,
                           "success_threshold": args.success, "seed": args.seed},
              "device": device_description(), "elapsed_s": round(time.perf_counter() - started, 1)}
-    print(json.dumps(final))
-    record_result(args.record, "Real-world SAC: asynchronous vs synchronous", final)
-    return 0
+    return conclude(final, record=(args.record, "Real-world SAC: asynchronous vs synchronous"))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(concluded("realworld_async", main))

@@ -48,7 +48,7 @@ REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO_ROOT not in sys.path:
     sys.path.insert(0, REPO_ROOT)  # run from a checkout without installing
 
-from _bench_common import add_record_argument, device_description, record_result  # noqa: E402
+from _bench_common import add_record_argument, conclude, concluded, device_description  # noqa: E402
 
 from infinirl.realworld.replay import EpisodeSpec, ReplayStore, SamplingSpec, StoreOptions  # noqa: E402
 
@@ -161,9 +161,7 @@ def main() -> int:
         if args.dir is None:
             shutil.rmtree(folder, ignore_errors=True)
     final["elapsed_s"] = round(time.perf_counter() - started, 1)
-    print(json.dumps(final))
-    record_result(args.record, "Persistent replay buffer", final)
-    return 0
+    return conclude(final, record=(args.record, "Persistent replay buffer"))
 
 
 def run(args, folder: str) -> dict:
@@ -257,4 +255,4 @@ def run(args, folder: str) -> dict:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(concluded("replay_buffer", main))

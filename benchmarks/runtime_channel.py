@@ -23,9 +23,11 @@ Usage:
 
 The human-readable table goes to stderr; the last line on stdout is ONE JSON object:
     {"benchmark": "runtime_channel", "ratios": {...}, "targets": {...}, "device": "...",
-     "results": {impl: {"sizes": {...}} | {"skipped": reason}}, "elapsed_s": ...}
+     "results": {impl: {"sizes": {...}} | {"skipped": reason} | {"failed": reason}}, "elapsed_s": ...,
+     "failures": [...]}
 Every ratio > 1 means InfiniRL is better: throughput = ours / theirs (MiB/s), latency = raw Ray p50 /
-our p50. A ratio is null when either side did not run.
+our p50. A ratio is null when either side did not run. An impl that was asked for and failed (or
+timed out) holds "failed" and the script exits 1; RLinf without its venv is skipped, not failed.
 
 Environment:
     INFINIRL_RLINF_VENV       RLinf venv (default ~/.cache/infinirl/rlinf-venv)
@@ -319,13 +321,13 @@ def _run_subprocess(cmd: list[str], label: str, timeout_s: int, key: str = "impl
             cwd=os.path.dirname(HERE),
         )
     except subprocess.TimeoutExpired:
-        return {"skipped": f"timed out after {timeout_s}s"}
+        return bc.side_failed(f"timed out after {timeout_s}s")
     res = bc.find_json_line(proc.stdout, key)
     elapsed = time.perf_counter() - t0
     print(f"[driver] {label}: exit {proc.returncode} after {elapsed:.1f}s", file=sys.stderr)
     if proc.returncode != 0 or res is None:
         tail = "\n".join(proc.stdout.splitlines()[-20:])
-        return {"skipped": f"{label} failed (exit {proc.returncode}); stdout tail:\n{tail}"}
+        return bc.side_failed(f"{label} failed (exit {proc.returncode}); stdout tail:\n{tail}")
     res.setdefault("elapsed_s", round(elapsed, 1))
     return res
 
@@ -463,10 +465,8 @@ def main(argv: list[str] | None = None) -> int:
         "results": results,
         "elapsed_s": round(time.perf_counter() - t0, 1),
     }
-    print(json.dumps(line), flush=True)
-    bc.record_result(args.record, "Runtime channel benchmark", line)
-    return 0
+    return bc.conclude(line, bc.failures_of(results), record=(args.record, "Runtime channel benchmark"))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(bc.concluded("runtime_channel", main))

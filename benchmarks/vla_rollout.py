@@ -14,7 +14,8 @@ thread count (``--threads``, default: every core). The two start at once and tak
 call (benchmarks/_bench_turns.py: the waiting side is stopped), so a slow spell of a shared machine
 lands on both alike and neither computes while the other does. Reported per side: the median
 seconds per call and ``chunks_per_s`` = batch size / median. Both sides' actions for the shared noise are compared
-(``max_abs_diff``), so the two did the same work.
+(``max_abs_diff``), so the two did the same work: actions that differ, or a side that fails, are
+listed in the last line's "failures" and the script exits 1.
 
 LeRobot is not a dependency of the project (docs/vla.md, "The LeRobot decision"): it lives in its
 own virtualenv (recipe in tests/fixtures/vla/make_fixtures.py), found through
@@ -48,7 +49,7 @@ import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from _bench_common import add_record_argument, device_description, record_result
+from _bench_common import add_record_argument, conclude, concluded, device_description, failures_of, side_failed
 from _bench_turns import Conductor, RowFailed, Turn
 
 REPO = Path(__file__).resolve().parents[1]
@@ -105,6 +106,14 @@ def final_line(results: Mapping[str, Mapping], device: str, settings: Mapping) -
     return {"benchmark": "vla_rollout",
             "ratios": {"vla_act_vs_reference": act_ratio(results.get("ours"), results.get("reference"))},
             "targets": dict(TARGETS), "device": device, "settings": dict(settings), "results": dict(results)}
+
+
+def run_failures(results: Mapping[str, Mapping]) -> list[str]:
+    """What makes the run void: a side that failed, or actions that differ (not the same work)."""
+    failures = failures_of({side: results.get(side) or {} for side in ("ours", "reference")})
+    if (results.get("actions") or {}).get("same_actions") is False:
+        failures.append(f"same work: the two sides' actions differ ({dict(results['actions'])})")
+    return failures
 
 
 def resolve_reference_python(flag: str | None, environ: Mapping[str, str]) -> tuple[str | None, str]:
@@ -298,7 +307,7 @@ def child(python: str, args: list[str], threads: int) -> subprocess.CompletedPro
 def result_of(stdout: str) -> dict:
     lines = [line for line in stdout.splitlines() if line.startswith("RESULT ")]
     if not lines:
-        return {"skipped": f"no RESULT line in its output: {stdout.strip()[-1500:]}"}
+        return side_failed(f"no RESULT line in its output: {stdout.strip()[-1500:]}")
     return json.loads(lines[-1][len("RESULT "):])
 
 
@@ -312,8 +321,9 @@ def run_sides_in_turns(pythons: Mapping[str, str], work: Path, common: list[str]
     base = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "MKL_NUM_THREADS": str(args.threads)}
     try:
         outputs = Conductor(commands, env=base, row_env=row_env).run(args.warmup + args.repeats)
-    except RowFailed as error:
-        raise SystemExit(f"vla_rollout: a side failed: {error}") from None
+    except RowFailed as error:  # the conductor stopped every side: the failing one named, the others stopped
+        return {side: {**side_failed(str(error) if side == error.row else f"stopped: the {error.row} side failed"),
+                       "python": python} for side, python in pythons.items()}
     return {side: {**result_of(outputs[side]), "python": pythons[side]} for side in pythons}
 
 
@@ -330,8 +340,8 @@ def prepare_checkpoint(size: str, work: Path, reference: str | None, threads: in
     if reference:
         proc = child(reference, ["--make-checkpoint", str(folder), "--size", size], threads)
         if proc.returncode:
-            raise SystemExit(f"LeRobot ({reference}) could not write the {size} checkpoint: "
-                             f"{proc.stderr.strip()[-1500:]}")
+            raise RuntimeError(f"LeRobot ({reference}) could not write the {size} checkpoint: "
+                               f"{proc.stderr.strip()[-1500:]}")
         return folder, f"{size}, written by LeRobot"
     make_checkpoint_ours(size, folder)
     return folder, f"{size}, written by save_vla"
@@ -368,9 +378,6 @@ def drive(args) -> dict:
             print(f"[{side}] {json.dumps(results[side])[:400]}", file=sys.stderr, flush=True)
         results["actions"] = compare_actions(work)
         config = json.loads((checkpoint / "config.json").read_text())
-    if results["actions"]["same_actions"] is False:
-        print(f"WARNING: the two sides' actions differ ({results['actions']}): not the same work",
-              file=sys.stderr, flush=True)
     settings = {"size": args.size, "checkpoint": made_by, "batch_size": args.batch_size,
                 "image_size": config["image_resolution"][0], "chunk_size": config["chunk_size"],
                 "num_inference_steps": config["num_inference_steps"], "threads": args.threads,
@@ -407,10 +414,9 @@ def main() -> int:
         print("RESULT " + json.dumps(result), flush=True)
         return 0
     final = drive(args)
-    print(json.dumps(final))
-    record_result(args.record, "π0 action chunks per second against LeRobot", final)
-    return 0
+    return conclude(final, run_failures(final["results"]),
+                    record=(args.record, "π0 action chunks per second against LeRobot"))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(concluded("vla_rollout", main))

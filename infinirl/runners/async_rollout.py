@@ -123,6 +123,17 @@ class RolloutAhead:
             self._ready[k] = self._collect(self._pending.pop(k))
         return dict(self._ready)
 
+    def settle(self) -> float:
+        """Wait for every batch in flight, keeping them for :meth:`take`; the seconds waited.
+
+        Before an evaluation: its requests would queue on the rollout ranks behind these batches
+        (a rank runs its calls in submission order), so the evaluation's time would hold generation
+        that belongs to training. Waiting changes no batch: each was submitted, and so fixed to its
+        producing version, before."""
+        start = time.perf_counter()
+        self.drain()
+        return time.perf_counter() - start
+
     def restore(self, ready: dict[int, Any]) -> None:
         """Put back the batches a checkpoint saved (see :meth:`drain`)."""
         if self._pending:

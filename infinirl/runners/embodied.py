@@ -716,6 +716,8 @@ class EmbodiedFlow:
     def evaluate(self) -> dict:
         """Success rate etc. over the held-out seeded episodes, shared out over the rollout ranks."""
         cfg, ranks = self.cfg.eval, self.rollout.world_size
+        # The collections in flight first (RolloutAhead.settle): their time is training time.
+        drained = {} if self.ahead is None else {"time/eval_drain_s": self.ahead.settle()}
         t0 = time.perf_counter()
         seeds = eval_seeds(cfg.seed, cfg.episodes)
         handles = [self.rollout.call("evaluate", seeds[r::ranks], min(cfg.num_envs, len(seeds[r::ranks])),
@@ -730,7 +732,7 @@ class EmbodiedFlow:
         merged.update(merge_task_success(results))
         merged["time/eval_s"] = time.perf_counter() - t0
         merged["env/steps"] = self.env_steps
-        return merged
+        return {**merged, **drained}
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, folder: str) -> dict:

@@ -406,7 +406,14 @@ class ReasoningFlow:
         return group.call_each(method, [(ids[s],) for s in _slices(batch.batch_size[0], group.world_size)])
 
     def evaluate(self) -> dict:
-        return {"eval/greedy_accuracy": self.greedy_accuracy(self.eval_problems)}
+        metrics = {}
+        if self.ahead is not None:
+            # The batches in flight first (RolloutAhead.settle): their generation is training time.
+            metrics["time/eval_drain_s"] = self.ahead.settle()
+        start = time.perf_counter()
+        metrics["eval/greedy_accuracy"] = self.greedy_accuracy(self.eval_problems)
+        metrics["time/eval_s"] = time.perf_counter() - start
+        return metrics
 
     def greedy_accuracy(self, problems) -> float:
         if not problems:

@@ -290,5 +290,9 @@ def test_asynchronous_eta_1_with_decoupled_ppo_resumes_exactly(ray_cluster, tmp_
     # the proximal policy is the trainer's own: batch 0 is on-policy, later ones carry a version gap
     assert trained[0]["train/behaviour_logprob_abs_diff"] < 1e-5 < trained[2]["train/behaviour_logprob_abs_diff"]
     assert all(0 < r["train/is_weight_mean"] for r in trained)
+    # Every evaluation first waits for the collections in flight (their time is training time, not
+    # the evaluation's); the pins below show the wait changes no sample.
+    evals = [r for r in rows if "eval/success_rate" in r]
+    assert len(evals) == 5 and all(r["time/eval_drain_s"] >= 0 for r in evals)
     check_pinned("embodied_async", tmp_path / "straight", [
         "rollout/reward_mean", "train/policy_loss", "train/value_loss", "train/is_weight_mean", "eval/success_rate"])

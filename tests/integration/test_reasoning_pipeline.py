@@ -191,6 +191,10 @@ def test_asynchronous_eta_1_trains_one_version_stale_corrected_and_resumes_exact
     assert [r["async/staleness_max"] for r in rows] == [0.0, 1.0, 1.0, 1.0]
     assert all("train/is_weight_mean" in r and "train/is_capped_fraction" in r for r in rows)
     assert rows[2]["train/behaviour_logprob_abs_diff"] > rows[0]["train/behaviour_logprob_abs_diff"]
+    # Every evaluation first waits for the batches in flight (their generation is training time,
+    # not the evaluation's); the pins below show the wait changes no sample.
+    evals = [r for r in read_rows(tmp_path / "straight") if "eval/greedy_accuracy" in r]
+    assert [r["step"] for r in evals] == [0, 2, 4] and all(r["time/eval_drain_s"] >= 0 for r in evals)
     check_pinned("reasoning_async", tmp_path / "straight", [
         "rollout/reward_mean", "train/loss", "train/grad_norm", "train/is_weight_mean", "eval/greedy_accuracy"])
 

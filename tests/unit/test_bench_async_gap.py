@@ -31,3 +31,36 @@ def test_one_seed_has_a_gap_but_no_standard_error():
 
 def test_a_row_ahead_of_the_synchronous_run_has_a_negative_gap():
     assert bench.paired_gap([(0.75, 0.8), (0.75, 0.8)])["mean"] == -5.0
+
+
+def _write_metrics(folder, rows):
+    import json
+
+    (folder / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def test_training_time_counts_the_wait_for_batches_in_flight_before_an_evaluation(tmp_path):
+    """An asynchronous run's evaluation queues behind the batches already submitted; the wait for
+    them (time/eval_drain_s) is generation that belongs to training, the evaluation itself is not."""
+    _write_metrics(tmp_path, [
+        {"step": 0, "eval/greedy_accuracy": 0.25, "time/eval_s": 9.0, "time/eval_drain_s": 0.0},
+        {"step": 1, "time/step_s": 10.0},
+        {"step": 2, "time/step_s": 10.0, "eval/greedy_accuracy": 0.5, "time/eval_s": 9.0, "time/eval_drain_s": 4.0},
+        {"step": 3, "time/step_s": 6.0},
+        {"step": 4, "time/step_s": 10.0, "eval/greedy_accuracy": 0.75, "time/eval_s": 9.0, "time/eval_drain_s": 0.0},
+    ])
+    summary = bench.summarise(bench.JOBS["grpo"], str(tmp_path))
+    assert summary["train_s"] == 40.0 and summary["eval_drain_s"] == 4.0
+    assert [p["train_s"] for p in summary["eval"]] == [0.0, 24.0, 40.0]
+
+
+def test_throughput_ratio_is_the_mean_of_per_seed_ratios_with_their_spread():
+    sync = {1: {"train_s": 100.0}, 2: {"train_s": 300.0}}  # seed 2's rows ran in a slow spell
+    row = {1: {"train_s": 50.0}, 2: {"train_s": 250.0}}
+    spread = bench.seed_ratios(sync, row)
+    assert spread["per_seed"] == {"1": 2.0, "2": 1.2}
+    assert spread["mean"] == 1.6 and (spread["min"], spread["max"]) == (1.2, 2.0)
+    assert math.isclose(spread["sd"], round(math.sqrt(0.32), 3))
+    # a summed time would let the slow seed dominate: 400 / 300 = 1.33
+    assert bench.seed_ratios({None: {"train_s": 10.0}}, {None: {"train_s": 8.0}})["sd"] is None
+    assert bench.seed_ratios(sync, {1: {"train_s": 50.0}, 2: {"failed": "exit 1"}}) is None

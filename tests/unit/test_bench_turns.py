@@ -113,3 +113,36 @@ def test_a_waiting_row_and_every_process_it_started_are_frozen(tmp_path):
     for start, end in spans:
         inside = [t for t in stamps if start + 0.01 < t < end]
         assert not inside, f"the waiting row's child ran during the other row's turn ({len(inside)} ticks)"
+
+
+def test_the_embodied_gate_wraps_the_method_the_run_loop_calls_once_per_iteration(monkeypatch):
+    """embodied_pipeline.py's runner rows take one turn per iteration through this gate; a gate
+    that patched a method the loop no longer calls crashed every row at start."""
+    import _bench_turns
+
+    from infinirl.runners.embodied import EmbodiedFlow
+    from infinirl.runners.loop import Flow
+
+    assert callable(getattr(Flow, _bench_turns.EMBODIED_STEP, None)), "the run loop's per-iteration call"
+    original = getattr(EmbodiedFlow, _bench_turns.EMBODIED_STEP)
+    monkeypatch.setattr(EmbodiedFlow, _bench_turns.EMBODIED_STEP, original)  # restored after the test
+    read_fd, write_fd = os.pipe()
+    monkeypatch.setenv("INFINIRL_BENCH_TURNS", f"{read_fd},{write_fd}")
+    try:
+        _bench_turns.gate_embodied_runner()
+        gated = getattr(EmbodiedFlow, _bench_turns.EMBODIED_STEP)
+        assert gated is not original and gated.__wrapped__ is original
+    finally:
+        os.close(read_fd)
+        os.close(write_fd)
+
+
+def test_the_embodied_gate_names_a_missing_method_before_any_turn(monkeypatch):
+    import _bench_turns
+
+    from infinirl.runners.embodied import EmbodiedFlow
+
+    monkeypatch.delattr(EmbodiedFlow, _bench_turns.EMBODIED_STEP)
+    monkeypatch.setenv("INFINIRL_BENCH_TURNS", "0,1")  # never used: the gate fails first
+    with pytest.raises(RuntimeError, match="EmbodiedFlow has no method 'step'"):
+        _bench_turns.gate_embodied_runner()

@@ -17,6 +17,7 @@ from vla_rollout import (  # noqa: E402
     compare_actions,
     final_line,
     resolve_reference_python,
+    run_failures,
     timing_summary,
 )
 
@@ -95,3 +96,15 @@ def test_compare_actions_reads_both_sides_files(tmp_path):
     assert result["same_actions"] is False
     save_file({"actions": theirs[:, :, :1]}, str(tmp_path / "ours_actions.safetensors"))
     assert compare_actions(tmp_path)["same_actions"] is False  # shapes differ
+
+
+def test_a_failed_side_or_different_actions_fail_the_run_and_a_missing_reference_does_not():
+    rates = {"ours": {"chunks_per_s": 4.0}, "reference": {"chunks_per_s": 2.0}}
+    assert run_failures({**rates, "actions": action_agreement(0.0, 1.0)}) == []
+    assert run_failures({"ours": {"chunks_per_s": 4.0}, "reference": {"skipped": "no LeRobot"},
+                         "actions": action_agreement(None, None)}) == []
+    differ = run_failures({**rates, "actions": action_agreement(0.5, 1.0)})
+    assert len(differ) == 1 and differ[0].startswith("same work: the two sides' actions differ")
+    crashed = {"ours": {"failed": "row ours exited"}, "reference": {"failed": "stopped: the ours side failed"}}
+    assert run_failures({**crashed, "actions": action_agreement(None, None)}) == [
+        "ours: row ours exited", "reference: stopped: the ours side failed"]

@@ -120,3 +120,22 @@ def test_a_load_failing_between_two_checks_is_raised_at_the_next_one():
     assert len(loading) == 1
     with pytest.raises(ValueError, match="version 3 failed"):
         unfinished_loads(loading)
+
+
+@pytest.mark.parametrize("eta", [1, 2])
+def test_settling_before_an_evaluation_waits_for_the_batches_in_flight_and_changes_none(eta):
+    """An evaluation queues behind the batches in flight; the flows settle them first so that their
+    generation counts as training time. They stay for take(), produced by the same versions."""
+    straight, _ = train(FakeRollout(), eta, iterations=6)
+    collected = []
+    rollout = FakeRollout()
+    ahead = RolloutAhead(eta, 6, rollout.submit, lambda pending: collected.append(pending[0]) or pending)
+    used = []
+    for k in range(6):
+        used.append(ahead.take(k))
+        rollout.load(k + 1)
+        if k % 2 == 1:  # an evaluation after iterations 2, 4, 6
+            in_flight = ahead.in_flight
+            waited = ahead.settle()
+            assert waited >= 0 and ahead.in_flight == [] and set(in_flight) <= set(collected)
+    assert used == straight
