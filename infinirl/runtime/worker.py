@@ -129,12 +129,21 @@ class Worker:
         }
 
 
+# A rank that dies in a collective makes its peers raise within milliseconds (gloo: "Connection
+# closed by peer"), while Ray reports the death itself about a second later: a method's exception
+# waits this long for a death among the call's other ranks, which is then reported as the cause.
+PEER_DEATH_GRACE_S = 2.0
+
+
 class GroupHandle:
     """The pending result of one fan-out call: ``wait()``, ``await handle``, ``done()``, ``cancel()``.
 
     ``wait`` returns the per-rank results in rank order. It raises the first failure as soon as it
     happens (not after the other ranks finish), so one broken rank never looks like a hang;
     ``wait(timeout=)`` raises ``TimeoutError`` naming the method and the ranks still running.
+    A method's exception is held up to ``PEER_DEATH_GRACE_S`` while the call runs on other ranks:
+    if one of them died meanwhile, that death (the root cause, with its crash log) is raised,
+    chained to the exception.
     """
 
     def __init__(self, group: "WorkerGroup", method: str, ranks: list[int], refs: list,
@@ -178,9 +187,38 @@ class GroupHandle:
                     f"{self._group.component}.{self.method}() not finished after {timeout}s on "
                     f"rank(s) {waiting}"
                 )
-            self._get(ready[0])  # raises the first failure right away
+            try:
+                self._get(ready[0])  # raises the first failure right away...
+            except WorkerError as raised:
+                self._raise_a_death_behind(raised, pending)  # ...unless a rank's death caused it
+                raise
         self._results = [self._get(ref) for ref in self._refs]
         return self._results
+
+    def _raise_a_death_behind(self, raised: WorkerError, others: list) -> None:
+        """``raised`` came first; if one of the ``others`` turns out dead within
+        ``PEER_DEATH_GRACE_S``, raise that death (with its crash log), chained to ``raised``."""
+        if raised.cause != "raised":
+            return
+        deadline = time.monotonic() + PEER_DEATH_GRACE_S
+        while others:
+            ready, others = ray.wait(others, num_returns=1, timeout=max(0.0, deadline - time.monotonic()))
+            if not ready:
+                return
+            died = self._death_of(ready[0])
+            if died is not None:
+                raise died from raised
+
+    def _death_of(self, ref) -> WorkerError | None:
+        """The ``died`` error of a finished ref whose rank's process died, else None."""
+        try:
+            ray.get(ref, timeout=0)
+        except ray.exceptions.RayActorError as exc:
+            index = self._refs.index(ref)
+            return self._group._died(self.ranks[index], self.method, str(exc))
+        except Exception:  # returned, raised or cancelled: not a death
+            pass
+        return None
 
     def _get(self, ref):
         index = self._refs.index(ref)
@@ -195,8 +233,26 @@ class GroupHandle:
         while remaining:
             done, remaining = await asyncio.wait(remaining, return_when=asyncio.FIRST_COMPLETED)
             for fut in done:
-                self._get(futures[fut])  # raises the first failure right away
+                try:
+                    self._get(futures[fut])  # raises the first failure right away...
+                except WorkerError as raised:  # ...unless a rank's death caused it (see wait)
+                    await self._raise_a_death_behind_async(raised, futures, (done | remaining) - {fut})
+                    raise
         return self.wait()
+
+    async def _raise_a_death_behind_async(self, raised: WorkerError, futures: dict, others: set) -> None:
+        if raised.cause != "raised":
+            return
+        deadline = time.monotonic() + PEER_DEATH_GRACE_S
+        while others:
+            finished, others = await asyncio.wait(others, timeout=max(0.0, deadline - time.monotonic()),
+                                                  return_when=asyncio.FIRST_COMPLETED)
+            if not finished:
+                return
+            for fut in finished:
+                died = self._death_of(futures[fut])
+                if died is not None:
+                    raise died from raised
 
 
 async def _settle(ref) -> None:

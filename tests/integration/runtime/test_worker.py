@@ -88,6 +88,26 @@ class Echo(Worker):
         return float(t.item())
 
 
+    def die_in_allreduce(self, dying_rank):
+        """Forms the group, then one rank crashes while its peers wait for it in a collective.
+
+        The dying rank closes its group's connections half a second before it crashes: its peers'
+        gloo error then reaches the driver before Ray reports the death, every time (a process
+        that just dies makes the same order a race, which gloo's ~20 ms often wins)."""
+        import faulthandler
+
+        import torch.distributed as dist
+
+        self.init_process_group(timeout_s=60)
+        if self.rank == dying_rank:
+            dist.destroy_process_group()
+            time.sleep(0.5)
+            faulthandler._sigsegv()
+        t = torch.tensor([1.0])
+        dist.all_reduce(t)
+        return float(t.item())
+
+
 class BadInit(Worker):
     def __init__(self):
         if self.rank == 1:
@@ -225,6 +245,27 @@ def test_torch_distributed_group_forms(ray_cluster):
         assert group.allreduce().wait(timeout=120) == [3.0, 3.0]
     finally:
         group.shutdown()
+
+
+@pytest.mark.parametrize("how", ["wait", "await"])
+def test_a_rank_that_dies_in_a_collective_is_reported_not_its_peers_error(ray_cluster, deliberate_deaths, how):
+    """gloo tells a peer "Connection closed by peer" within milliseconds, before Ray reports the
+    death (about a second): the error must name the rank that died, with its crash, not the peer."""
+    group = WorkerGroup.launch(Echo, f"collective_{how}", num_ranks=3)
+    deliberate_deaths(*group.pids())
+    try:
+        handle = group.die_in_allreduce(2)
+        with pytest.raises(WorkerError) as info:
+            handle.wait(timeout=120) if how == "wait" else asyncio.run(asyncio.wait_for(_await(handle), 120))
+        err = info.value
+        text = str(err)
+        assert err.rank == 2 and "died (process exited)" in text, text
+        assert "Segmentation fault" in text and "die_in_allreduce" in text  # its crash log
+        peer = err.__cause__  # what the peers saw, kept
+        assert isinstance(peer, WorkerError) and peer.rank in (0, 1) and peer.cause == "raised", repr(peer)
+    finally:
+        group.shutdown()
+        _remove_crash_logs(group)
 
 
 def test_exception_names_component_rank_node_and_traceback(ray_cluster):
