@@ -263,6 +263,90 @@ async def _settle(ref) -> None:
         pass
 
 
+class _TurnKeeper:
+    """Gives up the turn, in its rank's call order, of a call that Ray failed before it ran.
+
+    Ray can fail a call before ``WorkerHost.execute`` starts (an argument the rank cannot
+    unpickle, e.g. an instance of a class only the driver can import): the call never takes its
+    turn, and every later call to that rank would wait for it, whether or not anyone waits on the
+    failed call's handle. One thread per driver process watches each numbered call until it
+    finishes and tells the rank to skip one that failed outside the method. Skipping a call that
+    did take its turn does nothing (``CallOrder.skip``), so the check need not be exact."""
+
+    _POLL_S = 0.5  # how soon a call submitted while the thread waits is watched too
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        # ObjectRef -> (weak ref to the rank's actor handle, caller, seq): a strong one would keep
+        # the ranks of a group dropped without shutdown() alive as long as a call of theirs runs
+        self._calls: dict = {}
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def watch(self, ref, actor, caller: str, seq: int) -> None:
+        with self._lock:
+            self._calls[ref] = (weakref.ref(actor), caller, seq)
+            if self._thread is None or not self._thread.is_alive():
+                self._thread = threading.Thread(target=self._run, name="infinirl-call-turns", daemon=True)
+                self._thread.start()
+        self._wake.set()
+
+    def _run(self) -> None:
+        while True:
+            self._wake.clear()
+            with self._lock:
+                idle = not self._calls
+            if idle:
+                self._wake.wait()
+            else:
+                self._check_once()
+
+    def _check_once(self) -> None:
+        """Waits up to ``_POLL_S`` for watched calls to finish, and skips the turns of those that
+        failed outside their method. It holds the refs and actor handles only while it runs."""
+        with self._lock:
+            refs = list(self._calls)
+        try:
+            # fetch_local=False: a finished call's result stays where it is until it is asked for
+            ready, _ = ray.wait(refs, num_returns=1, timeout=self._POLL_S, fetch_local=False)
+            if ready:
+                ready, _ = ray.wait(refs, num_returns=len(refs), timeout=0, fetch_local=False)
+        except Exception:  # Ray was shut down: these calls are gone with their ranks
+            ready = refs
+        for ref in ready:
+            with self._lock:
+                actor_ref, caller, seq = self._calls.pop(ref)
+            actor = actor_ref()
+            if actor is not None and _failed_outside_the_method(ref):
+                try:
+                    actor.skip_call.remote(caller, seq)
+                except Exception:  # the rank (or Ray) is gone: nothing waits there
+                    pass
+
+
+def _failed_outside_the_method(ref) -> bool:
+    """Whether a finished call failed in Ray rather than in the method (a ``WorkerError``) or by
+    its rank's death or a cancel. Only the driver's in-process store is read: errors are kept
+    there, while a large result is in the object store and stays unfetched."""
+    try:
+        core_worker = ray._private.worker.global_worker.core_worker
+        if not core_worker.object_exists(ref, memory_store_only=True):
+            return False
+    except Exception:  # no such internal API in this Ray: read the result
+        pass
+    try:
+        ray.get(ref, timeout=0)
+    except ray.exceptions.RayTaskError as exc:
+        return not isinstance(getattr(exc, "cause", None), WorkerError)
+    except (ray.exceptions.RayActorError, ray.exceptions.TaskCancelledError):
+        return False
+    except Exception:  # Ray could not run or answer it
+        return True
+    return False
+
+
+_TURNS = _TurnKeeper()
+
 _LIVE_GROUPS: weakref.WeakSet = weakref.WeakSet()  # launched here and not shut down yet
 _names_lock = threading.Lock()
 _names_in_use: set[str] = set()  # component names of the groups launched here and not gone
@@ -441,11 +525,14 @@ class WorkerGroup:
         for rank, args in calls:
             seq = self._seq[rank]
             self._seq[rank] += 1
+            actor = self._actors[rank]
             try:
-                refs.append(self._actors[rank].execute.remote(method, args, kwargs, self._caller, seq))
+                ref = actor.execute.remote(method, args, kwargs, self._caller, seq)
             except BaseException:  # e.g. an argument that cannot be pickled: the number is never used
                 self._skip(rank, seq)
                 raise
+            _TURNS.watch(ref, actor, self._caller, seq)
+            refs.append(ref)
             seqs.append(seq)
         return GroupHandle(self, method, [rank for rank, _ in calls], refs, seqs)
 

@@ -1,7 +1,9 @@
 """WorkerGroup: launch, fan-out, handles, failures reported at their root, restarts, shutdown."""
 
 import asyncio
+import importlib
 import os
+import sys
 import threading
 import time
 
@@ -225,6 +227,27 @@ def test_an_unserialisable_result_is_reported_and_the_rank_stays_usable(ray_clus
         assert group.add(2).wait(timeout=60) == [2]
     finally:
         group.shutdown()
+
+
+def test_a_call_ray_fails_before_it_runs_does_not_hold_up_later_calls(ray_cluster, tmp_path, monkeypatch):
+    """An argument the rank cannot unpickle fails inside Ray, before the call takes its turn in the
+    rank's call order: later calls must run without anyone waiting on the failed one."""
+    module = f"driver_only_{time.time_ns()}"
+    (tmp_path / f"{module}.py").write_text("class OnlyOnTheDriver:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))  # importable here, not in the rank's process
+    monkeypatch.delitem(sys.modules, module, raising=False)
+    only_here = importlib.import_module(module).OnlyOnTheDriver()
+    group = WorkerGroup.launch(Echo, "unimportable", num_ranks=1)
+    try:
+        failed = group.add(only_here)
+        assert group.add(1).wait(timeout=60) == [1]  # without a wait on the failed call first
+        assert group.async_double(2).wait(timeout=60) == [4]
+        with pytest.raises(WorkerError, match=module):
+            failed.wait(timeout=60)
+        assert group.add(2).wait(timeout=60) == [2]
+    finally:
+        group.shutdown()
+        sys.modules.pop(module, None)
 
 
 def test_a_component_name_belongs_to_one_live_group(ray_cluster):
