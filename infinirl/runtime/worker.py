@@ -612,13 +612,20 @@ class WorkerGroup:
 
     def _died(self, rank: int, method: str, ray_message: str) -> WorkerError:
         info = self.rank_info[rank] if rank < len(self.rank_info) else {}
-        log = info.get("crash_log")
-        if log is None and rank < len(self.contexts) and self.contexts[rank].crash_log_name:
-            # Died before it reported (in its Worker's constructor): the log is where launch named it.
-            log = str(CRASH_LOG_DIR / self.contexts[rank].crash_log_name)
-        crash_pid, crash = crash_logs.last_process_crash(log)
+        ctx = self.contexts[rank] if rank < len(self.contexts) else None
+        # Died before it reported (in its Worker's constructor): the log has the name launch gave
+        # it, in the crash-log folder of the node placement chose (read there, see read_on_node).
+        log = info.get("crash_log") or (ctx.crash_log_name if ctx else None)
+        node_id = info.get("node_id") or (ctx.node_id if ctx else None)
+        cause = "died (process exited)"
+        try:
+            crash_pid, crash = crash_logs.read_on_node(log, node_id)
+        except crash_logs.CrashLogUnreadable as exc:
+            crash_pid, crash = None, f"(no crash log: {exc})"
+            if exc.node_gone:
+                cause = "died (its node left the Ray cluster)"
         text = (crash + "\n" if crash else "") + _first_line_block(ray_message)
-        return self._error(rank, method, text, "died (process exited)", pid=crash_pid)
+        return self._error(rank, method, text, cause, pid=crash_pid)
 
     def _error(self, rank: int, method: str, text: str, cause: str, pid: int | None = None) -> WorkerError:
         """A WorkerError for ``rank`` with what the group knows of the rank's host and process."""
