@@ -33,12 +33,11 @@ from dataclasses import dataclass
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from infinirl.runtime import crash_logs
+from infinirl.runtime import crash_logs, rendezvous
 from infinirl.runtime.cancellation import cancel_quietly
 from infinirl.runtime.crash_logs import CRASH_LOG_DIR
 from infinirl.runtime.errors import CallCancelled, WorkerError
 from infinirl.runtime.ray_defaults import NAMESPACE, worker_env
-from infinirl.runtime.rendezvous import pick_master
 from infinirl.runtime.worker_host import RankContext, WorkerHost
 
 # CRASH_LOG_DIR and RankContext are part of this module's interface (imported from here).
@@ -370,12 +369,14 @@ def _claim_name(component: str) -> None:
         _names_in_use.add(component)
 
 
-def _forget_group(component: str, crash_log_paths: list[str]) -> None:
+def _forget_group(component: str, crash_log_paths: list[str], rendezvous_key: str = "") -> None:
     """A group is gone (shut down, or dropped and collected): free its name, remove its ranks'
-    crash logs that hold no crash."""
+    crash logs that hold no crash, and its published rendezvous."""
     with _names_lock:
         _names_in_use.discard(component)
     crash_logs.remove_if_no_crash(crash_log_paths)
+    if rendezvous_key:
+        rendezvous.forget(rendezvous_key)
 
 
 class WorkerGroup:
@@ -397,7 +398,8 @@ class WorkerGroup:
         # this frees its name and removes its crash logs then (or at exit) unless a crash was
         # written to them. The list grows with the ranks resize() adds.
         self._crash_log_paths = [str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in contexts if ctx.crash_log_name]
-        self._forget = weakref.finalize(self, _forget_group, component, self._crash_log_paths)
+        self._forget = weakref.finalize(self, _forget_group, component, self._crash_log_paths,
+                                        contexts[0].rendezvous_key if contexts else "")
 
     # ------------------------------------------------------------------ launch
     @classmethod
@@ -431,10 +433,11 @@ class WorkerGroup:
         contexts = _contexts_for(component, num_ranks, placement, env_vars or {})
         crash_logs.remove_orphaned()
         _claim_name(component)
+        key = rendezvous.new_key(component)
         try:
-            actors = _start_hosts(worker_cls, contexts, args, kwargs or {}, restart, env_vars or {})
+            actors = _start_hosts(worker_cls, contexts, args, kwargs or {}, restart, env_vars or {}, key)
         except BaseException:
-            _forget_group(component, [])
+            _forget_group(component, [], key)
             raise
         group = cls(worker_cls, component, actors, contexts)
         group._launch_settings = (args, kwargs or {}, restart, env_vars or {})
@@ -479,9 +482,7 @@ class WorkerGroup:
         args, kwargs, restart, env_vars = self._launch_settings
         old = self.world_size
         new = _contexts_for(self.component, num_ranks, placement, env_vars)[old:]
-        master = self.contexts[0].env_vars.get("MASTER_ADDR"), self.contexts[0].env_vars.get("MASTER_PORT")
-        actors = _start_hosts(self.worker_cls, new, args, kwargs, restart, env_vars,
-                              master=(master[0], int(master[1])) if all(master) else None)
+        actors = _start_hosts(self.worker_cls, new, args, kwargs, restart, env_vars, self.contexts[0].rendezvous_key)
         self._crash_log_paths.extend(str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in new)
         refs = [actor.ready.remote() for actor in actors]
         self._actors.extend(actors)
@@ -671,11 +672,10 @@ class WorkerGroup:
 
 
 def _start_hosts(worker_cls: type, contexts: list[RankContext], args: tuple, kwargs: dict,
-                 restart: RestartPolicy | None, env_vars: dict[str, str],
-                 master: tuple[str, int] | None = None) -> list:
-    """One ``WorkerHost`` actor per rank, with the torch.distributed rendezvous in its environment
-    (``master``: the group's, for ranks added later; picked on rank 0's node otherwise)."""
-    master_addr, master_port = master or pick_master(contexts[0])
+                 restart: RestartPolicy | None, env_vars: dict[str, str], rendezvous_key: str) -> list:
+    """One ``WorkerHost`` actor per rank, all at once. Each finds the group's torch.distributed
+    rendezvous under ``rendezvous_key`` (rank 0 binds and publishes it, see ``rendezvous``) and
+    has it in its environment (MASTER_ADDR/MASTER_PORT) before its Worker is built."""
     options = {"num_cpus": 0, "namespace": NAMESPACE, "max_concurrency": 1000}
     if restart is not None:
         options["max_restarts"] = restart.max_restarts
@@ -683,15 +683,9 @@ def _start_hosts(worker_cls: type, contexts: list[RankContext], args: tuple, kwa
     host_cls = ray.remote(WorkerHost)
     actors = []
     for ctx in contexts:
-        ctx.env_vars.update(
-            {
-                "MASTER_ADDR": master_addr,
-                "MASTER_PORT": str(master_port),
-                "RANK": str(ctx.rank),
-                "WORLD_SIZE": str(ctx.world_size),
-            }
-        )
+        ctx.env_vars.update({"RANK": str(ctx.rank), "WORLD_SIZE": str(ctx.world_size)})
         ctx.env_vars.setdefault("LOCAL_RANK", "0")
+        ctx.rendezvous_key = rendezvous_key
         ctx.crash_log_name = crash_logs.log_name(ctx.component, ctx.rank)
         opts = dict(options, runtime_env={"env_vars": {**worker_env(), **env_vars}})
         if ctx.node_id:

@@ -3,6 +3,7 @@
 import asyncio
 import importlib
 import os
+import socket
 import sys
 import threading
 import time
@@ -289,6 +290,23 @@ def test_a_rank_that_dies_in_a_collective_is_reported_not_its_peers_error(ray_cl
     finally:
         group.shutdown()
         _remove_crash_logs(group)
+
+
+def test_the_rendezvous_port_is_held_from_launch_so_no_one_else_can_take_it(ray_cluster):
+    """A port found free at launch and bound only when the group forms (maybe much later) can be
+    taken meanwhile by another group or program: rank 0 would fail to bind it, or the other ranks
+    would meet a stranger. Rank 0 holds the port from its start, so the group still forms."""
+    group = WorkerGroup.launch(Echo, "rendezvous", num_ranks=2)
+    squatter = socket.socket()
+    try:
+        port = int(group.whoami().wait(timeout=60)[0]["master"][1])
+        with pytest.raises(OSError):  # held by rank 0's rendezvous store
+            squatter.bind(("", port))
+            squatter.listen()
+        assert group.allreduce().wait(timeout=120) == [3.0, 3.0]
+    finally:
+        squatter.close()
+        group.shutdown()
 
 
 def test_exception_names_component_rank_node_and_traceback(ray_cluster):
