@@ -35,6 +35,7 @@ class CallOrder:
             raise asyncio.CancelledError(f"call {seq} was given up by its caller")
         if resume and caller not in self._next:
             self._next[caller] = seq
+        self._pass_given_up(caller)  # turns given up before the caller's first call arrived
         if self._next[caller] >= seq:
             # Its turn has passed without it: a call retried after a restart that arrives behind
             # a later one runs at once rather than waiting for a turn that never comes back.
@@ -53,12 +54,16 @@ class CallOrder:
         """The caller gave call ``seq`` up before it reached this actor (Ray could not submit or
         deliver it, or it was cancelled on the way): later calls do not wait for it, and should it
         still arrive it does not run. A call that started, or arrived and waits, is left alone
-        (a waiting one gives its own turn up when cancelled)."""
-        if seq < self._next[caller] or (caller, seq) in self._waiting:
+        (a waiting one gives its own turn up when cancelled).
+
+        A caller with no call here yet gets no numbering from a skip: a restarted actor takes it
+        from the caller's next call (``wait_turn(resume=True)``), not from 0."""
+        if (caller in self._next and seq < self._next[caller]) or (caller, seq) in self._waiting:
             return
         self._skipped[caller].add(seq)
         self._given_up[caller].add(seq)
-        self._hand_on(caller)
+        if caller in self._next:
+            self._hand_on(caller)
 
     def end_turn(self, caller: str, seq: int) -> None:
         """Call ``seq`` has started: the next call of ``caller`` may start."""
@@ -66,11 +71,14 @@ class CallOrder:
             self._next[caller] = seq + 1
             self._hand_on(caller)
 
-    def _hand_on(self, caller: str) -> None:
+    def _pass_given_up(self, caller: str) -> None:
         given_up = self._given_up[caller]
         while self._next[caller] in given_up:
             given_up.discard(self._next[caller])
             self._next[caller] += 1
+
+    def _hand_on(self, caller: str) -> None:
+        self._pass_given_up(caller)
         turn = self._waiting.pop((caller, self._next[caller]), None)
         if turn is not None and not turn.done():
             turn.set_result(None)

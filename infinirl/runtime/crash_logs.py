@@ -5,7 +5,8 @@ One file per rank in ``CRASH_LOG_DIR`` on the rank's node, named by the group at
 (``log_name``), so that the driver knows it even when the rank fails to start. Every process that
 runs the rank (a restarted rank runs several, one after the other) appends a line
 ``# infinirl worker process <pid>`` and then its crash, if any: the driver quotes the section of
-the process that died last (``last_process_crash``).
+the process that died last (``last_process_crash``), reading the file on the rank's node
+(``read_on_node``: by a Ray task there when that node is not the driver's).
 
 Who removes them: the group, when it shuts down (or is garbage collected), removes the logs with
 no crash in them; a log holding a crash is kept for the user. A driver killed outright removes
@@ -25,14 +26,30 @@ import uuid
 from collections.abc import Iterable
 from pathlib import Path
 
-from infinirl.runtime import processes
+import ray
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-__all__ = ["CRASH_LOG_DIR", "PROCESS_MARKER", "enable", "last_process_crash", "log_name", "remove_if_no_crash",
-           "remove_orphaned"]
+from infinirl.runtime import processes
+from infinirl.runtime.cancellation import cancel_quietly
+
+__all__ = ["CRASH_LOG_DIR", "PROCESS_MARKER", "CrashLogUnreadable", "enable", "last_process_crash", "log_name",
+           "read_on_node", "remove_if_no_crash", "remove_orphaned"]
 
 CRASH_LOG_DIR = Path(tempfile.gettempdir()) / "infinirl-crash-logs"
 PROCESS_MARKER = "# infinirl worker process "  # + pid: where each process's section of a crash log starts
 _OWNER_TAG = ".launcher-"  # log_name: <component>-rank<r>-<id>.launcher-<host>-<pid>-<start>.log
+# How long the driver waits for a task on another node to read a crash log there: a fresh worker
+# process must start for it (a Cluster we start keeps no idle ones), seconds on a busy node.
+READ_TIMEOUT_S = 30.0
+
+
+class CrashLogUnreadable(Exception):
+    """A rank's crash log is on another node and could not be read there; ``node_gone`` when that
+    node has left the Ray cluster."""
+
+    def __init__(self, message: str, node_gone: bool = False):
+        super().__init__(message)
+        self.node_gone = node_gone
 
 
 def log_name(component: str, rank: int) -> str:
@@ -68,6 +85,43 @@ def last_process_crash(path: str | None, max_chars: int = 4000) -> tuple[int | N
         return None, text.strip()[-max_chars:]
     pid_line, _, crash = last.partition("\n")
     return (int(pid_line) if pid_line.strip().isdigit() else None), crash.strip()[-max_chars:]
+
+
+def read_on_node(log: str, node_id: str | None, timeout_s: float = READ_TIMEOUT_S) -> tuple[int | None, str]:
+    """``last_process_crash`` of a rank's log, read on the rank's node: here when that is this
+    process's node (or unknown), else by a task pinned to it. ``log`` is the path the rank
+    reported, or the file name given at launch for one that died before it reported (resolved in
+    ``CRASH_LOG_DIR`` on that node, whose temp dir can differ). Raises ``CrashLogUnreadable``
+    when the node is gone or the task fails or takes over ``timeout_s``."""
+    if not log:
+        return None, ""
+    if node_id is None or node_id == ray.get_runtime_context().get_node_id():
+        return _last_process_crash_here(log)
+    if not _node_alive(node_id):
+        raise CrashLogUnreadable(f"node {node_id} has left the Ray cluster, and its crash log {log} with it",
+                                 node_gone=True)
+    task = ray.remote(num_cpus=0, max_retries=0)(_last_process_crash_here).options(
+        scheduling_strategy=NodeAffinitySchedulingStrategy(node_id, soft=False))
+    ref = task.remote(log)
+    try:
+        pid, crash = ray.get(ref, timeout=timeout_s)
+        return pid, crash
+    except ray.exceptions.GetTimeoutError:
+        cancel_quietly(ref)
+        raise CrashLogUnreadable(f"reading the crash log {log} on node {node_id} took over {timeout_s:g} s") from None
+    except Exception as exc:
+        gone = not _node_alive(node_id)
+        why = "the node has left the Ray cluster" if gone else f"{type(exc).__name__}: {str(exc).strip()[:300]}"
+        raise CrashLogUnreadable(f"the crash log {log} on node {node_id} could not be read ({why})",
+                                 node_gone=gone) from None
+
+
+def _last_process_crash_here(log: str) -> tuple[int | None, str]:
+    return last_process_crash(log if os.path.isabs(log) else str(CRASH_LOG_DIR / log))
+
+
+def _node_alive(node_id: str) -> bool:
+    return any(node["NodeID"] == node_id and node["Alive"] for node in ray.nodes())
 
 
 def remove_if_no_crash(paths: Iterable[str | None]) -> None:

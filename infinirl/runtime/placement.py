@@ -3,7 +3,7 @@
 A pure function of a :class:`~infinirl.runtime.inventory.ClusterInventory` and a spec such as
 ``{"actor": "0-3", "rollout": "4-7", "reward": "node:0"}``; no Ray calls, so every case is unit
 tested. ``Cluster`` builds the inventory; ``WorkerGroup`` launches one actor per
-:class:`RankPlacement` and adds ``MASTER_ADDR``/``MASTER_PORT`` itself (it picks a free port at launch).
+:class:`RankPlacement` and adds ``MASTER_ADDR``/``MASTER_PORT`` itself (rank 0 binds the port, see ``rendezvous``).
 
 Spec grammar (one entry per component; whitespace ignored, keywords case-insensitive; an int ``4``
 means ``"4"``)::

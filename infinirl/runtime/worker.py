@@ -34,12 +34,11 @@ from dataclasses import dataclass
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from infinirl.runtime import crash_logs
+from infinirl.runtime import crash_logs, rendezvous
 from infinirl.runtime.cancellation import cancel_quietly
 from infinirl.runtime.crash_logs import CRASH_LOG_DIR
 from infinirl.runtime.errors import CallCancelled, WorkerError
 from infinirl.runtime.ray_defaults import NAMESPACE, worker_env
-from infinirl.runtime.rendezvous import pick_master
 from infinirl.runtime.worker_host import RankContext, WorkerHost
 
 # CRASH_LOG_DIR and RankContext are part of this module's interface (imported from here).
@@ -144,12 +143,21 @@ class Worker:
             return None
 
 
+# A rank that dies in a collective makes its peers raise within milliseconds (gloo: "Connection
+# closed by peer"), while Ray reports the death itself about a second later: a method's exception
+# waits this long for a death among the call's other ranks, which is then reported as the cause.
+PEER_DEATH_GRACE_S = 2.0
+
+
 class GroupHandle:
     """The pending result of one fan-out call: ``wait()``, ``await handle``, ``done()``, ``cancel()``.
 
     ``wait`` returns the per-rank results in rank order. It raises the first failure as soon as it
     happens (not after the other ranks finish), so one broken rank never looks like a hang;
     ``wait(timeout=)`` raises ``TimeoutError`` naming the method and the ranks still running.
+    A method's exception is held up to ``PEER_DEATH_GRACE_S`` while the call runs on other ranks:
+    if one of them died meanwhile, that death (the root cause, with its crash log) is raised,
+    chained to the exception.
     """
 
     def __init__(self, group: "WorkerGroup", method: str, ranks: list[int], refs: list,
@@ -193,9 +201,38 @@ class GroupHandle:
                     f"{self._group.component}.{self.method}() not finished after {timeout}s on "
                     f"rank(s) {waiting}"
                 )
-            self._get(ready[0])  # raises the first failure right away
+            try:
+                self._get(ready[0])  # raises the first failure right away...
+            except WorkerError as raised:
+                self._raise_a_death_behind(raised, pending)  # ...unless a rank's death caused it
+                raise
         self._results = [self._get(ref) for ref in self._refs]
         return self._results
+
+    def _raise_a_death_behind(self, raised: WorkerError, others: list) -> None:
+        """``raised`` came first; if one of the ``others`` turns out dead within
+        ``PEER_DEATH_GRACE_S``, raise that death (with its crash log), chained to ``raised``."""
+        if raised.cause != "raised":
+            return
+        deadline = time.monotonic() + PEER_DEATH_GRACE_S
+        while others:
+            ready, others = ray.wait(others, num_returns=1, timeout=max(0.0, deadline - time.monotonic()))
+            if not ready:
+                return
+            died = self._death_of(ready[0])
+            if died is not None:
+                raise died from raised
+
+    def _death_of(self, ref) -> WorkerError | None:
+        """The ``died`` error of a finished ref whose rank's process died, else None."""
+        try:
+            ray.get(ref, timeout=0)
+        except ray.exceptions.RayActorError as exc:
+            index = self._refs.index(ref)
+            return self._group._died(self.ranks[index], self.method, str(exc))
+        except Exception:  # returned, raised or cancelled: not a death
+            pass
+        return None
 
     def _get(self, ref):
         index = self._refs.index(ref)
@@ -210,8 +247,26 @@ class GroupHandle:
         while remaining:
             done, remaining = await asyncio.wait(remaining, return_when=asyncio.FIRST_COMPLETED)
             for fut in done:
-                self._get(futures[fut])  # raises the first failure right away
+                try:
+                    self._get(futures[fut])  # raises the first failure right away...
+                except WorkerError as raised:  # ...unless a rank's death caused it (see wait)
+                    await self._raise_a_death_behind_async(raised, futures, (done | remaining) - {fut})
+                    raise
         return self.wait()
+
+    async def _raise_a_death_behind_async(self, raised: WorkerError, futures: dict, others: set) -> None:
+        if raised.cause != "raised":
+            return
+        deadline = time.monotonic() + PEER_DEATH_GRACE_S
+        while others:
+            finished, others = await asyncio.wait(others, timeout=max(0.0, deadline - time.monotonic()),
+                                                  return_when=asyncio.FIRST_COMPLETED)
+            if not finished:
+                return
+            for fut in finished:
+                died = self._death_of(futures[fut])
+                if died is not None:
+                    raise died from raised
 
 
 async def _settle(ref) -> None:
@@ -221,6 +276,90 @@ async def _settle(ref) -> None:
     except BaseException:
         pass
 
+
+class _TurnKeeper:
+    """Gives up the turn, in its rank's call order, of a call that Ray failed before it ran.
+
+    Ray can fail a call before ``WorkerHost.execute`` starts (an argument the rank cannot
+    unpickle, e.g. an instance of a class only the driver can import): the call never takes its
+    turn, and every later call to that rank would wait for it, whether or not anyone waits on the
+    failed call's handle. One thread per driver process watches each numbered call until it
+    finishes and tells the rank to skip one that failed outside the method. Skipping a call that
+    did take its turn does nothing (``CallOrder.skip``), so the check need not be exact."""
+
+    _POLL_S = 0.5  # how soon a call submitted while the thread waits is watched too
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        # ObjectRef -> (weak ref to the rank's actor handle, caller, seq): a strong one would keep
+        # the ranks of a group dropped without shutdown() alive as long as a call of theirs runs
+        self._calls: dict = {}
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def watch(self, ref, actor, caller: str, seq: int) -> None:
+        with self._lock:
+            self._calls[ref] = (weakref.ref(actor), caller, seq)
+            if self._thread is None or not self._thread.is_alive():
+                self._thread = threading.Thread(target=self._run, name="infinirl-call-turns", daemon=True)
+                self._thread.start()
+        self._wake.set()
+
+    def _run(self) -> None:
+        while True:
+            self._wake.clear()
+            with self._lock:
+                idle = not self._calls
+            if idle:
+                self._wake.wait()
+            else:
+                self._check_once()
+
+    def _check_once(self) -> None:
+        """Waits up to ``_POLL_S`` for watched calls to finish, and skips the turns of those that
+        failed outside their method. It holds the refs and actor handles only while it runs."""
+        with self._lock:
+            refs = list(self._calls)
+        try:
+            # fetch_local=False: a finished call's result stays where it is until it is asked for
+            ready, _ = ray.wait(refs, num_returns=1, timeout=self._POLL_S, fetch_local=False)
+            if ready:
+                ready, _ = ray.wait(refs, num_returns=len(refs), timeout=0, fetch_local=False)
+        except Exception:  # Ray was shut down: these calls are gone with their ranks
+            ready = refs
+        for ref in ready:
+            with self._lock:
+                actor_ref, caller, seq = self._calls.pop(ref)
+            actor = actor_ref()
+            if actor is not None and _failed_outside_the_method(ref):
+                try:
+                    actor.skip_call.remote(caller, seq)
+                except Exception:  # the rank (or Ray) is gone: nothing waits there
+                    pass
+
+
+def _failed_outside_the_method(ref) -> bool:
+    """Whether a finished call failed in Ray rather than in the method (a ``WorkerError``) or by
+    its rank's death or a cancel. Only the driver's in-process store is read: errors are kept
+    there, while a large result is in the object store and stays unfetched."""
+    try:
+        core_worker = ray._private.worker.global_worker.core_worker
+        if not core_worker.object_exists(ref, memory_store_only=True):
+            return False
+    except Exception:  # no such internal API in this Ray: read the result
+        pass
+    try:
+        ray.get(ref, timeout=0)
+    except ray.exceptions.RayTaskError as exc:
+        return not isinstance(getattr(exc, "cause", None), WorkerError)
+    except (ray.exceptions.RayActorError, ray.exceptions.TaskCancelledError):
+        return False
+    except Exception:  # Ray could not run or answer it
+        return True
+    return False
+
+
+_TURNS = _TurnKeeper()
 
 _LIVE_GROUPS: weakref.WeakSet = weakref.WeakSet()  # launched here and not shut down yet
 _names_lock = threading.Lock()
@@ -245,12 +384,14 @@ def _claim_name(component: str) -> None:
         _names_in_use.add(component)
 
 
-def _forget_group(component: str, crash_log_paths: list[str]) -> None:
+def _forget_group(component: str, crash_log_paths: list[str], rendezvous_key: str = "") -> None:
     """A group is gone (shut down, or dropped and collected): free its name, remove its ranks'
-    crash logs that hold no crash."""
+    crash logs that hold no crash, and its published rendezvous."""
     with _names_lock:
         _names_in_use.discard(component)
     crash_logs.remove_if_no_crash(crash_log_paths)
+    if rendezvous_key:
+        rendezvous.forget(rendezvous_key)
 
 
 class WorkerGroup:
@@ -272,7 +413,8 @@ class WorkerGroup:
         # this frees its name and removes its crash logs then (or at exit) unless a crash was
         # written to them. The list grows with the ranks resize() adds.
         self._crash_log_paths = [str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in contexts if ctx.crash_log_name]
-        self._forget = weakref.finalize(self, _forget_group, component, self._crash_log_paths)
+        self._forget = weakref.finalize(self, _forget_group, component, self._crash_log_paths,
+                                        contexts[0].rendezvous_key if contexts else "")
 
     # ------------------------------------------------------------------ launch
     @classmethod
@@ -306,10 +448,11 @@ class WorkerGroup:
         contexts = _contexts_for(component, num_ranks, placement, env_vars or {})
         crash_logs.remove_orphaned()
         _claim_name(component)
+        key = rendezvous.new_key(component)
         try:
-            actors = _start_hosts(worker_cls, contexts, args, kwargs or {}, restart, env_vars or {})
+            actors = _start_hosts(worker_cls, contexts, args, kwargs or {}, restart, env_vars or {}, key)
         except BaseException:
-            _forget_group(component, [])
+            _forget_group(component, [], key)
             raise
         group = cls(worker_cls, component, actors, contexts)
         group._launch_settings = (args, kwargs or {}, restart, env_vars or {})
@@ -354,9 +497,7 @@ class WorkerGroup:
         args, kwargs, restart, env_vars = self._launch_settings
         old = self.world_size
         new = _contexts_for(self.component, num_ranks, placement, env_vars)[old:]
-        master = self.contexts[0].env_vars.get("MASTER_ADDR"), self.contexts[0].env_vars.get("MASTER_PORT")
-        actors = _start_hosts(self.worker_cls, new, args, kwargs, restart, env_vars,
-                              master=(master[0], int(master[1])) if all(master) else None)
+        actors = _start_hosts(self.worker_cls, new, args, kwargs, restart, env_vars, self.contexts[0].rendezvous_key)
         self._crash_log_paths.extend(str(CRASH_LOG_DIR / ctx.crash_log_name) for ctx in new)
         refs = [actor.ready.remote() for actor in actors]
         self._actors.extend(actors)
@@ -400,11 +541,14 @@ class WorkerGroup:
         for rank, args in calls:
             seq = self._seq[rank]
             self._seq[rank] += 1
+            actor = self._actors[rank]
             try:
-                refs.append(self._actors[rank].execute.remote(method, args, kwargs, self._caller, seq))
+                ref = actor.execute.remote(method, args, kwargs, self._caller, seq)
             except BaseException:  # e.g. an argument that cannot be pickled: the number is never used
                 self._skip(rank, seq)
                 raise
+            _TURNS.watch(ref, actor, self._caller, seq)
+            refs.append(ref)
             seqs.append(seq)
         return GroupHandle(self, method, [rank for rank, _ in calls], refs, seqs)
 
@@ -484,13 +628,20 @@ class WorkerGroup:
 
     def _died(self, rank: int, method: str, ray_message: str) -> WorkerError:
         info = self.rank_info[rank] if rank < len(self.rank_info) else {}
-        log = info.get("crash_log")
-        if log is None and rank < len(self.contexts) and self.contexts[rank].crash_log_name:
-            # Died before it reported (in its Worker's constructor): the log is where launch named it.
-            log = str(CRASH_LOG_DIR / self.contexts[rank].crash_log_name)
-        crash_pid, crash = crash_logs.last_process_crash(log)
+        ctx = self.contexts[rank] if rank < len(self.contexts) else None
+        # Died before it reported (in its Worker's constructor): the log has the name launch gave
+        # it, in the crash-log folder of the node placement chose (read there, see read_on_node).
+        log = info.get("crash_log") or (ctx.crash_log_name if ctx else None)
+        node_id = info.get("node_id") or (ctx.node_id if ctx else None)
+        cause = "died (process exited)"
+        try:
+            crash_pid, crash = crash_logs.read_on_node(log, node_id)
+        except crash_logs.CrashLogUnreadable as exc:
+            crash_pid, crash = None, f"(no crash log: {exc})"
+            if exc.node_gone:
+                cause = "died (its node left the Ray cluster)"
         text = (crash + "\n" if crash else "") + _first_line_block(ray_message)
-        return self._error(rank, method, text, "died (process exited)", pid=crash_pid)
+        return self._error(rank, method, text, cause, pid=crash_pid)
 
     def _error(self, rank: int, method: str, text: str, cause: str, pid: int | None = None) -> WorkerError:
         """A WorkerError for ``rank`` with what the group knows of the rank's host and process."""
@@ -536,11 +687,10 @@ class WorkerGroup:
 
 
 def _start_hosts(worker_cls: type, contexts: list[RankContext], args: tuple, kwargs: dict,
-                 restart: RestartPolicy | None, env_vars: dict[str, str],
-                 master: tuple[str, int] | None = None) -> list:
-    """One ``WorkerHost`` actor per rank, with the torch.distributed rendezvous in its environment
-    (``master``: the group's, for ranks added later; picked on rank 0's node otherwise)."""
-    master_addr, master_port = master or pick_master(contexts[0])
+                 restart: RestartPolicy | None, env_vars: dict[str, str], rendezvous_key: str) -> list:
+    """One ``WorkerHost`` actor per rank, all at once. Each finds the group's torch.distributed
+    rendezvous under ``rendezvous_key`` (rank 0 binds and publishes it, see ``rendezvous``) and
+    has it in its environment (MASTER_ADDR/MASTER_PORT) before its Worker is built."""
     options = {"num_cpus": 0, "namespace": NAMESPACE, "max_concurrency": 1000}
     if restart is not None:
         options["max_restarts"] = restart.max_restarts
@@ -548,15 +698,9 @@ def _start_hosts(worker_cls: type, contexts: list[RankContext], args: tuple, kwa
     host_cls = ray.remote(WorkerHost)
     actors = []
     for ctx in contexts:
-        ctx.env_vars.update(
-            {
-                "MASTER_ADDR": master_addr,
-                "MASTER_PORT": str(master_port),
-                "RANK": str(ctx.rank),
-                "WORLD_SIZE": str(ctx.world_size),
-            }
-        )
+        ctx.env_vars.update({"RANK": str(ctx.rank), "WORLD_SIZE": str(ctx.world_size)})
         ctx.env_vars.setdefault("LOCAL_RANK", "0")
+        ctx.rendezvous_key = rendezvous_key
         ctx.crash_log_name = crash_logs.log_name(ctx.component, ctx.rank)
         opts = dict(options, runtime_env={"env_vars": {**worker_env(), **env_vars}})
         if ctx.node_id:

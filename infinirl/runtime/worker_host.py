@@ -22,7 +22,7 @@ from typing import Any
 
 import ray
 
-from infinirl.runtime import crash_logs, p2p, processes
+from infinirl.runtime import crash_logs, p2p, processes, rendezvous
 from infinirl.runtime.call_order import CallOrder
 from infinirl.runtime.cancellation import CancelToken, run_with_token
 from infinirl.runtime.compute_thread import mark_compute_thread
@@ -50,6 +50,9 @@ class RankContext:
     #: the rank's crash log in ``CRASH_LOG_DIR`` on its node, named by the group at launch so that
     #: the driver knows it even when the rank fails to start, and a restarted process reuses it
     crash_log_name: str = ""
+    #: where the group's torch.distributed rendezvous is published (``rendezvous``): rank 0 hosts
+    #: it, every rank has MASTER_ADDR/MASTER_PORT from it before its Worker is built
+    rendezvous_key: str = ""
 
 
 def _quiet_ray_async_warnings() -> None:
@@ -97,7 +100,9 @@ class WorkerHost:
         ctx.node_ip = ctx.node_ip or self._node_ip
         self._crash_log = crash_logs.enable(ctx.component, ctx.rank, ctx.crash_log_name)
         processes.register_host(ray.get_runtime_context().current_actor, f"{ctx.component}[rank {ctx.rank}]")
+        self._rendezvous_store = None  # rank 0's: held for the life of the process
         try:
+            self._join_rendezvous(ctx)
             # On the compute thread, like every sync method: the constructor builds models and
             # may run parallel torch ops, and one OpenMP team on a second thread makes libgomp
             # count more threads than cores and stop spin-waiting for every team in the process
@@ -106,6 +111,20 @@ class WorkerHost:
         except BaseException:  # reported on the first call (see ready())
             self._worker = None
             self._init_error = self._error("__init__", traceback.format_exc())
+
+    def _join_rendezvous(self, ctx: RankContext) -> None:
+        """MASTER_ADDR/MASTER_PORT of the group's torch.distributed rendezvous, in the environment
+        before the Worker is built (its constructor may form the group): rank 0 binds it, the
+        others wait until rank 0 has published it."""
+        if not ctx.rendezvous_key:
+            return
+        if ctx.rank == 0:
+            addr, port, self._rendezvous_store = rendezvous.host_master(ctx.rendezvous_key)
+        else:
+            addr, port = rendezvous.await_master(ctx.rendezvous_key)
+        master = {"MASTER_ADDR": addr, "MASTER_PORT": str(port)}
+        os.environ.update(master)
+        ctx.env_vars.update(master)
 
     def _error(self, method: str, text: str, cause: str = "raised") -> WorkerError:
         return WorkerError(

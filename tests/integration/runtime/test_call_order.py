@@ -122,3 +122,29 @@ def test_a_retried_call_arriving_behind_a_later_one_after_a_restart_runs():
         return started
 
     assert asyncio.run(main()) == [8, 7]
+
+
+def test_a_skip_that_reaches_a_restarted_actor_first_keeps_the_callers_numbering():
+    """Ray failed call 7 outside the method (the driver skips every such call) after the actor
+    restarted: call 8 still resumes the numbering, instead of waiting for turns 0-7."""
+
+    async def main():
+        order = CallOrder()
+        order.skip("c", 7)
+        await asyncio.wait_for(order.wait_turn("c", 8, resume=True), 30)
+        order.end_turn("c", 8)
+        late = asyncio.ensure_future(order.wait_turn("c", 7, resume=True))  # arriving after all
+        await asyncio.wait([late], timeout=30)
+        return late.cancelled()
+
+    assert asyncio.run(main())
+
+
+def test_a_skip_that_arrives_before_a_callers_first_call_lets_the_next_one_start():
+    async def main():
+        order, started = CallOrder(), []
+        order.skip("c", 0)
+        await asyncio.wait_for(asyncio.gather(*_run_calls(order, started, "c", [1]).values()), 30)
+        return started
+
+    assert asyncio.run(main()) == [1]

@@ -1,8 +1,13 @@
-"""Crash logs left by a launcher that is gone (a driver killed outright) are removed; no others."""
+"""Crash logs left by a launcher that is gone (a driver killed outright) are removed; no others.
+A rank on another node is reported with the crash log of that node."""
 
+import json
 import os
+import secrets
 import subprocess
 import sys
+
+import pytest
 
 from infinirl.runtime import crash_logs, processes
 
@@ -45,3 +50,25 @@ def test_process_identity_tells_a_reused_pid_apart():
     finished = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                               text=True, check=True)
     assert not processes.alive(int(finished.stdout))
+
+
+@pytest.mark.slow  # starts two Ray nodes; run with pytest -m slow tests/integration
+def test_a_rank_on_another_node_is_reported_with_that_nodes_crash_log():
+    """The second node's crash-log folder is its own (see the scenario): read on the driver's disk,
+    the log is not there, and the rank would be reported as an opaque death."""
+    env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32),
+           "PYTHONPATH": os.pathsep.join(p for p in (REPO, os.environ.get("PYTHONPATH")) if p)}
+    env.pop("RAY_ADDRESS", None)
+    scenario = os.path.join(REPO, "tests", "integration", "runtime", "scenarios", "remote_crash_log.py")
+    proc = subprocess.run([sys.executable, scenario], capture_output=True, text=True, timeout=540, cwd=REPO, env=env)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    out = json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1].removeprefix("RESULT "))
+    if "skip" in out:
+        pytest.skip(out["skip"])
+    assert out["rank_node"] != out["driver_node"] and not out["log_on_driver_disk"]
+    crashed = out["crashed"]
+    assert "sim[rank 0].segfault() died (process exited)" in crashed, crashed
+    assert "Segmentation fault" in crashed and "in segfault" in crashed, crashed
+    gone = out["node_gone"]
+    assert "lost[rank 0].sleep() died (its node left the Ray cluster)" in gone, gone
+    assert out["node_gone_s"] < 60

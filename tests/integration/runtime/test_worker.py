@@ -1,7 +1,10 @@
 """WorkerGroup: launch, fan-out, handles, failures reported at their root, restarts, shutdown."""
 
 import asyncio
+import importlib
 import os
+import socket
+import sys
 import threading
 import time
 
@@ -84,6 +87,26 @@ class Echo(Worker):
 
         self.init_process_group()
         t = torch.tensor([float(self.rank + 1)])
+        dist.all_reduce(t)
+        return float(t.item())
+
+
+    def die_in_allreduce(self, dying_rank):
+        """Forms the group, then one rank crashes while its peers wait for it in a collective.
+
+        The dying rank closes its group's connections half a second before it crashes: its peers'
+        gloo error then reaches the driver before Ray reports the death, every time (a process
+        that just dies makes the same order a race, which gloo's ~20 ms often wins)."""
+        import faulthandler
+
+        import torch.distributed as dist
+
+        self.init_process_group(timeout_s=60)
+        if self.rank == dying_rank:
+            dist.destroy_process_group()
+            time.sleep(0.5)
+            faulthandler._sigsegv()
+        t = torch.tensor([1.0])
         dist.all_reduce(t)
         return float(t.item())
 
@@ -207,6 +230,27 @@ def test_an_unserialisable_result_is_reported_and_the_rank_stays_usable(ray_clus
         group.shutdown()
 
 
+def test_a_call_ray_fails_before_it_runs_does_not_hold_up_later_calls(ray_cluster, tmp_path, monkeypatch):
+    """An argument the rank cannot unpickle fails inside Ray, before the call takes its turn in the
+    rank's call order: later calls must run without anyone waiting on the failed one."""
+    module = f"driver_only_{time.time_ns()}"
+    (tmp_path / f"{module}.py").write_text("class OnlyOnTheDriver:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))  # importable here, not in the rank's process
+    monkeypatch.delitem(sys.modules, module, raising=False)
+    only_here = importlib.import_module(module).OnlyOnTheDriver()
+    group = WorkerGroup.launch(Echo, "unimportable", num_ranks=1)
+    try:
+        failed = group.add(only_here)
+        assert group.add(1).wait(timeout=60) == [1]  # without a wait on the failed call first
+        assert group.async_double(2).wait(timeout=60) == [4]
+        with pytest.raises(WorkerError, match=module):
+            failed.wait(timeout=60)
+        assert group.add(2).wait(timeout=60) == [2]
+    finally:
+        group.shutdown()
+        sys.modules.pop(module, None)
+
+
 def test_a_component_name_belongs_to_one_live_group(ray_cluster):
     first = WorkerGroup.launch(Echo, "unique", num_ranks=1)
     try:
@@ -224,6 +268,44 @@ def test_torch_distributed_group_forms(ray_cluster):
     try:
         assert group.allreduce().wait(timeout=120) == [3.0, 3.0]
     finally:
+        group.shutdown()
+
+
+@pytest.mark.parametrize("how", ["wait", "await"])
+def test_a_rank_that_dies_in_a_collective_is_reported_not_its_peers_error(ray_cluster, deliberate_deaths, how):
+    """gloo tells a peer "Connection closed by peer" within milliseconds, before Ray reports the
+    death (about a second): the error must name the rank that died, with its crash, not the peer."""
+    group = WorkerGroup.launch(Echo, f"collective_{how}", num_ranks=3)
+    deliberate_deaths(*group.pids())
+    try:
+        handle = group.die_in_allreduce(2)
+        with pytest.raises(WorkerError) as info:
+            handle.wait(timeout=120) if how == "wait" else asyncio.run(asyncio.wait_for(_await(handle), 120))
+        err = info.value
+        text = str(err)
+        assert err.rank == 2 and "died (process exited)" in text, text
+        assert "Segmentation fault" in text and "die_in_allreduce" in text  # its crash log
+        peer = err.__cause__  # what the peers saw, kept
+        assert isinstance(peer, WorkerError) and peer.rank in (0, 1) and peer.cause == "raised", repr(peer)
+    finally:
+        group.shutdown()
+        _remove_crash_logs(group)
+
+
+def test_the_rendezvous_port_is_held_from_launch_so_no_one_else_can_take_it(ray_cluster):
+    """A port found free at launch and bound only when the group forms (maybe much later) can be
+    taken meanwhile by another group or program: rank 0 would fail to bind it, or the other ranks
+    would meet a stranger. Rank 0 holds the port from its start, so the group still forms."""
+    group = WorkerGroup.launch(Echo, "rendezvous", num_ranks=2)
+    squatter = socket.socket()
+    try:
+        port = int(group.whoami().wait(timeout=60)[0]["master"][1])
+        with pytest.raises(OSError):  # held by rank 0's rendezvous store
+            squatter.bind(("", port))
+            squatter.listen()
+        assert group.allreduce().wait(timeout=120) == [3.0, 3.0]
+    finally:
+        squatter.close()
         group.shutdown()
 
 
