@@ -7,20 +7,18 @@ Worker is built (``await_master``). A port found free and bound only later (when
 maybe much later) could be taken meanwhile by another group or program. torch's ``env://``
 rendezvous in rank 0 then reuses the held store (``multi_tenant``: one server per port and process).
 
-``pick_master``: a free port on a node, found by binding and closing a socket, for a group whose
-ranks all start it at once, right away.
+The weight-sync group between a trainer and its rollout ranks does the same: the trainer's rank 0
+binds its store on a port the OS picks before the other ranks are told where to join.
 """
 
 from __future__ import annotations
 
-import socket
 import time
 from typing import Any
 
 import ray
-from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-__all__ = ["RENDEZVOUS_TIMEOUT_S", "await_master", "forget", "free_port", "host_master", "new_key", "pick_master"]
+__all__ = ["RENDEZVOUS_TIMEOUT_S", "await_master", "forget", "host_master", "new_key"]
 
 # How long a rank waits for rank 0 to publish the rendezvous: rank 0's process may start later
 # than the others (a busy node); a rank 0 that never starts fails the launch well before this.
@@ -94,22 +92,3 @@ def _kv_put(key: str, value: str) -> None:
 
     internal_kv._internal_kv_put(key, value, overwrite=True, namespace=_KV_NAMESPACE)
 
-
-def free_port() -> tuple[str, int]:
-    """(this node's IP, a TCP port free on it right now)."""
-    with socket.socket() as sock:
-        sock.bind(("", 0))
-        return ray.util.get_node_ip_address(), sock.getsockname()[1]
-
-
-def pick_master(rank0: Any) -> tuple[str, int]:
-    """A free TCP port on rank 0's node (a ``RankContext``), found *on that node*.
-
-    On this process's own node (or with no node asked for) the port is found here: a Ray task
-    would need a worker process of its own, started (importing torch) for a moment's work, since
-    a Cluster we start keeps no idle workers (``cluster.LOCAL_RAY_SYSTEM_CONFIG``)."""
-    if rank0.node_id is None or rank0.node_id == ray.get_runtime_context().get_node_id():
-        return free_port()
-    task = ray.remote(num_cpus=0)(free_port).options(
-        scheduling_strategy=NodeAffinitySchedulingStrategy(rank0.node_id, soft=False))
-    return ray.get(task.remote())

@@ -31,7 +31,6 @@ import torch
 
 from infinirl.runtime.p2p import nccl_options
 from infinirl.runtime.payload import DTYPE_BY_NAME, box, unbox
-from infinirl.runtime.rendezvous import pick_master
 
 DEFAULT_BUCKET_BYTES = 256 * 1024 * 1024
 
@@ -251,11 +250,23 @@ class WeightSink:
         return received[0]
 
 
+def _host_sync_store(self, timeout_s: float) -> tuple[str, int]:
+    """On the trainer's rank 0: bind the sync group's rendezvous store on a port the OS picks and
+    keep it; a port found free and bound only when the ranks join could be taken meanwhile."""
+    import torch.distributed as dist
+
+    addr = ray.util.get_node_ip_address()
+    self._sync_store = dist.TCPStore(addr, 0, is_master=True, wait_for_workers=False,
+                                     timeout=datetime.timedelta(seconds=timeout_s))
+    return addr, self._sync_store.port
+
+
 def _join_sync_group(self, addr: str, port: int, rank: int, world: int, backend: str, timeout_s: float):
     import torch.distributed as dist
 
     timeout = datetime.timedelta(seconds=timeout_s)
-    store = dist.TCPStore(addr, port, world, is_master=(rank == 0), timeout=timeout)
+    # Rank 0 (the trainer) hosts the store it bound in _host_sync_store; the rollout ranks connect.
+    store = self._sync_store if rank == 0 else dist.TCPStore(addr, port, world, is_master=False, timeout=timeout)
     if backend == "nccl":
         from torch.distributed import ProcessGroupNCCL  # only exists in CUDA builds
 
@@ -267,6 +278,7 @@ def _join_sync_group(self, addr: str, port: int, rank: int, world: int, backend:
     return rank
 
 
+WeightSource._infinirl_host_sync_store = _host_sync_store
 WeightSource._infinirl_join_sync_group = _join_sync_group
 WeightSink._infinirl_join_sync_group = _join_sync_group
 
@@ -285,7 +297,7 @@ class WeightSyncGroup:
     def __init__(self, source, sink, backend: str | None = None, timeout_s: float = 300.0):
         if backend is None:
             backend = "nccl" if torch.cuda.is_available() and source.contexts[0].local_devices else "gloo"
-        addr, port = pick_master(source.contexts[0])
+        addr, port = source.call("_infinirl_host_sync_store", timeout_s, ranks=[0]).wait(timeout=timeout_s)[0]
         world = 1 + sink.world_size
         handles = [source.call("_infinirl_join_sync_group", addr, port, 0, world, backend, timeout_s, ranks=[0])]
         handles += [
