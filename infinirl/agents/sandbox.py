@@ -4,13 +4,14 @@
 for anything the code does. Limits (:class:`SandboxLimits`): CPU time (RLIMIT_CPU), wall time (the
 whole sandbox is killed), address space (RLIMIT_AS), output size (each stream read concurrently and
 cut at the limit, which ends the run), processes (RLIMIT_NPROC counted in a user namespace of the
-run's own), file size and disk (a size-limited tmpfs), open files. Isolation, where Linux namespaces
-are available (as root, or as a user with unprivileged user namespaces): no network (a fresh network
-namespace), a private PID namespace, a root filesystem holding only the system directories and the
-Python installation read-only, a fresh /tmp as the working directory, and an unprivileged uid. Where
-they are not, the code runs as an unprivileged uid (when root) with sockets refused (a seccomp filter
-where the kernel takes one, else in Python only), and processes that leave its session are hunted
-down afterwards; the result names the isolation it got. ``docs/agents.md`` has the details.
+run's own), file size and disk (a size-limited tmpfs), open files. Isolation (the default, which
+needs Linux namespaces: root, or a user with unprivileged user namespaces): no network (a fresh
+network namespace), a private PID namespace, a root filesystem holding only the system directories and
+the Python installation read-only, a fresh /tmp as the working directory, and an unprivileged uid.
+Where namespaces cannot be made, a Sandbox refuses to start unless the weaker ``process`` isolation
+is asked for by name: the code then runs as a uid of its own (root) with sockets refused (a seccomp
+filter where the kernel takes one, else in Python only), and processes that leave its session are
+hunted down afterwards. ``docs/agents.md`` has the details.
 """
 
 from __future__ import annotations
@@ -19,12 +20,18 @@ import asyncio
 import dataclasses
 import enum
 import errno
+import fcntl
+import functools
 import json
+import logging
 import math
 import os
+import pwd
 import secrets
 import shutil
 import signal
+import stat
+import subprocess
 import sys
 import tempfile
 import time
@@ -36,11 +43,17 @@ from infinirl.agents.sandbox_runner import MEMORY_EXIT_CODE
 
 __all__ = ["ISOLATIONS", "LimitHit", "Sandbox", "SandboxLimits", "SandboxResult"]
 
+logger = logging.getLogger(__name__)
+
 ISOLATIONS = ("auto", "namespaces", "process")
 LAUNCHER = Path(__file__).with_name("sandbox_launch.py")
 RUNNER_SOURCE = Path(__file__).with_name("sandbox_runner.py").read_text(encoding="utf-8")
 CODE_NAME = "main.py"
 NOBODY = 65534
+# Under the "process" isolation as root, each run gets a uid (and gid) of this many from
+# SandboxLimits.process_uid_base, held exclusively machine-wide for the run (a lock file per uid).
+PROCESS_UID_COUNT = 1024
+PROBE_TIMEOUT_S = 60.0
 READ_CHUNK = 65536
 DRAIN_AFTER_EXIT_S = 5.0  # after the sandbox is dead its pipes close at once; this only bounds a bug
 ESCAPE_GRACE_S = 0.5  # after the launcher is gone, how long its pipes may stay open before holders are hunted
@@ -84,9 +97,14 @@ class SandboxLimits:
     max_file_bytes: int = 16 << 20
     disk_bytes: int = 64 << 20  # the working directory's tmpfs (namespaces isolation)
     max_open_files: int = 256
-    isolation: str = "auto"  # "namespaces" refuses to run without them; "process" never tries them
-    sandbox_uid: int = NOBODY  # the uid the code runs as when the sandbox is started by root
+    isolation: str = "auto"  # "auto" and "namespaces" need namespaces; "process" never tries them
+    sandbox_uid: int = NOBODY  # the uid the code runs as under namespaces when the sandbox is started by root
     sandbox_gid: int = NOBODY
+    # "process" as root: each run's uid is one of PROCESS_UID_COUNT from here (without an account).
+    process_uid_base: int = 62000
+    # "process" without root runs the code as this process's own uid: it could signal this process
+    # or change its files. Refused unless this is set.
+    allow_same_uid: bool = False
 
     def __post_init__(self) -> None:
         for name in ("wall_time_s", "cpu_time_s"):
@@ -101,6 +119,10 @@ class SandboxLimits:
             raise ValueError(f"SandboxLimits.isolation must be one of {ISOLATIONS}, got {self.isolation!r}")
         if self.sandbox_uid == 0 or self.sandbox_gid == 0:
             raise ValueError("SandboxLimits.sandbox_uid/sandbox_gid must not be 0 (root); use e.g. 65534")
+        if not isinstance(self.process_uid_base, int) or self.process_uid_base < 1:
+            raise ValueError(f"SandboxLimits.process_uid_base must be a positive uid, got {self.process_uid_base!r}")
+        if not isinstance(self.allow_same_uid, bool):
+            raise ValueError(f"SandboxLimits.allow_same_uid must be true or false, got {self.allow_same_uid!r}")
 
 
 @dataclasses.dataclass(kw_only=True, frozen=True)
@@ -119,7 +141,7 @@ class SandboxResult:
     stdout_truncated: bool = False
     stderr_truncated: bool = False
     isolation: str = ""  # "namespaces" or "process"
-    isolation_note: str = ""  # why namespaces were not used, under "process"
+    isolation_note: str = ""  # under "process": that it was asked for
     error: str | None = None
 
     @property
@@ -176,10 +198,101 @@ def write_files(work_dir: Path, code: str, files: Mapping[str, str | bytes]) -> 
         target.write_bytes(content)
 
 
-def give_to(path: Path, uid: int, gid: int) -> None:
-    for folder, dirs, files in os.walk(path):
-        for name in [folder] + [os.path.join(folder, entry) for entry in dirs + files]:
-            os.lchown(name, uid, gid)
+def close_to_the_code(work: Path, gid: int) -> None:
+    """The "process" isolation's working directory (root): every folder root's, writable by the run's
+    group and sticky, every file given (``main.py`` included) root's and read-only. The code can add
+    files but cannot change, remove or rename the ones it was given; no other run's uid can enter."""
+    for folder, _, files in os.walk(work):
+        os.chown(folder, 0, gid)
+        os.chmod(folder, 0o1770)
+        for name in files:
+            os.lchown(os.path.join(folder, name), 0, 0)
+            os.chmod(os.path.join(folder, name), 0o444)
+
+
+def base_dir() -> Path:
+    """The folder holding every run's folder: this uid's own, and listable by no one else (root's is
+    0o711 so that a "process" run's uid can pass through it to its own run's folder, whose random
+    name it cannot learn from a listing)."""
+    path = Path(tempfile.gettempdir()) / f"infinirl-sandbox-{os.getuid()}"
+    mode = 0o711 if os.getuid() == 0 else 0o700
+    try:
+        path.mkdir(mode=mode)
+    except FileExistsError:
+        pass
+    info = os.lstat(path)
+    if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid():
+        raise OSError(f"{path} is not a folder of uid {os.getuid()} (someone else made it); remove it")
+    if stat.S_IMODE(info.st_mode) != mode:
+        os.chmod(path, mode)
+    return path
+
+
+def has_account(uid: int) -> bool:
+    try:
+        pwd.getpwuid(uid)
+    except KeyError:
+        return False
+    return True
+
+
+class UidLease:
+    """A uid (and the gid of the same number) for one "process" run under root, held by no other run
+    of any process on this machine until :meth:`release` (an exclusive lock on a file per uid).
+    Uids with an account are skipped: the code must not get someone's files."""
+
+    def __init__(self, first: int) -> None:
+        locks = base_dir() / "uids"
+        locks.mkdir(mode=0o700, exist_ok=True)
+        start = secrets.randbelow(PROCESS_UID_COUNT)
+        for step in range(PROCESS_UID_COUNT):
+            uid = first + (start + step) % PROCESS_UID_COUNT
+            if has_account(uid):
+                continue
+            fd = os.open(locks / str(uid), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                continue
+            self.uid, self.fd = uid, fd
+            return
+        raise OSError(f"every sandbox uid of {first}..{first + PROCESS_UID_COUNT - 1} is in use or has an account; "
+                      "set SandboxLimits.process_uid_base to a free range")
+
+    def release(self) -> None:
+        os.close(self.fd)
+
+
+@functools.cache
+def namespaces_problem() -> str | None:
+    """Why this process cannot build the namespaces isolation (None when it can): the launcher tries
+    the namespaces, a private mount namespace and a tmpfs in a throwaway child. Asked once per process."""
+    try:
+        probe = subprocess.run([sys.executable, "-I", "-S", str(LAUNCHER), "--probe"], capture_output=True,
+                               text=True, timeout=PROBE_TIMEOUT_S, stdin=subprocess.DEVNULL)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        return f"the namespaces probe failed: {error}"
+    if probe.returncode == 0:
+        return None
+    return (probe.stderr.strip().splitlines() or [f"exit code {probe.returncode}"])[-1]
+
+
+def isolation_problem(limits: SandboxLimits) -> str | None:
+    """Why runs with ``limits`` must not start here (one line naming the option), or None."""
+    if limits.isolation == "process":
+        if os.getuid() != 0 and not limits.allow_same_uid:
+            return ("SandboxLimits.isolation='process' without root runs the code as this process's own uid, which "
+                    "could kill this process or change its files; run as root, use isolation='auto' (namespaces), "
+                    "or set SandboxLimits.allow_same_uid=True to accept that")
+        return None
+    problem = namespaces_problem()
+    if problem is None:
+        return None
+    return (f"SandboxLimits.isolation={limits.isolation!r} needs Linux namespaces, which this process cannot make "
+            f"({problem}); run as root or with unprivileged user namespaces (in Docker: a seccomp profile that "
+            "allows unshare and CAP_SYS_ADMIN), or set isolation='process' to accept the weaker process isolation "
+            "(docs/agents.md)")
 
 
 def remove_tree(path: Path) -> None:
@@ -248,6 +361,13 @@ class Sandbox:
         if not (os.path.isfile(self.python) and os.access(self.python, os.X_OK)):
             raise ValueError(f"Sandbox python {self.python!r} is not an executable file")
         self.limits = limits or SandboxLimits()
+        problem = isolation_problem(self.limits)
+        if problem is not None:
+            raise ValueError(problem)
+        if self.limits.isolation == "process":
+            logger.warning("Sandbox with isolation='process': the code runs without namespaces, so it can read every "
+                           "world-readable file (installed data sets' answer keys included) and see the machine's "
+                           "processes; use it only where namespaces cannot be had (docs/agents.md)")
         self.max_concurrent = max_concurrent
         self._slots: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -267,12 +387,20 @@ class Sandbox:
     ) -> SandboxResult:
         """Run ``code`` as a Python program; ``files`` (relative names) are written into its working
         directory first. Raises ValueError only for a bad file name; whatever the code does is in the
-        result."""
+        result, and so is a ``limits`` whose isolation cannot be had here (``error``)."""
         limits = limits or self.limits
         for name in files or {}:
             check_file_name(name)
+        problem = isolation_problem(limits)
+        if problem is not None:
+            return SandboxResult(stdout="", stderr="", exit_code=None, wall_time_s=0.0, error=problem)
         async with self._semaphore():
-            folder = Path(tempfile.mkdtemp(prefix="infinirl-sandbox-"))
+            try:
+                folder = base_dir() / secrets.token_hex(16)
+                folder.mkdir(mode=0o700)
+            except OSError as error:
+                return SandboxResult(stdout="", stderr="", exit_code=None, wall_time_s=0.0,
+                                     error=f"sandbox could not make the run's folder: {error}")
             try:
                 return await self._run_in(folder, code, stdin, files or {}, limits)
             finally:
@@ -282,7 +410,7 @@ class Sandbox:
         """:meth:`run` from synchronous code (not from inside a running event loop)."""
         return asyncio.run(self.run(code, **kwargs))
 
-    def _config(self, folder: Path, limits: SandboxLimits, status_fd: int, token: str) -> dict:
+    def _config(self, folder: Path, limits: SandboxLimits, status_fd: int, token: str, uid: int) -> dict:
         return {
             "status_fd": status_fd,
             "isolation": limits.isolation,
@@ -294,8 +422,8 @@ class Sandbox:
                 "max_processes": limits.max_processes,
                 "disk_bytes": limits.disk_bytes,
             },
-            "sandbox_uid": limits.sandbox_uid if os.getuid() == 0 else os.getuid(),
-            "sandbox_gid": limits.sandbox_gid if os.getuid() == 0 else os.getgid(),
+            "sandbox_uid": uid,
+            "sandbox_gid": uid if limits.isolation == "process" and os.getuid() == 0 else code_gid(limits),
             "host_work_dir": str(folder / "work"),
             "host_root_dir": str(folder / "root"),
             "read_only_paths": python_paths(self.python),
@@ -305,28 +433,36 @@ class Sandbox:
             "env": {**CODE_ENV, RUN_TOKEN_VARIABLE: token},
         }
 
-    def _prepare(self, folder: Path, code: str, files: Mapping[str, str | bytes], limits: SandboxLimits) -> None:
+    def _prepare(self, folder: Path, code: str, files: Mapping[str, str | bytes], limits: SandboxLimits,
+                 lease: UidLease | None) -> None:
         work = folder / "work"
         work.mkdir()
         (folder / "root").mkdir()
         write_files(work, code, files)
-        if os.getuid() == 0:  # the "process" fallback runs the code as the sandbox uid in this folder
+        if lease is not None:  # "process" under root: the code runs as the leased uid in this folder
             folder.chmod(0o711)
-            give_to(work, limits.sandbox_uid, limits.sandbox_gid)
+            close_to_the_code(work, lease.uid)
 
     async def _run_in(self, folder, code, stdin, files, limits) -> SandboxResult:
         started = time.monotonic()
+        lease = None
         try:
-            self._prepare(folder, code, files, limits)
+            if limits.isolation == "process" and os.getuid() == 0:
+                lease = UidLease(limits.process_uid_base)
+            self._prepare(folder, code, files, limits, lease)
         except OSError as error:
+            if lease is not None:
+                lease.release()
             return SandboxResult(stdout="", stderr="", exit_code=None, wall_time_s=0.0,
                                  error=f"sandbox could not prepare the run: {error}")
+        uid = lease.uid if lease is not None else code_uid(limits)
         status_read, status_write = os.pipe()
         token = secrets.token_hex(16)
         status: dict = {}
         try:
             config_path = folder / "config.json"
-            config_path.write_text(json.dumps(self._config(folder, limits, status_write, token)))
+            config_path.touch(mode=0o600)
+            config_path.write_text(json.dumps(self._config(folder, limits, status_write, token, uid)))
             process = await asyncio.create_subprocess_exec(
                 sys.executable, "-I", "-S", str(LAUNCHER), str(config_path),
                 stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
@@ -335,7 +471,7 @@ class Sandbox:
             )
             os.close(status_write)
             status_write = -1
-            outcome = await self._supervise(process, stdin, limits, token)
+            outcome = await self._supervise(process, stdin, limits, token, uid)
             status = await read_status(status_read)
         finally:
             os.close(status_read)
@@ -344,7 +480,10 @@ class Sandbox:
             if status.get("isolation") != "namespaces":
                 # Killing the launcher's session misses processes that left it (setsid, setpgid) with
                 # their stdio closed; a PID namespace takes everything, so only "process" needs this.
-                kill_escaped(code_uid(limits), token)
+                # A leased uid is the run's alone: every process of it goes, whatever it did.
+                kill_escaped(uid, token, every_process=lease is not None)
+            if lease is not None:
+                lease.release()
         killed_for, out, err = outcome
         return SandboxResult(
             stdout=out.text(), stderr=err.text(),
@@ -359,7 +498,7 @@ class Sandbox:
             error=status.get("error"),
         )
 
-    async def _supervise(self, process, stdin, limits: SandboxLimits, token: str):
+    async def _supervise(self, process, stdin, limits: SandboxLimits, token: str, uid: int):
         """Feed stdin, read both streams, and kill the sandbox's session at the wall-time limit or
         when an output stream passes its limit.
 
@@ -378,7 +517,6 @@ class Sandbox:
         # Not process.wait(): it also waits for the pipes to close, which an escaped process can prevent.
         exited = asyncio.ensure_future(wait_exit(process))
         overflowed = asyncio.ensure_future(overflow.wait())
-        uid = code_uid(limits)
         killed_for = None
         try:
             await asyncio.wait([exited, overflowed], timeout=limits.wall_time_s,
@@ -445,8 +583,12 @@ async def settled(tasks, timeout: float) -> bool:
 
 
 def code_uid(limits: SandboxLimits) -> int:
-    """The uid the code runs as (as the host sees it)."""
+    """The uid the code runs as (as the host sees it), but for "process" under root (a leased one)."""
     return limits.sandbox_uid if os.getuid() == 0 else os.getuid()
+
+
+def code_gid(limits: SandboxLimits) -> int:
+    return limits.sandbox_gid if os.getuid() == 0 else os.getgid()
 
 
 def pipe_inodes(process) -> set[int]:
@@ -499,7 +641,7 @@ def belongs_to_run(pid: str, token: str, pipes: set[int]) -> bool:
     return False
 
 
-def kill_if_of_run(pid: str, token: str, pipes: set[int]) -> bool:
+def kill_if_of_run(pid: str, token: str, pipes: set[int], every_process: bool = False) -> bool:
     """SIGKILL process ``pid`` if it belongs to the run; whether it did. The signal goes through a
     pidfd opened before the process is inspected, so a pid recycled meanwhile is never hit (kernels
     without pidfds get a plain kill)."""
@@ -510,7 +652,7 @@ def kill_if_of_run(pid: str, token: str, pipes: set[int]) -> bool:
             return False  # gone already
         handle = None
     try:
-        if not belongs_to_run(pid, token, pipes):
+        if not every_process and not belongs_to_run(pid, token, pipes):
             return False
         if handle is None:
             os.kill(int(pid), signal.SIGKILL)
@@ -524,10 +666,11 @@ def kill_if_of_run(pid: str, token: str, pipes: set[int]) -> bool:
             os.close(handle)
 
 
-def kill_escaped(uid: int, token: str, pipes: set[int] = frozenset()) -> int:
-    """SIGKILL every process of ``uid`` that belongs to the run (its token or its pipes); the
-    number killed. Best effort, for the "process" isolation: a process that leaves the session,
-    clears its environment and closes the run's pipes is not found."""
+def kill_escaped(uid: int, token: str, pipes: set[int] = frozenset(), every_process: bool = False) -> int:
+    """SIGKILL every process of ``uid`` that belongs to the run (its token or its pipes; with
+    ``every_process``, a uid leased to the run, all of them); the number killed. For the "process"
+    isolation; without a leased uid it is best effort: a process that leaves the session, clears its
+    environment and closes the run's pipes is not found."""
     me, total = os.getpid(), 0
     for _ in range(ESCAPE_SWEEPS):
         killed = 0
@@ -539,7 +682,7 @@ def kill_escaped(uid: int, token: str, pipes: set[int] = frozenset()) -> int:
                     continue
             except (OSError, ValueError):
                 continue
-            killed += kill_if_of_run(entry, token, pipes)
+            killed += kill_if_of_run(entry, token, pipes, every_process)
         total += killed
         if not killed:
             break

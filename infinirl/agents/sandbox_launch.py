@@ -1,7 +1,8 @@
 """Builds the isolation for one sandboxed run and starts the code in it.
 
 :mod:`infinirl.agents.sandbox` executes this file as a script (``python -I -S sandbox_launch.py
-CONFIG``), so it imports only the standard library and nothing of InfiniRL. Process tree::
+CONFIG``, or ``--probe`` to learn whether namespaces can be made here), so it imports only the
+standard library and nothing of InfiniRL. Process tree::
 
     parent (Sandbox.run) -> launcher (this script, new session) -> init -> code
 
@@ -16,8 +17,9 @@ the Python runner. When the code's process exits, ``init`` exits and the kernel 
 left in the PID namespace; ``init`` dies with the launcher (PDEATHSIG), so killing the launcher's
 session kills the whole sandbox.
 
-Without namespaces (``isolation`` "process"): the code's process drops to the sandbox uid when root,
-sets the same limits, and the runner refuses sockets: a seccomp filter on the socket syscalls that
+Without namespaces (``isolation`` "process", only when asked for: "auto" and "namespaces" fail where
+the namespaces cannot be made): the code's process drops to the run's own uid when root, sets the
+same limits, and the runner refuses sockets: a seccomp filter on the socket syscalls that
 every process the code starts inherits (where the kernel takes one), and socket constructors that
 raise, for a readable error. Files the uid can read stay readable; see docs/agents.md.
 
@@ -343,23 +345,44 @@ def run_as_process(config: dict, status: Status, reason: str) -> None:
     os.killpg(0, signal.SIGKILL)
 
 
+def probe() -> None:
+    """Exit 0 when this process can build the namespaces isolation (its namespaces, then a private
+    mount namespace holding a tmpfs, in a throwaway child), else 1 with the reason on stderr."""
+    try:
+        enter_namespaces()
+        child = os.fork()
+        if child == 0:
+            try:
+                unshare(CLONE_NEWNS)
+                mount(None, "/", None, MS_REC | MS_PRIVATE)
+                mount("tmpfs", "/tmp", "tmpfs", MS_NOSUID | MS_NODEV, "size=1m")
+            except OSError as error:
+                os.write(2, f"{error}\n".encode())
+                os._exit(1)
+            os._exit(0)
+        _, wait_status = os.waitpid(child, 0)
+    except OSError as error:
+        sys.stderr.write(f"{error}\n")
+        sys.exit(1)
+    sys.exit(0 if wait_status == 0 else 1)
+
+
 def main() -> None:
+    if sys.argv[1] == "--probe":
+        probe()
     with open(sys.argv[1]) as handle:
         config = json.load(handle)
     status = Status(config["status_fd"])
-    reason = "isolation 'process' requested"
-    if config["isolation"] != "process":
-        try:
-            enter_namespaces()
-        except OSError as error:
-            if config["isolation"] == "namespaces":
-                status.send(error=f"isolation 'namespaces' unavailable: {error}")
-                sys.exit(1)
-            reason = f"namespaces unavailable ({error})"
-        else:
-            run_with_namespaces(config, status)
-            return
-    run_as_process(config, status, reason)
+    if config["isolation"] == "process":
+        run_as_process(config, status, "isolation 'process' requested")
+        return
+    # "auto" and "namespaces" alike: never a silent fall back to the weaker isolation.
+    try:
+        enter_namespaces()
+    except OSError as error:
+        status.send(error=f"isolation {config['isolation']!r} needs namespaces, unavailable here: {error}")
+        sys.exit(1)
+    run_with_namespaces(config, status)
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ def test_correct_code_scores_one(verifier):
     result = verifier(fenced("def total(xs):\n    return sum(xs)\n"), PROBLEM)
     assert result.reward == 1.0 and result.correct and result.error is None
     assert result.metrics["tests_passed"] == 1.0 and result.metrics["code_fenced"] == 1.0
+    assert result.metrics["sandbox_namespaces"] == 1.0  # the isolation the score was got under
 
 
 def test_wrong_code_scores_zero_and_partial_credit_counts_the_passed_tests(verifier):
@@ -93,6 +94,13 @@ def test_no_code_scores_zero_and_broken_tests_are_a_verifier_error(verifier):
     assert result.reward == 0.0 and "tests of problem t/1 are broken" in result.error
     not_code = Problem(uid="t/2", prompt="", answer="1", verifier="code_tests")
     assert "not a coding problem" in safe_score("1", not_code, verifier).error
+
+
+def test_a_sandbox_that_cannot_run_the_code_is_a_verifier_error():
+    # A tmpfs too small for the harness: the sandbox's setup fails, which is not the code's fault.
+    result = safe_score(fenced("def total(xs):\n    return sum(xs)\n"), PROBLEM,
+                        CodeTestsVerifier(limits={**FAST, "disk_bytes": 1}))
+    assert result.reward == 0.0 and "sandbox could not run the code of problem t/0" in result.error, result
 
 
 def test_failures_show_the_value_returned():

@@ -11,7 +11,6 @@ import shutil
 import signal
 import socket
 import sys
-import tempfile
 import threading
 import time
 import uuid
@@ -19,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from infinirl.agents.sandbox import NOBODY, LimitHit, Sandbox, SandboxLimits
+from infinirl.agents.sandbox import NOBODY, PROCESS_UID_COUNT, LimitHit, Sandbox, SandboxLimits, base_dir
 from infinirl.agents.sandbox_runner import SECCOMP_ARCHES, seccomp_program
 
 SMALL = SandboxLimits(wall_time_s=4.0, cpu_time_s=2.0, memory_bytes=512 << 20, max_processes=8,
@@ -36,16 +35,25 @@ REPO = Path(__file__).resolve().parents[3]
 
 
 def sandbox_dirs() -> set[str]:
-    return {name for name in os.listdir(tempfile.gettempdir()) if name.startswith("infinirl-sandbox-")}
+    """The run folders that exist now (the uid locks of the "process" isolation are not runs)."""
+    return set(os.listdir(base_dir())) - {"uids"}
 
 
-def processes_of(uid: int) -> list[int]:
-    """Live processes of ``uid`` (zombies are dead already; whoever inherits them reaps them)."""
+def code_uids() -> set[int]:
+    """The uids a run's code may have: the sandbox uid, or one leased under "process" (as root)."""
+    if os.getuid() != 0:
+        return {os.getuid()}
+    first = SandboxLimits().process_uid_base
+    return {NOBODY, *range(first, first + PROCESS_UID_COUNT)}
+
+
+def processes_of(uids: set[int]) -> list[int]:
+    """Live processes of ``uids`` (zombies are dead already; whoever inherits them reaps them)."""
     pids = []
     for entry in os.listdir("/proc"):
         if entry.isdigit():
             try:
-                if os.stat(f"/proc/{entry}").st_uid == uid:
+                if os.stat(f"/proc/{entry}").st_uid in uids:
                     state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
                     if state != "Z":
                         pids.append(int(entry))
@@ -167,13 +175,12 @@ def test_huge_output_is_truncated(any_sandbox):
 
 
 def test_fork_bomb_is_contained(any_sandbox):
-    uid = NOBODY if os.getuid() == 0 else os.getuid()
-    before = set(processes_of(uid))
+    before = set(processes_of(code_uids()))
     result = any_sandbox.run_sync(FORK_BOMB)
     assert result.limit in (LimitHit.PROCESSES, LimitHit.WALL_TIME, LimitHit.CPU_TIME), result
     if any_sandbox.limits.isolation == "namespaces":
         assert result.limit == LimitHit.PROCESSES
-    assert set(processes_of(uid)) <= before  # nothing of the bomb survives its run
+    assert set(processes_of(code_uids())) <= before  # nothing of the bomb survives its run
     assert any_sandbox.run_sync("print('fine')").stdout == "fine\n"
 
 
@@ -423,8 +430,7 @@ def test_concurrent_runs_respect_the_limit():
 
 
 def test_cancelled_run_leaves_nothing(sandbox):
-    uid = NOBODY if os.getuid() == 0 else os.getuid()
-    before_dirs, before_pids = sandbox_dirs(), set(processes_of(uid))
+    before_dirs, before_pids = sandbox_dirs(), set(processes_of(code_uids()))
 
     async def main():
         with pytest.raises(asyncio.TimeoutError):
@@ -432,7 +438,7 @@ def test_cancelled_run_leaves_nothing(sandbox):
 
     asyncio.run(main())
     assert sandbox_dirs() == before_dirs
-    assert set(processes_of(uid)) <= before_pids
+    assert set(processes_of(code_uids())) <= before_pids
 
 
 def test_code_cannot_undo_the_mounts(isolated):
