@@ -54,6 +54,9 @@ NOBODY = 65534
 # SandboxLimits.process_uid_base, held exclusively machine-wide for the run (a lock file per uid).
 PROCESS_UID_COUNT = 1024
 PROBE_TIMEOUT_S = 60.0
+CGROUP_NAME = "infinirl-sandbox"  # under the cgroup v2 root: one child cgroup per run
+CGROUP_EXTRA_TASKS = 2  # the launcher and init (namespaces) share the run's pids.max with the code
+CGROUP_REMOVE_S = 2.0  # killed processes leave the cgroup within milliseconds; this only bounds a bug
 READ_CHUNK = 65536
 DRAIN_AFTER_EXIT_S = 5.0  # after the sandbox is dead its pipes close at once; this only bounds a bug
 ESCAPE_GRACE_S = 0.5  # after the launcher is gone, how long its pipes may stay open before holders are hunted
@@ -142,6 +145,7 @@ class SandboxResult:
     stderr_truncated: bool = False
     isolation: str = ""  # "namespaces" or "process"
     isolation_note: str = ""  # under "process": that it was asked for
+    cgroup: bool = False  # the run had a cgroup of its own holding its memory and processes in total
     error: str | None = None
 
     @property
@@ -327,21 +331,124 @@ async def read_status(fd: int) -> dict:
     return status
 
 
-def limit_from(status: dict, limits: SandboxLimits, killed_for: LimitHit | None, truncated: bool) -> LimitHit | None:
+def limit_from(status: dict, limits: SandboxLimits, killed_for: LimitHit | None, truncated: bool,
+               cgroup_events: dict[str, int] | None = None) -> LimitHit | None:
     """The limit to report: the one the run was killed for, except that a process limit reached
-    on the way explains a fork bomb's wall-time kill better."""
+    on the way explains a fork bomb's wall-time kill better. ``cgroup_events``: what the run's
+    cgroup counted (``oom_kill``: processes the memory limit killed; ``pids_max``: forks refused)."""
+    events = cgroup_events or {}
     if killed_for is not None:
-        return LimitHit.PROCESSES if status.get("limit") == "processes" else killed_for
+        return LimitHit.PROCESSES if status.get("limit") == "processes" or events.get("pids_max") else killed_for
     if truncated:
         return LimitHit.OUTPUT
-    if status.get("returncode") == MEMORY_EXIT_CODE:
+    if status.get("returncode") == MEMORY_EXIT_CODE or events.get("oom_kill"):
         return LimitHit.MEMORY
     sig = status.get("signal")
     if sig == signal.SIGXCPU or (sig == signal.SIGKILL and status.get("cpu_time_s", 0) >= limits.cpu_time_s):
         return LimitHit.CPU_TIME
-    if status.get("limit") == "processes":
+    if status.get("limit") == "processes" or events.get("pids_max"):
         return LimitHit.PROCESSES
     return None
+
+
+def cgroup2_mount(mountinfo: str) -> Path | None:
+    """Where the cgroup v2 hierarchy is mounted, from /proc/self/mountinfo's text; None if nowhere."""
+    for line in mountinfo.splitlines():
+        fields, _, filesystem = line.partition(" - ")
+        if filesystem.split(" ", 1)[0] == "cgroup2" and len(fields.split()) > 4:
+            return Path(fields.split()[4].replace("\\040", " "))
+    return None
+
+
+def enable_controllers(folder: Path, controllers: tuple[str, ...]) -> None:
+    """Make ``controllers`` available to the child cgroups of ``folder`` (a no-op where they are)."""
+    enabled = (folder / "cgroup.subtree_control").read_text().split()
+    missing = [name for name in controllers if name not in enabled]
+    if missing:
+        (folder / "cgroup.subtree_control").write_text(" ".join(f"+{name}" for name in missing))
+
+
+@functools.cache
+def cgroup_parent() -> tuple[Path | None, str]:
+    """The cgroup v2 folder that holds each run's own cgroup, with the memory and pids controllers on
+    for its children: ``(folder, "")``, or ``(None, why there is none)``. It is made at the root of
+    the hierarchy (a cgroup holding processes cannot give controllers to children). Once per process."""
+    if os.getuid() != 0:
+        return None, "not root"
+    try:
+        mount = cgroup2_mount(Path("/proc/self/mountinfo").read_text())
+        if mount is None:
+            return None, "no cgroup v2 hierarchy is mounted"
+        missing = {"memory", "pids"} - set((mount / "cgroup.controllers").read_text().split())
+        if missing:
+            return None, f"the cgroup v2 hierarchy at {mount} lacks the {sorted(missing)} controllers (v1 has them)"
+        enable_controllers(mount, ("memory", "pids"))
+        parent = mount / CGROUP_NAME
+        parent.mkdir(mode=0o755, exist_ok=True)
+        enable_controllers(parent, ("memory", "pids"))
+    except OSError as error:
+        return None, f"cannot set up the runs' cgroups: {error}"
+    return parent, ""
+
+
+@functools.cache
+def warn_without_cgroup(why: str) -> None:
+    logger.warning("Sandbox runs get no cgroup of their own (%s): memory_bytes then limits each process's address "
+                   "space only, so a run of several processes may use up to max_processes times it", why)
+
+
+class RunCgroup:
+    """One run's cgroup: memory.max (swap 0) of ``memory_bytes`` and pids.max of ``max_processes``
+    (plus the launcher and init) for all its processes together. The launcher joins it before it
+    starts anything, so everything of the run is inside; closing it kills whatever is left."""
+
+    def __init__(self, parent: Path, limits: SandboxLimits) -> None:
+        self.path = parent / secrets.token_hex(16)
+        self.path.mkdir(mode=0o755)
+        try:
+            (self.path / "memory.max").write_text(str(limits.memory_bytes))
+            if (self.path / "memory.swap.max").exists():
+                (self.path / "memory.swap.max").write_text("0")
+            (self.path / "pids.max").write_text(str(limits.max_processes + CGROUP_EXTRA_TASKS))
+        except OSError:
+            self.path.rmdir()
+            raise
+
+    def events(self) -> dict[str, int]:
+        """``oom_kill`` (processes the memory limit killed) and ``pids_max`` (forks refused)."""
+        counts = {}
+        for name, key, field in (("memory.events", "oom_kill", "oom_kill"), ("pids.events", "pids_max", "max")):
+            try:
+                for line in (self.path / name).read_text().splitlines():
+                    if line.split()[:1] == [field]:
+                        counts[key] = int(line.split()[1])
+            except (OSError, ValueError, IndexError):
+                pass
+        return counts
+
+    async def close(self) -> None:
+        """Kill every process left in the cgroup and remove it; a failure is logged, never raised."""
+        try:
+            if (self.path / "cgroup.kill").exists():
+                (self.path / "cgroup.kill").write_text("1")
+            else:
+                for pid in (self.path / "cgroup.procs").read_text().split():
+                    try:
+                        os.kill(int(pid), signal.SIGKILL)
+                    except ProcessLookupError:
+                        pass
+        except OSError as error:
+            logger.warning("could not kill what was left in the sandbox cgroup %s: %s", self.path, error)
+        deadline = time.monotonic() + CGROUP_REMOVE_S
+        while True:
+            try:
+                self.path.rmdir()
+                return
+            except OSError as error:
+                if error.errno != errno.EBUSY or time.monotonic() > deadline:
+                    logger.warning("could not remove the sandbox cgroup %s: %s", self.path, error)
+                    return
+            await asyncio.sleep(0.01)
 
 
 class Sandbox:
@@ -364,6 +471,8 @@ class Sandbox:
         problem = isolation_problem(self.limits)
         if problem is not None:
             raise ValueError(problem)
+        if cgroup_parent()[0] is None:
+            warn_without_cgroup(cgroup_parent()[1])
         if self.limits.isolation == "process":
             logger.warning("Sandbox with isolation='process': the code runs without namespaces, so it can read every "
                            "world-readable file (installed data sets' answer keys included) and see the machine's "
@@ -410,9 +519,11 @@ class Sandbox:
         """:meth:`run` from synchronous code (not from inside a running event loop)."""
         return asyncio.run(self.run(code, **kwargs))
 
-    def _config(self, folder: Path, limits: SandboxLimits, status_fd: int, token: str, uid: int) -> dict:
+    def _config(self, folder: Path, limits: SandboxLimits, status_fd: int, token: str, uid: int,
+                cgroup: RunCgroup | None) -> dict:
         return {
             "status_fd": status_fd,
+            "cgroup": str(cgroup.path) if cgroup is not None else None,
             "isolation": limits.isolation,
             "limits": {
                 "cpu_time_s": math.ceil(limits.cpu_time_s),
@@ -456,13 +567,20 @@ class Sandbox:
             return SandboxResult(stdout="", stderr="", exit_code=None, wall_time_s=0.0,
                                  error=f"sandbox could not prepare the run: {error}")
         uid = lease.uid if lease is not None else code_uid(limits)
+        cgroup, cgroup_events = None, {}
+        parent, _ = cgroup_parent()
+        if parent is not None:
+            try:
+                cgroup = RunCgroup(parent, limits)
+            except OSError as error:
+                logger.warning("sandbox run without a cgroup of its own: %s", error)
         status_read, status_write = os.pipe()
         token = secrets.token_hex(16)
         status: dict = {}
         try:
             config_path = folder / "config.json"
             config_path.touch(mode=0o600)
-            config_path.write_text(json.dumps(self._config(folder, limits, status_write, token, uid)))
+            config_path.write_text(json.dumps(self._config(folder, limits, status_write, token, uid, cgroup)))
             process = await asyncio.create_subprocess_exec(
                 sys.executable, "-I", "-S", str(LAUNCHER), str(config_path),
                 stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
@@ -482,6 +600,9 @@ class Sandbox:
                 # their stdio closed; a PID namespace takes everything, so only "process" needs this.
                 # A leased uid is the run's alone: every process of it goes, whatever it did.
                 kill_escaped(uid, token, every_process=lease is not None)
+            if cgroup is not None:
+                cgroup_events = cgroup.events()
+                await cgroup.close()
             if lease is not None:
                 lease.release()
         killed_for, out, err = outcome
@@ -489,12 +610,13 @@ class Sandbox:
             stdout=out.text(), stderr=err.text(),
             exit_code=status.get("returncode") if killed_for is None else None,
             signal=status.get("signal") if killed_for is None else signal.SIGKILL,
-            limit=limit_from(status, limits, killed_for, out.truncated or err.truncated),
+            limit=limit_from(status, limits, killed_for, out.truncated or err.truncated, cgroup_events),
             wall_time_s=time.monotonic() - started,
             cpu_time_s=status.get("cpu_time_s"),
             stdout_truncated=out.truncated, stderr_truncated=err.truncated,
             isolation=status.get("isolation", ""),
             isolation_note=status.get("reason", ""),
+            cgroup=bool(status.get("cgroup")),
             error=status.get("error"),
         )
 

@@ -23,8 +23,13 @@ same limits, and the runner refuses sockets: a seccomp filter on the socket sysc
 every process the code starts inherits (where the kernel takes one), and socket constructors that
 raise, for a readable error. Files the uid can read stay readable; see docs/agents.md.
 
+The launcher first sets its ``oom_score_adj`` to 1000 (inherited by the whole run: the OOM killer
+takes the run's processes first) and joins the run's cgroup when the parent made one (memory.max
+and pids.max for the run's processes together).
+
 Everything the parent must know goes as JSON lines through the status pipe: the isolation achieved,
-a limit seen (processes), the code's exit status and CPU time, or the error that stopped the setup.
+the cgroup joined, a limit seen (processes), the code's exit status and CPU time, or the error that
+stopped the setup.
 """
 
 import ctypes
@@ -373,6 +378,16 @@ def main() -> None:
     with open(sys.argv[1]) as handle:
         config = json.load(handle)
     status = Status(config["status_fd"])
+    try:
+        # Inherited by everything the run starts: under memory pressure the kernel kills the run's
+        # processes before any other (the trainer's included), and the code cannot lower it.
+        write_file("/proc/self/oom_score_adj", "1000")
+        if config["cgroup"]:  # joined before anything is started, so all of the run is inside
+            write_file(os.path.join(config["cgroup"], "cgroup.procs"), str(os.getpid()))
+            status.send(cgroup=True)
+    except OSError as error:
+        status.send(error=f"sandbox setup failed: {error}")
+        sys.exit(1)
     if config["isolation"] == "process":
         run_as_process(config, status, "isolation 'process' requested")
         return

@@ -18,7 +18,16 @@ from pathlib import Path
 
 import pytest
 
-from infinirl.agents.sandbox import NOBODY, PROCESS_UID_COUNT, LimitHit, Sandbox, SandboxLimits, base_dir
+from infinirl.agents.sandbox import (
+    NOBODY,
+    PROCESS_UID_COUNT,
+    LimitHit,
+    Sandbox,
+    SandboxLimits,
+    base_dir,
+    cgroup2_mount,
+    cgroup_parent,
+)
 from infinirl.agents.sandbox_runner import SECCOMP_ARCHES, seccomp_program
 
 SMALL = SandboxLimits(wall_time_s=4.0, cpu_time_s=2.0, memory_bytes=512 << 20, max_processes=8,
@@ -165,6 +174,47 @@ def test_memory_hog_hits_memory(any_sandbox):
     result = any_sandbox.run_sync("blocks = []\nwhile True:\n    blocks.append(bytearray(64 << 20))")
     assert result.limit == LimitHit.MEMORY, result
     assert "MemoryError" in result.stderr
+
+
+def test_the_code_is_the_oom_killers_first_choice(any_sandbox):
+    result = any_sandbox.run_sync("print(open('/proc/self/oom_score_adj').read().strip())")
+    assert result.stdout == "1000\n", result
+
+
+# Three processes, each well inside the address-space limit, together far past it.
+MEMORY_SPREAD = """
+import os, time
+children = []
+for _ in range(3):
+    pid = os.fork()
+    if pid == 0:
+        block = b"x" * {each}  # written, so resident
+        time.sleep(1)
+        os._exit(0)
+    children.append(pid)
+print([os.waitpid(pid, 0)[1] for pid in children])
+"""
+
+
+def test_a_runs_processes_together_are_held_to_the_memory_limit(any_sandbox):
+    parent, why = cgroup_parent()
+    limits = SandboxLimits(**{**any_sandbox.limits.__dict__, "memory_bytes": 256 << 20, "wall_time_s": 30.0})
+    result = any_sandbox.run_sync(MEMORY_SPREAD.format(each=150 << 20), limits=limits)
+    assert result.cgroup == (parent is not None), (result, why)
+    if parent is None:
+        assert result.limit is None and result.stdout == "[0, 0, 0]\n", result  # RLIMIT_AS alone lets it through
+        pytest.skip(f"no cgroup for the runs here: {why}")
+    assert result.limit == LimitHit.MEMORY, result
+
+
+def test_cgroup2_mount_is_read_from_mountinfo():
+    hybrid = ("25 30 0:23 / /sys/fs/cgroup ro,nosuid - tmpfs tmpfs ro,mode=755\n"
+              "26 25 0:24 / /sys/fs/cgroup/unified rw,nosuid,nodev - cgroup2 cgroup2 rw\n"
+              "27 25 0:25 / /sys/fs/cgroup/memory rw - cgroup cgroup rw,memory\n")
+    assert str(cgroup2_mount(hybrid)) == "/sys/fs/cgroup/unified"
+    assert str(cgroup2_mount("31 1 0:26 / /sys/fs/cgroup rw shared:9 - cgroup2 cgroup2 rw,nsdelegate\n")) == \
+        "/sys/fs/cgroup"
+    assert cgroup2_mount("27 25 0:25 / /sys/fs/cgroup/memory rw - cgroup cgroup rw,memory\n") is None
 
 
 def test_huge_output_is_truncated(any_sandbox):
