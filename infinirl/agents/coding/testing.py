@@ -16,6 +16,7 @@ import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from infinirl.agents.coding.extract import stub_preamble
 from infinirl.agents.sandbox import Sandbox, SandboxLimits, SandboxResult
 
 __all__ = ["HARNESS_SOURCE", "CodeTestReport", "TestFailure", "format_report", "run_code_tests",
@@ -62,11 +63,15 @@ class CodeTestReport:
         return self.passed / self.total if self.total else 0.0
 
 
-async def run_code_tests(sandbox: Sandbox, code: str, tests: str, entry_point: str, *,
+async def run_code_tests(sandbox: Sandbox, code: str, tests: str, entry_point: str, *, stub: str = "",
                          limits: SandboxLimits | None = None, max_failures: int = 3) -> CodeTestReport:
-    """Run ``tests`` against ``entry_point`` of ``code`` in ``sandbox`` (see the module docstring)."""
+    """Run ``tests`` against ``entry_point`` of ``code`` in ``sandbox`` (see the module docstring).
+    ``stub``: the problem's stub; what it declares before the function (helpers such as HumanEval's
+    ``encode_shift``) is defined in the tests' own process, so the tests call the problem's helpers,
+    never ones the code redefined."""
     nonce = secrets.token_hex(16)
-    spec = json.dumps({"nonce": nonce, "entry_point": entry_point, "max_failures": max_failures})
+    spec = json.dumps({"nonce": nonce, "entry_point": entry_point, "max_failures": max_failures,
+                       "preamble": stub_preamble(stub, entry_point) if stub else ""})
     result = await sandbox.run(HARNESS_SOURCE, stdin=spec + "\n", files={"solution.py": code, "tests.py": tests},
                                limits=limits)
     return read_report(result, nonce)

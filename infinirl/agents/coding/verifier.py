@@ -76,7 +76,8 @@ class CodeTestsVerifier:
     def test(self, code: str, spec: CodeSpec) -> CodeTestReport:
         """Run ``spec.tests`` against ``code`` (bounded by the process-wide concurrency)."""
         with self.slots:
-            return run_code_tests_sync(self.sandbox, code, spec.tests, spec.entry_point, max_failures=self.max_failures)
+            return run_code_tests_sync(self.sandbox, code, spec.tests, spec.entry_point, stub=spec.stub,
+                                       max_failures=self.max_failures)
 
     def __call__(self, response: str, problem: Problem) -> RewardResult:
         spec = CodeSpec.from_metadata(problem.metadata, problem.uid)

@@ -199,3 +199,20 @@ def test_helpers_builtins_and_exceptions_between_tests_and_code():
     report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), code, tests, "total")
     assert report.total == 4 and report.passed == 3, report
     assert "assert abs(candidate(1) - 4)" in report.failures[0].test and report.failures[0].got is None
+
+
+# Answers that redefine the helpers HumanEval's tests call, so that the tests check nothing.
+HELPER_CHEATS = {
+    "humaneval/32": "import math\ndef poly(xs, x):\n    return 0\n\ndef find_zero(xs):\n    return 0.0\n",
+    "humaneval/38": "def encode_cyclic(s):\n    return s\n\ndef decode_cyclic(s):\n    return s\n",
+    "humaneval/50": "def encode_shift(s):\n    return s\n\ndef decode_shift(s):\n    return s\n",
+}
+
+
+@pytest.mark.parametrize("uid", sorted(HELPER_CHEATS))
+def test_an_answer_cannot_replace_the_helpers_the_tests_use(verifier, uid):
+    from infinirl.tasks.code_tasks import load_humaneval
+
+    problem = {p.uid: p for p in load_humaneval(limit=51)}[uid]
+    assert verifier(fenced(HELPER_CHEATS[uid]), problem).reward == 0.0
+    assert verifier(fenced(problem.answer), problem).reward == 1.0  # the canonical solution still passes
