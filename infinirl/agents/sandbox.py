@@ -39,6 +39,7 @@ import weakref
 from collections.abc import Mapping
 from pathlib import Path
 
+from infinirl.agents.sandbox_launch import SYSTEM_PATHS
 from infinirl.agents.sandbox_runner import MEMORY_EXIT_CODE
 
 __all__ = ["ISOLATIONS", "LimitHit", "Sandbox", "SandboxLimits", "SandboxResult"]
@@ -174,14 +175,48 @@ class BoundedReader:
         return self.data.decode("utf-8", errors="replace")
 
 
-def python_paths(python: str) -> list[str]:
-    """The interpreter installation the code needs visible (read-only) inside the new root: the
-    prefix above ``bin/`` of the interpreter, of its symlink target (a virtual environment's base
-    Python), and this process's prefixes when it is this process's interpreter."""
-    paths = {os.path.dirname(os.path.dirname(p)) for p in (os.path.abspath(python), os.path.realpath(python))}
-    if os.path.realpath(python) == os.path.realpath(sys.executable):
-        paths |= {os.path.realpath(p) for p in (sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix)}
-    return sorted(path for path in paths if path != "/")
+# Run by the code's interpreter (``-I -S``): what of its installation the code needs, and where its
+# site-packages would be. The shared libraries it has mapped (libpython, when it is not in a system
+# folder) and those beside libpython are needed too; a virtual environment's pyvenv.cfg keeps a copied
+# interpreter finding its standard library.
+INTERPRETER_PROBE = """
+import glob, json, os, site, sys, sysconfig
+executable = os.path.realpath(sys.executable)
+libraries = set()
+with open("/proc/self/maps") as maps:
+    for line in maps:
+        parts = line.split(None, 5)
+        if len(parts) == 6 and parts[5].startswith("/") and os.path.isfile(parts[5].strip()):
+            libraries.add(parts[5].strip())
+libdir = sysconfig.get_config_var("LIBDIR") or ""
+libraries.update(path for path in glob.glob(os.path.join(libdir, "*.so*")) if os.path.isfile(path))
+folder = os.path.dirname(executable)
+configs = [os.path.join(f, "pyvenv.cfg") for f in (folder, os.path.dirname(folder))]
+print(json.dumps({
+    "executable": executable,
+    "paths": [executable] + [p for p in sys.path if os.path.isdir(p)] + sorted(libraries)
+             + [c for c in configs if os.path.isfile(c)],
+    "site": site.getsitepackages() + [site.getusersitepackages()],
+}))
+"""
+
+
+@functools.cache
+def interpreter_files(python: str) -> dict:
+    """``executable`` (the real file, run in the sandbox), ``paths`` (the files and folders of the
+    interpreter to mount read-only: the binary, the standard library with lib-dynload, its shared
+    libraries, never site-packages) and ``site`` (site-packages folders, hidden where a mounted
+    folder holds them) of ``python``, asked of it once per process. ValueError if it cannot run."""
+    try:
+        probe = subprocess.run([python, "-I", "-S", "-c", INTERPRETER_PROBE], capture_output=True, text=True,
+                               timeout=PROBE_TIMEOUT_S, stdin=subprocess.DEVNULL, env=CODE_ENV)
+        found = json.loads(probe.stdout)
+    except (OSError, subprocess.TimeoutExpired, ValueError) as error:
+        raise ValueError(f"Sandbox python {python!r} could not tell where its standard library is: {error}") from None
+    system = tuple(path.rstrip("/") + "/" for path in SYSTEM_PATHS)
+    # What a system folder holds is mounted with it; site-packages are left out.
+    paths = sorted({path for path in found["paths"] if not (path + "/").startswith(system) and path != "/"})
+    return {"executable": found["executable"], "paths": paths, "site": sorted(set(found["site"]))}
 
 
 def check_file_name(name: str) -> str:
@@ -467,6 +502,7 @@ class Sandbox:
         self.python = python or sys.executable  # the interpreter that runs the code
         if not (os.path.isfile(self.python) and os.access(self.python, os.X_OK)):
             raise ValueError(f"Sandbox python {self.python!r} is not an executable file")
+        self.interpreter = interpreter_files(os.path.abspath(self.python))
         self.limits = limits or SandboxLimits()
         problem = isolation_problem(self.limits)
         if problem is not None:
@@ -537,8 +573,9 @@ class Sandbox:
             "sandbox_gid": uid if limits.isolation == "process" and os.getuid() == 0 else code_gid(limits),
             "host_work_dir": str(folder / "work"),
             "host_root_dir": str(folder / "root"),
-            "read_only_paths": python_paths(self.python),
-            "python": os.path.abspath(self.python),
+            "read_only_paths": self.interpreter["paths"],
+            "hidden_paths": self.interpreter["site"],
+            "python": self.interpreter["executable"],
             "runner": RUNNER_SOURCE,
             "code_name": CODE_NAME,
             "env": {**CODE_ENV, RUN_TOKEN_VARIABLE: token},

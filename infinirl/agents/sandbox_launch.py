@@ -195,6 +195,11 @@ def build_root(config: dict) -> None:
     for path in config["read_only_paths"]:
         if not os.path.exists(root + path):
             bind_read_only(path, root + path)
+    # site-packages inside a mounted folder (the standard library's, /usr's): an empty read-only tmpfs
+    # over each, so no installed package, nor its data (a benchmark's answer key), can be read.
+    for path in config["hidden_paths"]:
+        if os.path.isdir(root + path) and not os.path.islink(root + path):
+            mount("tmpfs", root + path, "tmpfs", MS_RDONLY | MS_NOSUID | MS_NODEV | MS_NOEXEC, "size=4k,mode=0555")
     mount(None, root, None, MS_REMOUNT | MS_RDONLY | MS_NOSUID | MS_NODEV)
     pivot_into(root)
 
@@ -256,7 +261,9 @@ def exec_code(config: dict, work_dir: str, block_sockets: bool, own_user_namespa
         raise OSError(f"uid {os.getuid()} cannot execute {config['python']} (a folder on its path is closed "
                       "to it); give the Sandbox a python that uid can run, or use the namespaces isolation")
     env = dict(config["env"], HOME=work_dir, TMPDIR=work_dir)
-    argv = [config["python"], "-I", "-c", config["runner"], config["code_name"], work_dir, str(int(block_sockets))]
+    # -S: no site-packages (under namespaces none is mounted anyway; under "process" it is not imported).
+    argv = [config["python"], "-I", "-S", "-c", config["runner"], config["code_name"], work_dir,
+            str(int(block_sockets))]
     os.execve(config["python"], argv, env)
 
 

