@@ -197,6 +197,7 @@ def receive(fd):
 def serve_code(solution, requests, replies):
     """Execute the solution, report the names it defines, then answer calls until told to stop."""
     close_stdin()
+    close_stdout()
     captured = CappedText(MAX_CAPTURED_CHARS)
     sys.stdout = sys.stderr = captured
     sent = 0
@@ -244,6 +245,16 @@ def close_stdin():
         os.close(0)
         return
     os.dup2(devnull, 0)
+    os.close(devnull)
+
+
+def close_stdout():
+    """Only the test process holds the sandbox's stdout (the report's pipe): the code's fds 1 and 2
+    are /dev/null, so what it writes there (``os.write(1, ...)``, ``sys.__stdout__``, a child
+    process) can neither reach the output limit, which would cut the report, nor mix with it."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    os.dup2(devnull, 2)
     os.close(devnull)
 
 

@@ -5,9 +5,9 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from infinirl.agents.coding.spec import CodeSpec
-from infinirl.agents.coding.testing import format_report, run_code_tests_sync
+from infinirl.agents.coding.testing import format_report, read_report, run_code_tests_sync
 from infinirl.agents.coding.verifier import CodeTestsVerifier
-from infinirl.agents.sandbox import Sandbox, SandboxLimits
+from infinirl.agents.sandbox import Sandbox, SandboxLimits, SandboxResult
 from infinirl.tasks.problem import Problem
 from infinirl.tasks.verifiers import build_verifier, safe_score
 
@@ -101,6 +101,28 @@ def test_a_sandbox_that_cannot_run_the_code_is_a_verifier_error():
     result = safe_score(fenced("def total(xs):\n    return sum(xs)\n"), PROBLEM,
                         CodeTestsVerifier(limits={**FAST, "disk_bytes": 1}))
     assert result.reward == 0.0 and "sandbox could not run the code of problem t/0" in result.error, result
+
+
+@pytest.mark.parametrize("when", ["on load", "in a test"])
+def test_code_writing_to_the_real_stdout_cannot_cut_the_report(verifier, when):
+    """The code's fds 1 and 2 are /dev/null: bytes written there neither reach the sandbox's output
+    limit (which would cut the report line) nor mix with the report."""
+    flood = f"os.write(1, b'x' * {FAST['max_output_bytes'] - 60})\nos.write(2, b'y' * 100)\n"
+    code = ("import os, sys\n" + (flood if when == "on load" else "")
+            + "def total(xs):\n" + ("".join("    " + line + "\n" for line in flood.splitlines()) if when != "on load"
+                                    else "") + "    print('hi', file=sys.__stdout__)\n    return sum(xs)\n")
+    result = safe_score(fenced(code), PROBLEM, verifier)
+    assert result.error is None and result.reward == 1.0, result
+
+
+@pytest.mark.parametrize("line", ["{not json", "[1, 2]", '{"passed": 4}', '{"passed": 4, "total": 4, "loaded": true, '
+                                  '"failures": [{"bogus": 1}]}', '{"passed": "4", "total": 4, "loaded": true, '
+                                  '"failures": []}', ""])
+def test_a_malformed_report_line_is_no_report(line):
+    nonce = "ab" * 16
+    result = SandboxResult(stdout=f"{nonce} {line}\n", stderr="", exit_code=0, wall_time_s=0.1)
+    report = read_report(result, nonce)
+    assert report.passed == 0 and not report.all_passed and "without a test report" in report.error, report
 
 
 def test_failures_show_the_value_returned():
