@@ -55,6 +55,7 @@ NOBODY = 65534
 # SandboxLimits.process_uid_base, held exclusively machine-wide for the run (a lock file per uid).
 PROCESS_UID_COUNT = 1024
 PROBE_TIMEOUT_S = 60.0
+MAX_REMOVE_PASSES = 4096  # each opens one more level of folders the code closed; paths end at 4096 bytes
 CGROUP_NAME = "infinirl-sandbox"  # under the cgroup v2 root: one child cgroup per run
 CGROUP_EXTRA_TASKS = 2  # the launcher and init (namespaces) share the run's pids.max with the code
 CGROUP_REMOVE_S = 2.0  # killed processes leave the cgroup within milliseconds; this only bounds a bug
@@ -227,14 +228,18 @@ def check_file_name(name: str) -> str:
     return name
 
 
+def to_bytes(text: str | bytes) -> bytes:
+    """UTF-8, lone surrogates included as their (invalid) three bytes: text no encoder takes is the
+    code's to fail on (Python reports what it cannot decode), not a reason for the sandbox to raise."""
+    return text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text
+
+
 def write_files(work_dir: Path, code: str, files: Mapping[str, str | bytes]) -> None:
-    (work_dir / CODE_NAME).write_text(code, encoding="utf-8")
+    (work_dir / CODE_NAME).write_bytes(to_bytes(code))
     for name, content in files.items():
         target = work_dir / check_file_name(name)
         target.parent.mkdir(parents=True, exist_ok=True)
-        if isinstance(content, str):
-            content = content.encode("utf-8")
-        target.write_bytes(content)
+        target.write_bytes(to_bytes(content))
 
 
 def close_to_the_code(work: Path, gid: int) -> None:
@@ -335,11 +340,37 @@ def isolation_problem(limits: SandboxLimits) -> str | None:
 
 
 def remove_tree(path: Path) -> None:
-    def make_writable(function, failed_path, _):
-        os.chmod(os.path.dirname(failed_path), 0o700)
-        function(failed_path)
+    """Remove a run's folder whatever the code did to the modes of what it wrote there (a folder
+    closed with mode 0, nested ones too). Never raises: what cannot be removed is logged."""
+    opened = 0
+    top = os.path.abspath(path)
 
-    shutil.rmtree(path, onerror=make_writable)
+    def open_up(function, failed_path, _):
+        # The next pass retries; the failed entry and its folder are opened up for it (one more
+        # level of closed folders per pass), never a folder above the tree (the runs' base folder).
+        nonlocal opened
+        for folder in (failed_path, os.path.dirname(failed_path)):
+            try:
+                inside = os.path.abspath(folder) == top or os.path.abspath(folder).startswith(top + os.sep)
+                mode = os.lstat(folder).st_mode
+                if inside and stat.S_ISDIR(mode) and stat.S_IMODE(mode) & 0o700 != 0o700:
+                    os.chmod(folder, stat.S_IMODE(mode) | 0o700)
+                    opened += 1
+            except OSError:
+                pass
+
+    try:
+        for _ in range(MAX_REMOVE_PASSES):
+            opened = 0
+            shutil.rmtree(path, onerror=open_up)
+            if not os.path.lexists(path):
+                return
+            if not opened:  # nothing more could be opened up: another pass would fail the same way
+                break
+    except Exception as error:  # noqa: BLE001 - cleanup must not turn a run's result into an exception
+        logger.warning("could not remove the sandbox folder %s: %s", path, error)
+        return
+    logger.warning("could not remove the sandbox folder %s: some entries refuse removal", path)
 
 
 async def read_status(fd: int) -> dict:
@@ -710,7 +741,7 @@ class Sandbox:
 
 
 async def feed(process, stdin: str | bytes) -> None:
-    data = stdin.encode("utf-8") if isinstance(stdin, str) else stdin
+    data = to_bytes(stdin)
     try:
         process.stdin.write(data)
         await process.stdin.drain()

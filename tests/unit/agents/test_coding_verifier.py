@@ -125,6 +125,11 @@ def test_a_malformed_report_line_is_no_report(line):
     assert report.passed == 0 and not report.all_passed and "without a test report" in report.error, report
 
 
+def test_code_that_is_not_unicode_scores_zero(verifier):
+    result = safe_score(fenced("def total(xs):\n    return sum(xs)  # \udc80\n"), PROBLEM, verifier)
+    assert result.error is None and result.reward == 0.0, result
+
+
 def test_failures_show_the_value_returned():
     report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), "def total(xs):\n    return len(xs)\n", TESTS, "total")
     assert report.passed == 1 and report.total == 4

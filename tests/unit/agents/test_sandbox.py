@@ -138,6 +138,17 @@ def test_exception_traceback_names_only_the_code(any_sandbox):
     assert "runner" not in result.stderr
 
 
+def test_text_that_is_not_unicode_is_the_codes_failure_not_the_sandboxs(sandbox):
+    """A lone surrogate (text no UTF-8 encoder takes) in the code, a file or stdin: the run happens
+    and Python reports the bytes it cannot decode, as for any broken program."""
+    result = sandbox.run_sync("print('\udc80')", files={"data.txt": "\ud800"}, stdin="\udfff\n")
+    assert result.error is None and result.exit_code == 1, result
+    assert "SyntaxError" in result.stderr or "UnicodeDecodeError" in result.stderr, result
+    data = sandbox.run_sync("print(open('data.txt', 'rb').read(), input().encode('utf-8', 'surrogateescape'))",
+                            files={"data.txt": "\ud800"}, stdin="\udfff\n")
+    assert data.stdout == "b'\\xed\\xa0\\x80' b'\\xed\\xbf\\xbf'\n", data
+
+
 def test_bad_file_name_is_a_value_error(sandbox):
     with pytest.raises(ValueError, match="relative path"):
         sandbox.run_sync("pass", files={"../escape": "x"})
