@@ -91,7 +91,10 @@ def interpreter_for_process_mode() -> str | None:
     candidates = [sys.executable, shutil.which("python3") or "", "/usr/bin/python3"]
     for python in candidates:
         if python and os.path.isfile(python):
-            probe = Sandbox(SandboxLimits(isolation="process"), python=python).run_sync("print(1)")
+            try:
+                probe = Sandbox(SandboxLimits(isolation="process"), python=python).run_sync("print(1)")
+            except ValueError:  # an interpreter that cannot run here, or process isolation refused
+                continue
             if probe.ok:
                 return python
     return None
