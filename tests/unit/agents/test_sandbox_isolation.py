@@ -47,6 +47,21 @@ def process_python() -> str | None:
     return None
 
 
+def trainer_python_for_nobody() -> str:
+    """An interpreter uid 65534 can run that can import this checkout (a skip otherwise: the
+    checkout may sit in a folder closed to that uid)."""
+    if os.getuid() != 0:
+        pytest.skip("needs root to start a trainer as another uid")
+    python = process_python()
+    if python is None:
+        pytest.skip("no interpreter that uid 65534 can execute")
+    probe = subprocess.run([python, "-c", "import infinirl.agents.sandbox"], capture_output=True, cwd="/tmp",
+                           env={"PYTHONPATH": REPO}, preexec_fn=become(NOBODY))
+    if probe.returncode != 0:
+        pytest.skip(f"uid 65534 cannot import the checkout at {REPO}")
+    return python
+
+
 @pytest.fixture(scope="module")
 def python_for_others():
     if os.getuid() != 0:
@@ -148,11 +163,7 @@ print(json.dumps({{**result, "warnings": warnings}}))
 
 
 def test_process_isolation_without_root_needs_its_own_opt_in():
-    if os.getuid() != 0:
-        pytest.skip("needs root to start a trainer as another uid")
-    python = process_python()
-    if python is None:
-        pytest.skip("no interpreter that uid 65534 can execute")
+    python = trainer_python_for_nobody()
     script = TRY + """
 print(json.dumps({
     "auto": attempt(lambda: Sandbox(SandboxLimits())),
@@ -252,11 +263,7 @@ def test_cleanup_never_raises_even_for_folders_the_code_closed():
     """As a trainer without root (whose permissions the code's files can refuse), a run that leaves a
     folder it closed (mode 0) returns normally and leaves nothing; a folder that cannot be removed at
     all is logged, not raised."""
-    if os.getuid() != 0:
-        pytest.skip("needs root to start a trainer as another uid")
-    python = process_python()
-    if python is None:
-        pytest.skip("no interpreter that uid 65534 can execute")
+    python = trainer_python_for_nobody()
     script = TRY + """
 import os, tempfile
 from infinirl.agents.sandbox import base_dir, remove_tree
