@@ -21,6 +21,7 @@ MAX_EXPRESSION_CHARS = 1000
 MAX_DEPTH = 100  # operators nested in one another: checked, not left to the interpreter's recursion limit
 MAX_BITS = 9900  # about 3000 decimal digits: below Python's int-to-text limit (4300 digits)
 APPROXIMATE_DIGITS = 20
+MAX_DECIMAL_DIGITS = 4000  # a longer finite decimal is shown as p/q ≈ ... (Python prints at most 4300 digits)
 
 BINARY = {
     ast.Add: operator.add,
@@ -173,8 +174,9 @@ def _depth(tree: ast.AST) -> int:
 
 
 def format_number(value: Fraction) -> str:
-    """An integer as is; a fraction with a finite decimal expansion as that decimal; any other
-    fraction as ``p/q`` followed by a 20-digit approximation."""
+    """An integer as is; a fraction with a finite decimal expansion of at most
+    :data:`MAX_DECIMAL_DIGITS` digits as that decimal; any other fraction as ``p/q`` followed by a
+    20-digit approximation."""
     if value.denominator == 1:
         return str(value.numerator)
     denominator = value.denominator
@@ -185,8 +187,10 @@ def format_number(value: Fraction) -> str:
     while denominator % 5 == 0:
         denominator //= 5
         fives += 1
-    if denominator == 1:
-        places = max(twos, fives)
+    places = max(twos, fives)
+    # A finite expansion of thousands of digits (2**-9000) would pass Python's int-to-text limit
+    # (4300 digits); it is shown as p/q with its approximation instead, like any other fraction.
+    if denominator == 1 and places + size_bits(value) * math.log10(2) <= MAX_DECIMAL_DIGITS:
         scaled = value * 10**places  # an integer, by the factorisation above
         sign = "-" if scaled < 0 else ""
         digits = str(abs(scaled.numerator)).rjust(places + 1, "0")

@@ -4,13 +4,14 @@
 for anything the code does. Limits (:class:`SandboxLimits`): CPU time (RLIMIT_CPU), wall time (the
 whole sandbox is killed), address space (RLIMIT_AS), output size (each stream read concurrently and
 cut at the limit, which ends the run), processes (RLIMIT_NPROC counted in a user namespace of the
-run's own), file size and disk (a size-limited tmpfs), open files. Isolation, where Linux namespaces
-are available (as root, or as a user with unprivileged user namespaces): no network (a fresh network
-namespace), a private PID namespace, a root filesystem holding only the system directories and the
-Python installation read-only, a fresh /tmp as the working directory, and an unprivileged uid. Where
-they are not, the code runs as an unprivileged uid (when root) with sockets refused (a seccomp filter
-where the kernel takes one, else in Python only), and processes that leave its session are hunted
-down afterwards; the result names the isolation it got. ``docs/agents.md`` has the details.
+run's own), file size and disk (a size-limited tmpfs), open files. Isolation (the default, which
+needs Linux namespaces: root, or a user with unprivileged user namespaces): no network (a fresh
+network namespace), a private PID namespace, a root filesystem holding only the system directories and
+the Python installation read-only, a fresh /tmp as the working directory, and an unprivileged uid.
+Where namespaces cannot be made, a Sandbox refuses to start unless the weaker ``process`` isolation
+is asked for by name: the code then runs as a uid of its own (root) with sockets refused (a seccomp
+filter where the kernel takes one, else in Python only), and processes that leave its session are
+hunted down afterwards. ``docs/agents.md`` has the details.
 """
 
 from __future__ import annotations
@@ -19,12 +20,18 @@ import asyncio
 import dataclasses
 import enum
 import errno
+import fcntl
+import functools
 import json
+import logging
 import math
 import os
+import pwd
 import secrets
 import shutil
 import signal
+import stat
+import subprocess
 import sys
 import tempfile
 import time
@@ -32,15 +39,26 @@ import weakref
 from collections.abc import Mapping
 from pathlib import Path
 
+from infinirl.agents.sandbox_launch import SYSTEM_PATHS
 from infinirl.agents.sandbox_runner import MEMORY_EXIT_CODE
 
 __all__ = ["ISOLATIONS", "LimitHit", "Sandbox", "SandboxLimits", "SandboxResult"]
+
+logger = logging.getLogger(__name__)
 
 ISOLATIONS = ("auto", "namespaces", "process")
 LAUNCHER = Path(__file__).with_name("sandbox_launch.py")
 RUNNER_SOURCE = Path(__file__).with_name("sandbox_runner.py").read_text(encoding="utf-8")
 CODE_NAME = "main.py"
 NOBODY = 65534
+# Under the "process" isolation as root, each run gets a uid (and gid) of this many from
+# SandboxLimits.process_uid_base, held exclusively machine-wide for the run (a lock file per uid).
+PROCESS_UID_COUNT = 1024
+PROBE_TIMEOUT_S = 60.0
+MAX_REMOVE_PASSES = 4096  # each opens one more level of folders the code closed; paths end at 4096 bytes
+CGROUP_NAME = "infinirl-sandbox"  # under the cgroup v2 root: one child cgroup per run
+CGROUP_EXTRA_TASKS = 2  # the launcher and init (namespaces) share the run's pids.max with the code
+CGROUP_REMOVE_S = 2.0  # killed processes leave the cgroup within milliseconds; this only bounds a bug
 READ_CHUNK = 65536
 DRAIN_AFTER_EXIT_S = 5.0  # after the sandbox is dead its pipes close at once; this only bounds a bug
 ESCAPE_GRACE_S = 0.5  # after the launcher is gone, how long its pipes may stay open before holders are hunted
@@ -84,9 +102,14 @@ class SandboxLimits:
     max_file_bytes: int = 16 << 20
     disk_bytes: int = 64 << 20  # the working directory's tmpfs (namespaces isolation)
     max_open_files: int = 256
-    isolation: str = "auto"  # "namespaces" refuses to run without them; "process" never tries them
-    sandbox_uid: int = NOBODY  # the uid the code runs as when the sandbox is started by root
+    isolation: str = "auto"  # "auto" and "namespaces" need namespaces; "process" never tries them
+    sandbox_uid: int = NOBODY  # the uid the code runs as under namespaces when the sandbox is started by root
     sandbox_gid: int = NOBODY
+    # "process" as root: each run's uid is one of PROCESS_UID_COUNT from here (without an account).
+    process_uid_base: int = 62000
+    # "process" without root runs the code as this process's own uid: it could signal this process
+    # or change its files. Refused unless this is set.
+    allow_same_uid: bool = False
 
     def __post_init__(self) -> None:
         for name in ("wall_time_s", "cpu_time_s"):
@@ -101,6 +124,10 @@ class SandboxLimits:
             raise ValueError(f"SandboxLimits.isolation must be one of {ISOLATIONS}, got {self.isolation!r}")
         if self.sandbox_uid == 0 or self.sandbox_gid == 0:
             raise ValueError("SandboxLimits.sandbox_uid/sandbox_gid must not be 0 (root); use e.g. 65534")
+        if not isinstance(self.process_uid_base, int) or self.process_uid_base < 1:
+            raise ValueError(f"SandboxLimits.process_uid_base must be a positive uid, got {self.process_uid_base!r}")
+        if not isinstance(self.allow_same_uid, bool):
+            raise ValueError(f"SandboxLimits.allow_same_uid must be true or false, got {self.allow_same_uid!r}")
 
 
 @dataclasses.dataclass(kw_only=True, frozen=True)
@@ -119,7 +146,8 @@ class SandboxResult:
     stdout_truncated: bool = False
     stderr_truncated: bool = False
     isolation: str = ""  # "namespaces" or "process"
-    isolation_note: str = ""  # why namespaces were not used, under "process"
+    isolation_note: str = ""  # under "process": that it was asked for
+    cgroup: bool = False  # the run had a cgroup of its own holding its memory and processes in total
     error: str | None = None
 
     @property
@@ -148,14 +176,48 @@ class BoundedReader:
         return self.data.decode("utf-8", errors="replace")
 
 
-def python_paths(python: str) -> list[str]:
-    """The interpreter installation the code needs visible (read-only) inside the new root: the
-    prefix above ``bin/`` of the interpreter, of its symlink target (a virtual environment's base
-    Python), and this process's prefixes when it is this process's interpreter."""
-    paths = {os.path.dirname(os.path.dirname(p)) for p in (os.path.abspath(python), os.path.realpath(python))}
-    if os.path.realpath(python) == os.path.realpath(sys.executable):
-        paths |= {os.path.realpath(p) for p in (sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix)}
-    return sorted(path for path in paths if path != "/")
+# Run by the code's interpreter (``-I -S``): what of its installation the code needs, and where its
+# site-packages would be. The shared libraries it has mapped (libpython, when it is not in a system
+# folder) and those beside libpython are needed too; a virtual environment's pyvenv.cfg keeps a copied
+# interpreter finding its standard library.
+INTERPRETER_PROBE = """
+import glob, json, os, site, sys, sysconfig
+executable = os.path.realpath(sys.executable)
+libraries = set()
+with open("/proc/self/maps") as maps:
+    for line in maps:
+        parts = line.split(None, 5)
+        if len(parts) == 6 and parts[5].startswith("/") and os.path.isfile(parts[5].strip()):
+            libraries.add(parts[5].strip())
+libdir = sysconfig.get_config_var("LIBDIR") or ""
+libraries.update(path for path in glob.glob(os.path.join(libdir, "*.so*")) if os.path.isfile(path))
+folder = os.path.dirname(executable)
+configs = [os.path.join(f, "pyvenv.cfg") for f in (folder, os.path.dirname(folder))]
+print(json.dumps({
+    "executable": executable,
+    "paths": [executable] + [p for p in sys.path if os.path.isdir(p)] + sorted(libraries)
+             + [c for c in configs if os.path.isfile(c)],
+    "site": site.getsitepackages() + [site.getusersitepackages()],
+}))
+"""
+
+
+@functools.cache
+def interpreter_files(python: str) -> dict:
+    """``executable`` (the real file, run in the sandbox), ``paths`` (the files and folders of the
+    interpreter to mount read-only: the binary, the standard library with lib-dynload, its shared
+    libraries, never site-packages) and ``site`` (site-packages folders, hidden where a mounted
+    folder holds them) of ``python``, asked of it once per process. ValueError if it cannot run."""
+    try:
+        probe = subprocess.run([python, "-I", "-S", "-c", INTERPRETER_PROBE], capture_output=True, text=True,
+                               timeout=PROBE_TIMEOUT_S, stdin=subprocess.DEVNULL, env=CODE_ENV)
+        found = json.loads(probe.stdout)
+    except (OSError, subprocess.TimeoutExpired, ValueError) as error:
+        raise ValueError(f"Sandbox python {python!r} could not tell where its standard library is: {error}") from None
+    system = tuple(path.rstrip("/") + "/" for path in SYSTEM_PATHS)
+    # What a system folder holds is mounted with it; site-packages are left out.
+    paths = sorted({path for path in found["paths"] if not (path + "/").startswith(system) and path != "/"})
+    return {"executable": found["executable"], "paths": paths, "site": sorted(set(found["site"]))}
 
 
 def check_file_name(name: str) -> str:
@@ -166,28 +228,149 @@ def check_file_name(name: str) -> str:
     return name
 
 
+def to_bytes(text: str | bytes) -> bytes:
+    """UTF-8, lone surrogates included as their (invalid) three bytes: text no encoder takes is the
+    code's to fail on (Python reports what it cannot decode), not a reason for the sandbox to raise."""
+    return text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text
+
+
 def write_files(work_dir: Path, code: str, files: Mapping[str, str | bytes]) -> None:
-    (work_dir / CODE_NAME).write_text(code, encoding="utf-8")
+    (work_dir / CODE_NAME).write_bytes(to_bytes(code))
     for name, content in files.items():
         target = work_dir / check_file_name(name)
         target.parent.mkdir(parents=True, exist_ok=True)
-        if isinstance(content, str):
-            content = content.encode("utf-8")
-        target.write_bytes(content)
+        target.write_bytes(to_bytes(content))
 
 
-def give_to(path: Path, uid: int, gid: int) -> None:
-    for folder, dirs, files in os.walk(path):
-        for name in [folder] + [os.path.join(folder, entry) for entry in dirs + files]:
-            os.lchown(name, uid, gid)
+def close_to_the_code(work: Path, gid: int) -> None:
+    """The "process" isolation's working directory (root): every folder root's, writable by the run's
+    group and sticky, every file given (``main.py`` included) root's and read-only. The code can add
+    files but cannot change, remove or rename the ones it was given; no other run's uid can enter."""
+    for folder, _, files in os.walk(work):
+        os.chown(folder, 0, gid)
+        os.chmod(folder, 0o1770)
+        for name in files:
+            os.lchown(os.path.join(folder, name), 0, 0)
+            os.chmod(os.path.join(folder, name), 0o444)
+
+
+def base_dir() -> Path:
+    """The folder holding every run's folder: this uid's own, and listable by no one else (root's is
+    0o711 so that a "process" run's uid can pass through it to its own run's folder, whose random
+    name it cannot learn from a listing)."""
+    path = Path(tempfile.gettempdir()) / f"infinirl-sandbox-{os.getuid()}"
+    mode = 0o711 if os.getuid() == 0 else 0o700
+    try:
+        path.mkdir(mode=mode)
+    except FileExistsError:
+        pass
+    info = os.lstat(path)
+    if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid():
+        raise OSError(f"{path} is not a folder of uid {os.getuid()} (someone else made it); remove it")
+    if stat.S_IMODE(info.st_mode) != mode:
+        os.chmod(path, mode)
+    return path
+
+
+def has_account(uid: int) -> bool:
+    try:
+        pwd.getpwuid(uid)
+    except KeyError:
+        return False
+    return True
+
+
+class UidLease:
+    """A uid (and the gid of the same number) for one "process" run under root, held by no other run
+    of any process on this machine until :meth:`release` (an exclusive lock on a file per uid).
+    Uids with an account are skipped: the code must not get someone's files."""
+
+    def __init__(self, first: int) -> None:
+        locks = base_dir() / "uids"
+        locks.mkdir(mode=0o700, exist_ok=True)
+        start = secrets.randbelow(PROCESS_UID_COUNT)
+        for step in range(PROCESS_UID_COUNT):
+            uid = first + (start + step) % PROCESS_UID_COUNT
+            if has_account(uid):
+                continue
+            fd = os.open(locks / str(uid), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                continue
+            self.uid, self.fd = uid, fd
+            return
+        raise OSError(f"every sandbox uid of {first}..{first + PROCESS_UID_COUNT - 1} is in use or has an account; "
+                      "set SandboxLimits.process_uid_base to a free range")
+
+    def release(self) -> None:
+        os.close(self.fd)
+
+
+@functools.cache
+def namespaces_problem() -> str | None:
+    """Why this process cannot build the namespaces isolation (None when it can): the launcher tries
+    the namespaces, a private mount namespace and a tmpfs in a throwaway child. Asked once per process."""
+    try:
+        probe = subprocess.run([sys.executable, "-I", "-S", str(LAUNCHER), "--probe"], capture_output=True,
+                               text=True, timeout=PROBE_TIMEOUT_S, stdin=subprocess.DEVNULL)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        return f"the namespaces probe failed: {error}"
+    if probe.returncode == 0:
+        return None
+    return (probe.stderr.strip().splitlines() or [f"exit code {probe.returncode}"])[-1]
+
+
+def isolation_problem(limits: SandboxLimits) -> str | None:
+    """Why runs with ``limits`` must not start here (one line naming the option), or None."""
+    if limits.isolation == "process":
+        if os.getuid() != 0 and not limits.allow_same_uid:
+            return ("SandboxLimits.isolation='process' without root runs the code as this process's own uid, which "
+                    "could kill this process or change its files; run as root, use isolation='auto' (namespaces), "
+                    "or set SandboxLimits.allow_same_uid=True to accept that")
+        return None
+    problem = namespaces_problem()
+    if problem is None:
+        return None
+    return (f"SandboxLimits.isolation={limits.isolation!r} needs Linux namespaces, which this process cannot make "
+            f"({problem}); run as root or with unprivileged user namespaces (in Docker: a seccomp profile that "
+            "allows unshare and CAP_SYS_ADMIN), or set isolation='process' to accept the weaker process isolation "
+            "(docs/agents.md)")
 
 
 def remove_tree(path: Path) -> None:
-    def make_writable(function, failed_path, _):
-        os.chmod(os.path.dirname(failed_path), 0o700)
-        function(failed_path)
+    """Remove a run's folder whatever the code did to the modes of what it wrote there (a folder
+    closed with mode 0, nested ones too). Never raises: what cannot be removed is logged."""
+    opened = 0
+    top = os.path.abspath(path)
 
-    shutil.rmtree(path, onerror=make_writable)
+    def open_up(function, failed_path, _):
+        # The next pass retries; the failed entry and its folder are opened up for it (one more
+        # level of closed folders per pass), never a folder above the tree (the runs' base folder).
+        nonlocal opened
+        for folder in (failed_path, os.path.dirname(failed_path)):
+            try:
+                inside = os.path.abspath(folder) == top or os.path.abspath(folder).startswith(top + os.sep)
+                mode = os.lstat(folder).st_mode
+                if inside and stat.S_ISDIR(mode) and stat.S_IMODE(mode) & 0o700 != 0o700:
+                    os.chmod(folder, stat.S_IMODE(mode) | 0o700)
+                    opened += 1
+            except OSError:
+                pass
+
+    try:
+        for _ in range(MAX_REMOVE_PASSES):
+            opened = 0
+            shutil.rmtree(path, onerror=open_up)
+            if not os.path.lexists(path):
+                return
+            if not opened:  # nothing more could be opened up: another pass would fail the same way
+                break
+    except Exception as error:  # noqa: BLE001 - cleanup must not turn a run's result into an exception
+        logger.warning("could not remove the sandbox folder %s: %s", path, error)
+        return
+    logger.warning("could not remove the sandbox folder %s: some entries refuse removal", path)
 
 
 async def read_status(fd: int) -> dict:
@@ -214,21 +397,124 @@ async def read_status(fd: int) -> dict:
     return status
 
 
-def limit_from(status: dict, limits: SandboxLimits, killed_for: LimitHit | None, truncated: bool) -> LimitHit | None:
+def limit_from(status: dict, limits: SandboxLimits, killed_for: LimitHit | None, truncated: bool,
+               cgroup_events: dict[str, int] | None = None) -> LimitHit | None:
     """The limit to report: the one the run was killed for, except that a process limit reached
-    on the way explains a fork bomb's wall-time kill better."""
+    on the way explains a fork bomb's wall-time kill better. ``cgroup_events``: what the run's
+    cgroup counted (``oom_kill``: processes the memory limit killed; ``pids_max``: forks refused)."""
+    events = cgroup_events or {}
     if killed_for is not None:
-        return LimitHit.PROCESSES if status.get("limit") == "processes" else killed_for
+        return LimitHit.PROCESSES if status.get("limit") == "processes" or events.get("pids_max") else killed_for
     if truncated:
         return LimitHit.OUTPUT
-    if status.get("returncode") == MEMORY_EXIT_CODE:
+    if status.get("returncode") == MEMORY_EXIT_CODE or events.get("oom_kill"):
         return LimitHit.MEMORY
     sig = status.get("signal")
     if sig == signal.SIGXCPU or (sig == signal.SIGKILL and status.get("cpu_time_s", 0) >= limits.cpu_time_s):
         return LimitHit.CPU_TIME
-    if status.get("limit") == "processes":
+    if status.get("limit") == "processes" or events.get("pids_max"):
         return LimitHit.PROCESSES
     return None
+
+
+def cgroup2_mount(mountinfo: str) -> Path | None:
+    """Where the cgroup v2 hierarchy is mounted, from /proc/self/mountinfo's text; None if nowhere."""
+    for line in mountinfo.splitlines():
+        fields, _, filesystem = line.partition(" - ")
+        if filesystem.split(" ", 1)[0] == "cgroup2" and len(fields.split()) > 4:
+            return Path(fields.split()[4].replace("\\040", " "))
+    return None
+
+
+def enable_controllers(folder: Path, controllers: tuple[str, ...]) -> None:
+    """Make ``controllers`` available to the child cgroups of ``folder`` (a no-op where they are)."""
+    enabled = (folder / "cgroup.subtree_control").read_text().split()
+    missing = [name for name in controllers if name not in enabled]
+    if missing:
+        (folder / "cgroup.subtree_control").write_text(" ".join(f"+{name}" for name in missing))
+
+
+@functools.cache
+def cgroup_parent() -> tuple[Path | None, str]:
+    """The cgroup v2 folder that holds each run's own cgroup, with the memory and pids controllers on
+    for its children: ``(folder, "")``, or ``(None, why there is none)``. It is made at the root of
+    the hierarchy (a cgroup holding processes cannot give controllers to children). Once per process."""
+    if os.getuid() != 0:
+        return None, "not root"
+    try:
+        mount = cgroup2_mount(Path("/proc/self/mountinfo").read_text())
+        if mount is None:
+            return None, "no cgroup v2 hierarchy is mounted"
+        missing = {"memory", "pids"} - set((mount / "cgroup.controllers").read_text().split())
+        if missing:
+            return None, f"the cgroup v2 hierarchy at {mount} lacks the {sorted(missing)} controllers (v1 has them)"
+        enable_controllers(mount, ("memory", "pids"))
+        parent = mount / CGROUP_NAME
+        parent.mkdir(mode=0o755, exist_ok=True)
+        enable_controllers(parent, ("memory", "pids"))
+    except OSError as error:
+        return None, f"cannot set up the runs' cgroups: {error}"
+    return parent, ""
+
+
+@functools.cache
+def warn_without_cgroup(why: str) -> None:
+    logger.warning("Sandbox runs get no cgroup of their own (%s): memory_bytes then limits each process's address "
+                   "space only, so a run of several processes may use up to max_processes times it", why)
+
+
+class RunCgroup:
+    """One run's cgroup: memory.max (swap 0) of ``memory_bytes`` and pids.max of ``max_processes``
+    (plus the launcher and init) for all its processes together. The launcher joins it before it
+    starts anything, so everything of the run is inside; closing it kills whatever is left."""
+
+    def __init__(self, parent: Path, limits: SandboxLimits) -> None:
+        self.path = parent / secrets.token_hex(16)
+        self.path.mkdir(mode=0o755)
+        try:
+            (self.path / "memory.max").write_text(str(limits.memory_bytes))
+            if (self.path / "memory.swap.max").exists():
+                (self.path / "memory.swap.max").write_text("0")
+            (self.path / "pids.max").write_text(str(limits.max_processes + CGROUP_EXTRA_TASKS))
+        except OSError:
+            self.path.rmdir()
+            raise
+
+    def events(self) -> dict[str, int]:
+        """``oom_kill`` (processes the memory limit killed) and ``pids_max`` (forks refused)."""
+        counts = {}
+        for name, key, field in (("memory.events", "oom_kill", "oom_kill"), ("pids.events", "pids_max", "max")):
+            try:
+                for line in (self.path / name).read_text().splitlines():
+                    if line.split()[:1] == [field]:
+                        counts[key] = int(line.split()[1])
+            except (OSError, ValueError, IndexError):
+                pass
+        return counts
+
+    async def close(self) -> None:
+        """Kill every process left in the cgroup and remove it; a failure is logged, never raised."""
+        try:
+            if (self.path / "cgroup.kill").exists():
+                (self.path / "cgroup.kill").write_text("1")
+            else:
+                for pid in (self.path / "cgroup.procs").read_text().split():
+                    try:
+                        os.kill(int(pid), signal.SIGKILL)
+                    except ProcessLookupError:
+                        pass
+        except OSError as error:
+            logger.warning("could not kill what was left in the sandbox cgroup %s: %s", self.path, error)
+        deadline = time.monotonic() + CGROUP_REMOVE_S
+        while True:
+            try:
+                self.path.rmdir()
+                return
+            except OSError as error:
+                if error.errno != errno.EBUSY or time.monotonic() > deadline:
+                    logger.warning("could not remove the sandbox cgroup %s: %s", self.path, error)
+                    return
+            await asyncio.sleep(0.01)
 
 
 class Sandbox:
@@ -247,7 +533,17 @@ class Sandbox:
         self.python = python or sys.executable  # the interpreter that runs the code
         if not (os.path.isfile(self.python) and os.access(self.python, os.X_OK)):
             raise ValueError(f"Sandbox python {self.python!r} is not an executable file")
+        self.interpreter = interpreter_files(os.path.abspath(self.python))
         self.limits = limits or SandboxLimits()
+        problem = isolation_problem(self.limits)
+        if problem is not None:
+            raise ValueError(problem)
+        if cgroup_parent()[0] is None:
+            warn_without_cgroup(cgroup_parent()[1])
+        if self.limits.isolation == "process":
+            logger.warning("Sandbox with isolation='process': the code runs without namespaces, so it can read every "
+                           "world-readable file (installed data sets' answer keys included) and see the machine's "
+                           "processes; use it only where namespaces cannot be had (docs/agents.md)")
         self.max_concurrent = max_concurrent
         self._slots: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -267,12 +563,20 @@ class Sandbox:
     ) -> SandboxResult:
         """Run ``code`` as a Python program; ``files`` (relative names) are written into its working
         directory first. Raises ValueError only for a bad file name; whatever the code does is in the
-        result."""
+        result, and so is a ``limits`` whose isolation cannot be had here (``error``)."""
         limits = limits or self.limits
         for name in files or {}:
             check_file_name(name)
+        problem = isolation_problem(limits)
+        if problem is not None:
+            return SandboxResult(stdout="", stderr="", exit_code=None, wall_time_s=0.0, error=problem)
         async with self._semaphore():
-            folder = Path(tempfile.mkdtemp(prefix="infinirl-sandbox-"))
+            try:
+                folder = base_dir() / secrets.token_hex(16)
+                folder.mkdir(mode=0o700)
+            except OSError as error:
+                return SandboxResult(stdout="", stderr="", exit_code=None, wall_time_s=0.0,
+                                     error=f"sandbox could not make the run's folder: {error}")
             try:
                 return await self._run_in(folder, code, stdin, files or {}, limits)
             finally:
@@ -282,9 +586,11 @@ class Sandbox:
         """:meth:`run` from synchronous code (not from inside a running event loop)."""
         return asyncio.run(self.run(code, **kwargs))
 
-    def _config(self, folder: Path, limits: SandboxLimits, status_fd: int, token: str) -> dict:
+    def _config(self, folder: Path, limits: SandboxLimits, status_fd: int, token: str, uid: int,
+                cgroup: RunCgroup | None) -> dict:
         return {
             "status_fd": status_fd,
+            "cgroup": str(cgroup.path) if cgroup is not None else None,
             "isolation": limits.isolation,
             "limits": {
                 "cpu_time_s": math.ceil(limits.cpu_time_s),
@@ -294,39 +600,55 @@ class Sandbox:
                 "max_processes": limits.max_processes,
                 "disk_bytes": limits.disk_bytes,
             },
-            "sandbox_uid": limits.sandbox_uid if os.getuid() == 0 else os.getuid(),
-            "sandbox_gid": limits.sandbox_gid if os.getuid() == 0 else os.getgid(),
+            "sandbox_uid": uid,
+            "sandbox_gid": uid if limits.isolation == "process" and os.getuid() == 0 else code_gid(limits),
             "host_work_dir": str(folder / "work"),
             "host_root_dir": str(folder / "root"),
-            "read_only_paths": python_paths(self.python),
-            "python": os.path.abspath(self.python),
+            "read_only_paths": self.interpreter["paths"],
+            "hidden_paths": self.interpreter["site"],
+            "python": self.interpreter["executable"],
             "runner": RUNNER_SOURCE,
             "code_name": CODE_NAME,
             "env": {**CODE_ENV, RUN_TOKEN_VARIABLE: token},
         }
 
-    def _prepare(self, folder: Path, code: str, files: Mapping[str, str | bytes], limits: SandboxLimits) -> None:
+    def _prepare(self, folder: Path, code: str, files: Mapping[str, str | bytes], limits: SandboxLimits,
+                 lease: UidLease | None) -> None:
         work = folder / "work"
         work.mkdir()
         (folder / "root").mkdir()
         write_files(work, code, files)
-        if os.getuid() == 0:  # the "process" fallback runs the code as the sandbox uid in this folder
+        if lease is not None:  # "process" under root: the code runs as the leased uid in this folder
             folder.chmod(0o711)
-            give_to(work, limits.sandbox_uid, limits.sandbox_gid)
+            close_to_the_code(work, lease.uid)
 
     async def _run_in(self, folder, code, stdin, files, limits) -> SandboxResult:
         started = time.monotonic()
+        lease = None
         try:
-            self._prepare(folder, code, files, limits)
+            if limits.isolation == "process" and os.getuid() == 0:
+                lease = UidLease(limits.process_uid_base)
+            self._prepare(folder, code, files, limits, lease)
         except OSError as error:
+            if lease is not None:
+                lease.release()
             return SandboxResult(stdout="", stderr="", exit_code=None, wall_time_s=0.0,
                                  error=f"sandbox could not prepare the run: {error}")
+        uid = lease.uid if lease is not None else code_uid(limits)
+        cgroup, cgroup_events = None, {}
+        parent, _ = cgroup_parent()
+        if parent is not None:
+            try:
+                cgroup = RunCgroup(parent, limits)
+            except OSError as error:
+                logger.warning("sandbox run without a cgroup of its own: %s", error)
         status_read, status_write = os.pipe()
         token = secrets.token_hex(16)
         status: dict = {}
         try:
             config_path = folder / "config.json"
-            config_path.write_text(json.dumps(self._config(folder, limits, status_write, token)))
+            config_path.touch(mode=0o600)
+            config_path.write_text(json.dumps(self._config(folder, limits, status_write, token, uid, cgroup)))
             process = await asyncio.create_subprocess_exec(
                 sys.executable, "-I", "-S", str(LAUNCHER), str(config_path),
                 stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
@@ -335,7 +657,7 @@ class Sandbox:
             )
             os.close(status_write)
             status_write = -1
-            outcome = await self._supervise(process, stdin, limits, token)
+            outcome = await self._supervise(process, stdin, limits, token, uid)
             status = await read_status(status_read)
         finally:
             os.close(status_read)
@@ -344,22 +666,29 @@ class Sandbox:
             if status.get("isolation") != "namespaces":
                 # Killing the launcher's session misses processes that left it (setsid, setpgid) with
                 # their stdio closed; a PID namespace takes everything, so only "process" needs this.
-                kill_escaped(code_uid(limits), token)
+                # A leased uid is the run's alone: every process of it goes, whatever it did.
+                kill_escaped(uid, token, every_process=lease is not None)
+            if cgroup is not None:
+                cgroup_events = cgroup.events()
+                await cgroup.close()
+            if lease is not None:
+                lease.release()
         killed_for, out, err = outcome
         return SandboxResult(
             stdout=out.text(), stderr=err.text(),
             exit_code=status.get("returncode") if killed_for is None else None,
             signal=status.get("signal") if killed_for is None else signal.SIGKILL,
-            limit=limit_from(status, limits, killed_for, out.truncated or err.truncated),
+            limit=limit_from(status, limits, killed_for, out.truncated or err.truncated, cgroup_events),
             wall_time_s=time.monotonic() - started,
             cpu_time_s=status.get("cpu_time_s"),
             stdout_truncated=out.truncated, stderr_truncated=err.truncated,
             isolation=status.get("isolation", ""),
             isolation_note=status.get("reason", ""),
+            cgroup=bool(status.get("cgroup")),
             error=status.get("error"),
         )
 
-    async def _supervise(self, process, stdin, limits: SandboxLimits, token: str):
+    async def _supervise(self, process, stdin, limits: SandboxLimits, token: str, uid: int):
         """Feed stdin, read both streams, and kill the sandbox's session at the wall-time limit or
         when an output stream passes its limit.
 
@@ -378,7 +707,6 @@ class Sandbox:
         # Not process.wait(): it also waits for the pipes to close, which an escaped process can prevent.
         exited = asyncio.ensure_future(wait_exit(process))
         overflowed = asyncio.ensure_future(overflow.wait())
-        uid = code_uid(limits)
         killed_for = None
         try:
             await asyncio.wait([exited, overflowed], timeout=limits.wall_time_s,
@@ -413,7 +741,7 @@ class Sandbox:
 
 
 async def feed(process, stdin: str | bytes) -> None:
-    data = stdin.encode("utf-8") if isinstance(stdin, str) else stdin
+    data = to_bytes(stdin)
     try:
         process.stdin.write(data)
         await process.stdin.drain()
@@ -445,8 +773,12 @@ async def settled(tasks, timeout: float) -> bool:
 
 
 def code_uid(limits: SandboxLimits) -> int:
-    """The uid the code runs as (as the host sees it)."""
+    """The uid the code runs as (as the host sees it), but for "process" under root (a leased one)."""
     return limits.sandbox_uid if os.getuid() == 0 else os.getuid()
+
+
+def code_gid(limits: SandboxLimits) -> int:
+    return limits.sandbox_gid if os.getuid() == 0 else os.getgid()
 
 
 def pipe_inodes(process) -> set[int]:
@@ -499,7 +831,7 @@ def belongs_to_run(pid: str, token: str, pipes: set[int]) -> bool:
     return False
 
 
-def kill_if_of_run(pid: str, token: str, pipes: set[int]) -> bool:
+def kill_if_of_run(pid: str, token: str, pipes: set[int], every_process: bool = False) -> bool:
     """SIGKILL process ``pid`` if it belongs to the run; whether it did. The signal goes through a
     pidfd opened before the process is inspected, so a pid recycled meanwhile is never hit (kernels
     without pidfds get a plain kill)."""
@@ -510,7 +842,7 @@ def kill_if_of_run(pid: str, token: str, pipes: set[int]) -> bool:
             return False  # gone already
         handle = None
     try:
-        if not belongs_to_run(pid, token, pipes):
+        if not every_process and not belongs_to_run(pid, token, pipes):
             return False
         if handle is None:
             os.kill(int(pid), signal.SIGKILL)
@@ -524,10 +856,11 @@ def kill_if_of_run(pid: str, token: str, pipes: set[int]) -> bool:
             os.close(handle)
 
 
-def kill_escaped(uid: int, token: str, pipes: set[int] = frozenset()) -> int:
-    """SIGKILL every process of ``uid`` that belongs to the run (its token or its pipes); the
-    number killed. Best effort, for the "process" isolation: a process that leaves the session,
-    clears its environment and closes the run's pipes is not found."""
+def kill_escaped(uid: int, token: str, pipes: set[int] = frozenset(), every_process: bool = False) -> int:
+    """SIGKILL every process of ``uid`` that belongs to the run (its token or its pipes; with
+    ``every_process``, a uid leased to the run, all of them); the number killed. For the "process"
+    isolation; without a leased uid it is best effort: a process that leaves the session, clears its
+    environment and closes the run's pipes is not found."""
     me, total = os.getpid(), 0
     for _ in range(ESCAPE_SWEEPS):
         killed = 0
@@ -539,7 +872,7 @@ def kill_escaped(uid: int, token: str, pipes: set[int] = frozenset()) -> int:
                     continue
             except (OSError, ValueError):
                 continue
-            killed += kill_if_of_run(entry, token, pipes)
+            killed += kill_if_of_run(entry, token, pipes, every_process)
         total += killed
         if not killed:
             break

@@ -1,7 +1,8 @@
 """Builds the isolation for one sandboxed run and starts the code in it.
 
 :mod:`infinirl.agents.sandbox` executes this file as a script (``python -I -S sandbox_launch.py
-CONFIG``), so it imports only the standard library and nothing of InfiniRL. Process tree::
+CONFIG``, or ``--probe`` to learn whether namespaces can be made here), so it imports only the
+standard library and nothing of InfiniRL. Process tree::
 
     parent (Sandbox.run) -> launcher (this script, new session) -> init -> code
 
@@ -16,13 +17,19 @@ the Python runner. When the code's process exits, ``init`` exits and the kernel 
 left in the PID namespace; ``init`` dies with the launcher (PDEATHSIG), so killing the launcher's
 session kills the whole sandbox.
 
-Without namespaces (``isolation`` "process"): the code's process drops to the sandbox uid when root,
-sets the same limits, and the runner refuses sockets: a seccomp filter on the socket syscalls that
+Without namespaces (``isolation`` "process", only when asked for: "auto" and "namespaces" fail where
+the namespaces cannot be made): the code's process drops to the run's own uid when root, sets the
+same limits, and the runner refuses sockets: a seccomp filter on the socket syscalls that
 every process the code starts inherits (where the kernel takes one), and socket constructors that
 raise, for a readable error. Files the uid can read stay readable; see docs/agents.md.
 
+The launcher first sets its ``oom_score_adj`` to 1000 (inherited by the whole run: the OOM killer
+takes the run's processes first) and joins the run's cgroup when the parent made one (memory.max
+and pids.max for the run's processes together).
+
 Everything the parent must know goes as JSON lines through the status pipe: the isolation achieved,
-a limit seen (processes), the code's exit status and CPU time, or the error that stopped the setup.
+the cgroup joined, a limit seen (processes), the code's exit status and CPU time, or the error that
+stopped the setup.
 """
 
 import ctypes
@@ -188,6 +195,11 @@ def build_root(config: dict) -> None:
     for path in config["read_only_paths"]:
         if not os.path.exists(root + path):
             bind_read_only(path, root + path)
+    # site-packages inside a mounted folder (the standard library's, /usr's): an empty read-only tmpfs
+    # over each, so no installed package, nor its data (a benchmark's answer key), can be read.
+    for path in config["hidden_paths"]:
+        if os.path.isdir(root + path) and not os.path.islink(root + path):
+            mount("tmpfs", root + path, "tmpfs", MS_RDONLY | MS_NOSUID | MS_NODEV | MS_NOEXEC, "size=4k,mode=0555")
     mount(None, root, None, MS_REMOUNT | MS_RDONLY | MS_NOSUID | MS_NODEV)
     pivot_into(root)
 
@@ -249,7 +261,9 @@ def exec_code(config: dict, work_dir: str, block_sockets: bool, own_user_namespa
         raise OSError(f"uid {os.getuid()} cannot execute {config['python']} (a folder on its path is closed "
                       "to it); give the Sandbox a python that uid can run, or use the namespaces isolation")
     env = dict(config["env"], HOME=work_dir, TMPDIR=work_dir)
-    argv = [config["python"], "-I", "-c", config["runner"], config["code_name"], work_dir, str(int(block_sockets))]
+    # -S: no site-packages (under namespaces none is mounted anyway; under "process" it is not imported).
+    argv = [config["python"], "-I", "-S", "-c", config["runner"], config["code_name"], work_dir,
+            str(int(block_sockets))]
     os.execve(config["python"], argv, env)
 
 
@@ -343,23 +357,54 @@ def run_as_process(config: dict, status: Status, reason: str) -> None:
     os.killpg(0, signal.SIGKILL)
 
 
+def probe() -> None:
+    """Exit 0 when this process can build the namespaces isolation (its namespaces, then a private
+    mount namespace holding a tmpfs, in a throwaway child), else 1 with the reason on stderr."""
+    try:
+        enter_namespaces()
+        child = os.fork()
+        if child == 0:
+            try:
+                unshare(CLONE_NEWNS)
+                mount(None, "/", None, MS_REC | MS_PRIVATE)
+                mount("tmpfs", "/tmp", "tmpfs", MS_NOSUID | MS_NODEV, "size=1m")
+            except OSError as error:
+                os.write(2, f"{error}\n".encode())
+                os._exit(1)
+            os._exit(0)
+        _, wait_status = os.waitpid(child, 0)
+    except OSError as error:
+        sys.stderr.write(f"{error}\n")
+        sys.exit(1)
+    sys.exit(0 if wait_status == 0 else 1)
+
+
 def main() -> None:
+    if sys.argv[1] == "--probe":
+        probe()
     with open(sys.argv[1]) as handle:
         config = json.load(handle)
     status = Status(config["status_fd"])
-    reason = "isolation 'process' requested"
-    if config["isolation"] != "process":
-        try:
-            enter_namespaces()
-        except OSError as error:
-            if config["isolation"] == "namespaces":
-                status.send(error=f"isolation 'namespaces' unavailable: {error}")
-                sys.exit(1)
-            reason = f"namespaces unavailable ({error})"
-        else:
-            run_with_namespaces(config, status)
-            return
-    run_as_process(config, status, reason)
+    try:
+        # Inherited by everything the run starts: under memory pressure the kernel kills the run's
+        # processes before any other (the trainer's included), and the code cannot lower it.
+        write_file("/proc/self/oom_score_adj", "1000")
+        if config["cgroup"]:  # joined before anything is started, so all of the run is inside
+            write_file(os.path.join(config["cgroup"], "cgroup.procs"), str(os.getpid()))
+            status.send(cgroup=True)
+    except OSError as error:
+        status.send(error=f"sandbox setup failed: {error}")
+        sys.exit(1)
+    if config["isolation"] == "process":
+        run_as_process(config, status, "isolation 'process' requested")
+        return
+    # "auto" and "namespaces" alike: never a silent fall back to the weaker isolation.
+    try:
+        enter_namespaces()
+    except OSError as error:
+        status.send(error=f"isolation {config['isolation']!r} needs namespaces, unavailable here: {error}")
+        sys.exit(1)
+    run_with_namespaces(config, status)
 
 
 if __name__ == "__main__":

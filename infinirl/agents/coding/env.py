@@ -89,10 +89,12 @@ class CodeRunnerEnv(AgentEnv):
             passed, text = result.ok, summarize_run(result, self.max_feedback_chars)
             info = {"code_runs": 1, "code_ok": float(result.ok)}
         else:
-            report = run_code_tests_sync(self.sandbox, extracted.code, tests, spec.entry_point,
+            report = run_code_tests_sync(self.sandbox, extracted.code, tests, spec.entry_point, stub=spec.stub,
                                          max_failures=self.max_failures)
             passed, text = report.all_passed, format_report(report, self.max_feedback_chars)
             info = {"code_runs": 1, "code_ok": float(report.all_passed), "visible_tests_passed": report.fraction}
+            result = report.sandbox
+        info["sandbox_namespaces"] = float(result is not None and result.isolation == "namespaces")
         info["code_run_s"] = time.perf_counter() - start
         if passed and self.stop_when_passing:
             return AgentStep(done=True, info=info)

@@ -13,8 +13,9 @@ The rule (:func:`extract_code`):
    four spaces when its first line is not indented), as HumanEval's completion format reads it.
 4. When the code does define ``entry_point``, whatever the stub declares before that function
    (imports, helper functions) is put in front of it, so an answer that uses ``List`` or a helper
-   the stub gave need not repeat them; the answer's own definitions come later and win (its
-   ``from __future__`` imports move to the top).
+   the stub gave need not repeat them; the answer's own definitions come later and win in the code
+   (its ``from __future__`` imports move to the top). The tests never call the answer's versions of
+   the stub's helpers: the harness defines the stub's own in the tests' process.
 """
 
 from __future__ import annotations

@@ -1,33 +1,35 @@
 """The test harness that runs inside the sandbox as ``main.py`` (standard library only).
 
-It reads one JSON line from stdin (``nonce``, ``entry_point``, ``max_failures``) and writes one
-report line on stdout, ``<nonce> <json>``: how many of the tests in ``tests.py`` (the body of
-``check(candidate)``, one top-level statement at a time; a statement is a test when it contains an
+It reads one JSON line from stdin (``nonce``, ``entry_point``, ``max_failures``, ``preamble``)
+and writes one report line on stdout, ``<nonce> <json>``: how many of the tests in ``tests.py`` (the
+body of ``check(candidate)``, one top-level statement at a time; a statement is a test when it contains an
 ``assert``) pass against the ``entry_point`` function of ``solution.py`` (the model's code), with
 the first failures described (for an ``assert f(x) == y`` that failed, the value ``f(x)`` returned)
 and what the code printed (bounded).
 
-The model's code never runs in the process that judges it. The harness forks first; the forked
-*code process* closes its stdin, executes ``solution.py`` (as module ``solution``, so a
-``__main__`` block does not run) and then only answers calls. The *test process* reads the spec
-(so the nonce never exists in the code process's memory), forbids being traced or read through
-/proc (``PR_SET_DUMPABLE`` 0), and runs the tests with ``candidate`` (and every other function the
-code defines under a name that is not a builtin, for tests using the problem's helpers) bound to a
-proxy: the arguments are sent to the code process, the call runs there, and the result comes back
-encoded as data. Only plain built-in values cross: ``None``, ``bool``, ``int``, ``float``,
-``complex``, ``str``, ``bytes`` and ``list``, ``tuple``, ``dict``, ``set``, ``frozenset`` of them,
-each of exactly that type (a subclass, e.g. an ``int`` with its own ``__eq__``, is refused), and
-the test process rebuilds them itself. So a result's comparisons are Python's own, a result of any
-other type fails its test, and nothing the code does in its process can change a verdict or the
-report; it can only return values, raise, or end its process (a test that fails, with the tests
-after it; a process killed by a signal, e.g. at the CPU limit, ends the harness by the same signal,
-so the sandbox reports the limit as for one process).
+The model's code never runs in the process that judges it. The harness forks first; the forked *code
+process* closes its stdin, executes ``solution.py`` (as module ``solution``, so a ``__main__`` block
+does not run) and then only answers calls. The *test process* reads the spec (so the nonce never
+exists in the code process's memory), forbids being traced or read through /proc
+(``PR_SET_DUMPABLE`` 0), and runs the tests with ``candidate`` (and every other function the code
+defines under a name that is not a builtin) bound to a proxy, and then the problem's ``preamble``
+(what its stub declares before the function: helpers such as HumanEval's ``encode_shift`` or
+``poly``) executed in the tests' namespace, so the tests call the problem's own helpers, never ones
+the code redefined. Calling a proxy sends the arguments to the code process, the call runs there,
+and the result comes back encoded as data. Only plain built-in values cross: ``None``, ``bool``,
+``int``, ``float``, ``complex``, ``str``, ``bytes`` and ``list``, ``tuple``, ``dict``, ``set``,
+``frozenset`` of them, each of exactly that type (a subclass, e.g. an ``int`` with its own
+``__eq__``, is refused), and the test process rebuilds them itself. So a result's comparisons are
+Python's own, a result of any other type fails its test, and nothing the code does in its process
+can change a verdict or the report; it can only return values, raise, or end its process (a test
+that fails, with the tests after it; a process killed by a signal, e.g. at the CPU limit, ends the
+harness by the same signal, so the sandbox reports the limit as for one process).
 
-Limits that remain: helpers the tests call that the code defines are the code's (a test that
-checks ``f(candidate(x))`` with the code's ``f`` trusts it); a call's arguments are copies (a
-function that should change its argument in place cannot be tested that way), and a test that
-passes something other than a plain value to the code fails. If ``prctl`` is unavailable, or the
-sandbox's user may trace processes of its uid regardless, the code process could read the nonce
+Limits that remain: a helper the tests call that the problem's preamble does not define is the
+code's (a test that checks ``f(candidate(x))`` with such an ``f`` trusts it); a call's arguments are
+copies (a function that should change its argument in place cannot be tested that way), and a test
+that passes something other than a plain value to the code fails. If ``prctl`` is unavailable, or
+the sandbox's user may trace processes of its uid regardless, the code process could read the nonce
 from the test process through /proc; the sandbox (not this harness) bounds what code can reach.
 """
 
@@ -195,6 +197,7 @@ def receive(fd):
 def serve_code(solution, requests, replies):
     """Execute the solution, report the names it defines, then answer calls until told to stop."""
     close_stdin()
+    close_stdout()
     captured = CappedText(MAX_CAPTURED_CHARS)
     sys.stdout = sys.stderr = captured
     sent = 0
@@ -242,6 +245,16 @@ def close_stdin():
         os.close(0)
         return
     os.dup2(devnull, 0)
+    os.close(devnull)
+
+
+def close_stdout():
+    """Only the test process holds the sandbox's stdout (the report's pipe): the code's fds 1 and 2
+    are /dev/null, so what it writes there (``os.write(1, ...)``, ``sys.__stdout__``, a child
+    process) can neither reach the output limit, which would cut the report, nor mix with it."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    os.dup2(devnull, 2)
     os.close(devnull)
 
 
@@ -441,7 +454,7 @@ def code_namespace(code, entry_point, functions, constants):
     return namespace
 
 
-def run_tests(code, entry_point, tests_source, max_failures, report):
+def run_tests(code, entry_point, tests_source, max_failures, report, preamble=""):
     loaded = code.receive()
     if loaded[0] == "failed" and len(loaded) == 2 and type(loaded[1]) is str:
         report["error"] = cut(loaded[1])
@@ -454,6 +467,8 @@ def run_tests(code, entry_point, tests_source, max_failures, report):
     namespace = code_namespace(code, entry_point, loaded[1], loaded[2])
     report["loaded"] = True
     try:
+        # The problem's helpers, defined here after the code's: the tests use these, whatever the code defines.
+        exec(compile(preamble, "stub.py", "exec"), namespace)  # noqa: S102
         exec(compile(tests_source, TESTS, "exec"), namespace)  # noqa: S102
         parameter, statements = check_statements(tests_source)
     except (SyntaxError, ValueError) as error:  # the problem's tests, not the code, are broken
@@ -505,7 +520,7 @@ def main():
     report = {"loaded": False, "passed": 0, "total": 0, "failures": []}
     code = Code(pid, requests_write, replies_read, captured)
     try:
-        run_tests(code, spec["entry_point"], tests_source, spec["max_failures"], report)
+        run_tests(code, spec["entry_point"], tests_source, spec["max_failures"], report, spec.get("preamble", ""))
     except CodeEnded as error:
         report.setdefault("error", cut(str(error)))
     finally:

@@ -16,6 +16,7 @@ import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from infinirl.agents.coding.extract import stub_preamble
 from infinirl.agents.sandbox import Sandbox, SandboxLimits, SandboxResult
 
 __all__ = ["HARNESS_SOURCE", "CodeTestReport", "TestFailure", "format_report", "run_code_tests",
@@ -62,11 +63,15 @@ class CodeTestReport:
         return self.passed / self.total if self.total else 0.0
 
 
-async def run_code_tests(sandbox: Sandbox, code: str, tests: str, entry_point: str, *,
+async def run_code_tests(sandbox: Sandbox, code: str, tests: str, entry_point: str, *, stub: str = "",
                          limits: SandboxLimits | None = None, max_failures: int = 3) -> CodeTestReport:
-    """Run ``tests`` against ``entry_point`` of ``code`` in ``sandbox`` (see the module docstring)."""
+    """Run ``tests`` against ``entry_point`` of ``code`` in ``sandbox`` (see the module docstring).
+    ``stub``: the problem's stub; what it declares before the function (helpers such as HumanEval's
+    ``encode_shift``) is defined in the tests' own process, so the tests call the problem's helpers,
+    never ones the code redefined."""
     nonce = secrets.token_hex(16)
-    spec = json.dumps({"nonce": nonce, "entry_point": entry_point, "max_failures": max_failures})
+    spec = json.dumps({"nonce": nonce, "entry_point": entry_point, "max_failures": max_failures,
+                       "preamble": stub_preamble(stub, entry_point) if stub else ""})
     result = await sandbox.run(HARNESS_SOURCE, stdin=spec + "\n", files={"solution.py": code, "tests.py": tests},
                                limits=limits)
     return read_report(result, nonce)
@@ -77,13 +82,34 @@ def run_code_tests_sync(sandbox: Sandbox, code: str, tests: str, entry_point: st
     return asyncio.run(run_code_tests(sandbox, code, tests, entry_point, **options))
 
 
+def parse_report(text: str) -> dict | None:
+    """The harness's report from the JSON after the nonce, or None if it is not one (a line cut at
+    the output limit, or malformed): a run without a report, never an exception."""
+    try:
+        report = json.loads(text)
+    except ValueError:
+        return None
+    if not (isinstance(report, dict) and type(report.get("passed")) is int and type(report.get("total")) is int
+            and type(report.get("loaded")) is bool and isinstance(report.get("failures"), list)):
+        return None
+    try:
+        report["failures"] = tuple(TestFailure(**failure) for failure in report["failures"])
+    except TypeError:  # not a mapping, or other fields
+        return None
+    text_fields = [report.get(key) for key in ("error", "harness_error", "output")]
+    failure_fields = [value for failure in report["failures"] for value in (failure.test, failure.error, failure.got)]
+    if not all(value is None or isinstance(value, str) for value in text_fields + failure_fields):
+        return None
+    return report
+
+
 def read_report(result: SandboxResult, nonce: str) -> CodeTestReport:
     """The harness's report line in ``result.stdout``, or a report of why there is none."""
     limit = None if result.limit is None else str(result.limit)
     report = None
     for line in reversed(result.stdout.splitlines()):
         if line.startswith(nonce + " "):
-            report = json.loads(line[len(nonce) + 1:])
+            report = parse_report(line[len(nonce) + 1:])
             break
     if report is None:
         if result.error:
@@ -94,10 +120,9 @@ def read_report(result: SandboxResult, nonce: str) -> CodeTestReport:
             tail = result.stderr.strip().splitlines()[-1:] or [f"exit code {result.exit_code}"]
             error = f"the run ended without a test report ({tail[0][:200]})"
         return CodeTestReport(error=error, limit=limit, wall_time_s=result.wall_time_s, sandbox=result)
-    failures = tuple(TestFailure(**failure) for failure in report["failures"])
     passed = report["passed"] if limit is None else 0  # a run a limit ended passes nothing
     return CodeTestReport(passed=passed, total=report["total"], loaded=report["loaded"], error=report.get("error"),
-                          limit=limit, failures=failures, output=report.get("output", ""),
+                          limit=limit, failures=report["failures"], output=report.get("output") or "",
                           harness_error=report.get("harness_error"), wall_time_s=result.wall_time_s, sandbox=result)
 
 

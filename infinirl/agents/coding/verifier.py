@@ -7,7 +7,10 @@ runs ``check(candidate)`` of ``problem.metadata["tests"]`` in a :class:`~infinir
 Reward 1 when every test passes (``code_tests``), or the fraction passed (``code_tests_partial``);
 ``correct`` is always "every test passed". Bad code of any kind (no code, a syntax error, an
 exception, an endless loop, a memory hog, a flood of output) scores 0 with the reason in the
-metrics; only a problem whose own tests are broken raises (counted as a verifier error).
+metrics; only a problem whose own tests are broken, or a sandbox that could not run the code at all,
+raises (counted as a verifier error). The sandbox needs namespaces unless ``limits`` names
+``isolation: process`` (a verifier refuses to be built otherwise); metric ``sandbox_namespaces``
+says which isolation a score was got under.
 
 The reward worker calls verifiers from a thread pool: each call runs its own event loop, and a
 process-wide semaphore bounds how many sandboxes run at once (``max_concurrent``).
@@ -73,7 +76,8 @@ class CodeTestsVerifier:
     def test(self, code: str, spec: CodeSpec) -> CodeTestReport:
         """Run ``spec.tests`` against ``code`` (bounded by the process-wide concurrency)."""
         with self.slots:
-            return run_code_tests_sync(self.sandbox, code, spec.tests, spec.entry_point, max_failures=self.max_failures)
+            return run_code_tests_sync(self.sandbox, code, spec.tests, spec.entry_point, stub=spec.stub,
+                                       max_failures=self.max_failures)
 
     def __call__(self, response: str, problem: Problem) -> RewardResult:
         spec = CodeSpec.from_metadata(problem.metadata, problem.uid)
@@ -84,11 +88,14 @@ class CodeTestsVerifier:
         report = self.test(extracted.code, spec)
         if report.harness_error:
             raise ValueError(f"the tests of problem {problem.uid} are broken: {report.harness_error}")
+        if report.sandbox is not None and report.sandbox.error:  # nothing ran: not the code's fault
+            raise RuntimeError(f"the sandbox could not run the code of problem {problem.uid}: {report.sandbox.error}")
         correct = report.all_passed
         reward = report.fraction if self.partial_credit else float(correct)
         return RewardResult(reward, correct, metrics={
             "code_found": 1.0, "code_fenced": float(extracted.fenced), "code_loaded": float(report.loaded),
-            "tests_passed": report.fraction, "code_limit_hit": float(report.limit is not None)})
+            "tests_passed": report.fraction, "code_limit_hit": float(report.limit is not None),
+            "sandbox_namespaces": float(report.sandbox is not None and report.sandbox.isolation == "namespaces")})
 
 
 VERIFIERS.add("code_tests", CodeTestsVerifier)

@@ -90,3 +90,31 @@ def test_any_text_is_a_value_or_a_calculator_error(text):
         evaluate(text)
     except CalculatorError:
         pass
+
+
+@pytest.mark.parametrize("text, value", [
+    ("2 ** -9000", Fraction(1, 2**9000)),
+    ("2 ** -6500", Fraction(1, 2**6500)),  # 4543 digits
+    ("(2 ** 9000 + 1) / 2 ** 9000", Fraction(2**9000 + 1, 2**9000)),
+    ("-(5 ** 4000) / 2 ** 4000", Fraction(-(5**4000), 2**4000)),
+])
+def test_decimals_too_long_to_print_fall_back_to_the_fraction(text, value):
+    """A finite decimal expansion of thousands of digits (past Python's int-to-text limit) is shown
+    as p/q with its approximation, never as the interpreter's error."""
+    shown = format_number(evaluate(text))
+    exact, approximate = shown.split(" ≈ ")
+    assert Fraction(exact) == value
+    assert abs(Fraction(approximate) / value - 1) < Fraction(1, 10**18)
+
+
+def test_long_finite_decimals_below_the_bound_are_still_printed_in_full():
+    assert format_number(evaluate("2 ** -3000")) == f"0.{5**3000:0>3000}"
+
+
+def test_the_calculator_tool_answers_a_tiny_power():
+    import asyncio
+
+    from infinirl.agents.tools import CalculatorTool, call_tool
+
+    result = asyncio.run(call_tool(CalculatorTool(), {"expression": "2**-9000"}))
+    assert result.ok and "set_int_max_str_digits" not in result.text and result.text.startswith("1/"), result

@@ -32,6 +32,7 @@ def env_for(problem=PROBLEM, **options):
 def test_passing_code_ends_the_trajectory():
     step = env_for().step(turn(RIGHT))
     assert step.done and step.info["code_ok"] == 1.0 and step.info["visible_tests_passed"] == 1.0
+    assert step.info["sandbox_namespaces"] == 1.0
 
 
 def test_failing_code_gets_the_visible_failures_with_the_values_returned():

@@ -5,9 +5,9 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from infinirl.agents.coding.spec import CodeSpec
-from infinirl.agents.coding.testing import format_report, run_code_tests_sync
+from infinirl.agents.coding.testing import format_report, read_report, run_code_tests_sync
 from infinirl.agents.coding.verifier import CodeTestsVerifier
-from infinirl.agents.sandbox import Sandbox, SandboxLimits
+from infinirl.agents.sandbox import Sandbox, SandboxLimits, SandboxResult
 from infinirl.tasks.problem import Problem
 from infinirl.tasks.verifiers import build_verifier, safe_score
 
@@ -31,6 +31,7 @@ def test_correct_code_scores_one(verifier):
     result = verifier(fenced("def total(xs):\n    return sum(xs)\n"), PROBLEM)
     assert result.reward == 1.0 and result.correct and result.error is None
     assert result.metrics["tests_passed"] == 1.0 and result.metrics["code_fenced"] == 1.0
+    assert result.metrics["sandbox_namespaces"] == 1.0  # the isolation the score was got under
 
 
 def test_wrong_code_scores_zero_and_partial_credit_counts_the_passed_tests(verifier):
@@ -93,6 +94,40 @@ def test_no_code_scores_zero_and_broken_tests_are_a_verifier_error(verifier):
     assert result.reward == 0.0 and "tests of problem t/1 are broken" in result.error
     not_code = Problem(uid="t/2", prompt="", answer="1", verifier="code_tests")
     assert "not a coding problem" in safe_score("1", not_code, verifier).error
+
+
+def test_a_sandbox_that_cannot_run_the_code_is_a_verifier_error():
+    # A tmpfs too small for the harness: the sandbox's setup fails, which is not the code's fault.
+    result = safe_score(fenced("def total(xs):\n    return sum(xs)\n"), PROBLEM,
+                        CodeTestsVerifier(limits={**FAST, "disk_bytes": 1}))
+    assert result.reward == 0.0 and "sandbox could not run the code of problem t/0" in result.error, result
+
+
+@pytest.mark.parametrize("when", ["on load", "in a test"])
+def test_code_writing_to_the_real_stdout_cannot_cut_the_report(verifier, when):
+    """The code's fds 1 and 2 are /dev/null: bytes written there neither reach the sandbox's output
+    limit (which would cut the report line) nor mix with the report."""
+    flood = f"os.write(1, b'x' * {FAST['max_output_bytes'] - 60})\nos.write(2, b'y' * 100)\n"
+    code = ("import os, sys\n" + (flood if when == "on load" else "")
+            + "def total(xs):\n" + ("".join("    " + line + "\n" for line in flood.splitlines()) if when != "on load"
+                                    else "") + "    print('hi', file=sys.__stdout__)\n    return sum(xs)\n")
+    result = safe_score(fenced(code), PROBLEM, verifier)
+    assert result.error is None and result.reward == 1.0, result
+
+
+@pytest.mark.parametrize("line", ["{not json", "[1, 2]", '{"passed": 4}', '{"passed": 4, "total": 4, "loaded": true, '
+                                  '"failures": [{"bogus": 1}]}', '{"passed": "4", "total": 4, "loaded": true, '
+                                  '"failures": []}', ""])
+def test_a_malformed_report_line_is_no_report(line):
+    nonce = "ab" * 16
+    result = SandboxResult(stdout=f"{nonce} {line}\n", stderr="", exit_code=0, wall_time_s=0.1)
+    report = read_report(result, nonce)
+    assert report.passed == 0 and not report.all_passed and "without a test report" in report.error, report
+
+
+def test_code_that_is_not_unicode_scores_zero(verifier):
+    result = safe_score(fenced("def total(xs):\n    return sum(xs)  # \udc80\n"), PROBLEM, verifier)
+    assert result.error is None and result.reward == 0.0, result
 
 
 def test_failures_show_the_value_returned():
@@ -191,3 +226,20 @@ def test_helpers_builtins_and_exceptions_between_tests_and_code():
     report = run_code_tests_sync(Sandbox(SandboxLimits(**FAST)), code, tests, "total")
     assert report.total == 4 and report.passed == 3, report
     assert "assert abs(candidate(1) - 4)" in report.failures[0].test and report.failures[0].got is None
+
+
+# Answers that redefine the helpers HumanEval's tests call, so that the tests check nothing.
+HELPER_CHEATS = {
+    "humaneval/32": "import math\ndef poly(xs, x):\n    return 0\n\ndef find_zero(xs):\n    return 0.0\n",
+    "humaneval/38": "def encode_cyclic(s):\n    return s\n\ndef decode_cyclic(s):\n    return s\n",
+    "humaneval/50": "def encode_shift(s):\n    return s\n\ndef decode_shift(s):\n    return s\n",
+}
+
+
+@pytest.mark.parametrize("uid", sorted(HELPER_CHEATS))
+def test_an_answer_cannot_replace_the_helpers_the_tests_use(verifier, uid):
+    from infinirl.tasks.code_tasks import load_humaneval
+
+    problem = {p.uid: p for p in load_humaneval(limit=51)}[uid]
+    assert verifier(fenced(HELPER_CHEATS[uid]), problem).reward == 0.0
+    assert verifier(fenced(problem.answer), problem).reward == 1.0  # the canonical solution still passes

