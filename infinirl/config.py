@@ -321,9 +321,14 @@ def _convert_sequence(tp: Any, value: Any, path: str) -> Any:
     if not isinstance(value, (list, tuple)):
         raise ConfigError(f"{path}: expected a list, got {value!r}")
     args = typing.get_args(tp)
+    is_tuple = typing.get_origin(tp) is tuple or tp is tuple
+    if is_tuple and args and args[-1] is not Ellipsis:  # tuple[float, float]: exactly that many values
+        if len(value) != len(args):
+            raise ConfigError(f"{path}: expected {len(args)} values, got {list(value)!r}")
+        return tuple(_convert(inner, v, f"{path}[{i}]") for i, (inner, v) in enumerate(zip(args, value)))
     inner = args[0] if args else Any
     items = [_convert(inner, v, f"{path}[{i}]") for i, v in enumerate(value)]
-    return tuple(items) if (typing.get_origin(tp) is tuple or tp is tuple) else items
+    return tuple(items) if is_tuple else items
 
 
 def _convert_mapping(tp: Any, value: Any, path: str) -> Any:

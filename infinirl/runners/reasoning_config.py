@@ -27,6 +27,11 @@ class ModelConfig:
     rollout_dtype: str = "float32"
     """Inference dtype of the rollout engine (bfloat16 halves memory; fp32 keeps log-probs closest)."""
 
+    def validate(self) -> None:
+        from infinirl.engines.cpu_dtype import check_dtype_name
+
+        check_dtype_name(self.rollout_dtype, "model.rollout_dtype")
+
 
 @dataclass(kw_only=True)
 class RolloutConfig:
