@@ -19,7 +19,7 @@ from typing import Any
 from infinirl.config import ConfigError
 from infinirl.utils import replace_directory, write_json_atomic
 
-__all__ = ["Checkpoints", "config_changes", "verify_checkpoint"]
+__all__ = ["ABSENT", "Checkpoints", "config_changes", "verify_checkpoint"]
 
 STATE_FILE = "runner_state.json"
 MANIFEST_FILE = "manifest.json"
@@ -142,16 +142,26 @@ def _verify_manifest(folder: str, fix: str | None = None) -> None:
 
 
 def config_changes(old: dict, new: dict, prefix: str = "") -> dict[str, tuple[Any, Any]]:
-    """Every dotted key whose value differs between two plain config trees: ``key -> (old, new)``."""
+    """Every dotted key whose value differs between two plain config trees: ``key -> (old, new)``;
+    a key one tree lacks has :data:`ABSENT` there (shown as ``<absent>``, not as a null value)."""
     changes: dict[str, tuple[Any, Any]] = {}
     for key in sorted(set(old) | set(new), key=str):
         path = f"{prefix}{key}"
-        a, b = old.get(key, _ABSENT), new.get(key, _ABSENT)
+        a, b = old.get(key, ABSENT), new.get(key, ABSENT)
         if isinstance(a, dict) and isinstance(b, dict):
             changes.update(config_changes(a, b, path + "."))
         elif a != b:
-            changes[path] = (None if a is _ABSENT else a, None if b is _ABSENT else b)
+            changes[path] = (a, b)
     return changes
 
 
-_ABSENT = object()
+class _Absent:
+    """A key one of two compared configs lacks (a key added or removed since the checkpoint)."""
+
+    def __repr__(self) -> str:
+        return "<absent>"
+
+    __str__ = __repr__  # config_history.jsonl writes it with str
+
+
+ABSENT = _Absent()

@@ -7,7 +7,7 @@ import os
 import pytest
 
 from infinirl.config import ConfigError
-from infinirl.runners.checkpoints import Checkpoints, config_changes, verify_checkpoint
+from infinirl.runners.checkpoints import ABSENT, Checkpoints, config_changes, verify_checkpoint
 
 
 def _commit(folders: Checkpoints, index: int, payload: str = "") -> str:
@@ -91,8 +91,10 @@ def test_verify_checkpoint_checks_one_folder_as_resume_does_with_the_callers_fix
 def test_config_changes_lists_every_changed_leaf():
     old = {"actor": {"lr": 1e-3, "betas": [0.9, 0.99]}, "iterations": 10, "gone": 1}
     new = {"actor": {"lr": 3e-4, "betas": [0.9, 0.99]}, "iterations": 20, "added": {"x": 1}}
-    assert config_changes(old, new) == {"actor.lr": (1e-3, 3e-4), "iterations": (10, 20), "gone": (1, None),
-                                        "added": (None, {"x": 1})}
+    assert config_changes(old, new) == {"actor.lr": (1e-3, 3e-4), "iterations": (10, 20), "gone": (1, ABSENT),
+                                        "added": (ABSENT, {"x": 1})}
+    assert config_changes({"a": None}, {}) == {"a": (None, ABSENT)}  # a null value is not a missing key
+    assert repr(ABSENT) == str(ABSENT) == "<absent>"
 
 
 def test_placement_keys_naming_several_components_expand_and_a_repeat_is_refused():
