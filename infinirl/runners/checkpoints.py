@@ -5,7 +5,9 @@ driver writes its own state (``runner_state.json``: iteration, clock, the config
 flow's counters) and a ``manifest.json`` listing every file with its size, and renames the folder
 into place. A crash, ``kill -9`` or a full disk at any point leaves the previous checkpoint usable,
 a half-written folder is never mistaken for one, and a file truncated afterwards is named on
-resume instead of failing deep inside a worker.
+resume instead of failing deep inside a worker. Every file and folder of the new checkpoint is
+fsynced before its rename and the checkpoints folder after it, and only then are older
+checkpoints pruned, so a power loss leaves the new checkpoint whole or the previous one.
 """
 
 from __future__ import annotations
@@ -46,7 +48,10 @@ class Checkpoints:
         write_json_atomic(os.path.join(tmp, STATE_FILE), state)
         write_json_atomic(os.path.join(tmp, MANIFEST_FILE), _manifest(tmp))
         final = self.path_of(index)
-        replace_directory(tmp, final)  # a same-numbered folder is kept aside until the new one is in place
+        # Durable before the older checkpoints are pruned: without the fsyncs a power loss could
+        # leave the new folder renamed into place with empty files and the older ones deleted.
+        # A same-numbered folder is kept aside until the new one is in place.
+        replace_directory(tmp, final, durable=True)
         if self.keep:
             self.prune(self.keep)
         return final
