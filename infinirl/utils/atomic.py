@@ -20,8 +20,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_open", "atomic_path", "fsync_directory", "fsync_tree", "new_file_mode", "replace_directory", "torch_save_atomic",
-           "write_json_atomic", "write_text_atomic"]
+__all__ = ["atomic_open", "atomic_path", "fsync_directory", "fsync_tree", "new_file_mode", "replace_directory",
+           "torch_save_atomic", "write_json_atomic", "write_text_atomic"]
 
 _umask_lock = threading.Lock()
 
