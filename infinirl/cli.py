@@ -246,6 +246,8 @@ def _run_config_command(args: argparse.Namespace) -> int:
     try:
         spec, cfg = build_config(args.config, args.overrides, args.command)
         if args.command == "validate":
+            if spec.preflight is not None:  # what `train` checks in the driver before the cluster starts
+                spec.preflight(cfg)
             print(f"config '{args.config}' is valid (runner {spec.name})")
             return 0
         if args.command == "plan":
@@ -285,7 +287,7 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
         ("train", "run a job", "iterations=10 placement.actor=0"),
         ("eval", "greedy accuracy, pass@1 and pass@k of a model or a training run's checkpoint",
          "run_dir=runs/grpo_chain_sum samples=8 k=[1,8]"),
-        ("validate", "check a config without running it", "iterations=10"),
+        ("validate", "check a config (and the files and env it names) without running it", "iterations=10"),
     ):
         default = _DEFAULT_CONFIG[command]
         p = sub.add_parser(command, help=text)

@@ -157,6 +157,8 @@ CASES = {
     "unknown video option": ([*GYM, "eval.video_env_kwargs={bogus: 1}"], "eval.video_env_kwargs"),
     "unknown policy": ([*REACH, "policy.name=mlp"], "policy.name='mlp' is not registered"),
     "unknown policy option": ([*GYM, "policy.kwargs={bogus: 1}"], "bogus"),
+    "unknown policy option key": ([*GYM, "policy.kwargs.hiddn=[1]"], "hiddn"),
+    "cloning data missing": ([*REACH, "algorithm.bc.data=/nonexistent"], "algorithm.bc"),
     "ppo clip above one": ([*REACH, "algorithm.clip=1.5"], "algorithm.clip=1.5 must be in (0, 1)"),
     "zero discount": ([*REACH, "algorithm.gamma=0"], "algorithm.gamma=0.0 must be in (0, 1]"),
     "grpo groups not dividing": ([*REACH, "algorithm.name=grpo", "algorithm.group_size=3"],
@@ -228,6 +230,26 @@ def test_bad_input_is_one_line_naming_the_fix(case, tmp_path, tiny_llama_dir, ca
     assert fragment in lines[0], lines[0]
     assert "Traceback" not in err
     assert not os.path.exists(tmp_path / "out"), "a refused run left an output folder"
+
+
+# `infinirl validate` runs the runners' driver-side checks too (RunnerSpec.preflight): what train
+# refuses from the config and its files, validate refuses with the same line.
+VALIDATE_CASES = ("unknown env option", "unknown policy option", "unknown policy option key", "cloning data missing",
+                  "unknown video option", "data file missing", "data file malformed", "data rows without the answer",
+                  "prompt over the limit", "observation field missing", "discrete actions")
+
+
+@pytest.mark.parametrize("case", VALIDATE_CASES)
+def test_validate_refuses_what_train_refuses(case, tmp_path, tiny_llama_dir, capsys, no_workers):
+    args, fragment = CASES[case]
+    if any("metaworld" in arg for arg in args) or args[1] == "ppo_metaworld_reach":
+        pytest.importorskip("metaworld")
+    if args[1].startswith("sac") or any("gym:" in arg for arg in args):
+        pytest.importorskip("gymnasium")
+    code, lines, err = _run(["validate", *args[1:]], _files(tmp_path, tiny_llama_dir), capsys)
+    assert code == 2, err
+    assert len(lines) == 1 and lines[0].startswith("infinirl: config error: ") and fragment in lines[0], err
+    assert not os.path.exists(tmp_path / "out")
 
 
 @pytest.mark.parametrize("case", list(NEEDS_CLUSTER))
