@@ -54,6 +54,7 @@ from infinirl.runners.checkpoints import ABSENT, Checkpoints, config_changes
 from infinirl.runners.curves import Panel, plot_panels
 from infinirl.runners.metrics_log import METRICS_FILE, MetricsLogger, read_metrics
 from infinirl.runners.run_config import RunConfig
+from infinirl.runners.run_inputs import check_run_inputs, run_inputs
 from infinirl.utils import (
     capture_rng_state,
     restore_rng_state,
@@ -132,12 +133,15 @@ class RunLoop:
         self.resume_from: tuple[str, dict] | None = None
         self._history_record: dict | None = None
         self._created_output = False
+        self.inputs: dict = {}
+        """What the run reads besides its config (:mod:`.run_inputs`), recorded with each checkpoint."""
 
     # ------------------------------------------------------------------ before any worker starts
     def __enter__(self) -> RunLoop:
         self._created_output = not os.path.exists(self.cfg.output_dir)
         try:
             _check_writable(self.cfg.output_dir)
+            self.inputs = run_inputs(self.cfg)
             self.resume_from = self._find_resume_point()
             if self.resume_from is None:
                 self._set_earlier_run_aside()
@@ -164,6 +168,7 @@ class RunLoop:
         recorded = state.get("config")
         if recorded is not None:
             self._check_config(path, recorded, iteration)
+        check_run_inputs(state.get("inputs"), self.inputs, path)
         metrics = os.path.join(self.cfg.output_dir, METRICS_FILE)
         if os.path.exists(metrics):
             # A damaged row is named now, before any worker starts; a last row cut off mid-write is
@@ -289,7 +294,7 @@ class RunLoop:
             flow_state = flow.save(tmp)
             torch_save_atomic(capture_rng_state(), os.path.join(tmp, DRIVER_RNG_FILE))
             state = {"iteration": iteration, "elapsed_s": self.elapsed(), "config": to_plain(self.cfg),
-                     "flow": flow_state}
+                     "inputs": self.inputs, "flow": flow_state}
             return self.checkpoints.commit(tmp, iteration, state)
         except BaseException as exc:
             self.checkpoints.abandon(tmp)

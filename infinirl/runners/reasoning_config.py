@@ -187,6 +187,11 @@ class ReasoningConfig(RunConfig):
             return self.reference.mode
         return "actor_base" if self.actor.lora is not None else "separate"
 
+    def data_files(self) -> dict[str, str]:
+        from infinirl.tasks.sources import task_files
+
+        return task_files(self.task)
+
     def components(self) -> list[str]:
         """The components this run launches, in launch order."""
         names = ["actor", "rollout", "reward"]

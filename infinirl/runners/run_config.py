@@ -147,6 +147,12 @@ class RunConfig:
             entries.setdefault(name, entries[fallback])
         return {name: entries[name] for name in self.components()}
 
+    def data_files(self) -> dict[str, str]:
+        """``label -> path`` of the data files this run reads whose rows decide what it trains on; each
+        is recorded with its size and sha256 in every checkpoint, and a resume over other contents is
+        refused (:mod:`infinirl.runners.run_inputs`). The label names the config key."""
+        return {}
+
     def resume_may_change(self, key: str) -> bool:
         """Whether a change of ``key`` (dotted) between a checkpoint and this config takes effect on resume."""
         shared = ("iterations", "output_dir", "resume", "save_every", "keep_checkpoints", "loggers", "eval",
