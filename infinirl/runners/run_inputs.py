@@ -6,7 +6,8 @@ and compared on resume before any worker starts.
   stream keeps only its position (epoch, offset) over the items, so other rows under the same
   count would be trained on silently, and another count would fail inside a worker;
 * **what bfloat16 computes in on this host's CPU** (``engines/cpu_dtype``: ``INFINIRL_CPU_BF16``
-  and the CPU's native bf16 support), when the config asks for bfloat16 anywhere: on a CPU without
+  and the CPU's native bf16 support), when the config asks for bfloat16 anywhere and the run
+  computes on the CPU (not recorded where the driver sees GPUs the cluster uses): on a CPU without
   native bf16 it becomes float32, so the same config can train at another precision on another
   host or with the variable changed.
 
@@ -36,11 +37,20 @@ def run_inputs(cfg) -> dict[str, Any]:
     if data:
         inputs["data"] = data
     keys = _bf16_keys(to_plain(cfg))
-    if keys:
+    if keys and not _on_gpus(cfg):
         from infinirl.engines.cpu_dtype import cpu_bf16_is_fast
 
         inputs["bfloat16_on_cpu"] = {"computes_in": "bfloat16" if cpu_bf16_is_fast() else "float32", "keys": keys}
     return inputs
+
+
+def _on_gpus(cfg) -> bool:
+    """Whether the run computes on GPUs, where bfloat16 is bfloat16 whatever the host's CPU: a GPU run
+    moved to a host with another CPU is not refused for a precision its CPU never computed in."""
+    import torch
+
+    cluster = getattr(cfg, "cluster", None)
+    return torch.cuda.is_available() and getattr(cluster, "num_gpus", None) != 0
 
 
 def file_digest(path: str | os.PathLike) -> dict[str, Any]:

@@ -141,3 +141,14 @@ def test_a_run_that_asks_for_no_bfloat16_records_no_dtype_and_older_checkpoints_
     (path / MANIFEST_FILE).write_text(json.dumps(_manifest(str(path))))
     run(reasoning(tmp_path, 2))
     assert os.path.isdir(tmp_path / "run" / "checkpoints" / "iter_000002")
+
+
+def test_a_run_on_gpus_records_no_cpu_dtype_so_moving_it_to_another_host_resumes(tmp_path, monkeypatch,
+                                                                                 cpu_without_native_bf16):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    cpu_without_native_bf16(True)
+    run(reasoning(tmp_path, 1, actor={"param_dtype": "bfloat16"}))
+    state = json.load(open(tmp_path / "run" / "checkpoints" / "iter_000001" / "runner_state.json"))
+    assert "bfloat16_on_cpu" not in state.get("inputs", {})
