@@ -46,7 +46,8 @@ def build_config(name: str, overrides: list[str], command: str = "train"):
     overrides = upgrade_renamed_overrides(spec.config_cls, overrides)
     _refuse_runner_change(name, runner_name, overrides)
     check_override_keys(spec.config_cls, overrides)
-    return spec, to_dataclass(spec.config_cls, compose(name, hydra_overrides(base, overrides), complete=True))
+    composed = compose(name, hydra_overrides(base, overrides, spec.config_cls), complete=True)
+    return spec, to_dataclass(spec.config_cls, composed)
 
 
 def _refuse_runner_change(name: str, runner_name: str, overrides: list[str]) -> None:
@@ -58,32 +59,138 @@ def _refuse_runner_change(name: str, runner_name: str, overrides: list[str]) -> 
                               "overriding runner")
 
 
-def hydra_overrides(base: dict, overrides: list[str]) -> list[str]:
+def hydra_overrides(base: dict, overrides: list[str], cls: type | None = None) -> list[str]:
     """Our ``key=value`` overrides in Hydra's grammar.
 
     Keys were checked against the typed config, so a valid key the YAML leaves out may be set too
-    (Hydra's ``++``: add or override). A mapping value replaces the YAML's mapping instead of being
-    merged into it (``eval.env_kwargs={}`` clears it), as a user reading ``key=value`` expects."""
+    (Hydra's ``++``: add or override). A mapping value given for a key the YAML sets depends on
+    what the key is in ``cls`` (the runner's config class):
+
+    * a typed section (a dataclass, optional or not: ``env``, ``actor.lora``): merged, entry by
+      entry, as if each were given as ``key.entry=value`` (``env={num_envs: 4}`` keeps the YAML's
+      ``env.name``); a section the YAML leaves unset (``null``) is set to the mapping;
+    * a field whose metadata names a ``merge_override`` normaliser (``placement``): the two
+      mappings are normalised (``"actor,rollout"`` keys expanded) and merged by entry;
+    * a free-form mapping (``eval.env_kwargs``, ``policy.kwargs``) or a key under one: the value
+      replaces the YAML's mapping (``eval.env_kwargs={}`` clears it), as a user reading
+      ``key=value`` expects."""
     out = []
     for override in overrides:
         if override[:1] in "+~":
             out.append(override)
             continue
         key, _, value = override.partition("=")
-        if value.strip().startswith("{") and _has_key(base, key):
-            out += [f"~{key}", f"+{key}={value}"]
-        else:
+        current = _value_at(base, key)
+        if not value.strip().startswith("{") or not isinstance(current, dict):
             out.append("++" + override)
+            continue
+        kind, field = _mapping_kind(cls, key)
+        if kind == "section":
+            entries = _parsed_mapping(override)
+            out += hydra_overrides(base, [f"{key}.{name}={_hydra_value(item)}" for name, item in entries.items()],
+                                   cls)
+        elif kind == "merge":
+            normalise = field.metadata["merge_override"]
+            merged = {**normalise(current), **normalise(_plain(_parsed_mapping(override)))}
+            out += [f"~{key}", f"+{key}={_hydra_value(merged)}"]
+        else:
+            out += [f"~{key}", f"+{key}={value}"]
     return out
 
 
-def _has_key(tree: dict, dotted: str) -> bool:
+def _mapping_kind(cls: type | None, dotted: str) -> tuple[str, object]:
+    """How a mapping override of ``dotted`` applies: ``section`` (a dataclass: merged by entry),
+    ``merge`` (a field with a ``merge_override`` normaliser) or ``replace`` (a free-form mapping,
+    or a key under one, or no class to look in)."""
+    import dataclasses
+    import typing
+
+    node, field = cls, None
+    for part in dotted.split("."):
+        node = _dataclass_of(node)
+        if node is None:
+            return "replace", None
+        fields = {f.name: f for f in dataclasses.fields(node)}
+        if part not in fields:
+            return "replace", None
+        field = fields[part]
+        node = typing.get_type_hints(node)[part]
+    if _dataclass_of(node) is not None:
+        return "section", field
+    if field is not None and "merge_override" in field.metadata:
+        return "merge", field
+    return "replace", field
+
+
+def _dataclass_of(tp) -> type | None:
+    """``tp`` if it is a dataclass, the dataclass of ``Optional[dataclass]``, else None."""
+    import dataclasses
+    import types
+    import typing
+
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
+        return tp
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        members = [arg for arg in typing.get_args(tp) if arg is not type(None)]
+        if len(members) == 1:
+            return _dataclass_of(members[0])
+    return None
+
+
+def _parsed_mapping(override: str) -> dict:
+    """The mapping of ``key={...}`` as Hydra parses it, quoted strings kept quoted for re-writing."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        value = OverridesParser.create().parse_override(override)._value
+    except HydraException as exc:
+        raise ConfigError(f"override {override!r}: {exc}") from None
+    if not isinstance(value, dict):
+        raise ConfigError(f"override {override!r}: expected a mapping {{key: value, ...}}")
+    return value
+
+
+def _hydra_value(value) -> str:
+    """A parsed value (or plain data) written back in Hydra's grammar; strings stay strings."""
+    from hydra.core.override_parser.types import Override, Quote, QuotedString
+
+    if isinstance(value, str):  # plain data (the merged placement): quoted, so "0" stays a string
+        value = QuotedString(text=value, quote=Quote.single)
+    elif isinstance(value, dict):
+        return "{" + ",".join(f"{_hydra_key(k)}:{_hydra_value(v)}" for k, v in value.items()) + "}"
+    elif isinstance(value, list):
+        return "[" + ",".join(_hydra_value(v) for v in value) + "]"
+    return Override._get_value_element_as_str(value)
+
+
+def _hydra_key(key) -> str:
+    from hydra.core.override_parser.types import Override
+
+    return Override._get_value_element_as_str(str(key))  # keys are never quoted; a comma is escaped
+
+
+def _plain(value):
+    """Hydra's parsed value with its quoted strings as plain strings."""
+    from hydra.core.override_parser.types import QuotedString
+
+    if isinstance(value, QuotedString):
+        return value.text
+    if isinstance(value, dict):
+        return {_plain(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _value_at(tree: dict, dotted: str):
+    """The value at ``dotted`` in ``tree``; None where it is absent."""
     node = tree
     for part in dotted.split("."):
         if not isinstance(node, dict) or part not in node:
-            return False
+            return None
         node = node[part]
-    return True
+    return node
 
 
 def _configs_for(command: str) -> list[str]:
@@ -139,6 +246,8 @@ def _run_config_command(args: argparse.Namespace) -> int:
     try:
         spec, cfg = build_config(args.config, args.overrides, args.command)
         if args.command == "validate":
+            if spec.preflight is not None:  # what `train` checks in the driver before the cluster starts
+                spec.preflight(cfg)
             print(f"config '{args.config}' is valid (runner {spec.name})")
             return 0
         if args.command == "plan":
@@ -178,7 +287,7 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
         ("train", "run a job", "iterations=10 placement.actor=0"),
         ("eval", "greedy accuracy, pass@1 and pass@k of a model or a training run's checkpoint",
          "run_dir=runs/grpo_chain_sum samples=8 k=[1,8]"),
-        ("validate", "check a config without running it", "iterations=10"),
+        ("validate", "check a config (and the files and env it names) without running it", "iterations=10"),
     ):
         default = _DEFAULT_CONFIG[command]
         p = sub.add_parser(command, help=text)

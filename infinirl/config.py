@@ -177,8 +177,9 @@ def renamed_keys(cls: type) -> dict[str, str]:
     return dict(getattr(cls, "RENAMED_KEYS", {}) or {})
 
 
-def upgrade_renamed_keys(cls: type, data: dict, path: str = "") -> dict:
-    """A copy of ``data`` (a raw mapping for ``cls``) with renamed keys moved to their new names."""
+def upgrade_renamed_keys(cls: type, data: dict, path: str = "", warn: bool = True) -> dict:
+    """A copy of ``data`` (a raw mapping for ``cls``) with renamed keys moved to their new names.
+    ``warn``: tell the user to rename them (not for a config a checkpoint recorded: nobody edits it)."""
     renames = renamed_keys(cls)
     if not renames or not any(old.split(".")[0] in data for old in renames):
         return data
@@ -190,7 +191,8 @@ def upgrade_renamed_keys(cls: type, data: dict, path: str = "") -> dict:
         if _has_path(data, new.split(".")):
             raise ConfigError(f"both '{_join(path, old)}' and its new name '{_join(path, new)}' are set; "
                               f"keep only '{_join(path, new)}'")
-        _warn_renamed(_join(path, old), _join(path, new))
+        if warn:
+            _warn_renamed(_join(path, old), _join(path, new))
         _set_path(data, new.split("."), value)
     return data
 
@@ -321,9 +323,14 @@ def _convert_sequence(tp: Any, value: Any, path: str) -> Any:
     if not isinstance(value, (list, tuple)):
         raise ConfigError(f"{path}: expected a list, got {value!r}")
     args = typing.get_args(tp)
+    is_tuple = typing.get_origin(tp) is tuple or tp is tuple
+    if is_tuple and args and args[-1] is not Ellipsis:  # tuple[float, float]: exactly that many values
+        if len(value) != len(args):
+            raise ConfigError(f"{path}: expected {len(args)} values, got {list(value)!r}")
+        return tuple(_convert(inner, v, f"{path}[{i}]") for i, (inner, v) in enumerate(zip(args, value)))
     inner = args[0] if args else Any
     items = [_convert(inner, v, f"{path}[{i}]") for i, v in enumerate(value)]
-    return tuple(items) if (typing.get_origin(tp) is tuple or tp is tuple) else items
+    return tuple(items) if is_tuple else items
 
 
 def _convert_mapping(tp: Any, value: Any, path: str) -> Any:
@@ -361,6 +368,33 @@ def _to_str(value: Any, path: str) -> str:
 
 
 _SCALARS = {bool: _to_bool, int: _to_int, float: _to_float, str: _to_str}
+
+
+NO_DEFAULT = object()
+"""What :func:`plain_default` returns for a key without a default."""
+
+
+def plain_default(cls: type, dotted: str) -> Any:
+    """The plain value (:func:`to_plain`) a dotted key of config class ``cls`` has when nothing sets
+    it: its field's default, inside the default of the section that holds it (a section's factory
+    may set its own values); :data:`NO_DEFAULT` for a key without one or one ``cls`` lacks."""
+    first, *rest = dotted.split(".")
+    fields = {f.name: f for f in dataclasses.fields(cls)} if dataclasses.is_dataclass(cls) else {}
+    field = fields.get(first)
+    if field is None:
+        return NO_DEFAULT
+    if field.default is not MISSING:
+        value = field.default
+    elif field.default_factory is not MISSING:
+        value = field.default_factory()
+    else:
+        return NO_DEFAULT
+    value = to_plain(value)
+    for part in rest:
+        if not isinstance(value, dict) or part not in value:
+            return NO_DEFAULT
+        value = value[part]
+    return value
 
 
 def to_plain(obj: Any) -> Any:

@@ -17,7 +17,7 @@ import warnings
 
 import torch
 
-__all__ = ["cpu_bf16_is_fast", "resolve_cpu_dtype", "resolve_dtype", "resolve_weights_dtype"]
+__all__ = ["check_dtype_name", "cpu_bf16_is_fast", "resolve_cpu_dtype", "resolve_dtype", "resolve_weights_dtype"]
 
 _BF16_NAMES = ("bfloat16", "bf16")
 _DTYPE_ALIASES = {
@@ -37,6 +37,20 @@ def resolve_dtype(dtype: torch.dtype | str) -> torch.dtype:
         raise ValueError(
             f"unknown dtype {dtype!r}; use one of {sorted(_DTYPE_ALIASES)} or a torch.dtype"
         ) from None
+
+
+def check_dtype_name(name: str, key: str) -> None:
+    """ConfigError naming ``key`` unless :func:`resolve_dtype` takes ``name``: a misspelt dtype is
+    refused when the config loads, not by a worker that builds its engine with it."""
+    import difflib
+
+    from infinirl.config import ConfigError
+
+    if str(name).lower() in _DTYPE_ALIASES:
+        return
+    near = difflib.get_close_matches(str(name).lower(), list(_DTYPE_ALIASES), n=1)
+    hint = f" Did you mean '{near[0]}'?" if near else ""
+    raise ConfigError(f"{key}={name!r} is not a dtype.{hint} Choose one of: {', '.join(sorted(_DTYPE_ALIASES))}")
 
 
 @functools.cache

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
+from infinirl.config import bounded
 from infinirl.engines.lora import LoraMergePlan, lora_merge_plan, merged_full_weights
 
 __all__ = ["PolicyLoraSpec", "apply_policy_lora", "lora_targets", "merged_policy_weights", "trained_fully"]
@@ -32,11 +33,11 @@ __all__ = ["PolicyLoraSpec", "apply_policy_lora", "lora_targets", "merged_policy
 class PolicyLoraSpec:
     """Low-rank adapters on a policy's linear layers (``actor.lora``)."""
 
-    r: int = 16
+    r: int = bounded(16, ge=1)
     """Adapter rank."""
-    alpha: float = 32.0
+    alpha: float = bounded(32.0, gt=0)
     """The update is ``(alpha / r) * B @ A``."""
-    dropout: float = 0.0
+    dropout: float = bounded(0.0, ge=0, lt=1)
     """Dropout on the adapter input; keep 0 for PPO (a stochastic forward makes the ratios noisy)."""
     target_modules: list[str] | str = "all-linear"
     """Linear layers that get adapters: ``all-linear``, or names, each the layer's full name or its

@@ -42,16 +42,16 @@ class LoraSettings:
     rollout engine loads a plain model with the original parameter names.
     """
 
-    r: int = 8
+    r: int = bounded(8, ge=1)
     """Adapter rank. Larger learns more, costs more memory for optimizer state."""
-    alpha: float = 16.0
+    alpha: float = bounded(16.0, gt=0)
     """Adapter scaling numerator: the update is ``(alpha / r) * B @ A``."""
     target_modules: list[str] | str = "all-linear"
     """Module names (or peft's ``"all-linear"``) that get adapters; the LM head is never adapted."""
-    dropout: float = 0.0
+    dropout: float = bounded(0.0, ge=0, lt=1)
     """Dropout on the adapter input. Non-zero makes training log-probs stochastic, which PPO
     ratios then see as noise; keep 0 unless you know you want it."""
-    top_layers: int = 0
+    top_layers: int = bounded(0, ge=0)
     """Adapt only the last N decoder layers (0 = all). Backpropagation then stops below the lowest
     adapted layer, so a step costs roughly a forward pass plus N/num_layers of a backward pass:
     the cheapest way to cut trainer time on a CPU when the task needs little capacity."""
@@ -66,11 +66,11 @@ class TrainEngineConfig:
     weight_decay: float = bounded(0.0, ge=0)
     """Decoupled weight decay (AdamW). 0 by default: RL steps are few and decay pulls weights
     away from the pretrained model that the reference policy also uses."""
-    betas: tuple[float, float] = (0.9, 0.999)
-    """Adam moment decay rates."""
+    betas: tuple[float, float] = bounded((0.9, 0.999), ge=0, lt=1, each=True)
+    """Adam moment decay rates (beta1, beta2), each in [0, 1)."""
     eps: float = bounded(1e-8, gt=0)
     """Adam denominator epsilon."""
-    grad_clip: float | None = 1.0
+    grad_clip: float | None = bounded(1.0, ge=0)
     """Clip the global gradient L2 norm to this value; ``None`` or 0 disables clipping (the norm
     is still computed and reported as ``train/grad_norm``)."""
     warmup_steps: int = bounded(0, ge=0)
@@ -79,7 +79,7 @@ class TrainEngineConfig:
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """After warmup: keep ``lr`` (constant) or decay it to ``min_lr_ratio * lr`` at ``total_steps``
     (cosine)."""
-    total_steps: int | None = None
+    total_steps: int | None = bounded(None, ge=1)
     """Optimizer steps of the whole run; required by the cosine schedule."""
     min_lr_ratio: float = bounded(0.0, ge=0, le=1)
     """Cosine floor, as a fraction of ``lr``."""

@@ -37,6 +37,11 @@ class EvalModelConfig:
     rollout_dtype: str = "float32"
     """Inference dtype of the rollout engine."""
 
+    def validate(self) -> None:
+        from infinirl.engines.cpu_dtype import check_dtype_name
+
+        check_dtype_name(self.rollout_dtype, "model.rollout_dtype")
+
 
 @dataclass(kw_only=True)
 class EvalRolloutConfig:

@@ -19,6 +19,11 @@ class RunnerSpec:
     config_cls: type
     run: Callable
     summary: str
+    preflight: Callable | None = None
+    """``preflight(cfg)``: the runner's driver-side checks that need no cluster (the env task and its
+    options, the policy's options, data files, prompt lengths); raises ConfigError. ``infinirl
+    validate`` runs it; the runner's ``run`` runs the same function before any worker starts and
+    uses what it returns, so ``train`` refuses exactly what ``validate`` does."""
 
 
 RUNNERS: Registry[RunnerSpec] = Registry("runner", entry_point_group="infinirl.runners")
@@ -29,9 +34,9 @@ _RUNNER_MODULES = ("infinirl.runners.runtime_demo", "infinirl.runners.reasoning"
                   "infinirl.runners.realworld_sac", "infinirl.runners.hg_dagger")
 
 
-def register_runner(name: str, config_cls: type, summary: str):
+def register_runner(name: str, config_cls: type, summary: str, preflight: Callable | None = None):
     def wrap(fn: Callable) -> Callable:
-        RUNNERS.add(name, RunnerSpec(name, config_cls, fn, summary))
+        RUNNERS.add(name, RunnerSpec(name, config_cls, fn, summary, preflight))
         return fn
 
     return wrap

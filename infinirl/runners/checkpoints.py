@@ -5,7 +5,9 @@ driver writes its own state (``runner_state.json``: iteration, clock, the config
 flow's counters) and a ``manifest.json`` listing every file with its size, and renames the folder
 into place. A crash, ``kill -9`` or a full disk at any point leaves the previous checkpoint usable,
 a half-written folder is never mistaken for one, and a file truncated afterwards is named on
-resume instead of failing deep inside a worker.
+resume instead of failing deep inside a worker. Every file and folder of the new checkpoint is
+fsynced before its rename and the checkpoints folder after it, and only then are older
+checkpoints pruned, so a power loss leaves the new checkpoint whole or the previous one.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any
 from infinirl.config import ConfigError
 from infinirl.utils import replace_directory, write_json_atomic
 
-__all__ = ["Checkpoints", "config_changes", "verify_checkpoint"]
+__all__ = ["ABSENT", "Checkpoints", "config_changes", "verify_checkpoint"]
 
 STATE_FILE = "runner_state.json"
 MANIFEST_FILE = "manifest.json"
@@ -46,7 +48,10 @@ class Checkpoints:
         write_json_atomic(os.path.join(tmp, STATE_FILE), state)
         write_json_atomic(os.path.join(tmp, MANIFEST_FILE), _manifest(tmp))
         final = self.path_of(index)
-        replace_directory(tmp, final)  # a same-numbered folder is kept aside until the new one is in place
+        # Durable before the older checkpoints are pruned: without the fsyncs a power loss could
+        # leave the new folder renamed into place with empty files and the older ones deleted.
+        # A same-numbered folder is kept aside until the new one is in place.
+        replace_directory(tmp, final, durable=True)
         if self.keep:
             self.prune(self.keep)
         return final
@@ -142,16 +147,26 @@ def _verify_manifest(folder: str, fix: str | None = None) -> None:
 
 
 def config_changes(old: dict, new: dict, prefix: str = "") -> dict[str, tuple[Any, Any]]:
-    """Every dotted key whose value differs between two plain config trees: ``key -> (old, new)``."""
+    """Every dotted key whose value differs between two plain config trees: ``key -> (old, new)``;
+    a key one tree lacks has :data:`ABSENT` there (shown as ``<absent>``, not as a null value)."""
     changes: dict[str, tuple[Any, Any]] = {}
     for key in sorted(set(old) | set(new), key=str):
         path = f"{prefix}{key}"
-        a, b = old.get(key, _ABSENT), new.get(key, _ABSENT)
+        a, b = old.get(key, ABSENT), new.get(key, ABSENT)
         if isinstance(a, dict) and isinstance(b, dict):
             changes.update(config_changes(a, b, path + "."))
         elif a != b:
-            changes[path] = (None if a is _ABSENT else a, None if b is _ABSENT else b)
+            changes[path] = (a, b)
     return changes
 
 
-_ABSENT = object()
+class _Absent:
+    """A key one of two compared configs lacks (a key added or removed since the checkpoint)."""
+
+    def __repr__(self) -> str:
+        return "<absent>"
+
+    __str__ = __repr__  # config_history.jsonl writes it with str
+
+
+ABSENT = _Absent()

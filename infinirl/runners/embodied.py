@@ -79,8 +79,44 @@ from infinirl.runtime.scaling import BusyRatioPolicy, ScaleCommands
 from infinirl.utils.threads import spin_wait_env
 
 
+def _check_env_and_policy(cfg: EmbodiedConfig):
+    """The env task, its options and the policy's, checked in the driver before any worker starts: the
+    runner's preflight (``infinirl validate`` runs it too); ``(observation spec, action space, policy spec)``."""
+    check_env_options(cfg.env.name, {"env.kwargs": cfg.env.kwargs, "eval.env_kwargs": cfg.eval.env_kwargs,
+                                     "eval.video_env_kwargs": cfg.eval.video_env_kwargs})
+    try:
+        observation_spec, action_space = probe_env_specs(cfg.env.name, cfg.env.kwargs)
+        policy_spec = PolicySpec(name=cfg.policy.name, options=dict(cfg.policy.kwargs), chunk=cfg.policy.chunk,
+                                 normalize_obs=cfg.normalizes_obs(),
+                                 normalize_keys=tuple(cfg.policy.normalize_keys) or None, obs_clip=cfg.policy.obs_clip)
+        policy = policy_spec.build(observation_spec, action_space)
+    except (ValueError, TypeError, KeyError, OSError) as exc:  # OSError: a checkpoint folder or file missing
+        raise ConfigError(f"{cfg.env.name} / policy {cfg.policy.name}: {exc}") from exc
+    if cfg.actor.lora is not None and policy.policy.lora_refusal:
+        raise ConfigError(f"actor.lora: policy {cfg.policy.name}: {policy.policy.lora_refusal}; remove actor.lora")
+    if cfg.actor.lora is not None:  # the layers it names must exist: checked on the policy just built
+        try:
+            apply_policy_lora(policy, cfg.actor.lora)
+        except ValueError as exc:
+            raise ConfigError(f"policy {cfg.policy.name}: {exc}") from None
+    if cfg.actor.value_lr is not None:
+        _check_value_lr(cfg, policy)
+    if cfg.actor.compile:
+        _check_compiled_step_precision(cfg, policy)
+    if cfg.algorithm.critic_warmup:
+        _check_critic_warmup(cfg, policy)
+    if ALGORITHMS[cfg.algorithm.name].grouped:
+        _check_one_task_per_group(cfg)
+        if cfg.algorithm.normalize_advantages_per_task:
+            raise ConfigError(f"algorithm.normalize_advantages_per_task: algorithm.name={cfg.algorithm.name} "
+                              "normalises its advantages within groups of one task already; remove it")
+    if cfg.algorithm.bc.data is not None:
+        _check_bc_anchor(cfg, policy)
+    return observation_spec, action_space, policy_spec
+
+
 @register_runner("embodied", EmbodiedConfig, "PPO / embodied GRPO for robot policies in vectorised simulators "
-                 "(env/rollout pipelined or collocated)")
+                 "(env/rollout pipelined or collocated)", preflight=_check_env_and_policy)
 def run(cfg: EmbodiedConfig) -> dict:
     with RunLoop(cfg, run_start_time()) as loop:
         observation_spec, action_space, policy_spec = _check_env_and_policy(cfg)
@@ -115,41 +151,6 @@ def run(cfg: EmbodiedConfig) -> dict:
             return flow
 
         return run_components(cfg, loop, launches, make_flow)
-
-
-def _check_env_and_policy(cfg: EmbodiedConfig):
-    """The env task, its options and the policy's, checked in the driver before any worker starts."""
-    check_env_options(cfg.env.name, {"env.kwargs": cfg.env.kwargs, "eval.env_kwargs": cfg.eval.env_kwargs,
-                                     "eval.video_env_kwargs": cfg.eval.video_env_kwargs})
-    try:
-        observation_spec, action_space = probe_env_specs(cfg.env.name, cfg.env.kwargs)
-        policy_spec = PolicySpec(name=cfg.policy.name, options=dict(cfg.policy.kwargs), chunk=cfg.policy.chunk,
-                                 normalize_obs=cfg.normalizes_obs(),
-                                 normalize_keys=tuple(cfg.policy.normalize_keys) or None, obs_clip=cfg.policy.obs_clip)
-        policy = policy_spec.build(observation_spec, action_space)
-    except (ValueError, TypeError, KeyError, OSError) as exc:  # OSError: a checkpoint folder or file missing
-        raise ConfigError(f"{cfg.env.name} / policy {cfg.policy.name}: {exc}") from exc
-    if cfg.actor.lora is not None and policy.policy.lora_refusal:
-        raise ConfigError(f"actor.lora: policy {cfg.policy.name}: {policy.policy.lora_refusal}; remove actor.lora")
-    if cfg.actor.lora is not None:  # the layers it names must exist: checked on the policy just built
-        try:
-            apply_policy_lora(policy, cfg.actor.lora)
-        except ValueError as exc:
-            raise ConfigError(f"policy {cfg.policy.name}: {exc}") from None
-    if cfg.actor.value_lr is not None:
-        _check_value_lr(cfg, policy)
-    if cfg.actor.compile:
-        _check_compiled_step_precision(cfg, policy)
-    if cfg.algorithm.critic_warmup:
-        _check_critic_warmup(cfg, policy)
-    if ALGORITHMS[cfg.algorithm.name].grouped:
-        _check_one_task_per_group(cfg)
-        if cfg.algorithm.normalize_advantages_per_task:
-            raise ConfigError(f"algorithm.normalize_advantages_per_task: algorithm.name={cfg.algorithm.name} "
-                              "normalises its advantages within groups of one task already; remove it")
-    if cfg.algorithm.bc.data is not None:
-        _check_bc_anchor(cfg, policy)
-    return observation_spec, action_space, policy_spec
 
 
 def worker_process_env(cfg: EmbodiedConfig) -> dict[str, dict[str, str]]:

@@ -12,6 +12,8 @@ from typing import Any, ClassVar, Literal
 
 from infinirl.config import ConfigError, bounded
 from infinirl.runners.realworld_sac_config import (
+    VELOCITY_SCALE_HINT,
+    VELOCITY_SCALE_KEY,
     EvalConfig,
     InterventionConfig,
     RobotConfig,
@@ -19,6 +21,7 @@ from infinirl.runners.realworld_sac_config import (
     check_command_deadline,
     check_demo_options,
     known_names,
+    velocity_scale_resumes,
 )
 from infinirl.runners.run_config import RunConfig
 from infinirl.runners.sac_config import NetworkConfig, WorkerConfig
@@ -96,6 +99,15 @@ class HGDAggerConfig(RunConfig):
     actor: WorkerConfig = field(default_factory=WorkerConfig)
     """The robot workers' policy inference threads."""
     learner: WorkerConfig = field(default_factory=WorkerConfig)
+
+    def resume_may_change(self, key: str) -> bool:
+        # As in realworld_sac: a speed limit with absolute targets, the size of an action with deltas.
+        if key == VELOCITY_SCALE_KEY:
+            return velocity_scale_resumes([self.task])
+        return super().resume_may_change(key)
+
+    def resume_refusal_hint(self, key: str) -> str:
+        return VELOCITY_SCALE_HINT if key == VELOCITY_SCALE_KEY else super().resume_refusal_hint(key)
 
     def check(self) -> None:
         from infinirl.realworld.demos import DEMO_POLICIES

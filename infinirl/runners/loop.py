@@ -14,7 +14,9 @@ What the loop owns:
   this one. A changed key that takes effect on resume (``RunConfig.resume_may_change``: length,
   cadences, loggers, placement, throughput settings) is applied and appended to
   ``config_history.jsonl``; any other change is refused, naming each key, because the restored
-  state (optimizer, schedules, buffers) was built with the old value.
+  state (optimizer, schedules, buffers) was built with the old value. The recorded config is read
+  under the present key names (``RENAMED_KEYS``), and a key added since the checkpoint that holds
+  its default counts as unchanged-in-effect (applied and recorded, shown as ``<absent> -> value``).
 * **the iteration**: ``flow.step(i)``, a held-out evaluation every ``eval.every`` iterations and
   after the last (and at iteration 0 with ``eval.at_start``), metrics to every sink, a progress
   bar with the flow's fields and a line per evaluation, a checkpoint every ``save_every``
@@ -46,12 +48,13 @@ import time
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from infinirl.config import ConfigError, to_plain
+from infinirl.config import ConfigError, plain_default, to_plain, upgrade_renamed_keys
 from infinirl.results import host_probe
-from infinirl.runners.checkpoints import Checkpoints, config_changes
+from infinirl.runners.checkpoints import ABSENT, Checkpoints, config_changes
 from infinirl.runners.curves import Panel, plot_panels
 from infinirl.runners.metrics_log import METRICS_FILE, MetricsLogger, read_metrics
 from infinirl.runners.run_config import RunConfig
+from infinirl.runners.run_inputs import check_run_inputs, run_inputs
 from infinirl.utils import (
     capture_rng_state,
     restore_rng_state,
@@ -130,12 +133,15 @@ class RunLoop:
         self.resume_from: tuple[str, dict] | None = None
         self._history_record: dict | None = None
         self._created_output = False
+        self.inputs: dict = {}
+        """What the run reads besides its config (:mod:`.run_inputs`), recorded with each checkpoint."""
 
     # ------------------------------------------------------------------ before any worker starts
     def __enter__(self) -> RunLoop:
         self._created_output = not os.path.exists(self.cfg.output_dir)
         try:
             _check_writable(self.cfg.output_dir)
+            self.inputs = run_inputs(self.cfg)
             self.resume_from = self._find_resume_point()
             if self.resume_from is None:
                 self._set_earlier_run_aside()
@@ -162,6 +168,7 @@ class RunLoop:
         recorded = state.get("config")
         if recorded is not None:
             self._check_config(path, recorded, iteration)
+        check_run_inputs(state.get("inputs"), self.inputs, path)
         metrics = os.path.join(self.cfg.output_dir, METRICS_FILE)
         if os.path.exists(metrics):
             # A damaged row is named now, before any worker starts; a last row cut off mid-write is
@@ -191,8 +198,14 @@ class RunLoop:
               flush=True)
 
     def _check_config(self, path: str, recorded: dict, iteration: int) -> None:
+        cls = type(self.cfg)
+        # Recorded by an earlier version: its keys under their present names (RENAMED_KEYS), so a
+        # rename alone is no change; a key added since (absent from the record) that holds its
+        # default is what the checkpoint ran with, applied and recorded like a resumable change.
+        recorded = upgrade_renamed_keys(cls, recorded, warn=False)
         changes = config_changes(recorded, to_plain(self.cfg))
-        refused = {k: v for k, v in changes.items() if not self.cfg.resume_may_change(k)}
+        added = {k for k, (old, new) in changes.items() if old is ABSENT and new == plain_default(cls, k)}
+        refused = {k: v for k, v in changes.items() if k not in added and not self.cfg.resume_may_change(k)}
         if refused:
             listed = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in refused.items())
             hints = "".join(f" ({hint})" for hint in filter(None, map(self.cfg.resume_refusal_hint, refused)))
@@ -281,7 +294,7 @@ class RunLoop:
             flow_state = flow.save(tmp)
             torch_save_atomic(capture_rng_state(), os.path.join(tmp, DRIVER_RNG_FILE))
             state = {"iteration": iteration, "elapsed_s": self.elapsed(), "config": to_plain(self.cfg),
-                     "flow": flow_state}
+                     "inputs": self.inputs, "flow": flow_state}
             return self.checkpoints.commit(tmp, iteration, state)
         except BaseException as exc:
             self.checkpoints.abandon(tmp)

@@ -58,17 +58,26 @@ __all__ = ["RealWorldSACFlow", "RunCounts", "env_spec_of", "net_spec_of", "recor
            "robot_setup_of", "run"]
 
 
+def preflight(cfg: RealWorldSACConfig) -> SACNetSpec:
+    """The trainer's edge link files and the actor head's options, in the driver before anything
+    starts (``infinirl validate`` runs it too; the encoder is checked once the robots report their
+    cameras); the network spec."""
+    if cfg.pipeline.transport == "edge":
+        cfg.edge.check_trainer_files()  # here, not in the config's check: the edge node holds other files
+    net = net_spec_of(cfg)
+    _check_actor_options(net)
+    return net
+
+
 @register_runner("realworld_sac", RealWorldSACConfig,
-                 "SAC / RLPD on robots in real time (simulated or real): asynchronous robot and learner workers")
+                 "SAC / RLPD on robots in real time (simulated or real): asynchronous robot and learner workers",
+                 preflight=preflight)
 def run(cfg: RealWorldSACConfig) -> dict:
     from infinirl.realworld.discovery import with_driver_discovery
     from infinirl.runners.hg_dagger import intervention_spec_of
     from infinirl.runtime import Channel
 
-    if cfg.pipeline.transport == "edge":
-        cfg.edge.check_trainer_files()  # here, not in the config's check: the edge node holds other files
-    net = net_spec_of(cfg)
-    _check_actor_options(net)
+    net = preflight(cfg)
     intervention = intervention_spec_of(cfg)
 
     def start(plan, groups: dict, on_exit: list):

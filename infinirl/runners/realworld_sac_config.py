@@ -298,11 +298,12 @@ class ReplayConfig:
 class RealWorldSACConfig(RunConfig):
     RUNNER: ClassVar[str] = "realworld_sac"
     DEFAULT_PLACEMENT: ClassVar[dict[str, str]] = {"robot": "0", "learner": "0"}
+    # robot.velocity_scale: only with absolute actions (resume_may_change)
     RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("pipeline.mode", "pipeline.iteration_s", "pipeline.sync_poll_s",
                                                     "pipeline.max_updates_per_step", "robot.command_deadline_s",
-                                                    "robot.heartbeat_deadline_s", "robot.velocity_scale",
-                                                    "robot.max_lead_s", "learner.num_threads", "learner.device",
-                                                    "actor.num_threads", "pipeline.transport", "edge")
+                                                    "robot.heartbeat_deadline_s", "robot.max_lead_s",
+                                                    "learner.num_threads", "learner.device", "actor.num_threads",
+                                                    "pipeline.transport", "edge")
 
     output_dir: str = "runs/realworld_sac"
     iterations: int = bounded(20, ge=1)
@@ -325,6 +326,14 @@ class RealWorldSACConfig(RunConfig):
     learner: LearnerConfig = field(default_factory=lambda: LearnerConfig(device="cpu"))
     """The learner's torch threads and device: cpu (default: the state networks' small MLPs), or auto (the
     GPU its placement gives it, e.g. placement.learner=0 on a GPU machine; what a cnn encoder wants)."""
+
+    def resume_may_change(self, key: str) -> bool:
+        if key == VELOCITY_SCALE_KEY:
+            return velocity_scale_resumes([self.task_of(i) for i in range(len(self.robot.fleet))] or [self.task])
+        return super().resume_may_change(key)
+
+    def resume_refusal_hint(self, key: str) -> str:
+        return VELOCITY_SCALE_HINT if key == VELOCITY_SCALE_KEY else super().resume_refusal_hint(key)
 
     def check(self) -> None:
         from infinirl.realworld.demos import DEMO_POLICIES
@@ -404,6 +413,19 @@ class RealWorldSACConfig(RunConfig):
 
 _DEMO_ARGUMENTS_OF_THE_RUNNER = ("env", "seed", "noise_std")
 """What :func:`~infinirl.realworld.demos.make_demo_policy` passes a demo policy itself."""
+
+
+VELOCITY_SCALE_KEY = "robot.velocity_scale"
+VELOCITY_SCALE_HINT = ("with task.action_mode=delta an action moves the target by up to robot.velocity_scale times "
+                       "the top speed per control period, so the policy and the stored actions were learned at the "
+                       "old scale; keep it, or run with task.action_mode=absolute, where it only limits speed")
+
+
+def velocity_scale_resumes(tasks: list[TaskConfig]) -> bool:
+    """Whether a new ``robot.velocity_scale`` takes effect as intended on resume: only when every
+    robot's actions are absolute targets (the scale then only caps how fast the robot gets there);
+    a delta action is a step of the scale's size, so the learned policy would act differently."""
+    return all(task.action_mode == "absolute" for task in tasks)
 
 
 def check_demo_options(policy: str, options: dict, key: str) -> None:

@@ -88,18 +88,25 @@ class _AheadBatch:
     generation: _Generation
 
 
-@register_runner("reasoning", ReasoningConfig, "GRPO/PPO-family RL with verifiable rewards on an HF causal LM")
+def preflight(cfg: ReasoningConfig):
+    """The task's problems (its data files read and checked), the tokenizer and every eval prompt's
+    length, in the driver before any worker starts (``infinirl validate`` runs it too; train prompts
+    are checked as they are drawn); ``(train stream, eval problems, tokenizer)``."""
+    train_stream, eval_problems, tokenizer = build_problem_sources(cfg)
+    encode_checked(eval_problems, tokenizer, cfg.task.system_prompt, cfg.rollout.max_prompt_length, "eval",
+                   cfg.task.few_shot)
+    return train_stream, eval_problems, tokenizer
+
+
+@register_runner("reasoning", ReasoningConfig, "GRPO/PPO-family RL with verifiable rewards on an HF causal LM",
+                 preflight=preflight)
 def run(cfg: ReasoningConfig) -> dict:
     if cfg.algorithm.asynchronous.max_staleness and cfg.algorithm.objective.is_cap is None:
         print(f"infinirl: algorithm.asynchronous.max_staleness={cfg.algorithm.asynchronous.max_staleness} trains on "
               "samples from older weights without an importance-weight correction; set algorithm.objective.is_cap "
               "(e.g. 2.0) to correct for it", file=sys.stderr, flush=True)
     with RunLoop(cfg, run_start_time()) as loop:
-        train_stream, eval_problems, tokenizer = build_problem_sources(cfg)
-        # Bad input fails before any worker starts: every eval prompt must fit (train prompts are
-        # checked as they are drawn).
-        encode_checked(eval_problems, tokenizer, cfg.task.system_prompt, cfg.rollout.max_prompt_length, "eval",
-                       cfg.task.few_shot)
+        train_stream, eval_problems, tokenizer = preflight(cfg)
         return run_components(
             cfg, loop, lambda plan: _launches(cfg),
             lambda groups, plan: ReasoningFlow(cfg, groups["actor"], groups["rollout"], groups["reward"], tokenizer,

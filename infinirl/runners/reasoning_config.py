@@ -27,6 +27,11 @@ class ModelConfig:
     rollout_dtype: str = "float32"
     """Inference dtype of the rollout engine (bfloat16 halves memory; fp32 keeps log-probs closest)."""
 
+    def validate(self) -> None:
+        from infinirl.engines.cpu_dtype import check_dtype_name
+
+        check_dtype_name(self.rollout_dtype, "model.rollout_dtype")
+
 
 @dataclass(kw_only=True)
 class RolloutConfig:
@@ -181,6 +186,11 @@ class ReasoningConfig(RunConfig):
         if self.reference.mode != "auto":
             return self.reference.mode
         return "actor_base" if self.actor.lora is not None else "separate"
+
+    def data_files(self) -> dict[str, str]:
+        from infinirl.tasks.sources import task_files
+
+        return task_files(self.task)
 
     def components(self) -> list[str]:
         """The components this run launches, in launch order."""

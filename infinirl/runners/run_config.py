@@ -74,10 +74,13 @@ class RunConfig:
     loggers: list[str] = field(default_factory=lambda: ["tensorboard"])
     """Metric sinks besides metrics.jsonl: tensorboard, wandb, swanlab."""
     eval: EvalSchedule = field(default_factory=EvalSchedule)
-    placement: dict[str, str] | str = field(default_factory=dict)
+    placement: dict[str, str] | str = field(default_factory=dict,
+                                            metadata={"merge_override": lambda value: expand_placement(value)})
     """Component -> devices or CPU slots (see infinirl.runtime.placement); "a,b" keys place several.
     ``auto``: the placement the scheduler predicts fastest, chosen when the run starts; ``auto`` as one
-    component's spec (``placement.learner=auto``): the scheduler places that one, the others stay."""
+    component's spec (``placement.learner=auto``): the scheduler places that one, the others stay.
+    A mapping given on the command line (``placement={critic: 1}``) merges over the config's by
+    component, like ``placement.critic=1``; ``placement=auto`` replaces it."""
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
 
     def __post_init__(self) -> None:
@@ -143,6 +146,12 @@ class RunConfig:
         for name, fallback in self.OPTIONAL_COMPONENTS.items():
             entries.setdefault(name, entries[fallback])
         return {name: entries[name] for name in self.components()}
+
+    def data_files(self) -> dict[str, str]:
+        """``label -> path`` of the data files this run reads whose rows decide what it trains on; each
+        is recorded with its size and sha256 in every checkpoint, and a resume over other contents is
+        refused (:mod:`infinirl.runners.run_inputs`). The label names the config key."""
+        return {}
 
     def resume_may_change(self, key: str) -> bool:
         """Whether a change of ``key`` (dotted) between a checkpoint and this config takes effect on resume."""

@@ -42,13 +42,21 @@ from infinirl.utils.threads import spin_wait_env
 _PENDING = "pending_batch.pt"  # with collect_ahead: the next iteration's batch, collected before the save
 
 
+def preflight(cfg: SACConfig) -> tuple[int, object, SACNetSpec]:
+    """The env task, its options and spaces (one sub-env built in the driver) and the networks built
+    once, before any worker starts (``infinirl validate`` runs it too); ``(obs size, action space, net)``."""
+    obs_dim, action_space = _probe(cfg)
+    net = _net_spec(cfg)
+    check_net_builds(net, obs_dim, action_space)
+    return obs_dim, action_space, net
+
+
 @register_runner("sac", SACConfig,
-                 "Soft Actor-Critic (twin Q, auto-tuned entropy, replay buffer) in gymnasium/MuJoCo simulators")
+                 "Soft Actor-Critic (twin Q, auto-tuned entropy, replay buffer) in gymnasium/MuJoCo simulators",
+                 preflight=preflight)
 def run(cfg: SACConfig) -> dict:
     with RunLoop(cfg, run_start_time()) as loop:
-        obs_dim, action_space = _probe(cfg)  # bad task names / spaces fail here, before any worker starts
-        net = _net_spec(cfg)
-        check_net_builds(net, obs_dim, action_space)
+        obs_dim, action_space, net = preflight(cfg)  # bad task names / spaces fail here, before any worker starts
         alg = cfg.algorithm
         update = SACUpdateSpec(gamma=alg.gamma, tau=alg.tau, batch_size=alg.batch_size, actor_lr=alg.actor_lr,
                                critic_lr=alg.critic_lr, alpha_lr=alg.alpha_lr, init_alpha=alg.init_alpha,

@@ -25,7 +25,8 @@ class TaskConfig:
     format_bonus: float = 0.0
     eval_size: int = bounded(64, ge=0)
     """Held-out problems, excluded from training by question text (a data file: its first rows)."""
-    eval_seed: int = 1_000_003
+    eval_seed: int = bounded(1_000_003, ge=0)
+    """Seeds the held-out problems a generator draws (reasoning_gym)."""
     system_prompt: str | None = None
     few_shot: list[dict[str, str]] = field(default_factory=list)
     """Worked examples shown before every question as earlier chat turns, each

@@ -291,10 +291,12 @@ class EpochBatchIterator(Generic[T]):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["seed"] != self.seed or state["size"] != len(self.items):
-            raise ValueError(
+            from infinirl.config import ConfigError  # reported as one line, like every config error
+
+            raise ConfigError(
                 f"cannot resume: checkpoint was taken with seed={state['seed']} over "
                 f"{state['size']} items, this iterator has seed={self.seed} over "
-                f"{len(self.items)}; resume with the same dataset and seed."
+                f"{len(self.items)}; resume with the same dataset and seed, or start over with resume=false."
             )
         self.epoch = state["epoch"]
         self.offset = state["offset"]

@@ -19,8 +19,8 @@ from infinirl.registry import Registry
 from infinirl.tasks.config import TaskConfig
 from infinirl.tasks.problem import Problem
 
-__all__ = ["TASK_SOURCES", "TaskSource", "eval_problems", "held_out_size", "task_label", "training_problems",
-           "verifier_for"]
+__all__ = ["TASK_SOURCES", "TaskSource", "eval_problems", "held_out_size", "task_files", "task_label",
+           "training_problems", "verifier_for"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -34,6 +34,9 @@ class TaskSource:
     """``(task, split) -> the verifier to score with``, after cheap checks of the task's files."""
     label: Callable[[TaskConfig, str], str]
     """A short name for result files."""
+    files: Callable[[TaskConfig], dict[str, str]] = lambda task: {}
+    """``label -> path`` of the files the task's problems are read from (recorded with a training
+    run's checkpoints and compared on resume); a generator reads none."""
 
 
 TASK_SOURCES: Registry[TaskSource] = Registry("task source", entry_point_group="infinirl.task_sources")
@@ -54,6 +57,10 @@ def verifier_for(task: TaskConfig, split: str) -> str:
 
 def task_label(task: TaskConfig, split: str) -> str:
     return TASK_SOURCES.get(task.source).label(task, split)
+
+
+def task_files(task: TaskConfig) -> dict[str, str]:
+    return TASK_SOURCES.get(task.source).files(task)
 
 
 def _guarded(task: TaskConfig, build: Callable):
@@ -181,5 +188,14 @@ def _dataset_label(task: TaskConfig, split: str) -> str:
     return f"{task.name}-{split}" if task.name in DATASET_PRESETS else Path(task.name).stem
 
 
+def _dataset_files(task: TaskConfig) -> dict[str, str]:
+    from infinirl.tasks.datasets import DATASET_PRESETS, preset_path
+
+    if task.name in DATASET_PRESETS:  # under $INFINIRL_DATA_DIR: which folder it names decides the rows
+        return {f"task.name={task.name} ({split} split)": str(preset_path(task.name, split))
+                for split in DATASET_PRESETS.get(task.name).splits}
+    return {"task.name": str(Path(task.name).expanduser())}
+
+
 TASK_SOURCES.add("dataset", TaskSource(training=_dataset_training, evaluation=_dataset_evaluation,
-                                       verifier=_dataset_verifier, label=_dataset_label))
+                                       verifier=_dataset_verifier, label=_dataset_label, files=_dataset_files))

@@ -20,8 +20,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_open", "atomic_path", "fsync_directory", "new_file_mode", "replace_directory", "torch_save_atomic",
-           "write_json_atomic", "write_text_atomic"]
+__all__ = ["atomic_open", "atomic_path", "fsync_directory", "fsync_tree", "new_file_mode", "replace_directory",
+           "torch_save_atomic", "write_json_atomic", "write_text_atomic"]
 
 _umask_lock = threading.Lock()
 
@@ -122,15 +122,35 @@ def torch_save_atomic(obj: Any, path: str | os.PathLike, durable: bool = False) 
         torch.save(obj, handle)
 
 
-def replace_directory(new: str | os.PathLike, target: str | os.PathLike) -> None:
+def fsync_tree(path: str | os.PathLike) -> None:
+    """``fsync`` every file and folder under ``path`` (folders after their contents, ``path``
+    last), so what a rename then publishes is on the disk, not only in the page cache."""
+    for directory, _, files in os.walk(path, topdown=False):
+        for name in files:
+            fd = os.open(os.path.join(directory, name), os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        fsync_directory(directory)
+
+
+def replace_directory(new: str | os.PathLike, target: str | os.PathLike, durable: bool = False) -> None:
     """Move folder ``new`` to ``target``, replacing an existing ``target``.
 
     Two renames cannot be one atomic step: the old ``target`` is kept as ``<target>.old`` until the
-    new one is in place, so at every moment one complete folder exists under one of the names."""
+    new one is in place, so at every moment one complete folder exists under one of the names.
+    ``durable``: every file and folder of ``new`` is fsynced before the rename and the parent
+    folder after it, before the old one is deleted: after a power loss the folder holds its
+    bytes (a rename is ordered before the data it names by nothing else), or the old one is there."""
     new, target = Path(new), Path(target)
     old = target.with_name(target.name + ".old")
+    if durable:
+        fsync_tree(new)
     if target.exists():
         shutil.rmtree(old, ignore_errors=True)
         os.replace(target, old)
     os.replace(new, target)
+    if durable:
+        fsync_directory(target.parent)
     shutil.rmtree(old, ignore_errors=True)

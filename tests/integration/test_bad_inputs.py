@@ -104,6 +104,15 @@ CASES = {
     "negative keep": ([*R, "keep_checkpoints=-2"], "keep_checkpoints=-2 must be >= 0"),
     "mini-batches not dividing": ([*R, "algorithm.mini_batches=3"], "algorithm.mini_batches=3 does not divide"),
     "warmup negative": ([*R, "actor.warmup_steps=-1"], "actor.warmup_steps=-1 must be >= 0"),
+    "negative gradient clip": ([*R, "actor.grad_clip=-1"], "actor.grad_clip=-1.0 must be >= 0"),
+    "Adam beta above one": ([*R, "actor.betas=[1.5,0.9]"], "actor.betas=[1.5, 0.9]: every entry must be in [0, 1)"),
+    "one Adam beta": ([*R, "actor.betas=[0.9]"], "actor.betas: expected 2 values, got [0.9]"),
+    "LoRA rank zero": ([*R, "actor.lora.r=0"], "actor.lora.r=0 must be >= 1"),
+    "LoRA dropout above one": ([*R, "actor.lora.dropout=2.0"], "actor.lora.dropout=2.0 must be in [0, 1)"),
+    "LoRA negative top layers": ([*R, "actor.lora.top_layers=-1"], "actor.lora.top_layers=-1 must be >= 0"),
+    "critic LoRA rank zero": ([*R, "algorithm.advantage=gae", "critic.lora={r: 0}"], "critic.lora.r=0 must be >= 1"),
+    "unknown rollout dtype": ([*R, "model.rollout_dtype=bf17"], "model.rollout_dtype='bf17' is not a dtype"),
+    "negative held-out seed": ([*R, "task.eval_seed=-1"], "task.eval_seed=-1 must be >= 0"),
     # reasoning: names
     "unknown advantage": ([*R, "algorithm.advantage=grpoo"], "algorithm.advantage='grpoo' is not registered"),
     "unknown rollout engine": ([*R, "rollout.engine=sglang"], "rollout.engine='sglang' is not registered"),
@@ -148,6 +157,8 @@ CASES = {
     "unknown video option": ([*GYM, "eval.video_env_kwargs={bogus: 1}"], "eval.video_env_kwargs"),
     "unknown policy": ([*REACH, "policy.name=mlp"], "policy.name='mlp' is not registered"),
     "unknown policy option": ([*GYM, "policy.kwargs={bogus: 1}"], "bogus"),
+    "unknown policy option key": ([*GYM, "policy.kwargs.hiddn=[1]"], "hiddn"),
+    "cloning data missing": ([*REACH, "algorithm.bc.data=/nonexistent"], "algorithm.bc"),
     "ppo clip above one": ([*REACH, "algorithm.clip=1.5"], "algorithm.clip=1.5 must be in (0, 1)"),
     "zero discount": ([*REACH, "algorithm.gamma=0"], "algorithm.gamma=0.0 must be in (0, 1]"),
     "grpo groups not dividing": ([*REACH, "algorithm.name=grpo", "algorithm.group_size=3"],
@@ -219,6 +230,26 @@ def test_bad_input_is_one_line_naming_the_fix(case, tmp_path, tiny_llama_dir, ca
     assert fragment in lines[0], lines[0]
     assert "Traceback" not in err
     assert not os.path.exists(tmp_path / "out"), "a refused run left an output folder"
+
+
+# `infinirl validate` runs the runners' driver-side checks too (RunnerSpec.preflight): what train
+# refuses from the config and its files, validate refuses with the same line.
+VALIDATE_CASES = ("unknown env option", "unknown policy option", "unknown policy option key", "cloning data missing",
+                  "unknown video option", "data file missing", "data file malformed", "data rows without the answer",
+                  "prompt over the limit", "observation field missing", "discrete actions")
+
+
+@pytest.mark.parametrize("case", VALIDATE_CASES)
+def test_validate_refuses_what_train_refuses(case, tmp_path, tiny_llama_dir, capsys, no_workers):
+    args, fragment = CASES[case]
+    if any("metaworld" in arg for arg in args) or args[1] == "ppo_metaworld_reach":
+        pytest.importorskip("metaworld")
+    if args[1].startswith("sac") or any("gym:" in arg for arg in args):
+        pytest.importorskip("gymnasium")
+    code, lines, err = _run(["validate", *args[1:]], _files(tmp_path, tiny_llama_dir), capsys)
+    assert code == 2, err
+    assert len(lines) == 1 and lines[0].startswith("infinirl: config error: ") and fragment in lines[0], err
+    assert not os.path.exists(tmp_path / "out")
 
 
 @pytest.mark.parametrize("case", list(NEEDS_CLUSTER))

@@ -95,6 +95,42 @@ def test_a_mapping_override_replaces_the_configs_mapping():
     assert cfg.eval.env_kwargs == {"seeded_rand_vec": True}  # not merged with terminate_on_success
 
 
+def test_a_mapping_override_of_a_typed_section_merges_into_the_configs_section():
+    """``env={num_envs: 4}`` sets env.num_envs only: the YAML's other env keys (its task) stay, as
+    ``env.num_envs=4`` would; a free-form mapping nested in it (env.kwargs) is still replaced."""
+    from infinirl.cli import build_config
+
+    _, shipped = build_config("ppo_metaworld_push", [])
+    _, cfg = build_config("ppo_metaworld_push", ["env={num_envs: 4}"])
+    assert cfg.env.num_envs == 4 and cfg.env.name == shipped.env.name == "metaworld:push-v3"
+    assert cfg.env.kwargs == shipped.env.kwargs
+    _, cfg = build_config("ppo_metaworld_push", ["env={num_envs: 4, kwargs: {}}", "eval={episodes: 3}"])
+    assert cfg.env.kwargs == {} and cfg.env.name == "metaworld:push-v3"
+    assert cfg.eval.episodes == 3 and cfg.eval.env_kwargs == shipped.eval.env_kwargs
+    _, cfg = build_config("grpo_arithmetic", ["actor={lr: 0.001, lora: {r: 4}}"])
+    _, base = build_config("grpo_arithmetic", [])
+    assert cfg.actor.lr == 0.001 and cfg.actor.lora.r == 4
+    assert cfg.actor.lora.top_layers == base.actor.lora.top_layers and cfg.actor.micro_batch_size == \
+        base.actor.micro_batch_size
+    _, cfg = build_config("grpo_chain_sum", ["actor.lora=null"])
+    assert cfg.actor.lora is None
+    _, cfg = build_config("grpo_smoke", ["actor.lora={r: 2}"])
+    assert cfg.actor.lora.r == 2  # a mapping given for an optional section the config leaves unset sets it
+
+
+def test_a_placement_mapping_merges_over_the_configs_placement_by_component():
+    from infinirl.cli import build_config
+
+    _, cfg = build_config("ppo_chain_sum", ["placement={critic: 1}"])
+    assert cfg.placement_spec() == {"actor": "0", "rollout": "0", "reward": "0", "critic": "1"}
+    _, cfg = build_config("ppo_chain_sum", ["placement={actor\\,critic: 1}"])
+    assert cfg.placement_spec() == {"actor": "1", "rollout": "0", "reward": "0", "critic": "1"}
+    _, cfg = build_config("ppo_chain_sum", ["placement=auto"])
+    assert cfg.placement == "auto"
+    _, cfg = build_config("ppo_pixels_metaworld_reach", ["placement={actor: 2}"])
+    assert cfg.placement_spec() == {"env": "0", "rollout": "1", "actor": "2"}  # the config's rollout: 1 stays
+
+
 def test_renamed_keys_still_work_with_a_warning(capsys):
     from infinirl.cli import build_config
 

@@ -136,3 +136,37 @@ def test_a_command_deadline_within_one_control_period_is_refused():
         config(0.05)
     assert "\n" not in str(error.value)
     config(0.06)
+
+
+@pytest.mark.parametrize("runner", ["realworld_sac", "hg_dagger"])
+def test_a_new_velocity_scale_resumes_only_where_actions_are_absolute_targets(runner, tmp_path):
+    """With task.action_mode=delta an action is a step of velocity_scale times the top speed per
+    period: the policy (and the replay's actions) learned at the old scale, so a new one on resume
+    is refused with the reason; with absolute targets it only limits speed, and takes effect."""
+    from infinirl.config import ConfigError, to_dataclass, to_plain
+    from infinirl.runners.hg_dagger_config import HGDAggerConfig
+    from infinirl.runners.loop import RunLoop
+    from infinirl.runners.realworld_sac_config import RealWorldSACConfig
+
+    cls = {"realworld_sac": RealWorldSACConfig, "hg_dagger": HGDAggerConfig}[runner]
+
+    def config(scale, mode, fleet_mode=None):
+        raw = {"output_dir": str(tmp_path / "run"), "robot": {"velocity_scale": scale},
+               "task": {"action_mode": mode}}
+        if runner == "hg_dagger":
+            raw["dagger"] = {"initial_demos": 0}  # scripted demos need delta actions
+        if fleet_mode is not None:
+            raw["robot"]["fleet"] = [{"kind": "sim_sawyer"},
+                                     {"kind": "sim_sawyer", "task": {"action_mode": fleet_mode}}]
+            raw["placement"] = {"robot": "0-1"}
+        return to_dataclass(cls, raw)
+
+    with pytest.raises(ConfigError, match=r"robot.velocity_scale: 0.5 -> 0.3.*task.action_mode=delta"):
+        RunLoop(config(0.3, "delta"))._check_config("ckpt", to_plain(config(0.5, "delta")), 2)
+    loop = RunLoop(config(0.3, "absolute"))
+    loop._check_config("ckpt", to_plain(config(0.5, "absolute")), 2)
+    assert loop._history_record["changes"] == {"robot.velocity_scale": {"old": 0.5, "new": 0.3}}
+    if runner == "realworld_sac":  # one robot of the fleet acting in deltas is enough to refuse it
+        with pytest.raises(ConfigError, match=r"robot.velocity_scale: 0.5 -> 0.3"):
+            RunLoop(config(0.3, "absolute", "delta"))._check_config(
+                "ckpt", to_plain(config(0.5, "absolute", "delta")), 2)

@@ -7,7 +7,7 @@ import os
 import pytest
 
 from infinirl.config import ConfigError
-from infinirl.runners.checkpoints import Checkpoints, config_changes, verify_checkpoint
+from infinirl.runners.checkpoints import ABSENT, Checkpoints, config_changes, verify_checkpoint
 
 
 def _commit(folders: Checkpoints, index: int, payload: str = "") -> str:
@@ -91,8 +91,10 @@ def test_verify_checkpoint_checks_one_folder_as_resume_does_with_the_callers_fix
 def test_config_changes_lists_every_changed_leaf():
     old = {"actor": {"lr": 1e-3, "betas": [0.9, 0.99]}, "iterations": 10, "gone": 1}
     new = {"actor": {"lr": 3e-4, "betas": [0.9, 0.99]}, "iterations": 20, "added": {"x": 1}}
-    assert config_changes(old, new) == {"actor.lr": (1e-3, 3e-4), "iterations": (10, 20), "gone": (1, None),
-                                        "added": (None, {"x": 1})}
+    assert config_changes(old, new) == {"actor.lr": (1e-3, 3e-4), "iterations": (10, 20), "gone": (1, ABSENT),
+                                        "added": (ABSENT, {"x": 1})}
+    assert config_changes({"a": None}, {}) == {"a": (None, ABSENT)}  # a null value is not a missing key
+    assert repr(ABSENT) == str(ABSENT) == "<absent>"
 
 
 def test_placement_keys_naming_several_components_expand_and_a_repeat_is_refused():
@@ -101,3 +103,45 @@ def test_placement_keys_naming_several_components_expand_and_a_repeat_is_refused
     assert expand_placement({"actor,rollout": 1, "reward": "0"}) == {"actor": "1", "rollout": "1", "reward": "0"}
     with pytest.raises(ConfigError, match="placement gives 'actor' twice"):
         expand_placement({"actor": "0", "actor, rollout": "0"})
+
+
+def test_a_commit_makes_the_new_checkpoint_durable_before_pruning_the_old_ones(tmp_path, monkeypatch):
+    """After a power loss the newest checkpoint must hold its bytes and the older ones must not be
+    gone first: every file and folder of the new one is fsynced before its rename, the checkpoints
+    folder (holding the rename) after it, and only then are older checkpoints deleted."""
+    import shutil
+
+    folders = Checkpoints(str(tmp_path), keep=1)
+    _commit(folders, 1)
+    events = []
+    real_fsync, real_replace, real_rmtree = os.fsync, os.replace, shutil.rmtree
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(src, dst, **kwargs):
+        events.append(("rename", os.fspath(src), os.fspath(dst)))
+        real_replace(src, dst, **kwargs)
+
+    def rmtree(path, *args, **kwargs):
+        events.append(("delete", os.fspath(path)))
+        real_rmtree(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    monkeypatch.setattr(shutil, "rmtree", rmtree)
+    tmp = folders.begin(2)
+    events.clear()
+    os.makedirs(os.path.join(tmp, "actor"))
+    with open(os.path.join(tmp, "actor", "weights.bin"), "w") as handle:
+        handle.write("2")
+    final = folders.commit(tmp, 2, {"iteration": 2})
+    moved = events.index(("rename", tmp, final))
+    synced_before = {path for kind, path, *_ in events[:moved] if kind == "fsync"}
+    inside = {os.path.join(tmp, name) for name in ("actor/weights.bin", "runner_state.json", "manifest.json", "actor")}
+    assert inside | {tmp} <= synced_before, events
+    root_synced = events.index(("fsync", folders.root), moved)
+    pruned = events.index(("delete", folders.path_of(1)))
+    assert moved < root_synced < pruned, events
+    assert folders.completed() == [(2, "iter_000002")]

@@ -313,3 +313,64 @@ def test_an_embodied_run_annealing_over_its_length_cannot_be_lengthened_on_resum
         "ckpt", to_plain(embodied(iterations=2, actor={"anneal_lr": False})), 2)
     RunLoop(embodied(iterations=4, actor={"anneal_iterations": 8}))._check_config(
         "ckpt", to_plain(embodied(iterations=2, actor={"anneal_iterations": 8})), 2)
+
+
+def _edit_recorded_config(output_dir: str, edit) -> None:
+    """Rewrite the config the newest checkpoint recorded (and its manifest), as an older version of
+    the code would have written it."""
+    from infinirl.runners.checkpoints import MANIFEST_FILE, STATE_FILE, Checkpoints, _manifest
+
+    path, state = Checkpoints(output_dir).latest()
+    edit(state["config"])
+    with open(os.path.join(path, STATE_FILE), "w") as handle:
+        json.dump(state, handle)
+    with open(os.path.join(path, MANIFEST_FILE), "w") as handle:
+        json.dump(_manifest(path), handle)
+
+
+@dataclass(kw_only=True)
+class RenamedToyConfig(ToyConfig):
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {"rate": "lr"}
+
+
+def test_a_checkpoint_recorded_under_a_renamed_key_resumes(tmp_path, capsys):
+    cfg = to_dataclass(RenamedToyConfig, {"output_dir": str(tmp_path / "run"), "iterations": 2, "lr": 0.05})
+    run(cfg)
+    _edit_recorded_config(cfg.output_dir, lambda recorded: recorded.update(rate=recorded.pop("lr")))
+    run(to_dataclass(RenamedToyConfig, {"output_dir": str(tmp_path / "run"), "iterations": 4, "lr": 0.05}))
+    history = [json.loads(line)["changes"] for line in open(tmp_path / "run" / "config_history.jsonl")]
+    assert history == [{"iterations": {"old": 2, "new": 4}}]
+    assert "'rate' is now 'lr'" not in capsys.readouterr().err  # a record is upgraded silently: nobody can rename it
+    _edit_recorded_config(cfg.output_dir, lambda recorded: recorded.update(rate=recorded.pop("lr")))
+    with pytest.raises(ConfigError, match=r"\(lr: 0.05 -> 0.1\)"):  # the upgraded value is still compared
+        run(to_dataclass(RenamedToyConfig, {"output_dir": str(tmp_path / "run"), "iterations": 6}))
+
+
+def test_a_key_added_since_the_checkpoint_resumes_at_its_default_and_is_recorded(tmp_path):
+    run(toy(tmp_path, iterations=2))
+    _edit_recorded_config(str(tmp_path / "run"), lambda recorded: recorded.pop("lr"))  # written before `lr` existed
+    run(toy(tmp_path, iterations=3))
+    history = [json.loads(line)["changes"] for line in open(tmp_path / "run" / "config_history.jsonl")]
+    assert history == [{"iterations": {"old": 2, "new": 3}, "lr": {"old": "<absent>", "new": 0.1}}]
+    _edit_recorded_config(str(tmp_path / "run"), lambda recorded: recorded.pop("lr"))
+    with pytest.raises(ConfigError, match=r"\(lr: <absent> -> 0.2\); the checkpoint's state was built"):
+        run(toy(tmp_path, iterations=4, lr=0.2))  # not the default: the checkpoint did not run with it
+
+
+def test_a_reasoning_checkpoint_written_before_is_cap_was_renamed_resumes(tmp_path):
+    """algorithm.objective.tis_cap is now is_cap (ReasoningConfig.RENAMED_KEYS): a checkpoint that
+    recorded the old name holds the same setting, not a change of two keys."""
+    from infinirl.config import to_plain
+    from infinirl.runners.reasoning_config import ReasoningConfig
+
+    cfg = to_dataclass(ReasoningConfig, {"output_dir": str(tmp_path / "run"),
+                                         "algorithm": {"objective": {"is_cap": 2.0}}})
+    recorded = to_plain(cfg)
+    objective = recorded["algorithm"]["objective"]
+    objective["tis_cap"] = objective.pop("is_cap")
+    loop = RunLoop(cfg)
+    loop._check_config("ckpt", recorded, 2)
+    assert loop._history_record is None  # nothing changed
+    objective["tis_cap"] = 3.0
+    with pytest.raises(ConfigError, match=r"algorithm.objective.is_cap: 3.0 -> 2.0"):
+        loop._check_config("ckpt", recorded, 2)
