@@ -30,6 +30,7 @@ run(to_dataclass(EmbodiedConfig, {raw!r}))
 """
 
 
+@pytest.mark.slow  # default-suite budget: the gate's patching has a unit test
 def test_a_runner_row_takes_one_turn_per_iteration_and_exits(tmp_path):
     iterations = 2
     raw = {"iterations": iterations, "rollout_steps": 8, "output_dir": str(tmp_path / "run"), "save_every": 0,

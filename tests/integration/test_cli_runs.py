@@ -44,6 +44,7 @@ def start_until(command: list[str], metrics, rows: int):
     return proc
 
 
+@pytest.mark.slow  # default-suite budget: two whole CLI runs in subprocesses
 def test_ctrl_c_or_sigterm_stops_after_the_iteration_with_a_checkpoint_and_the_run_resumes(tmp_path):
     """Ctrl-C reaches the driver and the Ray processes it started (the terminal's process group);
     a scheduler's SIGTERM reaches the driver: both end the run after the current iteration, with a

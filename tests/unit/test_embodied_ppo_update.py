@@ -153,6 +153,7 @@ def run_two_ranks(build, batch, ppo):
     return models, results
 
 
+@pytest.mark.slow  # default-suite budget: compiles two ranks; one compiled rank is checked in the default suite
 @pytest.mark.skipif(find_cxx_compiler() is None,
                     reason="torch.compile on CPU needs a C++ compiler (g++/clang++), none on PATH")
 def test_two_compiled_ranks_end_with_the_weights_of_one_eager_rank():

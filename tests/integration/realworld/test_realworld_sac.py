@@ -194,6 +194,7 @@ def test_counters_continue_from_the_checkpoint_whatever_the_components_counted_b
 ROBOT_COUNTERS = ("env/steps", "robot/late_steps", "robot/safety_aborts", "robot/safety_clips", "robot/safety_events")
 
 
+@pytest.mark.slow  # default-suite budget: RunCounts and observe_stored have unit tests
 def test_resumed_counters_continue_and_a_start_without_checkpoint_folds_the_stored_states(ray_cluster, tmp_path,
                                                                                           capsys):
     """Resumed: the robots' counters go on from the checkpoint's (new robot workers count from 0).

@@ -210,6 +210,7 @@ def test_config_is_private_to_the_install_and_a_foreign_one_fails_in_one_line(tm
         check_config(foreign / "config.yaml")
 
 
+@pytest.mark.slow  # default-suite budget: renders LIBERO scenes step by step
 def test_steps_nobody_observes_render_no_frame_and_the_frames_read_are_unchanged(scenes):
     """Chunks of 4 in 6-step episodes: with ``observe=False`` on inner steps, the frames of every
     observed step and of the time-limit end are bit-identical to an env rendering every step
