@@ -76,6 +76,7 @@ def test_ppo_with_lora_on_the_vla_trains_the_adapters_and_resumes_exactly(ray_cl
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
 
 
+@pytest.mark.slow  # default-suite budget: the likelihoods have unit tests (tests/unit/models/test_vla_policy.py)
 @pytest.mark.parametrize("likelihood", [{"likelihood": "fpo", "fpo_samples": 2},
                                         {"likelihood": "flow_noise", "critic_input": "expert"}],
                          ids=["fpo", "flow_noise_expert_critic"])

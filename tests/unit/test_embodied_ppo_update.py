@@ -166,7 +166,7 @@ def test_two_compiled_ranks_end_with_the_weights_of_one_eager_rank():
         torch.testing.assert_close(flat(model), flat(single), rtol=0, atol=1e-5)
 
 
-@pytest.mark.parametrize("compiled", [False, True])
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.slow)])  # compiled: budget
 def test_an_fsdp2_model_trains_like_the_plain_one(compiled):
     """strategy=fsdp (FSDP2 ``fully_shard``, SUM reduction, one gloo rank here): the same weights as
     the plain model, eager and with actor.compile (which compiles only the loss under FSDP2), and
