@@ -3,7 +3,8 @@
 #   bash scripts/install.sh          # the package and everything the main job needs
 #   bash scripts/install.sh --dev    # + test tools
 #   --no-sim                         # skip the simulators (MetaWorld, MuJoCo, ManiSkill, LIBERO) and their apt step
-# Safe to re-run. torch is pinned to 2.13.0: on CPU-only hosts pip takes the local CPU wheel.
+# Safe to re-run. torch is pinned to 2.13.0 and no index URL is passed: pip takes it from the indexes it is
+# configured with (PyPI's Linux wheel is the CUDA build); an installed 2.13.0+cpu satisfies the pin and stays.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 extras=("sim")
