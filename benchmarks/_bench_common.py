@@ -215,17 +215,18 @@ def add_record_argument(parser) -> None:
 
 
 def record_result(path: str | None, title: str, final: Mapping) -> None:
-    """With ``--record``: the final JSON line as a results entry (command, host probe, date)."""
+    """With ``--record``: the final JSON line as a results entry (command, host probe, today's
+    date, as the benchmark ends, and the commit of the code, ``-dirty`` with uncommitted changes)."""
     if not path:
         return
     import shlex
     import sys
 
-    from infinirl.results import append_entry, format_entry, host_probe
+    from infinirl.results import append_entry, code_version, format_entry, host_probe
 
     command = shlex.join(["python", *sys.argv])
     append_entry(path, format_entry(title=title, command=command, result=dict(final),
-                                    host={**host_probe(), **dict(final.get("host") or {})}))
+                                    host={**host_probe(), **dict(final.get("host") or {})}, commit=code_version()))
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,9 +1,11 @@
 """Measured results into ``docs/results.md``, written by the tools that measure them.
 
-Every run writes ``summary.json`` (its final JSON line plus the command that started it and a
-probe of the host); every benchmark ends with a JSON line with ``ratios`` and takes
-``--record docs/results.md``. This module turns either into a results entry (what, command, host,
-date, result) and appends it to the results file, so numbers are never copied by hand::
+Every run writes ``summary.json`` (its final JSON line plus the command that started it, a probe of
+the host, the date it ended and the commit of the code, see ``code_version``); every benchmark ends
+with a JSON line with ``ratios`` and takes ``--record docs/results.md``. This module turns either
+into a results entry (what, command, host, date, commit, result) and appends it to the results
+file, so numbers are never copied by hand. A run stopped before its last iteration (``stopped_at``
+in its summary) is recorded marked as stopped, in its title and in a line of its own::
 
     infinirl record runs/ppo_metaworld_reach            # a run's summary
     python benchmarks/embodied_pipeline.py --record docs/results.md
@@ -14,13 +16,42 @@ from __future__ import annotations
 import json
 import os
 import platform
+import subprocess
 import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["RECORDED_SECTION", "append_entry", "format_entry", "host_probe", "record_run"]
+__all__ = ["RECORDED_SECTION", "append_entry", "code_version", "format_entry", "host_probe", "record_run"]
 
 RECORDED_SECTION = "## Recorded by the tools"
+
+# The checkout this package runs from, when it runs from one (not from an installed wheel).
+_CHECKOUT = Path(__file__).resolve().parent.parent
+
+
+def code_version(checkout: str | os.PathLike = _CHECKOUT) -> str | None:
+    """The commit of the code that ran: ``git rev-parse --short HEAD`` of ``checkout``, with
+    ``-dirty`` when a tracked file differs from that commit (untracked files, such as run folders,
+    do not count). None when ``checkout`` is not the top of a git work tree (an installed package:
+    a repository that merely encloses site-packages is not the code's) or git is missing, so an
+    entry then names no commit rather than a wrong one."""
+    checkout = Path(checkout).resolve()
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(checkout), *args], capture_output=True, text=True, timeout=30)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    top = git("rev-parse", "--show-toplevel")
+    if top is None or Path(top).resolve() != checkout:
+        return None
+    commit = git("rev-parse", "--short", "HEAD")
+    if not commit:
+        return None  # a repository with no commit yet
+    changes = git("status", "--porcelain", "--untracked-files=no")
+    return f"{commit}-dirty" if changes else commit
 
 
 def host_probe() -> dict[str, Any]:
@@ -37,16 +68,27 @@ def host_probe() -> dict[str, Any]:
     return probe
 
 
-def format_entry(*, title: str, command: str, result: dict, host: dict, date: str | None = None) -> str:
-    """A results entry in the file's format: title, what, command, host, date, the result as JSON."""
+def format_entry(*, title: str, command: str, result: dict, host: dict, date: str | None = None,
+                 commit: str | None = None) -> str:
+    """A results entry in the file's format: title, command, host, date, commit (omitted when
+    None: not a git checkout), the result as JSON. A result with ``stopped_at`` (a run stopped by a
+    signal before its last iteration) is marked as such in the title and in a line of its own."""
     date = date or time.strftime("%Y-%m-%d")
     gpus = ", ".join(host.get("gpus") or []) or "no GPU"
     host_line = (f"{host.get('cpu', 'unknown CPU')}, {host.get('vcpus', '?')} vCPUs, "
                  f"{host.get('memory_gib', '?')} GiB, {gpus}; torch {host.get('torch', '?')}")
-    shown = {k: v for k, v in result.items() if k not in ("command", "host")}
+    commit_part = f" Commit: `{commit}`." if commit else ""
+    stopped = ""
+    if result.get("stopped_at") is not None:
+        of = f" of {result['iterations']}" if result.get("iterations") is not None else ""
+        title = f"{title} (stopped at iteration {result['stopped_at']}{of})"
+        stopped = (f"Stopped: a signal ended the run after iteration {result['stopped_at']}{of}, so this is not the "
+                   "full run (no end artifacts).\n")
+    shown = {k: v for k, v in result.items() if k not in ("command", "host", "date", "commit")}
     return (f"### {title}\n\n"
             f"Command: `{command}`.\n"
-            f"Host: {host_line}. Date: {date}.\n\n"
+            f"Host: {host_line}. Date: {date}.{commit_part}\n"
+            f"{stopped}\n"
             f"```json\n{json.dumps(shown, indent=1, sort_keys=True, default=str)}\n```\n")
 
 
@@ -70,8 +112,12 @@ def record_run(source: str | os.PathLike, to: str | os.PathLike, title: str | No
         raise FileNotFoundError(f"{file} does not exist: a run writes summary.json when it finishes; pass a finished "
                                 "run's output_dir or a benchmark's JSON line saved to a file")
     result = _read_result(file)
+    # The date the run ended, not today's: a summary written before runs recorded it dates from its
+    # file, written as the run ended. Its commit is not guessed: today's checkout may be another.
+    date = result.get("date") or time.strftime("%Y-%m-%d", time.localtime(file.stat().st_mtime))
     entry = format_entry(title=title or result.get("title") or source.name, command=result.get("command", "?"),
-                         result=result, host=result.get("host") or host_probe())
+                         result=result, host=result.get("host") or host_probe(), date=date,
+                         commit=result.get("commit"))
     append_entry(to, entry)
     return entry
 

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from infinirl.config import ConfigError, plain_default, to_plain, upgrade_renamed_keys
-from infinirl.results import host_probe
+from infinirl.results import code_version, host_probe
 from infinirl.runners.checkpoints import ABSENT, Checkpoints, config_changes
 from infinirl.runners.curves import Panel, plot_panels
 from infinirl.runners.metrics_log import METRICS_FILE, MetricsLogger, read_metrics
@@ -342,10 +342,13 @@ class RunLoop:
             "metrics": self.logger.path,
             **artifacts,
         }
-        # For `infinirl record <output_dir>`: the result with what produced it and where.
+        # For `infinirl record <output_dir>`: the result with what produced it, where, when it ended
+        # and from which commit (none outside a git checkout).
+        commit = code_version()
         write_json_atomic(os.path.join(cfg.output_dir, SUMMARY_FILE),
                           {**summary, "title": f"{spec.title} ({cfg.runner})", "command": _command_line(),
-                           "host": host_probe()})
+                           "host": host_probe(), "date": time.strftime("%Y-%m-%d"),
+                           **({} if commit is None else {"commit": commit})})
         print(json.dumps(summary), flush=True)
         return summary
 

@@ -47,3 +47,14 @@ def test_an_unexpected_crash_still_ends_in_the_final_line_and_argument_errors_pa
     with pytest.raises(SystemExit):
         bc.concluded("b", bad_argument)
     assert bc.concluded("b", lambda: None) == 0
+
+
+def test_a_recorded_benchmark_names_the_commit_it_ran_from(tmp_path, capsys):
+    from infinirl.results import code_version
+
+    record = tmp_path / "results.md"
+    assert bc.conclude({"benchmark": "b", "ratios": {"x": 2.0}}, record=(str(record), "B")) == 0
+    commit = code_version()
+    text = record.read_text()
+    assert "### B\n" in text
+    assert (f"Commit: `{commit}`." in text) if commit else ("Commit" not in text)

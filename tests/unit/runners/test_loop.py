@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 
 from infinirl.config import ConfigError, bounded, to_dataclass
+from infinirl.results import code_version
 from infinirl.runners.curves import Panel
 from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.run_config import RunConfig
@@ -99,6 +101,9 @@ def test_cadences_checkpoints_and_summary(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "toy iteration 3: eval/score" in out  # each evaluation leaves a line in the log
     assert json.loads(out.strip().splitlines()[-1]) == summary
+    # summary.json adds what `infinirl record` needs: the command, host, end date and commit
+    written = json.load(open(os.path.join(cfg.output_dir, "summary.json")))
+    assert written["date"] == time.strftime("%Y-%m-%d") and written.get("commit") == code_version()
 
 
 def test_no_initial_evaluation_means_no_before_value(tmp_path):
