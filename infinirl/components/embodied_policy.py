@@ -1,9 +1,10 @@
 """The policy as the embodied rollout and actor both hold it: a registered :class:`Policy` plus a
 running observation normaliser, in one ``nn.Module`` so weight sync and checkpoints carry both.
 
-* :class:`RunningMeanStd`: Chan et al.'s parallel mean/variance update (the one gymnasium's
-  ``NormalizeObservation`` uses), kept as module *buffers*: ``state_dict`` includes it, so the
-  trainer's statistics reach the rollout with every weight sync and are restored on resume.
+* :class:`~infinirl.models.running_stats.RunningMeanStd` (defined in ``models``, where the SAC
+  state normaliser and the residual VLA policy also use it): Chan et al.'s parallel mean/variance
+  update, kept as module *buffers*, so the trainer's statistics reach the rollout with every
+  weight sync and are restored on resume.
 * :class:`NormalizedPolicy`: normalises the float observation fields it was told to (``state``,
   ``proprio``; never ``rgb``), clips them to ``[-clip, clip]``, and delegates ``act`` /
   ``evaluate`` / ``value`` to the wrapped policy. Only the trainer updates the statistics, from
@@ -28,6 +29,7 @@ import torch
 from torch import nn
 
 from infinirl.models.policies.base import POLICIES, Policy, PolicyEval, PolicyStep
+from infinirl.models.running_stats import RunningMeanStd
 
 __all__ = ["NormalizedPolicy", "ReturnNormalizer", "RunningMeanStd", "build_embodied_policy", "compute_device",
            "critic_lr_of", "module_device", "policy_kwargs"]
@@ -66,38 +68,6 @@ def module_device(module: nn.Module) -> torch.device:
     for tensor in module.buffers():
         return tensor.device
     return torch.device("cpu")
-
-
-class RunningMeanStd(nn.Module):
-    """Running mean and (population) variance of vectors of ``shape``, as float64 buffers."""
-
-    def __init__(self, shape: Sequence[int], epsilon: float = 1e-4):
-        super().__init__()
-        self.register_buffer("mean", torch.zeros(tuple(shape), dtype=torch.float64))
-        self.register_buffer("var", torch.ones(tuple(shape), dtype=torch.float64))
-        self.register_buffer("count", torch.tensor(float(epsilon), dtype=torch.float64))
-
-    @torch.no_grad()
-    def update(self, batch: torch.Tensor) -> None:
-        """Fold in ``batch`` ``[N, *shape]``."""
-        batch = batch.reshape(-1, *self.mean.shape).to(torch.float64)
-        if batch.shape[0] == 0:
-            return
-        batch_mean = batch.mean(dim=0)
-        batch_var = batch.var(dim=0, unbiased=False)
-        n = float(batch.shape[0])
-        delta = batch_mean - self.mean
-        total = self.count + n
-        new_mean = self.mean + delta * n / total
-        m2 = self.var * self.count + batch_var * n + delta.pow(2) * self.count * n / total
-        self.mean.copy_(new_mean)
-        self.var.copy_(m2 / total)
-        self.count.copy_(total)
-
-    def normalize(self, x: torch.Tensor, clip: float) -> torch.Tensor:
-        std = torch.sqrt(self.var + 1e-8)
-        out = (x.to(torch.float64) - self.mean) / std
-        return out.clamp(-clip, clip).to(torch.float32)
 
 
 class NormalizedPolicy(nn.Module):

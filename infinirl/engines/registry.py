@@ -53,7 +53,7 @@ def check_engine_options(name: str, options: dict[str, Any], key: str) -> None:
         return
     import importlib
 
-    from infinirl.envs.options import keyword_names
+    from infinirl.utils.signatures import keyword_names
 
     module, cls, filled = _OPTIONS_OF[name]
     taken, open_ended = keyword_names(getattr(importlib.import_module(module), cls))

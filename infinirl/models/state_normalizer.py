@@ -23,7 +23,7 @@ from collections.abc import Mapping
 import torch
 from torch import nn
 
-from infinirl.components.embodied_policy import RunningMeanStd
+from infinirl.models.running_stats import RunningMeanStd
 
 __all__ = ["EmbodimentStateNormalizer", "NormalizedStateEncoder"]
 

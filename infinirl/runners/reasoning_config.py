@@ -317,7 +317,7 @@ class ReasoningConfig(RunConfig):
         """The estimator's options are read off its signature: a misspelt one would otherwise stop the run
         at its first advantage computation, after every model has loaded."""
         from infinirl.algorithms import ADVANTAGES
-        from infinirl.envs.options import keyword_names
+        from infinirl.utils.signatures import keyword_names
 
         name = self.algorithm.advantage
         taken, _ = keyword_names(ADVANTAGES.get(name), skip=("inputs",))

@@ -57,11 +57,11 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from infinirl.components.embodied_policy import RunningMeanStd
 from infinirl.models.policies.base import POLICIES, PolicyEval, PolicyStep
 from infinirl.models.policies.heads import gaussian_entropy
 from infinirl.models.policies.mlp import gaussian_logprob
 from infinirl.models.ridge_readout import RidgeReadout
+from infinirl.models.running_stats import RunningMeanStd
 from infinirl.models.sac_encoders import PIXELS_PREFIX, PixelEncoder
 from infinirl.models.vla.frozen import FrozenVLA, mlp
 from infinirl.models.vla.policy import PiZeroFivePolicy, PiZeroPolicy, PiZeroSmolLM2Policy
