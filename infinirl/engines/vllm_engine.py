@@ -56,13 +56,40 @@ from infinirl.engines.vllm_worker import (
     restore_kv_cache,
 )
 
-__all__ = ["DEFAULT_CPU_KV_CACHE_BYTES", "VLLMEngine", "vllm_available"]
+__all__ = ["DEFAULT_CPU_KV_CACHE_BYTES", "SleepPools", "VLLMEngine", "vllm_available"]
 
 DEFAULT_CPU_KV_CACHE_BYTES = 1 << 30
 """KV cache reserved on CPU unless ``kv_cache_bytes`` says otherwise. vLLM's own CPU default is a
 fraction of *all* host memory (``gpu_memory_utilization``), far too much on a machine the trainer
 shares. 1 GiB holds ~23k tokens of SmolLM2-135M in float32; when a batch needs more, vLLM's
 scheduler preempts and recomputes (correct, slower)."""
+
+
+class SleepPools:
+    """Which of vLLM's sleep-mode memory pools (GPU) are asleep, so that each is woken once.
+
+    vLLM's allocator maps *every* allocation of the tags ``wake_up`` names (all of them when it
+    names none) without asking whether it is mapped already. After ``load_weights`` has woken the
+    weights of a sleeping engine and loaded new ones into them, a plain ``wake_up()`` would map the
+    weights a second time, over the memory that holds the new load. So the engine always names
+    the pools to wake, and only those still asleep.
+    """
+
+    POOLS = ("weights", "kv_cache")
+
+    def __init__(self) -> None:
+        self.asleep: tuple[str, ...] = ()
+
+    def sleep(self) -> None:
+        self.asleep = self.POOLS
+
+    def wake(self, *pools: str) -> list[str]:
+        """The tags for ``wake_up``: those of ``pools`` (every pool when none is named) still
+        asleep, from now on counted awake; empty when there is nothing to wake."""
+        wanted = pools or self.POOLS
+        woken = [pool for pool in self.asleep if pool in wanted]
+        self.asleep = tuple(pool for pool in self.asleep if pool not in woken)
+        return woken
 
 
 class VLLMEngine(InferenceEngine):
@@ -94,9 +121,10 @@ class VLLMEngine(InferenceEngine):
 
     - **GPU** (vLLM sleep mode, enabled at construction): ``offload`` is
       ``LLM.sleep(level=sleep_level)``: level 1 copies the weights to host memory and discards
-      the KV cache; level 2 discards both. ``reload`` is ``LLM.wake_up()``. ``load_weights``
-      while offloaded first wakes only the weights (``wake_up(tags=["weights"])``), so a
-      collocated trainer's new weights land without the KV cache coming back yet.
+      the KV cache; level 2 discards both. ``load_weights`` while offloaded first wakes only the
+      weights (``wake_up(tags=["weights"])``), so new weights land without the KV cache coming
+      back yet. ``reload`` wakes what is still asleep, by name (:class:`SleepPools`): after such a
+      load, only the KV cache.
     - **CPU**: vLLM's CPU worker ignores ``sleep``/``wake_up`` (it logs "sleep mode is not
       supported on CPU"). The engine does the part that frees memory itself: ``offload`` releases
       the KV cache's memory (its storages shrink to 0 bytes; every view vLLM holds stays valid)
@@ -182,7 +210,7 @@ class VLLMEngine(InferenceEngine):
         self._expected_weights = checkpoint_weight_names(source)
         self._weight_version = 0
         self._offloaded = False
-        self._weights_awake = False  # GPU: weights woken by load_weights while offloaded
+        self._asleep = SleepPools()  # GPU sleep mode: what offload put to sleep and is not awake yet
         self._weights_discarded = False  # GPU sleep level 2: weights gone until load_weights
 
     # ----------------------------------------------------------------------------- generation
@@ -260,9 +288,9 @@ class VLLMEngine(InferenceEngine):
         if changed_only:
             raise ValueError("VLLMEngine.load_weights(changed_only=True): not supported (sleep mode may discard "
                              "the weights it leaves out); send every weight")
-        if self._offloaded and self._sleep_mode and not self._weights_awake:
-            self.llm.wake_up(tags=["weights"])
-            self._weights_awake = True
+        woken = self._asleep.wake("weights")
+        if woken:
+            self.llm.wake_up(tags=woken)
         align_openmp_threads()
         sent: set[str] = set()
         rejected: list[str] = []
@@ -301,6 +329,7 @@ class VLLMEngine(InferenceEngine):
             return
         if self._sleep_mode:
             self.llm.sleep(level=self.sleep_level)
+            self._asleep.sleep()
             self._weights_discarded = self.sleep_level >= 2
         else:
             self.llm.collective_rpc(free_kv_cache)
@@ -311,10 +340,11 @@ class VLLMEngine(InferenceEngine):
         if not self._offloaded:
             return
         if self._sleep_mode:
-            self.llm.wake_up()  # wakes whatever is still asleep (all of it, or just the KV cache)
+            woken = self._asleep.wake()  # all of it, or only the KV cache after a load while offloaded
+            if woken:
+                self.llm.wake_up(tags=woken)
         else:
             self.llm.collective_rpc(restore_kv_cache)
-        self._weights_awake = False
         self._offloaded = False
 
     def kv_cache_bytes(self) -> int:
