@@ -45,13 +45,20 @@ import torch
 
 from infinirl.engines.base import GenerationResult, InferenceEngine, SamplingParams
 from infinirl.engines.generate_inputs import default_eos_ids, stop_token_ids, validate_prompts
-from infinirl.engines.vllm_process import align_openmp_threads, import_vllm, preserved_process_state, vllm_available
+from infinirl.engines.vllm_process import (
+    align_openmp_threads,
+    check_reload_api,
+    import_vllm,
+    preserved_process_state,
+    vllm_available,
+)
 from infinirl.engines.vllm_requests import prompt_seed, to_generation_result, vllm_sampling_params
 from infinirl.engines.vllm_weights import checkpoint_weight_names, missing_weights, screened
 from infinirl.engines.vllm_worker import (
     free_kv_cache,
     install_tempered_logprobs,
     kv_cache_bytes,
+    reload_arguments,
     reload_weights,
     restore_kv_cache,
 )
@@ -199,6 +206,7 @@ class VLLMEngine(InferenceEngine):
         kwargs.update(vllm_kwargs or {})
         with preserved_process_state():
             self.llm = vllm.LLM(**kwargs)
+        check_reload_api(self.llm.collective_rpc(reload_arguments)[0], getattr(vllm, "__version__", "?"))
         self.llm.collective_rpc(install_tempered_logprobs)
 
         model_config = self.llm.llm_engine.model_config
@@ -233,6 +241,7 @@ class VLLMEngine(InferenceEngine):
         align_openmp_threads()
 
         stop_ids = stop_token_ids(sampling, self.eos_token_ids)
+        stop_set = set(stop_ids)
         # vLLM refuses n > 1 with greedy decoding: send each greedy sample as its own request.
         per_request = 1 if sampling.is_greedy else sampling.n
         copies = sampling.n // per_request
@@ -259,7 +268,8 @@ class VLLMEngine(InferenceEngine):
                     f"expected n={sampling.n}"
                 )
             for sample_index, completion in enumerate(completions):
-                results.append(to_generation_result(prompt, index, sample_index, completion, self._weight_version))
+                results.append(to_generation_result(prompt, index, sample_index, completion, self._weight_version,
+                                                    stop_set))
         return results
 
     def _validate_prompts(self, prompts: list[list[int]], sampling: SamplingParams) -> None:
