@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -185,6 +186,9 @@ class VLLMEngine(InferenceEngine):
         self.sleep_level = sleep_level
         self._sleep_mode = (not self._on_cpu) and current_platform.is_sleep_mode_available()
         source = resolve_model_source(model)
+        # A local folder's weights are listed before vLLM starts (a folder that cannot be listed
+        # fails in a second, not after the engine's start-up); a hub id's once vLLM has fetched it.
+        expected = checkpoint_weight_names(source) if isinstance(source, Path) else None
         kwargs: dict[str, Any] = {
             "model": str(source),
             "dtype": resolve_dtype(dtype),
@@ -215,7 +219,7 @@ class VLLMEngine(InferenceEngine):
         generation_eos = model_config.try_get_generation_config().get("eos_token_id")
         tokenizer = self.llm.get_tokenizer() if eos_token_ids is None else None
         self.eos_token_ids = default_eos_ids(eos_token_ids, generation_eos, tokenizer)
-        self._expected_weights = checkpoint_weight_names(source)
+        self._expected_weights = expected if expected is not None else checkpoint_weight_names(source)
         self._weight_version = 0
         self._offloaded = False
         self._asleep = SleepPools()  # GPU sleep mode: what offload put to sleep and is not awake yet
