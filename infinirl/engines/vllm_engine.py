@@ -112,8 +112,10 @@ class VLLMEngine(InferenceEngine):
         max_model_len: longest prompt + response; default: the model's own limit.
         kv_cache_bytes: memory reserved for the KV cache. CPU default
             :data:`DEFAULT_CPU_KV_CACHE_BYTES`; on GPU the default is ``gpu_memory_utilization``.
-        gpu_memory_utilization: GPU only: fraction of GPU memory vLLM may take (weights + KV cache)
-            when ``kv_cache_bytes`` is not given. 0.5 leaves room for a collocated trainer.
+        gpu_memory_utilization: GPU only: fraction of the GPU's memory vLLM takes (weights + KV
+            cache) when ``kv_cache_bytes`` is not given, and holds for the engine's lifetime. vLLM
+            refuses to start unless that much is free (also with ``kv_cache_bytes``). 0.5 leaves
+            room for a collocated trainer (see docs/vllm.md, "Sharing a GPU with the trainer").
         enforce_eager: skip torch.compile / CUDA graphs (faster start-up; ``False`` lets vLLM
             compile, which pays off only for long-running engines).
         sleep_level: what ``offload`` releases on GPU: 1 = weights to host memory + KV cache
@@ -125,7 +127,8 @@ class VLLMEngine(InferenceEngine):
             tokenizer's, as ``HFGenerateEngine`` does. ``[]`` turns EOS off (tests of tiny models).
         vllm_kwargs: extra keyword arguments for ``vllm.LLM`` (override the ones above).
 
-    Offload semantics (:meth:`offload` / :meth:`reload`):
+    Offload semantics (:meth:`offload` / :meth:`reload`; no runner calls them during a run, only
+    the scheduler's profiling probes time them, so a run's engine stays resident):
 
     - **GPU** (vLLM sleep mode, enabled at construction): ``offload`` is
       ``LLM.sleep(level=sleep_level)``: level 1 copies the weights to host memory and discards
@@ -203,10 +206,12 @@ class VLLMEngine(InferenceEngine):
         }
         if self._on_cpu:
             kwargs["kv_cache_memory_bytes"] = int(kv_cache_bytes or DEFAULT_CPU_KV_CACHE_BYTES)
-        elif kv_cache_bytes:
-            kwargs["kv_cache_memory_bytes"] = int(kv_cache_bytes)
         else:
+            # Passed with kv_cache_bytes too: vLLM refuses to start unless this share of the GPU is
+            # free, and its own default (~0.9) would fail beside a collocated trainer.
             kwargs["gpu_memory_utilization"] = gpu_memory_utilization
+            if kv_cache_bytes:
+                kwargs["kv_cache_memory_bytes"] = int(kv_cache_bytes)
         kwargs.update(vllm_kwargs or {})
         with preserved_process_state():
             self.llm = vllm.LLM(**kwargs)

@@ -82,3 +82,25 @@ def test_weights_loaded_while_asleep_survive_reload(ray_cluster, model_a_dir, sl
     finally:
         trainer.shutdown()
         rollout.shutdown()
+
+
+def test_a_fixed_kv_cache_starts_beside_a_trainer_holding_memory(ray_cluster, model_a_dir):
+    """With kv_cache_bytes set, vLLM still refuses to start unless gpu_memory_utilization x the GPU
+    is free; the engine passes its own 0.3 rather than leaving vLLM's default (~0.9), which a
+    collocated trainer holding a fifth of the GPU would fail."""
+    import torch
+
+    total = torch.cuda.get_device_properties(0).total_memory
+    held = torch.empty(int(total * 0.2), dtype=torch.uint8, device="cuda")  # the trainer's share
+    options = {"max_model_len": 256, "eos_token_ids": [], "kv_cache_bytes": 64 << 20, "gpu_memory_utilization": 0.3}
+    plan = place(ray_cluster.refresh(), {"rollout": "0"})
+    rollout = WorkerGroup.launch(RolloutWorker, "rollout", placement=plan.ranks("rollout"),
+                                 args=(model_a_dir, "float32", 8, 0, "vllm", options))
+    try:
+        model_a, tokenizer = _tiny(0)
+        expected = [r.response_ids for r in HFGenerateEngine(model_a, tokenizer, eos_token_ids=[])
+                    .generate(PROMPTS, GREEDY)]
+        assert [r.response_ids for r in rollout.generate(PROMPTS, GREEDY).wait(timeout=300)[0]] == expected
+    finally:
+        rollout.shutdown()
+        del held
