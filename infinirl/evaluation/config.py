@@ -140,6 +140,18 @@ class EvalConfig:
         validate_placement(self.placement, ("actor", "rollout", "reward"), "eval")
         if plan.agent is not None:
             plan.agent.check("rollout.agent")
+        if self.rollout.engine == "vllm":
+            self._check_vllm(plan)
+
+    def _check_vllm(self, plan: EvalPlan) -> None:
+        """What would otherwise stop a vLLM rollout rank at start-up or mid-run (docs/vllm.md); the
+        context length is checked by the runner, once the prompts are known."""
+        from infinirl.engines.vllm_options import check_model_weights, check_temperature, check_vllm_options
+
+        check_vllm_options(self.rollout.engine_options, "rollout.engine_options")
+        if self.samples:
+            check_temperature(self.temperature, "temperature")
+        check_model_weights(plan.model_path, "model.path")
 
     def resolve(self) -> EvalPlan:
         """The run, checkpoint, model, task and output this config names; ConfigError if one is missing."""

@@ -31,14 +31,14 @@ def run(cfg: EvalConfig) -> dict:
     plan = cfg.resolve()
     problems = load_problems(plan, cfg.split, cfg.limit)
     tokenizer = _tokenizer(plan.model_path)
+    engine_options = rollout_engine_options(cfg, plan, problems, tokenizer)
     components = ["rollout", "reward"] + (["actor"] if plan.checkpoint else [])
     with Cluster(cfg.cluster) as cluster:
         placement = place(cluster.inventory, {c: cfg.placement[c] for c in components}, components=components)
         print(placement.describe(), flush=True)
         rollout = WorkerGroup.launch(RolloutWorker, "rollout", placement=placement.ranks("rollout"),
                                      args=(plan.model_path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
-                                           cfg.num_threads, cfg.rollout.engine, cfg.rollout.engine_options,
-                                           plan.agent))
+                                           cfg.num_threads, cfg.rollout.engine, engine_options, plan.agent))
         reward = WorkerGroup.launch(RewardWorker, "reward", placement=placement.ranks("reward"),
                                     args=(plan.model_path, plan.verifier, 0.0))
         try:
@@ -78,6 +78,24 @@ def sampling_passes(cfg: EvalConfig, plan: EvalPlan) -> dict[str, SamplingParams
         passes["sampled"] = SamplingParams(n=cfg.samples, temperature=cfg.temperature, top_p=cfg.top_p,
                                            top_k=cfg.top_k, seed=cfg.seed, **common)
     return passes
+
+
+def rollout_engine_options(cfg: EvalConfig, plan: EvalPlan, problems: list[Problem], tokenizer) -> dict:
+    """The rollout engine's options. A vLLM engine gets a ``max_model_len`` that holds the longest
+    prompt plus the response budget (or the one set, if that holds it: else a ConfigError, before
+    any worker starts, rather than a request refused mid-evaluation)."""
+    if cfg.rollout.engine != "vllm":
+        return dict(cfg.rollout.engine_options)
+    from infinirl.agents.loop import request_context
+    from infinirl.engines.vllm_options import check_context_length, with_context_length
+    from infinirl.tasks.prompts import encode_prompts
+
+    prompts = encode_prompts(problems, tokenizer, plan.task.system_prompt, few_shot=plan.task.few_shot)
+    longest = max((len(ids) for ids in prompts), default=0)
+    needed, how = request_context(("the longest prompt", longest), ("max_new_tokens", plan.max_new_tokens),
+                                  plan.agent)
+    check_context_length(cfg.rollout.engine_options, "rollout.engine_options", needed, how)
+    return with_context_length("vllm", cfg.rollout.engine_options, needed)
 
 
 def load_problems(plan: EvalPlan, split: str, limit: int | None) -> list[Problem]:

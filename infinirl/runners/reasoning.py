@@ -42,6 +42,7 @@ from infinirl.components.reward import RewardWorker
 from infinirl.components.rollout import RolloutWorker
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, pack_sequences
 from infinirl.engines.base import SamplingParams
+from infinirl.engines.vllm_options import with_context_length
 from infinirl.runners import register_runner
 from infinirl.runners.async_rollout import (
     RolloutAhead,
@@ -121,7 +122,9 @@ def _launches(cfg: ReasoningConfig) -> dict:
         "actor": (ActorWorker, (cfg.model.path, cfg.actor, cfg.algorithm.objective, cfg.num_threads)),
         "rollout": (RolloutWorker, (cfg.model.path, cfg.model.rollout_dtype, cfg.rollout.max_batch_size,
                                     cfg.rollout.num_threads or cfg.num_threads, cfg.rollout.engine,
-                                    cfg.rollout.engine_options, cfg.rollout.agent)),
+                                    with_context_length(cfg.rollout.engine, cfg.rollout.engine_options,
+                                                        cfg.rollout_context()[0]),
+                                    cfg.rollout.agent)),
         # Problems name their own verifier; this one (the task source's, as `infinirl eval` uses)
         # serves any that name none.
         "reward": (RewardWorker, (cfg.model.path, verifier_for(cfg.task, "test"), cfg.task.format_bonus)),

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
-from infinirl.agents.loop import AgentConfig
+from infinirl.agents.loop import AgentConfig, request_context
 from infinirl.algorithms.objective import PolicyObjectiveConfig
 from infinirl.config import ConfigError, bounded
 from infinirl.engines.train_base import TrainEngineConfig
@@ -212,6 +212,13 @@ class ReasoningConfig(RunConfig):
         agent = self.rollout.agent
         return agent.max_response_tokens if agent is not None else self.rollout.max_new_tokens
 
+    def rollout_context(self) -> tuple[int, str]:
+        """The most tokens one generate call of this run can ask the rollout engine to hold, and
+        how that sum is made (``agents.loop.request_context``); a vLLM engine gets it as its
+        ``max_model_len`` unless ``rollout.engine_options.max_model_len`` is set."""
+        return request_context(("rollout.max_prompt_length", self.rollout.max_prompt_length),
+                               ("rollout.max_new_tokens", self.rollout.max_new_tokens), self.rollout.agent)
+
     # ------------------------------------------------------------------ cross-field rules
     def check(self) -> None:
         from infinirl.algorithms import ADVANTAGES, AGGREGATIONS, KL_ESTIMATORS
@@ -241,6 +248,7 @@ class ReasoningConfig(RunConfig):
         self._check_off_policy()
         self._check_agent()
         self._check_overlong()
+        self._check_vllm()
 
     def _tie_actor_temperature(self) -> None:
         """The trainer scores tokens under the distribution the rollout samples them from
@@ -256,6 +264,23 @@ class ReasoningConfig(RunConfig):
                 "follows rollout.temperature)"
             )
         self.actor.temperature = sampled
+
+    def _check_vllm(self) -> None:
+        """What would otherwise stop a vLLM rollout rank at start-up or mid-run (docs/vllm.md)."""
+        if self.rollout.engine != "vllm":
+            return
+        from infinirl.engines.vllm_options import (
+            check_context_length,
+            check_model_weights,
+            check_temperature,
+            check_vllm_options,
+        )
+
+        key, options = "rollout.engine_options", self.rollout.engine_options
+        check_vllm_options(options, key)
+        check_temperature(self.rollout.temperature, "rollout.temperature")
+        check_context_length(options, key, *self.rollout_context())
+        check_model_weights(self.model.path, "model.path")
 
     def _check_agent(self) -> None:
         if self.rollout.agent is not None:

@@ -9,6 +9,7 @@ import pytest
 from infinirl.agents.loop import AgentConfig
 from infinirl.cli import build_config, main
 from infinirl.config import ConfigError, to_dataclass, to_plain
+from infinirl.engines.vllm_process import vllm_available
 from infinirl.evaluation.config import EvalConfig
 from infinirl.runners.checkpoints import Checkpoints
 from infinirl.runners.reasoning_config import ReasoningConfig
@@ -246,3 +247,29 @@ def test_bad_dataset_rows_fail_before_workers_start(tmp_path, capsys):
     assert "task.verifier=reasoning_gym cannot score" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="samples=0 and greedy=false"):
         to_dataclass(EvalConfig, {"samples": 0, "k": [], "greedy": False})
+
+
+@pytest.mark.skipif(vllm_available(), reason="vLLM is installed here")
+def test_the_vllm_engine_without_vllm_installed_is_a_config_error():
+    with pytest.raises(ConfigError, match=r"rollout.engine=vllm: vLLM is not installed"):
+        to_dataclass(EvalConfig, {"rollout": {"engine": "vllm"}})
+
+
+def test_a_vllm_engine_gets_a_context_length_holding_the_longest_prompt():
+    from infinirl.evaluation.runner import rollout_engine_options
+    from infinirl.models.hf_causal_lm import byte_level_tokenizer
+    from infinirl.tasks.problem import Problem
+    from infinirl.tasks.prompts import encode_prompts
+
+    cfg = to_dataclass(EvalConfig, {"max_new_tokens": 32})
+    plan = cfg.resolve()
+    tokenizer = byte_level_tokenizer()
+    problems = [Problem(uid=str(i), prompt="What is 1 + 1?" * (i + 1), answer="2", verifier="math") for i in range(3)]
+    longest = max(len(ids) for ids in encode_prompts(problems, tokenizer, plan.task.system_prompt))
+    assert rollout_engine_options(cfg, plan, problems, tokenizer) == {}  # the hf engine: as given
+    cfg.rollout.engine = "vllm"  # after validation: vLLM need not be installed to build the options
+    assert rollout_engine_options(cfg, plan, problems, tokenizer) == {"max_model_len": longest + 32}
+    cfg.rollout.engine_options = {"max_model_len": longest + 31}
+    with pytest.raises(ConfigError, match=rf"max_model_len={longest + 31} is shorter .*the longest prompt={longest} "
+                                          rf"\+ max_new_tokens=32 = {longest + 32} tokens"):
+        rollout_engine_options(cfg, plan, problems, tokenizer)

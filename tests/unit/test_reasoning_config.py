@@ -3,6 +3,7 @@
 import pytest
 
 from infinirl.config import ConfigError, to_dataclass
+from infinirl.engines.vllm_process import vllm_available
 from infinirl.runners.reasoning_config import ReasoningConfig
 
 
@@ -221,3 +222,24 @@ def test_cut_off_responses_keep_or_lose_their_reward(mode):
     else:  # the cut-off ones score 0, before advantages; one had a reward to lose
         assert rewards.tolist() == [0.0, 1.0, 0.0, 0.5] and metrics["rollout/truncated_zeroed"] == 1.0
         assert metrics["rollout/reward_mean"] == pytest.approx(1.5 / 4)
+
+
+@pytest.mark.skipif(vllm_available(), reason="vLLM is installed here")
+def test_the_vllm_engine_without_vllm_installed_is_a_config_error():
+    with pytest.raises(ConfigError, match=r"rollout.engine=vllm: vLLM is not installed .*or set rollout.engine=hf"):
+        build(rollout={"engine": "vllm"})
+
+
+def test_the_rollout_context_holds_every_request_and_reaches_a_vllm_engine():
+    from infinirl.runners.reasoning import _launches
+
+    cfg = build(rollout={"max_prompt_length": 100, "max_new_tokens": 28})
+    assert cfg.rollout_context() == (128, "rollout.max_prompt_length=100 + rollout.max_new_tokens=28")
+    # with an agent, a nearly full trajectory (63 ids) can be asked for a whole turn (28)
+    agent = build(rollout={"max_prompt_length": 100, "max_new_tokens": 28, "agent": AGENT})
+    assert agent.rollout_context()[0] == 100 + 63 + 28
+    assert "rollout.agent.max_response_tokens=64 - 1" in agent.rollout_context()[1]
+    cfg.rollout.engine = "vllm"  # after validation: vLLM need not be installed to build the launch arguments
+    assert _launches(cfg)["rollout"][1][5] == {"max_model_len": 128}
+    cfg.rollout.engine_options = {"max_model_len": 4096}
+    assert _launches(cfg)["rollout"][1][5] == {"max_model_len": 4096}

@@ -9,7 +9,7 @@ import time
 import pytest
 import torch
 
-from infinirl.agents.loop import AgentBudget, AgentEnv, AgentRollout, AgentStep, agent_metrics
+from infinirl.agents.loop import AgentBudget, AgentEnv, AgentRollout, AgentStep, agent_metrics, request_context
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, ROLLOUT_LOGPROBS, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.engines.hf_generate import HFGenerateEngine
@@ -211,3 +211,27 @@ def test_async_steps_that_finish_together_share_a_generate_call(tiny, engine):
                                budget).generate(MANY, SamplingParams(n=1, max_new_tokens=8, greedy=True))
         assert sum(r.extra["agent"]["env_steps"] for r in results) >= 8  # enough trajectories call the env
     assert calls["async"] <= calls["lockstep"] + 1
+
+
+class LongestRequest(HFGenerateEngine):
+    """The HF engine, noting the most tokens any of its generate calls asked it to hold."""
+
+    longest = 0
+
+    def generate(self, prompt_token_ids, sampling):
+        self.longest = max(self.longest, max(len(p) for p in prompt_token_ids) + sampling.max_new_tokens)
+        return super().generate(prompt_token_ids, sampling)
+
+
+@pytest.mark.parametrize("schedule", ["async", "lockstep"])
+def test_no_call_asks_the_engine_for_more_than_request_context(tiny, schedule):
+    # what a vLLM engine's max_model_len is sized from: a call must never need more
+    model, tokenizer = tiny
+    engine = LongestRequest(model, tokenizer, max_batch_size=64, eos_token_ids=[])
+    budget = AgentBudget(max_turns=6, max_response_tokens=30, schedule=schedule)
+    results = rollout(tiny, engine, budget, prompts=MANY, sampling=SamplingParams(n=2, max_new_tokens=16, seed=5))
+    assert max(r.extra["agent"]["turns"] for r in results) >= 2
+    bound, _ = request_context(("prompt", max(len(p) for p in MANY)), ("max_new_tokens", 16), budget)
+    assert 0 < engine.longest <= bound
+    if schedule == "lockstep":  # reproducible: a call asked a nearly full trajectory for a whole turn
+        assert engine.longest > max(len(p) for p in MANY) + budget.max_response_tokens
