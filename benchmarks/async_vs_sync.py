@@ -24,6 +24,15 @@ evaluation itself is excluded.
     python benchmarks/async_vs_sync.py --jobs grpo --rows sync,eta1 --set actor.lr_schedule=cosine \
         --set actor.total_steps=40 --set actor.min_lr_ratio=0.1                   # both rows changed alike
 
+Row ``sync1`` (not run by default) is the synchronous loop with the asynchronous rows' threads
+(``--async-threads``, one each): the whole work of a step on one core. The asynchronous rows run the
+same work on two cores side by side, so, whatever the overlap, a step cannot take less than half of
+it: ``grpo_overlap_ceiling`` = 2 x sync training time / sync1's is the most any asynchronous row can
+gain over the synchronous one on this host (about 2 where neither half of the step gains from a
+second thread, about 1 where both scale perfectly to two).
+
+    python benchmarks/async_vs_sync.py --jobs grpo --rows sync,sync1,eta1 --iterations 5   # ceiling vs got
+
 With ``--seeds``, every row runs once per seed (``seed=`` also draws the held-out set, so each
 seed's rows are compared on the same questions); each seed gives its own throughput ratio (its rows
 ran back to back, so a slow spell of the machine weighs on one seed's ratio, not on all), the
@@ -32,7 +41,8 @@ deviation; the held-out gap is the mean of the per-seed gaps, and each seed's re
 
 Last stdout line: {"benchmark": "async_vs_sync", "ratios": {"grpo_async_vs_sync": sync training
 time / eta=1 training time (same samples: the throughput ratio; the mean of the per-seed ratios),
-"grpo_async2_vs_sync": eta=2's, "grpo_async_partial_vs_sync" / "grpo_async2_partial_vs_sync": with
+"grpo_async2_vs_sync": eta=2's, "grpo_overlap_ceiling": 2 x sync / sync1 (the bound above),
+"grpo_async_partial_vs_sync" / "grpo_async2_partial_vs_sync": with
 partial rollouts, "ppo_async_vs_sync", "ppo_async2_vs_sync"; null where a row failed},
 "ratio_spread": {ratio key: {"per_seed", "mean", "min", "max", "sd" (null with one seed)}},
 "metric_gap_points": {job: {row: sync final - row final, in points (mean over seeds)}},
@@ -61,14 +71,20 @@ from _bench_common import add_record_argument, conclude, concluded
 class Row:
     max_staleness: int | None  # None: the synchronous loop
     partial_rollout: bool = False  # language models only: weight updates interrupt generations in flight
+    # The synchronous loop with one thread each for the actor and the rollout (the asynchronous rows'
+    # threads): its time is the step's whole work on one core, whose half bounds any overlap on two.
+    one_thread_each: bool = False
 
     def ratio_key(self, job: str) -> str:
+        if self.one_thread_each:
+            return f"{job}_overlap_ceiling"
         eta = "" if self.max_staleness == 1 else str(self.max_staleness)
         return f"{job}_async{eta}{'_partial' if self.partial_rollout else ''}_vs_sync"
 
 
 ROWS = {"sync": Row(None), "eta1": Row(1), "eta2": Row(2), "eta1_partial": Row(1, partial_rollout=True),
-        "eta2_partial": Row(2, partial_rollout=True)}
+        "eta2_partial": Row(2, partial_rollout=True), "sync1": Row(None, one_thread_each=True)}
+DEFAULT_ROWS = ("sync", "eta1", "eta2", "eta1_partial", "eta2_partial")
 
 
 @dataclass(frozen=True)
@@ -106,6 +122,8 @@ def overrides(job: Job, row: str, iterations: int | None, out: str, async_thread
         args += [f"algorithm.asynchronous.max_staleness={eta}", *job.correction]
         if job.threads:
             args += [f"{key}={n}" for key, n in zip(job.threads, async_threads)]
+    if ROWS[row].one_thread_each and job.threads:
+        args += [f"{key}={n}" for key, n in zip(job.threads, async_threads)]
     if ROWS[row].partial_rollout:
         args.append("algorithm.asynchronous.partial_rollout=true")
     return args
@@ -142,15 +160,16 @@ def summarise(job: Job, out: str) -> dict:
     }
 
 
-def seed_ratios(sync_runs: dict, runs: dict) -> dict | None:
-    """Per seed, the synchronous training time over the row's (a seed's rows ran back to back), and
-    their mean, range and standard deviation (None with one seed); None if a seed lacks either time
-    (failed or skipped)."""
+def seed_ratios(sync_runs: dict, runs: dict, scale: float = 1.0) -> dict | None:
+    """Per seed, ``scale`` x the synchronous training time over the row's (a seed's rows ran back to
+    back), and their mean, range and standard deviation (None with one seed); None if a seed lacks
+    either time (failed or skipped). ``scale`` 2 turns the one-thread-each row's time into the overlap
+    ceiling (see :data:`ROWS`' ``sync1``)."""
     seeds = list(runs)
     times = [(sync_runs.get(s, {}).get("train_s"), runs[s].get("train_s")) for s in seeds]
     if not seeds or not all(sync and row for sync, row in times):
         return None
-    ratios = [sync / row for sync, row in times]
+    ratios = [scale * sync / row for sync, row in times]
     return {"per_seed": {"default" if s is None else str(s): round(r, 3) for s, r in zip(seeds, ratios)},
             "mean": round(statistics.mean(ratios), 3), "min": round(min(ratios), 3), "max": round(max(ratios), 3),
             "sd": round(statistics.stdev(ratios), 3) if len(ratios) > 1 else None}
@@ -176,8 +195,9 @@ def run_rows(name: str, wanted: list[str], seeds: list, args, async_threads: tup
     job, per_seed = JOBS[name], {}
     for seed in seeds:
         for row in wanted:
-            if ROWS[row].partial_rollout and not job.threads:
-                skipped = "partial rollouts interrupt language-model generation only"
+            if (ROWS[row].partial_rollout or ROWS[row].one_thread_each) and not job.threads:
+                skipped = ("partial rollouts interrupt language-model generation only" if ROWS[row].partial_rollout
+                           else "the job's config already gives the actor and the rollout one thread each")
                 per_seed.setdefault(row, {})[seed] = {"skipped": skipped}
                 continue
             out = tempfile.mkdtemp(prefix=f"bench-async-{name}-{row}-")
@@ -200,7 +220,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--jobs", default=",".join(JOBS), help=f"comma-separated, from {', '.join(JOBS)}")
     parser.add_argument("--iterations", type=int, default=None, help="default: each config's own")
-    parser.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated, from {', '.join(ROWS)}")
+    parser.add_argument("--rows", default=",".join(DEFAULT_ROWS),
+                        help=f"comma-separated, from {', '.join(ROWS)} (default: {', '.join(DEFAULT_ROWS)})")
     parser.add_argument("--async-threads", default="1,1",
                         help="grpo: torch threads of the actor and of the rollout in the asynchronous rows (they run "
                              "at the same time; the synchronous row keeps the job's 2 and 2, used one after the other)")
@@ -228,7 +249,7 @@ def main() -> int:
         for row, runs in per_seed.items():
             if row != "sync" and sync_runs and not all("skipped" in r for r in runs.values()):
                 # same samples: the throughput ratio, per seed; null where a row failed
-                spread = seed_ratios(sync_runs, runs)
+                spread = seed_ratios(sync_runs, runs, scale=2.0 if ROWS[row].one_thread_each else 1.0)
                 ratios[ROWS[row].ratio_key(name)] = spread["mean"] if spread else None
                 if spread:
                     spreads[ROWS[row].ratio_key(name)] = spread

@@ -64,3 +64,19 @@ def test_throughput_ratio_is_the_mean_of_per_seed_ratios_with_their_spread():
     # a summed time would let the slow seed dominate: 400 / 300 = 1.33
     assert bench.seed_ratios({None: {"train_s": 10.0}}, {None: {"train_s": 8.0}})["sd"] is None
     assert bench.seed_ratios(sync, {1: {"train_s": 50.0}, 2: {"failed": "exit 1"}}) is None
+
+
+def test_the_overlap_ceiling_is_twice_the_synchronous_time_over_the_one_thread_each_time():
+    """Asynchronous rows run a step's work side by side on two cores, one thread each: a step takes at
+    least half the work on one core, so 2 x sync / sync1 bounds any asynchronous speed-up."""
+    sync = {None: {"train_s": 30.0}}
+    one_thread_each = {None: {"train_s": 48.0}}
+    assert bench.seed_ratios(sync, one_thread_each, scale=2.0)["mean"] == 1.25
+    assert bench.ROWS["sync1"].ratio_key("grpo") == "grpo_overlap_ceiling"
+
+
+def test_the_one_thread_each_row_is_synchronous_with_the_asynchronous_rows_threads():
+    args = bench.overrides(bench.JOBS["grpo"], "sync1", 5, "/tmp/out", (1, 1))
+    assert "num_threads=1" in args and "rollout.num_threads=1" in args
+    assert not any(a.startswith("algorithm.asynchronous") for a in args)
+    assert "sync1" not in bench.DEFAULT_ROWS
