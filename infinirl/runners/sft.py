@@ -42,7 +42,8 @@ from infinirl.runners.sim_config import eval_seeds
 from infinirl.utils import torch_save_atomic
 from infinirl.utils.memory import peak_memory_bytes
 
-__all__ = ["SFTFlow", "learning_rate", "load_optimizer_state", "rollout_episodes", "run", "task_instructions"]
+__all__ = ["SFTFlow", "evaluation_tasks", "learning_rate", "load_optimizer_state", "preflight", "read_demos",
+           "rollout_episodes", "run", "task_instructions"]
 
 POLICY_DIR = "policy"
 OPTIMIZER_FILE = "optimizer.pt"
@@ -53,6 +54,8 @@ def preflight(cfg: SFTConfig) -> list[str]:
     headers of its tensor files: no weights are loaded) and, when ``data.path`` exists, the
     dataset's metadata against them; when it does not, what generating it needs. In the driver before
     anything is generated or trained (``infinirl validate`` runs it too); the evaluation tasks."""
+    from infinirl.data.demos import metaworld_features
+
     tasks = evaluation_tasks(cfg)
     init = _read_init(cfg)
     if Path(cfg.data.path).exists():
@@ -65,8 +68,6 @@ def preflight(cfg: SFTConfig) -> list[str]:
         shapes = {key: int(reader.features[key]["shape"][0]) for key in ("observation.state", "action")}
     else:
         _check_generation(cfg, tasks)
-        from infinirl.data.demos import metaworld_features
-
         gen = cfg.data.generate
         features = metaworld_features(gen.camera, gen.image_size)
         camera = f"{CAMERA_PREFIX}{gen.camera}"
