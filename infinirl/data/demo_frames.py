@@ -36,15 +36,21 @@ class DemoFrames:
     tasks: list[str]
     stats: dict[str, dict[str, np.ndarray]]
 
-    @classmethod
-    def read(cls, reader, camera_key: str | None = None) -> DemoFrames:
+    @staticmethod
+    def camera_of(reader, camera_key: str | None = None) -> str:
+        """``camera_key``, or the dataset's only camera; a ConfigError naming data.camera_key otherwise."""
         cameras = [key for key in reader.video_keys if key.startswith(CAMERA_PREFIX)]
         if camera_key is None:
             if len(cameras) != 1:
                 raise ConfigError(f"data.camera_key: the dataset at {reader.root} has cameras {cameras}; name one")
-            camera_key = cameras[0]
-        elif camera_key not in cameras:
+            return cameras[0]
+        if camera_key not in cameras:
             raise ConfigError(f"data.camera_key={camera_key!r}: the dataset at {reader.root} has cameras {cameras}")
+        return camera_key
+
+    @classmethod
+    def read(cls, reader, camera_key: str | None = None) -> DemoFrames:
+        camera_key = cls.camera_of(reader, camera_key)
         for key in ("observation.state", "action"):
             if key not in reader.features or key not in reader.stats:
                 raise ConfigError(f"data.path: the dataset at {reader.root} has no {key!r} (with statistics in "

@@ -54,6 +54,7 @@ __all__ = [
     "LeRobotDatasetWriter",
     "VideoSettings",
     "aggregate_stats",
+    "check_ffmpeg",
     "encode_mp4",
     "episode_stats",
     "join_mp4",
@@ -190,6 +191,15 @@ def _ffmpeg() -> Any:
     except ImportError:
         raise LeRobotDatasetError(f"LeRobot datasets store images as mp4 videos: {FFMPEG_HINT}") from None
     return imageio_ffmpeg
+
+
+def check_ffmpeg() -> None:
+    """The ffmpeg binary the videos are encoded and decoded with is there (a LeRobotDatasetError saying
+    how to get it otherwise)."""
+    try:
+        _ffmpeg().get_ffmpeg_exe()
+    except RuntimeError as exc:  # imageio-ffmpeg installed without its binary, none on PATH
+        raise LeRobotDatasetError(f"{exc}; {FFMPEG_HINT}") from None
 
 
 def encode_mp4(path: Path, frames: np.ndarray, fps: int, settings: VideoSettings) -> None:
@@ -734,8 +744,14 @@ class LeRobotDatasetReader:
         path = self.root / STATS_PATH
         if not path.is_file():
             return {}
-        stats = json.loads(path.read_text())
-        return {key: {name: np.asarray(value) for name, value in item.items()} for key, item in stats.items()}
+        try:
+            stats = json.loads(path.read_text())
+            return {key: {name: np.asarray(value) for name, value in item.items()} for key, item in stats.items()}
+        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError, ValueError) as exc:
+            # Cut off mid-write or edited by hand: named here, not as a traceback where it is used.
+            raise LeRobotDatasetError(f"{path} is not a JSON object of feature -> statistic -> values "
+                                      f"({' '.join(str(exc).split())[:200]}): the dataset is corrupt; re-create it") \
+                from None
 
     def episode_range(self, episode: int) -> tuple[int, int]:
         """The frame indices ``[from, to)`` of ``episode``."""
@@ -800,6 +816,11 @@ class LeRobotDatasetReader:
         if not np.array_equal(data["index"], np.arange(len(data["index"]))):
             raise LeRobotDatasetError(f"{self.root / 'data'}: the frames' index column is not 0, 1, 2, ... in file "
                                       "order; the dataset is corrupt")
+        task_index = data.get("task_index", np.zeros(0, dtype=np.int64))
+        if len(task_index) and (task_index.min() < 0 or task_index.max() >= len(self.tasks)):
+            bad = int(task_index.max() if task_index.max() >= len(self.tasks) else task_index.min())
+            raise LeRobotDatasetError(f"{self.root / 'data'}: a frame has task_index {bad}, but {TASKS_PATH} lists "
+                                      f"{len(self.tasks)} tasks; the dataset is corrupt")
         return data
 
     def _video_path(self, key: str, episode: int) -> Path:

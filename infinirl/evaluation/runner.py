@@ -1,6 +1,7 @@
 """`infinirl eval`: greedy accuracy, pass@1 and pass@k of a model or a training checkpoint.
 
-Read top to bottom: load the problems (errors here are config errors, before Ray starts), start
+Read top to bottom: the preflight loads the problems and the tokenizer and checks them (errors
+here are config errors, before Ray starts; ``infinirl validate`` runs it too), start
 the rollout and reward workers, and for a checkpoint build an actor exactly as the run did, load
 its weights and sync them into the rollout engine (then free the actor). Generate, score, write
 the results JSON atomically, print the summary as one JSON line.
@@ -10,8 +11,9 @@ from __future__ import annotations
 
 import json
 import time
+from typing import Any
 
-from infinirl.config import to_plain
+from infinirl.config import ConfigError, to_plain
 from infinirl.engines.base import SamplingParams
 from infinirl.evaluation.config import EvalConfig, EvalPlan
 from infinirl.evaluation.evaluator import Evaluator, per_problem_records, summarize
@@ -21,16 +23,30 @@ from infinirl.tasks.sources import eval_problems
 from infinirl.utils import write_json_atomic
 
 
-@register_runner("eval", EvalConfig, "greedy accuracy, pass@1 and pass@k of a model or a run's checkpoint")
+def preflight(cfg: EvalConfig) -> tuple[EvalPlan, list[Problem], Any]:
+    """What the evaluation reads, checked in the driver before any worker starts (``infinirl
+    validate`` runs it too): the run's data file against what its checkpoint trained on, the
+    problems (a task typo, a missing file, no rows, rows without the prompt or answer key), the
+    tokenizer, and every prompt plus ``max_new_tokens`` against the model's context (read from its
+    config: no weights are loaded) and a vLLM engine's ``max_model_len``; ``(plan, problems, tokenizer)``."""
+    plan = cfg.resolve()
+    check_run_data(plan)
+    problems = load_problems(plan, cfg.split, cfg.limit)
+    tokenizer = _tokenizer(plan.model_path)
+    check_context(plan, problems, tokenizer)
+    rollout_engine_options(cfg, plan, problems, tokenizer)  # a vLLM context length too short: refused here
+    return plan, problems, tokenizer
+
+
+@register_runner("eval", EvalConfig, "greedy accuracy, pass@1 and pass@k of a model or a run's checkpoint",
+                 preflight=preflight)
 def run(cfg: EvalConfig) -> dict:
     from infinirl.components.reward import RewardWorker
     from infinirl.components.rollout import RolloutWorker
     from infinirl.runtime import Cluster, WorkerGroup, place
 
     start = time.perf_counter()
-    plan = cfg.resolve()
-    problems = load_problems(plan, cfg.split, cfg.limit)
-    tokenizer = _tokenizer(plan.model_path)
+    plan, problems, tokenizer = preflight(cfg)
     engine_options = rollout_engine_options(cfg, plan, problems, tokenizer)
     components = ["rollout", "reward"] + (["actor"] if plan.checkpoint else [])
     with Cluster(cfg.cluster) as cluster:
@@ -103,6 +119,53 @@ def load_problems(plan: EvalPlan, split: str, limit: int | None) -> list[Problem
     return eval_problems(plan.task, split, limit, from_run=plan.task_from_run)
 
 
+def check_run_data(plan: EvalPlan) -> None:
+    """On the run's own data (``plan.task_from_run``), its data file must be the one the checkpoint
+    recorded (:mod:`infinirl.runners.run_inputs`): the held-out rows are its first
+    ``task.eval_size``, so an edited file would score the checkpoint on rows it may have trained on."""
+    from infinirl.runners.checkpoints import STATE_FILE
+    from infinirl.runners.run_inputs import data_differences, data_digests, describe_difference
+    from infinirl.tasks.sources import task_files
+
+    if not (plan.task_from_run and plan.checkpoint):
+        return
+    try:
+        recorded = json.loads((plan.checkpoint / STATE_FILE).read_text()).get("inputs") or {}
+    except (OSError, ValueError, AttributeError):
+        return  # a checkpoint from before inputs were recorded (its files are checked by resolve)
+    for label, was, now in data_differences(recorded.get("data"), data_digests(task_files(plan.task))):
+        raise ConfigError(f"run_dir: {describe_difference(label, was, now, f'{plan.checkpoint} trained on')}; its "
+                          "held-out rows would not be the ones the run held out; restore it, or evaluate other data "
+                          "by setting task.* keys")
+
+
+def check_context(plan: EvalPlan, problems: list[Problem], tokenizer) -> None:
+    """The longest prompt plus ``max_new_tokens`` fits the model's context (``max_position_embeddings``
+    of its config), as the rollout engine will require."""
+    from infinirl.models.hf_causal_lm import resolve_model_source
+    from infinirl.tasks.prompts import encode_prompts
+
+    try:
+        from transformers import AutoConfig
+
+        context = getattr(AutoConfig.from_pretrained(resolve_model_source(plan.model_path)),
+                          "max_position_embeddings", None)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"model.path={plan.model_path}: its config.json does not load ({exc})") from None
+    if not context:
+        return
+    prompts = encode_prompts(problems, tokenizer, plan.task.system_prompt, few_shot=plan.task.few_shot)
+    longest = max(range(len(prompts)), key=lambda i: len(prompts[i]), default=None)
+    if longest is None or len(prompts[longest]) + plan.max_new_tokens <= context:
+        return
+    length = len(prompts[longest])
+    raise ConfigError(f"max_new_tokens={plan.max_new_tokens}: prompt {problems[longest].uid!r} is {length} tokens "
+                      f"long (chat template and system prompt included), and with the response it needs "
+                      f"{length + plan.max_new_tokens} positions, more than the model's context ({context}, "
+                      f"max_position_embeddings of {plan.model_path}); lower max_new_tokens to at most "
+                      f"{context - length}, shorten task.system_prompt, or leave such problems out")
+
+
 def load_checkpoint_into(rollout, plan: EvalPlan, placement, num_threads: int) -> str:
     """Build the run's actor, load the checkpoint, sync its weights into ``rollout``; returns the
     SHA-256 of the loaded weights (the digest a training run reports for its actor)."""
@@ -127,7 +190,11 @@ def _tokenizer(model_path: str):
 
     from infinirl.models.hf_causal_lm import resolve_model_source
 
-    tokenizer = AutoTokenizer.from_pretrained(resolve_model_source(model_path))
+    try:
+        tokenizer = AutoTokenizer.from_pretrained(resolve_model_source(model_path))
+    except (OSError, ValueError, TypeError) as exc:
+        raise ConfigError(f"model.path={model_path}: no tokenizer loads from it ({' '.join(str(exc).split())[:300]}); "
+                          "pass a model folder with its tokenizer files") from None
     if tokenizer.pad_token_id is None:
         tokenizer.pad_token = tokenizer.eos_token
     return tokenizer

@@ -279,6 +279,13 @@ class EmbodiedConfig(RunConfig):
     """Online scaling of the env component (env and rollout on disjoint slots): a command file and/or
     a policy on the env ranks' busy ratio (see infinirl.runtime.scaling)."""
 
+    def data_files(self) -> dict[str, str]:
+        # The demonstrations the cloning anchor draws from, the checkpoint the policy starts from (its
+        # statistics are read again on resume), and a frozen VLA folded into the env.
+        paths = {"algorithm.bc.data": self.algorithm.bc.data, "policy.kwargs.checkpoint":
+                 self.policy.kwargs.get("checkpoint"), "env.kwargs.vla.checkpoint": self.env.vla_checkpoint()}
+        return {key: path for key, path in paths.items() if isinstance(path, str) and path}
+
     def _anneals_over_iterations(self) -> bool:
         return self.actor.anneal_lr and not self.actor.anneal_iterations
 

@@ -32,6 +32,7 @@ import time
 
 import numpy as np
 
+from infinirl.config import ConfigError
 from infinirl.runners import register_runner
 from infinirl.runners.curves import Panel
 from infinirl.runners.hg_dagger_config import HGDAggerConfig
@@ -41,14 +42,31 @@ from infinirl.runners.run_support import launch_all, run_staged, run_start_time
 __all__ = ["HGDAggerFlow", "run"]
 
 
+def preflight(cfg: HGDAggerConfig):
+    """The robot env's spec and the policy network, built in the driver before anything starts
+    (``infinirl validate`` runs it too): what the robot workers and the learner would otherwise
+    refuse with a traceback; ``(env spec, network spec)``."""
+    from infinirl.runners.realworld_sac import check_actor_options, env_spec_of, net_spec_of
+
+    try:
+        env = env_spec_of(cfg)
+    except ValueError as exc:
+        raise ConfigError(f"task: {exc}") from None
+    net = net_spec_of(cfg)
+    check_actor_options(net)
+    return env, net
+
+
 @register_runner("hg_dagger", HGDAggerConfig,
-                 "HG-DAgger on robots: a human takes over when the policy drifts; behaviour cloning on the aggregate")
+                 "HG-DAgger on robots: a human takes over when the policy drifts; behaviour cloning on the aggregate",
+                 preflight=preflight)
 def run(cfg: HGDAggerConfig) -> dict:
     from infinirl.realworld.discovery import with_driver_discovery
     from infinirl.realworld.robot_worker import RobotActorWorker
-    from infinirl.runners.realworld_sac import env_spec_of, net_spec_of, robot_setup_of
+    from infinirl.runners.realworld_sac import robot_setup_of
 
-    setup, env, net = robot_setup_of(cfg), env_spec_of(cfg), net_spec_of(cfg)
+    env, net = preflight(cfg)
+    setup = robot_setup_of(cfg)
     intervention = intervention_spec_of(cfg)
 
     def start(plan, groups: dict, on_exit: list):

@@ -20,6 +20,8 @@ from infinirl.runners.realworld_sac_config import (
     TaskConfig,
     check_command_deadline,
     check_demo_options,
+    check_single_learner,
+    check_task_options,
     known_names,
     velocity_scale_resumes,
 )
@@ -121,6 +123,9 @@ class HGDAggerConfig(RunConfig):
         check_command_deadline(self.robot.command_deadline_s, self.robot.kind, self.robot.options, "robot.options")
         known_names(OBSERVATIONS, self.task.observations, "task.observations")
         known_names(REWARDS, list(self.task.rewards), "task.rewards")
+        check_task_options(self.task, "task")
+        if not self.task.observations:
+            raise ConfigError("task.observations is empty; name at least one source, e.g. [proprio]")
         if self.interventions.device is None:
             raise ConfigError("interventions.device is unset: HG-DAgger learns from a human who takes over; name a "
                               "device, e.g. interventions.device=simulated_human")
@@ -137,3 +142,4 @@ class HGDAggerConfig(RunConfig):
         if self.network.actor != "gaussian" or self.network.obs_key != "state":
             raise ConfigError("network.actor must be gaussian and network.obs_key state (the state-based policy the "
                               "robot workers act with)")
+        check_single_learner(self)

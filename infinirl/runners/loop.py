@@ -45,6 +45,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -124,8 +125,12 @@ class Flow(Protocol):
 
 
 class RunLoop:
-    def __init__(self, cfg: RunConfig, started: float | None = None):
+    def __init__(self, cfg: RunConfig, started: float | None = None, prepare: Callable[[], None] | None = None):
         self.cfg = cfg
+        self.prepare = prepare
+        """Makes what the run reads once the config is found resumable and before its inputs are
+        recorded (the SFT runner generates its demonstrations): a first run records their digest,
+        and a resumed one compares them with the checkpoint's."""
         self.started = started if started is not None else time.time()
         self.elapsed_before = 0.0
         self.checkpoints = Checkpoints(cfg.output_dir, keep=cfg.keep_checkpoints)
@@ -141,10 +146,14 @@ class RunLoop:
         self._created_output = not os.path.exists(self.cfg.output_dir)
         try:
             _check_writable(self.cfg.output_dir)
-            self.inputs = run_inputs(self.cfg)
             self.resume_from = self._find_resume_point()
+            if self.prepare is not None:
+                self.prepare()
+            self.inputs = run_inputs(self.cfg)
             if self.resume_from is None:
                 self._set_earlier_run_aside()
+            else:
+                check_run_inputs(self.resume_from[1].get("inputs"), self.inputs, self.resume_from[0])
         except BaseException:
             self._remove_unused_output()
             raise
@@ -168,7 +177,6 @@ class RunLoop:
         recorded = state.get("config")
         if recorded is not None:
             self._check_config(path, recorded, iteration)
-        check_run_inputs(state.get("inputs"), self.inputs, path)
         metrics = os.path.join(self.cfg.output_dir, METRICS_FILE)
         if os.path.exists(metrics):
             # A damaged row is named now, before any worker starts; a last row cut off mid-write is

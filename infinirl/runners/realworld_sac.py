@@ -54,8 +54,8 @@ from infinirl.runners.loop import LoopSpec, ProgressField, RunLoop
 from infinirl.runners.realworld_sac_config import RealWorldNetworkConfig, RealWorldSACConfig
 from infinirl.runners.run_support import launch_all, run_staged, run_start_time
 
-__all__ = ["RealWorldSACFlow", "RunCounts", "env_spec_of", "net_spec_of", "record_eval_video", "robot_counts",
-           "robot_setup_of", "run"]
+__all__ = ["RealWorldSACFlow", "RunCounts", "check_actor_options", "env_spec_of", "net_spec_of", "record_eval_video",
+           "robot_counts", "robot_setup_of", "run"]
 
 
 def preflight(cfg: RealWorldSACConfig) -> SACNetSpec:
@@ -65,7 +65,7 @@ def preflight(cfg: RealWorldSACConfig) -> SACNetSpec:
     if cfg.pipeline.transport == "edge":
         cfg.edge.check_trainer_files()  # here, not in the config's check: the edge node holds other files
     net = net_spec_of(cfg)
-    _check_actor_options(net)
+    check_actor_options(net)
     return net
 
 
@@ -102,7 +102,7 @@ def run(cfg: RealWorldSACConfig) -> dict:
         return run_staged(cfg, loop, start, with_driver_discovery(cfg.cluster))
 
 
-def _check_actor_options(net: SACNetSpec) -> None:
+def check_actor_options(net: SACNetSpec) -> None:
     """The actor head's options (e.g. flow_matching keywords) as a ConfigError before any worker
     starts; the encoder is checked against the cameras once the robots report them (:func:`_robot_shape`)."""
     from dataclasses import replace

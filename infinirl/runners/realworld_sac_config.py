@@ -16,8 +16,8 @@ from infinirl.runners.run_config import EvalSchedule, RunConfig
 from infinirl.runners.sac_config import AlgorithmConfig, LearnerConfig, NetworkConfig, WorkerConfig
 
 __all__ = ["CNNConfig", "EdgeLinkConfig", "EvalConfig", "InterventionConfig", "RealWorldNetworkConfig",
-           "RealWorldSACConfig", "RobotConfig", "TaskConfig", "check_demo_options", "known_names",
-           "parse_address"]
+           "RealWorldSACConfig", "RobotConfig", "TaskConfig", "check_demo_options", "check_single_learner",
+           "check_task_options", "known_names", "parse_address"]
 
 
 @dataclass(kw_only=True)
@@ -353,10 +353,10 @@ class RealWorldSACConfig(RunConfig):
             task = self.task_of(index)
             known_names(OBSERVATIONS, task.observations, f"robot.fleet[{index}].task.observations")
             known_names(REWARDS, list(task.rewards), f"robot.fleet[{index}].task.rewards")
-            _check_reward_options(task, f"robot.fleet[{index}].task")
+            check_task_options(task, f"robot.fleet[{index}].task")
         known_names(OBSERVATIONS, self.task.observations, "task.observations")
         known_names(REWARDS, list(self.task.rewards), "task.rewards")
-        _check_reward_options(self.task, "task")
+        check_task_options(self.task, "task")
         self.interventions.check()
         if not self.task.observations:
             raise ConfigError("task.observations is empty; name at least one source, e.g. [proprio]")
@@ -400,15 +400,7 @@ class RealWorldSACConfig(RunConfig):
                             f"robot.fleet[{index}].task")
 
     def _check_placement(self) -> None:
-        from infinirl.runtime.placement import parse_spec
-
-        if "learner" not in self.pinned_placement():
-            return  # placed by the scheduler, by these rules, when the run starts
-        learner = parse_spec(self.placement["learner"], "learner")
-        if learner.kind == "robots" or (learner.num_processes or 1) > 1 or (learner.num_processes is None
-                                                                             and len(learner.indices) > 1):
-            raise ConfigError(f"placement.learner={self.placement['learner']!r}: the learner is one rank on one "
-                              "device or CPU slot (e.g. '0')")
+        check_single_learner(self)
 
 
 _DEMO_ARGUMENTS_OF_THE_RUNNER = ("env", "seed", "noise_std")
@@ -468,6 +460,20 @@ def check_command_deadline(deadline_s: float | None, kind: str, options: dict, w
                           f"1/{where}.control_hz = {1.0 / float(control_hz):g} s")
 
 
+def check_single_learner(cfg: RunConfig) -> None:
+    """The robot runners' learner is one rank on one device or CPU slot (where the config places it;
+    the scheduler places it by the same rule)."""
+    from infinirl.runtime.placement import parse_spec
+
+    if "learner" not in cfg.pinned_placement():
+        return  # placed by the scheduler, by these rules, when the run starts
+    learner = parse_spec(cfg.placement["learner"], "learner")
+    if learner.kind == "robots" or (learner.num_processes or 1) > 1 or (learner.num_processes is None
+                                                                         and len(learner.indices) > 1):
+        raise ConfigError(f"placement.learner={cfg.placement['learner']!r}: the learner is one rank on one "
+                          "device or CPU slot (e.g. '0')")
+
+
 def known_names(registry, names, key: str) -> None:
     """A one-line ConfigError naming ``key`` for a name ``registry`` does not hold."""
     for name in names:
@@ -475,9 +481,9 @@ def known_names(registry, names, key: str) -> None:
             raise ConfigError(f"{key}: unknown {registry.kind} {name!r}; registered: {', '.join(registry.names())}")
 
 
-def _check_reward_options(task: TaskConfig, key: str) -> None:
+def check_task_options(task: TaskConfig, key: str) -> None:
     """The reward components' options as the robot env will take them (unknown, missing or orphan
-    options), checked before any worker starts."""
+    options), the camera names and the frame size, checked before any worker starts."""
     from infinirl.realworld.robot_env import RobotEnvSpec
 
     try:

@@ -148,9 +148,10 @@ class RunConfig:
         return {name: entries[name] for name in self.components()}
 
     def data_files(self) -> dict[str, str]:
-        """``label -> path`` of the data files this run reads whose rows decide what it trains on; each
-        is recorded with its size and sha256 in every checkpoint, and a resume over other contents is
-        refused (:mod:`infinirl.runners.run_inputs`). The label names the config key."""
+        """``label -> path`` of the data files and folders this run reads whose contents decide what it
+        trains on (rows, demonstrations, a checkpoint it starts from); each is recorded in every
+        checkpoint (a file by size and sha256, a folder by a digest of its files), and a resume over
+        other contents is refused (:mod:`infinirl.runners.run_inputs`). The label names the config key."""
         return {}
 
     def resume_may_change(self, key: str) -> bool:

@@ -148,6 +148,11 @@ class SACConfig(RunConfig):
     collector: WorkerConfig = field(default_factory=WorkerConfig)
     learner: LearnerConfig = field(default_factory=LearnerConfig)
 
+    def data_files(self) -> dict[str, str]:
+        # The frozen VLA's weights and statistics decide the features the networks learn on.
+        checkpoint = self.env.vla_checkpoint()
+        return {"env.kwargs.vla.checkpoint": checkpoint} if checkpoint else {}
+
     def check(self) -> None:
         alg = self.algorithm
         if alg.learning_starts < alg.batch_size:

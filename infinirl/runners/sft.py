@@ -42,25 +42,53 @@ from infinirl.runners.sim_config import eval_seeds
 from infinirl.utils import torch_save_atomic
 from infinirl.utils.memory import peak_memory_bytes
 
-__all__ = ["SFTFlow", "learning_rate", "load_optimizer_state", "rollout_episodes", "run", "task_instructions"]
+__all__ = ["SFTFlow", "evaluation_tasks", "learning_rate", "load_optimizer_state", "preflight", "read_demos",
+           "rollout_episodes", "run", "task_instructions"]
 
 POLICY_DIR = "policy"
 OPTIMIZER_FILE = "optimizer.pt"
 
 
+def preflight(cfg: SFTConfig) -> list[str]:
+    """The evaluation tasks (benchmark names resolved), ``model.init``'s files (its config and the
+    headers of its tensor files: no weights are loaded) and, when ``data.path`` exists, the
+    dataset's metadata against them; when it does not, what generating it needs. In the driver before
+    anything is generated or trained (``infinirl validate`` runs it too); the evaluation tasks."""
+    from infinirl.data.demos import metaworld_features
+
+    tasks = evaluation_tasks(cfg)
+    init = _read_init(cfg)
+    if Path(cfg.data.path).exists():
+        reader = open_dataset(cfg)
+        if not reader.num_episodes:
+            raise ConfigError(f"data.path={cfg.data.path}: the dataset has no episodes; record demonstrations into it")
+        camera = DemoFrames.camera_of(reader, cfg.data.camera_key)
+        _check_stats(reader)
+        task_instructions(tasks, reader.tasks)
+        shapes = {key: int(reader.features[key]["shape"][0]) for key in ("observation.state", "action")}
+    else:
+        _check_generation(cfg, tasks)
+        gen = cfg.data.generate
+        features = metaworld_features(gen.camera, gen.image_size)
+        camera = f"{CAMERA_PREFIX}{gen.camera}"
+        shapes = {key: int(features[key]["shape"][0]) for key in ("observation.state", "action")}
+    if init is not None:
+        _check_init_fits(init, cfg, shapes["observation.state"], shapes["action"], camera)
+    return tasks
+
+
 @register_runner("sft", SFTConfig, "behaviour cloning (flow matching) of a VLA on a LeRobotDataset of "
-                                   "demonstrations, with held-out success in MetaWorld")
+                                   "demonstrations, with held-out success in MetaWorld", preflight=preflight)
 def run(cfg: SFTConfig) -> dict:
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
     compute_device(cfg.device)  # a GPU that is not there fails here, before the dataset is read
-    if cfg.model.init and not Path(cfg.model.init).exists():  # before demonstrations are generated
-        raise ConfigError(f"model.init={cfg.model.init}: no such folder; `infinirl train sft_vla_metaworld` writes "
-                          "one to runs/sft_vla_metaworld/policy")
-    with RunLoop(cfg, run_start_time()) as loop:
+    tasks = preflight(cfg)  # before demonstrations are generated
+    # The demonstrations are generated once the run is found resumable and before it records its
+    # inputs: their digest is recorded with the first checkpoint and compared on resume.
+    with RunLoop(cfg, run_start_time(), prepare=lambda: generate_dataset(cfg)) as loop:
         reader = open_dataset(cfg)
-        tasks = task_instructions(list(cfg.eval.tasks or cfg.data.generate.tasks), reader.tasks)
-        flow = SFTFlow(cfg, DemoFrames.read(reader, cfg.data.camera_key), tasks)
+        flow = SFTFlow(cfg, read_demos(reader, cfg.data.camera_key), task_instructions(tasks, reader.tasks))
         try:
             return loop.run(flow)
         finally:
@@ -84,24 +112,100 @@ def compute_device(device: str) -> torch.device:
 # Data
 
 
-def open_dataset(cfg: SFTConfig):
-    """The dataset at ``data.path``, generated from ``data.generate`` first if it does not exist."""
-    from infinirl.data.demos import DemoSpec, collect_demos, resolve_metaworld_tasks
-    from infinirl.data.lerobot_dataset import LeRobotDatasetError, LeRobotDatasetReader
+def evaluation_tasks(cfg: SFTConfig) -> list[str]:
+    """The MetaWorld tasks evaluated (and collected in by the RFT rounds): ``eval.tasks``, else
+    ``data.generate.tasks``, with benchmark names (MT10) resolved to their tasks."""
+    from infinirl.data.demos import resolve_metaworld_tasks
+
+    key, names = ("eval.tasks", cfg.eval.tasks) if cfg.eval.tasks else ("data.generate.tasks", cfg.data.generate.tasks)
+    if not names:
+        raise ConfigError("eval.tasks is empty and so is data.generate.tasks: name the MetaWorld tasks to evaluate")
+    try:
+        return list(resolve_metaworld_tasks(",".join(names)))
+    except ValueError as exc:
+        raise ConfigError(f"{key}: {exc}") from None
+
+
+def demo_spec(cfg: SFTConfig):
+    """The :class:`~infinirl.data.demos.DemoSpec` that generates ``data.path`` from ``data.generate``."""
+    from infinirl.data.demos import DemoSpec, resolve_metaworld_tasks
+
+    gen = cfg.data.generate
+    try:
+        return DemoSpec(tasks=resolve_metaworld_tasks(",".join(gen.tasks)), episodes_per_task=gen.episodes_per_task,
+                        out=str(cfg.data.path), image_size=gen.image_size, camera=gen.camera, seed=gen.seed,
+                        noise_std=gen.noise_std, instructions=gen.instructions)
+    except ValueError as exc:
+        raise ConfigError(f"data.generate: {exc}") from None
+
+
+def _check_generation(cfg: SFTConfig, tasks: list[str]) -> None:
+    """What generating ``data.path`` needs: its settings, the ffmpeg binary that encodes its videos,
+    and every evaluation task among the generated ones."""
+    from infinirl.data.lerobot_dataset import LeRobotDatasetError, check_ffmpeg
+
+    spec = demo_spec(cfg)
+    try:
+        check_ffmpeg()
+    except LeRobotDatasetError as exc:
+        raise ConfigError(f"data.path={cfg.data.path} does not exist and generating it needs ffmpeg: {exc}") from None
+    missing = [task for task in tasks if task not in spec.tasks]
+    if missing:
+        raise ConfigError(f"eval.tasks: {missing[0]!r} is not among data.generate.tasks ({', '.join(spec.tasks)}), "
+                          "so the generated demonstrations would not cover it; evaluate tasks the demonstrations "
+                          "cover")
+
+
+def generate_dataset(cfg: SFTConfig) -> None:
+    """MetaWorld scripted-expert demonstrations into ``data.path`` from ``data.generate``, when it
+    does not exist."""
+    from infinirl.data.demos import collect_demos
 
     path = Path(cfg.data.path)
-    if not path.exists():
-        gen = cfg.data.generate
-        try:
-            spec = DemoSpec(tasks=resolve_metaworld_tasks(",".join(gen.tasks)), episodes_per_task=gen.episodes_per_task,
-                            out=str(path), image_size=gen.image_size, camera=gen.camera, seed=gen.seed,
-                            noise_std=gen.noise_std, instructions=gen.instructions)
-        except ValueError as exc:
-            raise ConfigError(f"data.generate: {exc}") from None
-        print(f"data.path={path} does not exist: generating MetaWorld demonstrations", flush=True)
-        print("\n".join(collect_demos("metaworld", spec).lines()), flush=True)
+    if path.exists():
+        return
+    spec = demo_spec(cfg)
+    print(f"data.path={path} does not exist: generating MetaWorld demonstrations", flush=True)
+    print("\n".join(collect_demos("metaworld", spec).lines()), flush=True)
+
+
+def open_dataset(cfg: SFTConfig):
+    """The dataset at ``data.path`` (its metadata and numeric columns; videos are decoded later)."""
+    from infinirl.data.lerobot_dataset import LeRobotDatasetError, LeRobotDatasetReader
+
     try:
-        return LeRobotDatasetReader(path)
+        return LeRobotDatasetReader(cfg.data.path)
+    except LeRobotDatasetError as exc:
+        raise ConfigError(f"data.path: {exc}") from None
+
+
+def _check_stats(reader) -> None:
+    """The state and action statistics the model normalises with: there, and of the features' shapes."""
+    from infinirl.data.lerobot_dataset import LeRobotDatasetError
+
+    try:
+        stats = reader.stats
+    except LeRobotDatasetError as exc:
+        raise ConfigError(f"data.path: {exc}") from None
+    for key in ("observation.state", "action"):
+        if key not in reader.features or key not in stats:
+            raise ConfigError(f"data.path: the dataset at {reader.root} has no {key!r} (with statistics in "
+                              "meta/stats.json); SFT needs states and actions")
+        shape = tuple(reader.features[key]["shape"])
+        for name in ("mean", "std"):
+            value = stats[key].get(name)
+            if value is None or tuple(np.shape(value)) != shape:
+                found = "none" if value is None else f"shape {tuple(np.shape(value))}"
+                raise ConfigError(f"data.path: {reader.root}/meta/stats.json gives {key}.{name} {found}, but the "
+                                  f"feature's shape is {shape}; the statistics are corrupt: re-create the dataset")
+
+
+def read_demos(reader, camera_key: str | None) -> DemoFrames:
+    """Every frame of ``reader`` in memory; a video that does not decode is a ConfigError naming it."""
+    from infinirl.data.lerobot_dataset import LeRobotDatasetError
+
+    try:
+        return DemoFrames.read(reader, camera_key)
     except LeRobotDatasetError as exc:
         raise ConfigError(f"data.path: {exc}") from None
 
@@ -125,6 +229,36 @@ def task_instructions(tasks: list[str], dataset_tasks: list[str]) -> dict[str, t
     return found
 
 
+def _read_init(cfg: SFTConfig):
+    """``model.init``'s :class:`~infinirl.models.vla.config.VLAConfig`, after checking that its
+    tensor files' headers read (a truncated or corrupt file fails here, before anything is
+    generated); None without ``model.init``."""
+    from safetensors import SafetensorError, safe_open
+
+    from infinirl.models.vla.config import read_vla_config
+
+    init = cfg.model.init
+    if not init:
+        return None
+    if not Path(init).is_dir():
+        raise ConfigError(f"model.init={init}: no such folder; `infinirl train sft_vla_metaworld` writes one to "
+                          "runs/sft_vla_metaworld/policy")
+    try:
+        config = read_vla_config(init, family=cfg.model.family)
+    except (ValueError, FileNotFoundError) as exc:  # json's errors are ValueErrors
+        raise ConfigError(f"model.init: {exc}") from None
+    if not (Path(init) / "model.safetensors").is_file():
+        raise ConfigError(f"model.init={init} has no model.safetensors: copy the whole policy folder")
+    for path in sorted(Path(init).glob("*.safetensors")):  # the weights and the processors' statistics
+        try:
+            with safe_open(str(path), "pt"):
+                pass
+        except SafetensorError as exc:
+            raise ConfigError(f"model.init: {path} is not a readable safetensors file ({exc}); copy it again, or "
+                              "train a new model (model.init=null)") from None
+    return config
+
+
 # ---------------------------------------------------------------------------------------------
 # Training
 
@@ -144,6 +278,8 @@ def learning_rate(step: int, cfg: SFTConfig) -> float:
 
 def build_model(cfg: SFTConfig, demos: DemoFrames, instructions: dict[str, str]):
     """The VLA to train: a new ``pi0_smollm2`` (SmolLM2's first layers), or ``model.init``'s."""
+    from safetensors import SafetensorError
+
     from infinirl.models.vla.config import ConvStemSpec
     from infinirl.models.vla.smollm2_vla import SmolVLASpec, build_pi0_smollm2
     from infinirl.models.vla.vla import load_vla
@@ -152,9 +288,9 @@ def build_model(cfg: SFTConfig, demos: DemoFrames, instructions: dict[str, str])
     if model.init:
         try:
             vla = load_vla(model.init, family=model.family)
-        except (ValueError, FileNotFoundError) as exc:
+        except (ValueError, FileNotFoundError, SafetensorError) as exc:
             raise ConfigError(f"model.init: {exc}") from None
-        _check_init_fits(vla.config, cfg, demos)
+        _check_init_fits(vla.config, cfg, int(demos.state.shape[1]), int(demos.action.shape[1]), demos.camera_key)
         vla.config.instructions.update(instructions)
         return vla
     try:
@@ -172,21 +308,22 @@ def build_model(cfg: SFTConfig, demos: DemoFrames, instructions: dict[str, str])
         raise ConfigError(f"model: {exc}") from None
 
 
-def _check_init_fits(config, cfg: SFTConfig, demos: DemoFrames) -> None:
+def _check_init_fits(config, cfg: SFTConfig, state_dim: int, action_dim: int, camera_key: str) -> None:
     """``model.init``'s own sizes govern (the model.* sizes are those of a new model): the executed
-    part of a chunk and the demonstrations must fit them, or training fails deep in the first step."""
+    part of a chunk and the demonstrations (their state and action sizes, their camera) must fit
+    them, or training fails deep in the first step."""
     init, steps = cfg.model.init, cfg.model.n_action_steps
     if steps > config.chunk_size:
         raise ConfigError(f"model.n_action_steps={steps} exceeds the chunk of model.init={init} ({config.chunk_size} "
                           f"actions per decision); set model.n_action_steps <= {config.chunk_size}")
-    for key, dataset_dim, model_dim in (("observation.state", demos.state.shape[1], config.state_dim),
-                                        ("action", demos.action.shape[1], config.action_dim)):
+    for key, dataset_dim, model_dim in (("observation.state", state_dim, config.state_dim),
+                                        ("action", action_dim, config.action_dim)):
         if dataset_dim != model_dim:
             raise ConfigError(f"data.path: the dataset's {key} has {dataset_dim} dimensions but model.init={init} "
                               f"was trained on {model_dim}; clone from demonstrations of the same robot, or train a "
                               "new model (model.init=null)")
-    if demos.camera_key not in config.camera_keys:
-        raise ConfigError(f"data.camera_key: the dataset's camera {demos.camera_key!r} is not one model.init={init} "
+    if camera_key not in config.camera_keys:
+        raise ConfigError(f"data.camera_key: the dataset's camera {camera_key!r} is not one model.init={init} "
                           f"reads ({', '.join(config.camera_keys)}); record the demonstrations with that camera")
 
 
@@ -308,9 +445,13 @@ class SFTFlow:
         return metrics
 
     def _read_round(self, path: Path) -> DemoFrames:
-        from infinirl.data.lerobot_dataset import LeRobotDatasetReader
+        from infinirl.data.lerobot_dataset import LeRobotDatasetError, LeRobotDatasetReader
 
-        return DemoFrames.read(LeRobotDatasetReader(path), self.demos.camera_key)
+        try:
+            return DemoFrames.read(LeRobotDatasetReader(path), self.demos.camera_key)
+        except LeRobotDatasetError as exc:
+            raise ConfigError(f"rft: the round {path} does not read ({exc}); restore it, or start the run again in a "
+                              "new output_dir") from None
 
     # ------------------------------------------------------------------ evaluation
     def _env(self, task: str):
@@ -357,8 +498,12 @@ class SFTFlow:
 
     def load(self, folder: str, state: dict) -> None:
         from infinirl.models.vla.checkpoint import load_weights
+        from infinirl.models.vla.vla import load_processor_stats
 
         load_weights(self.vla.model, Path(folder) / POLICY_DIR / "model.safetensors")
+        # The statistics the checkpoint normalised with (the model was built with those of data.path
+        # or model.init as they are now; the run's inputs check refuses those when they changed).
+        load_processor_stats(self.vla, Path(folder) / POLICY_DIR)
         load_optimizer_state(self.optimizer, os.path.join(folder, OPTIMIZER_FILE))
         self.samples = int(state["samples"])
         self.rft.kept = [int(k) for k in state.get("rft_kept", [])]

@@ -151,6 +151,10 @@ class SFTConfig(RunConfig):
     eval: SFTEvalConfig = field(default_factory=SFTEvalConfig)
     rft: RFTConfig = field(default_factory=RFTConfig)
 
+    def data_files(self) -> dict[str, str]:
+        # The demonstrations' frames and statistics, and the model a run starts from.
+        return {"data.path": self.data.path, **({"model.init": self.model.init} if self.model.init else {})}
+
     def _refused_on_resume(self, key: str) -> bool:
         # The cosine schedule spans `iterations`: the checkpoint's steps ran on the old span, so a new
         # length would continue on a different curve than the one the run started on.

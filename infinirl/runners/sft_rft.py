@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from infinirl.config import ConfigError
 from infinirl.runners.sft_config import SFTConfig
 from infinirl.runners.sim_config import EVAL_SEED_BASE
 
@@ -119,8 +120,9 @@ class RejectionSampling:
         folders = [round_dir(self.cfg.output_dir, k + 1) for k, count in enumerate(self.kept) if count]
         for folder in folders:
             if not folder.is_dir():
-                raise FileNotFoundError(f"{folder} is missing: the checkpoint counts its episodes; restore it or "
-                                        "start the run again in a new output_dir")
+                raise ConfigError(f"resume: the RFT round {folder} is missing: the checkpoint counts its episodes "
+                                  "among the data it trains on; restore it, or start the run again in a new "
+                                  "output_dir (or with resume=false)")
         return folders
 
     def close(self) -> None:

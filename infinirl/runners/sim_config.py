@@ -41,6 +41,12 @@ class SimEnvConfig:
     """Sub-env crashes (a step that raised, a worker process lost or timed out) one vectorised env
     survives in total; one more stops the run with the last crash's traceback."""
 
+    def vla_checkpoint(self) -> str | None:
+        """``kwargs.vla.checkpoint``: the frozen VLA a ``vla_noise`` env folds in (None: not set)."""
+        vla = self.kwargs.get("vla")
+        checkpoint = vla.get("checkpoint") if isinstance(vla, dict) else None
+        return checkpoint if isinstance(checkpoint, str) else None
+
     def validate(self) -> None:
         from infinirl.envs.registry import ENVS
 

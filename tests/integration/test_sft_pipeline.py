@@ -67,7 +67,7 @@ def test_bad_data_and_tasks_fail_before_training(tmp_path):
     with pytest.raises(ConfigError, match=r"^data.path: .*meta/info.json"):
         run(make_cfg(tmp_path / "out", tmp_path / "not_a_dataset"))
     assert not (tmp_path / "out").exists()
-    with pytest.raises(ConfigError, match=r"^data.generate: unknown MetaWorld task 'nope-v3'"):
+    with pytest.raises(ConfigError, match=r"^data.generate.tasks: unknown MetaWorld task 'nope-v3'"):
         run(make_cfg(tmp_path / "out", tmp_path / "new", data={"path": str(tmp_path / "new"),
                                                                 "generate": {"tasks": ["nope-v3"]}}))
     assert not (tmp_path / "new").exists()
@@ -121,5 +121,6 @@ def test_rejection_sampling_rounds_join_the_data_and_resume_exactly(tmp_path, mo
     import shutil
 
     shutil.rmtree(tmp_path / "lost" / "run" / "rft" / "round_0001")
-    with pytest.raises(FileNotFoundError, match="round_0001 is missing: the checkpoint counts its episodes"):
+    with pytest.raises(ConfigError, match=r"^resume: the RFT round .*round_0001 is missing: the checkpoint counts its "
+                                          r"episodes .*restore it, or start the run again in a new output_dir"):
         run(make_cfg(tmp_path / "lost" / "run", data, rft=rft))

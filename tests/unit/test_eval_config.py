@@ -3,6 +3,7 @@ task; bad input is a config error naming the key, before any worker starts."""
 
 import json
 import os
+from pathlib import Path
 
 import pytest
 
@@ -273,3 +274,63 @@ def test_a_vllm_engine_gets_a_context_length_holding_the_longest_prompt():
     with pytest.raises(ConfigError, match=rf"max_model_len={longest + 31} is shorter .*the longest prompt={longest} "
                                           rf"\+ max_new_tokens=32 = {longest + 32} tokens"):
         rollout_engine_options(cfg, plan, problems, tokenizer)
+
+
+def data_run(root, data, state_inputs):
+    """A run on the data file ``data`` whose checkpoint iter_000002 recorded ``state_inputs``."""
+    fake_run(root, steps=())
+    raw = json.loads((root / "config.json").read_text())
+    raw["task"].update(source="dataset", name=str(data), verifier="math", eval_size=3)
+    (root / "config.json").write_text(json.dumps(raw))
+    folders = Checkpoints(str(root))
+    tmp = folders.begin(2)
+    os.makedirs(os.path.join(tmp, "actor"))
+    folders.commit(tmp, 2, {"iteration": 2, "inputs": state_inputs})
+    return root, raw["task"]
+
+
+def test_a_runs_data_file_changed_since_its_checkpoint_is_refused(tmp_path):
+    """The held-out rows of a run's own data file are its first task.eval_size: on an edited file
+    they may be rows the checkpoint trained on, so the evaluation is refused, naming the file."""
+    from infinirl.evaluation.runner import check_run_data, preflight
+    from infinirl.runners.run_inputs import file_digest
+
+    data = tmp_path / "rows.jsonl"
+    rows = [{"question": f"{i}+1?", "answer": str(i + 1)} for i in range(10)]
+    data.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    run, task = data_run(tmp_path / "run", data, {"data": {"task.name": file_digest(data)}})
+    check_run_data(to_dataclass(EvalConfig, {"run_dir": str(run)}).resolve())  # the same rows: evaluated
+    data.write_text("".join(json.dumps(row) + "\n" for row in rows[::-1]))
+    with pytest.raises(ConfigError, match=rf"^run_dir: task.name {data} is not the file .*iter_000002 trained on "
+                                          r"\(.* bytes, sha256 [0-9a-f]{12}; now .*\); its held-out rows would not "
+                                          r"be the ones the run held out") as error:
+        preflight(to_dataclass(EvalConfig, {"run_dir": str(run)}))
+    assert "\n" not in str(error.value)
+    # Other data from the same file (another held-out size) is not the run's: evaluated as it is.
+    check_run_data(to_dataclass(EvalConfig, {"run_dir": str(run), "task": {**task, "eval_size": 6}}).resolve())
+
+
+def test_validate_loads_the_problems_and_the_tokenizer_and_checks_the_context(tmp_path, tiny_llama_dir, capsys):
+    """What `infinirl eval` refuses before its workers start, validate refuses too."""
+    def error_of(*overrides):
+        assert main(["validate", "eval", f"model.path={tiny_llama_dir}", *overrides]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("infinirl: config error: ") and err.count("\n") == 1, err
+        return err
+
+    rows = tmp_path / "rows.jsonl"
+    rows.write_text(json.dumps({"question": "1+1?", "answer": "2"}) + "\n")
+    (tmp_path / "empty.jsonl").write_text("")
+    (tmp_path / "no_answer.jsonl").write_text(json.dumps({"question": "1+1?"}) + "\n")
+    dataset = ["task.source=dataset", "task.verifier=math"]
+    assert main(["validate", "eval", f"model.path={tiny_llama_dir}", *dataset, f"task.name={rows}"]) == 0
+    assert "has no rows" in error_of(*dataset, f"task.name={tmp_path / 'empty.jsonl'}")
+    assert "no key 'answer'" in error_of(*dataset, f"task.name={tmp_path / 'no_answer.jsonl'}")
+    assert "unknown" in error_of("task.name=basic_arithmetc").lower()
+    err = error_of(*dataset, f"task.name={rows}", "max_new_tokens=500")
+    assert "max_new_tokens=500: prompt 'rows/0' is" in err and "more than the model's context (512" in err
+    no_tokenizer = tmp_path / "no_tokenizer"
+    no_tokenizer.mkdir()
+    (no_tokenizer / "config.json").write_text((Path(tiny_llama_dir) / "config.json").read_text())
+    assert main(["validate", "eval", f"model.path={no_tokenizer}", *dataset, f"task.name={rows}"]) == 2
+    assert f"model.path={no_tokenizer}: no tokenizer loads from it" in capsys.readouterr().err

@@ -29,7 +29,7 @@ from infinirl.models.vla.model import PiZero
 from infinirl.models.vla.normalize import read_normalizer
 from infinirl.models.vla.processor import ACTION, STATE, VLAInputs, VLAProcessor
 
-__all__ = ["VLA", "load_vla"]
+__all__ = ["VLA", "load_processor_stats", "load_vla"]
 
 
 class VLA(nn.Module):
@@ -111,3 +111,15 @@ def load_vla(folder: str | Path, *, family: str | None = None, architecture: VLA
     vla = VLA(model, processor).to(device)
     vla.eval()
     return vla
+
+
+def load_processor_stats(vla: VLA, folder: str | Path) -> None:
+    """Replace ``vla``'s state/action statistics with those saved in ``folder`` (a checkpoint's
+    policy folder): a resumed run normalises with what it was trained with, not with statistics
+    read again from its data or its initial model."""
+    folder = Path(folder)
+    saved_in = read_normalizer(folder, {STATE: "STATE", ACTION: "ACTION"})
+    saved_out = read_normalizer(folder, {ACTION: "ACTION"}, pipeline="policy_postprocessor",
+                                registry_name="unnormalizer_processor")
+    vla.processor.input_norm.load_state_dict(saved_in.state_dict())
+    vla.processor.output_norm.load_state_dict(saved_out.state_dict())

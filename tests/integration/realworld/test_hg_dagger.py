@@ -90,6 +90,13 @@ def config(**raw):
     ({"dagger": {"demo_options": {"seed": 3}}}, "dagger.demo_options.seed: the runner passes the robot env"),
     ({"interventions": {"device": "simulated_human", "as_demos": True}},
      "interventions.as_demos=true feeds RLPD's demonstrations store (realworld_sac)"),
+    # what the robot env and the learner would refuse with a traceback once started
+    ({"task": {"observations": []}}, "task.observations is empty; name at least one source"),
+    ({"task": {"reward_options": {"classifier": {"path": "clf.pt"}}}},
+     "task.reward_options: RobotEnvSpec.reward_options: ['classifier'] are not among the rewards"),
+    ({"task": {"camera_names": {"wrist": "front"}}}, "task.camera_names: RobotEnvSpec.camera_names renames"),
+    ({"task": {"frame_size": [64]}}, "task.frame_size=[64]: give [height, width]"),
+    ({"placement": {"learner": "0,1"}}, "placement.learner='0,1': the learner is one rank"),
 ])
 def test_config_errors_name_the_key_before_any_worker_starts(raw, message):
     from infinirl.config import ConfigError
@@ -98,6 +105,19 @@ def test_config_errors_name_the_key_before_any_worker_starts(raw, message):
         config(**raw).validate()
     assert str(error.value).startswith(message) and "\n" not in str(error.value)
     config(dagger={"demo_policy": "metaworld_expert", "demo_options": {"task": "push-v3"}}).validate()
+
+
+def test_validate_runs_the_hg_dagger_preflight(capsys):
+    """`infinirl validate` builds the robot env's spec and the policy network as train does, and
+    refuses what the config's own checks refuse with the same line."""
+    from infinirl.cli import main
+    from infinirl.runners import load_runners
+
+    env, net = load_runners().get("hg_dagger").preflight(config())
+    assert env.observations == ("proprio", "sim_state") and net.actor == "gaussian"
+    assert main(["validate", "hg_dagger_sawyer_reach", "task.observations=[]"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("infinirl: config error: task.observations is empty") and err.count("\n") == 1
 
 
 def test_the_robots_act_with_the_configured_network():

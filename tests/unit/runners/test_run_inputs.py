@@ -61,7 +61,7 @@ def test_a_data_file_with_other_rows_is_refused_on_resume_naming_the_file(tmp_pa
     run(reasoning(tmp_path, 1, task=task))
     write_rows(data, [{**row, "answer": row["answer"] + "0"} if i == 5 else row for i, row in enumerate(ROWS)])
     with pytest.raises(ConfigError, match=rf"resume: task.name {data} is not the file .*iter_000001 trained on "
-                                          r"\(.* bytes, sha256 [0-9a-f]{12}\); .*restore it.* or start over "
+                                          r"\(.* bytes, sha256 [0-9a-f]{12}; now .*\); .*restore it.* or start over "
                                           r"with resume=false") as error:
         run(reasoning(tmp_path, 2, task=task))
     assert "\n" not in str(error.value)
@@ -81,12 +81,102 @@ def test_a_preset_read_from_another_data_dir_is_refused_on_resume(tmp_path, monk
     run(reasoning(tmp_path, 1, task=task))
     monkeypatch.setenv("INFINIRL_DATA_DIR", str(tmp_path / "two"))
     with pytest.raises(ConfigError, match=r"task.name=gsm8k \(train split\) .*two/gsm8k/train.jsonl is not the file "
-                                          r".*one/gsm8k/train.jsonl.*INFINIRL_DATA_DIR"):
+                                          r".*trained on \(.*one/gsm8k/train.jsonl: "):
         run(reasoning(tmp_path, 2, task=task))
     monkeypatch.setenv("INFINIRL_DATA_DIR", str(tmp_path / "one"))
     run(reasoning(tmp_path, 2, task=task))
     state = json.load(open(tmp_path / "run" / "checkpoints" / "iter_000002" / "runner_state.json"))
     assert set(state["inputs"]["data"]) == {"task.name=gsm8k (train split)", "task.name=gsm8k (test split)"}
+
+
+def sft(tmp_path, iterations: int, **raw):
+    from infinirl.runners.sft_config import SFTConfig
+
+    return to_dataclass(SFTConfig, {"output_dir": str(tmp_path / "run"), "iterations": iterations, "loggers": [],
+                                    "eval": {"at_start": False},
+                                    "optim": {"warmup_steps": 0, "lr_schedule": "constant"}, **raw})
+
+
+def fake_folder(path, **files):
+    for name, text in files.items():
+        (path / name).parent.mkdir(parents=True, exist_ok=True)
+        (path / name).write_text(text)
+    return path
+
+
+def test_a_folder_digest_covers_names_sizes_and_contents_but_not_unfinished_writes(tmp_path):
+    from infinirl.runners.run_inputs import tree_digest
+
+    folder = fake_folder(tmp_path / "ds", **{"meta/info.json": "{}", "meta/stats.json": "[1]", "data/a.bin": "xy"})
+    first = tree_digest(folder)
+    assert first["files"] == 3 and first["size"] == 7
+    (folder / ".stats.json.a1b2.tmp").write_text("being written")  # utils.atomic's temporary file
+    (folder / ".ds.tmp-x1").mkdir()
+    (folder / ".ds.tmp-x1" / "big.bin").write_text("a dataset writer's unfinished folder")
+    assert tree_digest(folder) == first
+    (folder / "data" / "a.bin").rename(folder / "data" / "b.bin")  # same bytes under another name
+    assert tree_digest(folder)["sha256"] != first["sha256"]
+    (folder / "data" / "b.bin").rename(folder / "data" / "a.bin")
+    (folder / "meta" / "stats.json").write_text("[2]")  # same size, other bytes
+    changed = tree_digest(folder)
+    assert changed["size"] == first["size"] and changed["sha256"] != first["sha256"]
+
+
+def test_an_sft_dataset_or_initial_model_changed_on_disk_is_refused_on_resume(tmp_path):
+    """The demonstrations' statistics and the initial model are read again on resume: another
+    folder there is refused, naming the key and the folder, before anything is built."""
+    data = fake_folder(tmp_path / "demos", **{"meta/stats.json": '{"action": {"mean": [0.0]}}'})
+    init = fake_folder(tmp_path / "init", **{"config.json": "{}", "model.safetensors": "weights"})
+    raw = {"data": {"path": str(data)}, "model": {"init": str(init)}}
+    run(sft(tmp_path, 1, **raw))
+    state = json.load(open(tmp_path / "run" / "checkpoints" / "iter_000001" / "runner_state.json"))
+    assert set(state["inputs"]["data"]) == {"data.path", "model.init"}
+    (data / "meta" / "stats.json").write_text('{"action": {"mean": [1.0]}}')
+    with pytest.raises(ConfigError, match=rf"^resume: data.path {data} is not the folder .*iter_000001 trained on "
+                                          r"\(.* bytes, sha256 [0-9a-f]{12}; now .*\); the restored state would go on "
+                                          r"over other data; restore it, or start over with resume=false") as error:
+        run(sft(tmp_path, 2, **raw))
+    assert "\n" not in str(error.value)
+    (data / "meta" / "stats.json").write_text('{"action": {"mean": [0.0]}}')
+    (init / "model.safetensors").write_text("other weights")
+    with pytest.raises(ConfigError, match=rf"^resume: model.init {init} is not the folder"):
+        run(sft(tmp_path, 2, **raw))
+    (init / "model.safetensors").write_text("weights")
+    run(sft(tmp_path, 2, **raw))
+
+
+def test_what_a_run_prepares_is_recorded_by_its_first_checkpoint(tmp_path):
+    """A dataset the runner makes (SFT generates its demonstrations) before the inputs are recorded:
+    the first checkpoint holds its digest, so a resume over another one is refused."""
+    data = tmp_path / "demos"
+
+    def generate():
+        if not data.exists():
+            fake_folder(data, **{"meta/info.json": "generated"})
+
+    cfg = sft(tmp_path, 1, data={"path": str(data)})
+    with RunLoop(cfg, prepare=generate) as loop:
+        loop.run(StatelessFlow())
+    state = json.load(open(tmp_path / "run" / "checkpoints" / "iter_000001" / "runner_state.json"))
+    assert state["inputs"]["data"]["data.path"]["files"] == 1
+    (data / "meta" / "info.json").write_text("generated again, differently")
+    with pytest.raises(ConfigError, match=r"^resume: data.path .* is not the folder"):
+        with RunLoop(sft(tmp_path, 2, data={"path": str(data)}), prepare=generate) as loop:
+            loop.run(StatelessFlow())
+
+
+def test_the_embodied_and_sac_runners_name_their_demonstrations_and_checkpoints():
+    from infinirl.runners.embodied_config import EmbodiedConfig
+    from infinirl.runners.sac_config import SACConfig
+
+    vla = {"policy": "pi0_smollm2", "checkpoint": "runs/sft/policy"}
+    sac = to_dataclass(SACConfig, {"env": {"name": "vla_noise:metaworld:reach-v3", "kwargs": {"vla": vla}}})
+    assert sac.data_files() == {"env.kwargs.vla.checkpoint": "runs/sft/policy"}
+    assert to_dataclass(SACConfig, {}).data_files() == {}
+    embodied = to_dataclass(EmbodiedConfig, {"algorithm": {"bc": {"data": "data/demos"}},
+                                             "policy": {"kwargs": {"checkpoint": "runs/sft/policy"}}})
+    assert embodied.data_files() == {"algorithm.bc.data": "data/demos", "policy.kwargs.checkpoint": "runs/sft/policy"}
+    assert to_dataclass(EmbodiedConfig, {}).data_files() == {}
 
 
 @pytest.fixture

@@ -17,7 +17,7 @@ from infinirl.runners.sft_config import SFTConfig  # noqa: E402
 from tests.unit.models.test_vla_smollm2 import CAMERA, tiny_vla  # noqa: E402
 
 
-def synthetic_dataset(root, episodes=(5, 3)) -> LeRobotDatasetReader:
+def synthetic_dataset(root, episodes=(5, 3), tasks=("pick up the cube", "open the top drawer")) -> LeRobotDatasetReader:
     """Episodes whose action is a fixed function of the state; the image brightness encodes the task."""
     features = {"observation.state": {"dtype": "float32", "shape": (4,), "names": None},
                 "action": {"dtype": "float32", "shape": (4,), "names": None},
@@ -28,7 +28,7 @@ def synthetic_dataset(root, episodes=(5, 3)) -> LeRobotDatasetReader:
             state = rng.normal(size=(length, 4)).astype(np.float32)
             frames = {"observation.state": state, "action": np.tanh(state[:, ::-1] + number).astype(np.float32),
                       CAMERA: np.full((length, 16, 16, 3), 60 + 120 * number, dtype=np.uint8)}
-            writer.add_episode(frames, task=["pick up the cube", "open the top drawer"][number])
+            writer.add_episode(frames, task=tasks[number])
     return LeRobotDatasetReader(root)
 
 
@@ -238,3 +238,162 @@ def test_an_initial_model_that_does_not_fit_is_a_one_line_error(demos, saved_pol
     with pytest.raises(ConfigError, match=message):
         build_model(cfg(**model), replace(demos, **changed), {})
     assert build_model(cfg(), demos, {}).config.chunk_size == 3
+
+
+def test_a_resumed_flow_normalises_with_the_statistics_of_its_checkpoint(demos, tmp_path):
+    """The model is built with the statistics of data.path (or model.init) as they are now; loading a
+    checkpoint puts back those it trained with, with its weights."""
+    from dataclasses import replace
+
+    from infinirl.runners.sft import SFTFlow
+
+    cfg = to_dataclass(SFTConfig, {"output_dir": str(tmp_path / "run"), "model": TINY_MODEL})
+    first = SFTFlow(cfg, demos, {})
+    (tmp_path / "ckpt").mkdir()
+    state = first.save(str(tmp_path / "ckpt"))
+    moved = {key: {name: value + 1.0 for name, value in item.items()} for key, item in demos.stats.items()}
+    resumed = SFTFlow(cfg, replace(demos, stats=moved), {})
+
+    def stats(flow):
+        processor = flow.vla.processor
+        output = {f"out.{key}": value for key, value in processor.output_norm.state_dict().items()}
+        return {**processor.input_norm.state_dict(), **output}
+
+    assert any(not torch.equal(stats(resumed)[key], value) for key, value in stats(first).items())
+    resumed.load(str(tmp_path / "ckpt"), state)
+    assert all(torch.equal(stats(resumed)[key], value) for key, value in stats(first).items())
+    first.close()
+    resumed.close()
+
+
+MT_TASKS = ("reach a goal position", "push the puck to a goal")
+"""The natural instructions of reach-v3 and push-v3 (the dataset's wording of them)."""
+
+
+@pytest.fixture(scope="module")
+def metaworld_data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("mw") / "ds"
+    synthetic_dataset(root, tasks=MT_TASKS)
+    return root
+
+
+def sft_cfg(path, **raw) -> SFTConfig:
+    return to_dataclass(SFTConfig, {"data": {"path": str(path)}, "eval": {"tasks": ["reach-v3", "push-v3"]}, **raw})
+
+
+def copied(data, tmp_path):
+    import shutil
+
+    return shutil.copytree(data, tmp_path / "copy")
+
+
+def test_benchmark_names_resolve_before_anything_is_generated(tmp_path):
+    """data.generate.tasks=[MT10] (documented) evaluates MT10's tasks, instead of looking for an
+    instruction for 'MT10' once the demonstrations exist; a bad name is one line naming its key."""
+    pytest.importorskip("metaworld")
+    from infinirl.runners.sft import preflight
+
+    absent = tmp_path / "absent"
+    tasks = preflight(to_dataclass(SFTConfig, {"data": {"path": str(absent), "generate": {"tasks": ["MT10"]}}}))
+    assert len(tasks) == 10 and tasks[0] == "reach-v3"
+    with pytest.raises(ConfigError, match=r"^eval.tasks: unknown MetaWorld task 'nope-v3'"):
+        preflight(to_dataclass(SFTConfig, {"data": {"path": str(absent)}, "eval": {"tasks": ["reach-v3", "nope-v3"]}}))
+    with pytest.raises(ConfigError, match=r"^data.generate.tasks: unknown MetaWorld task 'MT11'"):
+        preflight(to_dataclass(SFTConfig, {"data": {"path": str(absent), "generate": {"tasks": ["MT11"]}}}))
+    with pytest.raises(ConfigError, match=r"^eval.tasks: 'push-v3' is not among data.generate.tasks \(reach-v3\)"):
+        preflight(to_dataclass(SFTConfig, {"data": {"path": str(absent), "generate": {"tasks": ["reach-v3"]}},
+                                           "eval": {"tasks": ["push-v3"]}}))
+    assert not absent.exists()
+
+
+def test_preflight_reads_the_dataset_metadata_and_the_initial_model_without_weights(metaworld_data, saved_policy,
+                                                                                    tmp_path):
+    pytest.importorskip("metaworld")
+    from infinirl.runners.sft import preflight
+
+    assert preflight(sft_cfg(metaworld_data)) == ["reach-v3", "push-v3"]
+    init = {"init": str(saved_policy), "n_action_steps": 3}
+    assert preflight(sft_cfg(metaworld_data, model=init)) == ["reach-v3", "push-v3"]
+    for raw, message in (
+            ({"eval": {"tasks": ["drawer-close-v3"]}}, r"^eval.tasks: 'drawer-close-v3' has no instruction in the "
+                                                       r"dataset"),
+            ({"data": {"path": str(metaworld_data), "camera_key": "observation.images.wrist"}},
+             r"^data.camera_key='observation.images.wrist': the dataset at .* has cameras"),
+            ({"model": {**init, "n_action_steps": 4}}, r"^model.n_action_steps=4 exceeds the chunk of model.init"),
+            ({"model": {"init": str(tmp_path / "nope")}}, r"^model.init=.*nope: no such folder")):
+        with pytest.raises(ConfigError, match=message) as error:
+            preflight(sft_cfg(metaworld_data, **raw))
+        assert "\n" not in str(error.value)
+
+
+def test_corrupt_statistics_and_task_indices_are_one_line_errors(metaworld_data, tmp_path):
+    import json
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    pytest.importorskip("metaworld")
+    from infinirl.runners.sft import preflight
+
+    data = copied(metaworld_data, tmp_path)
+    stats_file = data / "meta" / "stats.json"
+    saved = stats_file.read_text()
+    stats_file.write_text(saved[: len(saved) // 2])  # cut off mid-write
+    with pytest.raises(ConfigError, match=r"^data.path: .*meta/stats.json is not a JSON object .*re-create it"):
+        preflight(sft_cfg(data))
+    stats = json.loads(saved)
+    stats["action"]["mean"] = stats["action"]["mean"][:3]
+    stats_file.write_text(json.dumps(stats))
+    with pytest.raises(ConfigError, match=r"^data.path: .*stats.json gives action.mean shape \(3,\), but the "
+                                          r"feature's shape is \(4,\)"):
+        preflight(sft_cfg(data))
+    stats_file.write_text(saved)
+    frames = next((data / "data").glob("*/*.parquet"))
+    table = pq.read_table(frames)
+    column = table.schema.get_field_index("task_index")
+    pq.write_table(table.set_column(column, "task_index", pa.array([7] * table.num_rows, pa.int64())), frames)
+    with pytest.raises(ConfigError, match=r"^data.path: .*a frame has task_index 7, but meta/tasks.parquet lists 2 "
+                                          r"tasks"):
+        preflight(sft_cfg(data))
+
+
+def test_a_video_that_does_not_decode_is_a_one_line_error(metaworld_data, tmp_path):
+    from infinirl.runners.sft import open_dataset, read_demos
+
+    data = copied(metaworld_data, tmp_path)
+    video = next((data / "videos").rglob("*.mp4"))
+    video.write_bytes(video.read_bytes()[:200])  # truncated
+    with pytest.raises(ConfigError, match=r"^data.path: cannot decode video .*\.mp4") as error:
+        read_demos(open_dataset(sft_cfg(data)), None)
+    assert "\n" not in str(error.value)
+
+
+def test_a_corrupt_initial_model_is_a_one_line_error(metaworld_data, saved_policy, demos, tmp_path):
+    import shutil
+
+    pytest.importorskip("metaworld")
+    from infinirl.runners.sft import build_model, preflight
+
+    init = shutil.copytree(saved_policy, tmp_path / "init")
+    weights = init / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:-100])  # truncated
+    cfg = sft_cfg(metaworld_data, model={"init": str(init), "n_action_steps": 3})
+    with pytest.raises(ConfigError, match=r"^model.init: .*model.safetensors is not a readable safetensors file"):
+        preflight(cfg)
+    with pytest.raises(ConfigError, match=r"^model.init: .*incomplete metadata"):
+        build_model(cfg, demos, {})
+
+
+def test_validate_runs_the_sft_preflight(tmp_path, capsys):
+    pytest.importorskip("metaworld")
+    from infinirl.cli import main
+
+    data = f"data.path={tmp_path / 'absent'}"
+    assert main(["validate", "sft_vla_metaworld", data]) == 0
+    assert main(["validate", "sft_vla_metaworld", data, "data.generate.tasks=[MT10]"]) == 0
+    assert main(["validate", "sft_vla_metaworld", data, "data.generate.tasks=[reach-v3]",
+                 "eval.tasks=[push-v3]"]) == 2
+    assert capsys.readouterr().err.startswith("infinirl: config error: eval.tasks: 'push-v3' is not among")
+    assert main(["validate", "sft_vla_metaworld", data, f"model.init={tmp_path / 'none'}"]) == 2
+    assert "model.init=" in capsys.readouterr().err
+    assert not (tmp_path / "absent").exists()
