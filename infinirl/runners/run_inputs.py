@@ -74,7 +74,22 @@ def file_digest(path: str | os.PathLike) -> dict[str, Any]:
     return {"path": str(Path(path).resolve()), "size": os.path.getsize(path), "sha256": _sha256(path)}
 
 
+# sha256 of files already read by this process, by what identifies their contents (device, inode,
+# size, modification and change times): a run records its inputs at the start and with every
+# checkpoint, and a multi-GB checkpoint folder would otherwise be read again each time. Any write
+# to a file moves its change time, which no user call can set back.
+_SHA256_SEEN: dict[tuple, str] = {}
+
+
 def _sha256(path: str | os.PathLike) -> str:
+    info = os.stat(path)
+    key = (info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns, info.st_ctime_ns)
+    if key not in _SHA256_SEEN:
+        _SHA256_SEEN[key] = _read_sha256(path)
+    return _SHA256_SEEN[key]
+
+
+def _read_sha256(path: str | os.PathLike) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):

@@ -242,3 +242,20 @@ def test_a_run_on_gpus_records_no_cpu_dtype_so_moving_it_to_another_host_resumes
     run(reasoning(tmp_path, 1, actor={"param_dtype": "bfloat16"}))
     state = json.load(open(tmp_path / "run" / "checkpoints" / "iter_000001" / "runner_state.json"))
     assert "bfloat16_on_cpu" not in state.get("inputs", {})
+
+
+def test_a_file_is_read_once_per_process_until_it_changes(tmp_path, monkeypatch):
+    """Inputs are recorded with every checkpoint: an unchanged multi-GB checkpoint folder is not read
+    again, but any write to a file is seen (its change time moves)."""
+    from infinirl.runners import run_inputs as module
+
+    data = tmp_path / "weights.bin"
+    data.write_bytes(b"a" * 1000)
+    reads = []
+    real = module._read_sha256
+    monkeypatch.setattr(module, "_read_sha256", lambda path: reads.append(path) or real(path))
+    first = module.tree_digest(tmp_path)
+    assert module.tree_digest(tmp_path) == first and len(reads) == 1
+    with open(data, "r+b") as handle:  # same size, same bytes' count: the change time still moves
+        handle.write(b"b")
+    assert module.tree_digest(tmp_path)["sha256"] != first["sha256"] and len(reads) == 2
