@@ -5,10 +5,22 @@ import re
 
 import pytest
 
+from infinirl.agents.loop import AgentBudget, AgentRollout
 from infinirl.agents.registered import resolve_agent_env
 from infinirl.agents.tool_env import ToolEnv
 from infinirl.config import ConfigError, to_dataclass
+from infinirl.engines.base import SamplingParams
 from infinirl.runners.reasoning_config import ReasoningConfig
+from tests.unit.agents.scripted import ScriptedEngine
+
+
+@pytest.fixture(scope="module")
+def smollm2_tokenizer():
+    from transformers import AutoTokenizer
+
+    from infinirl.models.smollm2 import ensure_converted
+
+    return AutoTokenizer.from_pretrained(ensure_converted())
 
 
 def test_a_call_runs_and_its_result_comes_back():
@@ -92,3 +104,20 @@ def test_config_refuses_bad_agents_before_any_worker(agent, message):
 def test_config_bounds_are_checked_when_built():
     with pytest.raises(ConfigError, match="max_turns"):
         _cfg({"max_turns": 0})
+
+
+def test_a_token_running_past_the_call_is_not_written_twice(smollm2_tokenizer):
+    """SmolLM2 writes the worked example's ``</calculator><result>`` as ``... ator >< result``: a
+    model copying it completes the stop string with ``><``. The observation then starts after that
+    ``<``, and the trajectory's ids are exactly the worked example's."""
+    tokenizer = smollm2_tokenizer
+    example = tokenizer.encode("<calculator>12 + 34</calculator><result>\n46\n</result>\n46", add_special_tokens=False)
+    call = tokenizer.encode("<calculator>12 + 34</calculator><", add_special_tokens=False)
+    assert tokenizer.decode(call[-1:]) == "><" and example[:len(call)] == call
+    result_ids = len(tokenizer.encode("result>\n46\n</result>", add_special_tokens=False))
+    engine = ScriptedEngine(tokenizer, [call, example[len(call) + result_ids:]])  # then "\n46"
+    rollout = AgentRollout(engine, tokenizer, lambda: ToolEnv(tools=["calculator"]), AgentBudget(max_turns=2))
+    [result] = rollout.generate([[1, 2, 3]], SamplingParams(n=1, max_new_tokens=32))
+    assert tokenizer.decode(result.response_ids) == "<calculator>12 + 34</calculator><result>\n46\n</result>\n46"
+    assert result.response_ids == example
+    assert result.response_mask == [1] * len(call) + [0] * result_ids + [1] * (len(example) - len(call) - result_ids)
