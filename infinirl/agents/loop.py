@@ -142,6 +142,12 @@ class AgentEnv(ABC):
         """Release what the trajectory held (a sandbox, a connection). May be called while a step
         the loop abandoned (``step_timeout_s``) still runs in its thread."""
 
+    def prompt_problem(self, instructions: str) -> str | None:
+        """What the task's instructions (system prompt and worked examples, joined) fail to tell the
+        model that this environment needs (e.g. a tool it was never shown), or None. Checked with
+        the run's config, before any worker starts."""
+        return None
+
 
 AGENT_ENVS: Registry[Callable[..., AgentEnv]] = Registry("agent environment", entry_point_group="infinirl.agent_envs")
 
@@ -627,8 +633,10 @@ class AgentConfig:
                            step_timeout_s=self.step_timeout_s, schedule=self.schedule,
                            batch_window_s=self.batch_window_s)
 
-    def check(self, key: str) -> None:
-        """Raise ``ConfigError`` naming ``key`` if the environment cannot be built as configured."""
+    def check(self, key: str, instructions: str | None = None) -> None:
+        """Raise ``ConfigError`` naming ``key`` if the environment cannot be built as configured, or
+        (given the task's ``instructions``: its system prompt and worked examples, joined) if they
+        fail to tell the model what the environment needs (:meth:`AgentEnv.prompt_problem`)."""
         from infinirl.agents.registered import AGENT_ENVS, resolve_agent_env
 
         try:
@@ -639,9 +647,16 @@ class AgentConfig:
         except (ImportError, AttributeError, TypeError) as exc:
             raise ConfigError(f"{key}.env: {exc}") from None
         try:
-            factory(**self.env_options).close()
+            env = factory(**self.env_options)
         except (TypeError, ValueError, KeyError) as exc:
             raise ConfigError(f"{key}.env_options for env {self.env!r}: {exc}") from None
+        try:
+            check_prompt = getattr(env, "prompt_problem", None)  # a plain factory's object may lack the hook
+            problem = None if instructions is None or check_prompt is None else check_prompt(instructions)
+        finally:
+            env.close()
+        if problem:
+            raise ConfigError(f"task.system_prompt (with task.few_shot) for {key}.env={self.env!r}: {problem}")
 
     def make_env_factory(self) -> Callable[[], AgentEnv]:
         from infinirl.agents.registered import resolve_agent_env

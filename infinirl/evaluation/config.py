@@ -139,7 +139,7 @@ class EvalConfig:
             raise ConfigError(f"placement must place {', '.join(sorted(needed))}; missing {sorted(missing)}")
         validate_placement(self.placement, ("actor", "rollout", "reward"), "eval")
         if plan.agent is not None:
-            plan.agent.check("rollout.agent")
+            plan.agent.check("rollout.agent", plan.task.instructions())
 
     def resolve(self) -> EvalPlan:
         """The run, checkpoint, model, task and output this config names; ConfigError if one is missing."""

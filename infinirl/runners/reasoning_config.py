@@ -260,7 +260,7 @@ class ReasoningConfig(RunConfig):
 
     def _check_agent(self) -> None:
         if self.rollout.agent is not None:
-            self.rollout.agent.check("rollout.agent")
+            self.rollout.agent.check("rollout.agent", self.task.instructions())
 
     def _check_overlong(self) -> None:
         buffer, cap = self.algorithm.overlong_buffer, self.max_response_tokens

@@ -13,6 +13,8 @@ from infinirl.engines.base import SamplingParams
 from infinirl.runners.reasoning_config import ReasoningConfig
 from tests.unit.agents.scripted import ScriptedEngine
 
+CALCULATOR_PROMPT = {"system_prompt": "Write <calculator>expression</calculator> to use the calculator."}
+
 
 @pytest.fixture(scope="module")
 def smollm2_tokenizer():
@@ -86,8 +88,8 @@ def test_envs_resolve_by_name_or_dotted_path():
         resolve_agent_env("no_such_module:Env")
 
 
-def _cfg(agent):
-    return to_dataclass(ReasoningConfig, {"rollout": {"agent": agent}})
+def _cfg(agent, task=None):
+    return to_dataclass(ReasoningConfig, {"rollout": {"agent": agent}, "task": task or CALCULATOR_PROMPT})
 
 
 @pytest.mark.parametrize("agent, message", [
@@ -121,3 +123,44 @@ def test_a_token_running_past_the_call_is_not_written_twice(smollm2_tokenizer):
     assert tokenizer.decode(result.response_ids) == "<calculator>12 + 34</calculator><result>\n46\n</result>\n46"
     assert result.response_ids == example
     assert result.response_mask == [1] * len(call) + [0] * result_ids + [1] * (len(example) - len(call) - result_ids)
+
+
+def test_a_long_result_is_cut_inside_its_tags(smollm2_tokenizer):
+    """Over max_observation_tokens, the tool's text is cut; the closing tag (and the template's end)
+    is kept, so the model's next turn starts after the result, not inside it."""
+    tokenizer = smollm2_tokenizer
+    engine = ScriptedEngine(tokenizer, ["<calculator>9**3000</calculator>", "done"])
+    rollout = AgentRollout(engine, tokenizer, lambda: ToolEnv(tools=["calculator"], observation_template="{results}\n"),
+                           AgentBudget(max_turns=2, max_observation_tokens=24))
+    [result] = rollout.generate([[1, 2, 3]], SamplingParams(n=1, max_new_tokens=32))
+    observation = [i for i, m in zip(result.response_ids, result.response_mask) if not m]
+    assert len(observation) == 24
+    text = tokenizer.decode(observation)
+    assert text.startswith("<result>\n5339840906") and text.endswith(" ...[truncated]\n</result>\n")
+    # several calls: each result is cut, each block closed
+    step = ToolEnv(tools=["calculator"]).step("<calculator>9**3000</calculator><calculator>8**3000</calculator>")
+    kept = [text for text, cuttable in step.parts if not cuttable]
+    assert kept == ["<result>\n", "\n</result>", "\n<result>\n", "\n</result>"]
+
+
+def test_hermes_results_come_in_a_user_turn_as_qwens_template_writes_them():
+    env = ToolEnv(tools=["calculator"], call_format="hermes")
+    step = env.step('<tool_call>\n{"name": "calculator", "arguments": {"expression": "6*7"}}\n</tool_call>')
+    assert step.observation == ("<|im_end|>\n<|im_start|>user\n<tool_response>\n42\n</tool_response><|im_end|>\n"
+                                "<|im_start|>assistant\n")
+    own = ToolEnv(tools=["calculator"], call_format="hermes", observation_template="<|im_start|>tool\n{results}|")
+    assert own.step('<tool_call>{"name": "calculator", "arguments": {"expression": "1"}}</tool_call>').observation \
+        == "<|im_start|>tool\n<tool_response>\n1\n</tool_response>|"
+    assert ToolEnv(tools=["calculator"]).step("<calculator>1</calculator>").observation == "<result>\n1\n</result>"
+    with pytest.raises(ValueError, match="no {results} placeholder"):
+        ToolEnv(observation_template="<result>")
+
+
+def test_config_refuses_tools_the_prompt_never_names():
+    with pytest.raises(ConfigError, match=r"task.system_prompt \(with task.few_shot\) for rollout.agent.env='tools': "
+                                          r"never name the tool\(s\) python.*You can use tools"):
+        _cfg({"env": "tools", "env_options": {"tools": ["calculator", "python"]}})
+    with pytest.raises(ConfigError, match="never name the tool"):
+        _cfg({"env": "tools"}, task={"system_prompt": None})
+    _cfg({"env": "tools"})
+    _cfg({"env": "tools"}, task={"few_shot": [{"user": "1+1?", "assistant": "<calculator>1+1</calculator>"}]})
