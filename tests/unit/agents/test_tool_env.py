@@ -1,19 +1,38 @@
 """The tool-calling agent environment and the agent config's checks."""
 
+import asyncio
 import json
 import re
+import time
 
 import pytest
 
 from infinirl.agents.loop import AgentBudget, AgentRollout
 from infinirl.agents.registered import resolve_agent_env
 from infinirl.agents.tool_env import ToolEnv
+from infinirl.agents.tools import TOOLS, Tool
 from infinirl.config import ConfigError, to_dataclass
 from infinirl.engines.base import SamplingParams
 from infinirl.runners.reasoning_config import ReasoningConfig
 from tests.unit.agents.scripted import ScriptedEngine
 
 CALCULATOR_PROMPT = {"system_prompt": "Write <calculator>expression</calculator> to use the calculator."}
+
+
+@TOOLS.register("sleeper")
+class SleeperTool(Tool):
+    """Blocks a thread for the given seconds: work that a timeout cannot interrupt."""
+
+    name = "sleeper"
+    description = "Sleeps."
+    parameters = {"type": "object", "properties": {"seconds": {"type": "string"}}, "required": ["seconds"]}
+
+    def __init__(self, timeout_s: float = 10.0):
+        self.timeout_s = timeout_s
+
+    async def run(self, seconds: str) -> str:
+        await asyncio.to_thread(time.sleep, float(seconds))
+        return "awake"
 
 
 @pytest.fixture(scope="module")
@@ -106,6 +125,20 @@ def test_config_refuses_bad_agents_before_any_worker(agent, message):
 def test_config_bounds_are_checked_when_built():
     with pytest.raises(ConfigError, match="max_turns"):
         _cfg({"max_turns": 0})
+
+
+def test_a_tool_past_its_timeout_does_not_hold_the_step():
+    """Work a tool handed to a thread runs on after its timeout, but nothing waits for it."""
+    env = ToolEnv(tools=["sleeper"], tool_options={"sleeper": {"timeout_s": 0.3}})
+    try:
+        start = time.monotonic()
+        step = env.step("<sleeper>3</sleeper>")
+        elapsed = time.monotonic() - start
+        assert step.error and "timed out after 0.3 s" in step.observation
+        assert elapsed < 1.5, f"the step took {elapsed:.1f} s"
+        assert "awake" in env.step("<sleeper>0</sleeper>").observation  # the environment goes on
+    finally:
+        env.close()
 
 
 def test_a_token_running_past_the_call_is_not_written_twice(smollm2_tokenizer):
