@@ -54,7 +54,9 @@ def ship_by_value(module_name: str) -> None:
 @pytest.fixture(scope="session")
 def tiny_llama_dir(tmp_path_factory):
     """A randomly initialised 2-layer Llama with SmolLM2's tokenizer (chat template included), saved
-    as a Hugging Face folder: the model every reasoning test trains, evaluates or refuses."""
+    as a Hugging Face folder: the model every reasoning test trains, evaluates or refuses. Its 2048
+    positions hold the default rollout.max_prompt_length (1024) and a response, as the config checks
+    (RoPE's frequencies do not depend on the number, so neither do the weights or any result)."""
     from transformers import AutoTokenizer, LlamaConfig, LlamaForCausalLM
 
     from infinirl.models.smollm2 import ensure_converted
@@ -62,7 +64,7 @@ def tiny_llama_dir(tmp_path_factory):
     tokenizer = AutoTokenizer.from_pretrained(ensure_converted())
     config = LlamaConfig(vocab_size=len(tokenizer), hidden_size=32, intermediate_size=64, num_hidden_layers=2,
                          num_attention_heads=2, num_key_value_heads=1, tie_word_embeddings=True,
-                         max_position_embeddings=512, eos_token_id=tokenizer.eos_token_id)
+                         max_position_embeddings=2048, eos_token_id=tokenizer.eos_token_id)
     torch.manual_seed(0)
     folder = tmp_path_factory.mktemp("tiny-llama")
     LlamaForCausalLM(config).save_pretrained(folder)

@@ -8,12 +8,21 @@ continues from the exact ids it sampled, which are never decoded and re-tokenise
 scores the tokens the rollout sampled. ``GenerationResult.response_mask`` marks the model's ids
 (trained) against the observation ids (never trained: no loss, KL or entropy on them).
 
+The token that completes a stop string may carry more text (SmolLM2 writes ``</calculator><`` as
+``... ator ><``): the loop drops from the observation's start what the turn already wrote past the
+stop string, so the ids read as the observation's text once (``<result>`` after ``><``: one ``<``).
+An observation over ``max_observation_tokens`` is cut in the tool's own text; the wrapper around it
+(``AgentStep.parts``: a result's closing tag, a chat template's end of turn) is kept whole.
+
 A trajectory ends when a turn ends without calling the environment (EOS, one of the task's own
 stop strings, or a turn the environment answers with ``done``), or when a budget runs out: turns,
-response tokens (model and observation ids together) or the tokens of one turn. An environment
-with ``step_answer_turns`` is handed those answer turns too while the budget allows another turn
-(a coding environment runs the code of an answer as well, so ending a turn with EOS is no way
-around the feedback); it ends the trajectory with ``done`` or answers with feedback.
+response tokens (model and observation ids together), the tokens of one turn, the engine's context
+(``InferenceEngine.context_length``: each turn's room is bounded by what is left of it) or an
+environment step's time (``step_timeout_s``). An environment with ``step_answer_turns`` is handed
+those answer turns too while the budget allows another turn (a coding environment runs the code of
+an answer as well, so ending a turn with EOS is no way around the feedback); it ends the trajectory
+with ``done`` or answers with feedback, and an answer whose feedback has no room left still ends as
+an answer.
 
 Scheduling (``AgentBudget.schedule``):
 
@@ -29,6 +38,8 @@ Scheduling (``AgentBudget.schedule``):
 from __future__ import annotations
 
 import concurrent.futures as futures
+import queue
+import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -41,7 +52,7 @@ from infinirl.engines.seeds import turn_seed
 from infinirl.registry import Registry
 
 __all__ = ["AGENT_ENVS", "AgentBudget", "AgentConfig", "AgentEnv", "AgentRollout", "AgentStep", "agent_metrics",
-           "request_context"]
+           "drop_start", "overlap", "request_context", "template_parts"]
 
 Schedule = Literal["async", "lockstep"]
 
@@ -51,13 +62,59 @@ class AgentStep:
     """What the environment answers to one model turn."""
 
     observation: str = ""
-    """Text appended (as environment tokens) before the model's next turn; ignored when ``done``."""
+    """Text appended (as environment tokens) before the model's next turn; ignored when ``done``.
+    Over ``AgentBudget.max_observation_tokens`` its end is cut, unless ``parts`` says what may be."""
+    parts: tuple[tuple[str, bool], ...] = ()
+    """The observation as ``(text, cuttable)`` pieces in order (``observation`` is their join; given
+    alone, it is filled in). Over the budget only the cuttable pieces (a tool's output) are cut,
+    each ending with the marker; the others (a result's tags, a chat template's turn markers) are
+    kept whole, so the model's next turn still starts where the template says."""
     done: bool = False
     """The trajectory ends with this turn (e.g. the turn held no tool call: it is the answer)."""
     error: bool = False
     """The turn's action failed (a malformed call, a tool that raised or timed out); the
     observation says so to the model, the trajectory goes on, and the failure is counted."""
     info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.parts:
+            return
+        parts = tuple((str(text), bool(cuttable)) for text, cuttable in self.parts)
+        joined = "".join(text for text, _ in parts)
+        if self.observation and self.observation != joined:
+            raise ValueError("AgentStep: parts must join to observation (or give parts alone)")
+        object.__setattr__(self, "parts", parts)
+        object.__setattr__(self, "observation", joined)
+
+
+def template_parts(template: str, placeholder: str,
+                   inner: Sequence[tuple[str, bool]]) -> tuple[tuple[str, bool], ...]:
+    """``template`` with ``inner`` at each ``placeholder``, as :attr:`AgentStep.parts`: the
+    template's own text is never cut."""
+    pieces = template.split(placeholder)
+    parts: list[tuple[str, bool]] = [(pieces[0], False)]
+    for piece in pieces[1:]:
+        parts += [*inner, (piece, False)]
+    return tuple((text, cuttable) for text, cuttable in parts if text)
+
+
+def drop_start(parts: Sequence[tuple[str, bool]], count: int) -> tuple[tuple[str, bool], ...]:
+    """``parts`` without the first ``count`` characters of their join."""
+    kept = []
+    for text, cuttable in parts:
+        cut = min(count, len(text))
+        count -= cut
+        if text[cut:]:
+            kept.append((text[cut:], cuttable))
+    return tuple(kept)
+
+
+def overlap(text: str, following: str) -> int:
+    """Length of the longest end of ``text`` that ``following`` starts with (what not to repeat)."""
+    for length in range(min(len(text), len(following)), 0, -1):
+        if text.endswith(following[:length]):
+            return length
+    return 0
 
 
 class AgentEnv(ABC):
@@ -66,7 +123,9 @@ class AgentEnv(ABC):
     (``AgentStep(error=True)``). An exception is caught, shown to the model and counted as well."""
 
     stop_strings: tuple[str, ...] = ()
-    """Strings that end a model turn and hand it to the environment (e.g. a closing tool tag)."""
+    """Strings that end a model turn and hand it to the environment (e.g. a closing tool tag). The
+    token completing one may carry more text; the loop drops from the observation's start what the
+    turn wrote past the stop string (:func:`overlap`), so the observation need not care."""
     step_answer_turns: bool = False
     """Also hand the environment turns that end without one of ``stop_strings`` (EOS, a task's stop
     string) while the budget allows another turn; otherwise such a turn is the answer. The text
@@ -80,7 +139,14 @@ class AgentEnv(ABC):
         """React to the text of the model's last turn (it ends with one of ``stop_strings``)."""
 
     def close(self) -> None:  # noqa: B027 (optional hook)
-        """Release what the trajectory held (a sandbox, a connection)."""
+        """Release what the trajectory held (a sandbox, a connection). May be called while a step
+        the loop abandoned (``step_timeout_s``) still runs in its thread."""
+
+    def prompt_problem(self, instructions: str) -> str | None:
+        """What the task's instructions (system prompt and worked examples, joined) fail to tell the
+        model that this environment needs (e.g. a tool it was never shown), or None. Checked with
+        the run's config, before any worker starts."""
+        return None
 
 
 AGENT_ENVS: Registry[Callable[..., AgentEnv]] = Registry("agent environment", entry_point_group="infinirl.agent_envs")
@@ -95,10 +161,14 @@ class AgentBudget:
     max_response_tokens: int = 512
     """Response ids of the whole trajectory, model and observation ids together."""
     max_observation_tokens: int = 256
-    """An observation longer than this is cut (its end replaced by ``truncated_marker``)."""
+    """An observation longer than this is cut (its end replaced by ``truncated_marker``), only in its
+    cuttable parts (``AgentStep.parts``): the wrapper pieces are kept whole, even past this."""
     truncated_marker: str = " ...[truncated]"
     concurrency: int = 8
     """Environment steps running at once (threads)."""
+    step_timeout_s: float | None = None
+    """An environment step still running after this long is abandoned (its thread runs on, unheard)
+    and ends its trajectory with finish reason ``length``; None: wait however long a step takes."""
     schedule: Schedule = "async"
     batch_window_s: float = 0.02
     """``async``: once a step finishes, keep waiting while others finish less than this apart, so
@@ -110,6 +180,8 @@ class AgentBudget:
                 raise ValueError(f"AgentBudget.{name}={getattr(self, name)}: must be >= 1")
         if self.batch_window_s < 0:
             raise ValueError(f"AgentBudget.batch_window_s={self.batch_window_s}: must be >= 0")
+        if self.step_timeout_s is not None and self.step_timeout_s <= 0:
+            raise ValueError(f"AgentBudget.step_timeout_s={self.step_timeout_s}: must be > 0, or None for no limit")
         if self.schedule not in ("async", "lockstep"):
             raise ValueError(f"AgentBudget.schedule={self.schedule!r}: use 'async' or 'lockstep'")
 
@@ -133,6 +205,7 @@ class _Trajectory:
     env_totals: dict[str, float] = field(default_factory=dict)  # sums of the numbers in the steps' info
     finish_reason: str = "stop"
     done: bool = False
+    after_stop: str | None = None  # what the last turn wrote past its stop string; None: it ended without one
 
     def context(self) -> list[int]:
         return self.prompt_ids + self.ids
@@ -171,6 +244,8 @@ class AgentRollout:
 
     def __init__(self, engine: InferenceEngine, tokenizer, make_env: Callable[[], AgentEnv], budget: AgentBudget):
         self.engine, self.tokenizer, self.make_env, self.budget = engine, tokenizer, make_env, budget
+        # duck-typed engines (without the base class) set no limit
+        self.context_length: int | None = getattr(engine, "context_length", None)
 
     def generate(self, prompt_ids: Sequence[list[int]], sampling: SamplingParams,
                  problems: Sequence[Any] | None = None) -> list[GenerationResult]:
@@ -180,55 +255,87 @@ class AgentRollout:
                         for p in range(len(prompt_ids)) for s in range(sampling.n)]
         env_stops = tuple(dict.fromkeys(s for t in trajectories[:1] for s in t.env.stop_strings))
         turn_sampling = replace(sampling, n=1, stop_strings=tuple(dict.fromkeys(sampling.stop_strings + env_stops)))
+        steps = _StepThreads(self.budget.concurrency)
         try:
-            with futures.ThreadPoolExecutor(max_workers=self.budget.concurrency,
-                                            thread_name_prefix="agent-env") as pool:
-                run = self._run_async if self.budget.schedule == "async" else self._run_lockstep
-                run(trajectories, turn_sampling, env_stops, pool)
+            run = self._run_async if self.budget.schedule == "async" else self._run_lockstep
+            run(trajectories, turn_sampling, env_stops, steps)
         finally:
+            steps.close()
             for trajectory in trajectories:
                 trajectory.env.close()
         return [t.result() for t in trajectories]
 
     # ------------------------------------------------------------------ schedules
-    def _run_lockstep(self, trajectories, sampling, env_stops, pool) -> None:
+    def _run_lockstep(self, trajectories, sampling, env_stops, steps: _StepThreads) -> None:
         active = [t for t in trajectories if not t.done]
-        turn = 0
+        call = 0
         while active:
-            calling = self._generate_turn(active, sampling, env_stops, turn)
-            for trajectory, step in zip(calling, pool.map(self._env_step, calling)):
-                self._observe(trajectory, step)
+            calling, calls = self._generate_turn(active, sampling, env_stops, call)
+            call += calls
+            pending = {steps.submit(self._env_step, t): t for t in calling}
+            settled: dict[int, Any] = {}
+            while pending:
+                self._wait(list(pending), steps)
+                for future in self._settled(pending, steps):
+                    settled[id(pending.pop(future))] = future
+            for trajectory in calling:  # in turn order, whatever order the steps finished in
+                self._settle(trajectory, settled[id(trajectory)], steps)
             active = [t for t in active if not t.done]
-            turn += 1
 
-    def _run_async(self, trajectories, sampling, env_stops, pool) -> None:
+    def _run_async(self, trajectories, sampling, env_stops, steps: _StepThreads) -> None:
         ready = [t for t in trajectories if not t.done]
         pending: dict[futures.Future, _Trajectory] = {}
         call = 0
         while ready or pending:
             if ready:
-                for trajectory in self._generate_turn(ready, sampling, env_stops, call):
-                    pending[pool.submit(self._env_step, trajectory)] = trajectory
-                call += 1
+                calling, calls = self._generate_turn(ready, sampling, env_stops, call)
+                for trajectory in calling:
+                    pending[steps.submit(self._env_step, trajectory)] = trajectory
+                call += calls
                 ready = []
             if pending:
-                self._wait_for_burst(list(pending))
-            for future in [f for f in pending if f.done()]:
+                self._wait_for_burst(list(pending), steps)
+            for future in self._settled(pending, steps):
                 trajectory = pending.pop(future)
-                self._observe(trajectory, future.result())
+                self._settle(trajectory, future, steps)
                 if not trajectory.done:
                     ready.append(trajectory)
             ready.sort(key=lambda t: (t.prompt_index, t.sample_index))
 
-    def _wait_for_burst(self, pending: list[futures.Future]) -> None:
+    def _wait_for_burst(self, pending: list[futures.Future], steps: _StepThreads) -> None:
         """Until a step finishes, then while others keep finishing less than ``batch_window_s``
-        apart: steps that end together share the next generate call."""
-        done, waiting = futures.wait(pending, return_when=futures.FIRST_COMPLETED)
+        apart: steps that end together share the next generate call. A step past its time limit
+        ends the wait too."""
+        done, waiting = self._wait(pending, steps)
+        if not done:
+            return
         while waiting:
             done, waiting = futures.wait(waiting, timeout=self.budget.batch_window_s,
                                          return_when=futures.FIRST_COMPLETED)
             if not done:
                 return
+
+    def _wait(self, pending: list[futures.Future], steps: _StepThreads):
+        """Until a step finishes or the first running one reaches its time limit."""
+        return futures.wait(pending, timeout=steps.time_to_limit(pending, self.budget.step_timeout_s),
+                            return_when=futures.FIRST_COMPLETED)
+
+    def _settled(self, pending: dict[futures.Future, _Trajectory], steps: _StepThreads) -> list[futures.Future]:
+        """The steps that finished or ran past their time limit."""
+        return [f for f in pending if f.done() or steps.overdue(f, self.budget.step_timeout_s)]
+
+    def _settle(self, trajectory: _Trajectory, future: futures.Future, steps: _StepThreads) -> None:
+        if future.done() or not steps.abandon(future):
+            step, seconds = future.result()
+            trajectory.env_seconds += seconds
+            self._observe(trajectory, step)
+            return
+        # The step runs on in its thread, unheard; the environment may be mid-step, so the
+        # trajectory cannot go on. A time budget ran out: finish reason "length".
+        trajectory.env_errors += 1
+        trajectory.env_seconds += self.budget.step_timeout_s
+        trajectory.env_totals["step_timeouts"] = trajectory.env_totals.get("step_timeouts", 0.0) + 1.0
+        self._finish(trajectory, "length")
 
     # ------------------------------------------------------------------ one turn
     def _start(self, prompt_index: int, sample_index: int, prompt_ids: list[int], problem) -> _Trajectory:
@@ -238,27 +345,55 @@ class AgentRollout:
         env.reset(problem)
         return trajectory
 
-    def _generate_turn(self, trajectories: list[_Trajectory], sampling: SamplingParams, env_stops: tuple[str, ...],
-                       call: int) -> list[_Trajectory]:
-        """One model turn for each of ``trajectories``; returns those whose turn calls the env.
+    def _context_room(self, trajectory: _Trajectory) -> int | None:
+        """Tokens left in the engine's context after the trajectory so far (None: no limit)."""
+        return None if self.context_length is None else self.context_length - len(trajectory.prompt_ids) - len(
+            trajectory.ids)
 
-        ``sampling.seed`` is the chunk's (or the generation's) seed: the call's own seed mixes it with
-        ``call`` (:func:`~infinirl.engines.seeds.turn_seed`), so no call of this chunk or another shares it."""
+    def _generate_turn(self, trajectories: list[_Trajectory], sampling: SamplingParams, env_stops: tuple[str, ...],
+                       call: int) -> tuple[list[_Trajectory], int]:
+        """One model turn for each of ``trajectories``; returns those whose turn calls the env, and
+        how many generate calls it made.
+
+        One call serves them all, unless some have less of the engine's context left than the call's
+        ``max_new_tokens`` (the engine refuses a prompt that could outgrow it): those are generated
+        in calls of their own, as long as their room, and the trajectories with none left end.
+        ``sampling.seed`` is the chunk's (or the generation's) seed: the seed of call number ``call``
+        (then ``call + 1``, ...) mixes it with that number (:func:`~infinirl.engines.seeds.turn_seed`), so no
+        call of this chunk or another shares it."""
         rooms = [self.budget.max_response_tokens - len(t.ids) for t in trajectories]
-        turn_sampling = replace(sampling, max_new_tokens=max(1, min(sampling.max_new_tokens, max(rooms))),
-                                seed=None if sampling.seed is None else turn_seed(sampling.seed, call))
-        results = self.engine.generate([t.context() for t in trajectories], turn_sampling)
+        widest = max(1, min(sampling.max_new_tokens, max(rooms)))
+        by_size: dict[int, list[int]] = {}
+        for index, trajectory in enumerate(trajectories):
+            context_room = self._context_room(trajectory)
+            if context_room is not None and context_room < 1:
+                self._finish(trajectory, "length")
+                continue
+            size = widest if context_room is None else min(widest, context_room)
+            by_size.setdefault(size, []).append(index)
+        turns: dict[int, GenerationResult] = {}
+        for number, size in enumerate(sorted(by_size, reverse=True)):
+            indices = by_size[size]
+            turn_sampling = replace(sampling, max_new_tokens=size,
+                                    seed=None if sampling.seed is None else turn_seed(sampling.seed, call + number))
+            results = self.engine.generate([trajectories[i].context() for i in indices], turn_sampling)
+            turns.update(zip(indices, results))
         calling = []
-        for trajectory, turn, room in zip(trajectories, results, rooms):
+        for index in sorted(turns):
+            trajectory, turn, room = trajectories[index], turns[index], rooms[index]
             if len(turn.response_ids) > room:  # the batch's call allowed more than this trajectory has left
                 turn = _cut(turn, room)
             trajectory.add_turn(turn)
             text = self.tokenizer.decode(turn.response_ids, skip_special_tokens=False)
+            ends = [text.rfind(stop) + len(stop) for stop in env_stops if stop in text]
+            trajectory.after_stop = text[max(ends):] if ends else None
+            context_room = self._context_room(trajectory)
             out_of_budget = (trajectory.turns >= self.budget.max_turns
-                             or len(trajectory.ids) >= self.budget.max_response_tokens)
+                             or len(trajectory.ids) >= self.budget.max_response_tokens
+                             or (context_room is not None and context_room < 1))
             if turn.finish_reason == "length":
                 self._finish(trajectory, "length")
-            elif not any(stop in text for stop in env_stops):  # the token completing a stop may carry more
+            elif not ends:
                 if trajectory.env.step_answer_turns and not out_of_budget:
                     trajectory.env_steps += 1
                     calling.append(trajectory)
@@ -269,9 +404,11 @@ class AgentRollout:
             else:
                 trajectory.env_steps += 1
                 calling.append(trajectory)
-        return calling
+        return calling, len(by_size)
 
-    def _env_step(self, trajectory: _Trajectory) -> AgentStep:
+    def _env_step(self, trajectory: _Trajectory) -> tuple[AgentStep, float]:
+        """The environment's answer to the trajectory's last turn and the seconds it took (runs in
+        a step thread)."""
         turn_ids = trajectory.ids[len(trajectory.ids) - _last_run(trajectory.mask):]
         text = self.tokenizer.decode(turn_ids, skip_special_tokens=False)
         start = time.perf_counter()
@@ -279,8 +416,7 @@ class AgentRollout:
             step = trajectory.env.step(text)
         except Exception as exc:  # a broken tool must not end the run: the model sees the error
             step = AgentStep(observation=f"error: {type(exc).__name__}: {exc}", error=True)
-        trajectory.env_seconds += time.perf_counter() - start
-        return step
+        return step, time.perf_counter() - start
 
     def _observe(self, trajectory: _Trajectory, step: AgentStep) -> None:
         trajectory.env_errors += step.error
@@ -290,19 +426,141 @@ class AgentRollout:
         if step.done:
             self._finish(trajectory, "answer")
             return
-        ids = self.tokenizer.encode(step.observation, add_special_tokens=False)
-        if len(ids) > self.budget.max_observation_tokens:
-            marker = self.tokenizer.encode(self.budget.truncated_marker, add_special_tokens=False)
-            keep = self.budget.max_observation_tokens - len(marker)
-            ids = ids[:keep] + marker if keep > 0 else ids[:self.budget.max_observation_tokens]
-        if len(trajectory.ids) + len(ids) >= self.budget.max_response_tokens:
-            self._finish(trajectory, "length")  # no room left for the model to read it and answer
+        parts = step.parts or ((step.observation, True),)
+        if trajectory.after_stop:  # the token ending the call wrote the observation's first characters
+            parts = drop_start(parts, overlap(trajectory.after_stop, step.observation))
+        ids = self._observation_ids(parts)
+        room = self.budget.max_response_tokens - len(trajectory.ids)
+        context_room = self._context_room(trajectory)
+        if context_room is not None:
+            room = min(room, context_room)
+        if len(ids) >= room:  # no room left for the model to read it and answer
+            # An answer turn (run_answers-like environments) stays an answer: it ended by itself,
+            # only its feedback did not fit.
+            self._finish(trajectory, "length" if trajectory.after_stop is not None else "answer")
             return
         trajectory.add_observation(ids)
+
+    def _observation_ids(self, parts: Sequence[tuple[str, bool]]) -> list[int]:
+        """The observation's ids, at most ``max_observation_tokens`` of the cuttable pieces' (the
+        wrapper pieces are kept whole, even past it)."""
+        def encode(text: str) -> list[int]:
+            return self.tokenizer.encode(text, add_special_tokens=False)
+
+        limit = self.budget.max_observation_tokens
+        ids = encode("".join(text for text, _ in parts))
+        if len(ids) <= limit:
+            return ids
+        # Tokenised piece by piece to know where each ends (only here: a fitting observation is
+        # tokenised whole, as the same text in a prompt would be).
+        pieces = [(encode(text), cuttable) for text, cuttable in parts]
+        marker = encode(self.budget.truncated_marker)
+        shares = iter(_shares([len(p) for p, cuttable in pieces if cuttable],
+                              limit - sum(len(p) for p, cuttable in pieces if not cuttable)))
+        ids = []
+        for piece, cuttable in pieces:
+            keep = next(shares) if cuttable else len(piece)
+            if keep >= len(piece):
+                ids += piece
+            elif keep > len(marker):
+                ids += piece[:keep - len(marker)] + marker
+            else:
+                ids += piece[:keep]
+        return ids
 
     @staticmethod
     def _finish(trajectory: _Trajectory, reason: str) -> None:
         trajectory.done, trajectory.finish_reason = True, reason
+
+
+def _shares(lengths: list[int], room: int) -> list[int]:
+    """Tokens each cuttable piece keeps of ``room``: an even split, a piece shorter than its share
+    keeping all of itself and leaving the rest to the longer ones."""
+    shares, room, left = [0] * len(lengths), max(room, 0), len(lengths)
+    for index in sorted(range(len(lengths)), key=lengths.__getitem__):
+        shares[index] = min(lengths[index], room // left)
+        room, left = room - shares[index], left - 1
+    return shares
+
+
+class _StepThreads:
+    """Daemon threads running environment steps, ``size`` at a time.
+
+    A thread cannot be stopped: a step past ``step_timeout_s`` is abandoned, its thread runs on
+    until the step returns and then ends, and a fresh thread takes its place, so a hanging step
+    neither shrinks the pool nor (the threads being daemons) keeps the process from exiting."""
+
+    def __init__(self, size: int):
+        self._tasks: queue.SimpleQueue = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._started: dict[futures.Future, float] = {}  # running steps -> when they started
+        self._abandoned: set[futures.Future] = set()
+        self._threads = 0
+        for _ in range(size):
+            self._add_thread()
+
+    def _add_thread(self) -> None:
+        with self._lock:
+            self._threads += 1
+        threading.Thread(target=self._work, name="agent-env", daemon=True).start()
+
+    def _work(self) -> None:
+        while True:
+            task = self._tasks.get()
+            if task is None:
+                return
+            future, fn, argument = task
+            if not future.set_running_or_notify_cancel():
+                continue
+            with self._lock:
+                self._started[future] = time.monotonic()
+            try:
+                result = fn(argument)
+            except BaseException as exc:  # noqa: BLE001 - handed to whoever reads the future
+                future.set_exception(exc)
+            else:
+                future.set_result(result)
+            with self._lock:
+                self._started.pop(future, None)
+                if future in self._abandoned:  # its replacement already works on
+                    self._abandoned.discard(future)
+                    self._threads -= 1
+                    return
+
+    def submit(self, fn: Callable[[Any], Any], argument: Any) -> futures.Future:
+        future: futures.Future = futures.Future()
+        self._tasks.put((future, fn, argument))
+        return future
+
+    def overdue(self, future: futures.Future, limit: float | None) -> bool:
+        with self._lock:
+            started = self._started.get(future)
+        return limit is not None and started is not None and time.monotonic() - started >= limit
+
+    def time_to_limit(self, pending: Sequence[futures.Future], limit: float | None) -> float | None:
+        """Seconds until the first of ``pending`` reaches ``limit`` (one that has not started yet
+        may start now)."""
+        if limit is None:
+            return None
+        now = time.monotonic()
+        with self._lock:
+            started = [self._started.get(future, now) for future in pending]
+        return max(0.0, min(start + limit - now for start in started))
+
+    def abandon(self, future: futures.Future) -> bool:
+        """Give up on a running step; False if it finished after all (read its result)."""
+        with self._lock:
+            if future.done():
+                return False
+            self._abandoned.add(future)
+        self._add_thread()
+        return True
+
+    def close(self) -> None:
+        with self._lock:
+            threads = self._threads
+        for _ in range(threads):
+            self._tasks.put(None)
 
 
 def _cut(turn: GenerationResult, length: int) -> GenerationResult:
@@ -356,9 +614,13 @@ class AgentConfig:
     max_response_tokens: int = bounded(512, ge=1)
     """Response ids of a whole trajectory, model and tool-output ids together."""
     max_observation_tokens: int = bounded(256, ge=1)
-    """A tool output longer than this is cut."""
+    """A tool output longer than this is cut, in the tool's own text: the wrapper around it (result
+    tags, a chat template's turn markers) is kept whole."""
     concurrency: int = bounded(8, ge=1)
     """Environment steps (tool calls) running at once on each rollout rank."""
+    step_timeout_s: float | None = bounded(None, gt=0)
+    """An environment step (all of a turn's tool calls) still running after this many seconds is
+    abandoned and its trajectory ends (finish reason length); null: no limit besides the tools' own."""
     schedule: Schedule = "async"
     """async: generate other trajectories' turns while tools run; lockstep: every turn waits for the
     slowest tool (reproducible with a seed)."""
@@ -368,10 +630,13 @@ class AgentConfig:
     def budget(self) -> AgentBudget:
         return AgentBudget(max_turns=self.max_turns, max_response_tokens=self.max_response_tokens,
                            max_observation_tokens=self.max_observation_tokens, concurrency=self.concurrency,
-                           schedule=self.schedule, batch_window_s=self.batch_window_s)
+                           step_timeout_s=self.step_timeout_s, schedule=self.schedule,
+                           batch_window_s=self.batch_window_s)
 
-    def check(self, key: str) -> None:
-        """Raise ``ConfigError`` naming ``key`` if the environment cannot be built as configured."""
+    def check(self, key: str, instructions: str | None = None) -> None:
+        """Raise ``ConfigError`` naming ``key`` if the environment cannot be built as configured, or
+        (given the task's ``instructions``: its system prompt and worked examples, joined) if they
+        fail to tell the model what the environment needs (:meth:`AgentEnv.prompt_problem`)."""
         from infinirl.agents.registered import AGENT_ENVS, resolve_agent_env
 
         try:
@@ -382,9 +647,16 @@ class AgentConfig:
         except (ImportError, AttributeError, TypeError) as exc:
             raise ConfigError(f"{key}.env: {exc}") from None
         try:
-            factory(**self.env_options).close()
+            env = factory(**self.env_options)
         except (TypeError, ValueError, KeyError) as exc:
             raise ConfigError(f"{key}.env_options for env {self.env!r}: {exc}") from None
+        try:
+            check_prompt = getattr(env, "prompt_problem", None)  # a plain factory's object may lack the hook
+            problem = None if instructions is None or check_prompt is None else check_prompt(instructions)
+        finally:
+            env.close()
+        if problem:
+            raise ConfigError(f"task.system_prompt (with task.few_shot) for {key}.env={self.env!r}: {problem}")
 
     def make_env_factory(self) -> Callable[[], AgentEnv]:
         from infinirl.agents.registered import resolve_agent_env

@@ -6,18 +6,20 @@
     {"name": "calculator", "arguments": {"expression": "12 * 7"}}
     </tool_call>
 
-answered by ``<tool_response>\\n...\\n</tool_response>``. Models whose chat template defines tools
-(Qwen2.5, Hermes) get the tool list from ``tokenizer.apply_chat_template(tools=[t.spec() ...])``;
-:meth:`CallFormat.system_prompt` writes an equivalent instruction for the others.
+answered by ``<tool_response>\\n...\\n</tool_response>``, in a user turn of the ChatML template as
+Qwen2.5's chat template writes it (:attr:`CallFormat.observation_template`). Models whose chat
+template defines tools (Qwen2.5, Hermes) get the tool list from
+``tokenizer.apply_chat_template(tools=[t.spec() ...])``; :meth:`CallFormat.system_prompt` writes an
+equivalent instruction for the others (and the runner's prompts: it puts no ``tools=`` in them).
 
 ``tags``: one tag per tool, for models without a tool template (SmolLM2's ChatML template has
 none)::
 
     <calculator>12 * 7</calculator>
 
-answered by ``<result>\\n...\\n</result>``. The body is the tool's one argument as text, or a JSON
-object of arguments for a tool with several. Only the registered tools' names are calls; other
-tags are ordinary text.
+answered by ``<result>\\n...\\n</result>`` right after the call, in the model's own turn. The
+body is the tool's one argument as text, or a JSON object of arguments for a tool with several.
+Only the registered tools' names are calls; other tags are ordinary text.
 
 Parsing never raises: a turn yields the well-formed calls (known tool, arguments that fit its schema)
 and a :class:`ToolCallError` with a message for the model for each malformed one (JSON nested too
@@ -141,6 +143,9 @@ class CallFormat(abc.ABC):
     """Writes and reads one tool-call convention."""
 
     name: str
+    observation_template: str = "{results}"
+    """The default text around a turn's results (``{results}``): where they go in the chat
+    template, e.g. a user turn that closes the model's turn and opens its next one."""
 
     @abc.abstractmethod
     def parse(self, text: str, tools: Mapping[str, Tool]) -> ParsedTurn:
@@ -153,6 +158,12 @@ class CallFormat(abc.ABC):
     @abc.abstractmethod
     def format_results(self, texts: Sequence[str]) -> str:
         """The text that answers a turn's calls: one block per call's result (or error message)."""
+
+    def result_parts(self, texts: Sequence[str]) -> tuple[tuple[str, bool], ...]:
+        """:meth:`format_results` as ``(text, cuttable)`` pieces (``AgentStep.parts``): a result's
+        own text may be cut to fit the budget, the tags around it are kept. A format that does not
+        say gives one cuttable piece."""
+        return ((self.format_results(texts), True),)
 
     @abc.abstractmethod
     def stop_strings(self, tools: Mapping[str, Tool]) -> tuple[str, ...]:
@@ -169,6 +180,9 @@ class HermesFormat(CallFormat):
 
     name = "hermes"
     OPEN, CLOSE = "<tool_call>", "</tool_call>"
+    RESULT_OPEN, RESULT_CLOSE = "<tool_response>\n", "\n</tool_response>"
+    # Qwen2.5's template: the model's turn ends after its calls, the responses come in one user turn.
+    observation_template = "<|im_end|>\n<|im_start|>user\n{results}<|im_end|>\n<|im_start|>assistant\n"
     PATTERN = re.compile(r"<tool_call>(.*?)(?:</tool_call>|\Z)", re.DOTALL)
 
     def parse(self, text: str, tools: Mapping[str, Tool]) -> ParsedTurn:
@@ -200,7 +214,10 @@ class HermesFormat(CallFormat):
         return f"{self.OPEN}\n{json.dumps({'name': name, 'arguments': dict(arguments)})}\n{self.CLOSE}"
 
     def format_results(self, texts: Sequence[str]) -> str:
-        return "\n".join(f"<tool_response>\n{text}\n</tool_response>" for text in texts)
+        return "".join(text for text, _ in self.result_parts(texts))
+
+    def result_parts(self, texts: Sequence[str]) -> tuple[tuple[str, bool], ...]:
+        return blocks(texts, self.RESULT_OPEN, self.RESULT_CLOSE)
 
     def stop_strings(self, tools: Mapping[str, Tool]) -> tuple[str, ...]:
         return (self.CLOSE,)
@@ -216,6 +233,14 @@ class HermesFormat(CallFormat):
             "<tool_call></tool_call> XML tags:\n"
             '<tool_call>\n{"name": <function-name>, "arguments": <args-json-object>}\n</tool_call>'
         )
+
+
+def blocks(texts: Sequence[str], open_: str, close: str) -> tuple[tuple[str, bool], ...]:
+    """One ``open_ text close`` block per text, a newline between blocks; only the texts cuttable."""
+    parts: list[tuple[str, bool]] = []
+    for index, text in enumerate(texts):
+        parts += [(("\n" if index else "") + open_, False), (text, True), (close, False)]
+    return tuple(parts)
 
 
 def sole_parameter(tool: Tool) -> tuple[str, Mapping[str, Any]] | None:
@@ -277,7 +302,10 @@ class TagFormat(CallFormat):
         return f"<{name}>{body}</{name}>"
 
     def format_results(self, texts: Sequence[str]) -> str:
-        return "\n".join(f"{self.RESULT_OPEN}\n{text}\n{self.RESULT_CLOSE}" for text in texts)
+        return "".join(text for text, _ in self.result_parts(texts))
+
+    def result_parts(self, texts: Sequence[str]) -> tuple[tuple[str, bool], ...]:
+        return blocks(texts, f"{self.RESULT_OPEN}\n", f"\n{self.RESULT_CLOSE}")
 
     def stop_strings(self, tools: Mapping[str, Tool]) -> tuple[str, ...]:
         return tuple(f"</{name}>" for name in sorted(tools))

@@ -142,6 +142,12 @@ class InferenceEngine(ABC):
     def weight_version(self) -> int:
         """Version passed to the last successful ``load_weights`` (0 before any sync)."""
 
+    @property
+    def context_length(self) -> int | None:
+        """Longest prompt + response the engine accepts (``generate`` refuses a prompt whose length
+        plus ``max_new_tokens`` exceeds it); None when it sets no limit."""
+        return None
+
     @abstractmethod
     def offload(self) -> None:
         """Free accelerator memory (collocated mode: the trainer runs next). Idempotent."""

@@ -302,6 +302,10 @@ class HFGenerateEngine(InferenceEngine):
     # ---------------------------------------------------------------------------- weight sync
 
     @property
+    def context_length(self) -> int | None:
+        return self._max_positions
+
+    @property
     def weight_version(self) -> int:
         return self._weight_version
 

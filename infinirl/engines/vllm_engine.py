@@ -287,6 +287,10 @@ class VLLMEngine(InferenceEngine):
     # ---------------------------------------------------------------------------- weight sync
 
     @property
+    def context_length(self) -> int:
+        return self.max_model_len
+
+    @property
     def weight_version(self) -> int:
         return self._weight_version
 

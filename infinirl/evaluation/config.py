@@ -139,7 +139,7 @@ class EvalConfig:
             raise ConfigError(f"placement must place {', '.join(sorted(needed))}; missing {sorted(missing)}")
         validate_placement(self.placement, ("actor", "rollout", "reward"), "eval")
         if plan.agent is not None:
-            plan.agent.check("rollout.agent")
+            plan.agent.check("rollout.agent", plan.task.instructions())
         if self.rollout.engine == "vllm":
             self._check_vllm(plan)
 

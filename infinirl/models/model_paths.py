@@ -7,7 +7,7 @@ from pathlib import Path
 
 from infinirl.config import ConfigError
 
-__all__ = ["check_model_path"]
+__all__ = ["check_model_path", "model_context_length"]
 
 
 def check_model_path(path: str, key: str) -> None:
@@ -36,3 +36,23 @@ def check_model_path(path: str, key: str) -> None:
     if model_type not in CONFIG_MAPPING:
         raise ConfigError(f"{key}={path!r}: {config_file} names model_type {model_type!r}, which this transformers "
                           "version does not know; upgrade transformers or pass a supported model")
+
+
+def model_context_length(path: str) -> int | None:
+    """The model's context length (``max_position_embeddings``, GPT-2's ``n_positions``) from its
+    ``config.json``, when that is on disk: a local folder, or the embedded model once converted.
+    None otherwise (a hub id, a config without the field): nothing is downloaded or loaded."""
+    from infinirl.models.smollm2 import MODEL_NAME, converted_dir
+
+    folder = converted_dir() if path == MODEL_NAME else Path(path).expanduser()
+    try:
+        config = json.loads((folder / "config.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(config, dict):
+        return None
+    for key in ("max_position_embeddings", "n_positions"):
+        value = config.get(key)
+        if isinstance(value, int) and not isinstance(value, bool) and value > 0:
+            return value
+    return None

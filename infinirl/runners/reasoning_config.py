@@ -14,7 +14,7 @@ from infinirl.agents.loop import AgentConfig, request_context
 from infinirl.algorithms.objective import PolicyObjectiveConfig
 from infinirl.config import ConfigError, bounded
 from infinirl.engines.train_base import TrainEngineConfig
-from infinirl.models.model_paths import check_model_path
+from infinirl.models.model_paths import check_model_path, model_context_length
 from infinirl.runners.async_rollout import AsyncConfig
 from infinirl.runners.run_config import EvalSchedule, RunConfig
 from infinirl.tasks.config import TaskConfig
@@ -249,6 +249,7 @@ class ReasoningConfig(RunConfig):
         self._check_agent()
         self._check_overlong()
         self._check_vllm()
+        self._check_context()
 
     def _tie_actor_temperature(self) -> None:
         """The trainer scores tokens under the distribution the rollout samples them from
@@ -284,7 +285,7 @@ class ReasoningConfig(RunConfig):
 
     def _check_agent(self) -> None:
         if self.rollout.agent is not None:
-            self.rollout.agent.check("rollout.agent")
+            self.rollout.agent.check("rollout.agent", self.task.instructions())
 
     def _check_overlong(self) -> None:
         buffer, cap = self.algorithm.overlong_buffer, self.max_response_tokens
@@ -292,6 +293,23 @@ class ReasoningConfig(RunConfig):
             key = "rollout.agent.max_response_tokens" if self.rollout.agent is not None else "rollout.max_new_tokens"
             raise ConfigError(f"algorithm.overlong_buffer={buffer} is longer than the response cap {key}={cap}; "
                               f"set it to at most {cap}")
+
+    def _check_context(self) -> None:
+        """The longest prompt plus the longest response must fit the model's context, or the engine
+        refuses a generation mid-run (an agent's trajectory grows turn by turn)."""
+        context, source = model_context_length(self.model.path), "max_position_embeddings of model.path"
+        engine_limit = self.rollout.engine_options.get("max_model_len") if self.rollout.engine == "vllm" else None
+        if isinstance(engine_limit, int) and (context is None or engine_limit < context):
+            context, source = engine_limit, "rollout.engine_options.max_model_len"
+        needed = self.rollout.max_prompt_length + self.max_response_tokens
+        if context is None or needed <= context:
+            return
+        key = "rollout.agent.max_response_tokens" if self.rollout.agent is not None else "rollout.max_new_tokens"
+        raise ConfigError(
+            f"rollout.max_prompt_length={self.rollout.max_prompt_length} + {key}={self.max_response_tokens} = "
+            f"{needed} tokens do not fit the model's context ({source}={context}); lower either so they sum to "
+            f"at most {context}"
+        )
 
     def _check_off_policy(self) -> None:
         objective, eta = self.algorithm.objective, self.algorithm.asynchronous.max_staleness

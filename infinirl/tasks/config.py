@@ -35,6 +35,12 @@ class TaskConfig:
     prompt_key: str = "question"
     answer_key: str = "answer"
 
+    def instructions(self) -> str:
+        """What every prompt tells the model besides its question: the system prompt and the worked
+        examples, joined (what an agent environment checks for the tools it offers)."""
+        examples = [text for example in self.few_shot for text in example.values()]
+        return "\n".join([self.system_prompt or "", *examples])
+
     def validate(self) -> None:
         from infinirl.tasks.sources import TASK_SOURCES
         from infinirl.tasks.verifiers import check_verifier

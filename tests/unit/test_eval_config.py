@@ -25,6 +25,8 @@ def fake_run(root, steps=(2, 4), agent=None):
     run.rollout.max_new_tokens = 17
     run.rollout.stop_strings = ["\n\n"]
     run.task.name, run.task.eval_size = "basic_arithmetic", 5
+    if agent is not None:  # the tools the agent offers are named to the model
+        run.task.system_prompt = "Write <calculator>expression</calculator> to compute."
     root.mkdir(parents=True, exist_ok=True)
     raw = to_plain(run)
     raw["rollout"]["agent"] = agent
@@ -129,7 +131,8 @@ def test_default_output_names_tell_result_changing_settings_apart(tmp_path):
     changed = {"limit": 3, "samples": 8, "temperature": 0.7, "max_new_tokens": 64, "split": "train",
                "greedy": False, "seed": 1, "rollout": {"max_batch_size": 8}, "model": {"rollout_dtype": "bfloat16"}}
     names = {key: output(**{key: value}) for key, value in changed.items()}
-    names["agent"] = output(rollout={"agent": {"max_turns": 2}})
+    # (an environment that needs nothing named in the prompt: the task here names no tool)
+    names["agent"] = output(rollout={"agent": {"env": "infinirl.agents.toy_envs:EchoEnv", "max_turns": 2}})
     assert output(single_turn=True, rollout={"agent": {"max_turns": 2}}) == default  # the run has no agent
     for key, name in names.items():
         assert name.startswith("basic_arithmetic-step_000004-") and name != default, key
@@ -180,7 +183,11 @@ def test_one_agent_key_given_keeps_the_rest_of_the_runs_agent(tmp_path):
     single = to_dataclass(EvalConfig, {"run_dir": str(run), "single_turn": True}).resolve()
     assert single.agent is None and single.output.name not in (plan.output.name, "basic_arithmetic-step_000004.json")
     assert plan.agent.env_options == {"call_format": "hermes", "max_calls_per_turn": 1}
-    assert to_dataclass(EvalConfig, {"rollout": {"agent": {"max_turns": 2}}}).resolve().agent.env_options == {}
+    named = {"system_prompt": "Write <calculator>expression</calculator> to compute."}
+    plain = to_dataclass(EvalConfig, {"rollout": {"agent": {"max_turns": 2}}, "task": named}).resolve()
+    assert plain.agent.env_options == {}
+    with pytest.raises(ConfigError, match="never name the tool"):  # the model would never hear of the calculator
+        to_dataclass(EvalConfig, {"rollout": {"agent": {"max_turns": 2}}})
     with pytest.raises(ConfigError, match="unknown config key 'rollout.agent.max_trns'"):
         to_dataclass(EvalConfig, {"run_dir": str(run), "rollout": {"agent": {"max_trns": 2}}})
     with pytest.raises(ConfigError, match="rollout.agent.max_turns=0 must be >= 1"):
@@ -327,8 +334,8 @@ def test_validate_loads_the_problems_and_the_tokenizer_and_checks_the_context(tm
     assert "has no rows" in error_of(*dataset, f"task.name={tmp_path / 'empty.jsonl'}")
     assert "no key 'answer'" in error_of(*dataset, f"task.name={tmp_path / 'no_answer.jsonl'}")
     assert "unknown" in error_of("task.name=basic_arithmetc").lower()
-    err = error_of(*dataset, f"task.name={rows}", "max_new_tokens=500")
-    assert "max_new_tokens=500: prompt 'rows/0' is" in err and "more than the model's context (512" in err
+    err = error_of(*dataset, f"task.name={rows}", "max_new_tokens=2040")
+    assert "max_new_tokens=2040: prompt 'rows/0' is" in err and "more than the model's context (2048" in err
     no_tokenizer = tmp_path / "no_tokenizer"
     no_tokenizer.mkdir()
     (no_tokenizer / "config.json").write_text((Path(tiny_llama_dir) / "config.json").read_text())

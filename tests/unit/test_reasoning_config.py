@@ -243,3 +243,24 @@ def test_the_rollout_context_holds_every_request_and_reaches_a_vllm_engine():
     assert _launches(cfg)["rollout"][1][5] == {"max_model_len": 128}
     cfg.rollout.engine_options = {"max_model_len": 4096}
     assert _launches(cfg)["rollout"][1][5] == {"max_model_len": 4096}
+
+
+def test_the_longest_prompt_and_response_must_fit_the_models_context(tmp_path):
+    """Read from the model folder's config.json (no weights needed): an agent's trajectory that
+    outgrew the context would stop the run at its first generate past it, many steps in."""
+    import json
+
+    (tmp_path / "config.json").write_text(json.dumps({"model_type": "llama", "max_position_embeddings": 1024}))
+    agent = {"env": "infinirl.agents.toy_envs:EchoEnv", "max_response_tokens": 512}
+    with pytest.raises(ConfigError, match=r"rollout.max_prompt_length=768 \+ rollout.agent.max_response_tokens=512 = "
+                                          r"1280 tokens do not fit the model's context \(max_position_embeddings of "
+                                          r"model.path=1024\)"):
+        build(model={"path": str(tmp_path)}, rollout={"max_prompt_length": 768, "agent": agent})
+    with pytest.raises(ConfigError, match=r"rollout.max_new_tokens=48 = 1072 tokens"):
+        build(model={"path": str(tmp_path)})  # the default max_prompt_length, 1024
+    build(model={"path": str(tmp_path)}, rollout={"max_prompt_length": 512, "agent": agent})
+    if not vllm_available():  # the vLLM engine is refused first where vLLM is missing
+        return
+    with pytest.raises(ConfigError, match=r"max_model_len=600"):
+        build(model={"path": str(tmp_path)}, rollout={"max_prompt_length": 512, "agent": agent, "engine": "vllm",
+                                                       "engine_options": {"max_model_len": 600}})

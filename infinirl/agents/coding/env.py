@@ -29,7 +29,7 @@ from infinirl.agents.coding.extract import CODE_LANGUAGES, code_blocks, extract_
 from infinirl.agents.coding.spec import CodeSpec
 from infinirl.agents.coding.testing import format_report, run_code_tests_sync
 from infinirl.agents.coding.verifier import DEFAULT_TEST_LIMITS, make_limits
-from infinirl.agents.loop import AGENT_ENVS, AgentEnv, AgentStep
+from infinirl.agents.loop import AGENT_ENVS, AgentEnv, AgentStep, drop_start, overlap, template_parts
 from infinirl.agents.sandbox import Sandbox, SandboxLimits
 from infinirl.agents.tools import summarize_run
 
@@ -44,7 +44,8 @@ class CodeRunnerEnv(AgentEnv):
     """``feedback``: which tests a turn's code runs against (``visible``: the prompt's examples,
     falling back to running the code when a problem has none; ``all``: every test; ``run``: none,
     just run it). ``observation_template``: the text around the feedback, with ``{feedback}``
-    (e.g. a chat template's user turn). ``stop_strings``: where a turn is handed over. ``limits``:
+    (e.g. a chat template's user turn), kept whole when the feedback is cut to the loop's
+    ``max_observation_tokens``. ``stop_strings``: where a turn is handed over. ``limits``:
     SandboxLimits or a mapping of its fields. ``run_answers``: run the code of turns that end without
     a stop string too (see the module docstring)."""
 
@@ -98,11 +99,13 @@ class CodeRunnerEnv(AgentEnv):
         info["code_run_s"] = time.perf_counter() - start
         if passed and self.stop_when_passing:
             return AgentStep(done=True, info=info)
-        observation = self.template.replace("{feedback}", text)
+        # The template's text is kept whole when the feedback is cut to fit the budget: its end
+        # hands the turn back to the model.
+        parts = template_parts(self.template, "{feedback}", ((text, True),))
         if not any(stop in turn for stop in self.stop_strings):  # an answer turn (run_answers)
             info["answer_runs"] = 1
-            observation = observation[_overlap(turn, observation):]
-        return AgentStep(observation=observation, info=info)
+            parts = drop_start(parts, overlap(turn, "".join(piece for piece, _ in parts)))
+        return AgentStep(parts=parts, info=info)
 
     def _tests(self, spec: CodeSpec | None) -> str | None:
         if spec is None or self.feedback == "run":
@@ -111,10 +114,3 @@ class CodeRunnerEnv(AgentEnv):
             return spec.tests
         return spec.visible_tests or None
 
-
-def _overlap(text: str, following: str) -> int:
-    """Length of the longest end of ``text`` that ``following`` starts with (what not to repeat)."""
-    for length in range(min(len(text), len(following)), 0, -1):
-        if text.endswith(following[:length]):
-            return length
-    return 0

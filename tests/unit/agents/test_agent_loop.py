@@ -5,6 +5,7 @@ at them and the loop really runs several turns per trajectory."""
 
 import threading
 import time
+from dataclasses import replace
 
 import pytest
 import torch
@@ -13,6 +14,9 @@ from infinirl.agents.loop import AgentBudget, AgentEnv, AgentRollout, AgentStep,
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK, ROLLOUT_LOGPROBS, pack_sequences
 from infinirl.engines.base import SamplingParams
 from infinirl.engines.hf_generate import HFGenerateEngine
+from infinirl.engines.seeds import turn_seed
+from infinirl.models.hf_causal_lm import tiny_causal_lm
+from tests.unit.agents.scripted import ScriptedEngine
 
 PROMPTS = [[5, 6, 7, 8, 9], [20, 21], [30, 31, 32]]
 MANY = [[10 + i, 40 + 2 * i, 7] for i in range(16)]
@@ -235,3 +239,77 @@ def test_no_call_asks_the_engine_for_more_than_request_context(tiny, schedule):
     assert 0 < engine.longest <= bound
     if schedule == "lockstep":  # reproducible: a call asked a nearly full trajectory for a whole turn
         assert engine.longest > max(len(p) for p in MANY) + budget.max_response_tokens
+
+
+def test_a_trajectory_that_fills_the_context_ends_as_cut_off_instead_of_failing():
+    """Every turn's room is bounded by what is left of the model's context (48 positions here, far
+    below the response budget): the trajectories end with finish reason length, none fails."""
+    model, tokenizer = tiny_causal_lm(tokenizer="byte", seed=0, max_positions=48)
+    engine = HFGenerateEngine(model, tokenizer, max_batch_size=64, eos_token_ids=[])
+    budget = AgentBudget(max_turns=40, max_response_tokens=400)
+    for schedule in ("lockstep", "async"):
+        results = AgentRollout(engine, tokenizer, CountingEnv, replace(budget, schedule=schedule)).generate(
+            [[5, 6, 7, 8, 9], [20, 21] * 10], SamplingParams(n=2, max_new_tokens=16, seed=3))
+        for r in results:
+            assert len(r.prompt_ids) + len(r.response_ids) <= 48
+            assert r.finish_reason == "length"
+        assert max(r.extra["agent"]["turns"] for r in results) >= 2
+        assert max(len(r.prompt_ids) + len(r.response_ids) for r in results) >= 44
+
+
+
+def test_trajectories_short_of_context_get_a_generate_call_of_their_own_size(tiny):
+    """One call's max_new_tokens applies to every prompt in it: a trajectory with less context left
+    goes into a call as long as its room, with a seed of its own."""
+    _, tokenizer = tiny
+    engine = ScriptedEngine(tokenizer, ["ab", "cd", "ef", "gh"])
+    engine.context_length = 30
+    results = AgentRollout(engine, tokenizer, CountingEnv, AgentBudget(max_turns=3, schedule="lockstep")).generate(
+        [[1] * 3, [1] * 20], SamplingParams(n=1, max_new_tokens=16, seed=3))
+    (first, first_sampling), (second, second_sampling) = engine.calls[:2]
+    assert [len(p) for p in first] == [3] and first_sampling.max_new_tokens == 16
+    assert [len(p) for p in second] == [20] and second_sampling.max_new_tokens == 10
+    assert first_sampling.seed == turn_seed(3, 0) and second_sampling.seed == turn_seed(3, 1)
+    assert engine.calls[2][1].seed == turn_seed(3, 2)  # the next turn's call: no seed used twice
+    assert all(len(r.prompt_ids) + len(r.response_ids) <= 30 and r.finish_reason == "length" for r in results)
+    assert results[1].extra["agent"]["turns"] == 1  # "<r>ok</r>" did not fit after its turn
+
+
+class SleepyEnv(CountingEnv):
+    """Its second step hangs for 5 s (a tool stuck past its own timeout)."""
+
+    def step(self, turn):
+        if len(self.turns) == 1:
+            time.sleep(5)
+        return super().step(turn)
+
+
+@pytest.mark.parametrize("schedule", ["lockstep", "async"])
+def test_a_step_past_its_time_limit_is_abandoned_and_ends_its_trajectory(tiny, engine, schedule):
+    budget = AgentBudget(max_turns=4, max_response_tokens=120, step_timeout_s=0.3, schedule=schedule)
+    start = time.monotonic()
+    results = rollout(tiny, engine, budget, make_env=SleepyEnv)
+    assert time.monotonic() - start < 4, "the rollout waited for the hanging steps"
+    timed_out = [r for r in results if r.extra["agent"]["totals"].get("step_timeouts")]
+    assert timed_out and all(r.finish_reason == "length" and r.extra["agent"]["env_errors"] >= 1 for r in timed_out)
+    assert all(r.extra["agent"]["env_steps"] == 2 for r in timed_out)
+    assert agent_metrics(results)["agent/step_timeouts_mean"] > 0
+
+
+def test_an_observation_over_the_budget_is_cut_in_its_cuttable_parts_only(tiny, engine):
+    _, tokenizer = tiny
+    parts = (("<r>", False), ("x" * 50, True), ("</r><r>", False), ("y" * 4, True), ("</r>\n", False))
+
+    class Wrapped(CountingEnv):
+        def step(self, turn):
+            super().step(turn)
+            return AgentStep(parts=parts)
+
+    results = rollout(tiny, engine, AgentBudget(max_turns=2, max_response_tokens=200, max_observation_tokens=40),
+                      make_env=Wrapped)
+    inserted = [tokenizer.decode([i for i, m in zip(r.response_ids, r.response_mask) if not m]) for r in results]
+    cut = "<r>" + "x" * (40 - 15 - 4 - 15) + " ...[truncated]</r><r>yyyy</r>\n"  # 15 wrapper ids, 4 of y, the marker
+    assert cut in inserted and all(text in ("", cut) for text in inserted)
+    assert AgentStep(parts=parts).observation == "".join(text for text, _ in parts)
+    with pytest.raises(ValueError, match="join to observation"):
+        AgentStep(observation="other", parts=parts)

@@ -9,9 +9,10 @@ from infinirl.agents.loop import AgentBudget, AgentConfig, AgentRollout
 from infinirl.agents.registered import resolve_agent_env
 from infinirl.components.reward import sampled_ids
 from infinirl.config import ConfigError
-from infinirl.engines.base import GenerationResult, SamplingParams
+from infinirl.engines.base import SamplingParams
 from infinirl.models.hf_causal_lm import tiny_causal_lm
 from infinirl.tasks.code_tasks import FunctionTaskOptions, function_problem
+from tests.unit.agents.scripted import ScriptedEngine
 
 LIMITS = {"wall_time_s": 5.0, "cpu_time_s": 1.0}
 PROBLEM = function_problem(FunctionTaskOptions(families=("scale_and_shift",)), 0, 0, "train")
@@ -88,19 +89,6 @@ def test_bad_options_are_refused_and_the_env_is_registered():
     AgentConfig(env="code_runner", env_options={"feedback": "all"}).check("rollout.agent")
 
 
-class ScriptedEngine:
-    """Writes the given turns in order (the text a model would sample), as token ids."""
-
-    def __init__(self, tokenizer, turns):
-        self.tokenizer, self.turns = tokenizer, list(turns)
-
-    def generate(self, prompts, sampling):
-        text = self.turns.pop(0)
-        ids = self.tokenizer.encode(text, add_special_tokens=False)
-        return [GenerationResult(prompt_ids=list(p), response_ids=ids, response_logprobs=[-0.5] * len(ids),
-                                 finish_reason="stop", weight_version=0) for p in prompts]
-
-
 def test_write_run_fix_through_the_agent_loop_and_the_verifier_scores_the_last_code():
     _, tokenizer = tiny_causal_lm(tokenizer="byte", seed=0)
     engine = ScriptedEngine(tokenizer, [turn(WRONG), turn(RIGHT, "Done.")])
@@ -150,3 +138,36 @@ def test_an_eos_ended_turn_gets_feedback_only_with_run_answers_and_a_turn_left(r
     text = tokenizer.decode(result.response_ids)
     assert text.count("<|im_end|>") == 2 * (turns - 1) + 1  # the model's EOS, then the template's own closing one
     assert CodeTestsVerifier(limits=LIMITS)(tokenizer.decode(sampled_ids(result)), PROBLEM).correct == (turns == 2)
+
+
+def test_feedback_over_the_budget_is_cut_inside_the_template_which_still_hands_the_turn_back():
+    """The template's end (the user turn's close, the assistant's opening) must survive the cut,
+    or the model's next turn would be written, and trained on, inside the user's message."""
+    _, tokenizer = tiny_causal_lm(tokenizer="byte", seed=0)
+    template = CHAT.replace("{feedback}", "I ran it:\n{feedback}\nFix it.")
+    wrapper = len(tokenizer.encode(template.replace("{feedback}", ""), add_special_tokens=False))
+    engine = ScriptedEngine(tokenizer, [turn(WRONG), turn(RIGHT, "Done.")])
+    rollout = AgentRollout(engine, tokenizer, lambda: CodeRunnerEnv(limits=LIMITS, observation_template=template),
+                           AgentBudget(max_turns=2, max_observation_tokens=wrapper + 40))
+    [result] = rollout.generate([[1, 2, 3]], SamplingParams(n=1, max_new_tokens=400), problems=[PROBLEM])
+    observation = [i for i, m in zip(result.response_ids, result.response_mask) if not m]
+    assert len(observation) == wrapper + 40
+    text = tokenizer.decode(observation)
+    assert text.startswith("<|im_end|>\n<|im_start|>user\nI ran it:\n0/2 tests passed.")
+    assert text.endswith(" ...[truncated]\nFix it.<|im_end|>\n<|im_start|>assistant\n")
+    assert result.extra["agent"]["turns"] == 2
+
+
+def test_an_answer_whose_feedback_has_no_room_left_ends_as_an_answer_not_cut_off():
+    """Under run_answers, an EOS-ended turn whose feedback does not fit is still the model's answer:
+    not counted as truncated (truncated_reward: zero would zero its reward)."""
+    _, tokenizer = tiny_causal_lm(tokenizer="byte", seed=0)
+    engine = ScriptedEngine(tokenizer, [answer(WRONG)])
+    length = len(tokenizer.encode(answer(WRONG), add_special_tokens=False))
+    rollout = AgentRollout(engine, tokenizer,
+                           lambda: CodeRunnerEnv(limits=LIMITS, run_answers=True, observation_template=CHAT),
+                           AgentBudget(max_turns=3, max_response_tokens=length + 20))
+    [result] = rollout.generate([[1, 2, 3]], SamplingParams(n=1, max_new_tokens=400), problems=[PROBLEM])
+    stats = result.extra["agent"]
+    assert (stats["turns"], stats["env_steps"], stats["end"], result.finish_reason) == (1, 1, "answer", "stop")
+    assert stats["totals"]["answer_runs"] == 1.0
