@@ -28,6 +28,7 @@ import torch
 
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
+from infinirl.algorithms.metrics import metric_reduction
 
 __all__ = ["PPOSpec", "compiled_minibatch_loss", "critic_parameter_ids", "inner_policy", "ppo_minibatch_loss",
            "ppo_objective", "ppo_objective_of_outputs", "ppo_update"]
@@ -177,7 +178,7 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                     loss = loss + extra
                     metrics.update(extra_metrics)
                 metrics.update(_eager_step(optimizer, loss, parts, all_reduce_grads))
-            # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
+            # Kept as tensors and combined once after the loop: no per-step conversion to Python floats.
             for key, value in metrics.items():
                 step_metrics.setdefault(key, []).append(value)
     return _update_metrics(step_metrics, batch, ppo, optimizer)
@@ -309,11 +310,16 @@ def proximal_logprobs(model, batch: dict, rows_per_pass: int) -> torch.Tensor:
     return torch.cat(parts).to(batch["logprobs"].dtype)
 
 
+_REDUCE = {"mean": torch.mean, "max": torch.amax, "min": torch.amin}
+
+
 def _update_metrics(step_metrics: dict[str, list[torch.Tensor]], batch: dict, ppo: PPOSpec, optimizer) -> dict:
-    """The mean of every step's metrics, plus the update's own (explained variance, lr, steps)."""
+    """Every step's metrics combined (the mean; the max / min of a ``_max`` / ``_min`` key, see
+    :mod:`~infinirl.algorithms.metrics`), plus the update's own (explained variance, lr, steps)."""
     # The rollout-vs-trainer log-prob mismatch is that of the first mini-batch, before any step.
     mismatch = step_metrics.pop("train/logprob_mismatch", [torch.zeros(())])[0]
-    metrics = {key: float(torch.stack(values).to(torch.float64).mean()) for key, values in step_metrics.items()}
+    metrics = {key: float(_REDUCE[metric_reduction(key)](torch.stack(values).to(torch.float64)))
+               for key, values in step_metrics.items()}
     if ppo.critic:
         returns = batch["returns"][:, 0] if ppo.gae_level == "action" else batch["returns"]
         variance = float(returns.var())
