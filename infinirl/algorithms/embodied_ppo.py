@@ -168,11 +168,13 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                           normalize is not None)
             if stepper is not None:
                 _, metrics, grad_norm = stepper.step(model_args, (ppo, rank, world_size, whole, rows))
+                metrics.pop(KL_SHARE)
                 metrics["train/grad_norm"] = grad_norm.detach()
             else:
                 loss, metrics = minibatch_loss(model, ppo, rank, world_size, model_args, whole, rows)
+                kl_share = metrics.pop(KL_SHARE)
                 if not warmup:
-                    _policy_step_rates(optimizer, ppo, factor, metrics["train/approx_kl"], world_size, parts.policy)
+                    _policy_step_rates(optimizer, ppo, factor, kl_share, world_size, parts.policy)
                 if anchor is not None and not warmup:
                     extra, extra_metrics = anchor(epoch * ppo.mini_batches + m)
                     loss = loss + extra
@@ -197,6 +199,9 @@ class _GradParts:
     """Parameters that get no gradient this update (the policy's, during the critic's warm-up)."""
 
 
+#: :func:`ppo_objective`'s metric (not logged) holding this rank's share of the mini-batch's approximate KL.
+KL_SHARE = "approx_kl_share"
+
 #: The adaptive rate's bounds, as multiples of the configured one (``PPOSpec.desired_kl``).
 KL_SCALE_BOUNDS = (1e-2, 10.0)
 KL_SCALE_FACTOR = 1.5
@@ -210,12 +215,12 @@ def _set_rates(optimizer, ppo: PPOSpec, factor: float) -> None:
         group["lr"] = group.get("base_lr", ppo.lr) * factor * group.get("kl_scale", 1.0) * group.get("ramp", 1.0)
 
 
-def _policy_step_rates(optimizer, ppo: PPOSpec, factor: float, approx_kl: torch.Tensor, world_size: int,
+def _policy_step_rates(optimizer, ppo: PPOSpec, factor: float, kl_share: torch.Tensor, world_size: int,
                        policy_params: list) -> None:
     """The rates of a step that trains the policy, set before it: adapted to the mini-batch's KL
     (``desired_kl``, before the step as rsl_rl does) and ramped (``warmup_steps``)."""
     if ppo.desired_kl is not None:
-        _adapt_rates(optimizer, ppo, factor, approx_kl, world_size)
+        _adapt_rates(optimizer, ppo, factor, kl_share, world_size)
     if ppo.warmup_steps:
         _ramp_rates(optimizer, ppo, factor, policy_params)
 
@@ -238,15 +243,23 @@ def _ramp_rates(optimizer, ppo: PPOSpec, factor: float, policy_params: list) -> 
     _set_rates(optimizer, ppo, factor)
 
 
-def _adapt_rates(optimizer, ppo: PPOSpec, factor: float, approx_kl: torch.Tensor, world_size: int) -> None:
-    """rsl_rl's adaptive schedule: divide the rate by 1.5 when the mini-batch's approximate KL to the
-    rollout policy is above twice ``desired_kl``, multiply it by 1.5 below half of it (within
-    :data:`KL_SCALE_BOUNDS` of the configured rate). Every rank decides on the ranks' mean KL."""
-    kl = approx_kl.detach().to(torch.float64).reshape(1)
+def mini_batch_kl(kl_share: torch.Tensor, world_size: int) -> float:
+    """The whole mini-batch's approximate KL from this rank's share of it (:data:`KL_SHARE`: the sum
+    over its decisions divided by the mini-batch's count of them): the shares summed over the ranks,
+    so every rank gets the 1-rank value however unevenly the counted decisions fall on the ranks
+    (action level, GRPO's mask, a mini-batch that does not split evenly). Collective with ranks."""
+    kl = kl_share.detach().to(torch.float64).reshape(1)
     if world_size > 1 and torch.distributed.is_initialized():
         torch.distributed.all_reduce(kl)
-        kl = kl / world_size
-    kl_value, scale = float(kl), optimizer.param_groups[0].get("kl_scale", 1.0)
+    return float(kl)
+
+
+def _adapt_rates(optimizer, ppo: PPOSpec, factor: float, kl_share: torch.Tensor, world_size: int) -> None:
+    """rsl_rl's adaptive schedule: divide the rate by 1.5 when the mini-batch's approximate KL to the
+    rollout policy is above twice ``desired_kl``, multiply it by 1.5 below half of it (within
+    :data:`KL_SCALE_BOUNDS` of the configured rate). Every rank decides on the whole mini-batch's KL
+    (:func:`mini_batch_kl`)."""
+    kl_value, scale = mini_batch_kl(kl_share, world_size), optimizer.param_groups[0].get("kl_scale", 1.0)
     if kl_value > 2.0 * ppo.desired_kl:
         scale = max(scale / KL_SCALE_FACTOR, KL_SCALE_BOUNDS[0])
     elif kl_value < 0.5 * ppo.desired_kl:
@@ -343,6 +356,9 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
     ranks), whose statistics and counts every rank shares: advantage normalisation and every
     loss normaliser are mini-batch-global, so the ranks' gradients sum to the 1-rank gradient.
 
+    Among the metrics, :data:`KL_SHARE` is this rank's share of the mini-batch's approximate KL
+    (for ``desired_kl``; :func:`ppo_update` takes it out before logging).
+
     A pure function of tensors (no Python number read back from them, no branch on their values),
     so ``torch.compile`` takes it whole, without graph breaks (``actor.compile``).
     """
@@ -379,7 +395,9 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
             metrics[f"train/{key}"] = pg.metrics[key]
     loss = pg_loss = aggregate(pg.loss_mat, weights, "token-mean", n_pg)
     metrics.update({"train/policy_loss": pg_loss.detach(), "train/approx_kl": pg.metrics["approx_kl"],
-                    "train/clip_fraction": pg.metrics["clip_fraction"]})
+                    "train/clip_fraction": pg.metrics["clip_fraction"],
+                    # approx_kl is this rank's mean; its sum over the mini-batch's count adds up over ranks
+                    KL_SHARE: pg.metrics["approx_kl"] * weights.sum() / n_pg.clamp(min=1)})
     if ppo.critic:
         ones = torch.ones_like(returns)
         vl = value_loss(values=values, old_values=mine["values"], returns=returns.to(values.dtype),
