@@ -30,7 +30,8 @@ from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
 from infinirl.algorithms.metrics import metric_reduction
 
-__all__ = ["PPOSpec", "compiled_minibatch_loss", "critic_parameter_ids", "inner_policy", "ppo_minibatch_loss",
+__all__ = ["KL_SHARE", "PPOSpec", "compiled_minibatch_loss", "critic_parameter_ids", "inner_policy",
+           "joint_chunk_logprob", "mini_batch_kl", "ppo_minibatch_loss",
            "ppo_objective", "ppo_objective_of_outputs", "ppo_update"]
 
 
@@ -62,8 +63,8 @@ class PPOSpec:
     """Off-policy correction (asynchronous training): before the epochs, the log-probs of the batch
     under the current weights are recomputed (the *proximal* policy, PPO's trust-region centre) and
     every decision is reweighted by ``pi_proximal / pi_behaviour`` (the rollout's version), capped
-    at ``is_cap``: decoupled PPO, per action chunk at chunk level (a chunk's log-prob is the sum over
-    its actions; for flow policies, the path likelihood) or per action at action level."""
+    at ``is_cap``: decoupled PPO, per action chunk at chunk level (a chunk's log-prob as PPO takes
+    it, see ``joint_chunk``) or per action at action level."""
     is_cap_mode: str = "truncate"
     """truncate (TIS, min(w, cap)) | mask (MIS: decisions with w > cap get no policy gradient)."""
     desired_kl: float | None = None
@@ -72,6 +73,12 @@ class PPOSpec:
     """Iterations ``0 .. critic_warmup - 1`` train the critic only (:func:`ppo_update`)."""
     warmup_steps: int = 0
     """Ramp the policy's rate linearly over its first ``warmup_steps`` optimizer steps (:func:`_ramp_rates`)."""
+    joint_chunk: bool = False
+    """Not a config key: :func:`ppo_update` sets it from the policy (``Policy.joint_chunk_logprob``).
+    At chunk level a decision's log-prob (and its entropy) is the sum over all ``K`` rows of the
+    chunk, executed or not: a flow policy's path likelihood, as it denoises the chunk jointly.
+    False: the sum over the executed rows (each row its own action's likelihood). ``step_mask``
+    then only shapes the rewards and advantages. At action level every row is a decision either way."""
     compile: bool = False
     """Compile each mini-batch's optimizer step where the strategy allows it (the whole step,
     :class:`~infinirl.engines.compiled_step.CompiledAdamStep`), else the forward pass and loss
@@ -117,6 +124,7 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     step ``step`` (0-based within the update), added to the PPO loss of that step once the policy
     trains (PPO's behaviour-cloning anchor, :mod:`infinirl.components.demo_anchor`).
     """
+    ppo = dataclasses.replace(ppo, joint_chunk=joint_chunk_logprob(model))
     factor = max(0.0, 1.0 - iteration / max(1, ppo.total_iterations)) if ppo.anneal_lr else 1.0
     if ppo.anneal_lr or ppo.desired_kl is not None or ppo.warmup_steps:
         _set_rates(optimizer, ppo, factor)
@@ -302,6 +310,12 @@ def inner_policy(model):
     return model
 
 
+def joint_chunk_logprob(model) -> bool:
+    """Whether the policy in ``model``'s wrappers scores a chunk as one joint likelihood
+    (``Policy.joint_chunk_logprob``; :attr:`PPOSpec.joint_chunk`)."""
+    return bool(getattr(inner_policy(model), "joint_chunk_logprob", False))
+
+
 def critic_parameter_ids(model) -> set[int]:
     """``id`` of every parameter under the policy's ``critic_modules`` (``model`` may wrap the
     policy, as ``.policy`` or ``.module``; matched by name, as the critic's learning rate is)."""
@@ -364,8 +378,11 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
     """
     action_level = ppo.gae_level == "action"
     adv, keep = whole["advantages"], whole["keep"]  # [M] chunk level, [M, C] action level
-    # mask: executed actions to train on [M, C]; weights: the policy-loss rows ([M] or [M, C])
-    mask = whole["step_mask"] * (keep if action_level else keep[:, None])
+    # The chunk rows a decision's log-prob and entropy sum: the executed ones, or all of a jointly
+    # denoised chunk (joint_chunk; rows an episode's end left unexecuted were sampled with the rest).
+    rows = torch.ones_like(whole["step_mask"]) if ppo.joint_chunk and not action_level else whole["step_mask"]
+    # mask: the rows to train on [M, C]; weights: the policy-loss rows ([M] or [M, C])
+    mask = rows * (keep if action_level else keep[:, None])
     weights = mask if action_level else keep
     if ppo.normalize_advantages:  # statistics of the whole mini-batch (all ranks)
         count = weights.sum()

@@ -1,6 +1,7 @@
 """The embodied PPO objective (``ppo_objective``) on hand-built float64 mini-batches, against loop
-references: the approximate KL the adaptive rate (``desired_kl``) decides on is the whole
-mini-batch's on any number of ranks (two gloo ranks here)."""
+references: its policy loss and gradient (plain, decoupled, per chunk or per action, a jointly
+denoised chunk's path likelihood, advantage normalisation), and the approximate KL the adaptive
+rate (``desired_kl``) decides on, the whole mini-batch's on any number of ranks (two gloo ranks)."""
 
 import math
 import os
@@ -11,7 +12,14 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from infinirl.algorithms.embodied_ppo import KL_SHARE, PPOSpec, _adapt_rates, mini_batch_kl, ppo_objective
+from infinirl.algorithms.embodied_ppo import (
+    KL_SHARE,
+    PPOSpec,
+    _adapt_rates,
+    joint_chunk_logprob,
+    mini_batch_kl,
+    ppo_objective,
+)
 
 F64 = torch.float64
 M, C = 8, 3
@@ -119,3 +127,100 @@ def test_two_gloo_ranks_decide_the_rate_on_the_one_rank_kl(tmp_path):
             kl, scale = torch.load(tmp_path / f"rank{rank}.pt")[action_level]
             assert kl == approx(expected)
             assert scale == 1.0  # 1 rank's decision: the KL is within [target / 2, 2 target], the rate stays
+
+
+# --- the policy loss and its gradient -------------------------------------------------------------
+
+
+def reference_policy_loss(logp, old, behaviour, adv, step_mask, keep, *, clip, cap, cap_mode, action_level,
+                          joint, normalize):
+    """The policy loss of ``ppo_objective`` in float64 loops over decisions, on torch scalars so that
+    autograd gives the reference gradient. A decision is an action (action level) or a chunk whose
+    log-prob sums its executed rows, or all its rows when it was denoised jointly (``joint``).
+    Normalised advantages use the counted decisions' mean and Bessel-corrected std."""
+    units = []  # (log-prob, old log-prob, behaviour log-prob or None, advantage, counted)
+    for i in range(logp.shape[0]):
+        if action_level:
+            units += [(logp[i, c], float(old[i, c]), None if behaviour is None else float(behaviour[i, c]),
+                       float(adv[i, c]), bool(step_mask[i, c] * keep[i, c])) for c in range(logp.shape[1])]
+        else:
+            rows = [c for c in range(logp.shape[1]) if joint or step_mask[i, c]]
+            units.append((sum((logp[i, c] for c in rows), torch.zeros((), dtype=F64)),
+                          sum(float(old[i, c]) for c in rows),
+                          None if behaviour is None else sum(float(behaviour[i, c]) for c in rows),
+                          float(adv[i]), bool(keep[i])))
+    counted = [unit for unit in units if unit[4]]
+    mean = sum(unit[3] for unit in counted) / len(counted)
+    std = math.sqrt(sum((unit[3] - mean) ** 2 for unit in counted) / (len(counted) - 1))
+    total = torch.zeros((), dtype=F64)
+    for lp, o, b, a, _ in counted:
+        if normalize:
+            a = (a - mean) / (std + 1e-8)
+        ratio = torch.exp(lp - o)
+        loss = torch.maximum(-a * ratio, -a * ratio.clamp(1 - clip, 1 + clip))
+        if b is not None:
+            w = math.exp(o - b)
+            loss = loss * (min(w, cap) if cap_mode == "truncate" else (0.0 if w > cap else w))
+        total = total + loss
+    return total / len(counted)
+
+
+CASES = [  # (behaviour correction, cap mode)
+    (False, "truncate"), (True, "truncate"), (True, "mask"),
+]
+
+
+@pytest.mark.parametrize("action_level", [False, True])
+@pytest.mark.parametrize("joint", [False, True])
+@pytest.mark.parametrize("decoupled, cap_mode", CASES)
+def test_the_policy_loss_and_its_gradient_match_the_float64_reference(action_level, joint, decoupled, cap_mode):
+    gen = torch.Generator().manual_seed(3)
+    m, c = 12, 3
+    old = -torch.rand(m, c, generator=gen, dtype=F64)
+    logp = (old + 0.3 * torch.randn(m, c, generator=gen, dtype=F64)).requires_grad_(True)
+    behaviour = old + 0.4 * torch.randn(m, c, generator=gen, dtype=F64)
+    step_mask = (torch.rand(m, c, generator=gen) > 0.2).to(F64)
+    step_mask[:, 0] = 1.0  # the first action of a chunk always runs
+    shape = (m, c) if action_level else (m,)
+    adv = 2.0 + torch.randn(*shape, generator=gen, dtype=F64)  # off-centre: normalising matters
+    keep = (torch.rand(*shape, generator=gen) > 0.25).to(F64)
+    if not action_level:
+        assert bool((keep[:, None] * (1 - step_mask)).any())  # kept chunks with unexecuted rows
+    ppo = PPOSpec(critic=False, normalize_advantages=True, gae_level="action" if action_level else "chunk",
+                  clip=0.2, is_cap=1.3 if decoupled else None, is_cap_mode=cap_mode, joint_chunk=joint)
+    whole = {"advantages": adv, "keep": keep, "step_mask": step_mask}
+    mine = {"logprobs": old, "values": torch.zeros(m, dtype=F64), "returns": torch.zeros(*shape, dtype=F64)}
+    if decoupled:
+        mine["behaviour_logprobs"] = behaviour
+    loss, metrics = ppo_objective(ppo, 0, 1, logp, None, torch.zeros(m, dtype=F64), whole, mine)
+    (grad,) = torch.autograd.grad(loss, logp)
+    expected = reference_policy_loss(logp, old, behaviour if decoupled else None, adv, step_mask, keep, clip=0.2,
+                                     cap=1.3, cap_mode=cap_mode, action_level=action_level, joint=joint,
+                                     normalize=True)
+    (expected_grad,) = torch.autograd.grad(expected, logp)
+    assert loss.item() == pytest.approx(expected.item(), rel=1e-10, abs=1e-12)
+    torch.testing.assert_close(grad, expected_grad, rtol=1e-10, atol=1e-12)
+    assert float(grad.abs().max()) > 1e-3  # a real gradient
+    # a jointly denoised chunk's unexecuted rows are part of its likelihood: they get the gradient
+    # of the chunk's other rows; a per-row policy's unexecuted rows get none
+    unexecuted = (1 - step_mask).bool() & (keep[:, None] > 0 if not action_level else keep > 0)
+    assert bool((grad[unexecuted] != 0).any()) == (joint and not action_level)
+    if decoupled:
+        assert 0 <= float(metrics["train/is_capped_fraction"]) <= 1
+
+
+def test_the_update_takes_the_chunk_likelihood_from_the_policy():
+    """``ppo_update`` sets ``PPOSpec.joint_chunk`` from the policy behind the trainer's wrappers:
+    flow policies (and the π0 family but its per-row residual form) score a chunk jointly."""
+    from infinirl.components.embodied_policy import NormalizedPolicy
+    from infinirl.models.policies.flow import FlowMatchingPolicy
+    from infinirl.models.policies.mlp import MLPGaussianPolicy
+    from infinirl.models.vla.policy import PiZeroPolicy
+    from infinirl.models.vla.residual import PiZeroResidualPolicy
+    from infinirl.models.vla.steered import PiZeroSteeredPolicy
+
+    flow = FlowMatchingPolicy(action_dim=1, chunk=2, obs_dim=3, hidden=(8,), time_dim=4, num_steps=2)
+    assert joint_chunk_logprob(NormalizedPolicy(flow, {"state": (3,)})) and joint_chunk_logprob(flow)
+    assert not joint_chunk_logprob(NormalizedPolicy(MLPGaussianPolicy(3, 1, hidden=(8,), chunk=2), {"state": (3,)}))
+    assert PiZeroPolicy.joint_chunk_logprob and PiZeroSteeredPolicy.joint_chunk_logprob
+    assert not PiZeroResidualPolicy.joint_chunk_logprob
