@@ -28,6 +28,7 @@ import torch
 
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
+from infinirl.algorithms.masking import masked_mean
 from infinirl.algorithms.metrics import metric_reduction
 
 __all__ = ["KL_SHARE", "PPOSpec", "compiled_minibatch_loss", "critic_parameter_ids", "inner_policy",
@@ -395,7 +396,10 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
     adv, mask, weights = adv[share], mask[share], weights[share]
     old = mine["logprobs"]
     behaviour = mine.get("behaviour_logprobs")
-    metrics = {"train/logprob_mismatch": ((logprobs.detach() - old).abs() * mask).sum() / mask.sum().clamp(min=1)}
+    # Rollout vs trainer on the same actions: against the rollout's own log-probs, which with
+    # decoupled PPO are the behaviour ones (``old`` is then the trainer's proximal recomputation).
+    rollout = old if behaviour is None else behaviour
+    metrics = {"train/logprob_mismatch": masked_mean((logprobs.detach() - rollout).abs(), mask)}
     correction = {} if behaviour is None else {"is_cap": ppo.is_cap, "is_cap_mode": ppo.is_cap_mode}
     if action_level:
         pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=weights,

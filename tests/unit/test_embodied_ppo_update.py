@@ -484,6 +484,8 @@ def test_decoupled_ppo_two_ranks_end_with_the_weights_of_one():
     for model in models:
         torch.testing.assert_close(flat(model), flat(single), rtol=0, atol=1e-6)
     assert metrics["train/behaviour_logprob_abs_diff"] > 0.05 and metrics["train/is_capped_fraction"] < 1
+    # rollout vs trainer: the stale rollout's log-probs against the trainer's (not ~0 against its own)
+    assert metrics["train/logprob_mismatch"] > 0.05
 
 
 def test_decoupled_ppo_on_on_policy_data_is_plain_ppo():

@@ -37,3 +37,26 @@ def test_without_a_cap_the_rollout_logprobs_only_feed_the_mismatch_metric(respon
     expected = ref_ppo(logp, old, adv, mask, 0.2, 0.2).sum() / mask.sum()
     assert float(loss) == pytest.approx(float(expected), rel=1e-12)
     assert "train/is_weight_mean" not in metrics and "train/logprob_mismatch_mean" in metrics
+
+
+def reference_mismatch(trainer, rollout, mask):
+    """Mean and max of |trainer - rollout| over the masked tokens, in float64 loops."""
+    gaps = [abs(float(trainer[i, t]) - float(rollout[i, t]))
+            for i in range(mask.shape[0]) for t in range(mask.shape[1]) if mask[i, t]]
+    return sum(gaps) / len(gaps), max(gaps)
+
+
+@pytest.mark.parametrize("with_old", [True, False])
+def test_the_mismatch_metric_compares_the_rollout_with_the_trainer_before_the_update(response_mask_factory,
+                                                                                      with_old):
+    """Against ``old_logprobs`` (the trainer's before the update), not the current log-probs: after
+    the first mini-batch those hold the policy's own drift. Without ``old_logprobs`` (one on-policy
+    update) the current log-probs are the trainer's before the update."""
+    logp, old, behaviour, adv, mask = random_policy_batch(response_mask_factory, 2)
+    micro = MicroBatch(response_mask=mask, advantages=adv, rollout_logprobs=behaviour)
+    if with_old:
+        micro["old_logprobs"] = old
+    _, metrics = policy_objective(micro, logp, None, PolicyObjectiveConfig(), float(mask.sum()))
+    mean, largest = reference_mismatch(old if with_old else logp, behaviour, mask)
+    assert metrics["train/logprob_mismatch_mean"] == pytest.approx(mean, rel=1e-12)
+    assert metrics["train/logprob_mismatch_max"] == pytest.approx(largest, rel=1e-12)
