@@ -379,11 +379,11 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
     """
     action_level = ppo.gae_level == "action"
     adv, keep = whole["advantages"], whole["keep"]  # [M] chunk level, [M, C] action level
-    # The chunk rows a decision's log-prob and entropy sum: the executed ones, or all of a jointly
-    # denoised chunk (joint_chunk; rows an episode's end left unexecuted were sampled with the rest).
-    rows = torch.ones_like(whole["step_mask"]) if ppo.joint_chunk and not action_level else whole["step_mask"]
-    # mask: the rows to train on [M, C]; weights: the policy-loss rows ([M] or [M, C])
-    mask = rows * (keep if action_level else keep[:, None])
+    # executed: the executed actions to train on [M, C]; mask: the rows a decision's log-prob and
+    # entropy sum, the executed ones or all of a jointly denoised chunk (joint_chunk: the rows an
+    # episode's end left unexecuted were sampled with the rest); weights: the policy-loss rows.
+    executed = whole["step_mask"] * (keep if action_level else keep[:, None])
+    mask = keep[:, None] * torch.ones_like(executed) if ppo.joint_chunk and not action_level else executed
     weights = mask if action_level else keep
     if ppo.normalize_advantages:  # statistics of the whole mini-batch (all ranks)
         count = weights.sum()
@@ -393,13 +393,13 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
     n_pg, n_entropy, n_value = weights.sum(), mask.sum(), float(adv.shape[0])
     size = adv.shape[0]
     share = slice(rank * size // world_size, (rank + 1) * size // world_size)
-    adv, mask, weights = adv[share], mask[share], weights[share]
+    adv, mask, weights, executed = adv[share], mask[share], weights[share], executed[share]
     old = mine["logprobs"]
     behaviour = mine.get("behaviour_logprobs")
     # Rollout vs trainer on the same actions: against the rollout's own log-probs, which with
     # decoupled PPO are the behaviour ones (``old`` is then the trainer's proximal recomputation).
     rollout = old if behaviour is None else behaviour
-    metrics = {"train/logprob_mismatch": masked_mean((logprobs.detach() - rollout).abs(), mask)}
+    metrics = {"train/logprob_mismatch": masked_mean((logprobs.detach() - rollout).abs(), executed)}
     correction = {} if behaviour is None else {"is_cap": ppo.is_cap, "is_cap_mode": ppo.is_cap_mode}
     if action_level:
         pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=weights,

@@ -226,17 +226,19 @@ def test_the_update_takes_the_chunk_likelihood_from_the_policy():
     assert not PiZeroResidualPolicy.joint_chunk_logprob
 
 
+@pytest.mark.parametrize("joint", [False, True])
 @pytest.mark.parametrize("decoupled", [False, True])
-def test_the_mismatch_metric_compares_the_trainer_with_the_rollouts_logprobs(decoupled):
-    """``train/logprob_mismatch``: the trainer's log-probs of the executed actions against the
-    rollout's. With decoupled PPO the batch's ``logprobs`` are the trainer's own proximal ones and
-    the rollout's are the behaviour log-probs: the metric must read those (the proximal policy is
-    the current one at the first mini-batch, so comparing with it would always give ~0)."""
+def test_the_mismatch_metric_compares_the_trainer_with_the_rollouts_logprobs(decoupled, joint):
+    """``train/logprob_mismatch``: the trainer's log-probs of the executed actions (also for a
+    jointly denoised chunk) against the rollout's. With decoupled PPO the batch's ``logprobs`` are
+    the trainer's own proximal ones and the rollout's are the behaviour log-probs: the metric must
+    read those (the proximal policy is the current one at the first mini-batch, so comparing with
+    it would always give ~0)."""
     gen = torch.Generator().manual_seed(4)
     rollout = -torch.rand(M, C, generator=gen, dtype=F64)
     trainer = rollout + 0.1 * torch.randn(M, C, generator=gen, dtype=F64)
     step_mask = (torch.rand(M, C, generator=gen) > 0.3).to(F64)
-    ppo = PPOSpec(critic=False, is_cap=2.0 if decoupled else None)
+    ppo = PPOSpec(critic=False, is_cap=2.0 if decoupled else None, joint_chunk=joint)
     whole = {"advantages": torch.randn(M, generator=gen, dtype=F64), "keep": torch.ones(M, dtype=F64),
              "step_mask": step_mask}
     mine = {"logprobs": trainer if decoupled else rollout, "values": torch.zeros(M, dtype=F64),
