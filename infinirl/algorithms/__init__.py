@@ -12,7 +12,9 @@ Modules, one job each:
 * ``aggregation``  loss matrix -> scalar with a mini-batch-global normaliser (split-invariant);
 * ``filters``      DAPO dynamic sampling and overlong reward shaping;
 * ``sac``, ``imitation``  off-policy (SAC) and imitation (BC / DAgger) losses;
-* ``masking``, ``groups``  masked statistics and prompt-group bookkeeping shared by the above.
+* ``masking``, ``groups``  masked statistics and prompt-group bookkeeping shared by the above;
+* ``metrics``      combining logged metrics over micro-batches, ranks and steps (``_max`` / ``_min`` keys
+                   by max / min, the rest by mean).
 
 Importing this package registers every built-in entry.
 """

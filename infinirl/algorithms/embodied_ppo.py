@@ -28,8 +28,11 @@ import torch
 
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss, value_loss
+from infinirl.algorithms.masking import masked_mean
+from infinirl.algorithms.metrics import metric_reduction
 
-__all__ = ["PPOSpec", "compiled_minibatch_loss", "critic_parameter_ids", "inner_policy", "ppo_minibatch_loss",
+__all__ = ["KL_SHARE", "PPOSpec", "compiled_minibatch_loss", "critic_parameter_ids", "inner_policy",
+           "joint_chunk_logprob", "mini_batch_kl", "ppo_minibatch_loss",
            "ppo_objective", "ppo_objective_of_outputs", "ppo_update"]
 
 
@@ -61,8 +64,8 @@ class PPOSpec:
     """Off-policy correction (asynchronous training): before the epochs, the log-probs of the batch
     under the current weights are recomputed (the *proximal* policy, PPO's trust-region centre) and
     every decision is reweighted by ``pi_proximal / pi_behaviour`` (the rollout's version), capped
-    at ``is_cap``: decoupled PPO, per action chunk at chunk level (a chunk's log-prob is the sum over
-    its actions; for flow policies, the path likelihood) or per action at action level."""
+    at ``is_cap``: decoupled PPO, per action chunk at chunk level (a chunk's log-prob as PPO takes
+    it, see ``joint_chunk``) or per action at action level."""
     is_cap_mode: str = "truncate"
     """truncate (TIS, min(w, cap)) | mask (MIS: decisions with w > cap get no policy gradient)."""
     desired_kl: float | None = None
@@ -71,6 +74,12 @@ class PPOSpec:
     """Iterations ``0 .. critic_warmup - 1`` train the critic only (:func:`ppo_update`)."""
     warmup_steps: int = 0
     """Ramp the policy's rate linearly over its first ``warmup_steps`` optimizer steps (:func:`_ramp_rates`)."""
+    joint_chunk: bool = False
+    """Not a config key: :func:`ppo_update` sets it from the policy (``Policy.joint_chunk_logprob``).
+    At chunk level a decision's log-prob (and its entropy) is the sum over all ``K`` rows of the
+    chunk, executed or not: a flow policy's path likelihood, as it denoises the chunk jointly.
+    False: the sum over the executed rows (each row its own action's likelihood). ``step_mask``
+    then only shapes the rewards and advantages. At action level every row is a decision either way."""
     compile: bool = False
     """Compile each mini-batch's optimizer step where the strategy allows it (the whole step,
     :class:`~infinirl.engines.compiled_step.CompiledAdamStep`), else the forward pass and loss
@@ -116,6 +125,7 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
     step ``step`` (0-based within the update), added to the PPO loss of that step once the policy
     trains (PPO's behaviour-cloning anchor, :mod:`infinirl.components.demo_anchor`).
     """
+    ppo = dataclasses.replace(ppo, joint_chunk=joint_chunk_logprob(model))
     factor = max(0.0, 1.0 - iteration / max(1, ppo.total_iterations)) if ppo.anneal_lr else 1.0
     if ppo.anneal_lr or ppo.desired_kl is not None or ppo.warmup_steps:
         _set_rates(optimizer, ppo, factor)
@@ -167,17 +177,19 @@ def ppo_update(model, optimizer, batch: dict, iteration: int, ppo: PPOSpec, rank
                           normalize is not None)
             if stepper is not None:
                 _, metrics, grad_norm = stepper.step(model_args, (ppo, rank, world_size, whole, rows))
+                metrics.pop(KL_SHARE)
                 metrics["train/grad_norm"] = grad_norm.detach()
             else:
                 loss, metrics = minibatch_loss(model, ppo, rank, world_size, model_args, whole, rows)
+                kl_share = metrics.pop(KL_SHARE)
                 if not warmup:
-                    _policy_step_rates(optimizer, ppo, factor, metrics["train/approx_kl"], world_size, parts.policy)
+                    _policy_step_rates(optimizer, ppo, factor, kl_share, world_size, parts.policy)
                 if anchor is not None and not warmup:
                     extra, extra_metrics = anchor(epoch * ppo.mini_batches + m)
                     loss = loss + extra
                     metrics.update(extra_metrics)
                 metrics.update(_eager_step(optimizer, loss, parts, all_reduce_grads))
-            # Kept as tensors and averaged once after the loop: no per-step conversion to Python floats.
+            # Kept as tensors and combined once after the loop: no per-step conversion to Python floats.
             for key, value in metrics.items():
                 step_metrics.setdefault(key, []).append(value)
     return _update_metrics(step_metrics, batch, ppo, optimizer)
@@ -196,6 +208,9 @@ class _GradParts:
     """Parameters that get no gradient this update (the policy's, during the critic's warm-up)."""
 
 
+#: :func:`ppo_objective`'s metric (not logged) holding this rank's share of the mini-batch's approximate KL.
+KL_SHARE = "approx_kl_share"
+
 #: The adaptive rate's bounds, as multiples of the configured one (``PPOSpec.desired_kl``).
 KL_SCALE_BOUNDS = (1e-2, 10.0)
 KL_SCALE_FACTOR = 1.5
@@ -209,12 +224,12 @@ def _set_rates(optimizer, ppo: PPOSpec, factor: float) -> None:
         group["lr"] = group.get("base_lr", ppo.lr) * factor * group.get("kl_scale", 1.0) * group.get("ramp", 1.0)
 
 
-def _policy_step_rates(optimizer, ppo: PPOSpec, factor: float, approx_kl: torch.Tensor, world_size: int,
+def _policy_step_rates(optimizer, ppo: PPOSpec, factor: float, kl_share: torch.Tensor, world_size: int,
                        policy_params: list) -> None:
     """The rates of a step that trains the policy, set before it: adapted to the mini-batch's KL
     (``desired_kl``, before the step as rsl_rl does) and ramped (``warmup_steps``)."""
     if ppo.desired_kl is not None:
-        _adapt_rates(optimizer, ppo, factor, approx_kl, world_size)
+        _adapt_rates(optimizer, ppo, factor, kl_share, world_size)
     if ppo.warmup_steps:
         _ramp_rates(optimizer, ppo, factor, policy_params)
 
@@ -237,15 +252,23 @@ def _ramp_rates(optimizer, ppo: PPOSpec, factor: float, policy_params: list) -> 
     _set_rates(optimizer, ppo, factor)
 
 
-def _adapt_rates(optimizer, ppo: PPOSpec, factor: float, approx_kl: torch.Tensor, world_size: int) -> None:
-    """rsl_rl's adaptive schedule: divide the rate by 1.5 when the mini-batch's approximate KL to the
-    rollout policy is above twice ``desired_kl``, multiply it by 1.5 below half of it (within
-    :data:`KL_SCALE_BOUNDS` of the configured rate). Every rank decides on the ranks' mean KL."""
-    kl = approx_kl.detach().to(torch.float64).reshape(1)
+def mini_batch_kl(kl_share: torch.Tensor, world_size: int) -> float:
+    """The whole mini-batch's approximate KL from this rank's share of it (:data:`KL_SHARE`: the sum
+    over its decisions divided by the mini-batch's count of them): the shares summed over the ranks,
+    so every rank gets the 1-rank value however unevenly the counted decisions fall on the ranks
+    (action level, GRPO's mask, a mini-batch that does not split evenly). Collective with ranks."""
+    kl = kl_share.detach().to(torch.float64).reshape(1)
     if world_size > 1 and torch.distributed.is_initialized():
         torch.distributed.all_reduce(kl)
-        kl = kl / world_size
-    kl_value, scale = float(kl), optimizer.param_groups[0].get("kl_scale", 1.0)
+    return float(kl)
+
+
+def _adapt_rates(optimizer, ppo: PPOSpec, factor: float, kl_share: torch.Tensor, world_size: int) -> None:
+    """rsl_rl's adaptive schedule: divide the rate by 1.5 when the mini-batch's approximate KL to the
+    rollout policy is above twice ``desired_kl``, multiply it by 1.5 below half of it (within
+    :data:`KL_SCALE_BOUNDS` of the configured rate). Every rank decides on the whole mini-batch's KL
+    (:func:`mini_batch_kl`)."""
+    kl_value, scale = mini_batch_kl(kl_share, world_size), optimizer.param_groups[0].get("kl_scale", 1.0)
     if kl_value > 2.0 * ppo.desired_kl:
         scale = max(scale / KL_SCALE_FACTOR, KL_SCALE_BOUNDS[0])
     elif kl_value < 0.5 * ppo.desired_kl:
@@ -288,6 +311,12 @@ def inner_policy(model):
     return model
 
 
+def joint_chunk_logprob(model) -> bool:
+    """Whether the policy in ``model``'s wrappers scores a chunk as one joint likelihood
+    (``Policy.joint_chunk_logprob``; :attr:`PPOSpec.joint_chunk`)."""
+    return bool(getattr(inner_policy(model), "joint_chunk_logprob", False))
+
+
 def critic_parameter_ids(model) -> set[int]:
     """``id`` of every parameter under the policy's ``critic_modules`` (``model`` may wrap the
     policy, as ``.policy`` or ``.module``; matched by name, as the critic's learning rate is)."""
@@ -309,11 +338,16 @@ def proximal_logprobs(model, batch: dict, rows_per_pass: int) -> torch.Tensor:
     return torch.cat(parts).to(batch["logprobs"].dtype)
 
 
+_REDUCE = {"mean": torch.mean, "max": torch.amax, "min": torch.amin}
+
+
 def _update_metrics(step_metrics: dict[str, list[torch.Tensor]], batch: dict, ppo: PPOSpec, optimizer) -> dict:
-    """The mean of every step's metrics, plus the update's own (explained variance, lr, steps)."""
+    """Every step's metrics combined (the mean; the max / min of a ``_max`` / ``_min`` key, see
+    :mod:`~infinirl.algorithms.metrics`), plus the update's own (explained variance, lr, steps)."""
     # The rollout-vs-trainer log-prob mismatch is that of the first mini-batch, before any step.
     mismatch = step_metrics.pop("train/logprob_mismatch", [torch.zeros(())])[0]
-    metrics = {key: float(torch.stack(values).to(torch.float64).mean()) for key, values in step_metrics.items()}
+    metrics = {key: float(_REDUCE[metric_reduction(key)](torch.stack(values).to(torch.float64)))
+               for key, values in step_metrics.items()}
     if ppo.critic:
         returns = batch["returns"][:, 0] if ppo.gae_level == "action" else batch["returns"]
         variance = float(returns.var())
@@ -337,13 +371,19 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
     ranks), whose statistics and counts every rank shares: advantage normalisation and every
     loss normaliser are mini-batch-global, so the ranks' gradients sum to the 1-rank gradient.
 
+    Among the metrics, :data:`KL_SHARE` is this rank's share of the mini-batch's approximate KL
+    (for ``desired_kl``; :func:`ppo_update` takes it out before logging).
+
     A pure function of tensors (no Python number read back from them, no branch on their values),
     so ``torch.compile`` takes it whole, without graph breaks (``actor.compile``).
     """
     action_level = ppo.gae_level == "action"
     adv, keep = whole["advantages"], whole["keep"]  # [M] chunk level, [M, C] action level
-    # mask: executed actions to train on [M, C]; weights: the policy-loss rows ([M] or [M, C])
-    mask = whole["step_mask"] * (keep if action_level else keep[:, None])
+    # executed: the executed actions to train on [M, C]; mask: the rows a decision's log-prob and
+    # entropy sum, the executed ones or all of a jointly denoised chunk (joint_chunk: the rows an
+    # episode's end left unexecuted were sampled with the rest); weights: the policy-loss rows.
+    executed = whole["step_mask"] * (keep if action_level else keep[:, None])
+    mask = keep[:, None] * torch.ones_like(executed) if ppo.joint_chunk and not action_level else executed
     weights = mask if action_level else keep
     if ppo.normalize_advantages:  # statistics of the whole mini-batch (all ranks)
         count = weights.sum()
@@ -353,10 +393,13 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
     n_pg, n_entropy, n_value = weights.sum(), mask.sum(), float(adv.shape[0])
     size = adv.shape[0]
     share = slice(rank * size // world_size, (rank + 1) * size // world_size)
-    adv, mask, weights = adv[share], mask[share], weights[share]
+    adv, mask, weights, executed = adv[share], mask[share], weights[share], executed[share]
     old = mine["logprobs"]
     behaviour = mine.get("behaviour_logprobs")
-    metrics = {"train/logprob_mismatch": ((logprobs.detach() - old).abs() * mask).sum() / mask.sum().clamp(min=1)}
+    # Rollout vs trainer on the same actions: against the rollout's own log-probs, which with
+    # decoupled PPO are the behaviour ones (``old`` is then the trainer's proximal recomputation).
+    rollout = old if behaviour is None else behaviour
+    metrics = {"train/logprob_mismatch": masked_mean((logprobs.detach() - rollout).abs(), executed)}
     correction = {} if behaviour is None else {"is_cap": ppo.is_cap, "is_cap_mode": ppo.is_cap_mode}
     if action_level:
         pg = ppo_clip_loss(logprobs=logprobs, old_logprobs=old, advantages=adv, response_mask=weights,
@@ -373,7 +416,9 @@ def ppo_objective(ppo: PPOSpec, rank: int, world_size: int, logprobs: torch.Tens
             metrics[f"train/{key}"] = pg.metrics[key]
     loss = pg_loss = aggregate(pg.loss_mat, weights, "token-mean", n_pg)
     metrics.update({"train/policy_loss": pg_loss.detach(), "train/approx_kl": pg.metrics["approx_kl"],
-                    "train/clip_fraction": pg.metrics["clip_fraction"]})
+                    "train/clip_fraction": pg.metrics["clip_fraction"],
+                    # approx_kl is this rank's mean; its sum over the mini-batch's count adds up over ranks
+                    KL_SHARE: pg.metrics["approx_kl"] * weights.sum() / n_pg.clamp(min=1)})
     if ppo.critic:
         ones = torch.ones_like(returns)
         vl = value_loss(values=values, old_values=mine["values"], returns=returns.to(values.dtype),

@@ -40,9 +40,11 @@ def k2(logprobs: torch.Tensor, ref_logprobs: torch.Tensor) -> torch.Tensor:
 
 @KL_ESTIMATORS.register("k3")
 def k3(logprobs: torch.Tensor, ref_logprobs: torch.Tensor) -> torch.Tensor:
-    """``pi_ref/pi - 1 - log(pi_ref/pi)``. The log-ratio is clamped to [-20, 20] before ``exp``
-    so a token the reference finds far likelier cannot overflow to inf (verl does the same)."""
-    log_ratio = (ref_logprobs - logprobs).clamp(min=-20.0, max=20.0)
+    """``pi_ref/pi - 1 - log(pi_ref/pi)``. The log-ratio is clamped above at 20 before ``exp``, so
+    a token the reference finds far likelier cannot overflow to inf. It is not clamped below (verl
+    clamps at -20 too): there ``exp`` only underflows to 0, and a clamp would report ~19 and cut
+    the gradient (~1) of a token the policy finds far likelier than the reference does."""
+    log_ratio = (ref_logprobs - logprobs).clamp(max=20.0)
     return torch.expm1(log_ratio) - log_ratio
 
 

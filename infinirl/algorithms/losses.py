@@ -2,7 +2,9 @@
 
 Every function returns a per-token **loss matrix** shaped like its inputs (``[B, L]``; any
 ``[B, ...]`` works), 0 outside ``response_mask``, plus detached **metrics** (masked means over the
-tensors it was given). It does not reduce: reduction is ``aggregation.aggregate`` with a
+tensors it was given). A NaN or inf of any input at a masked position reaches neither the loss nor
+its gradient (factors such as advantages and importance weights are zeroed there before they
+multiply). It does not reduce: reduction is ``aggregation.aggregate`` with a
 mini-batch-global normaliser, which is what keeps gradients independent of micro-batching. The
 total objective is a sum of loss matrices, e.g.
 ``pg.loss_mat + kl_coef * kl_loss(...) + entropy_coef * entropy_loss(...)``, aggregated once.
@@ -157,7 +159,14 @@ def _apply_behaviour_correction(
         old_logprobs, behaviour_logprobs, response_mask, cap=is_cap, cap_mode=is_cap_mode
     )
     metrics.update(is_metrics)
-    return loss * weight
+    return loss * _multiplier(weight, response_mask)
+
+
+def _multiplier(factor: torch.Tensor, response_mask: torch.Tensor) -> torch.Tensor:
+    """A per-token factor of the loss (an advantage, an importance weight), detached and 0 outside
+    ``response_mask``. The final ``zero_outside`` drops a masked entry's value, but a NaN factor
+    there would still reach the gradient as ``0 * NaN``."""
+    return zero_outside(factor.detach(), response_mask)
 
 
 def _check_shapes(**tensors: torch.Tensor) -> None:
@@ -199,7 +208,7 @@ def ppo_clip_loss(
         raise ValueError(f"need 0 <= clip_low < 1 and clip_high >= 0; got {clip_low}, {clip_high}")
     if clip_c is not None and clip_c <= 1.0:
         raise ValueError(f"dual-clip constant clip_c must be > 1, got {clip_c}")
-    advantages = advantages.detach()
+    advantages = _multiplier(advantages, response_mask)
     ratio, log_ratio = _ratio(logprobs, old_logprobs)
     unclipped = -advantages * ratio
     clipped = -advantages * ratio.clamp(1.0 - clip_low, 1.0 + clip_high)
@@ -236,7 +245,7 @@ def policy_gradient_loss(
         response_mask=response_mask, behaviour_logprobs=behaviour_logprobs,
     )
     ratio, log_ratio = _ratio(logprobs, old_logprobs)
-    loss = -advantages.detach() * ratio
+    loss = -_multiplier(advantages, response_mask) * ratio
     metrics = _ratio_metrics(ratio, log_ratio, response_mask)
     loss = _apply_behaviour_correction(
         loss, metrics, old_logprobs, behaviour_logprobs, response_mask, is_cap, is_cap_mode
@@ -296,7 +305,10 @@ def value_loss(
     _check_shapes(
         values=values, old_values=old_values, returns=returns, response_mask=response_mask
     )
-    returns, old_values = returns.detach(), old_values.detach()
+    # 0 outside the mask (where() passes no gradient there): a NaN at a masked position of any of
+    # them would otherwise reach the gradient as 0 * NaN through the square.
+    values = zero_outside(values, response_mask)
+    returns, old_values = _multiplier(returns, response_mask), _multiplier(old_values, response_mask)
     unclipped = (values - returns) ** 2
     if clip_range is None:
         squared, clip_fraction = unclipped, torch.zeros_like(unclipped)

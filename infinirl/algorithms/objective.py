@@ -11,6 +11,11 @@ is the *proximal* policy: the trainer's weights at the start of the step, so PPO
 centred on them and ``w`` corrects for the version (or engine) that actually sampled the token
 (decoupled PPO, Fu et al. 2025). ``is_cap_mode=truncate`` is TIS (``min(w, cap)``),
 ``mask`` is MIS / AReaL's choice (tokens with ``w > cap`` are dropped).
+
+``train/logprob_mismatch_mean`` / ``_max`` (when the batch carries the rollout's log-probs): the
+gap between the trainer's log-probs before the update (the old ones above) and the rollout's, per
+token: the engines' numerics, plus the version gap in asynchronous training; not the policy's own
+drift over the update's mini-batches.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import torch
 from infinirl.algorithms.aggregation import aggregate
 from infinirl.algorithms.kl import kl_loss
 from infinirl.algorithms.losses import entropy_loss, ppo_clip_loss
-from infinirl.algorithms.masking import masked_mean
+from infinirl.algorithms.masking import masked_max, masked_mean
 
 
 @dataclass
@@ -73,7 +78,9 @@ def policy_objective(micro_batch, logprobs: torch.Tensor, entropy: torch.Tensor 
         if cfg.entropy_coef > 0:
             loss = loss + cfg.entropy_coef * aggregate(ent.loss_mat, mask, cfg.aggregation, normaliser)
     if "rollout_logprobs" in micro_batch.keys():
-        gap = (logprobs.detach() - micro_batch["rollout_logprobs"]).abs() * mask
-        metrics["train/logprob_mismatch_mean"] = float(gap.sum() / mask.sum().clamp(min=1))
-        metrics["train/logprob_mismatch_max"] = float(gap.max())
+        # The trainer's log-probs before the update (pi_old), not the current ones: after the first
+        # mini-batch those have moved, and the policy's own drift is not a rollout-vs-trainer gap.
+        gap = (old - micro_batch["rollout_logprobs"]).abs()
+        metrics["train/logprob_mismatch_mean"] = float(masked_mean(gap, mask))
+        metrics["train/logprob_mismatch_max"] = float(masked_max(gap, mask))
     return loss, metrics

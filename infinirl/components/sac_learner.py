@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from infinirl.algorithms.metrics import MetricReducer
 from infinirl.algorithms.sac import sac_actor_loss, sac_critic_loss, sac_temperature_loss
 from infinirl.components.embodied_policy import compute_device, module_device
 from infinirl.components.replay_buffer import ReplayBuffer
@@ -352,18 +353,15 @@ class SACLearnerWorker(Worker, WeightSource):
         metrics = self._logprob_mismatch(batch)
         self.buffer.add({name: batch[name] for name in self.buffer.fields})
         start = time.perf_counter()
-        sums: dict[str, torch.Tensor] = {}
-        counts: dict[str, int] = {}
+        updates = MetricReducer()  # tensors until the end: no sync per update
         ages = []
         for _ in range(num_updates):
             rows = self.buffer.sample(self.agent.spec.batch_size)
             ages.append(env_steps - float(rows["env_step"].mean()))
             tensors = {name: torch.from_numpy(rows[name]).to(self.compute) for name in _UPDATE_FIELDS}
-            for key, value in self.agent.update(tensors).items():
-                sums[key] = sums[key] + value if key in sums else value
-                counts[key] = counts.get(key, 0) + 1
+            updates.add(self.agent.update(tensors))
         seconds = time.perf_counter() - start
-        metrics.update({key: float(value) / counts[key] for key, value in sums.items()})
+        metrics.update(updates.result())
         if ages:
             metrics["train/sample_age_mean"] = float(np.mean(ages))
         metrics.update({"train/updates": float(self.agent.updates), "train/updates_this_iteration": float(num_updates),

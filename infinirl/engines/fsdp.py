@@ -41,6 +41,7 @@ from torch import nn
 from torch.distributed.device_mesh import init_device_mesh
 from torch.distributed.fsdp import MixedPrecisionPolicy
 
+from infinirl.algorithms.metrics import MetricReducer
 from infinirl.data.batch import ATTENTION_MASK, INPUT_IDS, POSITION_IDS, RESPONSE_MASK
 from infinirl.engines.distributed import compute_dtype, init_distributed, resolve_device_type, select_device
 from infinirl.engines.fsdp_checkpoint import load_model_and_optimizer, read_engine_state, save_sharded_checkpoint
@@ -294,7 +295,9 @@ class FSDPTrainEngine:
         micro-batches and ranks (the loss carries the global normaliser). Collective. For a value
         engine the second argument holds the values (and the entropy is ``None``).
 
-        Returns the loss function's metrics averaged over all micro-batches of all ranks, plus
+        Returns the loss function's metrics over all micro-batches of all ranks (means, each
+        micro-batch weighing the same; a key ending in ``_max`` / ``_min`` their max / min:
+        :mod:`infinirl.algorithms.metrics`), plus
         ``train/loss`` (the mini-batch loss: summed, like the gradients), ``train/grad_norm``
         (global, before clipping), ``train/lr`` (used by this step), ``train/skipped_step``
         (1 when the gradient was not finite and the update was skipped) and ``time/train_step``.
@@ -309,7 +312,7 @@ class FSDPTrainEngine:
             raise ValueError("train_step: the mini-batch is empty on every rank")
         self.optimizer.zero_grad(set_to_none=True)
         try:
-            loss_sum, metric_sums = self._accumulate_gradients(
+            loss_sum, metric_parts = self._accumulate_gradients(
                 micro_batches, passes, loss_fn, with_entropy
             )
         except BaseException:
@@ -336,7 +339,7 @@ class FSDPTrainEngine:
         self.global_step += 1
 
         dist.all_reduce(loss_sum)
-        out = self._average_metrics(metric_sums, len(micro_batches))
+        out = self._combine_metrics(metric_parts)
         out.update(
             {
                 "train/loss": float(loss_sum),
@@ -350,30 +353,26 @@ class FSDPTrainEngine:
 
     def _accumulate_gradients(
         self, micro_batches: list[TensorDict], passes: int, loss_fn: LossFn, with_entropy: bool
-    ) -> tuple[torch.Tensor, dict[str, float]]:
+    ) -> tuple[torch.Tensor, MetricReducer]:
         """Forward/backward every micro-batch (plus fillers); FSDP sums their gradients."""
         loss_sum = torch.zeros((), device=self.device)
-        metric_sums: dict[str, torch.Tensor | float] = {}
+        metric_parts = MetricReducer()
         for index in range(passes):
             if index < len(micro_batches):
                 micro_batch = micro_batches[index]
                 logprobs, entropy = self._forward(micro_batch, with_entropy)
                 loss, metrics = loss_fn(micro_batch, logprobs, entropy)
                 _check_loss(loss)
-                for (
-                    key,
-                    value,
-                ) in metrics.items():  # tensors stay on device: no sync per micro-batch
-                    value = (
-                        value.detach().float() if isinstance(value, torch.Tensor) else float(value)
-                    )
-                    metric_sums[key] = metric_sums.get(key, 0.0) + value
+                metric_parts.add({  # tensors stay on device: no sync per micro-batch
+                    key: value.detach().float() if isinstance(value, torch.Tensor) else float(value)
+                    for key, value in metrics.items()
+                })
                 loss_sum += loss.detach().float()
             else:  # filler: joins the collectives, contributes zero gradient
                 logprobs, _ = self._forward(filler_batch(self.device), with_entropy=False)
                 loss = logprobs.sum() * 0.0
             loss.backward()
-        return loss_sum, {key: float(value) for key, value in metric_sums.items()}
+        return loss_sum, metric_parts.as_floats()
 
     def _clip_grad_norm(self) -> torch.Tensor:
         """Global L2 norm of all gradients (sharded ones included); clip to ``cfg.grad_clip``."""
@@ -386,17 +385,15 @@ class FSDPTrainEngine:
             torch.nn.utils.clip_grads_with_norm_(params, self.cfg.grad_clip, total)
         return total
 
-    def _average_metrics(self, sums: dict[str, float], count: int) -> dict[str, float]:
-        """Mean over every real micro-batch of every rank (each micro-batch weighs the same)."""
+    def _combine_metrics(self, parts: MetricReducer) -> dict[str, float]:
+        """Every real micro-batch of every rank: means (each micro-batch weighs the same), and the
+        max / min of ``_max`` / ``_min`` keys."""
         gathered: list = [None] * self.world_size
-        dist.all_gather_object(gathered, (sums, count))
-        totals: dict[str, float] = {}
-        counts: dict[str, int] = {}
-        for rank_sums, rank_count in gathered:
-            for key, value in rank_sums.items():
-                totals[key] = totals.get(key, 0.0) + value
-                counts[key] = counts.get(key, 0) + rank_count
-        return {key: totals[key] / counts[key] for key in totals}
+        dist.all_gather_object(gathered, parts)
+        combined = MetricReducer()
+        for rank_parts in gathered:
+            combined.merge(rank_parts)
+        return combined.result()
 
     # ------------------------------------------------------------------ weight export
 

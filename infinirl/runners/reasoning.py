@@ -35,6 +35,7 @@ from infinirl.algorithms import (
     overlong_penalty,
 )
 from infinirl.algorithms.filters import group_is_informative
+from infinirl.algorithms.metrics import MetricReducer
 from infinirl.components.actor import ActorWorker
 from infinirl.components.critic import CriticWorker
 from infinirl.components.reference import ReferenceWorker
@@ -381,8 +382,7 @@ class ReasoningFlow:
         size = batch.batch_size[0]
         per_mini = size // cfg.algorithm.mini_batches
         actor_keys = [k for k in batch.keys() if k not in (VALUES, RETURNS)]
-        totals: dict[str, float] = {}
-        count = 0
+        steps = MetricReducer()  # means over the steps; a _max / _min key: the extreme of the steps
         for _ in range(cfg.algorithm.epochs):
             order = torch.randperm(size) if several else torch.arange(size)
             for start in range(0, size, per_mini):
@@ -399,11 +399,11 @@ class ReasoningFlow:
                     tokens = aggregation_normaliser(mini["response_mask"], "token-mean")
                     handles.append(self.critic.call_each(
                         "train_step", [(critic_mini[s], tokens) for s in _slices(per_mini, self.critic.world_size)]))
+                metrics = {}
                 for handle in handles:
-                    for key, value in handle.wait()[0].items():  # rank 0's: already averaged over ranks
-                        totals[key] = totals.get(key, 0.0) + value
-                count += 1
-        return {k: v / count for k, v in totals.items()}
+                    metrics.update(handle.wait()[0])  # rank 0's: already combined over the ranks
+                steps.add(metrics)
+        return steps.result()
 
     def _needs_old_logprobs(self) -> bool:
         algo = self.cfg.algorithm

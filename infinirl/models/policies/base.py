@@ -57,6 +57,11 @@ class Policy(nn.Module):
     action_dim: int
     chunk: int = 1
     has_value_head: bool = False
+    joint_chunk_logprob: bool = False
+    """The ``K`` rows of a chunk's log-probs split one joint likelihood (a flow policy denoises the
+    chunk jointly, so its rows are not separate draws): at chunk level PPO takes the decision's
+    log-prob as the sum over all ``K`` rows, executed or not (an episode that ended mid-chunk still
+    sampled the rest). False: each row is its own action's likelihood, and only executed rows count."""
     critic_modules: tuple[str, ...] = ()
     """Names of the submodules that form the critic (``actor.value_lr`` trains them at its rate)."""
     lora_refusal: str | None = None

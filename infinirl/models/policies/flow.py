@@ -91,6 +91,9 @@ def flow_sde_transition(x: torch.Tensor, v: torch.Tensor, tau: torch.Tensor, dta
 class FlowMatchingPolicy(EncodedPolicy):
     """Flow-matching policy over action chunks ``[K, A]`` with a flow-SDE sampler for RL.
 
+    ``joint_chunk_logprob``: the chunk is denoised jointly, so at chunk level PPO's ratio is that
+    of the whole path, all ``K`` rows, also after an episode ended mid-chunk.
+
     Args:
         action_dim: action dims ``A``.
         chunk: actions per decision ``K`` (pi0 uses 50; the chunk is denoised jointly).
@@ -107,6 +110,8 @@ class FlowMatchingPolicy(EncodedPolicy):
         min_std / max_std: the learned std's range for ``flow_noise``.
         value_head / separate_critic / value_hidden: critic on the observation features.
     """
+
+    joint_chunk_logprob = True
 
     def __init__(self, action_dim: int, chunk: int = 1, obs_dim: int = 0, obs_key: str = "state",
                  image_shape: Sequence[int] | None = None, rgb_key: str = "rgb",

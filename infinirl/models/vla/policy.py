@@ -17,8 +17,10 @@ trains in full), its entropy is learnable, and deployment (deterministic acting)
 
 The chain lives in the model's space (normalised, padded ``[chunk_size, max_action_dim]``); the
 env receives the first ``chunk`` rows and ``action_dim`` dims, unnormalised. Log-probs sum the
-transition densities of exactly those executed coordinates (the padding and the unexecuted tail
-are sampled but not credited, as in pi_RL): ``[B, chunk]``, one per executed action.
+transition densities of exactly those coordinates (the padding and the rows past ``chunk`` are
+sampled but not credited, as in pi_RL): ``[B, chunk]``, one per action sent to the env. At chunk
+level PPO sums all ``chunk`` rows (``joint_chunk_logprob``), also those an episode's end left
+unexecuted: they were denoised with the rest.
 :meth:`PiZeroPolicy.evaluate` recomputes them from the recorded chain (``extras["chain"]``,
 ``extras["sde_mask"]``), with gradients through the action expert and the VLM prefix.
 
@@ -101,6 +103,7 @@ class PiZeroPolicy(Policy):
     critic_modules = ("value_net",)
     demo_refusal = None
     normalizes_own_inputs = True  # the state, with the checkpoint's statistics (processor)
+    joint_chunk_logprob = True  # the chunk is denoised (or, for FPO, scored) as a whole
 
     family: str | None = "pi0"
 

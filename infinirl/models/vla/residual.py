@@ -115,6 +115,7 @@ class ResidualCorrection(FrozenVLA):
     """
 
     demo_refusal = "the VLA is frozen and only the residual policy trains, which demonstrations do not label"
+    joint_chunk_logprob = False  # one independent Gaussian residual per row: only executed rows count
 
     def __init__(self, *args, residual_hidden: Sequence[int] = (256, 256), residual_std: float = 0.2,
                  residual_bound: float = 1.0, residual_pixels: bool = False, pixel_features: int = 64,

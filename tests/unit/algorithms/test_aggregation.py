@@ -1,5 +1,6 @@
 """Loss aggregation: loop references per mode, and the micro-batch / data-parallel invariance of the
-gradient of a real (tiny) model's PPO + KL + entropy objective under every mode."""
+gradient of a real (tiny) model's PPO + KL + entropy objective under every mode (and with the plain
+policy gradient, the k1 / k2 estimators and MIS's masked weights)."""
 
 import copy
 
@@ -8,6 +9,7 @@ import torch
 
 from infinirl.algorithms import (
     AGGREGATIONS,
+    POLICY_LOSSES,
     aggregate,
     aggregate_locally,
     aggregation_normaliser,
@@ -169,7 +171,7 @@ def micro_batch_loss(model, batch, rows, mode, normaliser):
     return aggregate(total, pick["mask"], mode, normaliser)
 
 
-def gradient(model, batch, plan, mode):
+def gradient(model, batch, plan, mode, loss_of=micro_batch_loss):
     """``plan``: one list per DP rank, each a list of micro-batches (row lists). Each rank works on
     its own model copy and computes the normaliser over its share; normalisers are all-reduced with
     SUM, and so are the gradients, as the aggregation contract says."""
@@ -180,7 +182,7 @@ def gradient(model, batch, plan, mode):
     for rank in plan:
         replica = copy.deepcopy(model)
         for micro in rank:
-            micro_batch_loss(replica, batch, micro, mode, normaliser).backward()
+            loss_of(replica, batch, micro, mode, normaliser).backward()
         for acc, param in zip(total, replica.parameters()):
             acc += param.grad
     return total
@@ -214,6 +216,37 @@ def test_gradient_is_invariant_to_micro_batching_and_data_parallel(
     assert any(float(g.abs().max()) > 1e-3 for g in reference)  # a real, non-trivial gradient
     for ref_grad, split_grad in zip(reference, split):
         torch.testing.assert_close(split_grad, ref_grad, atol=1e-9, rtol=0)
+
+
+def other_loss(policy: str, estimator: str, cap_mode: str):
+    """A micro-batch loss like :func:`micro_batch_loss` with another policy loss, KL estimator and
+    behaviour-weight cap mode."""
+
+    def loss_of(model, batch, rows, mode, normaliser):
+        pick = {key: value[rows] for key, value in batch.items()}
+        logp, _ = aligned_logprobs_and_entropy(model, pick["ids"])
+        policy_loss = POLICY_LOSSES.get(policy)(
+            logprobs=logp, old_logprobs=pick["old"], advantages=pick["adv"], response_mask=pick["mask"],
+            behaviour_logprobs=pick["behaviour"], is_cap=1.2, is_cap_mode=cap_mode,
+        )
+        total = policy_loss.loss_mat + 0.1 * kl_loss(logp, pick["ref"], pick["mask"], estimator=estimator)
+        return aggregate(total, pick["mask"], mode, normaliser)
+
+    return loss_of
+
+
+@pytest.mark.parametrize("mode", ["token-mean", "seq-mean-token-mean"])
+@pytest.mark.parametrize("policy, estimator, cap_mode", [
+    ("policy_gradient", "k1", "truncate"), ("policy_gradient", "k2", "mask"), ("ppo_clip", "k1", "mask"),
+])
+def test_other_losses_estimators_and_cap_modes_are_invariant_too(rl_batch, mode, policy, estimator, cap_mode):
+    model, batch = rl_batch
+    loss_of = other_loss(policy, estimator, cap_mode)
+    reference = gradient(model, batch, PLANS["1x8"], mode, loss_of)
+    assert any(float(g.abs().max()) > 1e-3 for g in reference)
+    for plan in ("8x1", "dp2-uneven"):
+        for ref_grad, split_grad in zip(reference, gradient(model, batch, PLANS[plan], mode, loss_of)):
+            torch.testing.assert_close(split_grad, ref_grad, atol=1e-9, rtol=0)
 
 
 @pytest.mark.parametrize("mode", MODES)

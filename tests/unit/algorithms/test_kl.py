@@ -50,6 +50,21 @@ def test_k3_is_finite_for_extreme_log_ratios():
     assert torch.isfinite(KL_ESTIMATORS.get("k3")(logp, ref)).all()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_k3_keeps_its_gradient_when_the_policy_is_far_likelier_than_the_reference(dtype):
+    """log pi = 0, log pi_ref = -30: k3 = e^-30 - 1 + 30 ~ 29 and d k3 / d log pi = 1 - e^-30 ~ 1.
+    Only the side of the log-ratio that can overflow exp() may be clamped: a clamp at -20 would
+    report ~19 and give no gradient, so the KL term would stop pulling such tokens back."""
+    logp = torch.tensor([[0.0, -0.01]], dtype=dtype, requires_grad=True)
+    ref = torch.tensor([[-30.0, -25.0]], dtype=dtype)
+    kl = kl_loss(logp, ref, torch.ones(1, 2), estimator="k3")
+    kl.sum().backward()
+    expected = [math.expm1(r - lp) - (r - lp) for lp, r in ((0.0, -30.0), (-0.01, -25.0))]
+    torch.testing.assert_close(kl.detach().double(), torch.tensor([expected], dtype=F64), rtol=1e-6, atol=0)
+    torch.testing.assert_close(logp.grad.double(), torch.tensor([[1 - math.exp(-30.0), 1 - math.exp(-24.99)]],
+                                                                dtype=F64), rtol=1e-6, atol=0)
+
+
 def test_kl_loss_is_masked_and_differentiable_in_policy_only():
     logp = torch.tensor([[-1.0, -2.0, -0.5]], dtype=F64, requires_grad=True)
     ref = torch.tensor([[-1.5, -1.0, -0.5]], dtype=F64, requires_grad=True)

@@ -155,6 +155,41 @@ def test_ppo_masked_positions_are_zero_even_if_inputs_are_garbage():
     assert torch.isfinite(logp.grad).all()
 
 
+@pytest.mark.parametrize("name", ["ppo_clip", "policy_gradient"])
+@pytest.mark.parametrize("garbage", ["advantages", "behaviour_logprobs"])
+def test_a_nan_multiplier_at_a_masked_position_leaves_the_gradient_finite(name, garbage):
+    """A NaN advantage or behaviour log-prob where the mask is 0 (padding, a dropped decision) must
+    not reach the gradient as 0 * NaN: the loss and the gradient equal those of a clean copy."""
+    logp = torch.tensor([[-1.0, -0.5, -2.0]], dtype=F64, requires_grad=True)
+    inputs = {"old_logprobs": torch.tensor([[-1.2, -0.4, -2.0]], dtype=F64),
+              "advantages": torch.tensor([[1.5, -0.7, 0.3]], dtype=F64),
+              "behaviour_logprobs": torch.tensor([[-1.1, -0.6, -1.9]], dtype=F64)}
+    mask = torch.tensor([[1.0, 1.0, 0.0]], dtype=F64)
+    results = []
+    for poisoned in (False, True):
+        given = dict(inputs)
+        if poisoned:
+            given[garbage] = given[garbage].clone()
+            given[garbage][0, 2] = float("nan")
+        logp.grad = None
+        out = POLICY_LOSSES.get(name)(logprobs=logp, response_mask=mask, is_cap=2.0, **given)
+        out.loss_mat.sum().backward()
+        results.append((out.loss_mat.detach(), logp.grad.clone()))
+    (clean_loss, clean_grad), (loss, grad) = results
+    assert torch.isfinite(grad).all() and torch.equal(grad, clean_grad)
+    assert torch.equal(loss, clean_loss)
+
+
+def test_a_nan_target_at_a_masked_position_leaves_the_value_gradient_finite():
+    values = torch.tensor([[0.5, 1.0, 2.0]], dtype=F64, requires_grad=True)
+    nan = float("nan")
+    out = value_loss(values=values, old_values=torch.tensor([[0.4, nan, 1.0]], dtype=F64),
+                     returns=torch.tensor([[1.0, nan, nan]], dtype=F64),
+                     response_mask=torch.tensor([[1.0, 0.0, 0.0]]), clip_range=0.2)
+    out.loss_mat.sum().backward()
+    torch.testing.assert_close(values.grad, torch.tensor([[-0.5, 0.0, 0.0]], dtype=F64))
+
+
 def test_on_policy_ppo_metrics_are_trivial():
     gen = torch.Generator().manual_seed(0)
     logp = torch.randn(3, 4, generator=gen, dtype=F64)

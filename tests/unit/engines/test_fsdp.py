@@ -17,6 +17,7 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 from transformers import LlamaConfig, LlamaForCausalLM
 
+from infinirl.algorithms.masking import masked_max, masked_min
 from infinirl.data.batch import RESPONSE_MASK, pack_sequences
 from infinirl.engines import distributed as distributed_module
 from infinirl.engines import fsdp as fsdp_module
@@ -53,12 +54,15 @@ def make_batch(seed: int, size: int = 4):
 
 
 def global_token_loss(num_tokens: float):
-    """``-sum(logprobs * mask) / num_tokens``, ``num_tokens`` counted over the whole mini-batch."""
+    """``-sum(logprobs * mask) / num_tokens``, ``num_tokens`` counted over the whole mini-batch;
+    its metrics include the micro-batch's extreme log-probs (``_max`` / ``_min`` keys)."""
 
     def loss_fn(micro_batch, logprobs, entropy):
         mask = micro_batch[RESPONSE_MASK]
         loss = -(logprobs * mask).sum() / num_tokens
-        return loss, {"pg_loss": loss.detach(), "tokens": mask.sum()}
+        return loss, {"pg_loss": loss.detach(), "tokens": mask.sum(),
+                      "logprob_max": masked_max(logprobs.detach(), mask),
+                      "logprob_min": masked_min(logprobs.detach(), mask)}
 
     return loss_fn
 
@@ -208,6 +212,12 @@ def test_micro_batch_size_does_not_change_the_update():
     assert m1["train/grad_norm"] == pytest.approx(m4["train/grad_norm"], rel=1e-5)
     # loss_fn metrics are means over micro-batches: 4 micro-batches of ~1/4 of the tokens each.
     assert m1["tokens"] == pytest.approx(batch[RESPONSE_MASK].sum().item() / 4)
+    # ... but a _max / _min key is the extreme over the micro-batches: the whole batch's
+    logprobs, _ = FSDPTrainEngine(tiny_llama, config()).compute_logprobs(batch)
+    mask = batch[RESPONSE_MASK].bool()
+    for metrics in (m1, m4):
+        assert metrics["logprob_max"] == pytest.approx(float(logprobs[mask].max()), abs=1e-5)
+        assert metrics["logprob_min"] == pytest.approx(float(logprobs[mask].min()), abs=1e-5)
 
 
 def unsharded_grad_norm(batch, loss_fn) -> float:
@@ -486,6 +496,10 @@ def test_two_ranks_match_one_rank(tmp_path):
             metrics["train/grad_norm"], rel=1e-5
         )
         assert two["metrics"][step]["train/loss"] == pytest.approx(metrics["train/loss"], abs=1e-6)
+        # _max / _min: the extreme over both ranks' micro-batches, the whole mini-batch's
+        mask = batch[RESPONSE_MASK].bool()
+        assert two["metrics"][step]["logprob_max"] == pytest.approx(float(logprobs[mask].max()), abs=1e-5)
+        assert two["metrics"][step]["logprob_min"] == pytest.approx(float(logprobs[mask].min()), abs=1e-5)
     assert metrics["train/grad_norm"] > 0.5  # clipping was active, with the global norm
     assert_weights_close(two["weights"], exported(one), atol=1e-6)
 
