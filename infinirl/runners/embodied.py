@@ -525,9 +525,11 @@ class EmbodiedFlow:
         (thread-safe: another thread of the driver may call it while the run goes on)."""
         self.scale_requests.put({component: ranks})
 
-    def _scale_between_iterations(self, busy_ratio: float | None) -> None:
+    def _scale_between_iterations(self, busy_ratio: float | None, measured_ranks: float | None = None) -> None:
         """Apply a scaling request (:meth:`request_scale`, then the command file), else the busy-ratio
-        policy's decision. A request the layout cannot take is refused with its reason; the run goes on."""
+        policy's decision on ``busy_ratio``, measured with ``measured_ranks`` env ranks (an
+        asynchronous run's trajectory may come from the layout before a resize: the policy ignores
+        it). A request the layout cannot take is refused with its reason; the run goes on."""
         wanted, source = None, None
         while not self.scale_requests.empty():
             wanted, source = self.scale_requests.get().get("env", wanted), "request"
@@ -536,7 +538,8 @@ class EmbodiedFlow:
             if "env" in command:
                 wanted, source = command["env"], "command"
         if wanted is None and self.policy is not None and busy_ratio is not None:
-            wanted, source = self.policy.decide(self.env.world_size, busy_ratio), "policy"
+            measured = None if measured_ranks is None else int(measured_ranks)
+            wanted, source = self.policy.decide(self.env.world_size, busy_ratio, measured), "policy"
         if wanted is None or wanted == self.env.world_size:
             return
         try:
@@ -586,7 +589,7 @@ class EmbodiedFlow:
         train_metrics = self.actor.update(batch, iteration).wait()[0]
         t2 = time.perf_counter()
         sync_s = self.weights.push(iteration + 1)
-        self._scale_between_iterations(rollout_metrics.get("env/busy_ratio"))
+        self._scale_between_iterations(rollout_metrics.get("env/busy_ratio"), rollout_metrics.get("env/ranks"))
         steps = int(trajectory["step_mask"].sum())
         self.env_steps += steps
         if self.ahead is not None:
