@@ -94,11 +94,11 @@ class RolloutAhead:
     """
 
     def __init__(self, max_staleness: int, iterations: int, submit: Callable[[int], Any],
-                 collect: Callable[[Any], Any]):
+                 collect: Callable[[Any], Any], weights: WeightPusher | None = None):
         if max_staleness < 0:
             raise ValueError(f"max_staleness must be >= 0, got {max_staleness}")
         self.max_staleness, self.iterations = max_staleness, iterations
-        self._submit, self._collect = submit, collect
+        self._submit, self._collect, self.weights = submit, collect, weights
         self._pending: dict[int, Any] = {}
         self._ready: dict[int, Any] = {}
 
@@ -107,7 +107,27 @@ class RolloutAhead:
         self._fill(iteration)
         if iteration in self._ready:
             return self._ready.pop(iteration)
-        return self._collect(self._pending.pop(iteration))
+        return self._collect_batch(iteration, self._pending.pop(iteration))
+
+    def _collect_batch(self, iteration: int, pending: Any) -> Any:
+        """``collect``, then the loads of the versions up to the batch's producing one.
+
+        Those loads were queued on every rollout rank before the batch, so they are done: a failed
+        one raises its own error here, before the batch is used. A load that failed before copying
+        anything leaves the rank on the older version, whole, and the batch would otherwise be
+        trained on as if that version were within the bound. When the collection itself failed,
+        a failed load is what made it fail (the rank refuses to generate on weights a load tore,
+        ``WeightSink.check_weights``): its error is raised instead, with the collection's as context."""
+        version = producing_version(iteration, self.max_staleness)
+        try:
+            batch = self._collect(pending)
+        except BaseException:
+            if self.weights is not None:
+                self.weights.loaded(version, timeout=LOAD_ROOT_CAUSE_WAIT_S, give_up_quietly=True)
+            raise
+        if self.weights is not None:
+            self.weights.loaded(version)
+        return batch
 
     def _fill(self, iteration: int) -> None:
         stale = [k for k in (*self._pending, *self._ready) if k < iteration]
@@ -120,7 +140,7 @@ class RolloutAhead:
     def drain(self) -> dict[int, Any]:
         """Wait for every batch in flight; return all produced, unused batches by iteration."""
         for k in sorted(self._pending):
-            self._ready[k] = self._collect(self._pending.pop(k))
+            self._ready[k] = self._collect_batch(k, self._pending.pop(k))
         return dict(self._ready)
 
     def settle(self) -> float:
@@ -186,10 +206,30 @@ class WeightPusher:
         return time.perf_counter() - start
 
     def wait(self) -> None:
-        """Until every version sent has been loaded (raises a failed load's error)."""
+        """Until every version sent has been loaded (raises a failed load's error). Before an
+        evaluation too: it would queue behind those loads on the rollout ranks anyway, and a load
+        that failed must stop the run with its own error rather than be evaluated past (on the
+        previous version, or refused by a rank whose weights it tore)."""
         for pending in self._loading:
             pending.wait()
         self._loading = []
+
+    def loaded(self, version: int, timeout: float | None = None, give_up_quietly: bool = False) -> None:
+        """Until every version up to ``version`` sent has been loaded; raises a failed load's error.
+        ``timeout`` per load; ``give_up_quietly``: a load still running then is left to a later
+        check instead of raising TimeoutError (a caller that only looks for a root cause)."""
+        for pending in [p for p in self._loading if p.version <= version]:
+            try:
+                pending.wait(timeout)
+            except TimeoutError:
+                if give_up_quietly:
+                    return
+                raise
+            self._loading.remove(pending)
+
+
+LOAD_ROOT_CAUSE_WAIT_S = 5.0
+"""How long a failed collection waits for the loads queued before it to report their failure."""
 
 
 def unfinished_loads(loading: list) -> list:

@@ -456,9 +456,9 @@ class EmbodiedFlow:
                           else None)
         self.env_steps = 0
         eta = cfg.algorithm.asynchronous.max_staleness
-        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_collect,
-                                                           self._finish_collect)
         self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None)
+        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_collect,
+                                                           self._finish_collect, self.weights)
         self._link_generation = 0
         # The channels of the channel transport's links: the driver creates them, and Ray kills an
         # actor (a channel) whose every handle is gone, so they are held here while the links live.
@@ -720,8 +720,15 @@ class EmbodiedFlow:
     def evaluate(self) -> dict:
         """Success rate etc. over the held-out seeded episodes, shared out over the rollout ranks."""
         cfg, ranks = self.cfg.eval, self.rollout.world_size
-        # The collections in flight first (RolloutAhead.settle): their time is training time.
-        drained = {} if self.ahead is None else {"time/eval_drain_s": self.ahead.settle()}
+        # The collections in flight first (RolloutAhead.settle): their time is training time. Then
+        # the weight loads queued behind them, which the evaluation would queue behind anyway: a
+        # load that failed raises its own error here instead of being evaluated past.
+        drained = {}
+        if self.ahead is not None:
+            start = time.perf_counter()
+            self.ahead.settle()
+            self.weights.wait()
+            drained["time/eval_drain_s"] = time.perf_counter() - start
         t0 = time.perf_counter()
         seeds = eval_seeds(cfg.seed, cfg.episodes)
         handles = [self.rollout.call("evaluate", seeds[r::ranks], min(cfg.num_envs, len(seeds[r::ranks])),

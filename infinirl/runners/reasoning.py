@@ -165,12 +165,12 @@ class ReasoningFlow:
         self._channels: dict[str, Channel] = {}
         self._generation_ids = itertools.count()
         eta = cfg.algorithm.asynchronous.max_staleness
-        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_ahead,
-                                                           self._collect_ahead)
         self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None,
                                     interrupt=cfg.algorithm.asynchronous.partial_rollout,
                                     changed_only=(cfg.rollout.sync_changed_only
                                                   and cfg.rollout.engine in CHANGED_ONLY_ENGINES))
+        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_ahead,
+                                                           self._collect_ahead, self.weights)
         self.spec = LoopSpec(
             name="reasoning", title="reasoning RL", headline="eval/greedy_accuracy",
             progress=(ProgressField(label="reward", key="rollout/reward_mean"),
@@ -416,7 +416,12 @@ class ReasoningFlow:
         metrics = {}
         if self.ahead is not None:
             # The batches in flight first (RolloutAhead.settle): their generation is training time.
-            metrics["time/eval_drain_s"] = self.ahead.settle()
+            # Then the weight loads queued behind them, which the evaluation would queue behind
+            # anyway: a load that failed raises its own error here instead of being evaluated past.
+            start = time.perf_counter()
+            self.ahead.settle()
+            self.weights.wait()
+            metrics["time/eval_drain_s"] = time.perf_counter() - start
         start = time.perf_counter()
         metrics["eval/greedy_accuracy"] = self.greedy_accuracy(self.eval_problems)
         metrics["time/eval_s"] = time.perf_counter() - start

@@ -5,6 +5,7 @@ import pytest
 from infinirl.engines.base import GenerationResult
 from infinirl.runners.async_rollout import (
     RolloutAhead,
+    WeightPusher,
     partial_rollout_metrics,
     producing_version,
     staleness_metrics,
@@ -139,3 +140,52 @@ def test_settling_before_an_evaluation_waits_for_the_batches_in_flight_and_chang
             waited = ahead.settle()
             assert waited >= 0 and ahead.in_flight == [] and set(in_flight) <= set(collected)
     assert used == straight
+
+
+class Load:
+    """A published version's load on the rollout ranks: done; ``error`` if it failed."""
+
+    def __init__(self, version, error=None):
+        self.version, self.error, self.waited = version, error, False
+
+    def done(self) -> bool:
+        return True
+
+    def wait(self, timeout=None):
+        self.waited = True
+        if self.error is not None:
+            raise self.error
+
+
+def pusher_with(loads):
+    pusher = WeightPusher(trainer=None, rollout=None, asynchronous=True)
+    pusher._loading = list(loads)
+    return pusher
+
+
+def test_a_batch_produced_after_a_failed_load_is_never_used():
+    """A load that failed before copying anything leaves the rank on the version before, whole: the
+    batch generated after it would be one version staler than the bound. Taking it raises the load's
+    own error; loads of later versions (not yet due) are not waited for."""
+    rollout = FakeRollout()
+    failed, later = Load(1, OSError("disk full while loading version 1")), Load(2)
+    ahead = RolloutAhead(1, 5, rollout.submit, rollout.collect, pusher_with([failed, later]))
+    ahead.take(0)
+    ahead.take(1)  # produced by version 0: the load of version 1 is not yet due
+    with pytest.raises(OSError, match="disk full while loading version 1"):
+        ahead.take(2)  # produced by version 1
+    assert not later.waited
+
+
+def test_a_collection_that_failed_raises_the_failed_load_behind_it():
+    """A rank refuses to generate on weights a load tore; the collection's error is a symptom, the
+    load's is the root cause, raised with the symptom as its context."""
+    def collect(pending):
+        raise RuntimeError("rollout[rank 0]: loading weights version 1 failed partway")
+
+    rollout = FakeRollout()
+    ahead = RolloutAhead(0, 3, rollout.submit, collect,
+                         pusher_with([Load(1, OSError("disk full while loading version 1"))]))
+    with pytest.raises(OSError, match="disk full") as failure:
+        ahead.take(1)
+    assert "failed partway" in str(failure.value.__context__)
