@@ -64,12 +64,15 @@ def producing_version(batch: int, max_staleness: int) -> int:
 
 
 def partial_rollout_metrics(iteration: int, results) -> dict[str, float]:
-    """Per-token staleness and the share of samples a weight update interrupted."""
+    """Per-token staleness and the share of samples a weight update interrupted. Tokens the model
+    sampled only: an agent environment's ids between turns (``response_mask`` 0) came from no
+    weights and are never trained on."""
     tokens, gaps, interrupted = 0, 0, 0
     for result in results:
         versions = result.response_versions or [result.weight_version] * len(result.response_ids)
-        tokens += len(versions)
-        gaps += sum(iteration - v for v in versions)
+        sampled = result.response_mask or [1] * len(versions)
+        tokens += sum(sampled)
+        gaps += sum(iteration - v for v, m in zip(versions, sampled) if m)
         interrupted += result.response_versions is not None
     return {"async/token_staleness_mean": gaps / max(tokens, 1),
             "async/interrupted_fraction": interrupted / max(len(results), 1)}

@@ -602,7 +602,9 @@ class EmbodiedFlow:
             "time/train_s": t2 - t1,
             "time/weight_sync_s": sync_s,
             "time/iteration_s": time.perf_counter() - t0,
-            "time/env_steps_per_s": steps / max(t1 - t0, 1e-9),
+            # per second of the rollout ranks' own collection, not of the driver's wait for it (near
+            # zero when trajectories are collected ahead of the trainer)
+            "time/env_steps_per_s": steps / max(rollout_metrics["rollout/collect_s"], 1e-9),
         }
 
     # ------------------------------------------------------------------ stages
@@ -643,11 +645,14 @@ class EmbodiedFlow:
         if sent:  # every env rank's observations to the rollout, summed
             env_stats[0] = {**env_stats[0], "env/bytes_out": float(sum(sent))}
         trajectory = _merge(parts)
+        # the rollout ranks collect side by side: the collection took as long as the slowest
+        collect_s = max(part["timing"].get("rollout/collect_s", 0.0) for part in parts)
         metrics = {
             "rollout/reward_mean": float(trajectory["rewards"].mean()),
             **episode_metrics(trajectory["episodes"], trajectory.get("open_episodes")),
             "env/restarts": float(trajectory["restarted"]),
             **{k: v for k, v in parts[0]["timing"].items()},
+            "rollout/collect_s": collect_s,
             **env_stats[0],
         }
         return trajectory, metrics

@@ -64,6 +64,16 @@ def read_rows(folder):
     return [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
 
 
+def assert_tokens_per_s_of_the_rollouts_own_time(rows, samples=4):
+    """rollout/tokens_per_s is per second of the rollout ranks' own generation, not of the trainer's
+    wait for its batch (near zero when batches are generated ahead): no agent, so every response
+    token was sampled."""
+    for r in rows:
+        assert r["time/rollout_generate_s"] > 0
+        assert r["rollout/tokens_per_s"] * r["time/rollout_generate_s"] == pytest.approx(
+            samples * r["rollout/response_length_mean"], rel=1e-6)
+
+
 PPO = {
     # PPO: a critic and GAE; KL both as a loss term and as a reward penalty, against a separate
     # reference (the actor trains in full, so its own weights are no reference).
@@ -191,6 +201,7 @@ def test_asynchronous_eta_1_trains_one_version_stale_corrected_and_resumes_exact
     assert [r["async/staleness_max"] for r in rows] == [0.0, 1.0, 1.0, 1.0]
     assert all("train/is_weight_mean" in r and "train/is_capped_fraction" in r for r in rows)
     assert rows[2]["train/behaviour_logprob_abs_diff"] > rows[0]["train/behaviour_logprob_abs_diff"]
+    assert_tokens_per_s_of_the_rollouts_own_time(rows)
     # Every evaluation first waits for the batches in flight (their generation is training time,
     # not the evaluation's); the pins below show the wait changes no sample.
     evals = [r for r in read_rows(tmp_path / "straight") if "eval/greedy_accuracy" in r]

@@ -101,6 +101,16 @@ def test_partial_rollout_metrics_weigh_each_token_by_its_own_version():
                                                    "async/interrupted_fraction": 0.5}
 
 
+def test_partial_rollout_metrics_count_only_the_tokens_the_model_sampled():
+    """An agent's trajectory: turn 1 sampled by version 2, an observation the environment inserted
+    (stamped with the version before it, yet sampled by none), turn 2 by version 4. At iteration 4
+    the sampled tokens' gaps are 2, 2, 0: the inserted ones must not pull the mean towards 2."""
+    agent = GenerationResult(prompt_ids=[1], response_ids=[5] * 8, response_logprobs=[0.0] * 8,
+                             finish_reason="stop", weight_version=2,
+                             response_versions=[2, 2, 2, 2, 2, 2, 2, 4], response_mask=[1, 1, 0, 0, 0, 0, 0, 1])
+    assert partial_rollout_metrics(4, [agent])["async/token_staleness_mean"] == 4 / 3
+
+
 class LoadFinishingNow:
     """A sync whose load fails just after it was first asked whether it is done."""
 
@@ -189,3 +199,4 @@ def test_a_collection_that_failed_raises_the_failed_load_behind_it():
     with pytest.raises(OSError, match="disk full") as failure:
         ahead.take(1)
     assert "failed partway" in str(failure.value.__context__)
+
