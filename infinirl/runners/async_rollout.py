@@ -19,13 +19,18 @@ reweighted by ``pi_proximal / pi_behaviour``).
 
 Checkpoints: :meth:`RolloutAhead.drain` waits for the batches in flight and returns them with the
 ones already done; they are saved with the checkpoint and :meth:`RolloutAhead.restore` puts them
-back, so a resumed run uses each sample exactly once, with the version that produced it.
+back, so a resumed run uses each sample exactly once, with the version that produced it. Nothing
+is produced past the last iteration (that generation would be wasted in every run that is not
+extended), so a checkpoint within eta iterations of its run's end lacks the batches past it: a
+resume with more ``iterations`` produces them with the resumed weights, fresher than a straight
+longer run's, and says so (:meth:`RolloutAhead._warn_unproduced`).
 """
 
 from __future__ import annotations
 
 import os
 import pickle
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -104,6 +109,7 @@ class RolloutAhead:
         self._submit, self._collect, self.weights = submit, collect, weights
         self._pending: dict[int, Any] = {}
         self._ready: dict[int, Any] = {}
+        self._restored = False
 
     def take(self, iteration: int) -> Any:
         """The batch of ``iteration``; first submits every batch the bound now allows."""
@@ -133,6 +139,9 @@ class RolloutAhead:
         return batch
 
     def _fill(self, iteration: int) -> None:
+        if self._restored:
+            self._restored = False
+            self._warn_unproduced(iteration)
         stale = [k for k in (*self._pending, *self._ready) if k < iteration]
         if stale:
             raise RuntimeError(f"batches {sorted(stale)} were produced but never used before iteration {iteration}")
@@ -158,10 +167,29 @@ class RolloutAhead:
         return time.perf_counter() - start
 
     def restore(self, ready: dict[int, Any]) -> None:
-        """Put back the batches a checkpoint saved (see :meth:`drain`)."""
+        """Put back the batches a checkpoint saved (see :meth:`drain`). The first :meth:`take`
+        then says which batches of its window the checkpoint lacks (:meth:`_warn_unproduced`)."""
         if self._pending:
             raise RuntimeError("restore() with batches in flight")
         self._ready = {int(k): v for k, v in ready.items()}
+        self._restored = True
+
+    def _warn_unproduced(self, iteration: int) -> None:
+        """A checkpoint of iteration ``c`` holds batches ``c .. c + eta - 1``, each produced by
+        version ``k - eta``, except those at or past the ``iterations`` of the run that wrote it,
+        which never submitted them. Resumed with more ``iterations``, those batches are produced
+        now, by the resumed weights (version ``c``): fresher than a straight run's, so the run is
+        not the one a straight run to the new ``iterations`` makes. Said once, on stderr."""
+        eta = self.max_staleness
+        missing = [k for k in range(iteration, min(iteration + eta, self.iterations)) if k not in self._ready]
+        if not missing:
+            return
+        print(f"infinirl: resuming at iteration {iteration} with max_staleness={eta}: the checkpoint holds no "
+              f"batch {', '.join(map(str, missing))} (the run that wrote it ended before producing them ahead), so "
+              f"{'they are' if len(missing) > 1 else 'it is'} produced by version {iteration}, not version "
+              f"{', '.join(str(producing_version(k, eta)) for k in missing)} as in one run straight to "
+              f"iterations={self.iterations}; raising iterations resumes exactly only from a checkpoint at least "
+              f"{eta} iterations before the earlier run's end", file=sys.stderr, flush=True)
 
     @property
     def in_flight(self) -> list[int]:

@@ -200,3 +200,28 @@ def test_a_collection_that_failed_raises_the_failed_load_behind_it():
         ahead.take(1)
     assert "failed partway" in str(failure.value.__context__)
 
+
+def test_raising_iterations_on_resume_is_exact_from_a_checkpoint_eta_before_the_end(capsys):
+    """The batches never produced past a run's end cannot come from the versions a longer straight
+    run gives them: a resume that needs them says so; one from a checkpoint eta before the end of the
+    shorter run needs none of them and is exact."""
+    straight, _ = train(FakeRollout(), 2, iterations=8)
+
+    def extended(checkpoint_at):
+        short = FakeRollout()
+        first, ahead = train(short, 2, iterations=checkpoint_at,
+                             ahead=RolloutAhead(2, 5, short.submit, short.collect))
+        saved = ahead.drain()
+        resumed_rollout = FakeRollout()
+        resumed_rollout.version = checkpoint_at
+        resumed = RolloutAhead(2, 8, resumed_rollout.submit, resumed_rollout.collect)
+        resumed.restore(saved)
+        rest, _ = train(resumed_rollout, 2, iterations=8, start=checkpoint_at, ahead=resumed)
+        return first + rest
+
+    assert extended(3) == straight  # the checkpoint of iteration 3 of 5 holds batches 3 and 4
+    assert capsys.readouterr().err == ""
+    assert extended(5) != straight  # the final checkpoint holds nothing: batches 5, 6 by version 5
+    warning = capsys.readouterr().err
+    assert "resuming at iteration 5 with max_staleness=2: the checkpoint holds no batch 5, 6" in warning
+    assert "produced by version 5, not version 3, 4" in warning and "iterations=8" in warning
