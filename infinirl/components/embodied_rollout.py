@@ -308,6 +308,7 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
     def collect(self, iteration: int, seeds: list[int], num_steps: int) -> dict:
         """``num_steps`` decisions for every env of this rank; the trajectory as numpy arrays."""
         self.check_weights()  # never act on weights a failed load left half-replaced
+        start = time.perf_counter()
         torch.manual_seed(int(np.random.default_rng([self.seed, iteration, self.rank, 0xAC7]).integers(2**62)))
         if self.env is not None:
             endpoint = _LocalEndpoint(self.env, seeds)
@@ -321,6 +322,9 @@ class EmbodiedRolloutWorker(Worker, WeightSink):
             trajectory = self._collect(endpoint, iteration, num_steps)
             if counted:  # this rank's actions to its env ranks (socket links count what they send)
                 trajectory["timing"]["rollout/bytes_out"] = float(sum(link.bytes_sent for link in counted) - sent)
+            # The collection's own wall time: the driver's wait for a trajectory collected ahead of
+            # the trainer (asynchronous runs) is no measure of it
+            trajectory["timing"]["rollout/collect_s"] = time.perf_counter() - start
             return trajectory
         except BaseException:
             # Close the links so the env side stops waiting for actions that will never come; it

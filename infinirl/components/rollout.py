@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import torch
@@ -54,7 +55,7 @@ class RolloutWorker(Worker, WeightSink):
         return self._generate(prompt_ids, sampling, problems)
 
     def generate_to(self, channel, chunks: list[tuple[int, list[list[int]]]], sampling: SamplingParams,
-                    key: str = "default", problems: list[list] | None = None) -> int:
+                    key: str = "default", problems: list[list] | None = None) -> float:
         """Generate chunk after chunk and put each ``(index, results)`` into ``channel`` (under
         ``key``: one per generation, so several can be in flight) as soon as it is done, so the next
         stage (reward) works on chunk i while this rank generates chunk i+1.
@@ -63,7 +64,12 @@ class RolloutWorker(Worker, WeightSink):
         samples are the same however the chunks are spread over rollout ranks
         (:func:`~infinirl.engines.seeds.chunk_seed`; an agent's turns derive theirs from it). ``problems[c]`` (agent
         rollouts only) lists the problems of chunk ``c``'s prompts, for the agent environments.
+
+        Returns the seconds this rank spent on the call: the producer's own generation time. The
+        driver's wait for a batch is no measure of it when batches are generated ahead of the
+        trainer (asynchronous runs), where that wait is near zero.
         """
+        start = time.perf_counter()
         for position, (index, prompt_ids) in enumerate(chunks):
             self.apply_staged_weights()
             chunk_sampling = sampling if sampling.seed is None else replace(
@@ -71,7 +77,7 @@ class RolloutWorker(Worker, WeightSink):
             results = self._generate(prompt_ids, chunk_sampling, None if problems is None else problems[position])
             channel.put((index, results), key=key, weight=len(results))
         channel.flush()
-        return len(chunks)
+        return time.perf_counter() - start
 
     def load_weights(self, named_tensors, version: int, changed_only: bool = False) -> None:
         if changed_only:

@@ -19,13 +19,18 @@ reweighted by ``pi_proximal / pi_behaviour``).
 
 Checkpoints: :meth:`RolloutAhead.drain` waits for the batches in flight and returns them with the
 ones already done; they are saved with the checkpoint and :meth:`RolloutAhead.restore` puts them
-back, so a resumed run uses each sample exactly once, with the version that produced it.
+back, so a resumed run uses each sample exactly once, with the version that produced it. Nothing
+is produced past the last iteration (that generation would be wasted in every run that is not
+extended), so a checkpoint within eta iterations of its run's end lacks the batches past it: a
+resume with more ``iterations`` produces them with the resumed weights, fresher than a straight
+longer run's, and says so (:meth:`RolloutAhead._warn_unproduced`).
 """
 
 from __future__ import annotations
 
 import os
 import pickle
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -64,12 +69,15 @@ def producing_version(batch: int, max_staleness: int) -> int:
 
 
 def partial_rollout_metrics(iteration: int, results) -> dict[str, float]:
-    """Per-token staleness and the share of samples a weight update interrupted."""
+    """Per-token staleness and the share of samples a weight update interrupted. Tokens the model
+    sampled only: an agent environment's ids between turns (``response_mask`` 0) came from no
+    weights and are never trained on."""
     tokens, gaps, interrupted = 0, 0, 0
     for result in results:
         versions = result.response_versions or [result.weight_version] * len(result.response_ids)
-        tokens += len(versions)
-        gaps += sum(iteration - v for v in versions)
+        sampled = result.response_mask or [1] * len(versions)
+        tokens += sum(sampled)
+        gaps += sum(iteration - v for v, m in zip(versions, sampled) if m)
         interrupted += result.response_versions is not None
     return {"async/token_staleness_mean": gaps / max(tokens, 1),
             "async/interrupted_fraction": interrupted / max(len(results), 1)}
@@ -94,22 +102,46 @@ class RolloutAhead:
     """
 
     def __init__(self, max_staleness: int, iterations: int, submit: Callable[[int], Any],
-                 collect: Callable[[Any], Any]):
+                 collect: Callable[[Any], Any], weights: WeightPusher | None = None):
         if max_staleness < 0:
             raise ValueError(f"max_staleness must be >= 0, got {max_staleness}")
         self.max_staleness, self.iterations = max_staleness, iterations
-        self._submit, self._collect = submit, collect
+        self._submit, self._collect, self.weights = submit, collect, weights
         self._pending: dict[int, Any] = {}
         self._ready: dict[int, Any] = {}
+        self._restored = False
 
     def take(self, iteration: int) -> Any:
         """The batch of ``iteration``; first submits every batch the bound now allows."""
         self._fill(iteration)
         if iteration in self._ready:
             return self._ready.pop(iteration)
-        return self._collect(self._pending.pop(iteration))
+        return self._collect_batch(iteration, self._pending.pop(iteration))
+
+    def _collect_batch(self, iteration: int, pending: Any) -> Any:
+        """``collect``, then the loads of the versions up to the batch's producing one.
+
+        Those loads were queued on every rollout rank before the batch, so they are done: a failed
+        one raises its own error here, before the batch is used. A load that failed before copying
+        anything leaves the rank on the older version, whole, and the batch would otherwise be
+        trained on as if that version were within the bound. When the collection itself failed,
+        a failed load is what made it fail (the rank refuses to generate on weights a load tore,
+        ``WeightSink.check_weights``): its error is raised instead, with the collection's as context."""
+        version = producing_version(iteration, self.max_staleness)
+        try:
+            batch = self._collect(pending)
+        except BaseException:
+            if self.weights is not None:
+                self.weights.loaded(version, timeout=LOAD_ROOT_CAUSE_WAIT_S, give_up_quietly=True)
+            raise
+        if self.weights is not None:
+            self.weights.loaded(version)
+        return batch
 
     def _fill(self, iteration: int) -> None:
+        if self._restored:
+            self._restored = False
+            self._warn_unproduced(iteration)
         stale = [k for k in (*self._pending, *self._ready) if k < iteration]
         if stale:
             raise RuntimeError(f"batches {sorted(stale)} were produced but never used before iteration {iteration}")
@@ -120,7 +152,7 @@ class RolloutAhead:
     def drain(self) -> dict[int, Any]:
         """Wait for every batch in flight; return all produced, unused batches by iteration."""
         for k in sorted(self._pending):
-            self._ready[k] = self._collect(self._pending.pop(k))
+            self._ready[k] = self._collect_batch(k, self._pending.pop(k))
         return dict(self._ready)
 
     def settle(self) -> float:
@@ -135,10 +167,29 @@ class RolloutAhead:
         return time.perf_counter() - start
 
     def restore(self, ready: dict[int, Any]) -> None:
-        """Put back the batches a checkpoint saved (see :meth:`drain`)."""
+        """Put back the batches a checkpoint saved (see :meth:`drain`). The first :meth:`take`
+        then says which batches of its window the checkpoint lacks (:meth:`_warn_unproduced`)."""
         if self._pending:
             raise RuntimeError("restore() with batches in flight")
         self._ready = {int(k): v for k, v in ready.items()}
+        self._restored = True
+
+    def _warn_unproduced(self, iteration: int) -> None:
+        """A checkpoint of iteration ``c`` holds batches ``c .. c + eta - 1``, each produced by
+        version ``k - eta``, except those at or past the ``iterations`` of the run that wrote it,
+        which never submitted them. Resumed with more ``iterations``, those batches are produced
+        now, by the resumed weights (version ``c``): fresher than a straight run's, so the run is
+        not the one a straight run to the new ``iterations`` makes. Said once, on stderr."""
+        eta = self.max_staleness
+        missing = [k for k in range(iteration, min(iteration + eta, self.iterations)) if k not in self._ready]
+        if not missing:
+            return
+        print(f"infinirl: resuming at iteration {iteration} with max_staleness={eta}: the checkpoint holds no "
+              f"batch {', '.join(map(str, missing))} (the run that wrote it ended before producing them ahead), so "
+              f"{'they are' if len(missing) > 1 else 'it is'} produced by version {iteration}, not version "
+              f"{', '.join(str(producing_version(k, eta)) for k in missing)} as in one run straight to "
+              f"iterations={self.iterations}; raising iterations resumes exactly only from a checkpoint at least "
+              f"{eta} iterations before the earlier run's end", file=sys.stderr, flush=True)
 
     @property
     def in_flight(self) -> list[int]:
@@ -186,10 +237,30 @@ class WeightPusher:
         return time.perf_counter() - start
 
     def wait(self) -> None:
-        """Until every version sent has been loaded (raises a failed load's error)."""
+        """Until every version sent has been loaded (raises a failed load's error). Before an
+        evaluation too: it would queue behind those loads on the rollout ranks anyway, and a load
+        that failed must stop the run with its own error rather than be evaluated past (on the
+        previous version, or refused by a rank whose weights it tore)."""
         for pending in self._loading:
             pending.wait()
         self._loading = []
+
+    def loaded(self, version: int, timeout: float | None = None, give_up_quietly: bool = False) -> None:
+        """Until every version up to ``version`` sent has been loaded; raises a failed load's error.
+        ``timeout`` per load; ``give_up_quietly``: a load still running then is left to a later
+        check instead of raising TimeoutError (a caller that only looks for a root cause)."""
+        for pending in [p for p in self._loading if p.version <= version]:
+            try:
+                pending.wait(timeout)
+            except TimeoutError:
+                if give_up_quietly:
+                    return
+                raise
+            self._loading.remove(pending)
+
+
+LOAD_ROOT_CAUSE_WAIT_S = 5.0
+"""How long a failed collection waits for the loads queued before it to report their failure."""
 
 
 def unfinished_loads(loading: list) -> list:

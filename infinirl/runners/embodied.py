@@ -456,9 +456,9 @@ class EmbodiedFlow:
                           else None)
         self.env_steps = 0
         eta = cfg.algorithm.asynchronous.max_staleness
-        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_collect,
-                                                           self._finish_collect)
         self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None)
+        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_collect,
+                                                           self._finish_collect, self.weights)
         self._link_generation = 0
         # The channels of the channel transport's links: the driver creates them, and Ray kills an
         # actor (a channel) whose every handle is gone, so they are held here while the links live.
@@ -525,9 +525,11 @@ class EmbodiedFlow:
         (thread-safe: another thread of the driver may call it while the run goes on)."""
         self.scale_requests.put({component: ranks})
 
-    def _scale_between_iterations(self, busy_ratio: float | None) -> None:
+    def _scale_between_iterations(self, busy_ratio: float | None, measured_ranks: float | None = None) -> None:
         """Apply a scaling request (:meth:`request_scale`, then the command file), else the busy-ratio
-        policy's decision. A request the layout cannot take is refused with its reason; the run goes on."""
+        policy's decision on ``busy_ratio``, measured with ``measured_ranks`` env ranks (an
+        asynchronous run's trajectory may come from the layout before a resize: the policy ignores
+        it). A request the layout cannot take is refused with its reason; the run goes on."""
         wanted, source = None, None
         while not self.scale_requests.empty():
             wanted, source = self.scale_requests.get().get("env", wanted), "request"
@@ -536,7 +538,8 @@ class EmbodiedFlow:
             if "env" in command:
                 wanted, source = command["env"], "command"
         if wanted is None and self.policy is not None and busy_ratio is not None:
-            wanted, source = self.policy.decide(self.env.world_size, busy_ratio), "policy"
+            measured = None if measured_ranks is None else int(measured_ranks)
+            wanted, source = self.policy.decide(self.env.world_size, busy_ratio, measured), "policy"
         if wanted is None or wanted == self.env.world_size:
             return
         try:
@@ -586,7 +589,7 @@ class EmbodiedFlow:
         train_metrics = self.actor.update(batch, iteration).wait()[0]
         t2 = time.perf_counter()
         sync_s = self.weights.push(iteration + 1)
-        self._scale_between_iterations(rollout_metrics.get("env/busy_ratio"))
+        self._scale_between_iterations(rollout_metrics.get("env/busy_ratio"), rollout_metrics.get("env/ranks"))
         steps = int(trajectory["step_mask"].sum())
         self.env_steps += steps
         if self.ahead is not None:
@@ -599,7 +602,9 @@ class EmbodiedFlow:
             "time/train_s": t2 - t1,
             "time/weight_sync_s": sync_s,
             "time/iteration_s": time.perf_counter() - t0,
-            "time/env_steps_per_s": steps / max(t1 - t0, 1e-9),
+            # per second of the rollout ranks' own collection, not of the driver's wait for it (near
+            # zero when trajectories are collected ahead of the trainer)
+            "time/env_steps_per_s": steps / max(rollout_metrics["rollout/collect_s"], 1e-9),
         }
 
     # ------------------------------------------------------------------ stages
@@ -640,11 +645,14 @@ class EmbodiedFlow:
         if sent:  # every env rank's observations to the rollout, summed
             env_stats[0] = {**env_stats[0], "env/bytes_out": float(sum(sent))}
         trajectory = _merge(parts)
+        # the rollout ranks collect side by side: the collection took as long as the slowest
+        collect_s = max(part["timing"].get("rollout/collect_s", 0.0) for part in parts)
         metrics = {
             "rollout/reward_mean": float(trajectory["rewards"].mean()),
             **episode_metrics(trajectory["episodes"], trajectory.get("open_episodes")),
             "env/restarts": float(trajectory["restarted"]),
             **{k: v for k, v in parts[0]["timing"].items()},
+            "rollout/collect_s": collect_s,
             **env_stats[0],
         }
         return trajectory, metrics
@@ -717,8 +725,15 @@ class EmbodiedFlow:
     def evaluate(self) -> dict:
         """Success rate etc. over the held-out seeded episodes, shared out over the rollout ranks."""
         cfg, ranks = self.cfg.eval, self.rollout.world_size
-        # The collections in flight first (RolloutAhead.settle): their time is training time.
-        drained = {} if self.ahead is None else {"time/eval_drain_s": self.ahead.settle()}
+        # The collections in flight first (RolloutAhead.settle): their time is training time. Then
+        # the weight loads queued behind them, which the evaluation would queue behind anyway: a
+        # load that failed raises its own error here instead of being evaluated past.
+        drained = {}
+        if self.ahead is not None:
+            start = time.perf_counter()
+            self.ahead.settle()
+            self.weights.wait()
+            drained["time/eval_drain_s"] = time.perf_counter() - start
         t0 = time.perf_counter()
         seeds = eval_seeds(cfg.seed, cfg.episodes)
         handles = [self.rollout.call("evaluate", seeds[r::ranks], min(cfg.num_envs, len(seeds[r::ranks])),

@@ -75,11 +75,13 @@ CHANGED_ONLY_ENGINES = frozenset({"hf"})
 
 @dataclass
 class _Generation:
-    """A generation + scoring in flight: its stream key, chunk count and workers' handles."""
+    """A generation + scoring in flight: its stream key, chunk count and workers' handles (the
+    rollout ranks' first)."""
 
     key: str
     chunks: int
     handles: list
+    rollout_handles: int = 0
 
 
 @dataclass
@@ -169,12 +171,12 @@ class ReasoningFlow:
         self._channels: dict[str, Channel] = {}
         self._generation_ids = itertools.count()
         eta = cfg.algorithm.asynchronous.max_staleness
-        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_ahead,
-                                                           self._collect_ahead)
         self.weights = WeightPusher(actor, rollout, asynchronous=eta is not None,
                                     interrupt=cfg.algorithm.asynchronous.partial_rollout,
                                     changed_only=(cfg.rollout.sync_changed_only
                                                   and cfg.rollout.engine in CHANGED_ONLY_ENGINES))
+        self.ahead = None if eta is None else RolloutAhead(eta, cfg.iterations, self._submit_ahead,
+                                                           self._collect_ahead, self.weights)
         self.spec = LoopSpec(
             name="reasoning", title="reasoning RL", headline="eval/greedy_accuracy",
             progress=(ProgressField(label="reward", key="rollout/reward_mean"),
@@ -194,6 +196,7 @@ class ReasoningFlow:
             problems, results, rewards, gen_metrics = self.ahead.take(step)
         else:
             problems, results, rewards, gen_metrics = self.generate_batch(step)
+        generate_s = gen_metrics.pop("time/rollout_generate_s")
         t_gen = time.perf_counter()
         batch = pack_sequences([r.prompt_ids for r in results], [r.response_ids for r in results],
                                self.pad_id, [r.response_logprobs for r in results],
@@ -213,7 +216,10 @@ class ReasoningFlow:
             **gen_metrics, **adv_metrics, **train_metrics, **async_metrics, **agent_metrics(results),
             "rollout/response_length_mean": float(np.mean(lengths)),
             "rollout/truncated_fraction": float(np.mean([r.finish_reason == "length" for r in results])),
-            "rollout/tokens_per_s": sum(r.sampled_count for r in results) / max(t_gen - t0, 1e-9),
+            # The rollout ranks' own generation time: the trainer's wait (t_gen - t0) is near zero
+            # when batches are generated ahead of it.
+            "rollout/tokens_per_s": sum(r.sampled_count for r in results) / max(generate_s, 1e-9),
+            "time/rollout_generate_s": generate_s,
             "rollout/max_staleness": float(step - min(r.weight_version for r in results)),
             "time/generate_and_score_s": t_gen - t0,
             "time/logprobs_and_values_s": t_score - t_gen,
@@ -228,11 +234,11 @@ class ReasoningFlow:
         return _AheadBatch(problems, self.submit_generation(problems, self._sampling(step, 0)))
 
     def _collect_ahead(self, batch: _AheadBatch):
-        results, scored = self.collect_generation(batch.generation)
+        results, scored, generate_s = self.collect_generation(batch.generation)
         rewards, zeroed = self.rewards_of(results, scored)
         errors = sum(s.error is not None for s in scored)
-        return batch.problems, results, rewards, self._reward_metrics(rewards.tolist(), errors, rounds=1, dropped=0,
-                                                                      zeroed=zeroed)
+        metrics = self._reward_metrics(rewards.tolist(), errors, rounds=1, dropped=0, zeroed=zeroed)
+        return batch.problems, results, rewards, {**metrics, "time/rollout_generate_s": generate_s}
 
     # ------------------------------------------------------------------ stages
     def generate_batch(self, step: int):
@@ -241,11 +247,13 @@ class ReasoningFlow:
         cfg = self.cfg
         want, group = cfg.prompts_per_step, cfg.rollout.group_size
         kept_problems, kept_results, kept_rewards = [], [], []
-        rounds, dropped, errors, zeroed = 0, 0, 0, 0
+        rounds, dropped, errors, zeroed, generate_s = 0, 0, 0, 0, 0.0
         all_rewards = []
         while len(kept_problems) < want:
             problems = self.train_stream.next_batch(want - len(kept_problems) if rounds else want)
-            results, scored = self.generate_and_score(problems, self._sampling(step, rounds))
+            results, scored, round_s = self.collect_generation(self.submit_generation(problems,
+                                                                                      self._sampling(step, rounds)))
+            generate_s += round_s
             rewards, round_zeroed = self.rewards_of(results, scored)
             all_rewards.extend(rewards.tolist())
             errors += sum(s.error is not None for s in scored)
@@ -263,6 +271,7 @@ class ReasoningFlow:
             if not cfg.algorithm.dynamic_sampling:
                 break
         metrics = self._reward_metrics(all_rewards, errors, rounds, dropped, zeroed)
+        metrics["time/rollout_generate_s"] = generate_s
         return kept_problems, kept_results, torch.tensor(kept_rewards), metrics
 
     def rewards_of(self, results, scored) -> tuple[torch.Tensor, int]:
@@ -293,7 +302,8 @@ class ReasoningFlow:
         rollout ranks put each generated chunk into ``generated`` as soon as it is done, reward ranks
         score chunks as they arrive and put them into ``scored``; the driver restores prompt order.
         The same code serves one process or many (placement only changes who runs what)."""
-        return self.collect_generation(self.submit_generation(problems, sampling, split))
+        results, scored, _ = self.collect_generation(self.submit_generation(problems, sampling, split))
+        return results, scored
 
     def submit_generation(self, problems, sampling: SamplingParams, split: str = "train") -> _Generation:
         """Start :meth:`generate_and_score` without waiting. Each generation streams under its own
@@ -310,14 +320,16 @@ class ReasoningFlow:
                                      [[problems[j] for j in chunk] for _, chunk in work] if with_problems else None,
                                      ranks=[r])
                    for r, work in enumerate(by_rank) if work]
+        generating = len(handles)
         chunk_problems = {i: [problems[j] for j in chunk for _ in range(sampling.n)] for i, chunk in enumerate(chunks)}
         counts = [len(part) for part in _split(list(range(len(chunks))), self.reward.world_size)]
         handles += [self.reward.call("score_stream", self.channels["generated"], self.channels["scored"],
                                      chunk_problems, count, key, ranks=[r]) for r, count in enumerate(counts) if count]
-        return _Generation(key, len(chunks), handles)
+        return _Generation(key, len(chunks), handles, rollout_handles=generating)
 
     def collect_generation(self, generation: _Generation):
-        """Wait for a generation's scored chunks; results and scores in prompt order."""
+        """Wait for a generation's scored chunks: results and scores in prompt order, and the
+        rollout ranks' own generation time (the longest rank's; they generate side by side)."""
         done: dict[int, tuple] = {}
         while len(done) < generation.chunks:
             try:
@@ -327,11 +339,10 @@ class ReasoningFlow:
                 for handle in generation.handles:  # a failed stage raises its root cause here instead of hanging
                     if handle.done():
                         handle.wait()
-        for handle in generation.handles:
-            handle.wait()
+        returned = [handle.wait()[0] for handle in generation.handles]
         results = [r for i in range(generation.chunks) for r in done[i][0]]
         scored = [s for i in range(generation.chunks) for s in done[i][1]]
-        return results, scored
+        return results, scored, max(returned[:generation.rollout_handles], default=0.0)
 
     def score_tokens(self, batch) -> None:
         """The forward passes the update needs, issued together (separate groups run at once):
@@ -419,7 +430,12 @@ class ReasoningFlow:
         metrics = {}
         if self.ahead is not None:
             # The batches in flight first (RolloutAhead.settle): their generation is training time.
-            metrics["time/eval_drain_s"] = self.ahead.settle()
+            # Then the weight loads queued behind them, which the evaluation would queue behind
+            # anyway: a load that failed raises its own error here instead of being evaluated past.
+            start = time.perf_counter()
+            self.ahead.settle()
+            self.weights.wait()
+            metrics["time/eval_drain_s"] = time.perf_counter() - start
         start = time.perf_counter()
         metrics["eval/greedy_accuracy"] = self.greedy_accuracy(self.eval_problems)
         metrics["time/eval_s"] = time.perf_counter() - start

@@ -11,7 +11,8 @@ Two sources decide a component's rank count between iterations; the job applies 
   hysteresis: it grows the component only after ``patience`` consecutive iterations at or above
   ``grow_above`` (it is the bottleneck), shrinks it only after ``patience`` at or below
   ``shrink_below`` (it idles), and never inside the band between the two, so a ratio that hovers
-  around one threshold does not flap.
+  around one threshold does not flap. A ratio measured on another rank count (an asynchronous
+  run's work collected before the last resize) is ignored.
 
 Pure logic and file handling only: nothing here starts or stops a process.
 """
@@ -67,8 +68,16 @@ class BusyRatioPolicy:
         self._high = 0
         self._low = 0
 
-    def decide(self, ranks: int, busy_ratio: float) -> int:
-        """The rank count for the next iteration, given this iteration's ``busy_ratio`` at ``ranks``."""
+    def decide(self, ranks: int, busy_ratio: float, measured_ranks: int | None = None) -> int:
+        """The rank count for the next iteration, given this iteration's ``busy_ratio`` at ``ranks``.
+
+        ``measured_ranks``: how many ranks the ratio was measured with, where that may differ from
+        ``ranks``. An asynchronous run trains on work collected ahead, so after a resize the next
+        iterations still report the old layout's ratio, which says nothing about the new one: such
+        a ratio is ignored (neither counted nor breaking a streak), and the policy waits for fresh
+        evidence of the layout it would change."""
+        if measured_ranks is not None and measured_ranks != ranks:
+            return ranks
         cfg = self.config
         self._high = self._high + 1 if busy_ratio >= cfg.grow_above else 0
         self._low = self._low + 1 if busy_ratio <= cfg.shrink_below else 0

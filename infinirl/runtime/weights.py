@@ -188,7 +188,7 @@ class WeightSink:
             where = f"{getattr(self, 'component', type(self).__name__)}[rank {getattr(self, 'rank', 0)}]"
             raise RuntimeError(f"{where}: loading weights version {torn[0]} failed partway, so this rank's weights "
                                f"mix it with version {self.weight_version}; nothing is generated with them until a "
-                               f"later sync loads (that load's own error was raised by its sync)")
+                               f"later sync loads (that load's own error is raised where its sync is waited for)")
 
     async def _infinirl_stage_weights(self, published: list, version: int) -> int:
         """Runs on the rank's event loop beside its running method: fetch, then stage."""

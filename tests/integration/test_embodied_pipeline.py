@@ -290,6 +290,11 @@ def test_asynchronous_eta_1_with_decoupled_ppo_resumes_exactly(ray_cluster, tmp_
     # the proximal policy is the trainer's own: batch 0 is on-policy, later ones carry a version gap
     assert trained[0]["train/behaviour_logprob_abs_diff"] < 1e-5 < trained[2]["train/behaviour_logprob_abs_diff"]
     assert all(0 < r["train/is_weight_mean"] for r in trained)
+    # env steps per second of the rollout ranks' own collection, not of the trainer's wait for a
+    # trajectory collected ahead (near zero)
+    steps = [b["env/steps"] - a for a, b in zip([0] + [r["env/steps"] for r in trained], trained)]
+    assert all(r["time/env_steps_per_s"] * r["rollout/collect_s"] == pytest.approx(n, rel=1e-6)
+               for r, n in zip(trained, steps))
     # Every evaluation first waits for the collections in flight (their time is training time, not
     # the evaluation's); the pins below show the wait changes no sample.
     evals = [r for r in rows if "eval/success_rate" in r]

@@ -6,6 +6,7 @@ import shutil
 import pytest
 
 from infinirl.config import to_dataclass
+from infinirl.runners.async_rollout import load_ahead_batches
 from infinirl.runners.reasoning import run
 from infinirl.runners.reasoning_config import ReasoningConfig
 from tests.integration.pins import check_pinned
@@ -62,6 +63,16 @@ def test_runs_logs_and_resumes_exactly(ray_cluster, tiny_llama_dir, tmp_path):
 
 def read_rows(folder):
     return [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
+
+
+def assert_tokens_per_s_of_the_rollouts_own_time(rows, samples=4):
+    """rollout/tokens_per_s is per second of the rollout ranks' own generation, not of the trainer's
+    wait for its batch (near zero when batches are generated ahead): no agent, so every response
+    token was sampled."""
+    for r in rows:
+        assert r["time/rollout_generate_s"] > 0
+        assert r["rollout/tokens_per_s"] * r["time/rollout_generate_s"] == pytest.approx(
+            samples * r["rollout/response_length_mean"], rel=1e-6)
 
 
 PPO = {
@@ -191,6 +202,7 @@ def test_asynchronous_eta_1_trains_one_version_stale_corrected_and_resumes_exact
     assert [r["async/staleness_max"] for r in rows] == [0.0, 1.0, 1.0, 1.0]
     assert all("train/is_weight_mean" in r and "train/is_capped_fraction" in r for r in rows)
     assert rows[2]["train/behaviour_logprob_abs_diff"] > rows[0]["train/behaviour_logprob_abs_diff"]
+    assert_tokens_per_s_of_the_rollouts_own_time(rows)
     # Every evaluation first waits for the batches in flight (their generation is training time,
     # not the evaluation's); the pins below show the wait changes no sample.
     evals = [r for r in read_rows(tmp_path / "straight") if "eval/greedy_accuracy" in r]
@@ -204,6 +216,52 @@ def test_asynchronous_eta_1_trains_one_version_stale_corrected_and_resumes_exact
     assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
     resumed_rows = [r for r in read_rows(tmp_path / "resumed") if "train/loss" in r]
     assert [r["rollout/reward_mean"] for r in resumed_rows] == [r["rollout/reward_mean"] for r in rows]
+
+
+def test_asynchronous_eta_2_resumes_with_every_sample_used_once(ray_cluster, tiny_llama_dir, tmp_path):
+    """eta=2 keeps two batches ahead: the checkpoint of iteration 2 holds batches 2 and 3 (produced by
+    versions 0 and 1, which the resumed run never loads), and the resumed run trains on exactly
+    those, then on batch 4 produced by version 2: the straight run's weights and metrics."""
+    eta2 = {"algorithm": {"asynchronous": {"max_staleness": 2}, "objective": {"is_cap": 2.0, "is_cap_mode": "mask"}},
+            "eval": {"every": 100, "at_start": False}}
+    straight = run(make_cfg(tiny_llama_dir, tmp_path / "straight", iterations=4, **eta2))
+    rows = [r for r in read_rows(tmp_path / "straight") if "train/loss" in r]
+    assert [r["async/staleness_max"] for r in rows] == [0.0, 1.0, 2.0, 2.0]
+    assert_tokens_per_s_of_the_rollouts_own_time(rows)
+
+    killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", 2)
+    saved = load_ahead_batches(str(tmp_path / "resumed" / "checkpoints" / "iter_000002"))
+    assert sorted(saved) == [2, 3]
+    assert [{r.weight_version for r in saved[k][1]} for k in (2, 3)] == [{0}, {1}]
+    resumed = run(make_cfg(tiny_llama_dir, tmp_path / "resumed", iterations=4, **eta2))
+    assert resumed["actor_weights_sha256"] == straight["actor_weights_sha256"]
+    resumed_rows = [r for r in read_rows(tmp_path / "resumed") if "train/loss" in r]
+    assert [r["step"] for r in resumed_rows] == [1, 2, 3, 4]  # each iteration once: none lost, none twice
+    for key in ("rollout/reward_mean", "rollout/response_length_mean", "async/staleness_mean", "train/loss"):
+        assert [r[key] for r in resumed_rows] == pytest.approx([r[key] for r in rows], abs=1e-7), key
+
+
+@pytest.mark.slow  # two runs of partial rollouts; the exact eta=1 and eta=2 resumes stay in the default tier
+def test_partial_rollouts_resume_on_the_batch_they_saved(ray_cluster, tiny_llama_dir, tmp_path):
+    """Partial rollouts are not bit-reproducible (where a weight update lands in a generation depends
+    on timing), but what a checkpoint holds is: the resumed run's first step trains the checkpoint's
+    weights on the checkpoint's batch, exactly as the straight run did, and no iteration is lost or
+    repeated."""
+    partial = {"algorithm": {"asynchronous": {"max_staleness": 1, "partial_rollout": True},
+                             "objective": {"is_cap": 2.0, "is_cap_mode": "mask"}},
+               "eval": {"every": 100, "at_start": False}}
+    run(make_cfg(tiny_llama_dir, tmp_path / "straight", iterations=3, **partial))
+    rows = {r["step"]: r for r in read_rows(tmp_path / "straight") if "train/loss" in r}
+    killed_after_checkpoint(tmp_path / "straight", tmp_path / "resumed", 2)
+    saved = load_ahead_batches(str(tmp_path / "resumed" / "checkpoints" / "iter_000002"))
+    assert sorted(saved) == [2]
+    run(make_cfg(tiny_llama_dir, tmp_path / "resumed", iterations=3, **partial))
+    resumed = {r["step"]: r for r in read_rows(tmp_path / "resumed") if "train/loss" in r}
+    assert sorted(resumed) == [1, 2, 3]
+    for key in ("rollout/reward_mean", "async/token_staleness_mean", "async/interrupted_fraction", "train/loss",
+                "train/grad_norm"):
+        assert resumed[3][key] == pytest.approx(rows[3][key], abs=1e-7), key
+    assert resumed[3]["rollout/reward_mean"] == pytest.approx(float(saved[2][2].mean()), abs=1e-7)
 
 
 @pytest.mark.slow  # default-tier budget; run with pytest -m slow tests/integration

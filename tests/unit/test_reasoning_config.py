@@ -215,8 +215,10 @@ def test_cut_off_responses_keep_or_lose_their_reward(mode):
     results = [GenerationResult([1], [2], [0.0], reason, 0) for reason in finish]
     scored = [RewardResult(1.0, True), RewardResult(1.0, True), RewardResult(0.0, False), RewardResult(0.5, False)]
     flow.train_stream = type("Stream", (), {"next_batch": lambda self, n: problems[:n]})()
-    flow.generate_and_score = lambda batch, sampling: (results, scored)
+    flow.submit_generation = lambda batch, sampling: None
+    flow.collect_generation = lambda generation: (results, scored, 0.5)  # the rollout ranks' seconds last
     _, _, rewards, metrics = flow.generate_batch(step=0)
+    assert metrics["time/rollout_generate_s"] == 0.5
     if mode == "keep":
         assert rewards.tolist() == [1.0, 1.0, 0.0, 0.5] and "rollout/truncated_zeroed" not in metrics
     else:  # the cut-off ones score 0, before advantages; one had a reward to lose

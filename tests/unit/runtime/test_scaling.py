@@ -38,6 +38,35 @@ def test_a_ratio_flapping_across_one_threshold_does_not_flap_the_ranks():
     assert run(policy(), 2, [0.85, 0.75] * 6) == [2] * 12
 
 
+def resizes_of_a_run(p, eta, iterations, busy_ratio_with):
+    """The resizes an asynchronous run makes: ``take(k)`` submits up to trajectory ``k + eta`` on
+    the env layout of that moment, so after a resize at ``k`` the trajectories ``k + 1 .. k + eta``
+    still come from the old layout, and report its rank count with its busy ratio."""
+    ranks, collected_with, resizes = 1, {}, []
+    for k in range(iterations):
+        for j in range(k, k + eta + 1):
+            collected_with.setdefault(j, ranks)
+        measured = collected_with.pop(k)
+        wanted = p.decide(ranks, busy_ratio_with[measured], measured_ranks=measured)
+        if wanted != ranks:
+            resizes.append((k, ranks, wanted))
+            ranks = wanted
+    return resizes
+
+
+def test_ratios_measured_on_the_layout_before_a_resize_decide_nothing():
+    """eta=2, patience=1: the env is the bottleneck with one rank and busy half the time with two.
+    One resize, not a second one on the two trajectories collected ahead on one rank."""
+    assert resizes_of_a_run(policy(patience=1), eta=2, iterations=8, busy_ratio_with={1: 0.95, 2: 0.5}) == [
+        (0, 1, 2)]
+
+
+def test_a_ratio_of_the_current_layout_counts_as_before():
+    assert run(policy(), 1, [0.9, 0.9]) == [1, 2]
+    p = policy()
+    assert [p.decide(1, 0.9, measured_ranks=1), p.decide(1, 0.9, measured_ranks=1)] == [1, 2]
+
+
 @pytest.mark.parametrize("kw, key", [({"grow_above": 0.3, "shrink_below": 0.3}, "shrink_below"),
                                      ({"min_ranks": 3, "max_ranks": 2}, "min_ranks"),
                                      ({"patience": 0}, "patience")])
