@@ -197,7 +197,9 @@ def test_stage_processes_need_the_env_on_its_own_resources(ray_cluster, tmp_path
 
 
 @pytest.mark.timeout(300)  # without the env's error reaching the rollout, the run waited forever
-@pytest.mark.parametrize("transport", ["socket", "channel"])
+# The socket transport in the slow tier (the default suite's time budget): the root cause travels
+# the same way; the channel transport, the one with its own waits, stays in the default suite.
+@pytest.mark.parametrize("transport", [pytest.param("socket", marks=pytest.mark.slow), "channel"])
 def test_an_env_failing_mid_collection_stops_the_run_with_its_root_cause(ray_cluster, tmp_path, transport):
     """The env on its own slot, in its own process (no stage processes): its envs reset, then the
     first step raises (gravity is not a number) and max_restarts=0 makes that crash final. The env
