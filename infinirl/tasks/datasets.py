@@ -221,14 +221,16 @@ def load_preset(
     root: str | Path | None = None,
     prompt_template: str | None = None,
     limit: int | None = None,
+    verifier: str | None = None,
 ) -> list[Problem]:
-    """Problems of a named preset (``gsm8k``, ``math500``) from the data directory."""
+    """Problems of a named preset (``gsm8k``, ``math500``) from the data directory; each names
+    ``verifier`` (default: the preset's own), so a configured ``task.verifier`` is the one that scores."""
     preset = DATASET_PRESETS.get(name)
     return load_problems(
         preset_path(name, split, root),
         prompt_key=preset.prompt_key,
         answer_key=preset.answer_key,
-        verifier=preset.verifier,
+        verifier=verifier or preset.verifier,
         answer_extractor=preset.answer_extractor,
         prompt_template=prompt_template if prompt_template is not None else preset.prompt_template,
         uid_prefix=f"{name}/{split}",

@@ -111,8 +111,9 @@ def _dataset_training(task: TaskConfig, seed: int):
 
     verifier = _dataset_verifier(task, "train")
     if task.name in DATASET_PRESETS:
-        held_out = load_preset(task.name, "test", limit=task.eval_size)
-        return EpochBatchIterator(_excluding(load_preset(task.name, "train"), held_out), seed=seed), held_out
+        held_out = load_preset(task.name, "test", limit=task.eval_size, verifier=verifier)
+        training = load_preset(task.name, "train", verifier=verifier)
+        return EpochBatchIterator(_excluding(training, held_out), seed=seed), held_out
     rows = _file_problems(task, verifier, limit=None)
     held_out = rows[: task.eval_size]
     training = _excluding(rows[task.eval_size:], held_out)
@@ -139,7 +140,7 @@ def _dataset_evaluation(task: TaskConfig, split: str, limit: int | None, from_ru
 
     verifier = _dataset_verifier(task, split)
     if task.name in DATASET_PRESETS:
-        return load_preset(task.name, split, limit=limit)
+        return load_preset(task.name, split, limit=limit, verifier=verifier)
     if from_run:  # the run trained on all but the first eval_size rows
         limit = held_out_size(task, limit)
     return _file_problems(task, verifier, limit)

@@ -49,10 +49,13 @@ TOY = "infinirl.tasks.toy_rewards:response_length"
     TaskConfig(eval_size=4),
     TaskConfig(eval_size=4, verifier=TOY),
     TaskConfig(source="dataset", name="gsm8k", eval_size=4),
+    TaskConfig(source="dataset", name="gsm8k", eval_size=4, verifier="math"),
+    TaskConfig(source="dataset", name="gsm8k", eval_size=4, verifier=TOY),
     TaskConfig(source="fictional_kb", name="fictional_kb", config={}, eval_size=4),
     TaskConfig(source="fictional_kb", name="fictional_kb", config={}, eval_size=4, verifier=TOY),
     TaskConfig(source="code", name="functions", config={}, eval_size=2),
-], ids=["gym", "gym-user-function", "gsm8k-preset", "kb", "kb-user-function", "code"])
+], ids=["gym", "gym-user-function", "gsm8k-preset", "gsm8k-preset-math", "gsm8k-preset-user-function",
+        "kb", "kb-user-function", "code"])
 def test_problems_name_the_verifier_their_source_scores_with(task, tmp_path, monkeypatch):
     # The reward worker scores each problem by the verifier it names: the source's choice, and
     # task.verifier where the user set one.
@@ -68,4 +71,5 @@ def test_problems_name_the_verifier_their_source_scores_with(task, tmp_path, mon
     stream, held_out = training_problems(task, seed=0)
     expected = verifier_for(task, "test")
     assert expected != "reasoning_gym" or task.source == "reasoning_gym"
+    assert expected == task.verifier or task.verifier == "reasoning_gym"
     assert {p.verifier for p in held_out + stream.next_batch(2) + eval_problems(task, "test", 2)} == {expected}
