@@ -60,7 +60,7 @@ class Gsm8kVerifier:
 
     ``extraction="marker"`` reads the first number after the last ``####`` (what the default
     prompt asks for); ``"last_number"`` takes the last number anywhere; ``"auto"`` tries the
-    marker, ``\\boxed{}``, ``Answer:``, then the last number. Commas, ``$`` and trailing ``.0``
+    marker, ``<answer>`` tags, ``\\boxed{}``, ``Answer:``, then the last number. Commas, ``$`` and trailing ``.0``
     are normalised away by comparing exact values (``"1,000.00" == "1000"``).
     """
 
@@ -280,7 +280,7 @@ class MathVerifier:
 class ReasoningGymVerifier:
     """The generator's own ``score_answer(answer, entry)`` on the extracted answer.
 
-    Extraction (default ``"auto"``: ``####``, ``\\boxed{}``, ``Answer:``, last number) yields a
+    Extraction (default ``"auto"``: ``####``, ``<answer>``, ``\\boxed{}``, ``Answer:``, last number) yields a
     candidate string; when it is a whole phrase holding exactly one number (``"#### The sum is
     42."``) that number is also tried, and the better score wins, so numeric tasks are not marked
     wrong for wording (``"#### 6 or 5"`` holds two guesses: only the phrase is scored).
