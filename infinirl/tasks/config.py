@@ -24,14 +24,15 @@ class TaskConfig:
     """Reward verifier: reasoning_gym | math | gsm8k | a dotted path `pkg.module:function`."""
     format_bonus: float = 0.0
     eval_size: int = bounded(64, ge=0)
-    """Held-out problems, excluded from training by question text (a data file: its first rows)."""
+    """Held-out problems, excluded from training by question text (a data file: its first rows, each
+    question once)."""
     eval_seed: int = bounded(1_000_003, ge=0)
     """Seeds the held-out problems a generator draws (reasoning_gym)."""
     system_prompt: str | None = None
     few_shot: list[dict[str, str]] = field(default_factory=list)
     """Worked examples shown before every question as earlier chat turns, each
     ``{user: ..., assistant: ...}`` (e.g. how to call a tool, for a model too small to follow a
-    description of it)."""
+    description of it). An example showing a held-out question is refused (`sources.check_few_shot`)."""
     prompt_key: str = "question"
     answer_key: str = "answer"
 

@@ -19,7 +19,7 @@ from infinirl.registry import Registry
 from infinirl.tasks.config import TaskConfig
 from infinirl.tasks.problem import Problem
 
-__all__ = ["TASK_SOURCES", "TaskSource", "eval_problems", "held_out_size", "task_files", "task_label",
+__all__ = ["TASK_SOURCES", "TaskSource", "check_few_shot", "eval_problems", "held_out_size", "task_files", "task_label",
            "training_problems", "verifier_for"]
 
 
@@ -43,12 +43,34 @@ TASK_SOURCES: Registry[TaskSource] = Registry("task source", entry_point_group="
 
 
 def training_problems(task: TaskConfig, seed: int):
-    """``(train stream, held-out problems)`` of ``task``; ConfigError naming the task on bad input."""
-    return _guarded(task, lambda: TASK_SOURCES.get(task.source).training(task, seed))
+    """``(train stream, held-out problems)`` of ``task``; ConfigError naming the task on bad input,
+    or naming ``task.few_shot`` when a worked example shows a held-out question."""
+    stream, held_out = _guarded(task, lambda: TASK_SOURCES.get(task.source).training(task, seed))
+    check_few_shot(task, held_out)
+    return stream, held_out
 
 
 def eval_problems(task: TaskConfig, split: str, limit: int | None, from_run: bool = False) -> list[Problem]:
-    return _guarded(task, lambda: TASK_SOURCES.get(task.source).evaluation(task, split, limit, from_run))
+    problems = _guarded(task, lambda: TASK_SOURCES.get(task.source).evaluation(task, split, limit, from_run))
+    check_few_shot(task, problems)
+    return problems
+
+
+def check_few_shot(task: TaskConfig, held_out: list[Problem]) -> None:
+    """ConfigError naming ``task.few_shot[i]`` when that worked example's user turn holds the text of
+    a held-out question: the model would be shown the problem it is evaluated on, solved."""
+    from infinirl.tasks.problem import normalize_question
+
+    if not task.few_shot:
+        return
+    questions = {normalize_question(str(problem.metadata.get("question", problem.prompt))) for problem in held_out}
+    questions.discard("")
+    for i, example in enumerate(task.few_shot):
+        shown = normalize_question(str(example.get("user", "")))
+        for question in questions:
+            if question in shown:
+                raise ConfigError(f"task.few_shot[{i}] shows the question {question[:80]!r}, which is held out for "
+                                  "evaluation; pick a worked example outside the held-out (evaluated) problems")
 
 
 def verifier_for(task: TaskConfig, split: str) -> str:
@@ -115,7 +137,7 @@ def _dataset_training(task: TaskConfig, seed: int):
         training = load_preset(task.name, "train", verifier=verifier)
         return EpochBatchIterator(_excluding(training, held_out), seed=seed), held_out
     rows = _file_problems(task, verifier, limit=None)
-    held_out = rows[: task.eval_size]
+    held_out = _distinct(rows[: task.eval_size])
     training = _excluding(rows[task.eval_size:], held_out)
     if not training:
         raise ConfigError(f"task.name={task.name!r} has {len(rows)} rows and task.eval_size={task.eval_size} of them "
@@ -141,9 +163,24 @@ def _dataset_evaluation(task: TaskConfig, split: str, limit: int | None, from_ru
     verifier = _dataset_verifier(task, split)
     if task.name in DATASET_PRESETS:
         return load_preset(task.name, split, limit=limit, verifier=verifier)
-    if from_run:  # the run trained on all but the first eval_size rows
-        limit = held_out_size(task, limit)
+    if from_run:  # the run trained on all but the first eval_size rows, held out once per question
+        return _distinct(_file_problems(task, verifier, held_out_size(task, limit)))
     return _file_problems(task, verifier, limit)
+
+
+def _distinct(problems: list[Problem]) -> list[Problem]:
+    """``problems`` with each question (compared as `normalize_question` does) only at its first row,
+    as `build_eval_set` draws a generator's: a repeated row would weigh its question twice."""
+    from infinirl.tasks.problem import normalize_question
+
+    seen: set[str] = set()
+    kept = []
+    for problem in problems:
+        key = normalize_question(str(problem.metadata.get("question", problem.prompt)))
+        if key not in seen:
+            seen.add(key)
+            kept.append(problem)
+    return kept
 
 
 def _file_problems(task: TaskConfig, verifier: str, limit: int | None) -> list[Problem]:

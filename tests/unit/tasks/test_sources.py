@@ -73,3 +73,28 @@ def test_problems_name_the_verifier_their_source_scores_with(task, tmp_path, mon
     assert expected != "reasoning_gym" or task.source == "reasoning_gym"
     assert expected == task.verifier or task.verifier == "reasoning_gym"
     assert {p.verifier for p in held_out + stream.next_batch(2) + eval_problems(task, "test", 2)} == {expected}
+
+
+def test_held_out_rows_of_a_data_file_ask_each_question_once(tmp_path):
+    # Rows 0-3 are held out; row 2 repeats row 0's question (case and spacing aside).
+    questions = ["What is 0+0?", "What is 1+1?", "what is  0+0?", "What is 3+3?", "What is 4+4?", "What is 5+5?"]
+    task = TaskConfig(source="dataset", name=str(write_rows(tmp_path / "rows.jsonl", questions)), verifier="math",
+                      eval_size=4)
+    _, held_out = training_problems(task, seed=0)
+    assert [p.metadata["question"] for p in held_out] == ["What is 0+0?", "What is 1+1?", "What is 3+3?"]
+    assert [p.answer for p in held_out] == ["0", "1", "3"]  # the first row of a question is kept
+    assert eval_problems(task, "test", None, from_run=True) == held_out
+
+
+def test_a_few_shot_example_showing_a_held_out_question_is_refused(tmp_path):
+    questions = ["What is 0+0?", "What is 1+1?", "What is 2+2?", "What is 3+3?"]
+    path = str(write_rows(tmp_path / "rows.jsonl", questions))
+    leaking = [{"user": "What is 2+2?", "assistant": "#### 4"}, {"user": "Solve: what is 1+1?", "assistant": "#### 2"}]
+    task = TaskConfig(source="dataset", name=path, verifier="math", eval_size=2, few_shot=leaking)
+    with pytest.raises(ConfigError, match=r"task.few_shot\[1\] shows the question 'what is 1\+1\?'"):
+        training_problems(task, seed=0)
+    with pytest.raises(ConfigError, match=r"task.few_shot\[1\]"):
+        eval_problems(task, "test", None, from_run=True)
+    # An example from the training rows is fine.
+    training_problems(TaskConfig(source="dataset", name=path, verifier="math", eval_size=2, few_shot=leaking[:1]),
+                      seed=0)
