@@ -173,6 +173,8 @@ class DatasetPreset:
     verifier: str
     answer_extractor: str
     prompt_template: str
+    answer_format: str
+    """The answer extractor matching ``prompt_template``'s instruction (what a format bonus checks)."""
     metadata_keys: tuple[str, ...] = ()
 
 
@@ -187,6 +189,7 @@ DATASET_PRESETS.add(
         verifier="gsm8k",
         answer_extractor="gsm8k",
         prompt_template=NUMBER_ANSWER_TEMPLATE,
+        answer_format="marker",
     ),
 )
 DATASET_PRESETS.add(
@@ -199,6 +202,7 @@ DATASET_PRESETS.add(
         verifier="math",
         answer_extractor="identity",
         prompt_template=BOXED_ANSWER_TEMPLATE,
+        answer_format="boxed",
         metadata_keys=("subject", "level", "unique_id"),
     ),
 )

@@ -19,7 +19,8 @@ from infinirl.registry import Registry
 from infinirl.tasks.config import TaskConfig
 from infinirl.tasks.problem import Problem
 
-__all__ = ["TASK_SOURCES", "TaskSource", "check_few_shot", "eval_problems", "held_out_size", "task_files", "task_label",
+__all__ = ["TASK_SOURCES", "TaskSource", "answer_format_for", "check_few_shot", "eval_problems", "held_out_size",
+           "task_files", "task_label",
            "training_problems", "verifier_for"]
 
 
@@ -34,6 +35,10 @@ class TaskSource:
     """``(task, split) -> the verifier to score with``, after cheap checks of the task's files."""
     label: Callable[[TaskConfig, str], str]
     """A short name for result files."""
+    answer_format: Callable[[TaskConfig], str | None] = lambda task: None
+    """The answer extractor matching the format the source's prompts ask for (``marker`` for
+    ``####``, ``boxed``, ``tagged``), which ``task.format_bonus`` rewards; None: no particular one
+    (a reasoning-gym question carries its own instruction)."""
     files: Callable[[TaskConfig], dict[str, str]] = lambda task: {}
     """``label -> path`` of the files the task's problems are read from (recorded with a training
     run's checkpoints and compared on resume); a generator reads none."""
@@ -75,6 +80,11 @@ def check_few_shot(task: TaskConfig, held_out: list[Problem]) -> None:
 
 def verifier_for(task: TaskConfig, split: str) -> str:
     return TASK_SOURCES.get(task.source).verifier(task, split)
+
+
+def answer_format_for(task: TaskConfig) -> str | None:
+    """``task.answer_format`` when set, else the task source's."""
+    return task.answer_format or TASK_SOURCES.get(task.source).answer_format(task)
 
 
 def task_label(task: TaskConfig, split: str) -> str:
@@ -220,6 +230,13 @@ def _dataset_verifier(task: TaskConfig, split: str) -> str:
     return task.verifier
 
 
+def _dataset_answer_format(task: TaskConfig) -> str:
+    from infinirl.tasks.datasets import DATASET_PRESETS
+
+    # A data file's rows are asked for the answer after '####' (datasets.NUMBER_ANSWER_TEMPLATE).
+    return DATASET_PRESETS.get(task.name).answer_format if task.name in DATASET_PRESETS else "marker"
+
+
 def _dataset_label(task: TaskConfig, split: str) -> str:
     from infinirl.tasks.datasets import DATASET_PRESETS
 
@@ -236,4 +253,5 @@ def _dataset_files(task: TaskConfig) -> dict[str, str]:
 
 
 TASK_SOURCES.add("dataset", TaskSource(training=_dataset_training, evaluation=_dataset_evaluation,
-                                       verifier=_dataset_verifier, label=_dataset_label, files=_dataset_files))
+                                       verifier=_dataset_verifier, label=_dataset_label, files=_dataset_files,
+                                       answer_format=_dataset_answer_format))

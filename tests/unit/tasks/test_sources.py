@@ -98,3 +98,27 @@ def test_a_few_shot_example_showing_a_held_out_question_is_refused(tmp_path):
     # An example from the training rows is fine.
     training_problems(TaskConfig(source="dataset", name=path, verifier="math", eval_size=2, few_shot=leaking[:1]),
                       seed=0)
+
+
+@pytest.mark.parametrize(("task", "expected"), [
+    (TaskConfig(source="dataset", name="gsm8k"), "marker"),
+    (TaskConfig(source="dataset", name="math500"), "boxed"),
+    (TaskConfig(source="dataset", name="rows.jsonl"), "marker"),
+    (TaskConfig(source="fictional_kb", name="fictional_kb", config={}), "tagged"),
+    (TaskConfig(), None),
+    (TaskConfig(answer_format="tagged"), "tagged"),
+    (TaskConfig(source="dataset", name="math500", answer_format="marker"), "marker"),
+], ids=["gsm8k", "math500", "data-file", "kb", "gym", "gym-set", "math500-set"])
+def test_the_answer_format_is_the_tasks_or_its_sources(task, expected):
+    from infinirl.tasks.sources import answer_format_for
+
+    assert answer_format_for(task) == expected
+
+
+def test_a_format_bonus_without_an_answer_format_or_with_a_bad_one_is_refused():
+    with pytest.raises(ConfigError, match="task.format_bonus=0.1 needs task.answer_format"):
+        TaskConfig(format_bonus=0.1).validate()
+    with pytest.raises(ConfigError, match="task.answer_format='bold' is not an answer extractor"):
+        TaskConfig(answer_format="bold").validate()
+    TaskConfig(format_bonus=0.1, answer_format="tagged").validate()
+    TaskConfig(source="dataset", name="gsm8k", verifier="gsm8k", format_bonus=0.1).validate()
