@@ -28,13 +28,17 @@ def sampled_ids(result: GenerationResult) -> list[int]:
 
 
 class ProblemVerifiers:
-    """The verifier of each problem, built on first use per name (with the run's format bonus) and
+    """The verifier of each problem, built on first use per name (with the run's format bonus for
+    the task's answer format, ``task.answer_format``) and
     kept: a verifier may hold state worth reusing (a loaded user function, parsed answers)."""
 
-    def __init__(self, default: str, format_bonus: float = 0.0):
-        self.default, self.format_bonus = default, format_bonus
+    def __init__(self, default: str, format_bonus: float = 0.0, answer_format: str = "marker"):
+        self.default, self.format_bonus, self.answer_format = default, format_bonus, answer_format
         # The configured name is built now: a bad one fails when the worker starts.
-        self._built: dict[str, Verifier] = {default: build_verifier(default, format_bonus=format_bonus)}
+        self._built: dict[str, Verifier] = {default: self._build(default)}
+
+    def _build(self, name: str) -> Verifier:
+        return build_verifier(name, format_bonus=self.format_bonus, answer_format=self.answer_format)
 
     def get(self, name: str | None) -> Verifier:
         """The verifier ``name`` (the configured one for ``None`` or ``""``). A name that cannot be
@@ -43,7 +47,7 @@ class ProblemVerifiers:
         name = name or self.default
         if name not in self._built:
             try:
-                self._built[name] = build_verifier(name, format_bonus=self.format_bonus)
+                self._built[name] = self._build(name)
             except Exception as error:  # noqa: BLE001 - reported per sample, like a failing verifier
                 self._built[name] = _failing(f"verifier {name!r} cannot be built: {type(error).__name__}: {error}")
         return self._built[name]
@@ -63,13 +67,14 @@ def _failing(message: str) -> Verifier:
 
 
 class RewardWorker(Worker):
-    def __init__(self, tokenizer_source: str, verifier: str, format_bonus: float = 0.0, threads: int = 4):
+    def __init__(self, tokenizer_source: str, verifier: str, format_bonus: float = 0.0, answer_format: str = "marker",
+                 threads: int = 4):
         from transformers import AutoTokenizer
 
         from infinirl.models.hf_causal_lm import resolve_model_source
 
         self.tokenizer = AutoTokenizer.from_pretrained(resolve_model_source(tokenizer_source))
-        self.verifiers = ProblemVerifiers(verifier, format_bonus)
+        self.verifiers = ProblemVerifiers(verifier, format_bonus, answer_format)
         self.pool = ThreadPoolExecutor(max_workers=threads)
 
     def score(self, results: list[GenerationResult], problems: list[Problem]) -> list[RewardResult]:

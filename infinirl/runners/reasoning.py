@@ -59,7 +59,7 @@ from infinirl.runners.reasoning_config import ReasoningConfig
 from infinirl.runners.reasoning_data import build_problem_sources, encode_checked
 from infinirl.runners.run_support import run_components, run_start_time
 from infinirl.runtime import Channel, Tracer, sync_weights
-from infinirl.tasks.sources import verifier_for
+from infinirl.tasks.sources import answer_format_for, verifier_for
 from infinirl.utils.threads import spin_wait_env
 
 # Batch keys filled before the update: log-probs of the policy before it (PPO's pi_old), of the
@@ -130,7 +130,8 @@ def _launches(cfg: ReasoningConfig) -> dict:
                                     cfg.rollout.agent)),
         # Problems name their own verifier; this one (the task source's, as `infinirl eval` uses)
         # serves any that name none.
-        "reward": (RewardWorker, (cfg.model.path, verifier_for(cfg.task, "test"), cfg.task.format_bonus)),
+        "reward": (RewardWorker, (cfg.model.path, verifier_for(cfg.task, "test"), cfg.task.format_bonus,
+                                  answer_format_for(cfg.task) or "marker")),
         "critic": (CriticWorker, (cfg.critic_model_path, cfg.critic, cfg.critic.value_clip, cfg.num_threads)),
         "reference": (ReferenceWorker, (cfg.model.path, _reference_engine(cfg), cfg.num_threads)),
     }

@@ -173,6 +173,8 @@ class DatasetPreset:
     verifier: str
     answer_extractor: str
     prompt_template: str
+    answer_format: str
+    """The answer extractor matching ``prompt_template``'s instruction (what a format bonus checks)."""
     metadata_keys: tuple[str, ...] = ()
 
 
@@ -187,6 +189,7 @@ DATASET_PRESETS.add(
         verifier="gsm8k",
         answer_extractor="gsm8k",
         prompt_template=NUMBER_ANSWER_TEMPLATE,
+        answer_format="marker",
     ),
 )
 DATASET_PRESETS.add(
@@ -199,6 +202,7 @@ DATASET_PRESETS.add(
         verifier="math",
         answer_extractor="identity",
         prompt_template=BOXED_ANSWER_TEMPLATE,
+        answer_format="boxed",
         metadata_keys=("subject", "level", "unique_id"),
     ),
 )
@@ -221,14 +225,16 @@ def load_preset(
     root: str | Path | None = None,
     prompt_template: str | None = None,
     limit: int | None = None,
+    verifier: str | None = None,
 ) -> list[Problem]:
-    """Problems of a named preset (``gsm8k``, ``math500``) from the data directory."""
+    """Problems of a named preset (``gsm8k``, ``math500``) from the data directory; each names
+    ``verifier`` (default: the preset's own), so a configured ``task.verifier`` is the one that scores."""
     preset = DATASET_PRESETS.get(name)
     return load_problems(
         preset_path(name, split, root),
         prompt_key=preset.prompt_key,
         answer_key=preset.answer_key,
-        verifier=preset.verifier,
+        verifier=verifier or preset.verifier,
         answer_extractor=preset.answer_extractor,
         prompt_template=prompt_template if prompt_template is not None else preset.prompt_template,
         uid_prefix=f"{name}/{split}",

@@ -346,4 +346,5 @@ def kb_verifier(task: TaskConfig, split: str) -> str:
 
 
 TASK_SOURCES.add("fictional_kb", TaskSource(training=kb_training, evaluation=kb_evaluation, verifier=kb_verifier,
-                                            label=lambda task, split: f"fictional_kb-{split}"))
+                                            label=lambda task, split: f"fictional_kb-{split}",
+                                            answer_format=lambda task: "tagged"))

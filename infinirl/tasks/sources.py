@@ -19,7 +19,8 @@ from infinirl.registry import Registry
 from infinirl.tasks.config import TaskConfig
 from infinirl.tasks.problem import Problem
 
-__all__ = ["TASK_SOURCES", "TaskSource", "eval_problems", "held_out_size", "task_files", "task_label",
+__all__ = ["TASK_SOURCES", "TaskSource", "answer_format_for", "check_few_shot", "eval_problems", "held_out_size",
+           "task_files", "task_label",
            "training_problems", "verifier_for"]
 
 
@@ -34,6 +35,10 @@ class TaskSource:
     """``(task, split) -> the verifier to score with``, after cheap checks of the task's files."""
     label: Callable[[TaskConfig, str], str]
     """A short name for result files."""
+    answer_format: Callable[[TaskConfig], str | None] = lambda task: None
+    """The answer extractor matching the format the source's prompts ask for (``marker`` for
+    ``####``, ``boxed``, ``tagged``), which ``task.format_bonus`` rewards; None: no particular one
+    (a reasoning-gym question carries its own instruction)."""
     files: Callable[[TaskConfig], dict[str, str]] = lambda task: {}
     """``label -> path`` of the files the task's problems are read from (recorded with a training
     run's checkpoints and compared on resume); a generator reads none."""
@@ -43,16 +48,43 @@ TASK_SOURCES: Registry[TaskSource] = Registry("task source", entry_point_group="
 
 
 def training_problems(task: TaskConfig, seed: int):
-    """``(train stream, held-out problems)`` of ``task``; ConfigError naming the task on bad input."""
-    return _guarded(task, lambda: TASK_SOURCES.get(task.source).training(task, seed))
+    """``(train stream, held-out problems)`` of ``task``; ConfigError naming the task on bad input,
+    or naming ``task.few_shot`` when a worked example shows a held-out question."""
+    stream, held_out = _guarded(task, lambda: TASK_SOURCES.get(task.source).training(task, seed))
+    check_few_shot(task, held_out)
+    return stream, held_out
 
 
 def eval_problems(task: TaskConfig, split: str, limit: int | None, from_run: bool = False) -> list[Problem]:
-    return _guarded(task, lambda: TASK_SOURCES.get(task.source).evaluation(task, split, limit, from_run))
+    problems = _guarded(task, lambda: TASK_SOURCES.get(task.source).evaluation(task, split, limit, from_run))
+    check_few_shot(task, problems)
+    return problems
+
+
+def check_few_shot(task: TaskConfig, held_out: list[Problem]) -> None:
+    """ConfigError naming ``task.few_shot[i]`` when that worked example's user turn holds the text of
+    a held-out question: the model would be shown the problem it is evaluated on, solved."""
+    from infinirl.tasks.problem import normalize_question
+
+    if not task.few_shot:
+        return
+    questions = {normalize_question(str(problem.metadata.get("question", problem.prompt))) for problem in held_out}
+    questions.discard("")
+    for i, example in enumerate(task.few_shot):
+        shown = normalize_question(str(example.get("user", "")))
+        for question in questions:
+            if question in shown:
+                raise ConfigError(f"task.few_shot[{i}] shows the question {question[:80]!r}, which is held out for "
+                                  "evaluation; pick a worked example outside the held-out (evaluated) problems")
 
 
 def verifier_for(task: TaskConfig, split: str) -> str:
     return TASK_SOURCES.get(task.source).verifier(task, split)
+
+
+def answer_format_for(task: TaskConfig) -> str | None:
+    """``task.answer_format`` when set, else the task source's."""
+    return task.answer_format or TASK_SOURCES.get(task.source).answer_format(task)
 
 
 def task_label(task: TaskConfig, split: str) -> str:
@@ -111,10 +143,11 @@ def _dataset_training(task: TaskConfig, seed: int):
 
     verifier = _dataset_verifier(task, "train")
     if task.name in DATASET_PRESETS:
-        held_out = load_preset(task.name, "test", limit=task.eval_size)
-        return EpochBatchIterator(_excluding(load_preset(task.name, "train"), held_out), seed=seed), held_out
+        held_out = load_preset(task.name, "test", limit=task.eval_size, verifier=verifier)
+        training = load_preset(task.name, "train", verifier=verifier)
+        return EpochBatchIterator(_excluding(training, held_out), seed=seed), held_out
     rows = _file_problems(task, verifier, limit=None)
-    held_out = rows[: task.eval_size]
+    held_out = _distinct(rows[: task.eval_size])
     training = _excluding(rows[task.eval_size:], held_out)
     if not training:
         raise ConfigError(f"task.name={task.name!r} has {len(rows)} rows and task.eval_size={task.eval_size} of them "
@@ -139,10 +172,25 @@ def _dataset_evaluation(task: TaskConfig, split: str, limit: int | None, from_ru
 
     verifier = _dataset_verifier(task, split)
     if task.name in DATASET_PRESETS:
-        return load_preset(task.name, split, limit=limit)
-    if from_run:  # the run trained on all but the first eval_size rows
-        limit = held_out_size(task, limit)
+        return load_preset(task.name, split, limit=limit, verifier=verifier)
+    if from_run:  # the run trained on all but the first eval_size rows, held out once per question
+        return _distinct(_file_problems(task, verifier, held_out_size(task, limit)))
     return _file_problems(task, verifier, limit)
+
+
+def _distinct(problems: list[Problem]) -> list[Problem]:
+    """``problems`` with each question (compared as `normalize_question` does) only at its first row,
+    as `build_eval_set` draws a generator's: a repeated row would weigh its question twice."""
+    from infinirl.tasks.problem import normalize_question
+
+    seen: set[str] = set()
+    kept = []
+    for problem in problems:
+        key = normalize_question(str(problem.metadata.get("question", problem.prompt)))
+        if key not in seen:
+            seen.add(key)
+            kept.append(problem)
+    return kept
 
 
 def _file_problems(task: TaskConfig, verifier: str, limit: int | None) -> list[Problem]:
@@ -182,6 +230,13 @@ def _dataset_verifier(task: TaskConfig, split: str) -> str:
     return task.verifier
 
 
+def _dataset_answer_format(task: TaskConfig) -> str:
+    from infinirl.tasks.datasets import DATASET_PRESETS
+
+    # A data file's rows are asked for the answer after '####' (datasets.NUMBER_ANSWER_TEMPLATE).
+    return DATASET_PRESETS.get(task.name).answer_format if task.name in DATASET_PRESETS else "marker"
+
+
 def _dataset_label(task: TaskConfig, split: str) -> str:
     from infinirl.tasks.datasets import DATASET_PRESETS
 
@@ -198,4 +253,5 @@ def _dataset_files(task: TaskConfig) -> dict[str, str]:
 
 
 TASK_SOURCES.add("dataset", TaskSource(training=_dataset_training, evaluation=_dataset_evaluation,
-                                       verifier=_dataset_verifier, label=_dataset_label, files=_dataset_files))
+                                       verifier=_dataset_verifier, label=_dataset_label, files=_dataset_files,
+                                       answer_format=_dataset_answer_format))

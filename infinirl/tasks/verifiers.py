@@ -60,7 +60,7 @@ class Gsm8kVerifier:
 
     ``extraction="marker"`` reads the first number after the last ``####`` (what the default
     prompt asks for); ``"last_number"`` takes the last number anywhere; ``"auto"`` tries the
-    marker, ``\\boxed{}``, ``Answer:``, then the last number. Commas, ``$`` and trailing ``.0``
+    marker, ``<answer>`` tags, ``\\boxed{}``, ``Answer:``, then the last number. Commas, ``$`` and trailing ``.0``
     are normalised away by comparing exact values (``"1,000.00" == "1000"``).
     """
 
@@ -280,7 +280,7 @@ class MathVerifier:
 class ReasoningGymVerifier:
     """The generator's own ``score_answer(answer, entry)`` on the extracted answer.
 
-    Extraction (default ``"auto"``: ``####``, ``\\boxed{}``, ``Answer:``, last number) yields a
+    Extraction (default ``"auto"``: ``####``, ``<answer>``, ``\\boxed{}``, ``Answer:``, last number) yields a
     candidate string; when it is a whole phrase holding exactly one number (``"#### The sum is
     42."``) that number is also tried, and the better score wins, so numeric tasks are not marked
     wrong for wording (``"#### 6 or 5"`` holds two guesses: only the phrase is scored).
@@ -399,10 +399,13 @@ def _as_reward_result(value: Any, source: str) -> RewardResult:
 
 @dataclass(frozen=True)
 class WithFormatBonus:
-    """Adds ``bonus`` to the reward when the response uses the instructed answer format.
+    """Adds ``bonus`` to the reward when the response gives an answer in the instructed format.
 
     ``answer_format`` names an answer extractor (``"marker"`` for ``####``, ``"boxed"`` for
-    ``\\boxed{}``); the format counts as followed when that extractor finds something. Off by
+    ``\\boxed{}``, ``"tagged"`` for ``<answer>`` tags: the task's, ``task.answer_format``); the format
+    counts as followed when that extractor finds something and the inner verifier found an answer
+    (its ``answer_found`` metric, where it reports one): ``#### banana`` on a numeric task earns
+    nothing. Off by
     default (see `build_verifier`): with a verifiable reward the format is learnt anyway once it
     is what gets answers read; a bonus only helps a model that almost never uses it.
     ``correct`` is untouched so accuracy stays comparable across runs with and without it.
@@ -417,7 +420,8 @@ class WithFormatBonus:
 
     def __call__(self, response: str, problem: Problem) -> RewardResult:
         result = self.inner(response, problem)
-        formatted = get_answer_extractor(self.answer_format)(response) is not None
+        formatted = (result.metrics.get("answer_found", 1.0) > 0
+                     and get_answer_extractor(self.answer_format)(response) is not None)
         return replace(
             result,
             reward=result.reward + self.bonus * formatted,

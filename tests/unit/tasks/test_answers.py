@@ -5,6 +5,7 @@ from fractions import Fraction
 import pytest
 
 from infinirl.tasks.answers import (
+    MARKER_WINDOW,
     extract_after_answer_label,
     extract_after_marker,
     extract_answer_auto,
@@ -188,3 +189,96 @@ def test_auto_extraction_falls_back_past_headings(response, expected):
 def test_numbers_read_whole_or_not_at_all(text, first, value):
     assert extract_first_number(text) == first
     assert parse_number(first if first is not None else text) == value
+
+
+@pytest.mark.parametrize(
+    ("response", "expected"),
+    [
+        # The prompt's instruction echoed after the answer: its marker is in quotes.
+        ("#### 42\nGive the final answer after '####'.", "42"),
+        ('#### 42\nGive the final answer after "####".', "42"),
+        ("#### 42\nI wrote it after `####` as asked", "42"),
+        ("#### 42\nThe answer goes after ####.", "42"),  # nothing but punctuation after the marker
+        ("#### 42\n#### ?", "42"),
+        ("#### ?", None),
+    ],
+)
+def test_echoed_or_empty_markers_do_not_hide_the_answer(response, expected):
+    assert extract_after_marker(response) == expected
+
+
+@pytest.mark.parametrize(
+    ("response", "number"),
+    [
+        ("#### 18. That is the final answer.", "18"),
+        ("#### 18. Done", "18"),
+        ("#### 18) apples", "18"),
+        ("The total is 18.\n#### 18. Done\n", "18"),
+    ],
+)
+def test_an_answer_followed_by_words_is_not_a_numbered_heading(response, number):
+    assert extract_first_number(extract_after_marker(response)) == number
+
+
+@pytest.mark.parametrize(
+    "response",
+    [
+        "#### 1. Understanding the Problem\nwe need 5",
+        "#### 2) Set Up the Equation\nx = 5",
+        "#### 3. Compute\n5 + 5",
+    ],
+)
+def test_numbered_headings_with_text_after_them_are_not_answers(response):
+    assert extract_after_marker(response) is None
+
+
+@pytest.mark.parametrize(
+    ("response", "expected"),
+    [
+        ("<answer>42</answer>\nI verified it in 3 steps.", "42"),
+        ("<answer>olleh</answer>", "olleh"),
+        ("<answer>1</answer> no, <answer> 2 </answer>", "2"),
+        ("To get the answer: 4 + 3 = 7", "7"),
+        ("The answer is: x = 7", "7"),
+        ("Answer: x = y + 1", "x = y + 1"),  # no number after '=': the line as written
+    ],
+)
+def test_auto_reads_answer_tags_and_the_result_of_a_labelled_sum(response, expected):
+    assert extract_answer_auto(response) == expected
+
+
+@pytest.mark.parametrize(
+    ("segment", "first", "value"),
+    [
+        ("-$5", "-5", Fraction(-5)),
+        ("\u2212$5.50 loss", "-5.50", Fraction(-11, 2)),
+        ("+$3", "+3", Fraction(3)),
+        ("10-$3", "10", Fraction(10)),  # a subtraction, not a sign
+        ("1 000", "1000", Fraction(1000)),
+        ("1\u2009000", "1000", Fraction(1000)),
+        ("-1\u202f234\u202f567.5 m", "-1234567.5", Fraction(-2469135, 2)),
+        ("1 0000", "1", Fraction(1)),  # not groups of three: no thousands separator
+        ("3 apples, 100 pears", "3", Fraction(3)),
+    ],
+)
+def test_signs_before_currency_and_space_grouped_thousands(segment, first, value):
+    assert extract_first_number(segment) == first
+    assert parse_number(first) == value
+
+
+def test_gsm8k_reads_a_negative_amount_and_space_grouped_thousands():
+    from infinirl.tasks.problem import Problem
+    from infinirl.tasks.verifiers import Gsm8kVerifier
+
+    verifier = Gsm8kVerifier()
+    assert verifier("She lost money.\n#### -$5", Problem(uid="a", prompt="q", answer="-5", verifier="gsm8k")).correct
+    assert verifier("#### 1 000", Problem(uid="b", prompt="q", answer="1000", verifier="gsm8k")).correct
+
+
+def test_many_markers_are_each_read_within_a_bounded_window():
+    # 8000 headings, then the answer: every marker is looked at, each through a short window only.
+    headings = "\n".join(f"#### Step {i}" for i in range(8000))
+    assert extract_after_marker(headings + "\n#### 42") == "42"
+    assert extract_after_marker("#### 7\n" + headings) == "7"
+    # A line longer than the window is cut at it rather than scanned to its end.
+    assert extract_after_marker("#### 5 " + "x" * 100_000) == (" 5 " + "x" * 100_000)[:MARKER_WINDOW].strip()

@@ -235,6 +235,28 @@ def test_format_bonus_for_boxed_answers():
         build_verifier("math", format_bonus=0.2, answer_format="bold")
 
 
+def test_format_bonus_needs_an_answer_the_verifier_found():
+    with_bonus = build_verifier("gsm8k", format_bonus=0.1)
+    problem = numeric_problem("5")
+    for unanswered in ("#### banana", "#### ?"):  # the marker, but no number after it
+        result = with_bonus(unanswered, problem)
+        assert result.reward == 0.0 and result.metrics["format_followed"] == 0.0
+
+
+def test_the_reward_worker_checks_the_tasks_answer_format():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from infinirl.components.reward import ProblemVerifiers
+
+    # A math500-like task asks for \boxed{}: a boxed answer earns the bonus, one after '####' does not.
+    verifiers = ProblemVerifiers("math", format_bonus=0.5, answer_format="boxed")
+    problem = Problem(uid="m/0", prompt="q", answer="7", verifier="math")
+    with ThreadPoolExecutor(1) as pool:
+        boxed, marked = verifiers.score(["\\boxed{7}", "#### 7"], [problem, problem], pool)
+    assert (boxed.reward, marked.reward) == (pytest.approx(1.5), pytest.approx(1.0))
+    assert boxed.correct and marked.correct
+
+
 # --- user functions by dotted path -------------------------------------------------------------
 
 
