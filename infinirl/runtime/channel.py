@@ -33,6 +33,7 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import threading
 import time
 import uuid
 from collections import deque
@@ -83,6 +84,9 @@ class Channel:
         self._registration = None  # the producer registration's reply, until it is read
         self._producer = uuid.uuid4().hex  # per client: a pickled copy in a worker is a new producer
         self._seq = 0
+        # Threads sharing this client take put numbers under it: two with the same number would
+        # leave a later one unused, and the channel would hold every put behind it for good.
+        self._seq_lock = threading.Lock()
         self._inflight: deque = deque()
         self._roles: set[str] = set()  # registered with the channel actor from this client
 
@@ -160,16 +164,27 @@ class Channel:
         if not self.pipeline_depth:
             self._settle_put(self._actor.put.remote(envelope, key, weight, timeout), envelope)
             return
-        self._inflight.append((self._actor.put.remote(envelope, key, weight, timeout, self._producer, self._seq),
-                               envelope))
-        self._seq += 1
+        with self._seq_lock:
+            self._inflight.append((self._actor.put.remote(envelope, key, weight, timeout, self._producer,
+                                                          self._seq), envelope))
+            self._seq += 1
         while len(self._inflight) > self.pipeline_depth:
-            self._settle_put(*self._inflight.popleft())
+            if not self._settle_next():
+                break
 
     def flush(self) -> None:
         """Wait until every pipelined ``put`` of this client has been accepted (raises its error)."""
-        while self._inflight:
-            self._settle_put(*self._inflight.popleft())
+        while self._settle_next():
+            pass
+
+    def _settle_next(self) -> bool:
+        """Settle the oldest put in flight; False if none is (another thread took the last one)."""
+        try:
+            ref, envelope = self._inflight.popleft()
+        except IndexError:
+            return False
+        self._settle_put(ref, envelope)
+        return True
 
     def put_many(self, items: list, key=DEFAULT_KEY, weights: list[float] | None = None, timeout=None) -> None:
         """Put several items with one round trip (they stay in order)."""

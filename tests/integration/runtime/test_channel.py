@@ -1,6 +1,7 @@
 """Channel: per-key FIFO, weighted batches, back-pressure, close, many producers/consumers, paths."""
 
 import asyncio
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -504,3 +505,25 @@ def test_a_same_process_item_is_served_only_to_its_pid_on_its_node():
     item = _Item(Envelope("local", 1234, "node-a", local_id=1), 1.0)
     assert item.serves(1234, "node-a")
     assert not item.serves(1234, "node-b") and not item.serves(99, "node-a")
+
+
+def test_pipelined_puts_from_two_threads_all_arrive(ray_cluster):
+    """Each pipelined put takes the next number of the producer's order: two threads that took the
+    same number would leave a later one unused, and every put behind it would wait for it forever."""
+    ch = Channel.create(f"pipe-threads-{time.time_ns()}", pipeline_depth=4)
+    old_interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as possible, inside the numbering too
+    try:
+        threads = [threading.Thread(target=lambda lo=lo: [ch.put(lo + i) for i in range(100)], daemon=True)
+                   for lo in (0, 1000)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=30)
+    finally:
+        sys.setswitchinterval(old_interval)
+    assert not any(thread.is_alive() for thread in threads), "a put waits for a turn that never comes"
+    got = [ch.get(timeout=10) for _ in range(200)]
+    for lo in (0, 1000):
+        assert [x for x in got if lo <= x < lo + 100] == list(range(lo, lo + 100))
+    ch.destroy()
