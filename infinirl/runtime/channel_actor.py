@@ -454,6 +454,8 @@ class ChannelActor:
                 **self.stats}
 
     async def _wait_for(self, predicate, deadline: float | None, what: str, timeout: float | None) -> None:
+        if predicate():  # asyncio.wait_for with no time left cancels the wait before it checks anything
+            return
         remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
         try:
             await asyncio.wait_for(self.cond.wait_for(predicate), remaining)

@@ -527,3 +527,16 @@ def test_pipelined_puts_from_two_threads_all_arrive(ray_cluster):
     for lo in (0, 1000):
         assert [x for x in got if lo <= x < lo + 100] == list(range(lo, lo + 100))
     ch.destroy()
+
+
+def test_timeout_zero_takes_what_is_there(ray_cluster):
+    ch = fresh(maxsize=2)
+    ch.put("a", timeout=0)
+    ch.put("b", timeout=0)
+    with pytest.raises(TimeoutError, match="put on key"):
+        ch.put("c", timeout=0)  # full
+    assert ch.get(timeout=0) == "a"
+    assert ch.get_batch(1, timeout=0) == ["b"]
+    with pytest.raises(TimeoutError, match="get on key"):
+        ch.get(timeout=0)  # empty
+    ch.destroy()
