@@ -105,7 +105,8 @@ class Channel:
         or GPUs; producers must be Workers, the driver falls back to the object store).
 
         ``pipeline_depth`` > 0 lets a streaming producer keep that many ``put`` calls in flight
-        instead of waiting for each acknowledgement: per-producer order is kept, back-pressure
+        instead of waiting for each acknowledgement: per-producer order is kept (``put_many`` and
+        ``put_async`` of the same client queue behind the puts still in flight), back-pressure
         still holds (a producer runs at most ``pipeline_depth`` items ahead of ``maxsize``), and
         errors such as a closed channel surface on a later ``put``, ``flush()`` or ``close()``.
 
@@ -165,9 +166,7 @@ class Channel:
             self._settle_put(self._actor.put.remote(envelope, key, weight, timeout), envelope)
             return
         with self._seq_lock:
-            self._inflight.append((self._actor.put.remote(envelope, key, weight, timeout, self._producer,
-                                                          self._seq), envelope))
-            self._seq += 1
+            self._inflight.append((self._submit_put(self._actor.put, envelope, key, weight, timeout), envelope))
         while len(self._inflight) > self.pipeline_depth:
             if not self._settle_next():
                 break
@@ -176,6 +175,16 @@ class Channel:
         """Wait until every pipelined ``put`` of this client has been accepted (raises its error)."""
         while self._settle_next():
             pass
+
+    def _submit_put(self, method, *args):
+        """Submit a put (or put_many) call; with ``pipeline_depth`` it takes the next number of this
+        producer's order, so that it lands behind the pipelined puts still in flight. Called under
+        ``_seq_lock`` where the call is pipelined."""
+        if not self.pipeline_depth:
+            return method.remote(*args)
+        ref = method.remote(*args, self._producer, self._seq)
+        self._seq += 1
+        return ref
 
     def _settle_next(self) -> bool:
         """Settle the oldest put in flight; False if none is (another thread took the last one)."""
@@ -196,7 +205,10 @@ class Channel:
         self._register("producer")
         # On a failure, some of the items may be queued already: none is discarded (a segment
         # of this process's shared memory stays busy until the process exits, within its cap).
-        consumers = self._call(self._actor.put_many.remote([self._pack(i) for i in items], key, weights, timeout))
+        envelopes = [self._pack(i) for i in items]
+        with self._seq_lock:  # numbered like a pipelined put: queued behind those in flight
+            ref = self._submit_put(self._actor.put_many, envelopes, key, weights, timeout)
+        consumers = self._call(ref)
         self._note_consumers(consumers)
 
     def get(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
@@ -303,7 +315,9 @@ class Channel:
             self._note_consumers(await self._acall(registration))
         envelope = self._pack(item)
         try:
-            self._note_consumers(await self._acall(self._actor.put.remote(envelope, key, weight, timeout)))
+            with self._seq_lock:  # numbered like a pipelined put: queued behind those in flight
+                ref = self._submit_put(self._actor.put, envelope, key, weight, timeout)
+            self._note_consumers(await self._acall(ref))
         except Exception:  # refused, or its actor is gone: the item is not queued (a cancel may have queued it)
             discard(envelope)
             raise

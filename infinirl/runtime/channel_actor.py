@@ -255,9 +255,17 @@ class ChannelActor:
     def _fits(self, key, weight: float) -> bool:
         return self.weight_by_key.get(key, 0.0) + weight <= self.maxsize
 
-    async def put_many(self, envelopes: list[Envelope], key, weights: list[float], timeout):
-        for envelope, weight in zip(envelopes, weights):
-            await self.put(envelope, key, weight, timeout)
+    async def put_many(self, envelopes: list[Envelope], key, weights: list[float], timeout,
+                       producer: str | None = None, seq: int = -1):
+        """The items in order, as one numbered call of a pipelined producer (``seq`` >= 0)."""
+        if seq >= 0:
+            await self.order.wait_turn(producer, seq)  # outside the try: a cancelled wait gives its turn up
+        try:
+            for envelope, weight in zip(envelopes, weights):
+                await self._put(envelope, key, weight, timeout)
+        finally:
+            if seq >= 0:
+                self.order.end_turn(producer, seq)
         return self._consumers()
 
     # ------------------------------------------------------------------ get

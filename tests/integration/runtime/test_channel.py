@@ -540,3 +540,21 @@ def test_timeout_zero_takes_what_is_there(ray_cluster):
     with pytest.raises(TimeoutError, match="get on key"):
         ch.get(timeout=0)  # empty
     ch.destroy()
+
+
+def test_put_many_and_put_async_keep_the_order_of_pipelined_puts(ray_cluster):
+    ch = Channel.create(f"pipe-mixed-{time.time_ns()}", maxsize=1, pipeline_depth=4)
+    got: list = []
+    consumer = threading.Thread(target=lambda: (time.sleep(0.5), got.extend(ch.get(timeout=30) for _ in range(7))),
+                                daemon=True)
+    consumer.start()
+    for item in "xab":  # x fills the key; a waits for space and b for its turn
+        ch.put(item)
+    ch.put_many(["c"])
+    ch.put("d")
+    ch.put("e")
+    asyncio.run(ch.put_async("f"))
+    ch.flush()
+    consumer.join(timeout=30)
+    assert got == list("xabcdef")
+    ch.destroy()
