@@ -112,7 +112,8 @@ class Channel:
 
         ``prefetch`` > 1 lets ``get`` take up to that many waiting items in one round trip and hand
         them out one by one (a consumer then holds at most ``prefetch - 1`` items others cannot
-        take). If its process dies, the items it held go back to the queue, and so may the ones it
+        take; its other gets serve those first, or, for a batch, give them back first, so a key's
+        order holds). If its process dies, the items it held go back to the queue, and so may the ones it
         handed out since its last round trip (delivered again, to another consumer). Both options
         trade a little strictness for throughput on streaming stages.
         """
@@ -215,14 +216,14 @@ class Channel:
         """The oldest item of ``key``; waits for one (``timeout``: at most that many seconds)."""
         self._register("consumer")
         if self.prefetch > 1:
-            return self._get_prefetched(key, timeout)
+            return self._get_prefetched(key, timeout)[0]
         envelope, _ = self._get(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope)
 
-    def _get_prefetched(self, key, timeout: float | None) -> Any:
-        """``get`` with ``prefetch`` > 1: from this client's buffer of ``key``, refilled by one
-        ``get_many``. That call also tells the channel which of this client's leases are handed out
-        in full: the acknowledgement costs no message of its own."""
+    def _get_prefetched(self, key, timeout: float | None) -> tuple[Any, float]:
+        """``get`` with ``prefetch`` > 1, as ``(item, weight)``: from this client's buffer of
+        ``key``, refilled by one ``get_many``. That call also tells the channel which of this client's
+        leases are handed out in full: the acknowledgement costs no message of its own."""
         buffered = self._prefetched.get(key)
         if not buffered:
             request = uuid.uuid4().hex
@@ -236,10 +237,10 @@ class Channel:
             except BaseException:  # nothing buffered: the lease has nothing left to hand out
                 self._settle(key)
                 raise
-        envelope, _, value = buffered.popleft()
+        envelope, weight, value = buffered.popleft()
         if not buffered:
             self._settle(key)
-        return unpack(envelope) if value is _UNREAD else value
+        return (unpack(envelope) if value is _UNREAD else value), weight
 
     def _settle(self, key) -> None:
         """The buffer of ``key`` is empty: its lease is to be settled with the next get_many."""
@@ -250,6 +251,8 @@ class Channel:
 
     def get_with_weight(self, key=DEFAULT_KEY, timeout: float | None = None) -> tuple[Any, float]:
         self._register("consumer")
+        if self.prefetch > 1:
+            return self._get_prefetched(key, timeout)
         envelope, weight = self._get(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope), weight
 
@@ -263,6 +266,8 @@ class Channel:
         """
         target = self._check_target(target_weight)
         self._register("consumer")
+        if key in self._prefetched:  # older than what the channel holds: they go back first, in order
+            self._give_back_buffered(key)
         taken = self._get(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
         return self._unpack_batch(key, taken)
 
@@ -272,15 +277,19 @@ class Channel:
         this so that nothing stays stranded in it (it also tells the channel that the items it
         handed out are handed out, so that its process's exit later re-queues none of them).
         Returns how many items went back."""
-        returned = 0
-        for key, buffered in list(self._prefetched.items()):
-            returned += self._call(self._actor.give_back.remote(key, [(e, w) for e, w, _ in buffered],
-                                                                self._leases.pop(key, None)))
-            del self._prefetched[key]
+        returned = sum(self._give_back_buffered(key) for key in list(self._prefetched))
         if self._handed_out:
             self._call(self._actor.settle_leases.remote(self._handed_out))
             self._handed_out = []
         return returned
+
+    def _give_back_buffered(self, key) -> int:
+        """Return the buffer of ``key`` to the front of its queue, ending its lease."""
+        return self._call(self._give_back_buffered_ref(key))
+
+    def _give_back_buffered_ref(self, key):
+        buffered = self._prefetched.pop(key)
+        return self._actor.give_back.remote(key, [(e, w) for e, w, _ in buffered], self._leases.pop(key, None))
 
     def close(self) -> None:
         self.flush()
@@ -324,13 +333,23 @@ class Channel:
 
     async def get_async(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
         self._register("consumer")
-        envelope, _ = await self._aget(self._actor.get, key, os.getpid(), _peer_id(), timeout)
+        buffered = self._prefetched.get(key)
+        if buffered:  # items a prefetching get took ahead come first
+            envelope, _, value = buffered.popleft()
+            if not buffered:
+                self._settle(key)
+            if value is not _UNREAD:
+                return value
+        else:
+            envelope, _ = await self._aget(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         # Off the event loop: a p2p pull waits for its producer, which may wait on this loop to serve one
         return await asyncio.get_running_loop().run_in_executor(p2p.PULLS, unpack, envelope)
 
     async def get_batch_async(self, target_weight: float, key=DEFAULT_KEY, timeout=None) -> list:
         target = self._check_target(target_weight)
         self._register("consumer")
+        if key in self._prefetched:  # as in get_batch
+            await self._acall(self._give_back_buffered_ref(key))
         taken = await self._aget(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
         # Off the event loop for the same reason as get_async (and ray.get must not block a running loop)
         return await asyncio.get_running_loop().run_in_executor(p2p.PULLS, self._unpack_batch, key, taken)

@@ -558,3 +558,16 @@ def test_put_many_and_put_async_keep_the_order_of_pipelined_puts(ray_cluster):
     consumer.join(timeout=30)
     assert got == list("xabcdef")
     ch.destroy()
+
+
+def test_every_get_serves_the_prefetched_items_first(ray_cluster):
+    ch = Channel.create(f"prefetch-order-{time.time_ns()}", prefetch=4)
+    for i in range(9):
+        ch.put(i, weight=1 + i % 2)
+    assert ch.get() == 0  # took 0-3: 1, 2 and 3 wait in this client's buffer
+    assert ch.get_batch(3) == [1, 2]
+    assert ch.get_with_weight() == (3, 2.0)
+    assert asyncio.run(ch.get_async()) == 4
+    assert ch.get() == 5  # took 5-8
+    assert asyncio.run(ch.get_batch_async(100, timeout=1)) == [6, 7, 8]
+    ch.destroy()
