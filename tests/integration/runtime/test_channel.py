@@ -6,6 +6,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -297,6 +298,10 @@ def test_transport_paths(ray_cluster):
     large = pack(torch.ones(1 << 20))
     assert large.path == "object_store" and large.nbytes == 4 << 20
     assert torch.equal(unpack(large), torch.ones(1 << 20))
+    frames = {"camera": [np.full((128, 128, 3), i, dtype=np.uint8) for i in range(4)]}  # 192 KiB of numpy
+    episode = pack(frames)
+    assert episode.path == "object_store" and episode.nbytes == 4 * 128 * 128 * 3  # not through the actor
+    assert all((got == i).all() for i, got in enumerate(unpack(episode)["camera"]))
     payload = {"t": torch.ones(1 << 20)}
     local = pack(payload, same_process=True)
     assert local.path == "local" and unpack(local) is payload  # handed over by reference
