@@ -160,6 +160,11 @@ class Channel:
 
     # ------------------------------------------------------------------ sync API
     def put(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout: float | None = None) -> None:
+        """Queue ``item`` under ``key``; waits while the key is full (``timeout``: at most that long).
+
+        The item is handed over: do not change its tensors afterwards. A consumer in this process,
+        a p2p pull and a CUDA IPC handle get this very memory, so refilling one buffer and putting
+        it again can deliver later data; put a copy (``buf.clone()``) of a buffer that is reused."""
         weight = self._check_weight(weight, "weight")
         self._register("producer")
         envelope = self._pack(item)
