@@ -96,6 +96,9 @@ class Channel:
                pipeline_depth: int = 0, prefetch: int = 1) -> "Channel":
         """Create the channel ``name``. Call from the driver or a worker.
 
+        ``exist_ok``: return the channel if it exists already; one that exists with another
+        ``maxsize`` or ``transport`` is refused (``ChannelError``).
+
         ``maxsize``: the capacity of *each key*, in weight units (0 = unbounded). A put waits
         while its key's queued weight plus the item's would exceed it; an item heavier than
         ``maxsize`` is refused at once.
@@ -138,6 +141,14 @@ class Channel:
             raise ChannelError(
                 f"a channel named '{name}' already exists; use Channel.connect('{name}') or exist_ok=True"
             ) from exc
+        if exist_ok:  # it may be another creator's: its queue must be the one asked for
+            info = ray.get(actor.info.remote())
+            for setting, wanted in (("maxsize", maxsize), ("transport", transport)):
+                if info[setting] != wanted:
+                    raise ChannelError(
+                        f"channel '{name}': Channel.create(exist_ok=True) asked for {setting}={wanted!r}, but the "
+                        f"channel exists with {setting}={info[setting]!r}; create it with the same {setting} "
+                        f"everywhere, or use Channel.connect('{name}')")
         return cls(name, actor, transport, pipeline_depth, prefetch)
 
     @classmethod
@@ -318,6 +329,16 @@ class Channel:
         self._register("producer", wait=True)
 
     def destroy(self) -> None:
+        """End the channel for everyone (its actor). The queued items this process put that live in
+        its memory (same-process items, p2p tensors, shared-memory segments) are dropped first;
+        another producer process keeps its own until it exits."""
+        try:
+            queued = ray.get(self._actor.queued.remote(), timeout=ABANDON_WAIT_S)
+        except Exception:  # the actor is gone already: nothing to ask
+            queued = []
+        for envelope in queued:
+            if envelope.producer_pid == os.getpid() and envelope.producer_node == _node_id():
+                discard(envelope)
         ray.kill(self._actor)
 
     # ------------------------------------------------------------------ async API

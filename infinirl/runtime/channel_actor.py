@@ -446,6 +446,11 @@ class ChannelActor:
             self.closed = True
             self.cond.notify_all()
 
+    async def queued(self) -> list[Envelope]:
+        """The envelopes in the queues (not the leased ones: a consumer still holds those), for
+        producers to drop what they hold for them when the channel is destroyed."""
+        return [item.envelope for queue in self.queues.values() for item in queue]
+
     async def qsize(self, key=None) -> int:
         if key is None:
             return sum(len(q) for q in self.queues.values())

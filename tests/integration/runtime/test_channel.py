@@ -576,3 +576,27 @@ def test_every_get_serves_the_prefetched_items_first(ray_cluster):
     assert ch.get() == 5  # took 5-8
     assert asyncio.run(ch.get_batch_async(100, timeout=1)) == [6, 7, 8]
     ch.destroy()
+
+
+def test_create_with_exist_ok_refuses_other_settings(ray_cluster):
+    ch = fresh(maxsize=4)
+    assert Channel.create(ch.name, maxsize=4, exist_ok=True).info()["maxsize"] == 4
+    with pytest.raises(ChannelError, match="maxsize=8.*maxsize=4"):
+        Channel.create(ch.name, maxsize=8, exist_ok=True)
+    with pytest.raises(ChannelError, match="transport='p2p'.*transport='auto'"):
+        Channel.create(ch.name, maxsize=4, transport="p2p", exist_ok=True)
+    ch.destroy()
+
+
+def test_destroy_drops_the_queued_items_this_process_holds(ray_cluster):
+    from infinirl.runtime import transport
+
+    ch = fresh()
+    ch.register_consumer()
+    ch.put("warm-up")  # learns that the only consumer is this process: the next items go by reference
+    held = set(transport._local_items)
+    ch.put(torch.ones(1 << 16))
+    ch.put(torch.ones(1 << 16))
+    assert len(set(transport._local_items) - held) == 2
+    ch.destroy()
+    assert not set(transport._local_items) - held
