@@ -33,6 +33,7 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import threading
 import time
 import uuid
 from collections import deque
@@ -83,6 +84,9 @@ class Channel:
         self._registration = None  # the producer registration's reply, until it is read
         self._producer = uuid.uuid4().hex  # per client: a pickled copy in a worker is a new producer
         self._seq = 0
+        # Threads sharing this client take put numbers under it: two with the same number would
+        # leave a later one unused, and the channel would hold every put behind it for good.
+        self._seq_lock = threading.Lock()
         self._inflight: deque = deque()
         self._roles: set[str] = set()  # registered with the channel actor from this client
 
@@ -91,6 +95,9 @@ class Channel:
     def create(cls, name: str, maxsize: float = 0, exist_ok: bool = False, transport: str = "auto",
                pipeline_depth: int = 0, prefetch: int = 1) -> "Channel":
         """Create the channel ``name``. Call from the driver or a worker.
+
+        ``exist_ok``: return the channel if it exists already; one that exists with another
+        ``maxsize`` or ``transport`` is refused (``ChannelError``).
 
         ``maxsize``: the capacity of *each key*, in weight units (0 = unbounded). A put waits
         while its key's queued weight plus the item's would exceed it; an item heavier than
@@ -101,13 +108,15 @@ class Channel:
         or GPUs; producers must be Workers, the driver falls back to the object store).
 
         ``pipeline_depth`` > 0 lets a streaming producer keep that many ``put`` calls in flight
-        instead of waiting for each acknowledgement: per-producer order is kept, back-pressure
+        instead of waiting for each acknowledgement: per-producer order is kept (``put_many`` and
+        ``put_async`` of the same client queue behind the puts still in flight), back-pressure
         still holds (a producer runs at most ``pipeline_depth`` items ahead of ``maxsize``), and
         errors such as a closed channel surface on a later ``put``, ``flush()`` or ``close()``.
 
         ``prefetch`` > 1 lets ``get`` take up to that many waiting items in one round trip and hand
         them out one by one (a consumer then holds at most ``prefetch - 1`` items others cannot
-        take). If its process dies, the items it held go back to the queue, and so may the ones it
+        take; its other gets serve those first, or, for a batch, give them back first, so a key's
+        order holds). If its process dies, the items it held go back to the queue, and so may the ones it
         handed out since its last round trip (delivered again, to another consumer). Both options
         trade a little strictness for throughput on streaming stages.
         """
@@ -132,6 +141,14 @@ class Channel:
             raise ChannelError(
                 f"a channel named '{name}' already exists; use Channel.connect('{name}') or exist_ok=True"
             ) from exc
+        if exist_ok:  # it may be another creator's: its queue must be the one asked for
+            info = ray.get(actor.info.remote())
+            for setting, wanted in (("maxsize", maxsize), ("transport", transport)):
+                if info[setting] != wanted:
+                    raise ChannelError(
+                        f"channel '{name}': Channel.create(exist_ok=True) asked for {setting}={wanted!r}, but the "
+                        f"channel exists with {setting}={info[setting]!r}; create it with the same {setting} "
+                        f"everywhere, or use Channel.connect('{name}')")
         return cls(name, actor, transport, pipeline_depth, prefetch)
 
     @classmethod
@@ -154,22 +171,46 @@ class Channel:
 
     # ------------------------------------------------------------------ sync API
     def put(self, item: Any, key=DEFAULT_KEY, weight: float = 1.0, timeout: float | None = None) -> None:
+        """Queue ``item`` under ``key``; waits while the key is full (``timeout``: at most that long).
+
+        The item is handed over: do not change its tensors afterwards. A consumer in this process,
+        a p2p pull and a CUDA IPC handle get this very memory, so refilling one buffer and putting
+        it again can deliver later data; put a copy (``buf.clone()``) of a buffer that is reused."""
         weight = self._check_weight(weight, "weight")
         self._register("producer")
         envelope = self._pack(item)
         if not self.pipeline_depth:
             self._settle_put(self._actor.put.remote(envelope, key, weight, timeout), envelope)
             return
-        self._inflight.append((self._actor.put.remote(envelope, key, weight, timeout, self._producer, self._seq),
-                               envelope))
-        self._seq += 1
+        with self._seq_lock:
+            self._inflight.append((self._submit_put(self._actor.put, envelope, key, weight, timeout), envelope))
         while len(self._inflight) > self.pipeline_depth:
-            self._settle_put(*self._inflight.popleft())
+            if not self._settle_next():
+                break
 
     def flush(self) -> None:
         """Wait until every pipelined ``put`` of this client has been accepted (raises its error)."""
-        while self._inflight:
-            self._settle_put(*self._inflight.popleft())
+        while self._settle_next():
+            pass
+
+    def _submit_put(self, method, *args):
+        """Submit a put (or put_many) call; with ``pipeline_depth`` it takes the next number of this
+        producer's order, so that it lands behind the pipelined puts still in flight. Called under
+        ``_seq_lock`` where the call is pipelined."""
+        if not self.pipeline_depth:
+            return method.remote(*args)
+        ref = method.remote(*args, self._producer, self._seq)
+        self._seq += 1
+        return ref
+
+    def _settle_next(self) -> bool:
+        """Settle the oldest put in flight; False if none is (another thread took the last one)."""
+        try:
+            ref, envelope = self._inflight.popleft()
+        except IndexError:
+            return False
+        self._settle_put(ref, envelope)
+        return True
 
     def put_many(self, items: list, key=DEFAULT_KEY, weights: list[float] | None = None, timeout=None) -> None:
         """Put several items with one round trip (they stay in order)."""
@@ -181,21 +222,24 @@ class Channel:
         self._register("producer")
         # On a failure, some of the items may be queued already: none is discarded (a segment
         # of this process's shared memory stays busy until the process exits, within its cap).
-        consumers = self._call(self._actor.put_many.remote([self._pack(i) for i in items], key, weights, timeout))
+        envelopes = [self._pack(i) for i in items]
+        with self._seq_lock:  # numbered like a pipelined put: queued behind those in flight
+            ref = self._submit_put(self._actor.put_many, envelopes, key, weights, timeout)
+        consumers = self._call(ref)
         self._note_consumers(consumers)
 
     def get(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
         """The oldest item of ``key``; waits for one (``timeout``: at most that many seconds)."""
         self._register("consumer")
         if self.prefetch > 1:
-            return self._get_prefetched(key, timeout)
+            return self._get_prefetched(key, timeout)[0]
         envelope, _ = self._get(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope)
 
-    def _get_prefetched(self, key, timeout: float | None) -> Any:
-        """``get`` with ``prefetch`` > 1: from this client's buffer of ``key``, refilled by one
-        ``get_many``. That call also tells the channel which of this client's leases are handed out
-        in full: the acknowledgement costs no message of its own."""
+    def _get_prefetched(self, key, timeout: float | None) -> tuple[Any, float]:
+        """``get`` with ``prefetch`` > 1, as ``(item, weight)``: from this client's buffer of
+        ``key``, refilled by one ``get_many``. That call also tells the channel which of this client's
+        leases are handed out in full: the acknowledgement costs no message of its own."""
         buffered = self._prefetched.get(key)
         if not buffered:
             request = uuid.uuid4().hex
@@ -209,10 +253,10 @@ class Channel:
             except BaseException:  # nothing buffered: the lease has nothing left to hand out
                 self._settle(key)
                 raise
-        envelope, _, value = buffered.popleft()
+        envelope, weight, value = buffered.popleft()
         if not buffered:
             self._settle(key)
-        return unpack(envelope) if value is _UNREAD else value
+        return (unpack(envelope) if value is _UNREAD else value), weight
 
     def _settle(self, key) -> None:
         """The buffer of ``key`` is empty: its lease is to be settled with the next get_many."""
@@ -223,6 +267,8 @@ class Channel:
 
     def get_with_weight(self, key=DEFAULT_KEY, timeout: float | None = None) -> tuple[Any, float]:
         self._register("consumer")
+        if self.prefetch > 1:
+            return self._get_prefetched(key, timeout)
         envelope, weight = self._get(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         return unpack(envelope), weight
 
@@ -236,6 +282,8 @@ class Channel:
         """
         target = self._check_target(target_weight)
         self._register("consumer")
+        if key in self._prefetched:  # older than what the channel holds: they go back first, in order
+            self._give_back_buffered(key)
         taken = self._get(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
         return self._unpack_batch(key, taken)
 
@@ -245,15 +293,19 @@ class Channel:
         this so that nothing stays stranded in it (it also tells the channel that the items it
         handed out are handed out, so that its process's exit later re-queues none of them).
         Returns how many items went back."""
-        returned = 0
-        for key, buffered in list(self._prefetched.items()):
-            returned += self._call(self._actor.give_back.remote(key, [(e, w) for e, w, _ in buffered],
-                                                                self._leases.pop(key, None)))
-            del self._prefetched[key]
+        returned = sum(self._give_back_buffered(key) for key in list(self._prefetched))
         if self._handed_out:
             self._call(self._actor.settle_leases.remote(self._handed_out))
             self._handed_out = []
         return returned
+
+    def _give_back_buffered(self, key) -> int:
+        """Return the buffer of ``key`` to the front of its queue, ending its lease."""
+        return self._call(self._give_back_buffered_ref(key))
+
+    def _give_back_buffered_ref(self, key):
+        buffered = self._prefetched.pop(key)
+        return self._actor.give_back.remote(key, [(e, w) for e, w, _ in buffered], self._leases.pop(key, None))
 
     def close(self) -> None:
         self.flush()
@@ -277,6 +329,16 @@ class Channel:
         self._register("producer", wait=True)
 
     def destroy(self) -> None:
+        """End the channel for everyone (its actor). The queued items this process put that live in
+        its memory (same-process items, p2p tensors, shared-memory segments) are dropped first;
+        another producer process keeps its own until it exits."""
+        try:
+            queued = ray.get(self._actor.queued.remote(), timeout=ABANDON_WAIT_S)
+        except Exception:  # the actor is gone already: nothing to ask
+            queued = []
+        for envelope in queued:
+            if envelope.producer_pid == os.getpid() and envelope.producer_node == _node_id():
+                discard(envelope)
         ray.kill(self._actor)
 
     # ------------------------------------------------------------------ async API
@@ -288,20 +350,32 @@ class Channel:
             self._note_consumers(await self._acall(registration))
         envelope = self._pack(item)
         try:
-            self._note_consumers(await self._acall(self._actor.put.remote(envelope, key, weight, timeout)))
+            with self._seq_lock:  # numbered like a pipelined put: queued behind those in flight
+                ref = self._submit_put(self._actor.put, envelope, key, weight, timeout)
+            self._note_consumers(await self._acall(ref))
         except Exception:  # refused, or its actor is gone: the item is not queued (a cancel may have queued it)
             discard(envelope)
             raise
 
     async def get_async(self, key=DEFAULT_KEY, timeout: float | None = None) -> Any:
         self._register("consumer")
-        envelope, _ = await self._aget(self._actor.get, key, os.getpid(), _peer_id(), timeout)
+        buffered = self._prefetched.get(key)
+        if buffered:  # items a prefetching get took ahead come first
+            envelope, _, value = buffered.popleft()
+            if not buffered:
+                self._settle(key)
+            if value is not _UNREAD:
+                return value
+        else:
+            envelope, _ = await self._aget(self._actor.get, key, os.getpid(), _peer_id(), timeout)
         # Off the event loop: a p2p pull waits for its producer, which may wait on this loop to serve one
         return await asyncio.get_running_loop().run_in_executor(p2p.PULLS, unpack, envelope)
 
     async def get_batch_async(self, target_weight: float, key=DEFAULT_KEY, timeout=None) -> list:
         target = self._check_target(target_weight)
         self._register("consumer")
+        if key in self._prefetched:  # as in get_batch
+            await self._acall(self._give_back_buffered_ref(key))
         taken = await self._aget(self._actor.get_batch, target, key, os.getpid(), _peer_id(), timeout, key=key)
         # Off the event loop for the same reason as get_async (and ray.get must not block a running loop)
         return await asyncio.get_running_loop().run_in_executor(p2p.PULLS, self._unpack_batch, key, taken)

@@ -255,9 +255,17 @@ class ChannelActor:
     def _fits(self, key, weight: float) -> bool:
         return self.weight_by_key.get(key, 0.0) + weight <= self.maxsize
 
-    async def put_many(self, envelopes: list[Envelope], key, weights: list[float], timeout):
-        for envelope, weight in zip(envelopes, weights):
-            await self.put(envelope, key, weight, timeout)
+    async def put_many(self, envelopes: list[Envelope], key, weights: list[float], timeout,
+                       producer: str | None = None, seq: int = -1):
+        """The items in order, as one numbered call of a pipelined producer (``seq`` >= 0)."""
+        if seq >= 0:
+            await self.order.wait_turn(producer, seq)  # outside the try: a cancelled wait gives its turn up
+        try:
+            for envelope, weight in zip(envelopes, weights):
+                await self._put(envelope, key, weight, timeout)
+        finally:
+            if seq >= 0:
+                self.order.end_turn(producer, seq)
         return self._consumers()
 
     # ------------------------------------------------------------------ get
@@ -438,6 +446,11 @@ class ChannelActor:
             self.closed = True
             self.cond.notify_all()
 
+    async def queued(self) -> list[Envelope]:
+        """The envelopes in the queues (not the leased ones: a consumer still holds those), for
+        producers to drop what they hold for them when the channel is destroyed."""
+        return [item.envelope for queue in self.queues.values() for item in queue]
+
     async def qsize(self, key=None) -> int:
         if key is None:
             return sum(len(q) for q in self.queues.values())
@@ -454,6 +467,8 @@ class ChannelActor:
                 **self.stats}
 
     async def _wait_for(self, predicate, deadline: float | None, what: str, timeout: float | None) -> None:
+        if predicate():  # asyncio.wait_for with no time left cancels the wait before it checks anything
+            return
         remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
         try:
             await asyncio.wait_for(self.cond.wait_for(predicate), remaining)

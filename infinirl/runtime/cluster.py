@@ -48,7 +48,8 @@ class ClusterConfig:
     num_cpus: int | None = None
     """CPUs of a *local* instance (default: all). Ignored when joining."""
     num_gpus: int | None = None
-    """GPUs of a *local* instance (default: all visible). Ignored when joining."""
+    """GPUs of a *local* instance (default: all visible); the inventory lists only the first this
+    many of the visible ones, so placement never uses more. Ignored when joining."""
     wait_for_nodes: int = 1
     """Block in ``start()`` until this many nodes are alive (multi-node jobs)."""
     wait_timeout_s: float = 120.0
@@ -207,6 +208,7 @@ class Cluster:
             )
             probes.append(task.remote(self.config.robot_plugins, list(self.config.robot_plugin_modules)))
         found = ray.get(probes)
+        local = self.config.address in (None, "", "local")
         inventory_nodes = []
         seen_robot_names: set[str] = set()
         for index, (node, info) in enumerate(zip(nodes, found)):
@@ -224,11 +226,18 @@ class Cluster:
                     ip=node["NodeManagerAddress"],
                     num_cpus=int(resources.get("CPU", 0)),
                     memory_bytes=int(resources.get("memory", 0)),
-                    accelerators=tuple(info["accelerators"]),
+                    accelerators=capped_accelerators(info["accelerators"], self.config.num_gpus if local else None),
                     robots=tuple(robots),
                 )
             )
         return ClusterInventory(nodes=tuple(inventory_nodes))
+
+
+def capped_accelerators(accelerators, limit: int | None) -> tuple:
+    """The node's first ``limit`` accelerators (all if None): ``num_gpus`` of a local instance
+    bounds what placement may use, as it bounds Ray's GPU resource."""
+    ordered = sorted(accelerators, key=lambda a: a.local_index)
+    return tuple(ordered if limit is None else ordered[:limit])
 
 
 def _node_sort_key(node: dict) -> tuple:

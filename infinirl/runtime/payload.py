@@ -88,10 +88,27 @@ def tensors_in(payload: Any) -> list[torch.Tensor]:
 
 
 def tensor_bytes(payload: Any) -> int:
-    """Bytes of tensor data in a payload (walks containers); used to pick the path."""
+    """Bytes of array data in a payload (walks containers): torch tensors, numpy arrays and bytes
+    objects; used to pick the path (a dict of numpy camera frames is as large as one of tensors)."""
+    return sum(t.numel() * t.element_size() for t in tensors_in(payload)) + other_array_bytes(payload)
+
+
+def other_array_bytes(payload: Any) -> int:
+    """Bytes of the numpy arrays and bytes objects in a payload (walks the containers ``walk``
+    does): data that only the object store moves without copying it through the channel actor."""
     if isinstance(payload, np.ndarray):
         return payload.nbytes
-    return sum(t.numel() * t.element_size() for t in tensors_in(payload))
+    if isinstance(payload, (bytes, bytearray)):
+        return len(payload)
+    if isinstance(payload, memoryview):
+        return payload.nbytes
+    if isinstance(payload, dict) or _is_tensordict(payload):
+        return sum(other_array_bytes(v) for v in payload.values())
+    if isinstance(payload, (list, tuple)):
+        return sum(other_array_bytes(v) for v in payload)
+    if dataclasses.is_dataclass(payload) and not isinstance(payload, type):
+        return sum(other_array_bytes(getattr(payload, f.name)) for f in dataclasses.fields(payload))
+    return 0
 
 
 def box(payload: Any, cuda_ipc: bool = False) -> Any:

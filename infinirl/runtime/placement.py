@@ -30,7 +30,9 @@ nodes from each node's ``num_cpus`` (node 0 has slots 0..c0-1, node 1 the next o
 visible devices. The same config then runs on a laptop and on a GPU cluster.
 
 Visible devices: on an accelerator cluster every rank gets ``CUDA_VISIBLE_DEVICES`` (or the kind's
-variable, see :data:`VISIBLE_DEVICES_VARIABLE`) with its *local* device indices; device-less ranks
+variable, see :data:`VISIBLE_DEVICES_VARIABLE`) with its *local* device indices (numbered as the
+node's processes see them: its host maps them through the mask the node was started with, see
+:func:`physical_visible_devices`); device-less ranks
 (node- and robot-placed) get it set to ``""`` so they cannot grab GPU 0 by accident. On CPU-only
 clusters the variable is left out: there is nothing to hide and nothing to select.
 
@@ -64,6 +66,34 @@ VISIBLE_DEVICES_VARIABLE = {
     "npu": "ASCEND_RT_VISIBLE_DEVICES",
     "xpu": "ZE_AFFINITY_MASK",
 }
+
+
+
+def is_visible_devices_variable(name: str) -> bool:
+    return name in VISIBLE_DEVICES_VARIABLE.values() or name.endswith("_VISIBLE_DEVICES")
+
+
+def physical_visible_devices(variable: str, local: str, inherited: str | None) -> str:
+    """The value of ``variable`` that selects the rank's ``local`` devices (comma-separated indices
+    as placement writes them) in a process that started with ``inherited`` as that variable.
+
+    Discovery numbers a node's devices as its processes see them, i.e. under the mask the node was
+    started with (``CUDA_VISIBLE_DEVICES=4,5,6,7``: local 0 is physical 4); a rank's mask has to
+    name the same devices, so local indices are mapped through the inherited one."""
+    if not local or inherited is None:
+        return local
+    mask = [entry.strip() for entry in inherited.split(",") if entry.strip()]
+    mapped = []
+    for index in local.split(","):
+        position = int(index)
+        if not 0 <= position < len(mask):
+            raise ValueError(
+                f"this rank was placed on local device {position}, but its process sees {len(mask)} device(s) "
+                f"({variable}={inherited!r} on its node); start every node with the same {variable} it had when "
+                "the cluster took its inventory, or refresh the inventory")
+        mapped.append(mask[position])
+    return ",".join(mapped)
+
 
 ACCEPTED_FORMS = (
     "'0-3' (one process per device 0..3), '0,2,5', '4', "

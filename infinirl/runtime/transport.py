@@ -3,7 +3,8 @@
 ``pack(payload)`` returns an ``Envelope``, small and cheap to send through a channel's queue;
 ``unpack(envelope)`` returns the payload in the consumer. The path is chosen per payload:
 
-- **inline**: small payloads (< ``INLINE_LIMIT_BYTES`` of tensor data) ride inside the envelope, as
+- **inline**: small payloads (< ``INLINE_LIMIT_BYTES`` of array data: torch tensors, numpy arrays
+  and bytes objects, nested in containers or not) ride inside the envelope, as
   Ray itself inlines small task arguments: one RPC, no object-store round trip.
 - **local**: producer and consumer are the same process: the object is handed over by reference.
 - **shm**: every consumer of the channel is on the producer's node: CPU tensors are copied into a
@@ -14,7 +15,9 @@
   the same node maps them from shared memory with zero copies, another node pulls them directly
   from the producer's node. (Ray pickles a ``torch.Tensor`` by copying its data, while a numpy
   view goes out-of-band and is mapped without a copy: that is why tensors are boxed here.) Taken
-  when a consumer may be on another node, or when the shared-memory pool is full.
+  when a consumer may be on another node, when the shared-memory pool is full, or when the payload
+  holds 64 KiB or more of numpy arrays or bytes (shared memory and p2p carry torch tensors only;
+  Ray moves numpy arrays out-of-band).
 - **cuda_ipc**: CUDA tensors travel as CUDA IPC handles when the consumer sees the same GPU; the
   producer keeps them alive until the consumer has rebuilt them.
 - **p2p**: tensors go producer -> consumer over a pairwise process group (see ``p2p``).
@@ -36,7 +39,7 @@ from typing import Any
 import ray
 
 from infinirl.runtime import p2p, shm_pool
-from infinirl.runtime.payload import box, tensor_bytes, tensors_in, unbox
+from infinirl.runtime.payload import box, other_array_bytes, tensor_bytes, tensors_in, unbox
 
 INLINE_LIMIT_BYTES = 64 * 1024
 
@@ -88,7 +91,10 @@ def pack(payload: Any, same_process: bool = False, force_p2p: bool = False,
             _local_items[local_id] = payload
         return Envelope("local", pid, node, local_id=local_id)
     nbytes = tensor_bytes(payload)
-    if force_p2p and p2p.available() and nbytes:
+    # p2p and shared memory carry torch tensors; numpy arrays and bytes ride in the item's
+    # structure, through the channel actor: a payload with many of those takes the object store.
+    other = other_array_bytes(payload)
+    if force_p2p and p2p.available() and nbytes > other and other < INLINE_LIMIT_BYTES:
         return Envelope("p2p", pid, node, body=p2p.offer(payload), nbytes=nbytes)
     if _has_cuda(payload):
         if p2p.available():  # consumer decides: CUDA IPC on our GPU, NCCL from any other
@@ -96,7 +102,7 @@ def pack(payload: Any, same_process: bool = False, force_p2p: bool = False,
         return Envelope("cuda_ipc", pid, node, body=box(payload, cuda_ipc=True), nbytes=nbytes)
     if nbytes < INLINE_LIMIT_BYTES:
         return Envelope("inline", pid, node, body=payload, nbytes=nbytes)
-    item = _write_shared(payload, shared_memory)
+    item = _write_shared(payload, shared_memory) if other < INLINE_LIMIT_BYTES else None
     if item is not None:
         return Envelope("shm", pid, node, body=item, nbytes=nbytes)
     # The ref sits in a list so Ray passes it as a borrowed reference instead of resolving it.

@@ -408,6 +408,9 @@ class WorkerGroup:
         self.rank_info: list[dict] = []
         self._caller = uuid.uuid4().hex
         self._seq = [0] * len(actors)
+        # Driver threads sharing the group take call numbers under it: two calls with the same
+        # number would leave a later one unused, and the rank would hold every call behind it for good.
+        self._seq_lock = threading.Lock()
         self._launch_settings: tuple = ((), {}, None, {})  # args, kwargs, restart, env_vars: for resize()
         # A group dropped without shutdown(): Ray ends its ranks once the last handle goes, and
         # this frees its name and removes its crash logs then (or at exit) unless a crash was
@@ -539,14 +542,15 @@ class WorkerGroup:
     def _submit_all(self, method: str, calls: list[tuple[int, tuple]], kwargs: dict) -> GroupHandle:
         refs, seqs = [], []
         for rank, args in calls:
-            seq = self._seq[rank]
-            self._seq[rank] += 1
             actor = self._actors[rank]
-            try:
-                ref = actor.execute.remote(method, args, kwargs, self._caller, seq)
-            except BaseException:  # e.g. an argument that cannot be pickled: the number is never used
-                self._skip(rank, seq)
-                raise
+            with self._seq_lock:
+                seq = self._seq[rank]
+                self._seq[rank] += 1
+                try:
+                    ref = actor.execute.remote(method, args, kwargs, self._caller, seq)
+                except BaseException:  # e.g. an argument that cannot be pickled: the number is never used
+                    self._skip(rank, seq)
+                    raise
             _TURNS.watch(ref, actor, self._caller, seq)
             refs.append(ref)
             seqs.append(seq)

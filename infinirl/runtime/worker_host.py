@@ -27,6 +27,7 @@ from infinirl.runtime.call_order import CallOrder
 from infinirl.runtime.cancellation import CancelToken, run_with_token
 from infinirl.runtime.compute_thread import mark_compute_thread
 from infinirl.runtime.errors import WorkerError
+from infinirl.runtime.placement import is_visible_devices_variable, physical_visible_devices
 
 __all__ = ["RankContext", "WorkerHost"]
 
@@ -85,7 +86,8 @@ class WorkerHost:
     """Run as a Ray actor, one per rank; turns every failure into a ``WorkerError``."""
 
     def __init__(self, worker_cls: type, ctx: RankContext, args: tuple, kwargs: dict):
-        os.environ.update(ctx.env_vars)
+        os.environ.update({name: physical_visible_devices(name, value, os.environ.get(name))
+                           if is_visible_devices_variable(name) else value for name, value in ctx.env_vars.items()})
         _quiet_ray_async_warnings()
         self._restarted = _was_reconstructed()
         self._ctx = ctx

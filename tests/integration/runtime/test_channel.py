@@ -1,10 +1,12 @@
 """Channel: per-key FIFO, weighted batches, back-pressure, close, many producers/consumers, paths."""
 
 import asyncio
+import sys
 import threading
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -296,6 +298,10 @@ def test_transport_paths(ray_cluster):
     large = pack(torch.ones(1 << 20))
     assert large.path == "object_store" and large.nbytes == 4 << 20
     assert torch.equal(unpack(large), torch.ones(1 << 20))
+    frames = {"camera": [np.full((128, 128, 3), i, dtype=np.uint8) for i in range(4)]}  # 192 KiB of numpy
+    episode = pack(frames)
+    assert episode.path == "object_store" and episode.nbytes == 4 * 128 * 128 * 3  # not through the actor
+    assert all((got == i).all() for i, got in enumerate(unpack(episode)["camera"]))
     payload = {"t": torch.ones(1 << 20)}
     local = pack(payload, same_process=True)
     assert local.path == "local" and unpack(local) is payload  # handed over by reference
@@ -504,3 +510,93 @@ def test_a_same_process_item_is_served_only_to_its_pid_on_its_node():
     item = _Item(Envelope("local", 1234, "node-a", local_id=1), 1.0)
     assert item.serves(1234, "node-a")
     assert not item.serves(1234, "node-b") and not item.serves(99, "node-a")
+
+
+def test_pipelined_puts_from_two_threads_all_arrive(ray_cluster):
+    """Each pipelined put takes the next number of the producer's order: two threads that took the
+    same number would leave a later one unused, and every put behind it would wait for it forever."""
+    ch = Channel.create(f"pipe-threads-{time.time_ns()}", pipeline_depth=4)
+    old_interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as possible, inside the numbering too
+    try:
+        threads = [threading.Thread(target=lambda lo=lo: [ch.put(lo + i) for i in range(100)], daemon=True)
+                   for lo in (0, 1000)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=30)
+    finally:
+        sys.setswitchinterval(old_interval)
+    assert not any(thread.is_alive() for thread in threads), "a put waits for a turn that never comes"
+    got = [ch.get(timeout=10) for _ in range(200)]
+    for lo in (0, 1000):
+        assert [x for x in got if lo <= x < lo + 100] == list(range(lo, lo + 100))
+    ch.destroy()
+
+
+def test_timeout_zero_takes_what_is_there(ray_cluster):
+    ch = fresh(maxsize=2)
+    ch.put("a", timeout=0)
+    ch.put("b", timeout=0)
+    with pytest.raises(TimeoutError, match="put on key"):
+        ch.put("c", timeout=0)  # full
+    assert ch.get(timeout=0) == "a"
+    assert ch.get_batch(1, timeout=0) == ["b"]
+    with pytest.raises(TimeoutError, match="get on key"):
+        ch.get(timeout=0)  # empty
+    ch.destroy()
+
+
+def test_put_many_and_put_async_keep_the_order_of_pipelined_puts(ray_cluster):
+    ch = Channel.create(f"pipe-mixed-{time.time_ns()}", maxsize=1, pipeline_depth=4)
+    got: list = []
+    consumer = threading.Thread(target=lambda: (time.sleep(0.5), got.extend(ch.get(timeout=30) for _ in range(7))),
+                                daemon=True)
+    consumer.start()
+    for item in "xab":  # x fills the key; a waits for space and b for its turn
+        ch.put(item)
+    ch.put_many(["c"])
+    ch.put("d")
+    ch.put("e")
+    asyncio.run(ch.put_async("f"))
+    ch.flush()
+    consumer.join(timeout=30)
+    assert got == list("xabcdef")
+    ch.destroy()
+
+
+def test_every_get_serves_the_prefetched_items_first(ray_cluster):
+    ch = Channel.create(f"prefetch-order-{time.time_ns()}", prefetch=4)
+    for i in range(9):
+        ch.put(i, weight=1 + i % 2)
+    assert ch.get() == 0  # took 0-3: 1, 2 and 3 wait in this client's buffer
+    assert ch.get_batch(3) == [1, 2]
+    assert ch.get_with_weight() == (3, 2.0)
+    assert asyncio.run(ch.get_async()) == 4
+    assert ch.get() == 5  # took 5-8
+    assert asyncio.run(ch.get_batch_async(100, timeout=1)) == [6, 7, 8]
+    ch.destroy()
+
+
+def test_create_with_exist_ok_refuses_other_settings(ray_cluster):
+    ch = fresh(maxsize=4)
+    assert Channel.create(ch.name, maxsize=4, exist_ok=True).info()["maxsize"] == 4
+    with pytest.raises(ChannelError, match="maxsize=8.*maxsize=4"):
+        Channel.create(ch.name, maxsize=8, exist_ok=True)
+    with pytest.raises(ChannelError, match="transport='p2p'.*transport='auto'"):
+        Channel.create(ch.name, maxsize=4, transport="p2p", exist_ok=True)
+    ch.destroy()
+
+
+def test_destroy_drops_the_queued_items_this_process_holds(ray_cluster):
+    from infinirl.runtime import transport
+
+    ch = fresh()
+    ch.register_consumer()
+    ch.put("warm-up")  # learns that the only consumer is this process: the next items go by reference
+    held = set(transport._local_items)
+    ch.put(torch.ones(1 << 16))
+    ch.put(torch.ones(1 << 16))
+    assert len(set(transport._local_items) - held) == 2
+    ch.destroy()
+    assert not set(transport._local_items) - held

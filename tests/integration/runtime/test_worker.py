@@ -536,3 +536,26 @@ def test_raylet_reports_of_deliberate_deaths_are_dropped_and_others_kept(ray_clu
     raylet_says(4_000_002)
     out = capsys.readouterr().out
     assert "Worker PID: 4000002" in out and "Worker PID: 4000001" not in out
+
+
+def test_calls_from_two_driver_threads_all_complete(ray_cluster):
+    """Each call takes the next number of its rank's call order: two threads that took the same
+    number would leave a later one unused, and every call behind it would wait for it forever."""
+    group = WorkerGroup.launch(Echo, "two_threads", num_ranks=1)
+    old_interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as possible, inside the numbering too
+    try:
+        handles: list = []
+        threads = [threading.Thread(target=lambda: handles.extend(group.add(i) for i in range(100)))
+                   for _ in range(2)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    finally:
+        sys.setswitchinterval(old_interval)
+    assert len(handles) == 200
+    for handle in handles:
+        handle.wait(timeout=30)
+    assert len(group.order().wait()[0]) == 200
+    group.shutdown()
